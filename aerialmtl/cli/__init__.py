@@ -1,0 +1,69 @@
+"""The ``aerialmtl`` command line: a thin click group over the library.
+
+Every command module defines one click command; this module registers them and turns expected
+errors (:class:`~aerialmtl.errors.AerialMTLError`, unreadable rasters, unwritable folders) into a
+one-line message on stderr with exit code 1. ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from aerialmtl import __version__
+from aerialmtl.cli.demo import demo
+from aerialmtl.cli.evaluate import evaluate
+from aerialmtl.cli.predict import predict
+from aerialmtl.cli.synth import synth
+from aerialmtl.cli.tile import tile
+from aerialmtl.cli.train import train
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="aerialmtl")
+@click.option("--debug", is_flag=True, help="Show full tracebacks instead of one-line errors.")
+@click.pass_context
+def cli(ctx: click.Context, debug: bool) -> None:
+    """Height (nDSM) and land-cover maps with MC-dropout uncertainty from aerial orthophotos."""
+    ctx.ensure_object(dict)
+    ctx.obj["debug"] = debug
+
+
+for _command in (synth, tile, train, predict, evaluate, demo):
+    cli.add_command(_command)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text or exc.__class__.__name__
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point: run the group, mapping expected errors to exit code 1."""
+    args = sys.argv[1:] if argv is None else argv
+    debug = "--debug" in args
+    from rasterio.errors import RasterioError
+
+    from aerialmtl.errors import AerialMTLError
+
+    try:
+        cli.main(args=args, prog_name="aerialmtl", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("Aborted.", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:  # usage errors → exit 2 (click's own formatting)
+        exc.show()
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        click.echo("Error: interrupted; no output was left at a final path. Re-run the command to finish.", err=True)
+        sys.exit(130)
+    except (AerialMTLError, RasterioError, OSError) as exc:
+        if debug:
+            raise
+        click.echo(f"Error: {_one_line(exc)}", err=True)
+        if not isinstance(exc, AerialMTLError):
+            click.echo("(run with --debug for the traceback)", err=True)
+        sys.exit(1)

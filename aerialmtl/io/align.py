@@ -1,0 +1,361 @@
+"""Put every layer on the orthophoto's grid, window by window.
+
+The orthophoto (optionally resampled to a working GSD) defines the reference :class:`Grid`. Other
+layers (DSM, DTM, nDSM, labels, reference maps) are opened as :class:`AlignedRaster` objects that
+reproject/resample onto that grid lazily through a GDAL warped VRT, so that reading one window never
+loads a whole raster. Resampling follows the layer kind:
+
+* ``image``: ``average`` when the source is finer than the grid (downsampling), ``bilinear`` otherwise;
+* ``height``: ``bilinear``;
+* ``labels``: ``mode`` when downsampling, ``nearest`` otherwise.
+
+Every read returns the data and a boolean validity mask (nodata, NaN, alpha = 0 and pixels outside the
+source are invalid).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Sequence
+
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.crs import CRS
+from rasterio.enums import ColorInterp, MaskFlags, Resampling
+from rasterio.errors import RasterioIOError
+from rasterio.vrt import WarpedVRT
+from rasterio.warp import transform_bounds
+from rasterio.windows import Window, from_bounds
+from rasterio.windows import transform as window_transform
+
+from aerialmtl.errors import AlignmentError, InputError
+
+LayerKind = Literal["image", "height", "labels"]
+
+#: nodata written in float height rasters (patches and predictions).
+HEIGHT_NODATA = -9999.0
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A georeferenced pixel grid: ``height`` × ``width`` pixels of ``transform`` in ``crs``.
+
+    ``transform`` maps (col, row) to map coordinates of the pixel's upper-left corner (north-up).
+    """
+
+    crs: CRS
+    transform: Affine
+    width: int
+    height: int
+
+    @property
+    def res(self) -> tuple[float, float]:
+        """Pixel size (x, y) in CRS units (metres for projected CRS)."""
+        return (abs(self.transform.a), abs(self.transform.e))
+
+    @property
+    def gsd(self) -> float:
+        """Ground sampling distance: the mean of the x and y pixel sizes (CRS units)."""
+        return 0.5 * (self.res[0] + self.res[1])
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(left, bottom, right, top) in CRS units."""
+        left, top = self.transform * (0, 0)
+        right, bottom = self.transform * (self.width, self.height)
+        return (min(left, right), min(bottom, top), max(left, right), max(bottom, top))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    def window_transform(self, window: Window) -> Affine:
+        """Transform of ``window`` (``rasterio.windows.transform`` on this grid)."""
+        return window_transform(window, self.transform)
+
+    def full_window(self) -> Window:
+        return Window(0, 0, self.width, self.height)
+
+    def window_from_bounds(self, bounds: Sequence[float]) -> Window:
+        """Pixel window (rounded outwards, clipped to the grid) covering map ``bounds``."""
+        win = from_bounds(*bounds, transform=self.transform)
+        col0 = max(0, math.floor(win.col_off + 1e-6))
+        row0 = max(0, math.floor(win.row_off + 1e-6))
+        col1 = min(self.width, math.ceil(win.col_off + win.width - 1e-6))
+        row1 = min(self.height, math.ceil(win.row_off + win.height - 1e-6))
+        return Window(col0, row0, max(0, col1 - col0), max(0, row1 - row0))
+
+
+def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetReader:
+    """Open ``path`` with a message that names the role and the fix when it cannot be read."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{role} '{p}' does not exist; check the path")
+    try:
+        return rasterio.open(p)
+    except RasterioIOError as exc:
+        raise InputError(
+            f"{role} '{p}' cannot be read as a raster ({' '.join(str(exc).split())}); "
+            "is it a complete GeoTIFF? re-download or re-export it"
+        ) from exc
+
+
+def _check_georeferenced(src: rasterio.io.DatasetReader, role: str) -> None:
+    if src.crs is None:
+        raise AlignmentError(
+            f"{role} '{src.name}' has no CRS; assign one first (e.g. `gdal_edit.py -a_srs EPSG:XXXX {src.name}`)"
+        )
+    if src.transform == Affine.identity() and not src.gcps[0]:
+        raise AlignmentError(
+            f"{role} '{src.name}' has no geotransform; georeference it first (e.g. `gdal_edit.py -a_ullr ...`)"
+        )
+    if src.transform.b != 0 or src.transform.d != 0:
+        raise AlignmentError(
+            f"{role} '{src.name}' is rotated; warp it north-up first (`gdalwarp {src.name} north_up.tif`)"
+        )
+
+
+def grid_of(src: rasterio.io.DatasetReader) -> Grid:
+    """The native grid of an open dataset."""
+    return Grid(src.crs, src.transform, src.width, src.height)
+
+
+def reference_grid(ortho: str | Path, gsd: float | None = None) -> Grid:
+    """The reference grid defined by the orthophoto, optionally resampled to ``gsd`` (CRS units).
+
+    With ``gsd`` the grid keeps the ortho's upper-left corner and covers its extent with square pixels
+    of size ``gsd`` (the last row/column may extend up to one pixel beyond the ortho's edge).
+
+    Raises:
+        AlignmentError: the ortho has no CRS / geotransform, or ``gsd`` is not positive.
+    """
+    with open_raster(ortho, "orthophoto") as src:
+        _check_georeferenced(src, "orthophoto")
+        grid = grid_of(src)
+    if gsd is None:
+        return grid
+    if not gsd > 0:
+        raise AlignmentError(f"--gsd must be a positive pixel size in CRS units, got {gsd}")
+    left, bottom, right, top = grid.bounds
+    width = max(1, math.ceil((right - left) / gsd - 1e-6))
+    height = max(1, math.ceil((top - bottom) / gsd - 1e-6))
+    return Grid(grid.crs, Affine(gsd, 0.0, left, 0.0, -gsd, top), width, height)
+
+
+def _fmt_bounds(b: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{v:.6g}" for v in b) + ")"
+
+
+def _default_resampling(kind: LayerKind, src_res: float, dst_res: float) -> Resampling:
+    finer = src_res < dst_res * (1 - 1e-6)  # source finer than grid → downsampling
+    if kind == "image":
+        return Resampling.average if finer else Resampling.bilinear
+    if kind == "height":
+        return Resampling.bilinear
+    return Resampling.mode if finer else Resampling.nearest
+
+
+class AlignedRaster:
+    """A raster seen through the reference grid; read windows of it as if it were on that grid.
+
+    Args:
+        path: raster file.
+        grid: the reference grid.
+        kind: ``image``, ``height`` or ``labels`` (chooses the default resampling).
+        bands: 1-based band indexes to read (default: all non-alpha bands).
+        resampling: override the default resampling.
+        role: name used in messages (``"DSM"``, ``"labels"``, ...).
+        check_overlap: raise :class:`AlignmentError` if the layer does not overlap the grid.
+
+    Use as a context manager or call :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        grid: Grid,
+        kind: LayerKind,
+        bands: Sequence[int] | None = None,
+        resampling: Resampling | None = None,
+        role: str | None = None,
+        check_overlap: bool = True,
+    ) -> None:
+        self.path = Path(path)
+        self.grid = grid
+        self.kind = kind
+        self.role = role or kind
+        self.src = open_raster(path, self.role)
+        try:
+            self._setup(bands, resampling, check_overlap)
+        except Exception:
+            self.src.close()
+            raise
+
+    def _setup(self, bands: Sequence[int] | None, resampling: Resampling | None, check_overlap: bool) -> None:
+        src, grid = self.src, self.grid
+        _check_georeferenced(src, self.role)
+        alpha = [i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha]
+        self.alpha_band = alpha[0] if alpha else None
+        if bands is None:
+            bands = [i for i in range(1, src.count + 1) if i != self.alpha_band]
+        bad = [b for b in bands if not 1 <= b <= src.count]
+        if bad:
+            raise InputError(
+                f"{self.role} '{self.path}': band(s) {bad} requested but the file has {src.count} band(s); "
+                "fix the 'bands' setting"
+            )
+        self.bands = list(bands)
+        self.nodata = src.nodata
+        if check_overlap:
+            sb = transform_bounds(src.crs, grid.crs, *src.bounds, densify_pts=21)
+            gb = grid.bounds
+            if sb[0] >= gb[2] or sb[2] <= gb[0] or sb[1] >= gb[3] or sb[3] <= gb[1]:
+                raise AlignmentError(
+                    f"{self.role} '{self.path}' does not overlap the orthophoto grid: its bounds "
+                    f"{_fmt_bounds(src.bounds)} in {src.crs.to_string()} are {_fmt_bounds(sb)} in "
+                    f"{grid.crs.to_string()}, the grid covers {_fmt_bounds(gb)}; check that the files show "
+                    "the same area and carry the right CRS"
+                )
+        self.same_grid = (
+            src.crs == grid.crs and src.transform.almost_equals(grid.transform, 1e-9)
+            and src.width == grid.width and src.height == grid.height
+        )
+        if self.same_grid:
+            self.reader = src
+            self.vrt = None
+            self.resampling = Resampling.nearest
+            return
+        src_res = 0.5 * (abs(src.transform.a) + abs(src.transform.e))
+        if src.crs != grid.crs:  # compare in grid units: resolution of the source footprint in grid CRS
+            sb = transform_bounds(src.crs, grid.crs, *src.bounds)
+            src_res = 0.5 * ((sb[2] - sb[0]) / src.width + (sb[3] - sb[1]) / src.height)
+        self.resampling = resampling or _default_resampling(self.kind, src_res, grid.gsd)
+        has_mask = self.nodata is not None or self.alpha_band is not None or any(
+            MaskFlags.per_dataset in f for f in src.mask_flag_enums
+        )
+        vrt_kwargs = dict(crs=grid.crs, transform=grid.transform, width=grid.width, height=grid.height,
+                          resampling=self.resampling)
+        if not has_mask:
+            vrt_kwargs["add_alpha"] = True  # so that pixels outside the source read as invalid
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.vrt = WarpedVRT(src, **vrt_kwargs)
+        self.reader = self.vrt
+
+    # ------------------------------------------------------------------------------------------
+    def read(self, window: Window | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Read ``window`` of the reference grid.
+
+        Returns:
+            ``(data, valid)``: ``data`` is (bands, h, w) in the source dtype (float32 for heights, with
+            invalid pixels set to NaN); ``valid`` is a (h, w) bool mask, ``False`` for nodata, NaN,
+            alpha = 0 and pixels outside the source.
+        """
+        window = window or self.grid.full_window()
+        h, w = int(window.height), int(window.width)
+        r0, c0 = int(window.row_off), int(window.col_off)
+        # part of the window inside the grid; the rest reads as invalid
+        ir0, ic0 = max(r0, 0), max(c0, 0)
+        ir1, ic1 = min(r0 + h, self.grid.height), min(c0 + w, self.grid.width)
+        data = np.zeros((len(self.bands), h, w), dtype=self.src.dtypes[self.bands[0] - 1])
+        mask = np.zeros((h, w), dtype=bool)
+        if ir1 > ir0 and ic1 > ic0:
+            inner = Window(ic0, ir0, ic1 - ic0, ir1 - ir0)
+            sl = (slice(ir0 - r0, ir1 - r0), slice(ic0 - c0, ic1 - c0))
+            data[(slice(None), *sl)] = self.reader.read(self.bands, window=inner)
+            inner_mask = self.reader.read_masks(1, window=inner) > 0
+            if self.vrt is None and self.alpha_band is not None:
+                inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0
+            mask[sl] = inner_mask
+        if self.nodata is not None and not (isinstance(self.nodata, float) and math.isnan(self.nodata)):
+            mask &= ~np.any(data == np.asarray(self.nodata).astype(data.dtype), axis=0)
+        if data.dtype.kind == "f":
+            mask &= np.all(np.isfinite(data), axis=0)
+        if self.kind == "height":
+            data = data.astype(np.float32, copy=False)
+            data[:, ~mask] = np.nan
+        return data, mask
+
+    def close(self) -> None:
+        if self.vrt is not None:
+            self.vrt.close()
+        self.src.close()
+
+    def __enter__(self) -> "AlignedRaster":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass(frozen=True)
+class NdsmOptions:
+    """How heights above ground are derived: ``clip_negative`` sets nDSM < 0 to 0; ``max_height``
+    (metres) marks taller pixels as invalid (``None`` keeps all)."""
+
+    clip_negative: bool = True
+    max_height: float | None = None
+
+
+class HeightSource:
+    """Heights above ground (nDSM, metres) on the reference grid, from ``ndsm`` or ``dsm`` − ``dtm``.
+
+    nDSM = DSM − DTM is computed on the reference grid after resampling both with bilinear
+    interpolation; a pixel is invalid where either is nodata/NaN. Negative values are clipped to 0 and
+    values above ``max_height`` made invalid, per :class:`NdsmOptions`.
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        ndsm: str | Path | None = None,
+        dsm: str | Path | None = None,
+        dtm: str | Path | None = None,
+        options: NdsmOptions = NdsmOptions(),
+    ) -> None:
+        if ndsm is not None and (dsm is not None or dtm is not None):
+            raise InputError("give either an nDSM (--ndsm) or a DSM and a DTM (--dsm/--dtm), not both")
+        if ndsm is None and (dsm is None) != (dtm is None):
+            raise InputError("--dsm and --dtm go together: pass both, or pass a ready nDSM with --ndsm")
+        if ndsm is None and dsm is None:
+            raise InputError("no height layer given: pass --ndsm, or --dsm with --dtm")
+        self.options = options
+        self.layers: list[AlignedRaster] = []
+        try:
+            if ndsm is not None:
+                self.layers.append(AlignedRaster(ndsm, grid, "height", bands=[1], role="nDSM"))
+            else:
+                self.layers.append(AlignedRaster(dsm, grid, "height", bands=[1], role="DSM"))  # type: ignore[arg-type]
+                self.layers.append(AlignedRaster(dtm, grid, "height", bands=[1], role="DTM"))  # type: ignore[arg-type]
+        except Exception:
+            self.close()
+            raise
+
+    def read(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ``(height, valid)``: (h, w) float32 metres (NaN where invalid) and a (h, w) bool mask."""
+        data, valid = self.layers[0].read(window)
+        height = data[0]
+        if len(self.layers) == 2:
+            dtm, valid_dtm = self.layers[1].read(window)
+            valid = valid & valid_dtm
+            height = height - dtm[0]
+        if self.options.clip_negative:
+            height = np.where(valid, np.maximum(height, 0.0), height)
+        if self.options.max_height is not None:
+            valid = valid & ~(height > self.options.max_height)
+        height = np.where(valid, height, np.nan).astype(np.float32)
+        return height, valid
+
+    def close(self) -> None:
+        for layer in self.layers:
+            layer.close()
+
+    def __enter__(self) -> "HeightSource":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,164 @@
+"""Self-describing checkpoints: a checkpoint alone rebuilds the model and drives ``predict``.
+
+A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it loads with
+``torch.load(..., weights_only=True)``; a pickle that would run code is refused)::
+
+    {
+      "format": "aerialmtl-checkpoint", "format_version": 1, "aerialmtl_version": "0.1.0",
+      "meta": {                      # ModelMeta.to_dict()
+        "model": {...},              # ModelConfig
+        "classes": {...} | None,     # ClassScheme (names, colours, codes)
+        "bands": [1, 2, 3],          # 1-based band indexes of the orthophoto fed to the model
+        "band_names": ["red", ...],
+        "mean": [...], "std": [...], # per band, raw image units (normalisation)
+        "gsd": 0.25,                 # metres per pixel the model was trained at
+        "crs": "EPSG:...",           # CRS of the training data (information only)
+      },
+      "state_dict": {...},           # model weights
+      "train_state": {...} | None,   # optimizer, step, epoch, RNG... (for --resume)
+    }
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from aerialmtl import __version__
+from aerialmtl.classes import ClassScheme
+from aerialmtl.config import from_dict, to_dict
+from aerialmtl.errors import CheckpointError, ConfigError
+from aerialmtl.models.config import ModelConfig
+
+FORMAT = "aerialmtl-checkpoint"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ModelMeta:
+    """Everything besides the weights that ``predict`` needs to use a model."""
+
+    model: ModelConfig
+    classes: ClassScheme | None
+    bands: tuple[int, ...]
+    mean: tuple[float, ...]
+    std: tuple[float, ...]
+    gsd: float
+    band_names: tuple[str, ...] = field(default_factory=tuple)
+    crs: str | None = None
+
+    def __post_init__(self) -> None:
+        n = self.model.in_channels
+        if not (len(self.bands) == len(self.mean) == len(self.std) == n):
+            raise CheckpointError(
+                f"checkpoint meta is inconsistent: model.in_channels={n} but bands={list(self.bands)}, "
+                f"{len(self.mean)} means and {len(self.std)} stds"
+            )
+        if ("classes" in self.model.tasks) and (self.classes is None or self.classes.num_classes != self.model.num_classes):
+            raise CheckpointError(
+                "checkpoint meta is inconsistent: the classes task needs a class scheme with "
+                f"{self.model.num_classes} classes"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        return to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "ModelMeta":
+        return from_dict(cls, data)
+
+
+def save_checkpoint(
+    path: str | Path,
+    model: torch.nn.Module,
+    meta: ModelMeta,
+    train_state: dict[str, Any] | None = None,
+) -> None:
+    """Write a checkpoint atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "aerialmtl_version": __version__,
+        "meta": meta.to_dict(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "train_state": train_state,
+    }
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[dict[str, Any], ModelMeta]:
+    """Load a checkpoint safely (``weights_only=True``) and validate it.
+
+    Returns:
+        ``(payload, meta)``: the raw dict (``state_dict``, ``train_state``, ...) and the parsed meta.
+
+    Raises:
+        CheckpointError: missing, truncated/corrupt, unsafe (would execute code), or not an aerialmtl
+            checkpoint; the message names the file and what to do.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint '{path}' does not exist; pass the best.pt or last.pt of a training run")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise CheckpointError(
+            f"checkpoint '{path}' was refused: it contains objects that would run code when loaded "
+            "(only weights and plain data are accepted); use a checkpoint written by `aerialmtl train`"
+        ) from exc
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise CheckpointError(
+            f"checkpoint '{path}' is corrupt or truncated ({' '.join(str(exc).split())[:200]}); "
+            "use another checkpoint or retrain"
+        ) from exc
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(
+            f"checkpoint '{path}' is not an aerialmtl checkpoint (no '{FORMAT}' marker); "
+            "use a checkpoint written by `aerialmtl train`"
+        )
+    if payload.get("format_version", 0) > FORMAT_VERSION:
+        raise CheckpointError(
+            f"checkpoint '{path}' has format version {payload['format_version']}, newer than this aerialmtl "
+            f"({__version__}) reads; upgrade aerialmtl"
+        )
+    try:
+        meta = ModelMeta.from_dict(payload["meta"])
+    except (ConfigError, KeyError, TypeError) as exc:
+        raise CheckpointError(f"checkpoint '{path}' has invalid metadata: {exc}") from exc
+    return payload, meta
+
+
+def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[torch.nn.Module, ModelMeta]:
+    """Rebuild the model of checkpoint ``path`` with its weights, in eval mode.
+
+    Returns:
+        ``(model, meta)``.
+    """
+    from aerialmtl.models.d3net import D3Net
+
+    payload, meta = load_checkpoint(path, map_location)
+    model_cfg = meta.model
+    if model_cfg.encoder_weights is not None:  # weights are in the state dict; don't look for the file
+        model_cfg = ModelConfig(**{**to_dict(model_cfg), "encoder_weights": None,
+                                   "tasks": tuple(model_cfg.tasks), "block_config": tuple(model_cfg.block_config)})
+    model = D3Net(model_cfg)
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except (RuntimeError, KeyError) as exc:
+        raise CheckpointError(
+            f"checkpoint '{path}': weights do not match its model config ({' '.join(str(exc).split())[:200]})"
+        ) from exc
+    model.eval()
+    return model.to(map_location), meta

@@ -1,0 +1,56 @@
+"""YAML → dataclass loading: errors name the key path and the valid keys/choices."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+
+from aerialmtl.config import from_dict, load_yaml_config, to_dict
+from aerialmtl.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Optim:
+    lr: float = 2e-4
+    kind: Literal["adam", "sgd"] = "adam"
+    betas: tuple[float, float] = (0.5, 0.999)
+
+
+@dataclass(frozen=True)
+class Root:
+    name: str
+    optim: Optim = field(default_factory=Optim)
+    steps: int | None = None
+
+
+def test_defaults_and_nested_values() -> None:
+    cfg = from_dict(Root, {"name": "x", "optim": {"lr": 1, "betas": [0.9, 0.99]}})
+    assert cfg.optim.lr == 1.0 and isinstance(cfg.optim.lr, float)
+    assert cfg.optim.betas == (0.9, 0.99)
+    assert from_dict(Root, to_dict(cfg)) == cfg
+
+
+@pytest.mark.parametrize(
+    "data, expected",
+    [
+        ({"name": "x", "optim": {"lr": 1e-3, "lrr": 2}}, "optim.lrr"),
+        ({"name": "x", "optim": {"kind": "adamw"}}, "optim.kind"),
+        ({"name": "x", "optim": {"lr": "fast"}}, "optim.lr"),
+        ({"name": "x", "steps": 1.5}, "steps"),
+        ({"optim": {}}, "name"),
+    ],
+)
+def test_errors_name_the_key_path(data: dict, expected: str) -> None:
+    with pytest.raises(ConfigError, match=expected.replace(".", r"\.")):
+        from_dict(Root, data)
+
+
+def test_unknown_key_lists_valid_keys_and_enum_lists_choices(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="valid keys here are: betas, kind, lr"):
+        from_dict(Root, {"name": "x", "optim": {"learning_rate": 1}})
+    p = tmp_path / "c.yaml"
+    p.write_text("name: x\noptim:\n  kind: adamw\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml: optim\.kind: got 'adamw'; valid choices are 'adam', 'sgd'"):
+        load_yaml_config(p, Root)
