@@ -1,0 +1,246 @@
+"""Training configuration: YAML → frozen dataclasses (validated by :func:`aerialmtl.config.from_dict`).
+
+A config file has the sections below; every key is optional and defaults to the D3-Net paper's
+setting. Unknown keys, wrong types and bad choices raise :class:`~aerialmtl.errors.ConfigError` naming
+the key path (``optim.lr``) and the valid keys/choices::
+
+    model:     {block_config: [6, 12, 24, 16], dropout: 0.5, ...}   # ModelConfig; in_channels,
+                                                                   # num_classes, tasks from dataset.yaml
+    data:      {dir: tiles/, batch_size: 8, num_workers: 2, flips: true, rot90: true, jitter: false,
+                crop_size: null}
+    loss:      {height: l1, classes: ce, class_weights: none}      # or balanced, or a list of K floats
+    weighting: {method: equal, task_weights: {height: 1.0, classes: 1.0}}
+    optim:     {name: adam, lr: 2.0e-4, betas: [0.5, 0.999], weight_decay: 0.0}
+    schedule:  {epochs: 50, max_steps: null, max_time_s: null, val_every: 1, log_every: 10}
+    predict:   {mc_samples: 30}
+    seed: 0
+    device: auto          # auto | cpu | cuda
+    precision: fp32       # fp32 | bf16 (autocast)
+
+Relative ``data.dir`` paths are resolved against the current working directory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Literal
+
+from aerialmtl.config import from_dict, load_yaml_config, to_dict
+from aerialmtl.errors import ConfigError
+from aerialmtl.models.config import ModelConfig, Task
+
+HeightLoss = Literal["l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient"]
+
+
+@dataclass(frozen=True)
+class ModelSection:
+    """:class:`~aerialmtl.models.config.ModelConfig` fields; ``None`` = take it from the tile folder.
+
+    ``in_channels`` comes from the number of bands, ``num_classes`` from the class scheme and ``tasks``
+    from the tasks present in ``dataset.yaml``.
+    """
+
+    in_channels: int | None = None
+    tasks: tuple[Task, ...] | None = None
+    num_classes: int | None = None
+    growth_rate: int = 32
+    block_config: tuple[int, ...] = (6, 12, 24, 16)
+    num_init_features: int = 64
+    bn_size: int = 4
+    compression: float = 0.5
+    dropout: float = 0.5
+    dropout_blocks: int = 3
+    task_blocks: int = 2
+    encoder_weights: str | None = None
+
+    def resolve(self, in_channels: int, tasks: tuple[str, ...], num_classes: int | None) -> ModelConfig:
+        """The :class:`ModelConfig` for a tile folder with these bands, tasks and classes.
+
+        Raises:
+            ConfigError: an explicit value disagrees with the data (names the key and both values).
+        """
+        if self.in_channels is not None and self.in_channels != in_channels:
+            raise ConfigError(
+                f"model.in_channels: the config says {self.in_channels} but the tile folder has {in_channels} "
+                "bands; remove model.in_channels or tile with matching --bands"
+            )
+        want = tuple(self.tasks) if self.tasks is not None else tuple(tasks)
+        missing = [t for t in want if t not in tasks]
+        if missing:
+            raise ConfigError(
+                f"model.tasks: {missing} requested but the tile folder only has {list(tasks) or 'no references'}; "
+                "remove them from model.tasks or tile with that reference layer"
+            )
+        if "classes" in want:
+            if num_classes is None:
+                raise ConfigError("model.tasks: 'classes' needs a class scheme in dataset.yaml")
+            if self.num_classes is not None and self.num_classes != num_classes:
+                raise ConfigError(
+                    f"model.num_classes: the config says {self.num_classes} but the tile folder's class scheme "
+                    f"has {num_classes}; remove model.num_classes or use the matching scheme"
+                )
+            k = num_classes
+        else:
+            k = self.num_classes if self.num_classes is not None else ModelConfig.num_classes
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values.update(in_channels=in_channels, tasks=want, num_classes=k)
+        return ModelConfig(**values)
+
+
+@dataclass(frozen=True)
+class DataSection:
+    """Where the tiles are and how they are batched and augmented.
+
+    Attributes:
+        dir: tile folder written by ``aerialmtl tile`` (``--data`` overrides it).
+        batch_size: patches per optimisation step.
+        num_workers: DataLoader worker processes (0 = load in the main process).
+        flips, rot90: random horizontal/vertical flips and 90° rotations.
+        jitter: photometric jitter (contrast/brightness in normalised space).
+        crop_size: random crop side in pixels (multiple of 32), ``None`` = whole patches.
+    """
+
+    dir: str | None = None
+    batch_size: int = 8
+    num_workers: int = 2
+    flips: bool = True
+    rot90: bool = True
+    jitter: bool = False
+    crop_size: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1:
+            raise ConfigError(f"data.batch_size: must be ≥ 1, got {self.batch_size}")
+        if self.num_workers < 0:
+            raise ConfigError(f"data.num_workers: must be ≥ 0, got {self.num_workers}")
+        if self.crop_size is not None and (self.crop_size < 32 or self.crop_size % 32):
+            raise ConfigError(f"data.crop_size: must be a multiple of 32 (the network's stride), got {self.crop_size}")
+
+
+@dataclass(frozen=True)
+class LossSection:
+    """Per-task losses: ``height`` (masked to valid pixels) and ``classes`` (cross-entropy, ignore 255).
+
+    ``class_weights``: ``none``, ``balanced`` (``N / (K · n_k)`` from the train split's pixel counts,
+    normalised to mean 1 over present classes) or an explicit list of K floats.
+    """
+
+    height: HeightLoss = "l1"
+    classes: Literal["ce"] = "ce"
+    class_weights: Literal["none", "balanced"] | tuple[float, ...] = "none"
+
+
+@dataclass(frozen=True)
+class WeightingSection:
+    """How task losses are combined: ``equal`` (sum) or ``uncertainty`` (learned, Kendall et al.).
+
+    ``task_weights`` multiply each task loss before the weighting module (default 1 each).
+    """
+
+    method: Literal["equal", "uncertainty"] = "equal"
+    task_weights: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        bad = [k for k in self.task_weights if k not in ("height", "classes")]
+        if bad:
+            raise ConfigError(f"weighting.task_weights: unknown task {bad[0]!r}; valid tasks are height, classes")
+
+
+@dataclass(frozen=True)
+class OptimSection:
+    """Optimiser (the paper: Adam, lr 2e-4, β = (0.5, 0.999))."""
+
+    name: Literal["adam", "adamw"] = "adam"
+    lr: float = 2e-4
+    betas: tuple[float, float] = (0.5, 0.999)
+    weight_decay: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.lr <= 0:
+            raise ConfigError(f"optim.lr: must be > 0, got {self.lr}")
+
+
+@dataclass(frozen=True)
+class ScheduleSection:
+    """When to stop, validate and log.
+
+    Attributes:
+        epochs: passes over the train split.
+        max_steps: stop after this many optimisation steps (``None`` = no limit).
+        max_time_s: wall-clock budget in seconds; training stops cleanly and saves when it is spent.
+        val_every: validate every this many epochs (and always at the end).
+        log_every: write a training row to ``log.csv`` every this many steps.
+    """
+
+    epochs: int = 50
+    max_steps: int | None = None
+    max_time_s: float | None = None
+    val_every: int = 1
+    log_every: int = 10
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "val_every", "log_every"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"schedule.{name}: must be ≥ 1, got {getattr(self, name)}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ConfigError(f"schedule.max_steps: must be ≥ 1, got {self.max_steps}")
+        if self.max_time_s is not None and self.max_time_s <= 0:
+            raise ConfigError(f"schedule.max_time_s: must be > 0, got {self.max_time_s}")
+
+
+@dataclass(frozen=True)
+class PredictSection:
+    """Defaults stored for ``aerialmtl predict`` (``mc_samples``: MC-dropout passes T)."""
+
+    mc_samples: int = 30
+
+    def __post_init__(self) -> None:
+        if self.mc_samples < 1:
+            raise ConfigError(f"predict.mc_samples: must be ≥ 1, got {self.mc_samples}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The whole training configuration (see the module docstring for the YAML layout)."""
+
+    model: ModelSection = field(default_factory=ModelSection)
+    data: DataSection = field(default_factory=DataSection)
+    loss: LossSection = field(default_factory=LossSection)
+    weighting: WeightingSection = field(default_factory=WeightingSection)
+    optim: OptimSection = field(default_factory=OptimSection)
+    schedule: ScheduleSection = field(default_factory=ScheduleSection)
+    predict: PredictSection = field(default_factory=PredictSection)
+    seed: int = 0
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    precision: Literal["fp32", "bf16"] = "fp32"
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain mapping (YAML / checkpoint safe)."""
+        return to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> "TrainConfig":
+        return from_dict(cls, data)
+
+    def with_overrides(self, **sections: dict[str, Any]) -> "TrainConfig":
+        """A copy with some keys replaced, e.g. ``cfg.with_overrides(schedule={"max_steps": 10}, seed=1)``.
+
+        Values are validated like YAML values.
+        """
+        data = self.to_dict()
+        for key, value in sections.items():
+            if isinstance(value, dict) and isinstance(data.get(key), dict):
+                data[key] = {**data[key], **value}
+            else:
+                data[key] = value
+        return from_dict(TrainConfig, data)
+
+
+def load_train_config(path: str | Path) -> TrainConfig:
+    """Read a training YAML file (errors name the file and the key path)."""
+    return load_yaml_config(path, TrainConfig)
+
+
+__all__ = ["TrainConfig", "ModelSection", "DataSection", "LossSection", "WeightingSection", "OptimSection",
+           "ScheduleSection", "PredictSection", "load_train_config"]
