@@ -1,0 +1,195 @@
+"""Spatial train/val/test splits that never let a patch straddle two splits.
+
+Two methods:
+
+* ``blocks`` — the grid is cut into disjoint square blocks of ``block_size`` map units (metres), anchored at
+  the grid's upper-left corner; blocks are shuffled by a seeded RNG and dealt to the splits by ``ratios``
+  (largest-remainder rounding; every split with a ratio > 0 gets at least one block when there are enough
+  blocks). A patch is kept only if every block it touches belongs to the same split, so patches of
+  different splits never share a pixel, whatever the stride.
+* ``aoi`` — polygons per split: one GeoJSON whose features carry a ``split`` property (``train``, ``val``
+  or ``test``), or one GeoJSON per split. A patch belongs to a split when its footprint lies inside that
+  split's polygons (and no other split's); others are dropped. AOIs that overlap each other make the
+  overlap unusable rather than leaky.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import shapely
+from rasterio.windows import Window
+from shapely.geometry import box
+
+from aerialmtl.errors import InputError
+from aerialmtl.io.vector import load_geometries
+
+SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class SplitSpec:
+    """How patches are assigned to train/val/test.
+
+    Attributes:
+        method: ``"blocks"`` (random square blocks) or ``"aoi"`` (polygons).
+        block_size: block side in map units (metres), for ``blocks``.
+        ratios: fractions of blocks for (train, val, test), for ``blocks``; normalised to sum to 1.
+        seed: RNG seed of the block shuffle.
+        aoi: for ``aoi``: one GeoJSON path whose features have a ``split`` property, or a mapping
+            ``{"train": path, "val": path, "test": path}`` (any subset).
+        aoi_field: name of the property holding the split in a single AOI file.
+    """
+
+    method: Literal["blocks", "aoi"] = "blocks"
+    block_size: float = 100.0
+    ratios: tuple[float, float, float] = (0.7, 0.15, 0.15)
+    seed: int = 0
+    aoi: str | dict[str, str] | None = None
+    aoi_field: str = "split"
+
+    def __post_init__(self) -> None:
+        if self.method not in ("blocks", "aoi"):
+            raise InputError(f"split method must be 'blocks' or 'aoi', got {self.method!r}")
+        if self.method == "blocks":
+            if not self.block_size > 0:
+                raise InputError(f"--split-block must be a positive size in metres, got {self.block_size}")
+            r = tuple(float(x) for x in self.ratios)
+            if len(r) != 3 or any(x < 0 or not math.isfinite(x) for x in r) or sum(r) <= 0:
+                raise InputError(
+                    f"--split-ratios must be three non-negative numbers for train,val,test with a positive sum, "
+                    f"got {self.ratios}; e.g. --split-ratios 0.7,0.15,0.15"
+                )
+        elif self.aoi is None:
+            raise InputError("split method 'aoi' needs AOI polygons: pass --split-aoi FILE")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain mapping for ``dataset.yaml``."""
+        if self.method == "blocks":
+            total = sum(self.ratios)
+            return {"method": "blocks", "block_size": float(self.block_size),
+                    "ratios": [float(x) / total for x in self.ratios], "seed": int(self.seed)}
+        aoi = self.aoi if isinstance(self.aoi, str) else {k: str(v) for k, v in dict(self.aoi).items()}  # type: ignore[arg-type]
+        return {"method": "aoi", "aoi": str(aoi) if isinstance(aoi, (str, Path)) else aoi, "aoi_field": self.aoi_field}
+
+
+def allocate_blocks(n_blocks: int, ratios: tuple[float, ...]) -> list[int]:
+    """How many of ``n_blocks`` go to each split: largest-remainder rounding of ``ratios``, then every split
+    with a positive ratio gets ≥ 1 block while there are enough blocks (taken from the largest split)."""
+    r = np.asarray(ratios, dtype=float)
+    r = r / r.sum()
+    exact = r * n_blocks
+    counts = np.floor(exact).astype(int)
+    rest = n_blocks - counts.sum()
+    for i in np.argsort(-(exact - counts), kind="stable")[:rest]:
+        counts[i] += 1
+    wanted = [i for i in range(len(r)) if r[i] > 0]
+    if n_blocks >= len(wanted):
+        for i in wanted:
+            if counts[i] == 0:
+                donor = int(np.argmax(counts))
+                counts[donor] -= 1
+                counts[i] += 1
+    return counts.tolist()
+
+
+class SplitAssigner:
+    """Assigns windows of a grid to a split (or to none) following a :class:`SplitSpec`.
+
+    Args:
+        spec: the split specification.
+        grid: the reference :class:`~aerialmtl.io.align.Grid` (north-up).
+    """
+
+    def __init__(self, spec: SplitSpec, grid: Any) -> None:
+        self.spec = spec
+        self.grid = grid
+        if spec.method == "blocks":
+            self._setup_blocks()
+        else:
+            self._setup_aoi()
+
+    # ---- blocks -------------------------------------------------------------------------------
+    def _setup_blocks(self) -> None:
+        left, bottom, right, top = self.grid.bounds
+        bs = float(self.spec.block_size)
+        self.nbx = max(1, math.ceil((right - left) / bs - 1e-9))
+        self.nby = max(1, math.ceil((top - bottom) / bs - 1e-9))
+        n = self.nbx * self.nby
+        counts = allocate_blocks(n, self.spec.ratios)
+        labels = np.repeat(np.arange(3), counts)
+        rng = np.random.default_rng(self.spec.seed)
+        #: (nby, nbx) split index (0 train, 1 val, 2 test) of each block, top row first.
+        self.block_split = rng.permutation(labels).reshape(self.nby, self.nbx)
+
+    def block_range(self, window: Window) -> tuple[int, int, int, int]:
+        """Blocks touched by ``window``: ``(bx0, bx1, by0, by1)`` inclusive, clipped to the block grid."""
+        res_x, res_y = self.grid.res
+        bs = float(self.spec.block_size)
+        c0, r0 = float(window.col_off), float(window.row_off)
+        c1, r1 = c0 + float(window.width), r0 + float(window.height)
+
+        def idx(pix: float, res: float) -> int:
+            return math.floor(pix * res / bs + 1e-9)
+
+        def idx_end(pix: float, res: float) -> int:  # block of the last pixel (exclusive edge)
+            return math.ceil(pix * res / bs - 1e-9) - 1
+
+        bx0, bx1 = idx(c0, res_x), idx_end(c1, res_x)
+        by0, by1 = idx(r0, res_y), idx_end(r1, res_y)
+        clip = lambda v, n: min(max(v, 0), n - 1)  # noqa: E731
+        return clip(bx0, self.nbx), clip(bx1, self.nbx), clip(by0, self.nby), clip(by1, self.nby)
+
+    # ---- AOI ----------------------------------------------------------------------------------
+    def _setup_aoi(self) -> None:
+        aoi = self.spec.aoi
+        per_split: dict[str, list[shapely.Geometry]] = {s: [] for s in SPLITS}
+        if isinstance(aoi, (str, Path)):
+            for g, props in load_geometries(aoi, self.grid.crs, "split AOI"):
+                value = props.get(self.spec.aoi_field)
+                name = str(value).strip().lower() if value is not None else None
+                if name == "validation":
+                    name = "val"
+                if name not in per_split:
+                    raise InputError(
+                        f"split AOI '{aoi}': a feature has {self.spec.aoi_field}={value!r}; every feature needs "
+                        f"a '{self.spec.aoi_field}' property of train, val or test"
+                    )
+                per_split[name].append(g)
+        else:
+            for name, path in dict(aoi).items():  # type: ignore[arg-type]
+                if name not in per_split:
+                    raise InputError(f"split AOI for unknown split {name!r}; use train, val or test")
+                per_split[name].extend(g for g, _ in load_geometries(path, self.grid.crs, f"{name} AOI"))
+        self.aoi = {s: shapely.union_all(gs) for s, gs in per_split.items() if gs}
+        for g in self.aoi.values():
+            shapely.prepare(g)
+        if not any(g.intersects(box(*self.grid.bounds)) for g in self.aoi.values()):
+            raise InputError(
+                f"split AOI {aoi}: no polygon overlaps the orthophoto grid "
+                f"({', '.join(f'{v:.6g}' for v in self.grid.bounds)} in {self.grid.crs.to_string()}); "
+                "check the AOI's CRS (EPSG:4326 unless the GeoJSON has a 'crs' member)"
+            )
+
+    # ---- common -------------------------------------------------------------------------------
+    def split_of(self, window: Window) -> str | None:
+        """The split of the patch covering ``window``, or ``None`` when it would straddle splits / lie
+        outside every AOI."""
+        if self.spec.method == "blocks":
+            bx0, bx1, by0, by1 = self.block_range(window)
+            ids = np.unique(self.block_split[by0:by1 + 1, bx0:bx1 + 1])
+            return SPLITS[int(ids[0])] if ids.size == 1 else None
+        t = self.grid.window_transform(window)
+        left, top = t * (0, 0)
+        right, bottom = t * (window.width, window.height)
+        eps = 1e-6 * self.grid.gsd
+        foot = box(min(left, right) + eps, min(top, bottom) + eps, max(left, right) - eps, max(top, bottom) - eps)
+        inside = [s for s, g in self.aoi.items() if g.covers(foot)]
+        return inside[0] if len(inside) == 1 else None
+
+
+__all__ = ["SPLITS", "SplitAssigner", "SplitSpec", "allocate_blocks"]
