@@ -24,7 +24,8 @@ class ModelConfig:
         bn_size: bottleneck width multiplier (1×1 conv outputs ``bn_size * growth_rate``).
         compression: transition channel compression.
         dropout: dropout probability in the deepest shared decoder blocks (MC dropout at test time).
-        dropout_blocks: how many of the deepest shared decoder blocks carry dropout.
+        dropout_blocks: how many of the deepest shared decoder blocks carry dropout (after each of
+            their two BatchNorms). The authors' implementation puts it in the two deepest blocks.
         task_blocks: decoder up-blocks owned by each task (the paper: 2), before its 3×3 output conv.
         encoder_weights: optional path of a local torchvision-format DenseNet-121 state dict.
     """
@@ -38,7 +39,7 @@ class ModelConfig:
     bn_size: int = 4
     compression: float = 0.5
     dropout: float = 0.5
-    dropout_blocks: int = 3
+    dropout_blocks: int = 2
     task_blocks: int = 2
     encoder_weights: str | None = None
 

@@ -1,0 +1,190 @@
+"""Multi-task D3-Net (Carvalho et al., IEEE GRSL 2019): DenseNet encoder, shared decoder, task decoders.
+
+Decoder (facts from the paper and the authors' implementation): five up-blocks bring the stride-32
+bottleneck back to full resolution. Up-block ``i`` takes the concatenation ``[encoder skip, previous
+output]`` at its input resolution (the deepest block takes the bottleneck alone) and applies
+
+    ConvTranspose2d 4×4 stride 2 pad 1 → BN → [Dropout] → ReLU → Conv 3×3 → BN → [Dropout] → ReLU
+
+(dropout after each BN, in the deepest ``cfg.dropout_blocks`` shared blocks; the authors use two).
+The skips concatenated are, from deep to shallow: transition3 (stride 16), transition2 (8),
+transition1 (4) and the stem's first activation (2). Each block outputs as many channels as the skip
+it is concatenated with next (the last one as many as the stem), which for DenseNet-121 gives the
+authors' widths 512, 256, 128, 64, 64. The first ``5 - cfg.task_blocks`` blocks are shared; each task
+owns the last ``cfg.task_blocks`` blocks plus a 3×3 output convolution (with bias): ``height`` gives
+1 channel in metres (linear), ``classes`` gives K logits.
+
+``encode`` holds the deterministic part (encoder), ``decode`` every dropout layer, so MC dropout
+(:mod:`aerialmtl.models.mc_dropout`) runs the encoder once and samples only the decoder.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from aerialmtl.errors import InputError
+from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.densenet import DenseNetEncoder
+
+#: H and W of the input must be multiples of this (five stride-2 stages).
+SIZE_MULTIPLE = 32
+
+TASK_CHANNELS_HEIGHT = 1
+
+
+class UpBlock(nn.Module):
+    """ConvTranspose 4×4/2 → BN → [Dropout] → ReLU → conv3×3 → BN → [Dropout] → ReLU.
+
+    Input B×in×h×w → output B×out×2h×2w.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, dropout: float = 0.0) -> None:
+        super().__init__()
+        # The convolutions feed a BatchNorm, so their bias would be redundant.
+        self.up = nn.ConvTranspose2d(in_channels, out_channels, kernel_size=4, stride=2, padding=1, bias=False)
+        self.norm1 = nn.BatchNorm2d(out_channels)
+        self.drop1: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
+        self.relu1 = nn.ReLU(inplace=True)
+        self.conv = nn.Conv2d(out_channels, out_channels, kernel_size=3, padding=1, bias=False)
+        self.norm2 = nn.BatchNorm2d(out_channels)
+        self.drop2: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
+        self.relu2 = nn.ReLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.relu1(self.drop1(self.norm1(self.up(x))))
+        return self.relu2(self.drop2(self.norm2(self.conv(x))))
+
+
+class TaskDecoder(nn.Module):
+    """The task-specific up-blocks and the 3×3 output convolution of one task."""
+
+    def __init__(self, blocks: list[UpBlock], in_last: int, out_channels: int) -> None:
+        super().__init__()
+        self.blocks = nn.ModuleList(blocks)
+        self.head = nn.Conv2d(in_last, out_channels, kernel_size=3, padding=1, bias=True)
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int = SIZE_MULTIPLE) -> tuple[torch.Tensor, tuple[slice, slice]]:
+    """Pad the bottom/right of a B×C×H×W tensor so that H and W are multiples of ``multiple``.
+
+    Reflection padding (replicate where the tensor is too small to reflect).
+
+    Returns:
+        ``(padded, crop)``; ``outputs[..., crop[0], crop[1]]`` cuts any model output back to H×W.
+    """
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    crop = (slice(0, h), slice(0, w))
+    if ph == 0 and pw == 0:
+        return x, crop
+    mode = "reflect" if (ph < h and pw < w) else "replicate"
+    return F.pad(x, (0, pw, 0, ph), mode=mode), crop
+
+
+class D3Net(nn.Module):
+    """Multi-task D3-Net.
+
+    Args:
+        cfg: the model configuration (encoder size, tasks, classes, dropout).
+
+    ``forward(x)`` maps a B×C×H×W normalised image (C = ``cfg.in_channels``, H and W multiples of 32)
+    to ``{"height": B×1×H×W metres, "classes": B×K×H×W logits}`` for the enabled tasks.
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.tasks: tuple[str, ...] = tuple(cfg.tasks)
+        self.encoder = DenseNetEncoder(
+            in_channels=cfg.in_channels,
+            growth_rate=cfg.growth_rate,
+            block_config=cfg.block_config,
+            num_init_features=cfg.num_init_features,
+            bn_size=cfg.bn_size,
+            compression=cfg.compression,
+        )
+        enc = self.encoder.out_channels  # (stem, t1, t2, t3, bottleneck)
+        n_up = len(enc)  # 5
+        # Block j (0 = deepest) upsamples to the resolution of skip enc[n_up - 2 - j] and outputs its
+        # channel count; the last block (to full resolution) keeps the stem width.
+        outs = [enc[n_up - 2 - j] for j in range(n_up - 1)] + [enc[0]]
+        ins = [enc[-1]] + [outs[j - 1] + enc[n_up - 1 - j] for j in range(1, n_up)]
+        n_shared = n_up - cfg.task_blocks
+        self.shared = nn.ModuleList(
+            UpBlock(ins[j], outs[j], cfg.dropout if j < cfg.dropout_blocks else 0.0) for j in range(n_shared)
+        )
+        out_ch = {"height": TASK_CHANNELS_HEIGHT, "classes": cfg.num_classes}
+        self.heads = nn.ModuleDict({
+            t: TaskDecoder([UpBlock(ins[j], outs[j]) for j in range(n_shared, n_up)], outs[-1], out_ch[t])
+            for t in self.tasks
+        })
+        self._n_up = n_up
+        self._reset_decoder()
+        if cfg.encoder_weights:
+            from aerialmtl.models.pretrained import load_torchvision_densenet
+
+            load_torchvision_densenet(self.encoder, cfg.encoder_weights)
+
+    def _reset_decoder(self) -> None:
+        for m in list(self.shared.modules()) + list(self.heads.modules()):
+            if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+                nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
+            elif isinstance(m, nn.BatchNorm2d):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+        for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
+            nn.init.normal_(head.head.weight, std=1e-3)
+
+    def check_input(self, x: torch.Tensor) -> None:
+        """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
+        c = self.cfg.in_channels
+        if x.dim() != 4 or x.shape[1] != c:
+            raise InputError(
+                f"D3Net input: expected B×{c}×H×W (in_channels={c}), got shape {tuple(x.shape)}; "
+                f"pass a batch of {c}-band images or use a model trained on {x.shape[1] if x.dim() == 4 else '?'} bands"
+            )
+        h, w = x.shape[-2:]
+        if h % SIZE_MULTIPLE or w % SIZE_MULTIPLE:
+            raise InputError(
+                f"D3Net input: H and W must be multiples of {SIZE_MULTIPLE}, got shape {tuple(x.shape)}; "
+                f"pad with aerialmtl.models.d3net.pad_to_multiple(x, {SIZE_MULTIPLE}) and crop the outputs, "
+                f"or use a tile/patch size that is a multiple of {SIZE_MULTIPLE} (e.g. "
+                f"{h + (-h) % SIZE_MULTIPLE}×{w + (-w) % SIZE_MULTIPLE})"
+            )
+
+    def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Deterministic part: B×C×H×W image → encoder features (strides 2, 4, 8, 16, 32)."""
+        self.check_input(x)
+        return self.encoder(x)
+
+    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Stochastic part (every dropout layer): encoder features → ``{task: B×C_t×H×W}``.
+
+        The feature batch may be larger than the image batch (MC samples stacked along B).
+        """
+        n = self._n_up
+        out = feats[-1]
+        for j, block in enumerate(self.shared):
+            if j > 0:
+                out = torch.cat([feats[n - 1 - j], out], 1)
+            out = block(out)
+        n_shared = len(self.shared)
+        results: dict[str, torch.Tensor] = {}
+        for task, dec in self.heads.items():
+            y = out
+            for i, block in enumerate(dec.blocks):
+                j = n_shared + i
+                y = block(torch.cat([feats[n - 1 - j], y], 1))
+            results[task] = dec.head(y)
+        return results
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """B×C×H×W image → ``{"height": B×1×H×W metres, "classes": B×K×H×W logits}`` (enabled tasks)."""
+        return self.decode(self.encode(x))
+
+
+__all__ = ["D3Net", "UpBlock", "pad_to_multiple", "SIZE_MULTIPLE"]
