@@ -1,9 +1,136 @@
-"""`aerialmtl tile` (placeholder until the command lands)."""
+"""`aerialmtl tile`: cut an orthophoto plus height and/or label layers into training patches."""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
+from aerialmtl.io.align import NdsmOptions
+
+_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
+
+
+def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> list[int] | None:
+    if value is None:
+        return None
+    try:
+        out = [int(v) for v in value.split(",") if v.strip()]
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated 1-based band numbers like 1,2,3, got {value!r}", ctx, param)
+    if not out or any(b < 1 for b in out):
+        raise click.BadParameter(f"expected 1-based band numbers like 1,2,3, got {value!r}", ctx, param)
+    return out
+
+
+def _ratios(ctx: click.Context, param: click.Parameter, value: str) -> tuple[float, float, float]:
+    try:
+        r = tuple(float(v) for v in value.split(","))
+    except ValueError:
+        r = ()
+    if len(r) != 3 or any(x < 0 for x in r) or sum(r) <= 0:
+        raise click.BadParameter(f"expected three non-negative numbers train,val,test like 0.7,0.15,0.15, got {value!r}",
+                                 ctx, param)
+    return r  # type: ignore[return-value]
+
+
+def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> str | dict[str, str] | None:
+    if not values:
+        return None
+    if len(values) == 1 and "=" not in values[0]:
+        path = values[0]
+        if not Path(path).is_file():
+            raise click.BadParameter(f"file {path!r} does not exist", ctx, param)
+        return path
+    out: dict[str, str] = {}
+    for v in values:
+        name, sep, path = v.partition("=")
+        if not sep or name not in ("train", "val", "test") or not Path(path).is_file():
+            raise click.BadParameter(
+                f"expected one GeoJSON with a 'split' property, or SPLIT=FILE per split (train=a.geojson), got {v!r}",
+                ctx, param)
+        out[name] = path
+    return out
+
 
 @click.command(name="tile")
-def tile() -> None:
-    """Not available yet."""
-    raise click.UsageError("'aerialmtl tile' is not implemented yet")
+@click.option("--ortho", required=True, type=_FILE, help="Orthophoto GeoTIFF; defines the reference grid.")
+@click.option("--dsm", type=_FILE, help="Digital surface model (metres); needs --dtm.")
+@click.option("--dtm", type=_FILE, help="Digital terrain model (metres); needs --dsm.")
+@click.option("--ndsm", type=_FILE, help="Ready heights above ground (nDSM/CHM, metres) instead of --dsm/--dtm.")
+@click.option("--labels", type=_FILE, help="Label raster of raw class codes.")
+@click.option("--labels-vector", type=_FILE, help="GeoJSON label polygons (EPSG:4326 unless it has a 'crs').")
+@click.option("--class-field", help="Attribute of --labels-vector holding class codes or names.")
+@click.option("--classes", "classes", help="Class scheme YAML, or a built-in name: dfc2018, isprs, synthetic.")
+@click.option("--size", default=320, show_default=True, type=click.IntRange(min=1), help="Patch size (pixels).")
+@click.option("--stride", type=click.IntRange(min=1), help="Step between patches (pixels) [default: --size].")
+@click.option("--gsd", type=float, help="Resample every layer to this pixel size (CRS units, metres).")
+@click.option("--min-valid", default=0.9, show_default=True, type=click.FloatRange(0, 1),
+              help="Keep patches with at least this fraction of valid image pixels.")
+@click.option("--split-block", default=100.0, show_default=True, type=float, help="Split block side (metres).")
+@click.option("--split-ratios", default="0.7,0.15,0.15", show_default=True, callback=_ratios,
+              help="Fractions of blocks for train,val,test.")
+@click.option("--split-seed", default=0, show_default=True, type=int, help="Seed of the block shuffle.")
+@click.option("--split-aoi", multiple=True, callback=_aoi,
+              help="AOI polygons instead of blocks: one GeoJSON with a 'split' property, or SPLIT=FILE (repeat).")
+@click.option("--bands", callback=_int_list, help="1-based ortho bands to keep, e.g. 1,2,3 [default: all but alpha].")
+@click.option("--clip-negative/--no-clip-negative", default=True, show_default=True,
+              help="Set negative heights above ground to 0.")
+@click.option("--max-height", type=float, help="Treat heights above this (metres) as invalid.")
+@click.option("--ignore-unknown-codes", is_flag=True, help="Label codes outside the scheme become 'no label'.")
+@click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing tile dataset in --out.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, labels: Path | None,
+         labels_vector: Path | None, class_field: str | None, classes: str | None, size: int, stride: int | None,
+         gsd: float | None, min_valid: float, split_block: float, split_ratios: tuple[float, float, float],
+         split_seed: int, split_aoi: str | dict[str, str] | None, bands: list[int] | None, clip_negative: bool,
+         max_height: float | None, ignore_unknown_codes: bool, out: Path, overwrite: bool, quiet: bool) -> None:
+    """Cut ORTHO and aligned height/label layers into patches with spatial train/val/test splits.
+
+    Writes OUT/{train,val,test}/{image,height,classes}/*.tif, OUT/manifest.csv and OUT/dataset.yaml.
+    """
+    from aerialmtl.tiling.splits import SplitSpec
+    from aerialmtl.tiling.tile import tile_dataset
+
+    if ndsm is not None and (dsm is not None or dtm is not None):
+        raise click.BadParameter("give either --ndsm or --dsm with --dtm, not both", param_hint="--ndsm")
+    if (dsm is None) != (dtm is None):
+        raise click.BadParameter("--dsm and --dtm go together; or pass a ready nDSM with --ndsm", param_hint="--dsm/--dtm")
+    if labels is not None and labels_vector is not None:
+        raise click.BadParameter("give either --labels or --labels-vector, not both", param_hint="--labels-vector")
+    if labels_vector is not None and not class_field:
+        raise click.BadParameter("--labels-vector needs --class-field NAME", param_hint="--class-field")
+    if (labels is not None or labels_vector is not None) and not classes:
+        raise click.BadParameter("labels need a class scheme: a YAML file or dfc2018, isprs, synthetic",
+                                 param_hint="--classes")
+    if stride is not None and stride > size:
+        raise click.BadParameter(f"stride {stride} > --size {size} would leave gaps", param_hint="--stride")
+    if gsd is not None and not gsd > 0:
+        raise click.BadParameter(f"must be a positive pixel size, got {gsd}", param_hint="--gsd")
+    if split_block <= 0:
+        raise click.BadParameter(f"must be a positive size in metres, got {split_block}", param_hint="--split-block")
+    if max_height is not None and not max_height > 0:
+        raise click.BadParameter(f"must be positive metres, got {max_height}", param_hint="--max-height")
+    if split_aoi is not None:
+        spec = SplitSpec(method="aoi", aoi=split_aoi)
+    else:
+        spec = SplitSpec(method="blocks", block_size=split_block, ratios=split_ratios, seed=split_seed)
+    result = tile_dataset(
+        ortho, out, dsm=dsm, dtm=dtm, ndsm=ndsm, labels=labels, labels_vector=labels_vector,
+        class_field=class_field, classes=classes, size=size, stride=stride, gsd=gsd, min_valid=min_valid,
+        splits=spec, bands=bands, ndsm_options=NdsmOptions(clip_negative=clip_negative, max_height=max_height),
+        ignore_unknown_codes=ignore_unknown_codes, overwrite=overwrite, progress=not quiet,
+    )
+    total = sum(result.counts.values())
+    click.echo(f"{total} patches ({', '.join(f'{k} {v}' for k, v in result.counts.items())}) "
+               f"of {result.windows} windows; dropped {result.dropped_invalid} with < {min_valid:g} valid pixels, "
+               f"{result.dropped_split} straddling splits")
+    click.echo(f"tasks: {', '.join(result.tasks)}")
+    click.echo(f"manifest: {result.manifest}")
+    click.echo(f"dataset:  {result.dataset_yaml}")
+    if total == 0:
+        click.echo("warning: no patch was written; lower --min-valid or --split-block, or check the layers' overlap",
+                   err=True)
+    elif result.counts["train"] == 0:
+        click.echo("warning: no train patch; normalisation statistics are missing (adjust the splits)", err=True)

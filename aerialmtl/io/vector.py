@@ -205,8 +205,8 @@ class VectorLabels:
         """
         h, w = int(window.height), int(window.width)
         transform = self.grid.window_transform(window)
-        left, top = transform * (0, 0)
-        right, bottom = transform * (w, h)
+        left, top = transform @ (0, 0)
+        right, bottom = transform @ (w, h)
         win_box = box(min(left, right), min(top, bottom), max(left, right), max(top, bottom))
         hits = np.sort(self.tree.query(win_box, predicate="intersects"))  # keep file order: later wins
         out = np.full((h, w), IGNORE_INDEX, dtype=np.uint8)

@@ -184,8 +184,8 @@ class SplitAssigner:
             ids = np.unique(self.block_split[by0:by1 + 1, bx0:bx1 + 1])
             return SPLITS[int(ids[0])] if ids.size == 1 else None
         t = self.grid.window_transform(window)
-        left, top = t * (0, 0)
-        right, bottom = t * (window.width, window.height)
+        left, top = t @ (0, 0)
+        right, bottom = t @ (window.width, window.height)
         eps = 1e-6 * self.grid.gsd
         foot = box(min(left, right) + eps, min(top, bottom) + eps, max(left, right) - eps, max(top, bottom) - eps)
         inside = [s for s, g in self.aoi.items() if g.covers(foot)]

@@ -163,7 +163,7 @@ def tile_dataset(
     class_field: str | None = None,
     classes: ClassScheme | str | Path | None = None,
     size: int = 320,
-    stride: int | None = 320,
+    stride: int | None = None,
     gsd: float | None = None,
     min_valid: float = 0.9,
     splits: SplitSpec = SplitSpec(),
@@ -223,9 +223,11 @@ def tile_dataset(
 
     grid = reference_grid(ortho, gsd)
     on_unknown = "ignore" if ignore_unknown_codes else "error"
-    cache = os.environ.get("GDAL_CACHEMAX", str(DEFAULT_CACHE_MB))
+    env: dict[str, Any] = {"GDAL_TIFF_INTERNAL_MASK": True}
+    if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
+        env["GDAL_CACHEMAX"] = DEFAULT_CACHE_MB * 1024 * 1024  # bytes (unambiguous for GDAL and rasterio)
     opened: list[Any] = []
-    with rasterio.Env(GDAL_CACHEMAX=cache, GDAL_TIFF_INTERNAL_MASK=True):
+    with rasterio.Env(**env):
         try:
             image = AlignedRaster(ortho, grid, "image", bands=bands, role="orthophoto")
             opened.append(image)
@@ -366,8 +368,8 @@ def _tile_one(
     pid = f"r{int(win.row_off):06d}_c{int(win.col_off):06d}"
     row: dict[str, Any] = {c: "" for c in MANIFEST_COLUMNS}
     t = grid.window_transform(win)
-    left, top = t * (0, 0)
-    right, bottom = t * (win.width, win.height)
+    left, top = t @ (0, 0)
+    right, bottom = t @ (win.width, win.height)
     row.update(patch_id=pid, split=split, col_off=int(win.col_off), row_off=int(win.row_off),
                width=int(win.width), height=int(win.height), left=_fmt(left), bottom=_fmt(bottom),
                right=_fmt(right), top=_fmt(top), crs=crs_str, valid_fraction=f"{valid_fraction:.6f}")
