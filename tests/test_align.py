@@ -82,7 +82,9 @@ def test_height_aligned_at_working_gsd(tmp_path: Path, rng) -> None:
         data, valid = layer.read()
     sx, sy = warp_transform(ORTHO_CRS, "EPSG:32632", *_centres(grid))
     expected = 50.0 + 1.0 * (np.asarray(sx) - x0) - 2.0 * (np.asarray(sy) - y0)
-    assert valid.all() and np.abs(data[0].ravel() - expected).max() < 0.01
+    # GDAL widens the bilinear kernel when downsampling 0.7 m → 2 m: a few cm of error on a 2.2 m/m gradient,
+    # while a half-pixel (1 m) misplacement would err by > 1
+    assert valid.all() and np.abs(data[0].ravel() - expected).max() < 0.15
 
 
 def test_nodata_and_options_propagate_into_ndsm_patches(tmp_path: Path, rng) -> None:
