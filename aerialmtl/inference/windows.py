@@ -1,0 +1,200 @@
+"""The window plan of streaming prediction: which windows the model sees and how their outputs blend.
+
+Along each axis of ``length`` output pixels the plan places ``n`` windows of one common ``size``
+(a multiple of 32, at most ``tile``), evenly spread from the first to the last pixel, so that
+neighbours share at least ``overlap`` pixels::
+
+    n    = max(1, ceil((length − overlap) / (tile − overlap)))
+    size = min(tile, round_up_32(ceil((length + (n − 1) · overlap) / n)))
+
+Spreading the windows (instead of snapping a last full tile to the edge) keeps the computed area
+close to ``(tile / (tile − overlap))²`` times the output area. An axis shorter than 32 pixels gets one
+32-pixel window reaching past the edge (the reader fills the outside as invalid).
+
+Blending. Inside an overlap of ``overlap`` pixels each window drops its outer ``margin = overlap // 4``
+pixels (the pixels with the least context) and the two windows cross-fade linearly over the remaining
+``overlap − 2·margin`` pixels. The 1-D weights are normalised to sum to 1 at every pixel and the 2-D
+weight of a window is the product of its row and column weights, so a model that returns the same
+value in two windows gives that value back (up to float rounding) and no seam can appear.
+
+Row bands. Window rows are processed top to bottom; after window row ``i`` the output rows
+``[out_start, out_stop)`` of :class:`Band` ``i`` are final (no later window touches them) and can be
+written. A band depends only on window rows ``i − 1`` and ``i`` (:attr:`Band.sources`), so bands can be
+sharded across processes: a worker that starts at band ``a`` runs window row ``a − 1`` first.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from rasterio.windows import Window
+
+from aerialmtl.errors import InputError
+
+#: Window sizes are multiples of this (the D3-Net input constraint).
+SIZE_MULTIPLE = 32
+
+
+def _round_up(value: int, multiple: int = SIZE_MULTIPLE) -> int:
+    return int(math.ceil(value / multiple) * multiple)
+
+
+def check_tiling(tile: int, overlap: int) -> None:
+    """Validate ``tile`` and ``overlap`` (pixels).
+
+    Raises:
+        InputError: ``tile`` is not a positive multiple of 32, or ``overlap`` is outside ``[0, tile / 2]``.
+    """
+    if not isinstance(tile, int) or tile < SIZE_MULTIPLE or tile % SIZE_MULTIPLE:
+        raise InputError(f"tile must be a positive multiple of {SIZE_MULTIPLE} pixels, got {tile!r}; pass e.g. --tile 512")
+    if not isinstance(overlap, int) or not 0 <= overlap <= tile // 2:
+        raise InputError(
+            f"overlap must be between 0 and tile/2 = {tile // 2} pixels, got {overlap!r}; pass e.g. --overlap 64"
+        )
+
+
+@dataclass(frozen=True)
+class AxisPlan:
+    """Windows along one axis.
+
+    Attributes:
+        length: output pixels along the axis.
+        size: window size (pixels, multiple of 32; may exceed ``length`` for short axes).
+        starts: window start offsets (pixels), increasing.
+        margin: pixels dropped at each interior window side.
+        weights: (n, size) float32 blending weights, summing to 1 over windows at every output pixel.
+    """
+
+    length: int
+    size: int
+    starts: tuple[int, ...]
+    margin: int
+    weights: np.ndarray
+
+    @property
+    def extent(self) -> int:
+        """Pixels from 0 to the end of the last window (≥ ``length``)."""
+        return self.starts[-1] + self.size
+
+    def final_until(self, i: int) -> int:
+        """First pixel still touched by a window after window ``i`` (everything before is final)."""
+        if i + 1 >= len(self.starts):
+            return self.length
+        return min(self.length, self.starts[i + 1] + self.margin)
+
+
+def _base_weight(size: int, margin: int, ramp: int, left: bool, right: bool) -> np.ndarray:
+    """Trapezoid: 0 in the dropped margin of interior sides, linear ramp, then 1."""
+    p = np.arange(size, dtype=np.float64)
+    w = np.ones(size, dtype=np.float64)
+    if ramp > 0:
+        if left:
+            w = np.minimum(w, np.clip((p - margin + 0.5) / ramp, 0.0, 1.0))
+        if right:
+            w = np.minimum(w, np.clip((size - 1 - p - margin + 0.5) / ramp, 0.0, 1.0))
+    return w
+
+
+def axis_plan(length: int, tile: int, overlap: int) -> AxisPlan:
+    """Plan the windows along an axis of ``length`` pixels (see the module docstring)."""
+    check_tiling(tile, overlap)
+    if length < 1:
+        raise InputError(f"cannot plan windows over an empty axis (length {length})")
+    n = max(1, math.ceil((length - overlap) / (tile - overlap)))
+    size = min(tile, _round_up(math.ceil((length + (n - 1) * overlap) / n)))
+    if n == 1:
+        starts = [0]
+    else:
+        starts = [round(i * (length - size) / (n - 1)) for i in range(n)]
+    margin = overlap // 4
+    ramp = overlap - 2 * margin
+    base = np.stack([_base_weight(size, margin, ramp, i > 0, i < n - 1) for i in range(n)])
+    total = np.zeros(starts[-1] + size, dtype=np.float64)
+    for s, b in zip(starts, base):
+        total[s:s + size] += b
+    if not np.all(total[:length] > 0):  # pragma: no cover - guarded by the size/overlap rules above
+        raise AssertionError(f"window plan leaves pixels uncovered (length {length}, tile {tile}, overlap {overlap})")
+    weights = np.zeros_like(base)
+    for k, (s, b) in enumerate(zip(starts, base)):
+        t = total[s:s + size]
+        weights[k] = np.divide(b, t, out=np.zeros_like(b), where=t > 0)
+    return AxisPlan(length, size, tuple(int(s) for s in starts), margin, weights.astype(np.float32))
+
+
+@dataclass(frozen=True)
+class Band:
+    """One row band of the plan.
+
+    Attributes:
+        index: window row ``i``.
+        row_off: first grid row of the window row.
+        height: window height (pixels).
+        out_start, out_stop: grid rows that become final once window rows ``≤ i`` are done.
+        windows: the windows of the row, left to right (may reach past the grid edges).
+        col_plan: the column plan shared by all bands.
+    """
+
+    index: int
+    row_off: int
+    height: int
+    out_start: int
+    out_stop: int
+    windows: tuple[Window, ...]
+
+    @property
+    def sources(self) -> tuple[int, ...]:
+        """Window rows whose outputs reach rows ``[out_start, out_stop)``."""
+        return (self.index - 1, self.index) if self.index > 0 else (self.index,)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Windows over a ``height`` × ``width`` grid: row and column :class:`AxisPlan` and the bands."""
+
+    rows: AxisPlan
+    cols: AxisPlan
+    bands: tuple[Band, ...]
+
+    @property
+    def num_windows(self) -> int:
+        return len(self.rows.starts) * len(self.cols.starts)
+
+    @property
+    def overlap_factor(self) -> float:
+        """Pixels computed / output pixels when every window is computed."""
+        computed = self.num_windows * self.rows.size * self.cols.size
+        return computed / float(self.rows.length * self.cols.length)
+
+    def weight(self, i: int, j: int) -> np.ndarray:
+        """(height, width) float32 blending weight of window (row ``i``, column ``j``)."""
+        return self.rows.weights[i][:, None] * self.cols.weights[j][None, :]
+
+
+def plan_bands(height: int, width: int, tile: int = 512, overlap: int = 64) -> Plan:
+    """Plan the prediction windows over a ``height`` × ``width`` grid, grouped in row bands.
+
+    Pure function of its arguments; bands are independent given their :attr:`Band.sources`.
+
+    Args:
+        height, width: grid size in pixels.
+        tile: largest window side (pixels, multiple of 32).
+        overlap: minimum overlap between neighbouring windows (pixels, ``0 ≤ overlap ≤ tile / 2``).
+
+    Returns:
+        A :class:`Plan`.
+    """
+    rows = axis_plan(height, tile, overlap)
+    cols = axis_plan(width, tile, overlap)
+    bands = []
+    out_start = 0
+    for i, r in enumerate(rows.starts):
+        out_stop = rows.final_until(i)
+        wins = tuple(Window(c, r, cols.size, rows.size) for c in cols.starts)
+        bands.append(Band(i, r, rows.size, out_start, out_stop, wins))
+        out_start = out_stop
+    return Plan(rows, cols, tuple(bands))
+
+
+__all__ = ["SIZE_MULTIPLE", "AxisPlan", "Band", "Plan", "axis_plan", "check_tiling", "plan_bands"]

@@ -1,0 +1,192 @@
+"""Cloud-Optimized GeoTIFFs: write a tiled GeoTIFF band by band, then copy it to a COG.
+
+Large outputs are never held in memory: the caller writes a temporary tiled GeoTIFF window by window
+(:func:`staging_profile`, fast light compression), then :func:`to_cog` lets GDAL's COG driver
+(GDAL ≥ 3.1) read it block-wise, build internal overviews and write the final layout: 512-pixel tiles,
+DEFLATE with predictor 2 (integers) or 3 (floats), overviews resampled with ``average`` (continuous)
+or ``mode`` (classes), the main image IFD first and the smallest overview's data first. Nodata, colour
+table, band descriptions, units and tags of the staging file are carried over.
+
+:func:`cog_problems` re-checks a file (tiling, overviews, IFD order, GDAL's ``LAYOUT=COG`` marker) by
+reading the TIFF structure itself.
+"""
+
+from __future__ import annotations
+
+import struct
+import warnings
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+import rasterio.shutil
+from affine import Affine
+from rasterio.crs import CRS
+
+from aerialmtl.errors import OutputError
+
+#: Internal tile size of every COG aerialmtl writes.
+COG_BLOCKSIZE = 512
+
+
+@lru_cache(maxsize=None)
+def _gdal_version() -> tuple[int, ...]:
+    return tuple(int(p) for p in rasterio.__gdal_version__.split(".")[:2])
+
+
+@lru_cache(maxsize=None)
+def _zstd_available() -> bool:
+    from rasterio.io import MemoryFile
+
+    try:
+        with warnings.catch_warnings(), MemoryFile() as mem:
+            warnings.simplefilter("ignore")
+            with mem.open(driver="GTiff", width=1, height=1, count=1, dtype="uint8", compress="zstd") as dst:
+                dst.write(np.zeros((1, 1, 1), np.uint8))
+            with mem.open() as src:
+                return src.compression is not None and src.compression.name.lower() == "zstd"
+    except Exception:  # pragma: no cover - depends on the GDAL build
+        return False
+
+
+def staging_profile(
+    crs: CRS, transform: Affine, width: int, height: int, count: int, dtype: str, nodata: float | None
+) -> dict[str, Any]:
+    """Profile of the temporary tiled GeoTIFF that :func:`to_cog` converts (fast, light compression)."""
+    profile: dict[str, Any] = dict(
+        driver="GTiff", crs=crs, transform=transform, width=int(width), height=int(height), count=int(count),
+        dtype=np.dtype(dtype).name, nodata=nodata, tiled=True, blockxsize=COG_BLOCKSIZE,
+        blockysize=COG_BLOCKSIZE, bigtiff="IF_SAFER", interleave="band",
+    )
+    if _zstd_available():
+        profile.update(compress="zstd", zstd_level=1)
+    else:  # pragma: no cover - depends on the GDAL build
+        profile.update(compress="deflate", zlevel=1)
+    return profile
+
+
+def cog_options(dtype: str | np.dtype, categorical: bool = False, compress: str = "deflate") -> dict[str, Any]:
+    """GDAL COG-driver creation options for rasters of ``dtype``.
+
+    Args:
+        dtype: band dtype.
+        categorical: class rasters (overviews by ``mode``) instead of continuous values (``average``).
+        compress: ``"deflate"`` (readable everywhere) or ``"zstd"`` (falls back to deflate without it).
+    """
+    compress = "zstd" if compress.lower() == "zstd" and _zstd_available() else "deflate"
+    return {
+        "blocksize": COG_BLOCKSIZE,
+        "compress": compress,
+        "predictor": "floating_point" if np.dtype(dtype).kind == "f" else "standard",
+        "overview_resampling": "mode" if categorical else "average",
+        "bigtiff": "if_safer",
+    }
+
+
+def to_cog(src: str | Path, dst: str | Path, categorical: bool = False, compress: str = "deflate") -> None:
+    """Copy GeoTIFF ``src`` to a Cloud-Optimized GeoTIFF ``dst`` (block-wise; flat memory).
+
+    Raises:
+        OutputError: GDAL older than 3.1 (no COG driver) or the copy failed.
+    """
+    if _gdal_version() < (3, 1):  # pragma: no cover - the pinned environment has GDAL ≥ 3.1
+        raise OutputError(
+            f"writing Cloud-Optimized GeoTIFFs needs GDAL ≥ 3.1, this rasterio has GDAL {rasterio.__gdal_version__}; "
+            "upgrade rasterio (pip install -U rasterio)"
+        )
+    with rasterio.open(src) as s:
+        dtype = s.dtypes[0]
+    try:
+        rasterio.shutil.copy(str(src), str(dst), driver="COG", **cog_options(dtype, categorical, compress))
+    except rasterio.errors.RasterioError as exc:
+        raise OutputError(f"could not write COG '{dst}' from '{src}': {exc}; check free disk space") from exc
+
+
+# ---- validation --------------------------------------------------------------------------------
+_TYPE_SIZES = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 16: 8, 17: 8, 18: 8}
+_TYPE_FMT = {3: "H", 4: "I", 16: "Q"}
+
+
+def _read_ifds(path: Path) -> list[dict[int, Any]]:
+    """Parse the IFD chain of a (Big)TIFF: tag → value(s) for the tags needed here, plus its offset."""
+    wanted = {256, 257, 322, 323, 324, 325, 254}
+    ifds: list[dict[int, Any]] = []
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+        bo = {b"II": "<", b"MM": ">"}.get(head[:2])
+        if bo is None:
+            raise OutputError(f"'{path}' is not a TIFF file")
+        magic = struct.unpack(bo + "H", head[2:4])[0]
+        big = magic == 43
+        offset = struct.unpack(bo + ("Q" if big else "I"), head[8:16] if big else head[4:8])[0]
+        while offset and len(ifds) < 64:
+            fh.seek(offset)
+            n = struct.unpack(bo + ("Q" if big else "H"), fh.read(8 if big else 2))[0]
+            entry_size = 20 if big else 12
+            raw = fh.read(n * entry_size)
+            ifd: dict[int, Any] = {"offset": offset}  # type: ignore[dict-item]
+            for k in range(n):
+                e = raw[k * entry_size:(k + 1) * entry_size]
+                tag, typ = struct.unpack(bo + "HH", e[:4])
+                count = struct.unpack(bo + ("Q" if big else "I"), e[4:12] if big else e[4:8])[0]
+                if tag not in wanted or typ not in _TYPE_FMT:
+                    continue
+                size = _TYPE_SIZES[typ] * count
+                inline = e[12:20] if big else e[8:12]
+                if size <= len(inline):
+                    data = inline[:size]
+                else:
+                    ptr = struct.unpack(bo + ("Q" if big else "I"), inline)[0]
+                    here = fh.tell()
+                    fh.seek(ptr)
+                    data = fh.read(size)
+                    fh.seek(here)
+                ifd[tag] = struct.unpack(bo + _TYPE_FMT[typ] * count, data)
+            ifds.append(ifd)
+            nxt = fh.read(8 if big else 4)
+            offset = struct.unpack(bo + ("Q" if big else "I"), nxt)[0] if len(nxt) == (8 if big else 4) else 0
+    return ifds
+
+
+def cog_problems(path: str | Path) -> list[str]:
+    """Check that ``path`` is a Cloud-Optimized GeoTIFF; returns the problems found (empty when valid).
+
+    Checks: GDAL reports ``LAYOUT=COG``; the image is tiled; it has internal overviews when it is larger
+    than one tile; the first IFD is the full-resolution image and sits at the start of the file, followed
+    by the overview IFDs in decreasing size; overview tile data come before the full-resolution data.
+    """
+    path = Path(path)
+    problems: list[str] = []
+    with rasterio.open(path) as src:
+        if src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") != "COG":
+            problems.append("GDAL does not report LAYOUT=COG")
+        if not src.profile.get("tiled", False):
+            problems.append("the image is not tiled")
+        big = max(src.width, src.height) > max(src.block_shapes[0])
+        if big and not src.overviews(1):
+            problems.append("no internal overviews although the image is larger than one tile")
+        width = src.width
+    ifds = [d for d in _read_ifds(path) if not (d.get(254, (0,))[0] & 4)]  # skip mask IFDs
+    if not ifds:
+        return problems + ["no IFD found"]
+    main = ifds[0]
+    if main.get(256, (None,))[0] != width:
+        problems.append("the first IFD is not the full-resolution image")
+    if main["offset"] > 65536:
+        problems.append(f"the first IFD is at byte {main['offset']}, not at the start of the file")
+    if 322 not in main:
+        problems.append("the first IFD is not tiled")
+    widths = [d.get(256, (0,))[0] for d in ifds]
+    if any(b >= a for a, b in zip(widths, widths[1:])):
+        problems.append(f"overview IFDs are not in decreasing size order: widths {widths}")
+    if len(ifds) > 1 and 324 in main and 324 in ifds[-1]:
+        main_data = min(o for o in main[324] if o > 0) if any(main[324]) else 0
+        ovr_data = max(ifds[-1][324])
+        if main_data and ovr_data > main_data:
+            problems.append("full-resolution tile data come before the smallest overview's data")
+    return problems
+
+
+__all__ = ["COG_BLOCKSIZE", "cog_options", "cog_problems", "staging_profile", "to_cog"]
