@@ -1,9 +1,77 @@
-"""`aerialmtl evaluate` (placeholder until the command lands)."""
+"""`aerialmtl evaluate`: compare a prediction folder with reference heights and/or labels."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
 
 import click
 
+from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
+from aerialmtl.evaluation.report import headline
+
+
+def _parse_bins(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[float, ...]:
+    if value is None:
+        return DEFAULT_HEIGHT_BINS
+    try:
+        edges = tuple(math.inf if v.strip().lower() in ("inf", "infinity") else float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated metres like '0,1,2,5,10,20,inf', got {value!r}", ctx, param)
+    if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
+        raise click.BadParameter(f"need at least 2 increasing edges, got {value!r}", ctx, param)
+    return edges
+
 
 @click.command(name="evaluate")
-def evaluate() -> None:
-    """Not available yet."""
-    raise click.UsageError("'aerialmtl evaluate' is not implemented yet")
+@click.option("--pred", "pred", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Prediction folder written by `aerialmtl predict`.")
+@click.option("--height", "height_ref", type=click.Path(dir_okay=False, path_type=Path),
+              help="Reference nDSM (metres above ground); any CRS/GSD, reprojected onto the prediction grid.")
+@click.option("--labels", "labels_ref", type=click.Path(dir_okay=False, path_type=Path),
+              help="Reference label raster (raw class codes); any CRS/GSD.")
+@click.option("--classes", "classes", type=str, default=None,
+              help="Class scheme YAML or built-in name; default: the scheme stored in classes.tif.")
+@click.option("--height-threshold", type=float, default=1.0, show_default=True,
+              help="δ accuracies use pixels whose reference height is above this (metres).")
+@click.option("--height-bins", callback=_parse_bins, default=None,
+              help="Reference-height bin edges in metres for per-bin errors [default: 0,1,2,5,10,20,inf].")
+@click.option("--ignore-unknown-codes", is_flag=True, help="Treat label codes missing from the scheme as no label.")
+@click.option("--sample-size", type=int, default=2_000_000, show_default=True,
+              help="Max pixels of the seeded subsample for median, AUSE/AURG and Spearman.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of that subsample.")
+@click.option("--no-plots", is_flag=True, help="Do not write PNG plots.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Report JSON path; report.md and PNG plots are written beside it.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing report.")
+def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, classes: str | None,
+             height_threshold: float, height_bins: tuple[float, ...], ignore_unknown_codes: bool,
+             sample_size: int, seed: int, no_plots: bool, out: Path, overwrite: bool) -> None:
+    """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.
+
+    Example: aerialmtl evaluate --pred pred/ --height ndsm.tif --labels gt.tif --out eval/report.json
+    """
+    if height_ref is None and labels_ref is None:
+        raise click.UsageError("give at least one reference: --height NDSM.tif and/or --labels LABELS.tif")
+    if not pred.is_dir():
+        raise click.BadParameter(f"folder '{pred}' does not exist; pass the --out folder of `aerialmtl predict`",
+                                 param_hint="--pred")
+    if not (height_threshold >= 0 and math.isfinite(height_threshold)):
+        raise click.BadParameter(f"must be ≥ 0 metres, got {height_threshold}", param_hint="--height-threshold")
+    if sample_size < 1:
+        raise click.BadParameter(f"must be a positive number of pixels, got {sample_size}", param_hint="--sample-size")
+    if out.exists() and not overwrite:
+        raise click.BadParameter(f"'{out}' already exists; pass --overwrite to replace it", param_hint="--out")
+    report = evaluate_prediction(
+        pred, height_ref=height_ref, labels_ref=labels_ref, classes=classes, out=out,
+        height_threshold=height_threshold, height_bins=height_bins, ignore_unknown_codes=ignore_unknown_codes,
+        overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=True,
+    )
+    width = max((len(k) for k, _ in headline(report)), default=0)
+    for key, value in headline(report):
+        click.echo(f"{key:<{width}}  {value}")
+    for note in report["notes"]:
+        click.echo(f"note: {note}")
+    click.echo(f"report: {out} (+ {out.with_suffix('.md').name}"
+               + "".join(f", {p}" for p in report.get("plots", [])) + ")")

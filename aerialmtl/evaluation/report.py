@@ -1,0 +1,206 @@
+"""Write an evaluation report: JSON (all numbers), a short Markdown summary and PNG plots.
+
+``write_report(report, "out/report.json")`` writes ``out/report.json``, ``out/report.md`` and, when
+matplotlib is installed (the optional ``plot`` extra), ``out/report_sparsification.png``,
+``out/report_confusion.png`` and ``out/report_reliability.png``. In the JSON, undefined values
+(``nan``) and open-ended bin edges (``inf``) are written as ``null``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aerialmtl.errors import OutputError
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Replace ``nan``/``inf`` with ``None`` and numpy scalars/arrays with Python ones (recursively)."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def _fmt(v: Any, digits: int = 3, pct: bool = False) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return f"{100 * v:.1f} %" if pct else f"{v:.{digits}f}"
+
+
+def headline(report: dict[str, Any]) -> list[tuple[str, str]]:
+    """The headline numbers as (label, formatted value) pairs, for the CLI and the Markdown summary."""
+    rows: list[tuple[str, str]] = []
+    h = report.get("height")
+    if h:
+        rows += [("height MAE (m)", _fmt(h["mae"])), ("height RMSE (m)", _fmt(h["rmse"])),
+                 ("height median abs error (m)", _fmt(h["median_abs_error"])),
+                 (f"δ<1.25 (ref > {h['delta']['reference_above_m']:g} m)", _fmt(h["delta"]["delta_1"], pct=True))]
+    c = report.get("classes")
+    if c:
+        rows += [("overall accuracy", _fmt(c["overall_accuracy"], pct=True)), ("mIoU", _fmt(c["miou"], pct=True)),
+                 ("Cohen's kappa", _fmt(c["kappa"]))]
+    u = report.get("uncertainty") or {}
+    if "height_std" in u:
+        rows += [("height std AUSE", _fmt(u["height_std"]["sparsification"]["ause"])),
+                 ("height std Spearman", _fmt(u["height_std"]["spearman_std_vs_abs_error"])),
+                 ("height NLL (nats)", _fmt(u["height_std"]["nll"]))]
+    if "class_entropy" in u:
+        rows.append(("class entropy AUSE", _fmt(u["class_entropy"]["sparsification"]["ause"])))
+    if "calibration" in u:
+        rows.append(("class ECE", _fmt(u["calibration"]["ece"])))
+    return rows
+
+
+def markdown_summary(report: dict[str, Any]) -> str:
+    """A short Markdown summary: headline table, per-class and per-bin tables, notes."""
+    lines = ["# aerialmtl evaluation", "", f"Prediction: `{report['prediction']}`  "]
+    refs = report.get("references") or {}
+    for key in ("height", "labels"):
+        if refs.get(key):
+            lines.append(f"Reference {key}: `{refs[key]}`  ")
+    lines += ["", "| metric | value |", "|---|---|"]
+    lines += [f"| {k} | {v} |" for k, v in headline(report)]
+    h = report.get("height")
+    if h:
+        lines += ["", "## Height error per reference-height bin", "", "| bin (m) | pixels | MAE (m) | RMSE (m) | bias (m) |",
+                  "|---|---|---|---|---|"]
+        for b in h["per_bin"]:
+            lo, hi = b["range_m"]
+            hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
+            lines.append(f"| [{lo:g}, {hi_s}) | {b['n_pixels']} | {_fmt(b['mae'])} | {_fmt(b['rmse'])} | {_fmt(b['bias'])} |")
+    c = report.get("classes")
+    if c:
+        lines += ["", "## Classes", "", "| class | IoU | F1 | reference px | predicted px |", "|---|---|---|---|---|"]
+        for name, m in c["per_class"].items():
+            lines.append(f"| {name} | {_fmt(m['iou'], pct=True)} | {_fmt(m['f1'], pct=True)} | "
+                         f"{m['n_reference']} | {m['n_predicted']} |")
+        lines.append("")
+        lines.append("mIoU and mean F1 average the classes present in the reference or the prediction.")
+    s = report.get("sampling") or {}
+    lines += ["", f"Rank-based metrics (median, AUSE/AURG, Spearman) use at most {s.get('max_pixels')} "
+              f"pixels sampled with seed {s.get('seed')}; sparsification curves are normalised by the "
+              "full-set mean error."]
+    if report.get("notes"):
+        lines += ["", "## Notes", ""] + [f"- {n}" for n in report["notes"]]
+    if report.get("plots"):
+        lines += ["", "## Plots", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in report["plots"]]
+    return "\n".join(lines) + "\n"
+
+
+def _save(fig: Any, path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+
+
+def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
+    """PNG plots beside ``stem`` (``<stem>_sparsification.png``, ...); returns the paths written.
+
+    Uses matplotlib's object API with the Agg canvas (no pyplot, no global backend change).
+    Raises ImportError when matplotlib is missing.
+    """
+    from matplotlib.figure import Figure
+
+    written: list[Path] = []
+    u = report.get("uncertainty") or {}
+    curves = [(k, u[k]["sparsification"]) for k in ("height_std", "class_entropy", "class_mutual_info") if k in u]
+    if curves:
+        fig = Figure(figsize=(4.2 * len(curves), 3.6))
+        for i, (key, sp) in enumerate(curves):
+            ax = fig.add_subplot(1, len(curves), i + 1)
+            f = np.asarray(sp["fractions"], float)
+            ax.plot(f, np.asarray(sp["curve"], float), label=f"uncertainty (AUSE {_fmt(sp['ause'])})")
+            ax.plot(f, np.asarray(sp["oracle"], float), "--", label="oracle")
+            ax.plot(f, np.asarray(sp["random"], float), ":", label=f"random (AURG {_fmt(sp['aurg'])})")
+            ax.set_xlabel("fraction of pixels removed")
+            ax.set_ylabel("mean error / full-set mean error" if sp["normalised"] else "mean error")
+            ax.set_title(key.replace("_", " "))
+            ax.legend(fontsize=7)
+        path = stem.with_name(stem.name + "_sparsification.png")
+        _save(fig, path)
+        written.append(path)
+    c = report.get("classes")
+    if c and c["n_pixels"]:
+        cm = np.asarray(c["confusion_matrix"], float)
+        norm = cm / np.maximum(cm.sum(1, keepdims=True), 1)
+        names = list(c["per_class"])
+        size = 2.5 + 0.45 * len(names)
+        fig = Figure(figsize=(size + 1, size))
+        ax = fig.add_subplot(1, 1, 1)
+        im = ax.imshow(norm, vmin=0, vmax=1, cmap="Blues")
+        ax.set_xticks(range(len(names)), names, rotation=45, ha="right", fontsize=7)
+        ax.set_yticks(range(len(names)), names, fontsize=7)
+        ax.set_xlabel("predicted")
+        ax.set_ylabel("reference")
+        ax.set_title(f"confusion (row-normalised), OA {_fmt(c['overall_accuracy'], pct=True)}")
+        fig.colorbar(im, ax=ax, fraction=0.046)
+        path = stem.with_name(stem.name + "_confusion.png")
+        _save(fig, path)
+        written.append(path)
+    cal = u.get("calibration")
+    if cal and cal["n_pixels"]:
+        fig = Figure(figsize=(4.2, 4))
+        ax = fig.add_subplot(1, 1, 1)
+        edges = np.asarray(cal["bin_edges"], float)
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        acc = np.array([np.nan if a is None else a for a in cal["accuracy"]], float)
+        ax.bar(centres, np.nan_to_num(acc), width=edges[1] - edges[0], edgecolor="k", alpha=0.7, label="accuracy")
+        ax.plot([0, 1], [0, 1], "k--", label="perfect calibration")
+        ax.set_xlabel("confidence (max class probability)")
+        ax.set_ylabel("accuracy")
+        ax.set_title(f"reliability, ECE {_fmt(cal['ece'])}")
+        ax.legend(fontsize=7)
+        path = stem.with_name(stem.name + "_reliability.png")
+        _save(fig, path)
+        written.append(path)
+    return written
+
+
+def write_report(report: dict[str, Any], out: str | Path, plots: bool = True) -> Path:
+    """Write ``report`` as JSON to ``out``, a Markdown summary beside it and (optionally) PNG plots.
+
+    Adds ``report["plots"]`` (file names written) and a note when matplotlib is missing. The JSON is
+    written to a temporary file first and moved into place, so a failed run leaves no partial report.
+
+    Raises:
+        OutputError: the folder cannot be created or written.
+    """
+    out = Path(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the folder of --out '{out}' ({exc}); choose a writable location") from exc
+    stem = out.with_suffix("")
+    report["plots"] = []
+    if plots:
+        try:
+            report["plots"] = [p.name for p in write_plots(report, stem)]
+        except ImportError:
+            report["notes"].append("matplotlib is not installed: plots skipped (pip install 'aerialmtl[plot]')")
+    tmp = out.with_name(out.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(to_jsonable(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        os.replace(tmp, out)
+        out.with_suffix(".md").write_text(markdown_summary(report), encoding="utf-8")
+    except OSError as exc:
+        raise OutputError(f"cannot write the report '{out}' ({exc}); choose a writable --out") from exc
+    return out
+
+
+__all__ = ["headline", "markdown_summary", "to_jsonable", "write_plots", "write_report"]
