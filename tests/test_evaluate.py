@@ -240,3 +240,16 @@ def test_cli_bad_options(tmp_path: Path, extra: list[str], message: str) -> None
                                    str(tmp_path / "r.json"), *extra])
     assert res.exit_code == 2
     assert message in res.output
+
+
+def test_height_only_prediction_uses_labels_for_per_class_errors_when_scheme_given(tmp_path: Path) -> None:
+    s = make_scene(tmp_path)
+    for name in ("classes.tif", "class_entropy.tif", "class_mutual_info.tif", "class_probabilities.tif"):
+        (s["pred"] / name).unlink()
+    rep = evaluate_prediction(s["pred"], height_ref=s["ndsm"], labels_ref=s["labels"], out=None)
+    assert rep["classes"] is None and "per_class" not in rep["height"]
+    assert any("per-class height errors skipped" in n for n in rep["notes"])
+    rep = evaluate_prediction(s["pred"], height_ref=s["ndsm"], labels_ref=s["labels"], classes=SCHEME, out=None)
+    assert list(rep["height"]["per_class"]) == ["ground", "building", "tree"]
+    with pytest.raises(InputError, match="nothing to evaluate"):
+        evaluate_prediction(s["pred"], labels_ref=s["labels"], classes=SCHEME, out=None)

@@ -179,11 +179,12 @@ def evaluate_prediction(
         notes.append("height reference given but the prediction has no height.tif: height metrics skipped")
     scheme, scheme_source = _resolve_scheme(classes, files.get("classes"))
     if labels_ref is not None and scheme is None:
-        raise InputError(
-            f"no class scheme for the labels '{labels_ref}': classes.tif has no {CLASS_SCHEME_TAG} tag"
-            + ("" if "classes" in files else " (or is missing)")
-            + "; pass --classes with the scheme YAML the model was trained with"
-        )
+        if "classes" in files:
+            raise InputError(
+                f"no class scheme for the labels '{labels_ref}': {files['classes']} has no {CLASS_SCHEME_TAG} "
+                "tag; pass --classes with the scheme YAML the model was trained with"
+            )
+        notes.append("labels given without classes.tif or --classes: per-class height errors skipped")
     do_classes = labels_ref is not None and "classes" in files
     if labels_ref is not None and "classes" not in files:
         notes.append("labels given but the prediction has no classes.tif: class metrics skipped")
