@@ -1,0 +1,166 @@
+"""Masked losses against hand-computed values, and task weighting."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from aerialmtl.errors import ConfigError
+from aerialmtl.training import losses as L
+from aerialmtl.training.weighting import EqualWeighting, UncertaintyWeighting, build_weighting
+
+# pred 1 2 / 3 4, target 1.5 2 / 0 NaN, the last pixel invalid → errors −0.5, 0, 3.
+PRED = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])
+TARGET = torch.tensor([[[[1.5, 2.0], [0.0, float("nan")]]]])
+MASK = torch.tensor([[[[True, True], [True, False]]]])
+
+HAND = {
+    "l1": (0.5 + 0 + 3) / 3,
+    "l2": (0.25 + 0 + 9) / 3,
+    "huber": (0.5 * 0.25 + 0 + 1.0 * (3 - 0.5)) / 3,  # δ = 1
+    "berhu": (0.5 + 0 + (9 + 0.6**2) / (2 * 0.6)) / 3,  # c = 0.2 · 3 = 0.6
+}
+
+
+@pytest.mark.parametrize("name", sorted(HAND))
+def test_regression_losses_hand_values(name: str) -> None:
+    value = L.HEIGHT_LOSSES[name](PRED, TARGET, MASK)
+    assert value.item() == pytest.approx(HAND[name], rel=1e-6)
+    assert L.HeightLoss(name)(PRED, TARGET, MASK).item() == pytest.approx(HAND[name], rel=1e-6)
+
+
+def test_scale_invariant_hand_value() -> None:
+    d = [math.log(2 / 2.5), math.log(3 / 3), math.log(4 / 1)]  # log(h + 1 m) differences
+    n = 3
+    expected = sum(v * v for v in d) / n - 0.5 * (sum(d) / n) ** 2
+    assert L.scale_invariant(PRED, TARGET, MASK).item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_scale_invariant_ignores_a_global_scale() -> None:
+    target = torch.tensor([[[[1.0, 3.0], [7.0, 15.0]]]])  # log(t + 1) = log 2, 4, 8, 16
+    pred = 2 * (target + 1) - 1  # every log error is log 2
+    assert L.scale_invariant(pred, target, lam=1.0).item() == pytest.approx(0.0, abs=1e-6)
+    assert L.scale_invariant(pred, target, lam=0.5).item() == pytest.approx(0.5 * math.log(2) ** 2, rel=1e-5)
+
+
+def test_scale_invariant_gradient_hand_value() -> None:
+    a = torch.tensor([[[[0.0, 1.0], [2.0, 4.0]]]])
+    target = torch.zeros_like(a)
+    pred = torch.exp(a) - 1  # log(pred + 1) − log(0 + 1) = a
+    si = (0 + 1 + 4 + 16) / 4 - 0.5 * (7 / 4) ** 2
+    grad = (abs(1 - 0) + abs(4 - 2) + abs(2 - 0) + abs(4 - 1)) / 4  # 2 horizontal + 2 vertical pairs
+    value = L.scale_invariant_gradient(pred, target, alpha=0.5)
+    assert value.item() == pytest.approx(si + 0.5 * grad, rel=1e-5)
+
+
+def test_cross_entropy_hand_values() -> None:
+    logits = torch.tensor([[[[0.0, 0.0, 5.0]], [[math.log(3), 0.0, -5.0]]]])  # 1×2×1×3
+    target = torch.tensor([[[1, 0, 255]]])
+    plain = (math.log(4 / 3) + math.log(2)) / 2
+    assert L.cross_entropy(logits, target).item() == pytest.approx(plain, rel=1e-6)
+    weighted = (2 * math.log(4 / 3) + 1 * math.log(2)) / 3
+    w = torch.tensor([1.0, 2.0])
+    assert L.cross_entropy(logits, target, weight=w).item() == pytest.approx(weighted, rel=1e-6)
+    assert L.CrossEntropyLoss(w)(logits, target).item() == pytest.approx(weighted, rel=1e-6)
+    mask = torch.tensor([[[True, False, True]]])
+    assert L.cross_entropy(logits, target, mask=mask).item() == pytest.approx(math.log(4 / 3), rel=1e-6)
+
+
+@pytest.mark.parametrize("name", sorted(L.HEIGHT_LOSSES))
+def test_invalid_pixels_change_nothing(name: str) -> None:
+    fn = L.HEIGHT_LOSSES[name]
+    g = torch.Generator().manual_seed(0)
+    pred = torch.rand(2, 1, 8, 8, generator=g) * 10
+    target = torch.rand(2, 1, 8, 8, generator=g) * 10
+    mask = torch.rand(2, 1, 8, 8, generator=g) > 0.3
+    p1 = pred.clone().requires_grad_(True)
+    v1 = fn(p1, target, mask)
+    v1.backward()
+    pred2 = torch.where(mask, pred, torch.full_like(pred, -1e4))
+    target2 = torch.where(mask, target, torch.full_like(target, float("nan")))
+    p2 = pred2.clone().requires_grad_(True)
+    v2 = fn(p2, target2, mask)
+    v2.backward()
+    assert v1.item() == pytest.approx(v2.item(), rel=1e-6)
+    assert p1.grad is not None and p2.grad is not None
+    assert torch.all(p2.grad[~mask] == 0) and torch.isfinite(p2.grad).all()
+    torch.testing.assert_close(p1.grad[mask], p2.grad[mask])
+
+
+@pytest.mark.parametrize("name", sorted(L.HEIGHT_LOSSES))
+def test_all_invalid_batch_gives_zero_with_grad(name: str) -> None:
+    pred = torch.randn(2, 1, 4, 4, requires_grad=True)
+    target = torch.full((2, 1, 4, 4), float("nan"))
+    value = L.HEIGHT_LOSSES[name](pred, target, torch.zeros(2, 1, 4, 4, dtype=torch.bool))
+    assert value.item() == 0.0 and value.requires_grad
+    value.backward()
+    assert pred.grad is not None and torch.count_nonzero(pred.grad) == 0
+
+
+def test_cross_entropy_all_ignored_gives_zero_with_grad() -> None:
+    logits = torch.randn(1, 3, 4, 4, requires_grad=True)
+    value = L.cross_entropy(logits, torch.full((1, 4, 4), 255), weight=torch.ones(3))
+    assert value.item() == 0.0
+    value.backward()
+    assert logits.grad is not None and torch.isfinite(logits.grad).all()
+
+
+def test_loss_shape_errors_and_names() -> None:
+    with pytest.raises(ValueError, match="B×1×H×W"):
+        L.l1(torch.zeros(1, 1, 4, 4), torch.zeros(1, 1, 4, 5))
+    with pytest.raises(ValueError, match="B×H×W"):
+        L.cross_entropy(torch.zeros(1, 3, 4, 4), torch.zeros(1, 1, 4, 4, dtype=torch.long))
+    with pytest.raises(ConfigError, match="berhu"):
+        L.HeightLoss("l3")
+
+
+# --------------------------------------------------------------------------- task weighting
+
+
+def test_equal_weighting() -> None:
+    losses = {"height": torch.tensor(2.0), "classes": torch.tensor(3.0)}
+    assert EqualWeighting(["height", "classes"])(losses).item() == 5.0
+    w = build_weighting("equal", ["height", "classes"], weights={"height": 0.5})
+    assert w(losses).item() == 4.0
+    assert w.weights() == {"height": 0.5, "classes": 1.0}
+    with pytest.raises(ConfigError, match="depth"):
+        EqualWeighting(["height"], weights={"depth": 1.0})
+    with pytest.raises(KeyError, match="classes"):
+        EqualWeighting(["height", "classes"])({"height": torch.tensor(1.0)})
+
+
+def test_uncertainty_weighting_forms_and_gradients() -> None:
+    w = build_weighting("uncertainty", ["height", "classes"])
+    assert isinstance(w, UncertaintyWeighting)
+    lh, lc = torch.tensor(2.0, requires_grad=True), torch.tensor(3.0, requires_grad=True)
+    with torch.no_grad():
+        w.log_vars["height"].fill_(math.log(4.0))  # σ² = 4
+        w.log_vars["classes"].fill_(math.log(0.5))  # σ² = 0.5
+    total = w({"height": lh, "classes": lc})
+    expected = (0.5 / 4 * 2 + 0.5 * math.log(4)) + (1 / 0.5 * 3 + 0.5 * math.log(0.5))
+    assert total.item() == pytest.approx(expected, rel=1e-6)
+    total.backward()
+    # d/ds [f·e^{-s}·L + s/2] = −f·e^{-s}·L + 1/2
+    assert w.log_vars["height"].grad.item() == pytest.approx(-0.5 / 4 * 2 + 0.5, rel=1e-6)
+    assert w.log_vars["classes"].grad.item() == pytest.approx(-1 / 0.5 * 3 + 0.5, rel=1e-6)
+    assert lh.grad.item() == pytest.approx(0.5 / 4)
+    assert w.weights() == pytest.approx({"height": 0.125, "classes": 2.0})
+    assert {n for n, _ in w.named_parameters()} == {"log_vars.height", "log_vars.classes"}
+
+
+def test_uncertainty_weighting_learns_to_downweight_a_large_loss() -> None:
+    w = UncertaintyWeighting(["height"])
+    opt = torch.optim.SGD(w.parameters(), lr=0.1)
+    for _ in range(200):
+        opt.zero_grad()
+        w({"height": torch.tensor(10.0)}).backward()
+        opt.step()
+    # Optimum of ½e^{-s}·10 + s/2: s = log 10.
+    assert w.log_vars["height"].item() == pytest.approx(math.log(10), rel=0.05)
+
+
+def test_unknown_weighting_name() -> None:
+    with pytest.raises(ConfigError, match="uncertainty"):
+        build_weighting("gradnorm", ["height"])

@@ -1,0 +1,141 @@
+"""MC dropout: only dropout is stochastic, the encoder runs once, and the statistics are well formed."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.d3net import D3Net
+from aerialmtl.models.mc_dropout import mc_dropout_mode, mc_predict
+
+SMALL = dict(growth_rate=12, block_config=(2, 4, 8, 6), num_init_features=32)
+K = 4
+
+
+def _model(dropout: float = 0.5, **kw: object) -> D3Net:
+    torch.manual_seed(0)
+    model = D3Net(ModelConfig(num_classes=K, dropout=dropout, **SMALL, **kw))  # type: ignore[arg-type]
+    # A few training steps so that BatchNorm running stats are not the defaults.
+    model.train()
+    with torch.no_grad():
+        for _ in range(2):
+            model(torch.randn(2, 3, 64, 64))
+    return model
+
+
+def test_mode_switches_only_dropout_and_restores() -> None:
+    model = _model()
+    model.train()
+    with mc_dropout_mode(model):
+        for m in model.modules():
+            if isinstance(m, torch.nn.Dropout):
+                assert m.training
+            elif isinstance(m, torch.nn.BatchNorm2d):
+                assert not m.training
+    assert all(m.training for m in model.modules())
+    model.eval()
+    with mc_dropout_mode(model):
+        pass
+    assert not any(m.training for m in model.modules())
+
+
+def test_samples_vary_with_dropout_and_batchnorm_stats_are_unchanged() -> None:
+    model = _model().eval()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    x = torch.randn(1, 3, 64, 64)
+    r = mc_predict(model, x, samples=6, sample_batch=4, seed=1)
+    assert (r["height"]["std"] > 0).float().mean() > 0.5
+    assert r["classes"]["mutual_info"].max() > 0
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, before[k]), f"{k} changed during mc_predict"
+    assert not model.training
+
+
+def test_seed_makes_sampling_reproducible() -> None:
+    model = _model().eval()
+    x = torch.randn(1, 3, 64, 64)
+    a = mc_predict(model, x, samples=3, seed=5)
+    b = mc_predict(model, x, samples=3, seed=5)
+    torch.testing.assert_close(a["height"]["std"], b["height"]["std"], rtol=0, atol=0)
+
+
+def test_no_dropout_is_deterministic() -> None:
+    model = _model(dropout=0.0).eval()
+    x = torch.randn(2, 3, 64, 64)
+    r = mc_predict(model, x, samples=5, sample_batch=2)
+    assert torch.allclose(r["height"]["std"], torch.zeros(()), atol=1e-5)
+    assert torch.allclose(r["classes"]["mutual_info"], torch.zeros(()), atol=1e-5)
+    with torch.no_grad():
+        ref = model(x)
+    torch.testing.assert_close(r["height"]["mean"], ref["height"], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(r["classes"]["probs"], torch.softmax(ref["classes"], 1), rtol=1e-4, atol=1e-5)
+
+
+def test_single_sample_has_zero_spread() -> None:
+    model = _model().eval()
+    r = mc_predict(model, torch.randn(1, 3, 64, 64), samples=1)
+    assert torch.count_nonzero(r["height"]["std"]) == 0
+    assert torch.count_nonzero(r["classes"]["mutual_info"]) == 0
+    assert r["classes"]["entropy"].min() > 0
+
+
+def test_encoder_runs_once_per_call() -> None:
+    model = _model().eval()
+    calls = []
+    handle = model.encoder.register_forward_hook(lambda *_: calls.append(1))
+    try:
+        mc_predict(model, torch.randn(2, 3, 64, 64), samples=7, sample_batch=3)
+    finally:
+        handle.remove()
+    assert len(calls) == 1
+
+
+@pytest.mark.parametrize("sample_batch", [None, 2])
+def test_statistics_shapes_and_bounds(sample_batch: int | None) -> None:
+    model = _model().eval()
+    x = torch.randn(2, 3, 64, 96)
+    r = mc_predict(model, x, samples=5, sample_batch=sample_batch, seed=0)
+    h, c = r["height"], r["classes"]
+    assert h["mean"].shape == h["std"].shape == (2, 1, 64, 96)
+    assert c["probs"].shape == (2, K, 64, 96)
+    assert c["entropy"].shape == c["mutual_info"].shape == (2, 64, 96)
+    assert all(v.dtype == torch.float32 for d in r.values() for v in d.values())
+    assert (h["std"] >= 0).all()
+    torch.testing.assert_close(c["probs"].sum(1), torch.ones(2, 64, 96))
+    assert (c["entropy"] >= 0).all() and (c["entropy"] <= math.log(K) + 1e-5).all()
+    assert (c["mutual_info"] >= 0).all() and (c["mutual_info"] <= c["entropy"] + 1e-6).all()
+
+
+def test_chunked_std_matches_direct_std() -> None:
+    """The chunk-combined (Welford/Chan) std equals the std of the same samples taken directly."""
+    model = _model().eval()
+    x = torch.randn(1, 3, 64, 64)
+    r = mc_predict(model, x, samples=5, sample_batch=2, seed=3)
+    torch.manual_seed(3)
+    with mc_dropout_mode(model), torch.no_grad():
+        feats = model.encode(x)
+        draws = []
+        for s in (2, 2, 1):  # the same chunks, hence the same dropout masks
+            out = model.decode([f.repeat(s, 1, 1, 1) for f in feats])["height"]
+            draws.append(out)
+    hs = torch.cat(draws).double()
+    torch.testing.assert_close(r["height"]["mean"].double(), hs.mean(0, keepdim=True), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(r["height"]["std"].double(), hs.std(0, unbiased=False, keepdim=True),
+                               rtol=1e-4, atol=1e-6)
+
+
+def test_single_task_and_bf16_autocast() -> None:
+    model = _model(tasks=("classes",)).eval()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        r = mc_predict(model, torch.randn(1, 3, 64, 64), samples=3, seed=0)
+    assert set(r) == {"classes"}
+    assert r["classes"]["probs"].dtype == torch.float32
+    assert torch.isfinite(r["classes"]["entropy"]).all()
+
+
+def test_samples_must_be_positive() -> None:
+    with pytest.raises(ValueError, match="samples"):
+        mc_predict(_model(), torch.randn(1, 3, 32, 32), samples=0)
