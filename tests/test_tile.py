@@ -265,3 +265,18 @@ def test_cli_tile(scene: dict[str, Path], tmp_path: Path) -> None:
     assert bad.exit_code == 2 and "--dtm" in bad.output
     bad = CliRunner().invoke(cli, args[:-1] + [str(tmp_path / "y"), "--split-ratios", "0.7,0.3"])
     assert bad.exit_code == 2 and "--split-ratios" in bad.output
+
+
+def test_raster_smaller_than_a_patch_gives_one_padded_patch(tmp_path: Path, rng: np.random.Generator) -> None:
+    ortho = write_raster(tmp_path / "o.tif", rng.integers(1, 255, (3, 48, 40), dtype=np.uint8), CRS, T05)
+    ndsm = write_raster(tmp_path / "n.tif", rng.uniform(0, 9, (48, 40)).astype(np.float32), CRS, T05)
+    res = tile_dataset(ortho, tmp_path / "out", ndsm=ndsm, size=64, min_valid=0.4, splits=SplitSpec(ratios=(1, 0, 0)),
+                       progress=False)
+    (row,) = read_manifest(res.manifest)
+    assert float(row["valid_fraction"]) == pytest.approx(48 * 40 / 64**2)
+    with rasterio.open(res.out_dir / row["image_path"]) as im, rasterio.open(res.out_dir / row["height_path"]) as hf:
+        mask, h = im.read_masks(1) > 0, hf.read(1)
+    assert im.shape == (64, 64) and mask[:48, :40].all() and not mask[48:].any() and not mask[:, 40:].any()
+    assert np.all(h[~mask] == HEIGHT_NODATA) and np.all(h[mask] != HEIGHT_NODATA)
+    with pytest.raises(InputError, match="min-valid"):
+        tile_dataset(ortho, tmp_path / "o2", ndsm=ndsm, min_valid=1.5, progress=False)

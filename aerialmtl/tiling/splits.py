@@ -16,7 +16,7 @@ Two methods:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -73,8 +73,11 @@ class SplitSpec:
             total = sum(self.ratios)
             return {"method": "blocks", "block_size": float(self.block_size),
                     "ratios": [float(x) / total for x in self.ratios], "seed": int(self.seed)}
-        aoi = self.aoi if isinstance(self.aoi, str) else {k: str(v) for k, v in dict(self.aoi).items()}  # type: ignore[arg-type]
-        return {"method": "aoi", "aoi": str(aoi) if isinstance(aoi, (str, Path)) else aoi, "aoi_field": self.aoi_field}
+        if isinstance(self.aoi, (str, Path)):
+            aoi: str | dict[str, str] = str(Path(self.aoi).resolve())
+        else:
+            aoi = {k: str(Path(v).resolve()) for k, v in dict(self.aoi or {}).items()}
+        return {"method": "aoi", "aoi": aoi, "aoi_field": self.aoi_field}
 
 
 def allocate_blocks(n_blocks: int, ratios: tuple[float, ...]) -> list[int]:
