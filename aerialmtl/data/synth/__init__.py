@@ -1,0 +1,25 @@
+"""Procedural, georeferenced synthetic towns for running and testing the whole pipeline offline.
+
+:func:`synthesize` writes an RGB orthophoto, DSM, DTM, nDSM and land-cover labels of a random town
+(terrain, roads, houses with gable roofs, commercial blocks, parks with ponds, forests, fields) in
+which height is visible in the image through sun-direction cast shadows and roof shading.
+"""
+
+from aerialmtl.data.synth.generate import MIN_SIZE, SYNTH_VERSION, SynthResult, synthesize
+from aerialmtl.data.synth.render import AMBIENT, render_ortho
+from aerialmtl.data.synth.scene import Scene, build_scene
+from aerialmtl.data.synth.shading import cast_shadows, hillshade, sun_vector
+
+__all__ = [
+    "AMBIENT",
+    "MIN_SIZE",
+    "SYNTH_VERSION",
+    "Scene",
+    "SynthResult",
+    "build_scene",
+    "cast_shadows",
+    "hillshade",
+    "render_ortho",
+    "sun_vector",
+    "synthesize",
+]

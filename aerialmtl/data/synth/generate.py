@@ -1,0 +1,163 @@
+"""``synthesize``: write a georeferenced synthetic town (ortho, DSM, DTM, nDSM, labels) to a folder."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.crs import CRS
+from rasterio.enums import ColorInterp
+from rasterio.errors import CRSError
+
+from aerialmtl.classes import BUILTIN_DIR, ClassScheme
+from aerialmtl.data.synth.render import render_ortho
+from aerialmtl.data.synth.scene import build_scene
+from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.io.align import HEIGHT_NODATA
+
+#: Version of the generator; bump it whenever the same seed would produce different rasters.
+SYNTH_VERSION = "1"
+
+#: Smallest scene size accepted (pixels).
+MIN_SIZE = 32
+
+_OUTPUTS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "labels.tif", "classes.yaml")
+
+
+@dataclass(frozen=True)
+class SynthResult:
+    """Paths written by :func:`synthesize` and the scene's sun angles (degrees)."""
+
+    out_dir: Path
+    ortho: Path
+    dsm: Path
+    dtm: Path
+    ndsm: Path
+    labels: Path
+    classes: Path
+    sun_azimuth: float
+    sun_elevation: float
+    seconds: float
+
+
+def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict:
+    block = 256 if size >= 256 else None
+    profile = dict(driver="GTiff", width=size, height=size, count=count, dtype=dtype, crs=crs,
+                   transform=transform, nodata=nodata, compress="zstd", zstd_level=1,
+                   predictor=3 if dtype == "float32" else 2, num_threads="ALL_CPUS", bigtiff="IF_SAFER")
+    if block:
+        profile.update(tiled=True, blockxsize=block, blockysize=block)
+    if count == 3:
+        profile.update(interleave="pixel", photometric="RGB")
+    return profile
+
+
+def synthesize(
+    out_dir: str | Path,
+    size: int = 1024,
+    seed: int = 0,
+    gsd: float = 0.25,
+    crs: str = "EPSG:32631",
+    origin: tuple[float, float] = (500000.0, 5000000.0),
+    overwrite: bool = False,
+) -> SynthResult:
+    """Generate a procedural town and write it as pixel-aligned GeoTIFFs in ``out_dir``.
+
+    Files (all ``size`` × ``size`` pixels, north-up, ``gsd`` metres, upper-left corner at ``origin``):
+    ``ortho.tif`` (uint8 RGB), ``dsm.tif``, ``dtm.tif``, ``ndsm.tif`` (float32 metres, nodata
+    :data:`HEIGHT_NODATA`, nDSM = DSM − DTM), ``labels.tif`` (uint8 raw codes of the built-in
+    ``synthetic`` class scheme, nodata 0) and ``classes.yaml`` (that scheme). Every raster carries the
+    tags ``AERIALMTL_SYNTH_VERSION``, ``AERIALMTL_SYNTH_SEED``, ``AERIALMTL_SYNTH_SIZE``,
+    ``AERIALMTL_SYNTH_GSD``, ``AERIALMTL_SUN_AZIMUTH`` and ``AERIALMTL_SUN_ELEVATION``.
+    The same (seed, size, gsd) always gives identical arrays.
+
+    Args:
+        out_dir: output folder (created if missing).
+        size: width and height in pixels (≥ 32).
+        seed: random seed.
+        gsd: pixel size in metres (> 0).
+        crs: a projected CRS in metres (EPSG code or WKT).
+        origin: map coordinates (x, y) of the upper-left corner.
+        overwrite: replace existing outputs.
+
+    Raises:
+        InputError: bad ``size``, ``gsd`` or ``crs``.
+        OutputExistsError: an output exists and ``overwrite`` is False.
+        OutputError: ``out_dir`` cannot be created.
+    """
+    start = time.perf_counter()
+    if int(size) != size or size < MIN_SIZE:
+        raise InputError(f"size must be an integer ≥ {MIN_SIZE} pixels, got {size}; pass e.g. --size 1024")
+    if not gsd > 0:
+        raise InputError(f"gsd must be a positive pixel size in metres, got {gsd}; pass e.g. --gsd 0.25")
+    try:
+        crs_obj = CRS.from_user_input(crs)
+    except CRSError as exc:
+        raise InputError(f"crs {crs!r} is not a valid CRS ({exc}); pass an EPSG code such as 'EPSG:32631'") from exc
+    if not crs_obj.is_projected:
+        raise InputError(f"crs {crs!r} is not projected; synthetic scenes need metres, e.g. a UTM zone 'EPSG:32631'")
+    out = Path(out_dir)
+    existing = [name for name in _OUTPUTS if (out / name).exists()]
+    if existing and not overwrite:
+        raise OutputExistsError(
+            f"{out}: {', '.join(existing)} already exist; pass --overwrite (overwrite=True) to replace them "
+            "or choose another output folder"
+        )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder '{out}' ({exc}); check the path and permissions") from exc
+
+    rng = np.random.default_rng(seed)
+    scene = build_scene(int(size), float(gsd), rng)
+    ortho, _ = render_ortho(scene, rng)
+    dsm = (scene.dtm + scene.ndsm).astype(np.float32)
+    ndsm = dsm - scene.dtm  # exactly DSM − DTM in float32
+
+    transform = Affine(gsd, 0.0, origin[0], 0.0, -gsd, origin[1])
+    tags = {
+        "AERIALMTL_SYNTH_VERSION": SYNTH_VERSION,
+        "AERIALMTL_SYNTH_SEED": str(seed),
+        "AERIALMTL_SYNTH_SIZE": str(size),
+        "AERIALMTL_SYNTH_GSD": repr(float(gsd)),
+        "AERIALMTL_SUN_AZIMUTH": f"{scene.sun_azimuth:.4f}",
+        "AERIALMTL_SUN_ELEVATION": f"{scene.sun_elevation:.4f}",
+    }
+    scheme = ClassScheme.load("synthetic")
+    paths = {name: out / name for name in _OUTPUTS}
+
+    def write(name: str, data: np.ndarray, nodata: float | None, descriptions: tuple[str, ...],
+              units: str | None = None, colormap: dict | None = None) -> None:
+        count = data.shape[0] if data.ndim == 3 else 1
+        profile = _profile(size, count, data.dtype.name, crs_obj, transform, nodata)
+        tmp = paths[name].with_name(f".{name}.part")
+        with rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(data if data.ndim == 3 else data[None])
+            dst.update_tags(**tags)
+            for i, desc in enumerate(descriptions, start=1):
+                dst.set_band_description(i, desc)
+            if units:
+                dst.units = (units,) * count
+            if count == 3:
+                dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue]
+            if colormap:
+                dst.write_colormap(1, colormap)
+        os.replace(tmp, paths[name])
+
+    write("ortho.tif", ortho, None, ("red", "green", "blue"))
+    write("dsm.tif", dsm, HEIGHT_NODATA, ("DSM",), "metre")
+    write("dtm.tif", scene.dtm, HEIGHT_NODATA, ("DTM",), "metre")
+    write("ndsm.tif", ndsm, HEIGHT_NODATA, ("nDSM",), "metre")
+    cmap = {c.code: (*c.color, 255) for c in scheme.classes}
+    cmap.update({code: (0, 0, 0, 0) for code in scheme.ignore_codes})
+    write("labels.tif", scene.labels, 0, ("land cover (raw code)",), colormap=cmap)
+    shutil.copyfile(BUILTIN_DIR / "synthetic.yaml", paths["classes.yaml"])
+    return SynthResult(out, paths["ortho.tif"], paths["dsm.tif"], paths["dtm.tif"], paths["ndsm.tif"],
+                       paths["labels.tif"], paths["classes.yaml"], scene.sun_azimuth, scene.sun_elevation,
+                       time.perf_counter() - start)

@@ -1,0 +1,48 @@
+"""Seeded noise fields used for terrain, grass height and material textures."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def smooth_noise(shape: tuple[int, int], cell_px: float, rng: np.random.Generator) -> np.ndarray:
+    """Value noise: a coarse grid of N(0, 1) values every ``cell_px`` pixels, cubic-interpolated.
+
+    Args:
+        shape: (H, W) of the output.
+        cell_px: feature size in pixels (≥ 1; 1 gives white noise).
+        rng: random generator (consumed deterministically).
+
+    Returns:
+        float32 (H, W), roughly zero-mean with standard deviation ~0.6–1.
+    """
+    h, w = shape
+    if cell_px <= 1.0:
+        return rng.standard_normal(shape, dtype=np.float32)
+    cell = float(cell_px)
+    gh, gw = int(math.ceil(h / cell)) + 4, int(math.ceil(w / cell)) + 4
+    coarse = rng.standard_normal((gh, gw), dtype=np.float32)
+    rows = (np.arange(h, dtype=np.float32) + 0.5) / cell + 1.5
+    cols = (np.arange(w, dtype=np.float32) + 0.5) / cell + 1.5
+    # Separable Catmull-Rom interpolation as two small matrix products (the coarse grid is tiny).
+    return (_interp_matrix(rows, gh) @ coarse @ _interp_matrix(cols, gw).T).astype(np.float32)
+
+
+def _interp_matrix(pos: np.ndarray, n: int) -> np.ndarray:
+    """(len(pos), n) matrix of Catmull-Rom weights sampling a length-``n`` signal at ``pos``."""
+    i = np.floor(pos).astype(np.int64)
+    t = (pos - i).astype(np.float32)
+    t2, t3 = t * t, t * t * t
+    weights = (
+        0.5 * (-t3 + 2 * t2 - t),
+        0.5 * (3 * t3 - 5 * t2 + 2),
+        0.5 * (-3 * t3 + 4 * t2 + t),
+        0.5 * (t3 - t2),
+    )
+    m = np.zeros((pos.size, n), dtype=np.float32)
+    idx = np.arange(pos.size)
+    for k, wk in enumerate(weights):
+        np.add.at(m, (idx, np.clip(i - 1 + k, 0, n - 1)), wk)
+    return m

@@ -1,0 +1,547 @@
+"""Procedural town layout: terrain, roads, blocks of houses, commercial lots, parks, forests, fields.
+
+Everything is planned in metres in a "town frame" (u, v) rotated by a seeded angle from the image
+axes, and rasterised onto the pixel grid: ground covers with vectorised masks, objects (buildings,
+trees) one by one with :func:`skimage.draw.polygon` / :func:`skimage.draw.disk` and a "highest
+surface wins" rule, so that the label of every pixel is the class of the surface a camera looking
+straight down would see, and its nDSM is that surface's height above ground.
+
+The pixel (row, col) centre lies at X = (col + 0.5)·gsd east and Y = (row + 0.5)·gsd south of the
+scene's upper-left corner; u = X·cosθ + Y·sinθ, v = −X·sinθ + Y·cosθ.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from shapely.geometry import Polygon, box
+from skimage.draw import disk, polygon
+
+from aerialmtl.data.synth.noise import smooth_noise
+
+# Raw label codes of the built-in "synthetic" class scheme.
+BARE_SOIL, ROAD, BUILDING, TREE, LOW_VEGETATION, WATER = 1, 2, 3, 4, 5, 6
+
+# Ground materials (index into the tables below).
+GRASS, SOIL, FIELD, ASPHALT, MARKING, POND, GRAVEL = range(7)
+_COVER_LABEL = np.array([LOW_VEGETATION, BARE_SOIL, BARE_SOIL, ROAD, ROAD, WATER, BARE_SOIL], np.uint8)
+# base colour (R, G, B) in DN and texture amplitudes: large (×), mid (×), fine (DN)
+_COVER_RGB = np.array(
+    [[96, 128, 62], [150, 122, 88], [128, 100, 72], [92, 92, 94], [215, 215, 205], [32, 56, 78], [172, 160, 140]],
+    np.float32,
+)
+_COVER_TEX = np.array(
+    [[0.10, 0.10, 9.0], [0.08, 0.08, 7.0], [0.06, 0.05, 6.0], [0.05, 0.07, 6.0], [0.0, 0.03, 5.0],
+     [0.04, 0.03, 1.5], [0.05, 0.06, 8.0]],
+    np.float32,
+)
+_DRY_GRASS = np.array([150, 150, 88], np.float32)
+
+_ROOF_TILES = [(150, 68, 48), (172, 92, 62), (122, 58, 44), (140, 100, 80), (160, 82, 70)]
+_ROOF_GREY = [(118, 118, 124), (150, 148, 146), (104, 110, 118)]
+_ROOF_DARK = [(60, 60, 68), (74, 70, 70), (52, 56, 62)]
+_ROOF_FLAT = [(176, 174, 168), (196, 190, 178), (88, 88, 94), (142, 142, 136), (160, 150, 140)]
+_TREE_GREENS = [(46, 82, 36), (58, 96, 42), (38, 70, 40), (70, 100, 46), (50, 76, 30)]
+
+
+@dataclass(frozen=True)
+class RoofPart:
+    """One rectangle of a building footprint in the town frame (metres) and its roof.
+
+    ``kind`` is ``"flat"`` (height ``eave``) or ``"gable"`` (ridge along the rectangle's longer side,
+    rising ``rise`` metres above ``eave`` at the ridge line).
+    """
+
+    u0: float
+    u1: float
+    v0: float
+    v1: float
+    kind: str
+    eave: float
+    rise: float = 0.0
+
+
+@dataclass(frozen=True)
+class Building:
+    parts: tuple[RoofPart, ...]
+    color: tuple[float, float, float]
+    textured: bool  # roof tiles: stripes parallel to the ridge
+
+
+@dataclass(frozen=True)
+class TreeSpec:
+    u: float
+    v: float
+    radius: float  # crown radius, metres
+    top: float  # crown top above ground, metres
+    base: float  # crown rim above ground, metres
+    color: tuple[float, float, float]
+
+
+@dataclass
+class Scene:
+    """Rasterised scene on an (H, W) grid of ``gsd`` metres.
+
+    Attributes:
+        dtm: float32 (H, W) terrain elevation in metres.
+        ndsm: float32 (H, W) height of the visible surface above the terrain, metres (≥ 0).
+        labels: uint8 (H, W) raw codes of the "synthetic" scheme (1..6).
+        albedo: float32 (3, H, W) surface colour in DN (0–255) before illumination.
+        sun_azimuth, sun_elevation: degrees (azimuth clockwise from north).
+    """
+
+    dtm: np.ndarray
+    ndsm: np.ndarray
+    labels: np.ndarray
+    albedo: np.ndarray
+    sun_azimuth: float
+    sun_elevation: float
+    gsd: float
+    stats: dict[str, int] = field(default_factory=dict)
+
+
+class _Canvas:
+    """Pixel arrays plus the town-frame ↔ pixel transforms."""
+
+    def __init__(self, size: int, gsd: float, theta: float) -> None:
+        self.n = size
+        self.gsd = gsd
+        self.cos, self.sin = math.cos(theta), math.sin(theta)
+        self.shape = (size, size)
+        self.ndsm = np.zeros(self.shape, np.float32)
+        self.labels = np.zeros(self.shape, np.uint8)
+        self.albedo = np.zeros((3, *self.shape), np.float32)
+
+    def to_px(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = u * self.cos - v * self.sin
+        y = u * self.sin + v * self.cos
+        return y / self.gsd - 0.5, x / self.gsd - 0.5
+
+    def uv_of(self, rr: np.ndarray, cc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = (cc.astype(np.float32) + 0.5) * self.gsd
+        y = (rr.astype(np.float32) + 0.5) * self.gsd
+        return x * self.cos + y * self.sin, -x * self.sin + y * self.cos
+
+    def fill(self, u: list[float] | np.ndarray, v: list[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, c = self.to_px(np.asarray(u, np.float64), np.asarray(v, np.float64))
+        return polygon(r, c, self.shape)
+
+    def fill_rect(self, u0: float, u1: float, v0: float, v1: float) -> tuple[np.ndarray, np.ndarray]:
+        return self.fill([u0, u1, u1, u0], [v0, v0, v1, v1])
+
+    def put(self, rr: np.ndarray, cc: np.ndarray, h: np.ndarray, code: int, rgb: np.ndarray) -> None:
+        """Draw an object: where ``h`` is above the current surface it becomes the visible surface."""
+        win = h > self.ndsm[rr, cc]
+        rr, cc = rr[win], cc[win]
+        self.ndsm[rr, cc] = h[win]
+        self.labels[rr, cc] = code
+        self.albedo[:, rr, cc] = rgb[:, win]
+
+
+def _jitter(rng: np.random.Generator, rgb: tuple[int, int, int], amount: float = 12.0) -> tuple[float, ...]:
+    return tuple(float(np.clip(c + rng.normal(0, amount), 0, 255)) for c in rgb)
+
+
+class _Planner:
+    """Draws random town content block by block (all sizes in metres)."""
+
+    def __init__(self, canvas: _Canvas, rng: np.random.Generator, scene_poly: Polygon) -> None:
+        self.cv = canvas
+        self.rng = rng
+        self.scene_poly = scene_poly
+        self.cover = np.full(canvas.shape, GRASS, np.uint8)
+        self.buildings: list[Building] = []
+        self.trees: list[TreeSpec] = []
+        self.ponds: list[tuple[np.ndarray, np.ndarray]] = []
+
+    # ---- helpers --------------------------------------------------------------------------------
+    def cover_rect(self, u0: float, u1: float, v0: float, v1: float, material: int) -> None:
+        rr, cc = self.cv.fill_rect(u0, u1, v0, v1)
+        self.cover[rr, cc] = material
+
+    def tree(self, u: float, v: float, radius: float, top: float, dark: float = 0.0) -> None:
+        rng = self.rng
+        top = float(np.clip(top, 4.0, 25.0))
+        base = max(3.0, top * rng.uniform(0.3, 0.55))
+        rgb = _jitter(rng, _TREE_GREENS[rng.integers(len(_TREE_GREENS))], 8.0)
+        rgb = tuple(c * (1.0 - dark) for c in rgb)
+        self.trees.append(TreeSpec(u, v, radius, top, base, rgb))
+
+    def visible(self, u0: float, u1: float, v0: float, v1: float) -> Polygon:
+        return box(u0, v0, u1, v1).intersection(self.scene_poly)
+
+    def random_point(self, region: Polygon, tries: int = 30) -> tuple[float, float] | None:
+        if region.is_empty:
+            return None
+        a0, b0, a1, b1 = region.bounds
+        for _ in range(tries):
+            u, v = self.rng.uniform(a0, a1), self.rng.uniform(b0, b1)
+            if region.contains(_Pt(u, v)):
+                return u, v
+        pt = region.representative_point()
+        return pt.x, pt.y
+
+    # ---- block types ----------------------------------------------------------------------------
+    def residential(self, u0: float, u1: float, v0: float, v1: float) -> None:
+        rng = self.rng
+        swap = (u1 - u0) < (v1 - v0)  # lots run along the longer side; work in (a, b) = long, short
+        a0, a1, b0, b1 = (v0, v1, u0, u1) if swap else (u0, u1, v0, v1)
+
+        def uv(a: float, b: float) -> tuple[float, float]:
+            return (b, a) if swap else (a, b)
+
+        def rect(pa0: float, pa1: float, pb0: float, pb1: float) -> tuple[float, float, float, float]:
+            (x0, y0), (x1, y1) = uv(pa0, min(pb0, pb1)), uv(pa1, max(pb0, pb1))
+            return (min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1))
+
+        depth = b1 - b0
+        rows = [(b0, 1.0, depth / 2), (b1, -1.0, depth / 2)] if depth >= 34 else [(b0, 1.0, depth)]
+        for street, sign, lot_depth in rows:
+            a = a0
+            while a < a1 - 6:
+                lot_w = min(rng.uniform(12, 22), a1 - a)
+                self._house_lot(a, a + lot_w, street, sign, lot_depth, rect, uv)
+                a += lot_w
+
+    def _house_lot(self, la0: float, la1: float, street: float, sign: float, depth: float, rect, uv) -> None:
+        rng = self.rng
+        lot_w = la1 - la0
+        setback = rng.uniform(3, 6)
+        wh = min(lot_w - 2 * rng.uniform(1.5, 3.0), rng.uniform(8, 16))
+        dh = min(rng.uniform(8, 13), depth - setback - 3)
+        if wh >= 8 and dh >= 8:
+            ca = rng.uniform(la0 + (lot_w - wh) / 2 - 1, la0 + (lot_w - wh) / 2 + 1)
+            ca = float(np.clip(ca, la0 + 1, la1 - wh - 1))
+            s0, s1 = setback, setback + dh
+            parts_ab = [(ca, ca + wh, s0, s1)]
+            back_room = depth - s1 - 2
+            if rng.random() < 0.35 and back_room > 3 and wh >= 12:
+                ww = rng.uniform(8, max(8.0, 0.6 * wh))
+                ext = min(rng.uniform(4, 9), back_room)
+                wa0 = ca if rng.random() < 0.5 else ca + wh - ww
+                parts_ab.append((wa0, wa0 + ww, s0 + dh * 0.5, s1 + ext))
+            flat = rng.random() < 0.2
+            eave = rng.uniform(3.0, 7.0)
+            pitch = math.radians(rng.uniform(25, 45))
+            parts = []
+            for pa0, pa1, ps0, ps1 in parts_ab:
+                x0, x1, y0, y1 = rect(pa0, pa1, street + sign * ps0, street + sign * ps1)
+                half = min(x1 - x0, y1 - y0) / 2
+                kind = "flat" if flat else "gable"
+                parts.append(RoofPart(x0, x1, y0, y1, kind, eave, 0.0 if flat else half * math.tan(pitch)))
+            roll = rng.random()
+            if flat:
+                color, textured = _ROOF_FLAT[rng.integers(len(_ROOF_FLAT))], False
+            elif roll < 0.6:
+                color, textured = _ROOF_TILES[rng.integers(len(_ROOF_TILES))], True
+            elif roll < 0.85:
+                color, textured = _ROOF_GREY[rng.integers(len(_ROOF_GREY))], True
+            else:
+                color, textured = _ROOF_DARK[rng.integers(len(_ROOF_DARK))], False
+            self.buildings.append(Building(tuple(parts), _jitter(rng, color, 8.0), textured))
+            if rng.random() < 0.5:  # gravel driveway from the street to the house
+                side = ca - 3.5 if ca - 3.5 > la0 + 0.3 else ca + wh + 0.5
+                if side + 3 < la1:
+                    self.cover_rect(*rect(side, side + 3, street, street + sign * setback), GRAVEL)
+            yard0 = s1 + 1
+        else:
+            yard0 = 2.0
+        if rng.random() < 0.3 and depth - yard0 > 5:  # vegetable patch / bare garden
+            pa = rng.uniform(la0 + 1, max(la0 + 1, la1 - 7))
+            ps = rng.uniform(yard0, depth - 4)
+            self.cover_rect(*rect(pa, min(la1 - 0.5, pa + rng.uniform(4, 8)), street + sign * ps,
+                                  street + sign * min(depth - 0.5, ps + rng.uniform(3, 6))), SOIL)
+        for _ in range(rng.poisson(1.3)):
+            radius = rng.uniform(2.0, 4.5)
+            if depth - yard0 < 1.0:
+                break
+            ps = rng.uniform(yard0 + 0.5 * radius, max(yard0 + 0.5 * radius, depth - 0.5 * radius))
+            pa = rng.uniform(la0 + 0.5, la1 - 0.5)
+            self.tree(*uv(pa, street + sign * ps), radius, rng.uniform(4, 14))
+
+    def commercial(self, u0: float, u1: float, v0: float, v1: float, paved: bool) -> None:
+        rng = self.rng
+        if paved:
+            self.cover_rect(u0, u1, v0, v1, GRAVEL if rng.random() < 0.3 else SOIL)
+        placed: list[Polygon] = []
+        for _ in range(14):
+            if len(placed) >= 3:
+                break
+            w = min(rng.uniform(15, 40), u1 - u0 - 6)
+            d = min(rng.uniform(15, 40), v1 - v0 - 6)
+            if w < 10 or d < 10:
+                break
+            cu = rng.uniform(u0 + 3, u1 - 3 - w)
+            cvv = rng.uniform(v0 + 3, v1 - 3 - d)
+            fp = box(cu, cvv, cu + w, cvv + d)
+            if any(fp.buffer(4).intersects(p) for p in placed):
+                continue
+            placed.append(fp)
+            height = rng.uniform(18, 40) if rng.random() < 0.3 else rng.uniform(5, 14)
+            parts = [RoofPart(cu, cu + w, cvv, cvv + d, "flat", height)]
+            for _ in range(rng.integers(0, 5)):  # rooftop plant rooms / air handlers
+                bw, bd = rng.uniform(2, 5), rng.uniform(2, 5)
+                if w < bw + 3 or d < bd + 3:
+                    continue
+                bu, bv = rng.uniform(cu + 1, cu + w - bw - 1), rng.uniform(cvv + 1, cvv + d - bd - 1)
+                parts.append(RoofPart(bu, bu + bw, bv, bv + bd, "flat", min(40.0, height + rng.uniform(1, 3))))
+            self.buildings.append(Building(tuple(parts), _jitter(rng, _ROOF_FLAT[rng.integers(len(_ROOF_FLAT))]), False))
+        if rng.random() < 0.5:
+            self._tree_row(u0, u1, v0 + 2.5, along_u=True)
+
+    def park(self, u0: float, u1: float, v0: float, v1: float, pond: bool) -> None:
+        rng = self.rng
+        pond_poly = None
+        if pond:
+            c = self.random_point(self.visible(u0 + 6, u1 - 6, v0 + 6, v1 - 6))
+            if c is not None:
+                rx = min(rng.uniform(6, 20), 0.4 * (u1 - u0))
+                ry = min(rng.uniform(6, 20), 0.4 * (v1 - v0))
+                ang = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+                wob = 1 + 0.12 * np.sin(ang * rng.integers(2, 5) + rng.uniform(0, 6)) + rng.normal(0, 0.03, 32)
+                pu, pv = c[0] + rx * wob * np.cos(ang), c[1] + ry * wob * np.sin(ang)
+                rr, cc = self.cv.fill(pu, pv)
+                self.cover[rr, cc] = POND
+                self.ponds.append((rr, cc))
+                pond_poly = Polygon(np.c_[pu, pv]).buffer(1.5)
+        if rng.random() < 0.5:  # a footpath across the park
+            vm = rng.uniform(v0 + 5, v1 - 5)
+            self.cover_rect(u0, u1, vm - 1.2, vm + 1.2, GRAVEL)
+        area = (u1 - u0) * (v1 - v0)
+        for _ in range(int(area * rng.uniform(0.003, 0.008))):
+            cu, cvv = rng.uniform(u0, u1), rng.uniform(v0, v1)
+            radius = rng.uniform(2.5, 6.5)
+            if pond_poly is not None and pond_poly.distance(_Pt(cu, cvv)) < radius:
+                continue
+            self.tree(cu, cvv, radius, radius * rng.uniform(2.0, 3.2) + rng.uniform(0, 3))
+
+    def forest(self, u0: float, u1: float, v0: float, v1: float) -> None:
+        rng = self.rng
+        area = (u1 - u0) * (v1 - v0)
+        for _ in range(int(area / (np.pi * 4.5**2) * rng.uniform(1.0, 1.6))):
+            radius = rng.uniform(2.5, 7.0)
+            self.tree(rng.uniform(u0, u1), rng.uniform(v0, v1), radius,
+                      radius * rng.uniform(2.2, 3.4) + rng.uniform(0, 4), dark=rng.uniform(0.0, 0.2))
+
+    def field(self, u0: float, u1: float, v0: float, v1: float, ploughed: bool) -> None:
+        if ploughed:
+            self.cover_rect(u0 + 1, u1 - 1, v0 + 1, v1 - 1, FIELD)
+
+    def _tree_row(self, u0: float, u1: float, fixed: float, along_u: bool) -> None:
+        rng = self.rng
+        spacing = rng.uniform(8, 14)
+        pos = u0 + rng.uniform(2, spacing)
+        while pos < u1 - 2:
+            radius = rng.uniform(2.0, 4.0)
+            u, v = (pos, fixed) if along_u else (fixed, pos)
+            self.tree(u, v, radius, rng.uniform(5, 13))
+            pos += spacing
+
+    def street_trees(self, u0: float, u1: float, v0: float, v1: float, verge: float) -> None:
+        if (u1 - u0) >= (v1 - v0):
+            self._tree_row(u0, u1, v0 + verge / 2, along_u=True)
+            self._tree_row(u0, u1, v1 - verge / 2, along_u=True)
+        else:
+            self._tree_row(v0, v1, u0 + verge / 2, along_u=False)
+            self._tree_row(v0, v1, u1 - verge / 2, along_u=False)
+
+
+def _Pt(u: float, v: float):  # noqa: N802 - tiny shapely point factory
+    from shapely.geometry import Point
+
+    return Point(u, v)
+
+
+def _road_lines(rng: np.random.Generator, lo: float, hi: float) -> list[tuple[float, float]]:
+    """(centre, width) of parallel roads covering [lo, hi] with 45–110 m spacing."""
+    lines = []
+    pos = lo - rng.uniform(0, 40)
+    while pos < hi + 60:
+        lines.append((pos, rng.uniform(6, 12)))
+        pos += rng.uniform(45, 110)
+    return lines
+
+
+def _nearest_line(coord: np.ndarray, lines: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Signed offset from the nearest road centre line and that road's half width, per pixel."""
+    centres = np.array([c for c, _ in lines], np.float32)
+    halves = np.array([w / 2 for _, w in lines], np.float32)
+    k = np.clip(np.searchsorted(centres, coord), 1, len(centres) - 1)
+    lo, hi = centres[k - 1], centres[k]
+    use_hi = (hi - coord) < (coord - lo)
+    idx = np.where(use_hi, k, k - 1)
+    return coord - centres[idx], halves[idx]
+
+
+def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
+    """Plan and rasterise a random town of ``size`` × ``size`` pixels of ``gsd`` metres.
+
+    Args:
+        size: raster width and height in pixels.
+        gsd: pixel size in metres.
+        rng: the scene's random generator (all randomness comes from it, in a fixed order).
+
+    Returns:
+        A :class:`Scene` (terrain, nDSM, labels, albedo, sun angles).
+    """
+    extent = size * gsd
+    theta = 0.0 if rng.random() < 0.3 else math.radians(rng.uniform(-25, 25))
+    sun_azimuth = float(rng.uniform(110, 250))
+    sun_elevation = float(rng.uniform(35, 55))
+    cv = _Canvas(size, gsd, theta)
+
+    corners_u = np.array([0, extent, extent, 0]) * cv.cos + np.array([0, 0, extent, extent]) * cv.sin
+    corners_v = -np.array([0, extent, extent, 0]) * cv.sin + np.array([0, 0, extent, extent]) * cv.cos
+    scene_poly = Polygon(np.c_[corners_u, corners_v])
+    lines_u = _road_lines(rng, corners_u.min(), corners_u.max())
+    lines_v = _road_lines(rng, corners_v.min(), corners_v.max())
+
+    # ---- blocks ------------------------------------------------------------------------------
+    plan = _Planner(cv, rng, scene_poly)
+    blocks = []
+    for (cu0, wu0), (cu1, wu1) in zip(lines_u[:-1], lines_u[1:]):
+        for (cv0, wv0), (cv1, wv1) in zip(lines_v[:-1], lines_v[1:]):
+            b = (cu0 + wu0 / 2, cu1 - wu1 / 2, cv0 + wv0 / 2, cv1 - wv1 / 2)
+            area = box(b[0], b[2], b[1], b[3]).intersection(scene_poly).area
+            if area > 1.0:
+                blocks.append((area, b))
+    blocks.sort(key=lambda t: -t[0])
+    mandatory = ["residential", "park", "commercial"]
+    rng.shuffle(mandatory)
+    kinds = ["residential", "commercial", "park", "forest", "field"]
+    probs = [0.45, 0.2, 0.12, 0.13, 0.10]
+    stats: dict[str, int] = {k: 0 for k in kinds}
+    for i, (_, (u0, u1, v0, v1)) in enumerate(blocks):
+        kind = mandatory[i] if i < len(mandatory) else kinds[rng.choice(len(kinds), p=probs)]
+        stats[kind] += 1
+        verge = rng.uniform(1.5, 3.5)
+        iu0, iu1, iv0, iv1 = u0 + verge, u1 - verge, v0 + verge, v1 - verge
+        if iu1 - iu0 < 8 or iv1 - iv0 < 8:
+            continue
+        if kind == "residential":
+            plan.residential(iu0, iu1, iv0, iv1)
+        elif kind == "commercial":
+            plan.commercial(iu0, iu1, iv0, iv1, paved=i < len(mandatory) or rng.random() < 0.8)
+        elif kind == "park":
+            plan.park(iu0, iu1, iv0, iv1, pond=i < len(mandatory) or rng.random() < 0.6)
+        elif kind == "forest":
+            plan.forest(iu0, iu1, iv0, iv1)
+        else:
+            plan.field(iu0, iu1, iv0, iv1, ploughed=rng.random() < 0.6)
+        if kind in ("residential", "commercial", "park") and rng.random() < (0.6 if kind == "residential" else 0.35):
+            plan.street_trees(u0, u1, v0, v1, verge)
+
+    # ---- roads (vectorised over the whole grid) ----------------------------------------------
+    xs = (np.arange(size, dtype=np.float32) + 0.5) * gsd
+    u = xs[None, :] * np.float32(cv.cos) + xs[:, None] * np.float32(cv.sin)
+    v = -xs[None, :] * np.float32(cv.sin) + xs[:, None] * np.float32(cv.cos)
+    off_u, half_u = _nearest_line(u, lines_u)
+    off_v, half_v = _nearest_line(v, lines_v)
+    on_u = np.abs(off_u) <= half_u
+    on_v = np.abs(off_v) <= half_v
+    cover = plan.cover
+    cover[on_u | on_v] = ASPHALT
+    if gsd <= 0.5:  # dashed centre lines on wide roads, not across junctions
+        line_w = max(0.15, 0.55 * gsd)
+        dash_u = on_u & ~on_v & (np.abs(off_u) < line_w) & (half_u >= 4) & (np.mod(v, 9.0) < 4.5)
+        dash_v = on_v & ~on_u & (np.abs(off_v) < line_w) & (half_v >= 4) & (np.mod(u, 9.0) < 4.5)
+        cover[dash_u | dash_v] = MARKING
+    del off_u, off_v, half_u, half_v, on_u, on_v
+
+    # ---- terrain -----------------------------------------------------------------------------
+    dtm = _terrain(rng, xs, extent)
+    for rr, cc in plan.ponds:
+        if rr.size:
+            dtm[rr, cc] = dtm[rr, cc].min()
+
+    # ---- ground covers: labels, heights, colours ---------------------------------------------
+    tex_large = smooth_noise(cv.shape, 25.0 / gsd, rng)
+    tex_mid = smooth_noise(cv.shape, max(1.0, 4.0 / gsd), rng)
+    tex_small = smooth_noise(cv.shape, max(1.0, 0.8 / gsd), rng)
+    fine = rng.standard_normal(cv.shape, dtype=np.float32)
+    cv.labels[:] = _COVER_LABEL[cover]
+    tex = _COVER_TEX[cover]  # (H, W, 3)
+    gain = 1.0 + tex[..., 0] * tex_large + tex[..., 1] * tex_mid
+    add = tex[..., 2] * fine
+    del tex
+    grass = cover == GRASS
+    dry = np.clip(0.5 + 0.6 * tex_large, 0, 1)[grass]
+    field_px = cover == FIELD
+    furrows = 1.0 + 0.14 * np.sin(2 * np.pi * u[field_px] / 1.6)
+    for ch in range(3):
+        base = _COVER_RGB[:, ch][cover]
+        base[grass] = (1 - dry) * _COVER_RGB[GRASS, ch] + dry * _DRY_GRASS[ch]
+        base[field_px] *= furrows
+        cv.albedo[ch] = base * gain + add
+    del gain, add, base
+    cv.ndsm[grass] = np.clip(0.22 + 0.15 * tex_mid[grass] + 0.05 * tex_small[grass], 0.0, 0.5)
+
+    # ---- objects -----------------------------------------------------------------------------
+    for bld in plan.buildings:
+        _draw_building(cv, bld, tex_small, fine)
+    for tr in plan.trees:
+        _draw_tree(cv, tr, tex_small, tex_mid, fine)
+    stats.update(buildings=len(plan.buildings), trees=len(plan.trees), ponds=len(plan.ponds))
+    np.clip(cv.albedo, 0, 255, out=cv.albedo)
+    return Scene(dtm, cv.ndsm, cv.labels, cv.albedo, sun_azimuth, sun_elevation, gsd, stats)
+
+
+def _terrain(rng: np.random.Generator, xs: np.ndarray, extent: float) -> np.ndarray:
+    """Gentle terrain: a base elevation, a tilt of ≤ 1.2 % and four long sinusoids (metres)."""
+    base = rng.uniform(30, 250)
+    tx, ty = rng.uniform(-0.012, 0.012, 2)
+    col = (base + tx * xs).astype(np.float32)
+    row = (ty * xs).astype(np.float32)
+    dtm = row[:, None] + col[None, :]
+    for _ in range(4):
+        lam = rng.uniform(120, 600)
+        amp = rng.uniform(0.4, 1.5)
+        ang = rng.uniform(0, 2 * np.pi)
+        phase = rng.uniform(0, 2 * np.pi)
+        kx, ky = 2 * np.pi / lam * math.cos(ang), 2 * np.pi / lam * math.sin(ang)
+        # sin(kx·x + ky·y + φ) as a sum of two outer products (separable, no full-size trig)
+        sx, cx = np.sin(kx * xs + phase), np.cos(kx * xs + phase)
+        sy, cy = np.sin(ky * xs), np.cos(ky * xs)
+        dtm += (amp * (cy[:, None] * sx[None, :] + sy[:, None] * cx[None, :])).astype(np.float32)
+    return dtm
+
+
+def _draw_building(cv: _Canvas, bld: Building, tex_small: np.ndarray, fine: np.ndarray) -> None:
+    color = np.array(bld.color, np.float32)[:, None]
+    for part in bld.parts:
+        rr, cc = cv.fill_rect(part.u0, part.u1, part.v0, part.v1)
+        if rr.size == 0:
+            continue
+        u, v = cv.uv_of(rr, cc)
+        texture = 1.0 + 0.05 * tex_small[rr, cc] + 0.03 * fine[rr, cc]
+        if part.kind == "gable":
+            along_u = (part.u1 - part.u0) >= (part.v1 - part.v0)
+            across = (v - 0.5 * (part.v0 + part.v1)) if along_u else (u - 0.5 * (part.u0 + part.u1))
+            half = 0.5 * ((part.v1 - part.v0) if along_u else (part.u1 - part.u0))
+            h = part.eave + part.rise * np.clip(1.0 - np.abs(across) / half, 0.0, 1.0)
+            if bld.textured:  # rows of tiles parallel to the ridge
+                texture = texture + 0.07 * np.sin(2 * np.pi * np.abs(across) / 0.9)
+        else:
+            h = np.full(rr.shape, part.eave, np.float32)
+        cv.put(rr, cc, h.astype(np.float32), BUILDING, color * texture[None, :])
+
+
+def _draw_tree(cv: _Canvas, tr: TreeSpec, tex_small: np.ndarray, tex_mid: np.ndarray, fine: np.ndarray) -> None:
+    r, c = cv.to_px(np.array([tr.u]), np.array([tr.v]))
+    r, c = float(r[0]), float(c[0])
+    rad_px = tr.radius / cv.gsd
+    if r < -rad_px or c < -rad_px or r > cv.n + rad_px or c > cv.n + rad_px:
+        return
+    rr, cc = disk((r, c), rad_px, shape=cv.shape)
+    if rr.size == 0:
+        return
+    d2 = ((rr - r) ** 2 + (cc - c) ** 2) * (cv.gsd / tr.radius) ** 2
+    dome = np.sqrt(np.clip(1.0 - d2, 0.0, 1.0))
+    bumps = tex_small[rr, cc]
+    h = tr.base + (tr.top - tr.base) * dome + 0.35 * bumps
+    h = np.clip(h, 3.0, 25.0).astype(np.float32)
+    color = np.array(tr.color, np.float32)[:, None]
+    texture = 1.0 + 0.18 * bumps + 0.08 * tex_mid[rr, cc] + 0.06 * fine[rr, cc]
+    cv.put(rr, cc, h, TREE, color * texture[None, :])
