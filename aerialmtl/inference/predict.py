@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
+import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -192,6 +192,15 @@ def _batches(items: Iterator[Any], size: int) -> Iterator[list[Any]]:
         yield batch
 
 
+def _record_timings(path: Path, timings: dict[str, float]) -> None:
+    """Add the final timings to ``prediction.json`` (atomic replace)."""
+    info = json.loads(path.read_text(encoding="utf-8"))
+    info["timings_s"] = dict(timings)
+    tmp = path.with_name(f".{path.name}.partial")
+    tmp.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
+    os.replace(tmp, path)
+
+
 # ---- the tool ----------------------------------------------------------------------------------
 def predict_raster(
     ortho: str | Path,
@@ -208,6 +217,7 @@ def predict_raster(
     probabilities: bool = False,
     overwrite: bool = False,
     progress: bool = True,
+    checkpoint_name: str | None = None,
 ) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
@@ -228,6 +238,7 @@ def predict_raster(
         probabilities: also write ``class_probabilities.tif`` (K float32 bands).
         overwrite: replace existing outputs instead of raising.
         progress: show a tqdm progress bar.
+        checkpoint_name: name recorded in ``prediction.json`` when ``checkpoint`` is a loaded model.
 
     Returns:
         A :class:`PredictResult`.
@@ -247,6 +258,7 @@ def predict_raster(
     out_dir = Path(out_dir)
     check_outputs_free(out_dir, ["height.tif", "classes.tif", "prediction.json"], overwrite)  # fail early
     model, meta, ckpt_name = _load(checkpoint)
+    ckpt_name = checkpoint_name or ckpt_name
     if mc is None:
         mc = DEFAULT_MC_SAMPLES if meta.model.dropout > 0 else 1
     dev = _device(device)
@@ -353,6 +365,7 @@ def predict_raster(
             writer.abort()
             raise
     timings["total"] = time.perf_counter() - t_start
+    _record_timings(files["prediction"], timings)
     return PredictResult(out_dir, files, grid, mc, plan.num_windows, computed, factor, plan.overlap_factor,
                          out_px / 1e6 / max(timings["total"], 1e-9), timings)
 

@@ -14,8 +14,10 @@ close to ``(tile / (tile − overlap))²`` times the output area. An axis shorte
 Blending. Inside an overlap of ``overlap`` pixels each window drops its outer ``margin = overlap // 4``
 pixels (the pixels with the least context) and the two windows cross-fade linearly over the remaining
 ``overlap − 2·margin`` pixels. The 1-D weights are normalised to sum to 1 at every pixel and the 2-D
-weight of a window is the product of its row and column weights, so a model that returns the same
-value in two windows gives that value back (up to float rounding) and no seam can appear.
+weight of a window is the product of its row and column weights. The 1-D weights are rounded to
+multiples of 1/256 that still sum to exactly 1, so a model that returns the same value in two windows
+gives that value back bit for bit (for values with ≤ 8 significant bits, e.g. 8-bit imagery, and to
+float rounding otherwise) and no seam can appear.
 
 Row bands. Window rows are processed top to bottom; after window row ``i`` the output rows
 ``[out_start, out_stop)`` of :class:`Band` ``i`` are final (no later window touches them) and can be
@@ -35,6 +37,8 @@ from aerialmtl.errors import InputError
 
 #: Window sizes are multiples of this (the D3-Net input constraint).
 SIZE_MULTIPLE = 32
+#: 1-D blending weights are multiples of 2^-WEIGHT_BITS (256 cross-fade levels).
+WEIGHT_BITS = 8
 
 
 def _round_up(value: int, multiple: int = SIZE_MULTIPLE) -> int:
@@ -116,10 +120,18 @@ def axis_plan(length: int, tile: int, overlap: int) -> AxisPlan:
         total[s:s + size] += b
     if not np.all(total[:length] > 0):  # pragma: no cover - guarded by the size/overlap rules above
         raise AssertionError(f"window plan leaves pixels uncovered (length {length}, tile {tile}, overlap {overlap})")
-    weights = np.zeros_like(base)
+    dense = np.zeros((n, total.size), dtype=np.float64)  # window × position
     for k, (s, b) in enumerate(zip(starts, base)):
         t = total[s:s + size]
-        weights[k] = np.divide(b, t, out=np.zeros_like(b), where=t > 0)
+        dense[k, s:s + size] = np.divide(b, t, out=np.zeros_like(b), where=t > 0)
+    # Dyadic weights (multiples of 2^-WEIGHT_BITS) that sum to exactly 1: identical window values then
+    # blend back to the identical value, bit for bit.
+    q = np.round(dense * 2**WEIGHT_BITS) / 2**WEIGHT_BITS
+    covered = total > 0
+    top = np.argmax(dense, axis=0)
+    cols = np.arange(total.size)
+    q[top[covered], cols[covered]] += 1.0 - q[:, covered].sum(axis=0)
+    weights = np.stack([q[k, s:s + size] for k, s in enumerate(starts)])
     return AxisPlan(length, size, tuple(int(s) for s in starts), margin, weights.astype(np.float32))
 
 
