@@ -162,9 +162,10 @@ def cog_problems(path: str | Path) -> list[str]:
     with rasterio.open(path) as src:
         if src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") != "COG":
             problems.append("GDAL does not report LAYOUT=COG")
-        if not src.profile.get("tiled", False):
+        tiled = bool(src.profile.get("tiled", False))
+        if not tiled:
             problems.append("the image is not tiled")
-        big = max(src.width, src.height) > max(src.block_shapes[0])
+        big = max(src.width, src.height) > (max(src.block_shapes[0]) if tiled else COG_BLOCKSIZE)
         if big and not src.overviews(1):
             problems.append("no internal overviews although the image is larger than one tile")
         width = src.width

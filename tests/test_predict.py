@@ -1,0 +1,188 @@
+"""`predict_raster` / `aerialmtl predict`: georeferencing, nodata, AOI, MC outputs, COG layout, atomicity."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+import torch
+from affine import Affine
+from click.testing import CliRunner
+
+from aerialmtl.classes import ClassScheme
+from aerialmtl.cli import cli
+from aerialmtl.errors import OutputExistsError
+from aerialmtl.inference.predict import predict_raster
+from aerialmtl.io.cog import cog_problems
+from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.d3net import D3Net
+from aerialmtl.training.checkpoint import ModelMeta, save_checkpoint
+from conftest import NEON_DIR, write_raster
+from test_stitch import IdentityModel, identity_meta
+
+TINY = dict(growth_rate=4, block_config=(1, 1, 1, 1), num_init_features=8, bn_size=2)
+UNCERTAINTY = ("height_std.tif", "class_entropy.tif", "class_mutual_info.tif")
+
+
+def tiny_d3net(gsd: float = 0.5, k: int = 4) -> tuple[D3Net, ModelMeta]:
+    torch.manual_seed(0)
+    scheme = ClassScheme.load("synthetic")
+    scheme = ClassScheme(scheme.name, scheme.classes[:k])
+    cfg = ModelConfig(num_classes=k, **TINY)  # type: ignore[arg-type]
+    meta = ModelMeta(cfg, scheme, (1, 2, 3), (120.0, 110.0, 100.0), (40.0, 40.0, 40.0), gsd, ("r", "g", "b"))
+    return D3Net(cfg).eval(), meta
+
+
+@pytest.fixture
+def ortho(tmp_path: Path, rng: np.random.Generator) -> Path:
+    img = rng.integers(1, 256, size=(3, 90, 130)).astype(np.uint8)
+    img[:, 60:, :50] = 0  # nodata corner
+    return write_raster(tmp_path / "ortho.tif", img, crs="EPSG:32619", nodata=0,
+                        transform=Affine(0.5, 0, 320000.0, 0, -0.5, 4881600.0))
+
+
+def test_mc_outputs_georeferencing_and_cog_layout(ortho: Path, tmp_path: Path) -> None:
+    model, meta = tiny_d3net()
+    res = predict_raster(ortho, (model, meta), tmp_path / "pred", mc=4, tile=64, overlap=16, probabilities=True,
+                         progress=False)
+    names = sorted(p.name for p in (tmp_path / "pred").iterdir())
+    assert names == sorted(["height.tif", "classes.tif", "class_probabilities.tif", "prediction.json", *UNCERTAINTY])
+    with rasterio.open(ortho) as src:
+        crs, transform, shape = src.crs, src.transform, src.shape
+        valid = src.read(1) != 0
+    k = meta.model.num_classes
+    layers = {}
+    for name in ("height", "height_std", "classes", "class_entropy", "class_mutual_info", "class_probabilities"):
+        path = res.files[name]
+        assert cog_problems(path) == [], name
+        with rasterio.open(path) as ds:
+            assert ds.crs == crs and ds.transform == transform and ds.shape == shape
+            assert ds.block_shapes[0] == (512, 512) and ds.descriptions[0]
+            layers[name] = ds.read()
+            if name == "classes":
+                assert ds.nodata == 255 and ds.colormap(1)[0][:3] == meta.classes.colors[0]  # type: ignore[union-attr]
+                assert json.loads(ds.tags()["AERIALMTL_CLASS_SCHEME"]) == meta.classes.to_dict()  # type: ignore[union-attr]
+                assert json.loads(ds.tags(1)["class_names"])["0"] == meta.classes.names[0]  # type: ignore[union-attr]
+            else:
+                assert ds.nodata == -9999.0
+            if name in ("height", "height_std"):
+                assert ds.units == ("m",) and ds.tags(1)["units"] == "m"
+            if name in ("class_entropy", "class_mutual_info"):
+                assert ds.units == ("nats",)
+    # nodata in every output exactly where the input is nodata
+    for name, arr in layers.items():
+        nod = 255 if name == "classes" else -9999.0
+        assert np.all(arr[:, ~valid] == nod) and np.all(arr[:, valid] != nod), name
+    std, ent, mi = layers["height_std"][0][valid], layers["class_entropy"][0][valid], layers["class_mutual_info"][0][valid]
+    assert std.min() >= 0 and std.max() > 0  # dropout makes samples differ
+    assert ent.min() >= 0 and ent.max() <= math.log(k) + 1e-5
+    assert np.all(mi >= 0) and np.all(mi <= ent + 1e-6)
+    probs = layers["class_probabilities"][:, valid]
+    np.testing.assert_allclose(probs.sum(0), 1.0, atol=1e-4)
+    np.testing.assert_array_equal(layers["classes"][0][valid], probs.argmax(0))
+    info = json.loads((tmp_path / "pred" / "prediction.json").read_text())
+    assert info["mc_samples"] == 4 and info["tile"] == 64 and info["overlap"] == 16
+    assert info["overlap_factor"] == pytest.approx(res.overlap_factor) and "total" in info["timings_s"]
+
+
+def test_single_pass_writes_no_uncertainty_and_skips_empty_windows(tmp_path: Path, rng: np.random.Generator) -> None:
+    img = rng.integers(1, 256, size=(3, 100, 100)).astype(np.uint8)
+    img[:, :, :64] = 0  # the whole left window column is nodata
+    src = write_raster(tmp_path / "o.tif", img, nodata=0)
+    meta = identity_meta()
+    res = predict_raster(src, (IdentityModel(meta.mean, meta.std), meta), tmp_path / "p", mc=1, tile=64, overlap=0,
+                         precision="fp32", progress=False)
+    assert res.windows_total == 4 and res.windows_computed == 2
+    assert not any((tmp_path / "p" / f).exists() for f in UNCERTAINTY)
+    with rasterio.open(res.files["height"]) as ds:
+        h = ds.read(1)
+    assert np.all(h[:, :64] == -9999.0)
+    np.testing.assert_array_equal(h[:, 64:], img[0, :, 64:].astype(np.float32))
+
+
+def test_aoi_limits_computation_and_output(tmp_path: Path, rng: np.random.Generator) -> None:
+    img = rng.integers(1, 256, size=(3, 128, 128)).astype(np.uint8)
+    src = write_raster(tmp_path / "o.tif", img, crs="EPSG:32631")  # 0.5 m pixels from (500000, 5000000)
+    aoi = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": "EPSG:32631"}},
+           "features": [{"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [[
+               [500000.0, 5000000.0], [500020.0, 5000000.0], [500020.0, 4999980.0], [500000.0, 4999980.0],
+               [500000.0, 5000000.0]]]}}]}
+    (tmp_path / "aoi.geojson").write_text(json.dumps(aoi))
+    meta = identity_meta()
+    res = predict_raster(src, (IdentityModel(meta.mean, meta.std), meta), tmp_path / "p", mc=1, tile=64, overlap=0,
+                         precision="fp32", aoi=tmp_path / "aoi.geojson", progress=False)
+    assert res.windows_computed == 1 and res.windows_total == 4
+    with rasterio.open(res.files["height"]) as ds:
+        h = ds.read(1)
+    np.testing.assert_array_equal(h[:40, :40], img[0, :40, :40].astype(np.float32))  # 20 m = 40 px inside
+    assert np.all(h[40:, :] == -9999.0) and np.all(h[:, 40:] == -9999.0)
+
+
+class _FailingModel(IdentityModel):
+    calls = 0
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        type(self).calls += 1
+        if type(self).calls == 2:
+            raise RuntimeError("injected failure")
+        return super().forward(x)
+
+
+def test_failure_mid_run_leaves_no_file_at_a_final_path(ortho: Path, tmp_path: Path) -> None:
+    meta = identity_meta()
+    out = tmp_path / "p"
+    with pytest.raises(RuntimeError, match="injected"):
+        predict_raster(ortho, (_FailingModel(meta.mean, meta.std), meta), out, mc=1, tile=32, overlap=0,
+                       batch_size=1, progress=False)
+    assert not out.exists() or list(out.iterdir()) == []
+
+
+def test_existing_outputs_are_refused_then_overwritten_without_stale_files(ortho: Path, tmp_path: Path) -> None:
+    meta = identity_meta()
+    model = IdentityModel(meta.mean, meta.std, dropout=0.5)
+    out = tmp_path / "p"
+    predict_raster(ortho, (model, meta), out, mc=3, tile=64, overlap=16, progress=False)
+    assert (out / "height_std.tif").exists()
+    with pytest.raises(OutputExistsError, match="--overwrite"):
+        predict_raster(ortho, (model, meta), out, mc=1, tile=64, overlap=16, progress=False)
+    predict_raster(ortho, (model, meta), out, mc=1, tile=64, overlap=16, overwrite=True, progress=False)
+    assert not any((out / f).exists() for f in UNCERTAINTY)  # stale T>1 maps removed
+    assert json.loads((out / "prediction.json").read_text())["mc_samples"] == 1
+    assert sorted(p.name for p in out.iterdir()) == ["classes.tif", "height.tif", "prediction.json"]
+
+
+def test_cli_several_inputs_one_folder_each(ortho: Path, tmp_path: Path) -> None:
+    model, meta = tiny_d3net()
+    save_checkpoint(tmp_path / "m.pt", model, meta)
+    other = tmp_path / "second.tif"
+    other.write_bytes(ortho.read_bytes())
+    runner = CliRunner()
+    r = runner.invoke(cli, ["predict", str(ortho), str(other), "--model", str(tmp_path / "m.pt"), "--out",
+                            str(tmp_path / "out"), "--mc", "2", "--tile", "64", "--overlap", "16", "--quiet"])
+    assert r.exit_code == 0, r.output
+    for stem in ("ortho", "second"):
+        info = json.loads((tmp_path / "out" / stem / "prediction.json").read_text())
+        assert info["checkpoint"] == str(tmp_path / "m.pt") and (tmp_path / "out" / stem / "class_entropy.tif").exists()
+    r = runner.invoke(cli, ["predict", str(ortho), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "x"),
+                            "--tile", "100"])
+    assert r.exit_code == 2 and "--tile" in r.output
+
+
+@pytest.mark.skipif(not (NEON_DIR / "rgb_0p1m.tif").is_file(), reason="NEON sample data not available")
+def test_neon_ortho_is_resampled_to_the_model_gsd(tmp_path: Path) -> None:
+    ortho = NEON_DIR / "rgb_0p1m.tif"
+    model, meta = tiny_d3net(gsd=0.5)
+    with pytest.warns(UserWarning, match=r"0\.1 m.*0\.5 m"):
+        res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=1, tile=128, overlap=32, progress=False)
+    with rasterio.open(ortho) as src, rasterio.open(res.files["height"]) as out:
+        assert out.crs == src.crs
+        assert out.res == (0.5, 0.5)
+        assert (out.transform.c, out.transform.f) == pytest.approx((src.bounds.left, src.bounds.top))
+        assert out.bounds.right >= src.bounds.right - 1e-6 and out.bounds.bottom <= src.bounds.bottom + 1e-6
+        assert out.bounds.right - src.bounds.right < 0.5 and src.bounds.bottom - out.bounds.bottom < 0.5
+        h = out.read(1, masked=True)
+        assert h.count() > 0.95 * h.size  # valid almost everywhere (last partial pixels may be nodata)
