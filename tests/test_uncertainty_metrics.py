@@ -9,6 +9,7 @@ import pytest
 
 from aerialmtl.evaluation.uncertainty import (
     CalibrationBins,
+    average_ranks,
     expected_calibration_error,
     gaussian_nll,
     sparsification,
@@ -101,3 +102,11 @@ def test_spearman_matches_rank_definition() -> None:
     # ranks of y = [2, 1, 4, 3, 5]; d² = 1+1+1+1+0 = 4 → ρ = 1 - 6·4 / (5·24) = 0.8
     assert spearman(x, np.array([20.0, 10.0, 40.0, 30.0, 50.0])) == pytest.approx(0.8)
     assert math.isnan(spearman(x, np.ones(5)))
+
+
+def test_average_ranks_share_ties_and_agree_with_scipy(rng: np.random.Generator) -> None:
+    np.testing.assert_allclose(average_ranks(np.array([3.0, 1.0, 3.0, 2.0])), [3.5, 1.0, 3.5, 2.0])
+    stats = pytest.importorskip("scipy.stats")
+    x = rng.integers(0, 10, 300).astype(float)
+    y = x + rng.normal(0, 3, 300)
+    assert spearman(x, y) == pytest.approx(stats.spearmanr(x, y).statistic)

@@ -107,6 +107,19 @@ def sparsification(
     }
 
 
+def average_ranks(x: np.ndarray) -> np.ndarray:
+    """1-based ranks of a 1-D array, ties sharing their average rank (like ``scipy.stats.rankdata``)."""
+    x = np.asarray(x).ravel()
+    order = np.argsort(x, kind="stable")
+    xs = x[order]
+    starts = np.flatnonzero(np.concatenate([[True], xs[1:] != xs[:-1]]))
+    ends = np.concatenate([starts[1:], [x.size]])
+    avg = 0.5 * (starts + ends + 1)  # mean of ranks start+1 .. end
+    ranks = np.empty(x.size, np.float64)
+    ranks[order] = np.repeat(avg, ends - starts)
+    return ranks
+
+
 def spearman(x: np.ndarray, y: np.ndarray) -> float:
     """Spearman rank correlation of two 1-D arrays (average ranks for ties); ``nan`` if undefined.
 
@@ -118,9 +131,7 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
     a, b = a[ok], b[ok]
     if a.size < 2 or np.all(a == a[0]) or np.all(b == b[0]):
         return math.nan
-    from scipy.stats import rankdata
-
-    ra, rb = rankdata(a), rankdata(b)
+    ra, rb = average_ranks(a), average_ranks(b)
     ra -= ra.mean()
     rb -= rb.mean()
     return float((ra * rb).sum() / math.sqrt((ra * ra).sum() * (rb * rb).sum()))
@@ -211,4 +222,5 @@ __all__ = [
     "gaussian_nll_terms",
     "sparsification",
     "spearman",
+    "average_ranks",
 ]
