@@ -11,7 +11,7 @@ from aerialmtl.data.synth.shading import cast_shadows, hillshade
 #: Fraction of flat-ground brightness that remains in shadow (sky light only).
 AMBIENT = 0.45
 #: Sky light is bluer than sunlight: per-channel (R, G, B) factor on the ambient part.
-_SKY_TINT = np.array([0.90, 0.98, 1.14], np.float32)
+_SKY_TINT = np.array([0.93, 0.98, 1.08], np.float32)
 
 
 def render_ortho(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

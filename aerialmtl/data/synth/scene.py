@@ -273,8 +273,8 @@ class _Planner:
             d = min(rng.uniform(15, 40), v1 - v0 - 6)
             if w < 10 or d < 10:
                 break
-            cu = rng.uniform(u0 + 3, u1 - 3 - w)
-            cvv = rng.uniform(v0 + 3, v1 - 3 - d)
+            cu = rng.uniform(u0 + 3, max(u0 + 3, u1 - 3 - w))
+            cvv = rng.uniform(v0 + 3, max(v0 + 3, v1 - 3 - d))
             fp = box(cu, cvv, cu + w, cvv + d)
             if any(fp.buffer(4).intersects(p) for p in placed):
                 continue
@@ -306,7 +306,7 @@ class _Planner:
                 self.cover[rr, cc] = POND
                 self.ponds.append((rr, cc))
                 pond_poly = Polygon(np.c_[pu, pv]).buffer(1.5)
-        if rng.random() < 0.5:  # a footpath across the park
+        if rng.random() < 0.5 and v1 - v0 > 12:  # a footpath across the park
             vm = rng.uniform(v0 + 5, v1 - 5)
             self.cover_rect(u0, u1, vm - 1.2, vm + 1.2, GRAVEL)
         area = (u1 - u0) * (v1 - v0)
