@@ -1,9 +1,39 @@
-"""`aerialmtl demo` (placeholder until the command lands)."""
+"""``aerialmtl demo``: the whole pipeline on embedded synthetic towns (no data, no download)."""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
 
 @click.command(name="demo")
-def demo() -> None:
-    """Not available yet."""
-    raise click.UsageError("'aerialmtl demo' is not implemented yet")
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--train-seconds", type=click.FloatRange(min=1), default=420, show_default=True,
+              help="Wall-clock training budget.")
+@click.option("--train-size", type=click.IntRange(min=256), default=1536, show_default=True,
+              help="Side of the synthetic training town in pixels (0.25 m).")
+@click.option("--test-size", type=click.IntRange(min=128), default=768, show_default=True,
+              help="Side of the synthetic test town in pixels.")
+@click.option("--mc", type=click.IntRange(min=1), default=16, show_default=True, help="MC-dropout samples.")
+@click.option("--overwrite", is_flag=True, help="Reuse a non-empty OUT folder.")
+def demo(out: Path, train_seconds: float, train_size: int, test_size: int, mc: int, overwrite: bool) -> None:
+    """Synthesize a training and a test town, tile, train the small D3-Net, predict with MC dropout,
+    evaluate, and write GeoTIFFs, a report and PNG previews into OUT."""
+    from aerialmtl.demo import DemoSettings, run_demo
+
+    settings = DemoSettings(train_size=train_size, test_size=test_size, train_seconds=train_seconds, mc=mc)
+    res = run_demo(out, settings, overwrite=overwrite, log=lambda m: click.echo(m, err=True))
+    rep = res.report
+    h = rep.get("height", {})
+    c = rep.get("classes", {})
+    click.echo("")
+    click.echo(f"Done in {res.timings.get('total', 0):.0f} s. Test town results:")
+    if h:
+        click.echo(f"  height MAE {h.get('mae', float('nan')):.2f} m, RMSE {h.get('rmse', float('nan')):.2f} m")
+    if c:
+        click.echo(f"  classes OA {c.get('overall_accuracy', float('nan')):.3f}, mIoU {c.get('miou', float('nan')):.3f}")
+    click.echo("Outputs:")
+    for name, path in res.paths.items():
+        click.echo(f"  {name:<11} {path}")
+    click.echo("Open prediction/*.tif in QGIS next to data/test_town/ortho.tif.")
