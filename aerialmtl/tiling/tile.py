@@ -46,7 +46,7 @@ MANIFEST_COLUMNS = (
 )
 
 #: GDAL block cache while tiling (MB) unless GDAL_CACHEMAX is set: keeps memory flat on huge rasters.
-DEFAULT_CACHE_MB = 256
+DEFAULT_CACHE_MB = 128
 
 
 @dataclass
