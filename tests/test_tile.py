@@ -21,7 +21,7 @@ from aerialmtl.cli import cli
 from aerialmtl.errors import InputError, LabelError, OutputExistsError
 from aerialmtl.io.align import HEIGHT_NODATA
 from aerialmtl.tiling.grid import axis_offsets, count_windows, num_offsets, tile_windows
-from aerialmtl.tiling.splits import SplitAssigner, SplitSpec, allocate_blocks
+from aerialmtl.tiling.splits import SplitAssigner, SplitSpec, assign_blocks
 from aerialmtl.tiling.tile import read_manifest, tile_dataset
 from tests.conftest import write_raster
 
@@ -70,11 +70,16 @@ def test_small_raster_policies() -> None:
 
 
 # ---- splits ----------------------------------------------------------------------------------
-def test_allocate_blocks_gives_every_split_a_block() -> None:
-    assert allocate_blocks(4, (0.7, 0.15, 0.15)) == [2, 1, 1]
-    assert sum(allocate_blocks(37, (0.7, 0.15, 0.15))) == 37
-    assert allocate_blocks(10, (1, 0, 0)) == [10, 0, 0]
-    assert allocate_blocks(2, (0.7, 0.15, 0.15))[0] >= 1
+def test_assign_blocks_follows_area_ratios_and_gives_every_split_a_block() -> None:
+    rng = np.random.default_rng(0)
+    out = assign_blocks(np.ones(100), (0.7, 0.15, 0.15), rng)
+    assert np.bincount(out, minlength=3).tolist() == [70, 15, 15]
+    assert np.bincount(assign_blocks(np.ones(4), (0.7, 0.15, 0.15), rng), minlength=3).tolist() == [2, 1, 1]
+    assert set(assign_blocks(np.ones(10), (1, 0, 0), rng).tolist()) == {0}
+    # one big block and three slivers (a 121 m × 110 m raster in 100 m blocks): the big one is train
+    for seed in range(20):
+        out = assign_blocks(np.array([10000.0, 2130.0, 1060.0, 226.0]), (0.7, 0.15, 0.15), np.random.default_rng(seed))
+        assert out[0] == 0 and sorted(set(out.tolist())) == [0, 1, 2]
 
 
 def _footprints_overlap(a: dict[str, str], b: dict[str, str]) -> bool:

@@ -134,3 +134,7 @@ def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, lab
                    err=True)
     elif result.counts["train"] == 0:
         click.echo("warning: no train patch; normalisation statistics are missing (adjust the splits)", err=True)
+    empty = [k for k, r in zip(("train", "val", "test"), split_ratios) if r > 0 and result.counts[k] == 0]
+    if total and empty and split_aoi is None:
+        click.echo(f"warning: no {'/'.join(empty)} patch: split blocks of {split_block:g} m are too few or too thin "
+                   "here; lower --split-block (it should hold several patches)", err=True)

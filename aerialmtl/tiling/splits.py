@@ -3,9 +3,9 @@
 Two methods:
 
 * ``blocks`` — the grid is cut into disjoint square blocks of ``block_size`` map units (metres), anchored at
-  the grid's upper-left corner; blocks are shuffled by a seeded RNG and dealt to the splits by ``ratios``
-  (largest-remainder rounding; every split with a ratio > 0 gets at least one block when there are enough
-  blocks). A patch is kept only if every block it touches belongs to the same split, so patches of
+  the grid's upper-left corner; blocks are visited in a seeded random order and dealt to the split furthest
+  below its share of the area (``ratios``); every split with a ratio > 0 gets at least one block when there
+  are enough blocks. A patch is kept only if every block it touches belongs to the same split, so patches of
   different splits never share a pixel, whatever the stride.
 * ``aoi`` — polygons per split: one GeoJSON whose features carry a ``split`` property (``train``, ``val``
   or ``test``), or one GeoJSON per split. A patch belongs to a split when its footprint lies inside that
@@ -38,7 +38,7 @@ class SplitSpec:
     Attributes:
         method: ``"blocks"`` (random square blocks) or ``"aoi"`` (polygons).
         block_size: block side in map units (metres), for ``blocks``.
-        ratios: fractions of blocks for (train, val, test), for ``blocks``; normalised to sum to 1.
+        ratios: fractions of the area for (train, val, test), for ``blocks``; normalised to sum to 1.
         seed: RNG seed of the block shuffle.
         aoi: for ``aoi``: one GeoJSON path whose features have a ``split`` property, or a mapping
             ``{"train": path, "val": path, "test": path}`` (any subset).
@@ -80,24 +80,42 @@ class SplitSpec:
         return {"method": "aoi", "aoi": aoi, "aoi_field": self.aoi_field}
 
 
-def allocate_blocks(n_blocks: int, ratios: tuple[float, ...]) -> list[int]:
-    """How many of ``n_blocks`` go to each split: largest-remainder rounding of ``ratios``, then every split
-    with a positive ratio gets ≥ 1 block while there are enough blocks (taken from the largest split)."""
+def assign_blocks(areas: np.ndarray, ratios: tuple[float, ...], rng: np.random.Generator) -> np.ndarray:
+    """Deal blocks to splits so that each split's share of the *area* follows ``ratios``.
+
+    Blocks are visited in a random order (``rng``) and each goes to the split furthest below its target
+    area. Edge blocks are often slivers, so counting blocks instead of area could hand the one big block
+    to ``val``. Afterwards every split with a positive ratio gets at least one block when there are enough
+    blocks (the smallest block of the split holding the most blocks is moved to it).
+
+    Args:
+        areas: (n,) area of each block inside the grid (any unit).
+        ratios: target fractions per split (normalised to sum to 1).
+        rng: seeded generator.
+
+    Returns:
+        (n,) int array: split index of each block.
+    """
+    areas = np.asarray(areas, dtype=float)
     r = np.asarray(ratios, dtype=float)
     r = r / r.sum()
-    exact = r * n_blocks
-    counts = np.floor(exact).astype(int)
-    rest = n_blocks - counts.sum()
-    for i in np.argsort(-(exact - counts), kind="stable")[:rest]:
-        counts[i] += 1
-    wanted = [i for i in range(len(r)) if r[i] > 0]
-    if n_blocks >= len(wanted):
-        for i in wanted:
-            if counts[i] == 0:
+    target = r * areas.sum()
+    assigned = np.zeros(len(r))
+    out = np.zeros(len(areas), dtype=int)
+    for b in rng.permutation(len(areas)):
+        deficit = np.where(r > 0, target - assigned, -np.inf)
+        k = int(np.argmax(deficit))
+        out[b] = k
+        assigned[k] += areas[b]
+    wanted = [k for k in range(len(r)) if r[k] > 0]
+    if len(areas) >= len(wanted):
+        for k in wanted:
+            if not np.any(out == k):
+                counts = np.bincount(out, minlength=len(r))
                 donor = int(np.argmax(counts))
-                counts[donor] -= 1
-                counts[i] += 1
-    return counts.tolist()
+                members = np.nonzero(out == donor)[0]
+                out[members[np.argmin(areas[members])]] = k
+    return out
 
 
 class SplitAssigner:
@@ -122,12 +140,13 @@ class SplitAssigner:
         bs = float(self.spec.block_size)
         self.nbx = max(1, math.ceil((right - left) / bs - 1e-9))
         self.nby = max(1, math.ceil((top - bottom) / bs - 1e-9))
-        n = self.nbx * self.nby
-        counts = allocate_blocks(n, self.spec.ratios)
-        labels = np.repeat(np.arange(3), counts)
+        # area of each block inside the grid (edge blocks are clipped)
+        wx = np.minimum(bs, (right - left) - bs * np.arange(self.nbx))
+        wy = np.minimum(bs, (top - bottom) - bs * np.arange(self.nby))
+        areas = np.outer(np.clip(wy, 0, None), np.clip(wx, 0, None))
         rng = np.random.default_rng(self.spec.seed)
         #: (nby, nbx) split index (0 train, 1 val, 2 test) of each block, top row first.
-        self.block_split = rng.permutation(labels).reshape(self.nby, self.nbx)
+        self.block_split = assign_blocks(areas.ravel(), self.spec.ratios, rng).reshape(self.nby, self.nbx)
 
     def block_range(self, window: Window) -> tuple[int, int, int, int]:
         """Blocks touched by ``window``: ``(bx0, bx1, by0, by1)`` inclusive, clipped to the block grid."""
@@ -195,4 +214,4 @@ class SplitAssigner:
         return inside[0] if len(inside) == 1 else None
 
 
-__all__ = ["SPLITS", "SplitAssigner", "SplitSpec", "allocate_blocks"]
+__all__ = ["SPLITS", "SplitAssigner", "SplitSpec", "assign_blocks"]
