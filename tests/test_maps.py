@@ -113,6 +113,9 @@ def test_plot_maps_shares_the_zoom_and_shows_the_class_legend(pred_dir: Path) ->
     for ax in axes:
         assert ax.get_xlim() == pytest.approx((area["left"], area["right"]))
         assert ax.get_ylim() == pytest.approx((area["bottom"], area["top"]))
+    zoom_to(axes, area, margin=1000.0, within=maps.extent)  # a margin never leaves the raster
+    assert axes[-1].get_xlim() == pytest.approx(maps.extent[:2])
+    assert axes[-1].get_ylim() == pytest.approx(maps.extent[2:])
 
 
 def test_uncertainty_summary_and_sparsification_plot(rng: np.random.Generator) -> None:

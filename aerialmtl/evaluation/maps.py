@@ -211,7 +211,9 @@ def format_areas(areas: Sequence[dict[str, Any]], units: str = "") -> str:
 
 
 def _new_figure(fig: Any, size: tuple[float, float]) -> Any:
+    """``fig`` resized to ``size`` inches, or a new pyplot-free ``Figure`` of that size."""
     if fig is not None:
+        fig.set_size_inches(*size)
         return fig
     from matplotlib.figure import Figure
 
@@ -287,8 +289,6 @@ def plot_maps(maps: PredictionMaps, fig: Any = None, cols: int = 3, panel_size: 
     panels = _panels(maps)
     rows = max(1, math.ceil(len(panels) / cols))
     fig = _new_figure(fig, (panel_size * cols * 1.15, panel_size * rows))
-    if fig.get_size_inches()[0] < 1 or not fig.axes:
-        fig.set_size_inches(panel_size * cols * 1.15, panel_size * rows)
     grid_axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False)).ravel()
     for ax in grid_axes[len(panels):]:
         ax.set_visible(False)
@@ -297,15 +297,25 @@ def plot_maps(maps: PredictionMaps, fig: Any = None, cols: int = 3, panel_size: 
         ax.set_title(title, fontsize=9)
         ax.tick_params(labelsize=7)
         ax.ticklabel_format(useOffset=False, style="plain")
+        ax.locator_params(nbins=4)
     fig.tight_layout()
     return fig, grid_axes[: len(panels)]
 
 
-def zoom_to(axes: Iterable[Any], area: dict[str, Any], margin: float = 0.0) -> None:
-    """Set every axis to the bounds of ``area`` (a :func:`most_uncertain_areas` row) ± ``margin`` map units."""
+def zoom_to(axes: Iterable[Any], area: dict[str, Any], margin: float = 0.0,
+            within: Sequence[float] | None = None) -> None:
+    """Set every axis to the bounds of ``area`` (a :func:`most_uncertain_areas` row) ± ``margin`` map units.
+
+    ``within``: ``(left, right, bottom, top)`` the view may not leave (e.g. ``maps.extent``).
+    """
+    left, right = area["left"] - margin, area["right"] + margin
+    bottom, top = area["bottom"] - margin, area["top"] + margin
+    if within is not None:
+        left, right = max(left, within[0]), min(right, within[1])
+        bottom, top = max(bottom, within[2]), min(top, within[3])
     for ax in axes:
-        ax.set_xlim(area["left"] - margin, area["right"] + margin)
-        ax.set_ylim(area["bottom"] - margin, area["top"] + margin)
+        ax.set_xlim(left, right)
+        ax.set_ylim(bottom, top)
 
 
 def plot_areas(maps: PredictionMaps, areas: Sequence[dict[str, Any]], fig: Any = None, panel_size: float = 2.4) -> Any:
@@ -336,9 +346,9 @@ def plot_areas(maps: PredictionMaps, areas: Sequence[dict[str, Any]], fig: Any =
 
 #: Titles of the sparsification panels.
 _SPARSIFICATION_TITLES = {
-    "height_std": "height: std vs |error|",
-    "class_entropy": "classes: entropy vs misclassification",
-    "class_mutual_info": "classes: mutual information vs misclassification",
+    "height_std": "height std vs |height error|",
+    "class_entropy": "class entropy vs misclassified",
+    "class_mutual_info": "mutual information vs misclassified",
 }
 
 
@@ -372,7 +382,7 @@ def plot_sparsification(report: dict[str, Any], fig: Any = None, panel_size: flo
     if not keys:
         raise InputError("the evaluation report has no sparsification curves: predict with T > 1 (--mc) and "
                          "evaluate against reference heights and/or labels")
-    fig = _new_figure(fig, (panel_size * len(keys), panel_size * 0.85))
+    fig = _new_figure(fig, (panel_size * 1.1 * len(keys), panel_size))
     axes = fig.subplots(1, len(keys), squeeze=False)[0]
     summary = uncertainty_summary(report)
     for ax, key in zip(axes, keys):
@@ -382,7 +392,7 @@ def plot_sparsification(report: dict[str, Any], fig: Any = None, panel_size: flo
         ax.plot(f, np.asarray(sp["curve"], float), label=f"by uncertainty (AUSE {s['ause']:.3f})")
         ax.plot(f, np.asarray(sp["oracle"], float), "--", label="oracle (by true error)")
         ax.plot(f, np.asarray(sp["random"], float), ":", label=f"random (AURG {s['aurg']:.3f})")
-        ax.set_xlabel("fraction of most uncertain pixels removed", fontsize=8)
+        ax.set_xlabel("fraction removed (most uncertain first)", fontsize=8)
         ax.set_ylabel("remaining mean error / full-set error" if sp.get("normalised") else "remaining mean error",
                       fontsize=8)
         ax.set_title(f"{_SPARSIFICATION_TITLES[key]}\nSpearman ρ = {s['spearman']:.2f}", fontsize=9)

@@ -1,0 +1,65 @@
+"""The uncertainty-maps notebook runs top to bottom on its synthetic mini pipeline and leaves its files."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import rasterio
+
+nbformat = pytest.importorskip("nbformat")
+nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("matplotlib")
+pytest.importorskip("ipykernel")
+
+NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "uncertainty_maps.ipynb"
+
+
+def test_notebook_is_committed_without_outputs() -> None:
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    nbformat.validate(nb)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert code, "the notebook has no code cells"
+    assert all(not c.outputs and c.execution_count is None for c in code), "clear the outputs before committing"
+    params = [c for c in code if "parameters" in c.metadata.get("tags", [])]
+    assert len(params) == 1 and "PRED_DIR = None" in params[0].source and "AERIALMTL_NB_WORKDIR" in params[0].source
+
+
+@pytest.mark.slow
+def test_notebook_runs_the_mini_pipeline(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    work = tmp_path / "work"
+    monkeypatch.setenv("AERIALMTL_NB_WORKDIR", str(work))
+    monkeypatch.setenv("AERIALMTL_NB_THREADS", "1")  # the test machine is shared: 1 thread is much faster there
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}})
+    client.execute()  # raises CellExecutionError on any failing cell
+
+    last = [c for c in nb.cells if c.cell_type == "code"][-1]
+    text = "".join(o.get("text", "") for o in last.outputs if o.output_type == "stream")
+    result = json.loads(text.strip().splitlines()[-1])
+    assert result == json.loads((work / "notebook_summary.json").read_text())
+
+    pred = work / "prediction"
+    assert Path(result["prediction"]) == pred
+    for name in ("height.tif", "height_std.tif", "classes.tif", "class_entropy.tif", "class_mutual_info.tif"):
+        assert (pred / name).is_file(), name
+    assert {"maps.png", "maps_zoom.png", "sparsification.png", "areas_height_std.png"} <= set(result["figures"])
+    for name in result["figures"]:
+        assert (work / "figures" / name).stat().st_size > 1000
+    assert (work / "report.json").is_file()
+
+    u = result["uncertainty"]
+    assert set(u) == {"height_std", "class_entropy", "class_mutual_info"}
+    for key, s in u.items():
+        assert math.isfinite(s["ause"]) and s["ause"] >= 0, key
+        assert -1 <= s["spearman"] <= 1, key
+        assert s["n_pixels"] > 0 and s["mean_error"] >= 0, key
+
+    with rasterio.open(pred / "height_std.tif") as src:
+        b = src.bounds
+    for key, (top,) in result["top_areas"].items():
+        assert top["rank"] == 1
+        assert b.left <= top["left"] < top["right"] <= b.right and b.bottom <= top["bottom"] < top["top"] <= b.top, key
