@@ -72,6 +72,8 @@ def test_config_errors_name_key_path(tmp_path: Path) -> None:
 def test_model_section_checks_data(tiles: Path) -> None:
     with pytest.raises(ConfigError, match="model.num_classes.*20.*3"):
         train(tiny_cfg(model={"num_classes": 20}), tiles, tiles.parent / "r0", max_steps=1, progress=False)
+    with pytest.raises(ConfigError, match="crop_size.*multiples of 32"):
+        train(tiny_cfg(data={"crop_size": 96}), tiles, tiles.parent / "r1", max_steps=1, progress=False)
     with pytest.raises(ConfigError, match="model.in_channels"):
         TrainConfig.from_dict({"model": {"in_channels": 4}}).model.resolve(3, ("height",), None)
 

@@ -321,6 +321,13 @@ def train(
     k = info.classes.num_classes if info.classes is not None else None
     model_cfg: ModelConfig = cfg.model.resolve(info.num_bands, info.tasks, k)
     tasks = tuple(model_cfg.tasks)
+    side = cfg.data.crop_size or info.patch_size
+    if side % 32 or side > info.patch_size:
+        raise ConfigError(
+            f"data.crop_size: the network needs sides that are multiples of 32 and at most the {info.patch_size} px "
+            f"patches of '{info.root}', got {side}; set data.crop_size to a multiple of 32 ≤ {info.patch_size} "
+            "or re-tile with --size a multiple of 32"
+        )
     device = resolve_device(cfg.device)
     steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
     time_cap = max_time_s if max_time_s is not None else cfg.schedule.max_time_s
@@ -379,7 +386,7 @@ def train(
         val_ds = PatchDataset(data, "val", transform=build_eval_transform(crop), tasks=tasks)
         val_loader = torch.utils.data.DataLoader(
             val_ds, batch_size=cfg.data.batch_size, shuffle=False, num_workers=min(nw, 1),
-            generator=torch.Generator().manual_seed(cfg.seed))
+            persistent_workers=nw > 0, generator=torch.Generator().manual_seed(cfg.seed))
     else:
         log.warning("no 'val' patches in %s: best.pt is chosen by the training loss", info.root / "manifest.csv")
 
