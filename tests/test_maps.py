@@ -54,29 +54,32 @@ def test_most_uncertain_areas_skips_mostly_nodata_cells_and_handles_edges() -> N
         most_uncertain_areas(values, T, size=0)
 
 
-@pytest.fixture
-def pred_dir(tmp_path: Path, rng: np.random.Generator) -> Path:
-    folder = tmp_path / "pred"
-    folder.mkdir()
-    scheme = ClassScheme.load("synthetic")
-    height = rng.uniform(0, 20, (64, 64)).astype(np.float32)
-    height[:4, :4] = HEIGHT_NODATA
-    write_raster(folder / "height.tif", height, transform=T, nodata=HEIGHT_NODATA)
-    write_raster(folder / "height_std.tif", rng.uniform(0, 2, (64, 64)).astype(np.float32), transform=T,
-                 nodata=HEIGHT_NODATA)
-    for name in ("class_entropy.tif", "class_mutual_info.tif"):
-        write_raster(folder / name, rng.uniform(0, 1, (64, 64)).astype(np.float32), transform=T, nodata=HEIGHT_NODATA)
-    cls = rng.integers(0, scheme.num_classes, (64, 64)).astype(np.uint8)
-    cls[:4, :4] = IGNORE_INDEX
-    path = write_raster(folder / "classes.tif", cls, transform=T, nodata=IGNORE_INDEX)
+def write_prediction_folder(folder: Path, rng: np.random.Generator, size: int = 64) -> Path:
+    """A tiny prediction folder (docs/CONTRACTS.md) on 0.5 m pixels, nodata in the upper-left 4×4 corner,
+    plus ``ortho.tif`` beside it at twice the resolution over the same footprint."""
     import rasterio
 
+    folder.mkdir(parents=True)
+    scheme = ClassScheme.load("synthetic")
+    height = rng.uniform(0, 20, (size, size)).astype(np.float32)
+    height[:4, :4] = HEIGHT_NODATA
+    write_raster(folder / "height.tif", height, transform=T, nodata=HEIGHT_NODATA)
+    for name, hi in (("height_std.tif", 2.0), ("class_entropy.tif", 1.0), ("class_mutual_info.tif", 1.0)):
+        write_raster(folder / name, rng.uniform(0, hi, (size, size)).astype(np.float32), transform=T,
+                     nodata=HEIGHT_NODATA)
+    cls = rng.integers(0, scheme.num_classes, (size, size)).astype(np.uint8)
+    cls[:4, :4] = IGNORE_INDEX
+    path = write_raster(folder / "classes.tif", cls, transform=T, nodata=IGNORE_INDEX)
     with rasterio.open(path, "r+") as dst:
         dst.update_tags(**{CLASS_SCHEME_TAG: json.dumps(scheme.to_dict())})
-    # orthophoto at twice the resolution, same footprint
-    write_raster(tmp_path / "ortho.tif", rng.integers(0, 255, (3, 128, 128)).astype(np.uint8),
+    write_raster(folder.parent / "ortho.tif", rng.integers(0, 255, (3, 2 * size, 2 * size)).astype(np.uint8),
                  transform=Affine(0.25, 0, 500000.0, 0, -0.25, 5000000.0))
     return folder
+
+
+@pytest.fixture
+def pred_dir(tmp_path: Path, rng: np.random.Generator) -> Path:
+    return write_prediction_folder(tmp_path / "pred", rng)
 
 
 def test_load_prediction_maps_puts_everything_on_one_grid(pred_dir: Path) -> None:

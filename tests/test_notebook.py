@@ -6,8 +6,11 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import rasterio
+
+from tests.test_maps import write_prediction_folder
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
@@ -27,19 +30,41 @@ def test_notebook_is_committed_without_outputs() -> None:
     assert len(params) == 1 and "PRED_DIR = None" in params[0].source and "AERIALMTL_NB_WORKDIR" in params[0].source
 
 
+def _run(nb: object, cwd: Path) -> dict:
+    """Execute ``nb`` in place and return the JSON printed by its last code cell."""
+    client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(cwd)}})
+    client.execute()  # raises CellExecutionError on any failing cell
+    last = [c for c in nb.cells if c.cell_type == "code"][-1]  # type: ignore[attr-defined]
+    text = "".join(o.get("text", "") for o in last.outputs if o.output_type == "stream")
+    return json.loads(text.strip().splitlines()[-1])
+
+
+def test_notebook_on_a_users_own_prediction_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    pred = write_prediction_folder(tmp_path / "mine" / "pred", np.random.default_rng(7), size=96)
+    work = tmp_path / "work"
+    monkeypatch.setenv("AERIALMTL_NB_WORKDIR", str(work))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    at = next(i for i, c in enumerate(nb.cells) if "parameters" in c.metadata.get("tags", []))
+    nb.cells.insert(at + 1, nbformat.v4.new_code_cell(  # what papermill does with injected parameters
+        f"PRED_DIR = {str(pred)!r}\nORTHO = {str(pred.parent / 'ortho.tif')!r}\nAREA_SIZE_PX = 32"))
+    result = _run(nb, tmp_path)
+    assert Path(result["prediction"]) == pred
+    assert not (work / "prediction").exists() and not (work / "run").exists(), "nothing may be trained"
+    assert result["uncertainty"] == {}  # no references given: no curves
+    assert {"maps.png", "maps_zoom.png", "areas_class_mutual_info.png"} <= set(result["figures"])
+    areas = json.loads((work / "uncertain_areas.json").read_text())
+    assert set(areas) == {"height_std", "class_entropy", "class_mutual_info"}
+    assert all(len(rows) == 3 and rows[0]["width"] == 32 for rows in areas.values())
+
+
 @pytest.mark.slow
 def test_notebook_runs_the_mini_pipeline(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     work = tmp_path / "work"
     monkeypatch.setenv("AERIALMTL_NB_WORKDIR", str(work))
     monkeypatch.setenv("AERIALMTL_NB_THREADS", "1")  # the test machine is shared: 1 thread is much faster there
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}})
-    client.execute()  # raises CellExecutionError on any failing cell
-
-    last = [c for c in nb.cells if c.cell_type == "code"][-1]
-    text = "".join(o.get("text", "") for o in last.outputs if o.output_type == "stream")
-    result = json.loads(text.strip().splitlines()[-1])
+    result = _run(nbformat.read(NOTEBOOK, as_version=4), tmp_path)
     assert result == json.loads((work / "notebook_summary.json").read_text())
 
     pred = work / "prediction"
