@@ -186,3 +186,42 @@ def test_neon_ortho_is_resampled_to_the_model_gsd(tmp_path: Path) -> None:
         assert out.bounds.right - src.bounds.right < 0.5 and src.bounds.bottom - out.bounds.bottom < 0.5
         h = out.read(1, masked=True)
         assert h.count() > 0.95 * h.size  # valid almost everywhere (last partial pixels may be nodata)
+
+
+class _RecordingModel(IdentityModel):
+    """Identity model that records the batch size of every decoder call."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.decoded: list[int] = []
+
+    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+        self.decoded.append(int(feats[0].shape[0]))
+        return super().decode(feats)
+
+
+def test_mc_samples_are_decoded_in_chunks_that_fit_the_pixel_budget(ortho: Path, tmp_path: Path) -> None:
+    meta = identity_meta()
+    model = _RecordingModel(meta.mean, meta.std, dropout=0.5)
+    budget = 5 * 64 * 64  # at most 5 decoded 64² images per call
+    res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=7, tile=64, overlap=16, batch_size=2,
+                         max_decode_pixels=budget, progress=False)
+    assert model.decoded and max(model.decoded) * 64 * 64 <= budget
+    assert sum(model.decoded) == 7 * res.windows_computed  # every window got all T samples
+    with rasterio.open(res.files["height"]) as h, rasterio.open(ortho) as src:
+        valid = src.read(1) != 0
+        # height is a deterministic branch of the identity model: MC chunking must not change it
+        np.testing.assert_allclose(h.read(1)[valid], src.read(1)[valid].astype(np.float32), atol=1e-3)
+
+
+def test_precision_auto_is_fp32_on_cpu_and_bad_values_name_the_option() -> None:
+    from aerialmtl.errors import InputError
+    from aerialmtl.inference.predict import mc_sample_batch, resolve_precision
+
+    assert resolve_precision("auto", torch.device("cpu")) == "fp32"
+    assert resolve_precision("auto", torch.device("cuda")) == "bf16"
+    assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
+    with pytest.raises(InputError, match="--precision"):
+        resolve_precision("fp16", torch.device("cpu"))
+    assert mc_sample_batch(2, 512, 512, torch.device("cpu"), max_pixels=2**21) == 4
+    assert mc_sample_batch(8, 1024, 1024, torch.device("cpu"), max_pixels=2**21) == 1  # never 0

@@ -18,11 +18,13 @@ import click
               help="Prediction folder; with several orthophotos, one sub-folder per input (file stem).")
 @click.option("--mc", type=int, default=None,
               help="MC-dropout samples T (1 = single pass, no uncertainty maps). Default: 30 if the model has dropout.")
-@click.option("--tile", type=int, default=512, show_default=True, help="Largest window side (pixels, multiple of 32).")
+@click.option("--tile", type=int, default=1024, show_default=True,
+              help="Largest window side (pixels, multiple of 32); smaller tiles use less memory but recompute more overlap.")
 @click.option("--overlap", type=int, default=64, show_default=True,
               help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
-@click.option("--batch-size", type=int, default=4, show_default=True, help="Windows per model call.")
-@click.option("--precision", type=click.Choice(["bf16", "fp32"]), default="bf16", show_default=True)
+@click.option("--batch-size", type=int, default=2, show_default=True, help="Windows per model call.")
+@click.option("--precision", type=click.Choice(["auto", "bf16", "fp32"]), default="auto", show_default=True,
+              help="auto = bf16 autocast on CUDA, fp32 on CPU (CPUs without bf16 units run bf16 far slower).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
 @click.option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="GeoJSON polygons: compute only there, nodata elsewhere.")

@@ -44,8 +44,13 @@ from aerialmtl.training.checkpoint import ModelMeta
 DEFAULT_MC_SAMPLES = 30
 #: Relative GSD difference above which the orthophoto is resampled to the model's GSD.
 GSD_TOLERANCE = 0.01
+#: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
+#: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
+#: of 4 windows of 512² with T = 30 decoded at once would need ~36 GiB; the MC samples are split into
+#: chunks that fit instead (the result is the same, only the dropout masks are drawn in another order).
+DECODE_PIXELS = {"cpu": 2**21, "cuda": 2**23}
 
-Precision = Literal["bf16", "fp32"]
+Precision = Literal["auto", "bf16", "fp32"]
 
 
 @dataclass(frozen=True)
@@ -91,8 +96,8 @@ class _Aoi:
     def mask(self, window: Window) -> np.ndarray:
         h, w = int(window.height), int(window.width)
         tr = self.grid.window_transform(window)
-        x0, y0 = tr * (0, 0)
-        x1, y1 = tr * (w, h)
+        x0, y0 = tr @ (0, 0)
+        x1, y1 = tr @ (w, h)
         hits = [self.geoms[k] for k in self.tree.query(box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)))]
         if not hits:
             return np.zeros((h, w), bool)
@@ -120,8 +125,28 @@ def _device(device: str) -> torch.device:
 
 
 # ---- model -------------------------------------------------------------------------------------
+def resolve_precision(precision: str, device: torch.device) -> Literal["bf16", "fp32"]:
+    """``auto`` → bf16 autocast on CUDA, fp32 on CPU.
+
+    CPUs without native bf16 matrix instructions (AVX-512-BF16/AMX; e.g. the AMD Zen 3 this package is
+    developed on) emulate bf16 convolutions more than 10× slower than fp32 (bench/RESULTS.md, predict).
+    """
+    if precision == "auto":
+        return "bf16" if device.type == "cuda" else "fp32"
+    if precision not in ("bf16", "fp32"):
+        raise InputError(f"precision={precision!r} is not supported; use auto, bf16 or fp32 (--precision)")
+    return precision  # type: ignore[return-value]
+
+
+def mc_sample_batch(batch: int, height: int, width: int, device: torch.device, max_pixels: int | None = None) -> int:
+    """MC samples decoded per call so that ``batch × samples × height × width ≤ max_pixels`` (at least 1)."""
+    budget = DECODE_PIXELS.get(device.type, DECODE_PIXELS["cpu"]) if max_pixels is None else max_pixels
+    return max(1, int(budget) // max(1, batch * height * width))
+
+
 def _run_model(
-    model: torch.nn.Module, x: torch.Tensor, mc: int, tasks: tuple[str, ...], precision: Precision
+    model: torch.nn.Module, x: torch.Tensor, mc: int, tasks: tuple[str, ...], precision: Literal["bf16", "fp32"],
+    max_decode_pixels: int | None = None,
 ) -> dict[str, np.ndarray]:
     """B×C×h×w normalised batch → blended quantities, each (B, C, h, w) float32 numpy."""
     amp = (torch.autocast(x.device.type, dtype=torch.bfloat16) if precision == "bf16"
@@ -138,8 +163,8 @@ def _run_model(
         else:
             from aerialmtl.models.mc_dropout import mc_predict
 
-            res = mc_predict(model, x, mc)
             b, _, h, w = x.shape
+            res = mc_predict(model, x, mc, sample_batch=mc_sample_batch(b, h, w, x.device, max_decode_pixels))
             if "height" in tasks:
                 out["height"] = res["height"]["mean"].float().reshape(b, 1, h, w)
                 out["height_std"] = res["height"]["std"].float().reshape(b, 1, h, w)
@@ -208,16 +233,17 @@ def predict_raster(
     out_dir: str | Path,
     *,
     mc: int | None = None,
-    tile: int = 512,
+    tile: int = 1024,
     overlap: int = 64,
-    batch_size: int = 4,
-    precision: Precision = "bf16",
+    batch_size: int = 2,
+    precision: Precision = "auto",
     device: str = "auto",
     aoi: str | Path | None = None,
     probabilities: bool = False,
     overwrite: bool = False,
     progress: bool = True,
     checkpoint_name: str | None = None,
+    max_decode_pixels: int | None = None,
 ) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
@@ -227,11 +253,13 @@ def predict_raster(
         out_dir: prediction folder (see docs/CONTRACTS.md, "Prediction folder").
         mc: MC-dropout samples T (1 = single deterministic pass, no uncertainty files); default
             :data:`DEFAULT_MC_SAMPLES` when the model has dropout, else 1.
-        tile: largest window side in pixels (multiple of 32).
+        tile: largest window side in pixels (multiple of 32). 1024 with ``overlap`` 64 computes ≈ 1.14×
+            the output pixels (512 → 1.31×); the row-band accumulators grow with ``tile × raster width``.
         overlap: minimum overlap between neighbouring windows in pixels (blended; see
             :mod:`aerialmtl.inference.windows`).
         batch_size: windows per model call.
-        precision: ``"bf16"`` (autocast) or ``"fp32"``.
+        precision: ``"auto"`` (bf16 on CUDA, fp32 on CPU; see :func:`resolve_precision`), ``"bf16"``
+            (autocast) or ``"fp32"``.
         device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
         aoi: optional GeoJSON of polygons; only windows intersecting them are computed, pixels outside
             are nodata.
@@ -239,6 +267,8 @@ def predict_raster(
         overwrite: replace existing outputs instead of raising.
         progress: show a tqdm progress bar.
         checkpoint_name: name recorded in ``prediction.json`` when ``checkpoint`` is a loaded model.
+        max_decode_pixels: bound on the pixels decoded per model call with MC dropout (windows ×
+            samples × h × w); default :data:`DECODE_PIXELS` of the device. Bounds memory, not results.
 
     Returns:
         A :class:`PredictResult`.
@@ -253,8 +283,8 @@ def predict_raster(
         raise InputError(f"mc must be a positive number of MC-dropout samples, got {mc!r}; pass e.g. --mc 30 (or 1)")
     if not isinstance(batch_size, int) or batch_size < 1:
         raise InputError(f"batch_size must be ≥ 1, got {batch_size!r}; pass e.g. --batch-size 4")
-    if precision not in ("bf16", "fp32"):
-        raise InputError(f"precision={precision!r} is not supported; use bf16 or fp32")
+    if precision not in ("auto", "bf16", "fp32"):
+        raise InputError(f"precision={precision!r} is not supported; use auto, bf16 or fp32 (--precision)")
     out_dir = Path(out_dir)
     check_outputs_free(out_dir, ["height.tif", "classes.tif", "prediction.json"], overwrite)  # fail early
     model, meta, ckpt_name = _load(checkpoint)
@@ -262,6 +292,7 @@ def predict_raster(
     if mc is None:
         mc = DEFAULT_MC_SAMPLES if meta.model.dropout > 0 else 1
     dev = _device(device)
+    precision = resolve_precision(precision, dev)
     model = model.to(dev).to(memory_format=torch.channels_last)
     tasks = tuple(meta.model.tasks)
 
@@ -322,7 +353,7 @@ def predict_raster(
                     t0 = time.perf_counter()
                     xb = torch.from_numpy(np.stack([b[1] for b in batch])).to(dev)
                     xb = xb.contiguous(memory_format=torch.channels_last)
-                    res = _run_model(model, xb, mc, tasks, precision)
+                    res = _run_model(model, xb, mc, tasks, precision, max_decode_pixels)
                     t1 = time.perf_counter()
                     timings["model"] += t1 - t0
                     for n, (j, _, valid) in enumerate(batch):
