@@ -127,3 +127,31 @@ def test_identity_model_is_reproduced_exactly(height: int, width: int, tile: int
             height_out, classes_out = h.read(1), c.read(1)
     np.testing.assert_array_equal(height_out, img[0].astype(np.float32))
     np.testing.assert_array_equal(classes_out, np.argmax(img, axis=0).astype(np.uint8))
+
+
+def test_flush_in_column_chunks_equals_one_pass() -> None:
+    from aerialmtl.inference.stitch import BandStitcher
+
+    plan = plan_bands(150, 230, 64, 16)
+    outputs = ("height", "height_std", "classes", "class_entropy", "class_mutual_info", "class_probabilities")
+    channels = {"height": 1, "height_std": 1, "probs": 4, "expected_entropy": 1}
+    rng = np.random.default_rng(3)
+    stitchers = [BandStitcher(plan, channels, outputs) for _ in range(2)]
+    for band in plan.bands:
+        for st_ in stitchers:
+            st_.start_band(band.index)
+        for j, win in enumerate(band.windows):
+            h, w = int(win.height), int(win.width)
+            p = rng.dirichlet(np.ones(4), size=(h, w)).transpose(2, 0, 1).astype(np.float32)
+            vals = {"height": rng.normal(5, 2, (1, h, w)).astype(np.float32),
+                    "height_std": rng.random((1, h, w)).astype(np.float32), "probs": p,
+                    "expected_entropy": rng.random((1, h, w)).astype(np.float32) * 0.1}
+            valid = rng.random((h, w)) > 0.1
+            for st_ in stitchers:
+                st_.add(j, vals, valid)
+        one, chunked = stitchers[0].flush(), stitchers[1].flush(chunk_cols=7)
+        assert (one.row_start, one.row_stop) == (chunked.row_start, chunked.row_stop)
+        np.testing.assert_array_equal(one.valid, chunked.valid)
+        assert one.layers.keys() == chunked.layers.keys() == set(outputs)
+        for name in outputs:
+            np.testing.assert_array_equal(one.layers[name], chunked.layers[name])

@@ -102,42 +102,58 @@ class BandStitcher:
         self._wsum[sl] += w
         self._valid[sl] |= valid
 
-    def flush(self) -> FinalRows:
-        """Rows that are final after the current window row, converted to output layers."""
+    def flush(self, chunk_cols: int = 2048) -> FinalRows:
+        """Rows that are final after the current window row, converted to output layers.
+
+        The conversion runs over column chunks of ``chunk_cols`` pixels, so its temporaries (K-channel
+        means, logs for the entropy) stay bounded whatever the raster width; only the output layers
+        themselves span the full width.
+        """
         band = self.plan.bands[self._band]
         a, b = band.out_start - self._row0, band.out_stop - self._row0
-        wsum = self._wsum[a:b, : self.width]
-        valid = self._valid[a:b, : self.width] & (wsum > 0)
-        safe = np.where(valid, wsum, 1.0).astype(np.float32)
-        mean = {k: acc[:, a:b, : self.width] / safe for k, acc in self._acc.items()}
-        layers: dict[str, np.ndarray] = {}
+        rows, width = b - a, self.width
+        valid = self._valid[a:b, :width] & (self._wsum[a:b, :width] > 0)
+        counts = {"height": 1, "height_std": 1, "classes": 1, "class_entropy": 1, "class_mutual_info": 1,
+                  "class_probabilities": self.channels.get("probs", 0)}
+        wanted = [n for n in counts if n in self.outputs and (n.startswith("height") or "probs" in self.channels)]
+        layers = {n: np.empty((counts[n], rows, width), np.uint8 if n == "classes" else np.float32) for n in wanted}
+        for c0 in range(0, width, chunk_cols):
+            cs = slice(c0, min(width, c0 + chunk_cols))
+            self._convert(a, b, cs, valid[:, cs], {n: arr[:, :, cs] for n, arr in layers.items()})
+        return FinalRows(band.out_start, band.out_stop, valid, layers)
+
+    def _convert(self, a: int, b: int, cs: slice, valid: np.ndarray, out: dict[str, np.ndarray]) -> None:
+        """Fill the output views ``out`` for accumulator rows ``[a, b)`` and columns ``cs``."""
+        safe = np.where(valid, self._wsum[a:b, cs], 1.0).astype(np.float32)
         inv = ~valid
 
-        def fl(x: np.ndarray) -> np.ndarray:
+        def mean(key: str) -> np.ndarray:
+            return self._acc[key][:, a:b, cs] / safe
+
+        def fl(name: str, x: np.ndarray) -> None:
             x = x.astype(np.float32, copy=False)
             x[..., inv] = FLOAT_NODATA
-            return x
+            out[name][...] = x
 
-        if "height" in self.outputs:
-            layers["height"] = fl(mean["height"])
-        if "height_std" in self.outputs:
-            layers["height_std"] = fl(np.maximum(mean["height_std"], 0.0))
-        if "probs" in mean:
-            probs = mean["probs"]
-            if "classes" in self.outputs:
-                cls = np.argmax(probs, axis=0).astype(np.uint8)
-                cls[inv] = IGNORE_INDEX
-                layers["classes"] = cls[None]
-            if "class_entropy" in self.outputs or "class_mutual_info" in self.outputs:
-                p = np.clip(probs, 1e-12, 1.0)
-                ent = np.maximum(-(probs * np.log(p)).sum(axis=0), 0.0)[None]
-                if "class_mutual_info" in self.outputs:
-                    layers["class_mutual_info"] = fl(np.clip(ent - mean["expected_entropy"], 0.0, ent))
-                if "class_entropy" in self.outputs:
-                    layers["class_entropy"] = fl(ent)
-            if "class_probabilities" in self.outputs:
-                layers["class_probabilities"] = fl(probs.copy())
-        return FinalRows(band.out_start, band.out_stop, valid, layers)
+        if "height" in out:
+            fl("height", mean("height"))
+        if "height_std" in out:
+            fl("height_std", np.maximum(mean("height_std"), 0.0))
+        if "probs" not in self._acc:
+            return
+        probs = mean("probs")
+        if "classes" in out:
+            cls = np.argmax(probs, axis=0).astype(np.uint8)
+            cls[inv] = IGNORE_INDEX
+            out["classes"][0] = cls
+        if "class_entropy" in out or "class_mutual_info" in out:
+            ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(axis=0), 0.0)[None]
+            if "class_mutual_info" in out:
+                fl("class_mutual_info", np.clip(ent - mean("expected_entropy"), 0.0, ent))
+            if "class_entropy" in out:
+                fl("class_entropy", ent)
+        if "class_probabilities" in out:
+            fl("class_probabilities", probs)
 
 
 __all__ = ["FLOAT_NODATA", "BandStitcher", "FinalRows"]
