@@ -2,18 +2,24 @@
 
 Parts (select with flags; each can run alone):
 
-* ``--speed``: full D3-Net (3 bands, 20 classes, untrained weights), T = 1, bf16, end-to-end on a
-  synthetic ``--size``² raster (default 2048): output Mpx/s and the overlap factor.
+* ``--speed``: full D3-Net (3 bands, 20 classes, untrained weights), T = 1, end-to-end on a
+  synthetic ``--size``² raster (default 2048) for each of ``--precisions`` (default ``fp32``): output
+  Mpx/s, model-only Mpx/s, the overlap factor; plus the model's FLOP per pixel (torch's flop counter)
+  and this machine's fp32/bf16 GEMM ceilings (GFLOP/s), to say how far from the hardware it runs.
+* ``--components``: time per megapixel of the full D3-Net's encoder and of one decoder sample
+  (fp32, channels_last, 512² batch), from which the speed-up over the baseline on a large raster
+  (baseline overlap 4×) is predicted.
 * ``--baseline``: the authors' strategy (1024-pixel windows, stride 512, Gaussian blending, whole raster in
-  RAM, fp32, every MC sample re-running the whole network) vs ``predict_raster`` at T = 30 on a
-  ``--baseline-size``² raster with the ``--baseline-model`` config (``small`` by default): speed ratio and
-  mean |Δ height|.
-* ``--rss``: peak RSS (``ru_maxrss``) of ``predict_raster`` (small model, T = 1) on a 4 Mpx and a 64 Mpx
-  raster, each in its own subprocess.
+  RAM, fp32, every MC sample re-running the whole network) vs ``predict_raster`` (defaults: tile 1024,
+  overlap 64, precision auto) at T = 30 on a ``--baseline-size``² raster with the ``--baseline-model``
+  config (``small`` by default): speed ratio and mean |Δ height| (different dropout masks, so
+  the difference is MC sampling noise plus blending).
+* ``--rss``: peak RSS (``ru_maxrss``) of ``predict_raster`` (small model, T = 1) on each of
+  ``--rss-sizes`` (WxH), each in its own subprocess.
 
 Usage::
 
-    python bench/predict.py --speed --baseline --rss
+    python bench/predict.py --speed --components --baseline --rss
 """
 
 from __future__ import annotations
@@ -74,14 +80,70 @@ def load_avg() -> str:
 
 
 # ---- (a) speed ---------------------------------------------------------------------------------
-def bench_speed(size: int, tmp: Path) -> dict:
+def gemm_ceiling(dtype: torch.dtype, n: int = 2048, reps: int = 5) -> float:
+    """GFLOP/s of an n×n×n matrix product in ``dtype`` on this CPU (best of ``reps``)."""
+    a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
+    a @ b
+    best = float("inf")
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t0)
+    return 2 * n**3 / best / 1e9
+
+
+def model_flops_per_px(model: torch.nn.Module, size: int = 512) -> float:
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with torch.no_grad(), FlopCounterMode(display=False) as fc:
+        model(torch.randn(1, 3, size, size))
+    return fc.get_total_flops() / size**2
+
+
+def bench_speed(size: int, precisions: list[str], tmp: Path) -> dict:
     model, meta = make_model("full")
     src = synthetic_raster(tmp / "speed.tif", size, size)
-    res = predict_raster(src, (model, meta), tmp / "speed_out", mc=1, precision="bf16", batch_size=2,
-                         progress=False, overwrite=True)
+    runs = []
+    for prec in precisions:
+        res = predict_raster(src, (model, meta), tmp / "speed_out", mc=1, precision=prec,  # type: ignore[arg-type]
+                             progress=False, overwrite=True)
+        model_mpx = res.overlap_factor * size * size / 1e6 / res.timings["model"]
+        runs.append({"precision": prec, "mpx_per_s": res.megapixels_per_s, "model_mpx_per_s_computed": model_mpx,
+                     "timings_s": res.timings, "load_avg": load_avg()})
+        print(json.dumps(runs[-1]), flush=True)
+    flops = model_flops_per_px(model)
     return {"part": "speed", "model": "full D3-Net (DenseNet-121, 20 classes)", "size": size, "T": 1,
-            "precision": "bf16", "mpx_per_s": res.megapixels_per_s, "overlap_factor": res.overlap_factor,
-            "timings_s": res.timings, "load_avg": load_avg()}
+            "tile": 1024, "overlap_factor": res.overlap_factor, "mflop_per_px": flops / 1e6,
+            "gemm_gflops": {"fp32": gemm_ceiling(torch.float32), "bf16": gemm_ceiling(torch.bfloat16)},
+            "runs": runs}
+
+
+def bench_components(reps: int = 3) -> dict:
+    """Seconds per megapixel of the full model's encoder and of one decoder sample (fp32, channels_last)."""
+    model, _ = make_model("full")
+    model = model.to(memory_format=torch.channels_last)
+    x = torch.randn(1, 3, 512, 512).contiguous(memory_format=torch.channels_last)
+    px = 512 * 512 / 1e6
+    with torch.inference_mode(), mc_dropout_mode(model):
+        feats = model.encode(x)
+        model.decode(feats)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            feats = model.encode(x)
+        enc = (time.perf_counter() - t0) / reps / px
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            model.decode(feats)
+        dec = (time.perf_counter() - t0) / reps / px
+    t = 30
+
+    def ratio(base_overlap: float, ours_overlap: float) -> float:
+        return base_overlap * t * (enc + dec) / (ours_overlap * (enc + t * dec))
+
+    return {"part": "components", "model": "full", "encoder_s_per_mpx": enc, "decoder_sample_s_per_mpx": dec,
+            "predicted_speedup_T30": {"large raster (baseline 4x, ours 1.14x)": ratio(4.0, 1.14),
+                                      "2048² (baseline 2.25x, ours 1.30x)": ratio(2.25, 1.30)},
+            "load_avg": load_avg()}
 
 
 # ---- (b) baseline ------------------------------------------------------------------------------
@@ -119,8 +181,7 @@ def bench_baseline(size: int, kind: str, samples: int, tmp: Path) -> dict:
     base = baseline_predict(image, model, meta, samples)
     t_base = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = predict_raster(src, (model, meta), tmp / "base_out", mc=samples, precision="bf16", batch_size=2,
-                         progress=False, overwrite=True)
+    res = predict_raster(src, (model, meta), tmp / "base_out", mc=samples, progress=False, overwrite=True)
     t_ours = time.perf_counter() - t0
     with rasterio.open(res.files["height"]) as s:
         ours = s.read(1)
@@ -136,8 +197,8 @@ def rss_child(width: int, height: int, tmp: Path) -> None:
     model, meta = make_model("small")
     src = synthetic_raster(tmp / f"rss_{width}x{height}.tif", width, height)
     t0 = time.perf_counter()
-    res = predict_raster(src, (model, meta), tmp / f"rss_out_{width}x{height}", mc=1, precision="bf16",
-                         batch_size=2, progress=False, overwrite=True)
+    res = predict_raster(src, (model, meta), tmp / f"rss_out_{width}x{height}", mc=1, progress=False,
+                         overwrite=True)
     print(json.dumps({"width": width, "height": height, "mpx": width * height / 1e6,
                       "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "seconds": time.perf_counter() - t0, "mpx_per_s": res.megapixels_per_s}))
@@ -151,19 +212,21 @@ def bench_rss(sizes: list[tuple[int, int]], tmp: Path) -> dict:
         runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
         print(json.dumps(runs[-1]), flush=True)
     return {"part": "rss", "model": "small", "runs": runs,
-            "ratio_largest_to_smallest": runs[-1]["max_rss_mb"] / runs[0]["max_rss_mb"], "load_avg": load_avg()}
+            "ratio_to_first": [r["max_rss_mb"] / runs[0]["max_rss_mb"] for r in runs], "load_avg": load_avg()}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--speed", action="store_true")
     ap.add_argument("--size", type=int, default=2048)
+    ap.add_argument("--precisions", default="fp32", help="comma list of fp32, bf16, auto (speed part)")
+    ap.add_argument("--components", action="store_true")
     ap.add_argument("--baseline", action="store_true")
-    ap.add_argument("--baseline-size", type=int, default=1536)
+    ap.add_argument("--baseline-size", type=int, default=2048)
     ap.add_argument("--baseline-model", choices=["small", "full"], default="small")
     ap.add_argument("--mc", type=int, default=30)
     ap.add_argument("--rss", action="store_true")
-    ap.add_argument("--rss-sizes", default="2048x2048,8192x8192", help="WxH list, smallest first")
+    ap.add_argument("--rss-sizes", default="2048x2048,2048x32768,8192x8192", help="WxH list, smallest first")
     ap.add_argument("--rss-child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--tmp", default=None)
     ap.add_argument("--threads", type=int, default=2)
@@ -176,7 +239,9 @@ def main() -> None:
             rss_child(w, h, tmp)
             return
         if args.speed:
-            print(json.dumps(bench_speed(args.size, tmp)), flush=True)
+            print(json.dumps(bench_speed(args.size, args.precisions.split(","), tmp)), flush=True)
+        if args.components:
+            print(json.dumps(bench_components()), flush=True)
         if args.baseline:
             print(json.dumps(bench_baseline(args.baseline_size, args.baseline_model, args.mc, tmp)), flush=True)
         if args.rss:
