@@ -57,8 +57,9 @@ class DemoResult:
 def builtin_config(name: str) -> Path:
     """Path of a training config shipped with the package (``aerialmtl/resources/configs/NAME.yaml``)."""
     path = Path(__file__).resolve().parent / "resources" / "configs" / f"{name}.yaml"
-    if not path.is_file():  # source checkout before the configs moved into the package
-        path = Path(__file__).resolve().parents[1] / "configs" / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise FileNotFoundError(f"no built-in training config '{name}'; built-in configs: {known}")
     return path
 
 
