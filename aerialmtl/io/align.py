@@ -26,7 +26,7 @@ import rasterio
 from affine import Affine
 from rasterio.crs import CRS
 from rasterio.enums import ColorInterp, MaskFlags, Resampling
-from rasterio.errors import RasterioIOError
+from rasterio.errors import NotGeoreferencedWarning, RasterioError, RasterioIOError
 from rasterio.vrt import WarpedVRT
 from rasterio.warp import transform_bounds
 from rasterio.windows import Window, from_bounds
@@ -96,12 +96,45 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
     if not p.exists():
         raise InputError(f"{role} '{p}' does not exist; check the path")
     try:
-        return rasterio.open(p)
+        with warnings.catch_warnings():  # a missing CRS/geotransform gets our own message (_check_georeferenced)
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            return rasterio.open(p)
     except RasterioIOError as exc:
         raise InputError(
             f"{role} '{p}' cannot be read as a raster ({' '.join(str(exc).split())}); "
             "is it a complete GeoTIFF? re-download or re-export it"
         ) from exc
+
+
+def _gdal_message(exc: BaseException) -> str:
+    """GDAL's own words for a failed read (rasterio chains the CPLE error as the cause)."""
+    cause: BaseException | None = exc
+    while cause is not None:
+        text = " ".join(str(cause).split())
+        if text and "See previous exception" not in text:
+            return text[:160]
+        cause = cause.__cause__ or cause.__context__
+    return "read failed"
+
+
+def check_bands(
+    src: rasterio.io.DatasetReader, bands: Sequence[int], role: str, bands_from: str = "--bands", fix: str | None = None
+) -> None:
+    """Raise :class:`InputError` if a 1-based band index of ``bands`` is not in the open raster ``src``.
+
+    Args:
+        src: the open raster.
+        bands: requested 1-based band indexes.
+        role: what the raster is (``"orthophoto"``), named in the message.
+        bands_from: where the band list came from (an option or a checkpoint).
+        fix: what to do about it (default: choose other bands with ``--bands``).
+    """
+    bad = [int(b) for b in bands if not 1 <= int(b) <= src.count]
+    if bad:
+        fix = fix or f"choose bands within 1..{src.count} with --bands"
+        raise InputError(
+            f"{role} '{src.name}': band(s) {bad} requested by {bands_from} but the file has {src.count} band(s); {fix}"
+        )
 
 
 def _check_georeferenced(src: rasterio.io.DatasetReader, role: str) -> None:
@@ -170,6 +203,7 @@ class AlignedRaster:
         resampling: override the default resampling.
         role: name used in messages (``"DSM"``, ``"labels"``, ...).
         check_overlap: raise :class:`AlignmentError` if the layer does not overlap the grid.
+        bands_from: where ``bands`` came from, named in the message when one is out of range.
 
     Use as a context manager or call :meth:`close`.
     """
@@ -183,6 +217,7 @@ class AlignedRaster:
         resampling: Resampling | None = None,
         role: str | None = None,
         check_overlap: bool = True,
+        bands_from: str = "--bands",
     ) -> None:
         self.path = Path(path)
         self.grid = grid
@@ -190,24 +225,20 @@ class AlignedRaster:
         self.role = role or kind
         self.src = open_raster(path, self.role)
         try:
-            self._setup(bands, resampling, check_overlap)
+            self._setup(bands, resampling, check_overlap, bands_from)
         except Exception:
             self.src.close()
             raise
 
-    def _setup(self, bands: Sequence[int] | None, resampling: Resampling | None, check_overlap: bool) -> None:
+    def _setup(self, bands: Sequence[int] | None, resampling: Resampling | None, check_overlap: bool,
+               bands_from: str) -> None:
         src, grid = self.src, self.grid
         _check_georeferenced(src, self.role)
         alpha = [i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha]
         self.alpha_band = alpha[0] if alpha else None
         if bands is None:
             bands = [i for i in range(1, src.count + 1) if i != self.alpha_band]
-        bad = [b for b in bands if not 1 <= b <= src.count]
-        if bad:
-            raise InputError(
-                f"{self.role} '{self.path}': band(s) {bad} requested but the file has {src.count} band(s); "
-                "fix the 'bands' setting"
-            )
+        check_bands(src, bands, self.role, bands_from)
         self.bands = list(bands)
         self.nodata = src.nodata
         if check_overlap:
@@ -266,10 +297,16 @@ class AlignedRaster:
         if ir1 > ir0 and ic1 > ic0:
             inner = Window(ic0, ir0, ic1 - ic0, ir1 - ir0)
             sl = (slice(ir0 - r0, ir1 - r0), slice(ic0 - c0, ic1 - c0))
-            data[(slice(None), *sl)] = self.reader.read(self.bands, window=inner)
-            inner_mask = self.reader.read_masks(1, window=inner) > 0
-            if self.vrt is None and self.alpha_band is not None:
-                inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0
+            try:
+                data[(slice(None), *sl)] = self.reader.read(self.bands, window=inner)
+                inner_mask = self.reader.read_masks(1, window=inner) > 0
+                if self.vrt is None and self.alpha_band is not None:
+                    inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0
+            except RasterioError as exc:
+                raise InputError(
+                    f"{self.role} '{self.path}' could not be read ({_gdal_message(exc)}); the file is probably truncated or corrupt: check it with "
+                    f"`gdalinfo -checksum {self.path}`, then re-download or re-export it"
+                ) from exc
             mask[sl] = inner_mask
         if self.nodata is not None and not (isinstance(self.nodata, float) and math.isnan(self.nodata)):
             mask &= ~np.any(data == np.asarray(self.nodata).astype(data.dtype), axis=0)
