@@ -4,7 +4,9 @@ Each output layer is written row band by row band into a hidden staging GeoTIFF 
 (``.height.tif.staging``); rows are buffered until whole 512-pixel block rows are complete so GDAL
 never holds half-written tiles. :meth:`PredictionWriter.commit` converts every staging file into a
 COG (``.height.tif.partial``) and only then renames all of them to their final names, so an
-interrupted run leaves no file at a final path. :meth:`PredictionWriter.abort` removes the hidden files.
+interrupted run leaves no file at a final path. :meth:`PredictionWriter.abort` removes the hidden files
+(and the folder, if this run created it and it is empty); hidden files that a killed run could not
+remove are deleted when the next run into the same folder starts, so a plain re-run completes.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import rasterio
+from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from aerialmtl.errors import OutputError, OutputExistsError
@@ -121,6 +124,19 @@ def check_outputs_free(out_dir: Path, filenames: list[str], overwrite: bool) -> 
         )
 
 
+def remove_leftovers(out_dir: Path) -> None:
+    """Delete hidden staging/partial files that a killed run (SIGKILL, power loss) left in ``out_dir``.
+
+    They never sit at a final path, so they are only clutter; a new run writes its own from scratch.
+    """
+    for name in ALL_OUTPUTS:
+        for suffix in ("staging", "partial"):
+            try:
+                hidden(out_dir, name, suffix).unlink(missing_ok=True)
+            except OSError:  # pragma: no cover - e.g. a read-only folder; writing will say so
+                pass
+
+
 class PredictionWriter:
     """Write the layers of one prediction folder; see the module docstring.
 
@@ -141,16 +157,25 @@ class PredictionWriter:
         self.specs = {s.name: s for s in specs}
         self.overwrite = overwrite
         check_outputs_free(self.out_dir, [s.filename for s in specs] + ["prediction.json"], overwrite)
+        self._created_dir = not self.out_dir.exists()
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise OutputError(f"cannot create output folder '{self.out_dir}': {exc}; choose a writable --out") from exc
+            raise OutputError(
+                f"cannot create output folder '{self.out_dir}' ({exc.strerror or exc}); choose a writable --out"
+            ) from exc
         self._layers: dict[str, _Layer] = {}
+        remove_leftovers(self.out_dir)
         try:
             for s in specs:
                 self._layers[s.name] = _Layer(s, grid, hidden(self.out_dir, s.filename, "staging"))
-        except Exception:
+        except Exception as exc:
             self.abort()
+            if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
+                raise OutputError(
+                    f"cannot write in output folder '{self.out_dir}' ({' '.join(str(exc).split())[:160]}); "
+                    "choose a writable --out with free space"
+                ) from exc
             raise
 
     def write(self, rows: FinalRows) -> None:
@@ -203,6 +228,11 @@ class PredictionWriter:
             for suffix in ("staging", "partial"):
                 hidden(self.out_dir, s.filename, suffix).unlink(missing_ok=True)
         hidden(self.out_dir, "prediction.json", "partial").unlink(missing_ok=True)
+        if self._created_dir:  # leave no empty folder behind either
+            try:
+                self.out_dir.rmdir()
+            except OSError:
+                pass
 
 
-__all__ = ["ALL_OUTPUTS", "LayerSpec", "PredictionWriter", "check_outputs_free"]
+__all__ = ["ALL_OUTPUTS", "LayerSpec", "PredictionWriter", "check_outputs_free", "remove_leftovers"]
