@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -111,17 +112,29 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint '{path}' does not exist; pass the best.pt or last.pt of a training run")
+    with path.open("rb") as fh:
+        head = fh.read(4)
+    if not head:
+        raise CheckpointError(f"checkpoint '{path}' is empty (0 bytes); use another checkpoint or retrain")
+    if head[:2] != b"PK" and head[:1] != b"\x80":  # neither torch.save's zip archive nor a pickle
+        raise CheckpointError(
+            f"checkpoint '{path}' is not a PyTorch checkpoint (it starts with {head!r}); pass the best.pt or "
+            "last.pt written by `aerialmtl train`"
+        )
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():  # e.g. "Detected pickle protocol 4": the refusal below says it all
+            warnings.simplefilter("ignore", UserWarning)
+            payload = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         raise CheckpointError(
             f"checkpoint '{path}' was refused: it contains objects that would run code when loaded "
             "(only weights and plain data are accepted); use a checkpoint written by `aerialmtl train`"
         ) from exc
     except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
         raise CheckpointError(
-            f"checkpoint '{path}' is corrupt or truncated ({' '.join(str(exc).split())[:200]}); "
-            "use another checkpoint or retrain"
+            f"checkpoint '{path}' is corrupt or truncated ({why}); use another checkpoint (e.g. last.pt "
+            "instead of best.pt) or retrain"
         ) from exc
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(
@@ -140,6 +153,51 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return payload, meta
 
 
+def check_same_data(path: str | Path, saved: ModelMeta, current: ModelMeta) -> None:
+    """Refuse to continue checkpoint ``path`` (meta ``saved``) on data described by ``current``.
+
+    A resumed run must see the same class scheme (same codes, names and order: class index k must keep
+    its meaning) and the same orthophoto bands; otherwise the weights would silently be trained towards
+    other targets.
+
+    Raises:
+        CheckpointError: naming both class schemes or band lists and what to do.
+    """
+    old_cls = saved.classes.to_dict() if saved.classes is not None else None
+    new_cls = current.classes.to_dict() if current.classes is not None else None
+    if old_cls != new_cls:
+        def name(c: ClassScheme | None) -> str:
+            return "no class scheme" if c is None else f"class scheme '{c.name}' ({', '.join(c.names)})"
+
+        raise CheckpointError(
+            f"checkpoint '{path}' was trained with {name(saved.classes)} but the tile folder has "
+            f"{name(current.classes)}; resume with the tile folder of that run (--data), or start a new run "
+            "(another --out, or --overwrite)"
+        )
+    if tuple(saved.bands) != tuple(current.bands):
+        raise CheckpointError(
+            f"checkpoint '{path}' was trained on orthophoto bands {list(saved.bands)} but the tile folder has bands "
+            f"{list(current.bands)}; resume with the tile folder of that run (--data), or start a new run"
+        )
+
+
+def _state_dict_mismatch(expected: dict[str, torch.Tensor], got: Any) -> str | None:
+    """Why ``got`` cannot be loaded into a model whose state dict is ``expected`` (``None`` when it can)."""
+    if not isinstance(got, dict):
+        return "it holds no state_dict"
+    for key, ref in expected.items():
+        if key not in got:
+            return f"tensor '{key}' is missing"
+        val = got[key]
+        if not isinstance(val, torch.Tensor) or tuple(val.shape) != tuple(ref.shape):
+            shape = list(val.shape) if isinstance(val, torch.Tensor) else type(val).__name__
+            return f"tensor '{key}' has shape {shape}, the model needs {list(ref.shape)}"
+    extra = [k for k in got if k not in expected]
+    if extra:
+        return f"unexpected tensor '{extra[0]}'"
+    return None
+
+
 def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[torch.nn.Module, ModelMeta]:
     """Rebuild the model of checkpoint ``path`` with its weights, in eval mode.
 
@@ -154,11 +212,19 @@ def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tu
         model_cfg = ModelConfig(**{**to_dict(model_cfg), "encoder_weights": None,
                                    "tasks": tuple(model_cfg.tasks), "block_config": tuple(model_cfg.block_config)})
     model = D3Net(model_cfg)
-    try:
-        model.load_state_dict(payload["state_dict"])
-    except (RuntimeError, KeyError) as exc:
+    state = payload.get("state_dict")
+    problem = _state_dict_mismatch(model.state_dict(), state)
+    if problem is None:
+        try:
+            model.load_state_dict(state)  # type: ignore[arg-type]
+        except (RuntimeError, KeyError, TypeError) as exc:  # pragma: no cover - caught by the check above
+            problem = " ".join(str(exc).split())[:200]
+    if problem is not None:
+        scheme = f", class scheme '{meta.classes.name}' ({meta.classes.num_classes} classes)" if meta.classes else ""
         raise CheckpointError(
-            f"checkpoint '{path}': weights do not match its model config ({' '.join(str(exc).split())[:200]})"
-        ) from exc
+            f"checkpoint '{path}': its weights do not fit the model its metadata describes "
+            f"({meta.model.in_channels} bands{scheme}): {problem}; the file mixes weights and metadata of "
+            "different runs (e.g. another class scheme); use the best.pt or last.pt of one `aerialmtl train` run"
+        )
     model.eval()
     return model.to(map_location), meta

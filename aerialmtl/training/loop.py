@@ -43,7 +43,7 @@ from aerialmtl.data.dataset import PatchDataset, TileFolderInfo, class_pixel_cou
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
 from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, InputError
 from aerialmtl.models.config import ModelConfig
-from aerialmtl.training.checkpoint import ModelMeta, load_checkpoint, save_checkpoint
+from aerialmtl.training.checkpoint import ModelMeta, check_same_data, load_checkpoint, save_checkpoint
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 
@@ -354,6 +354,7 @@ def train(
         ts = payload.get("train_state")
         if not ts:
             raise CheckpointError(f"checkpoint '{paths['last.pt']}' has no training state; cannot --resume from it")
+        check_same_data(paths["last.pt"], old_meta, meta)
         if to_dict(old_meta.model) != to_dict(model_cfg):
             raise CheckpointError(
                 f"checkpoint '{paths['last.pt']}' was trained with another model config; "
