@@ -10,12 +10,17 @@ and writes the folder described in ``docs/CONTRACTS.md``::
     OUT/{train,val,test}/classes/<id>.tif   uint8 class indices, nodata 255
     OUT/manifest.csv, OUT/dataset.yaml      written last: their absence marks an unfinished run
 
+A run that fails (bad label codes, unreadable file) or is interrupted removes what it wrote; a folder that a
+killed run left unfinished (no ``dataset.yaml``, only tile outputs) is replaced by the next run without
+``overwrite``.
+
 Every patch's transform is ``rasterio.windows.transform(window, grid.transform)``. Per-band mean/std are
 accumulated over valid pixels of the train split only (float64, merged patch by patch).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime as _dt
 import os
@@ -104,24 +109,50 @@ class _BandStats:
         return self.mean.tolist(), np.sqrt(self.m2 / self.n).tolist()
 
 
-def _prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
+#: What a tile run writes into its folder; a folder holding only these but no dataset.yaml is unfinished.
+_OWN_ENTRIES = (*SPLITS, "manifest.csv", "manifest.csv.part", "dataset.yaml.part")
+
+
+def _unfinished(out_dir: Path) -> bool:
+    """True when ``out_dir`` holds only what an interrupted or failed tile run leaves (no dataset.yaml)."""
+    names = {p.name for p in out_dir.iterdir()}
+    return "dataset.yaml" not in names and names <= set(_OWN_ENTRIES)
+
+
+def _clear(out_dir: Path) -> None:
+    """Remove the tile dataset in ``out_dir`` (only the entries a tile run writes)."""
+    for name in ("dataset.yaml", "manifest.csv"):  # first, so a half-replaced folder reads as unfinished
+        (out_dir / name).unlink(missing_ok=True)
+    for name in _OWN_ENTRIES:
+        path = out_dir / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)
+
+
+def _prepare_out_dir(out_dir: Path, overwrite: bool) -> bool:
+    """Make ``out_dir`` ready for a new tile dataset; returns whether the folder was created here.
+
+    A folder left unfinished by an interrupted or failed run is replaced without ``overwrite``.
+    """
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"--out '{out_dir}' is a file; pass a folder path")
     if out_dir.is_dir() and any(out_dir.iterdir()):
-        if not overwrite:
+        if not overwrite and not _unfinished(out_dir):
             raise OutputExistsError(
                 f"output folder '{out_dir}' is not empty; choose another --out or pass --overwrite to replace "
                 "the tile dataset in it"
             )
-        for name in ("dataset.yaml", "manifest.csv"):  # first, so a half-replaced folder reads as unfinished
-            (out_dir / name).unlink(missing_ok=True)
-        for split in SPLITS:
-            if (out_dir / split).is_dir():
-                shutil.rmtree(out_dir / split)
+        _clear(out_dir)
+    created = not out_dir.exists()
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"cannot create --out folder '{out_dir}': {exc}; choose a writable location") from exc
+        raise OutputError(
+            f"cannot create --out folder '{out_dir}' ({exc.strerror or exc}); choose a writable location"
+        ) from exc
+    return created
 
 
 def _band_names(src: rasterio.io.DatasetReader, bands: Sequence[int]) -> list[str]:
@@ -242,11 +273,18 @@ def tile_dataset(
             if label_src is not None:
                 opened.append(label_src)
             assigner = SplitAssigner(splits, grid)
-            _prepare_out_dir(out_dir, overwrite)
-            result = _tile_loop(
-                image, heights, label_src, scheme, assigner, grid, out_dir, size, stride, min_valid,
-                on_unknown, progress,
-            )
+            created = _prepare_out_dir(out_dir, overwrite)
+            try:
+                result = _tile_loop(
+                    image, heights, label_src, scheme, assigner, grid, out_dir, size, stride, min_valid,
+                    on_unknown, progress,
+                )
+            except BaseException:  # a failed or interrupted run leaves no half dataset behind
+                with contextlib.suppress(OSError):
+                    _clear(out_dir)
+                    if created:
+                        out_dir.rmdir()
+                raise
             band_names = _band_names(image.src, image.bands)
             dtype = image.src.dtypes[image.bands[0] - 1]
         finally:
