@@ -8,6 +8,7 @@ one-line message on stderr with exit code 1. ``--debug`` shows the traceback ins
 from __future__ import annotations
 
 import sys
+import warnings
 
 import click
 
@@ -39,14 +40,30 @@ def _one_line(exc: BaseException) -> str:
     return text or exc.__class__.__name__
 
 
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: object = None, line: str | None = None) -> None:
+    """Print a warning as one ``warning: ...`` line on stderr (no source location, no code line)."""
+    click.echo(f"warning: {_one_line(message) if isinstance(message, Warning) else ' '.join(str(message).split())}",
+               err=True)
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point: run the group, mapping expected errors to exit code 1."""
+    """Console-script entry point: run the group, mapping expected errors to exit code 1.
+
+    Exit codes: 0 success; 1 an error with a one-line message on stderr (naming the file or option,
+    the value and the fix); 2 a usage error (click's message); 130 interrupted (Ctrl-C). Warnings
+    (documented fallbacks) are printed as one ``warning:`` line each. ``--debug`` shows tracebacks
+    and Python's own warning format instead.
+    """
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
     from rasterio.errors import RasterioError
 
     from aerialmtl.errors import AerialMTLError
 
+    previous_showwarning = warnings.showwarning
+    if not debug:
+        warnings.showwarning = _show_warning
     try:
         cli.main(args=args, prog_name="aerialmtl", standalone_mode=False)
     except click.exceptions.Abort:
@@ -63,7 +80,14 @@ def main(argv: list[str] | None = None) -> None:
     except (AerialMTLError, RasterioError, OSError) as exc:
         if debug:
             raise
-        click.echo(f"Error: {_one_line(exc)}", err=True)
-        if not isinstance(exc, AerialMTLError):
-            click.echo("(run with --debug for the traceback)", err=True)
+        hint = "" if isinstance(exc, AerialMTLError) else " (run with --debug for the traceback)"
+        click.echo(f"Error: {_one_line(exc)}{hint}", err=True)
         sys.exit(1)
+    except Exception as exc:  # a bug: still one line, and the way to get the details
+        if debug:
+            raise
+        click.echo(f"Error: unexpected {exc.__class__.__name__}: {_one_line(exc)[:300]}; run again with "
+                   "`aerialmtl --debug ...` for the traceback and report it", err=True)
+        sys.exit(1)
+    finally:
+        warnings.showwarning = previous_showwarning
