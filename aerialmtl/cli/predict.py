@@ -5,9 +5,35 @@ A thin command over :func:`aerialmtl.inference.predict.predict_raster`.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
+from rasterio.enums import ColorInterp
+
+if TYPE_CHECKING:
+    from aerialmtl.training.checkpoint import ModelMeta
+
+
+def _check_input(ortho: Path, meta: "ModelMeta") -> None:
+    """Georeferencing and bands of ``ortho`` against the checkpoint (errors name the file and the fix).
+
+    Bands beyond those the model was trained on are ignored, with a warning.
+    """
+    from aerialmtl.io.align import check_bands, open_raster, reference_grid
+
+    reference_grid(ortho)  # readable, with a CRS and a north-up geotransform
+    trained = f"bands {list(meta.bands)}" + (f" ({', '.join(meta.band_names)})" if meta.band_names else "")
+    with open_raster(ortho, "orthophoto") as src:
+        check_bands(src, meta.bands, "orthophoto", bands_from=f"the checkpoint (trained on {trained})",
+                    fix="predict on an orthophoto with those bands, or train a model on this one's bands "
+                        "(`aerialmtl tile --bands ...`)")
+        alpha = {i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha}
+        unused = [b for b in range(1, src.count + 1) if b not in meta.bands and b not in alpha]
+    if unused:
+        warnings.warn(f"orthophoto '{ortho}' has {src.count} bands; the model reads {trained} as recorded in its "
+                      f"checkpoint and ignores band(s) {unused}", stacklevel=2)
 
 
 @click.command(name="predict")
@@ -59,6 +85,8 @@ def predict(
         for _, d in targets:
             check_outputs_free(d, ["height.tif", "classes.tif", "prediction.json"], overwrite=False)
     loaded = load_model(model)
+    for ortho in orthos:  # every input usable before the first one takes time
+        _check_input(ortho, loaded[1])
     for ortho, target in targets:
         res = predict_raster(
             ortho, loaded, target, mc=mc, tile=tile, overlap=overlap, batch_size=batch_size,

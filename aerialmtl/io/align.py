@@ -118,7 +118,8 @@ def _gdal_message(exc: BaseException) -> str:
 
 
 def check_bands(
-    src: rasterio.io.DatasetReader, bands: Sequence[int], role: str, bands_from: str = "--bands", fix: str | None = None
+    src: rasterio.io.DatasetReader, bands: Sequence[int], role: str, bands_from: str = "the requested bands",
+    fix: str | None = None,
 ) -> None:
     """Raise :class:`InputError` if a 1-based band index of ``bands`` is not in the open raster ``src``.
 
@@ -126,12 +127,13 @@ def check_bands(
         src: the open raster.
         bands: requested 1-based band indexes.
         role: what the raster is (``"orthophoto"``), named in the message.
-        bands_from: where the band list came from (an option or a checkpoint).
-        fix: what to do about it (default: choose other bands with ``--bands``).
+        bands_from: where the band list came from (an option such as ``--bands``, or a checkpoint).
+        fix: what to do about it (default: choose bands that exist, with the option if it is one).
     """
     bad = [int(b) for b in bands if not 1 <= int(b) <= src.count]
     if bad:
-        fix = fix or f"choose bands within 1..{src.count} with --bands"
+        if fix is None:
+            fix = f"choose bands within 1..{src.count}" + (f" with {bands_from}" if bands_from.startswith("--") else "")
         raise InputError(
             f"{role} '{src.name}': band(s) {bad} requested by {bands_from} but the file has {src.count} band(s); {fix}"
         )
@@ -217,7 +219,7 @@ class AlignedRaster:
         resampling: Resampling | None = None,
         role: str | None = None,
         check_overlap: bool = True,
-        bands_from: str = "--bands",
+        bands_from: str = "the requested bands",
     ) -> None:
         self.path = Path(path)
         self.grid = grid

@@ -260,7 +260,7 @@ def tile_dataset(
     opened: list[Any] = []
     with rasterio.Env(**env):
         try:
-            image = AlignedRaster(ortho, grid, "image", bands=bands, role="orthophoto")
+            image = AlignedRaster(ortho, grid, "image", bands=bands, role="orthophoto", bands_from="--bands")
             opened.append(image)
             heights = HeightSource(grid, ndsm=ndsm, dsm=dsm, dtm=dtm, options=ndsm_options) if has_height else None
             if heights is not None:
