@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import click
+
+from aerialmtl.errors import OutputError, OutputExistsError
 
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
@@ -22,6 +25,16 @@ def _parse_bins(ctx: click.Context, param: click.Parameter, value: str | None) -
     if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise click.BadParameter(f"need at least 2 increasing edges, got {value!r}", ctx, param)
     return edges
+
+
+def _check_writable(folder: Path) -> None:
+    """Fail before the (long) evaluation if the report's folder cannot be created or written."""
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        what = "is a file" if probe.exists() and not probe.is_dir() else "is not writable"
+        raise OutputError(f"cannot write the report into '{folder}': '{probe}' {what}; choose a writable --out")
 
 
 @click.command(name="evaluate")
@@ -45,9 +58,10 @@ def _parse_bins(ctx: click.Context, param: click.Parameter, value: str | None) -
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Report JSON path; report.md and PNG plots are written beside it.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing report.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
 def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, classes: str | None,
              height_threshold: float, height_bins: tuple[float, ...], ignore_unknown_codes: bool,
-             sample_size: int, seed: int, no_plots: bool, out: Path, overwrite: bool) -> None:
+             sample_size: int, seed: int, no_plots: bool, out: Path, overwrite: bool, quiet: bool) -> None:
     """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.
 
     Example: aerialmtl evaluate --pred pred/ --height ndsm.tif --labels gt.tif --out eval/report.json
@@ -61,12 +75,13 @@ def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, class
         raise click.BadParameter(f"must be ≥ 0 metres, got {height_threshold}", param_hint="--height-threshold")
     if sample_size < 1:
         raise click.BadParameter(f"must be a positive number of pixels, got {sample_size}", param_hint="--sample-size")
-    if out.exists() and not overwrite:
-        raise click.BadParameter(f"'{out}' already exists; pass --overwrite to replace it", param_hint="--out")
+    if out.exists() and not overwrite:  # an existing output is an error (exit 1) like in every command
+        raise OutputExistsError(f"report '{out}' already exists; pass --overwrite to replace it or choose another --out")
+    _check_writable(out.parent)
     report = evaluate_prediction(
         pred, height_ref=height_ref, labels_ref=labels_ref, classes=classes, out=out,
         height_threshold=height_threshold, height_bins=height_bins, ignore_unknown_codes=ignore_unknown_codes,
-        overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=True,
+        overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=not quiet,
     )
     width = max((len(k) for k, _ in headline(report)), default=0)
     for key, value in headline(report):
