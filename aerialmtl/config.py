@@ -18,6 +18,7 @@ key path (``train.optim.lr``) and the valid keys or choices.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import types
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -38,6 +39,12 @@ def _describe(tp: Any) -> str:
     if isinstance(tp, type):
         return tp.__name__
     return str(tp).replace("typing.", "")
+
+
+def _did_you_mean(value: Any, choices: list[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest choice to a typo, or an empty string."""
+    close = difflib.get_close_matches(str(value), choices, n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def _convert(tp: Any, value: Any, path: str) -> Any:
@@ -61,7 +68,8 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
                           f"{where}: got {value!r}; expected {' or '.join(_describe(a) for a in args)}")
     if origin is Literal:
         if value not in args:
-            raise ConfigError(f"{where}: got {value!r}; valid choices are {', '.join(repr(a) for a in args)}")
+            raise ConfigError(f"{where}: got {value!r}; valid choices are {', '.join(repr(a) for a in args)}"
+                              + _did_you_mean(value, [str(a) for a in args]))
         return value
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
@@ -127,7 +135,8 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
     unknown = [k for k in data if k not in fields]
     if unknown:
         key = f"{path}.{unknown[0]}" if path else str(unknown[0])
-        raise ConfigError(f"unknown key '{key}'; valid keys here are: {', '.join(sorted(fields))}")
+        raise ConfigError(f"unknown key '{key}'; valid keys here are: {', '.join(sorted(fields))}"
+                          + _did_you_mean(unknown[0], list(fields)))
     kwargs = {}
     for name, f in fields.items():
         sub = f"{path}.{name}" if path else name
