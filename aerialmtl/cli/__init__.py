@@ -43,8 +43,7 @@ def _one_line(exc: BaseException) -> str:
 def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
                   file: object = None, line: str | None = None) -> None:
     """Print a warning as one ``warning: ...`` line on stderr (no source location, no code line)."""
-    click.echo(f"warning: {_one_line(message) if isinstance(message, Warning) else ' '.join(str(message).split())}",
-               err=True)
+    click.echo(f"warning: {' '.join(str(message).split())}", err=True)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -57,16 +56,38 @@ def main(argv: list[str] | None = None) -> None:
     """
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
+    with warnings.catch_warnings():
+        if not debug:
+            warnings.showwarning = _show_warning
+            # libraries' deprecation notices are for developers; a user can act on neither
+            for category in (DeprecationWarning, PendingDeprecationWarning):
+                warnings.filterwarnings("ignore", category=category)
+        _run(args, debug)
+
+
+def _interrupted(args: list[str]) -> None:
+    """Say what an interrupted command left behind and how to finish; exit 130."""
+    command = next((a for a in args if a in cli.commands), None)
+    if command == "train":
+        click.echo("Error: interrupted; checkpoints are only ever replaced whole: continue from the run's last.pt "
+                   "with `aerialmtl train --out RUN --resume`, or start again with --overwrite", err=True)
+    else:
+        click.echo("Error: interrupted; no output was left at a final path. Re-run the command to finish.", err=True)
+    sys.exit(130)
+
+
+def _run(args: list[str], debug: bool) -> None:
     from rasterio.errors import RasterioError
 
     from aerialmtl.errors import AerialMTLError
 
-    previous_showwarning = warnings.showwarning
-    if not debug:
-        warnings.showwarning = _show_warning
     try:
         cli.main(args=args, prog_name="aerialmtl", standalone_mode=False)
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as exc:  # click turns Ctrl-C (KeyboardInterrupt) into Abort
+        if debug:
+            raise
+        if isinstance(exc.__context__, KeyboardInterrupt):
+            _interrupted(args)
         click.echo("Aborted.", err=True)
         sys.exit(130)
     except click.ClickException as exc:  # usage errors → exit 2 (click's own formatting)
@@ -75,8 +96,7 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt:
         if debug:
             raise
-        click.echo("Error: interrupted; no output was left at a final path. Re-run the command to finish.", err=True)
-        sys.exit(130)
+        _interrupted(args)
     except (AerialMTLError, RasterioError, OSError) as exc:
         if debug:
             raise
@@ -89,5 +109,3 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(f"Error: unexpected {exc.__class__.__name__}: {_one_line(exc)[:300]}; run again with "
                    "`aerialmtl --debug ...` for the traceback and report it", err=True)
         sys.exit(1)
-    finally:
-        warnings.showwarning = previous_showwarning
