@@ -159,17 +159,16 @@ def cog_problems(path: str | Path) -> list[str]:
     """
     path = Path(path)
     problems: list[str] = []
+    ifds = [d for d in _read_ifds(path) if not (d.get(254, (0,))[0] & 4)]  # skip mask IFDs
+    # tiling from the TIFF tags (TileWidth/TileLength): rasterio's profile calls a COG exactly one tile
+    # wide (e.g. 512 px) "not tiled"
+    tile = max(ifds[0][322][0], ifds[0].get(323, (0,))[0]) if ifds and 322 in ifds[0] else COG_BLOCKSIZE
     with rasterio.open(path) as src:
         if src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") != "COG":
             problems.append("GDAL does not report LAYOUT=COG")
-        tiled = bool(src.profile.get("tiled", False))
-        if not tiled:
-            problems.append("the image is not tiled")
-        big = max(src.width, src.height) > (max(src.block_shapes[0]) if tiled else COG_BLOCKSIZE)
-        if big and not src.overviews(1):
+        if max(src.width, src.height) > tile and not src.overviews(1):
             problems.append("no internal overviews although the image is larger than one tile")
         width = src.width
-    ifds = [d for d in _read_ifds(path) if not (d.get(254, (0,))[0] & 4)]  # skip mask IFDs
     if not ifds:
         return problems + ["no IFD found"]
     main = ifds[0]
@@ -178,7 +177,7 @@ def cog_problems(path: str | Path) -> list[str]:
     if main["offset"] > 65536:
         problems.append(f"the first IFD is at byte {main['offset']}, not at the start of the file")
     if 322 not in main:
-        problems.append("the first IFD is not tiled")
+        problems.append("the image is not tiled")
     widths = [d.get(256, (0,))[0] for d in ifds]
     if any(b >= a for a, b in zip(widths, widths[1:])):
         problems.append(f"overview IFDs are not in decreasing size order: widths {widths}")
