@@ -76,7 +76,9 @@ def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, class
     if sample_size < 1:
         raise click.BadParameter(f"must be a positive number of pixels, got {sample_size}", param_hint="--sample-size")
     if out.exists() and not overwrite:  # an existing output is an error (exit 1) like in every command
-        raise OutputExistsError(f"report '{out}' already exists; pass --overwrite to replace it or choose another --out")
+        raise OutputExistsError(
+            f"report '{out}' already exists; pass --overwrite to replace it or choose another --out"
+        )
     _check_writable(out.parent)
     report = evaluate_prediction(
         pred, height_ref=height_ref, labels_ref=labels_ref, classes=classes, out=out,

@@ -65,7 +65,9 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"cannot create run folder '{out_dir}' ({exc.strerror or exc}); choose a writable --out") from exc
+        raise OutputError(
+            f"cannot create run folder '{out_dir}' ({exc.strerror or exc}); choose a writable --out"
+        ) from exc
     overrides = {k: v for k, v in (("device", device), ("precision", precision)) if v is not None}
     if overrides:
         cfg = cfg.with_overrides(**overrides)

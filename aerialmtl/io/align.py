@@ -306,8 +306,9 @@ class AlignedRaster:
                     inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0
             except RasterioError as exc:
                 raise InputError(
-                    f"{self.role} '{self.path}' could not be read ({_gdal_message(exc)}); the file is probably truncated or corrupt: check it with "
-                    f"`gdalinfo -checksum {self.path}`, then re-download or re-export it"
+                    f"{self.role} '{self.path}' could not be read ({_gdal_message(exc)}); the file is probably "
+                    f"truncated or corrupt: check it with `gdalinfo -checksum {self.path}`, then re-download or "
+                    "re-export it"
                 ) from exc
             mask[sl] = inner_mask
         if self.nodata is not None and not (isinstance(self.nodata, float) and math.isnan(self.nodata)):
