@@ -71,8 +71,11 @@ def _interrupted(args: list[str]) -> None:
     if command == "train":
         click.echo("Error: interrupted; checkpoints are only ever replaced whole: continue from the run's last.pt "
                    "with `aerialmtl train --out RUN --resume`, or start again with --overwrite", err=True)
-    else:
+    elif command in ("predict", "tile"):
         click.echo("Error: interrupted; no output was left at a final path. Re-run the command to finish.", err=True)
+    else:
+        click.echo("Error: interrupted; files are only ever written whole: re-run the command (with --overwrite "
+                   "if it reports outputs that exist)", err=True)
     sys.exit(130)
 
 
