@@ -193,14 +193,39 @@ def bench_baseline(size: int, kind: str, samples: int, tmp: Path) -> dict:
 
 # ---- (c) peak RSS ------------------------------------------------------------------------------
 def rss_child(width: int, height: int, tmp: Path) -> None:
+    """Predict one raster; print peak RSS overall and per phase (window loop vs COG conversion)."""
+    import threading
+
+    import aerialmtl.inference.writer as writer_mod
+
     torch.set_num_threads(2)
+    phase = ["setup"]
+    peaks: dict[str, float] = {}
+
+    def sample() -> None:
+        while True:
+            with open("/proc/self/status") as f:
+                rss = next(int(line.split()[1]) / 1024 for line in f if line.startswith("VmRSS"))
+            peaks[phase[0]] = max(peaks.get(phase[0], 0.0), rss)
+            time.sleep(0.1)
+
+    threading.Thread(target=sample, daemon=True).start()
+    commit = writer_mod.PredictionWriter.commit
+
+    def commit_phase(self, info):  # type: ignore[no-untyped-def]
+        phase[0] = "commit (COG)"
+        return commit(self, info)
+
+    writer_mod.PredictionWriter.commit = commit_phase  # type: ignore[method-assign]
     model, meta = make_model("small")
     src = synthetic_raster(tmp / f"rss_{width}x{height}.tif", width, height)
+    phase[0] = "window loop"
     t0 = time.perf_counter()
     res = predict_raster(src, (model, meta), tmp / f"rss_out_{width}x{height}", mc=1, progress=False,
                          overwrite=True)
     print(json.dumps({"width": width, "height": height, "mpx": width * height / 1e6,
                       "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "phase_peak_rss_mb": {k: round(v) for k, v in peaks.items()},
                       "seconds": time.perf_counter() - t0, "mpx_per_s": res.megapixels_per_s}))
 
 

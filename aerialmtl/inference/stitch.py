@@ -67,20 +67,25 @@ class BandStitcher:
 
     # ------------------------------------------------------------------------------------------
     def start_band(self, i: int) -> None:
-        """Move to window row ``i``, keeping the rows it shares with the previous window row."""
+        """Move to window row ``i``, keeping the rows it shares with the previous window row.
+
+        The accumulators are reused in place (every window row has the same height), so moving on
+        never holds two bands' worth of memory.
+        """
         rows = self.plan.rows
         new_row0, h = rows.starts[i], rows.size
         keep = max(0, self._row0 + self._wsum.shape[0] - new_row0) if self._band >= 0 else 0
         shift = new_row0 - self._row0
 
-        def moved(old: np.ndarray, shape: tuple[int, ...], dtype: type) -> np.ndarray:
-            new = np.zeros(shape, dtype)
+        def moved(old: np.ndarray | None, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+            if old is None or old.shape != shape:
+                return np.zeros(shape, dtype)
             if keep:
-                new[..., :keep, :] = old[..., shift:shift + keep, :]
-            return new
+                old[..., :keep, :] = old[..., shift:shift + keep, :].copy()
+            old[..., keep:, :] = 0
+            return old
 
-        self._acc = {k: moved(self._acc.get(k, np.zeros((c, 0, self._ext_w), np.float32)), (c, h, self._ext_w),
-                              np.float32) for k, c in self.channels.items()}
+        self._acc = {k: moved(self._acc.get(k), (c, h, self._ext_w), np.float32) for k, c in self.channels.items()}
         self._wsum = moved(self._wsum, (h, self._ext_w), np.float32)
         self._valid = moved(self._valid, (h, self._ext_w), bool)
         self._band, self._row0 = i, new_row0
