@@ -7,7 +7,8 @@ from pathlib import Path
 
 import click
 
-from aerialmtl.errors import OutputError, OutputExistsError
+from aerialmtl.errors import OutputExistsError
+from aerialmtl.io.outputs import make_output_dir
 
 
 @click.command(name="train")
@@ -62,12 +63,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
         raise click.BadParameter("pass a training YAML, e.g. configs/d3net_small_synth.yaml", param_hint="--config")
 
     cfg = load_train_config(config_path)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(
-            f"cannot create run folder '{out_dir}' ({exc.strerror or exc}); choose a writable --out"
-        ) from exc
+    make_output_dir(out_dir, "run folder")
     overrides = {k: v for k, v in (("device", device), ("precision", precision)) if v is not None}
     if overrides:
         cfg = cfg.with_overrides(**overrides)

@@ -26,6 +26,7 @@ from aerialmtl.errors import OutputError, OutputExistsError
 from aerialmtl.inference.stitch import FinalRows
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import COG_BLOCKSIZE, staging_profile, to_cog
+from aerialmtl.io.outputs import make_output_dir
 
 #: Every file name a prediction folder can hold (removed on --overwrite when this run does not write it).
 ALL_OUTPUTS = ("height.tif", "height_std.tif", "classes.tif", "class_entropy.tif", "class_mutual_info.tif",
@@ -157,13 +158,7 @@ class PredictionWriter:
         self.specs = {s.name: s for s in specs}
         self.overwrite = overwrite
         check_outputs_free(self.out_dir, [s.filename for s in specs] + ["prediction.json"], overwrite)
-        self._created_dir = not self.out_dir.exists()
-        try:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(
-                f"cannot create output folder '{self.out_dir}' ({exc.strerror or exc}); choose a writable --out"
-            ) from exc
+        self._created_dir = make_output_dir(self.out_dir)
         self._layers: dict[str, _Layer] = {}
         remove_leftovers(self.out_dir)
         try:

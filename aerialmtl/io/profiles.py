@@ -32,7 +32,6 @@ BLOCK_SIZES = (512, 256)
 @lru_cache(maxsize=None)
 def zstd_available() -> bool:
     """Whether the linked GDAL can write ZSTD-compressed GeoTIFFs."""
-    import rasterio
     from rasterio.io import MemoryFile
 
     import warnings

@@ -43,6 +43,7 @@ from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
 from aerialmtl.tiling.grid import count_windows, tile_windows
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
+from aerialmtl.io.outputs import make_output_dir
 
 MANIFEST_COLUMNS = (
     "patch_id", "split", "image_path", "height_path", "classes_path",
@@ -145,14 +146,7 @@ def _prepare_out_dir(out_dir: Path, overwrite: bool) -> bool:
                 "the tile dataset in it"
             )
         _clear(out_dir)
-    created = not out_dir.exists()
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(
-            f"cannot create --out folder '{out_dir}' ({exc.strerror or exc}); choose a writable location"
-        ) from exc
-    return created
+    return make_output_dir(out_dir, "--out folder")
 
 
 def _band_names(src: rasterio.io.DatasetReader, bands: Sequence[int]) -> list[str]:
