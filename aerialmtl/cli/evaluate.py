@@ -9,7 +9,6 @@ from pathlib import Path
 import click
 
 from aerialmtl.errors import OutputError, OutputExistsError
-
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
 from aerialmtl.evaluation.report import headline

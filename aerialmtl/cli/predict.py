@@ -5,12 +5,10 @@ A thin command over :func:`aerialmtl.inference.predict.predict_raster`.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import click
-from rasterio.enums import ColorInterp
 
 if TYPE_CHECKING:
     from aerialmtl.training.checkpoint import ModelMeta
@@ -19,7 +17,8 @@ if TYPE_CHECKING:
 def _check_input(ortho: Path, meta: "ModelMeta") -> None:
     """Georeferencing and bands of ``ortho`` against the checkpoint (errors name the file and the fix).
 
-    Bands beyond those the model was trained on are ignored, with a warning.
+    Run for every input before the first prediction starts, so a bad last input fails at once; bands
+    beyond the trained ones are reported (with a warning) by ``predict_raster`` itself.
     """
     from aerialmtl.io.align import check_bands, open_raster, reference_grid
 
@@ -29,11 +28,6 @@ def _check_input(ortho: Path, meta: "ModelMeta") -> None:
         check_bands(src, meta.bands, "orthophoto", bands_from=f"the checkpoint (trained on {trained})",
                     fix="predict on an orthophoto with those bands, or train a model on this one's bands "
                         "(`aerialmtl tile --bands ...`)")
-        alpha = {i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha}
-        unused = [b for b in range(1, src.count + 1) if b not in meta.bands and b not in alpha]
-    if unused:
-        warnings.warn(f"orthophoto '{ortho}' has {src.count} bands; the model reads {trained} as recorded in its "
-                      f"checkpoint and ignores band(s) {unused}", stacklevel=2)
 
 
 @click.command(name="predict")

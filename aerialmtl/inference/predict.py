@@ -283,16 +283,14 @@ def predict_raster(
         raise InputError(f"mc must be a positive number of MC-dropout samples, got {mc!r}; pass e.g. --mc 30 (or 1)")
     if not isinstance(batch_size, int) or batch_size < 1:
         raise InputError(f"batch_size must be ≥ 1, got {batch_size!r}; pass e.g. --batch-size 4")
-    if precision not in ("auto", "bf16", "fp32"):
-        raise InputError(f"precision={precision!r} is not supported; use auto, bf16 or fp32 (--precision)")
+    dev = _device(device)
+    precision = resolve_precision(precision, dev)
     out_dir = Path(out_dir)
     check_outputs_free(out_dir, ["height.tif", "classes.tif", "prediction.json"], overwrite)  # fail early
     model, meta, ckpt_name = _load(checkpoint)
     ckpt_name = checkpoint_name or ckpt_name
     if mc is None:
         mc = DEFAULT_MC_SAMPLES if meta.model.dropout > 0 else 1
-    dev = _device(device)
-    precision = resolve_precision(precision, dev)
     model = model.to(dev).to(memory_format=torch.channels_last)
     tasks = tuple(meta.model.tasks)
 
@@ -325,6 +323,11 @@ def predict_raster(
 
     env = rasterio.Env(GDAL_CACHEMAX=128)  # MB: bounded block cache, whatever the raster size
     with env, AlignedRaster(ortho, grid, "image", bands=list(meta.bands), role="orthophoto") as src:
+        unused = [b for b in range(1, src.src.count + 1) if b not in meta.bands and b != src.alpha_band]
+        if unused:
+            trained = f"bands {list(meta.bands)}" + (f" ({', '.join(meta.band_names)})" if meta.band_names else "")
+            warnings.warn(f"orthophoto '{ortho}' has {src.src.count} bands; the model reads {trained} as recorded "
+                          f"in its checkpoint and ignores band(s) {unused}", stacklevel=2)
         aoi_mask = _Aoi(aoi, grid) if aoi is not None else None
         writer = PredictionWriter(out_dir, grid, specs, overwrite=overwrite)
         bar = tqdm(total=plan.num_windows, unit="win", desc=Path(ortho).name, disable=not progress,

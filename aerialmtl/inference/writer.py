@@ -219,10 +219,7 @@ class PredictionWriter:
                     layer.dst.close()
             except Exception:  # pragma: no cover - best effort cleanup
                 pass
-        for s in self.specs.values():
-            for suffix in ("staging", "partial"):
-                hidden(self.out_dir, s.filename, suffix).unlink(missing_ok=True)
-        hidden(self.out_dir, "prediction.json", "partial").unlink(missing_ok=True)
+        remove_leftovers(self.out_dir)
         if self._created_dir:  # leave no empty folder behind either
             try:
                 self.out_dir.rmdir()

@@ -39,11 +39,11 @@ from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.io.outputs import make_output_dir
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
 from aerialmtl.tiling.grid import count_windows, tile_windows
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
-from aerialmtl.io.outputs import make_output_dir
 
 MANIFEST_COLUMNS = (
     "patch_id", "split", "image_path", "height_path", "classes_path",
