@@ -66,12 +66,12 @@ class ClassScheme:
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "ClassScheme":
+    def from_dict(cls, data: dict[str, Any]) -> ClassScheme:
         """Build from a plain mapping (as in the YAML file or a checkpoint)."""
         return from_dict(cls, data)
 
     @classmethod
-    def load(cls, path: str | Path) -> "ClassScheme":
+    def load(cls, path: str | Path) -> ClassScheme:
         """Load a scheme from a YAML file, or a built-in one by name (``dfc2018``, ``isprs``, ``synthetic``)."""
         p = Path(path)
         if not p.exists() and (BUILTIN_DIR / f"{path}.yaml").is_file():

@@ -41,11 +41,11 @@ from affine import Affine
 from rasterio.windows import Window
 
 from aerialmtl.classes import ClassDef, ClassScheme
+from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net
 from aerialmtl.models.mc_dropout import mc_dropout_mode
-from aerialmtl.training.checkpoint import ModelMeta
 
 SMALL = dict(growth_rate=12, block_config=(2, 4, 8, 6), num_init_features=32)
 

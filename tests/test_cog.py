@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import rasterio
 from affine import Affine
+from conftest import write_raster
 
 from aerialmtl.io.cog import cog_problems, staging_profile, to_cog
-from conftest import write_raster
 
 
 def _staging(path: Path, data: np.ndarray, nodata: float) -> Path:

@@ -12,17 +12,17 @@ import rasterio
 import torch
 from affine import Affine
 from click.testing import CliRunner
+from conftest import NEON_DIR, write_raster
+from test_stitch import IdentityModel, identity_meta
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.cli import cli
 from aerialmtl.errors import OutputExistsError
+from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.cog import cog_problems
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net
-from aerialmtl.training.checkpoint import ModelMeta, save_checkpoint
-from conftest import NEON_DIR, write_raster
-from test_stitch import IdentityModel, identity_meta
 
 TINY = dict(growth_rate=4, block_config=(1, 1, 1, 1), num_init_features=8, bn_size=2)
 UNCERTAINTY = ("height_std.tif", "class_entropy.tif", "class_mutual_info.tif")

@@ -25,15 +25,15 @@ import rasterio
 import torch
 import yaml
 from affine import Affine
+from conftest import write_raster
 from rasterio.warp import transform_bounds
+from test_predict import TINY, tiny_d3net
 
 from aerialmtl.cli import main
 from aerialmtl.errors import AlignmentError
+from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
 from aerialmtl.inference.writer import ALL_OUTPUTS
 from aerialmtl.io.cog import cog_problems
-from aerialmtl.training.checkpoint import load_checkpoint, save_checkpoint
-from conftest import write_raster
-from test_predict import TINY, tiny_d3net
 
 CRS = "EPSG:32631"
 T05 = Affine(0.5, 0, 500000.0, 0, -0.5, 5000000.0)  # 0.5 m pixels, the tiny checkpoint's GSD

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 import rasterio
 import torch
+from conftest import write_raster
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from torch import nn
 
 from aerialmtl.classes import ClassDef, ClassScheme
 from aerialmtl.errors import InputError
+from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.inference.windows import axis_plan, plan_bands
 from aerialmtl.models.config import ModelConfig
-from aerialmtl.training.checkpoint import ModelMeta
-from conftest import write_raster
 
 
 class IdentityModel(nn.Module):

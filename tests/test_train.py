@@ -11,7 +11,7 @@ import torch
 from tilefolder import write_tile_folder
 
 from aerialmtl.errors import CheckpointError, ConfigError, OutputExistsError
-from aerialmtl.training.checkpoint import load_checkpoint, load_model
+from aerialmtl.formats.checkpoint import load_checkpoint, load_model
 from aerialmtl.training.config import TrainConfig, load_train_config
 from aerialmtl.training.loop import train
 

@@ -11,10 +11,10 @@ from typing import TYPE_CHECKING
 import click
 
 if TYPE_CHECKING:
-    from aerialmtl.training.checkpoint import ModelMeta
+    from aerialmtl.formats.checkpoint import ModelMeta
 
 
-def _check_input(ortho: Path, meta: "ModelMeta") -> None:
+def _check_input(ortho: Path, meta: ModelMeta) -> None:
     """Georeferencing and bands of ``ortho`` against the checkpoint (errors name the file and the fix).
 
     Run for every input before the first prediction starts, so a bad last input fails at once; bands
@@ -56,9 +56,9 @@ def predict(
     precision: str, device: str, aoi: Path | None, probabilities: bool, overwrite: bool, quiet: bool,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties)."""
+    from aerialmtl.formats.checkpoint import load_model
     from aerialmtl.inference.predict import predict_raster
     from aerialmtl.inference.writer import check_outputs_free
-    from aerialmtl.training.checkpoint import load_model
 
     if mc is not None and mc < 1:
         raise click.BadParameter(f"must be ≥ 1 (1 = single pass), got {mc}", param_hint="--mc")

@@ -9,9 +9,10 @@ the dataset can be used with DataLoader worker processes (nothing holds an open 
 from __future__ import annotations
 
 import csv
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 import rasterio

@@ -15,7 +15,7 @@ do not depend on the number of workers or on resuming.
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 

@@ -16,9 +16,10 @@ The helpers behind ``notebooks/uncertainty_maps.ipynb``. Everything is drawn in 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 from affine import Affine

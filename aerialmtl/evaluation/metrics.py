@@ -25,7 +25,8 @@ predicted but absent from the reference gets IoU 0 and is counted). Undefined va
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -18,9 +18,10 @@ import json
 import os
 import time
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Literal
+from typing import Any, Literal
 
 import numpy as np
 import rasterio
@@ -34,11 +35,11 @@ from tqdm.auto import tqdm
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.errors import InputError
+from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.stitch import FLOAT_NODATA, BandStitcher
 from aerialmtl.inference.windows import check_tiling, plan_bands
 from aerialmtl.inference.writer import LayerSpec, PredictionWriter, check_outputs_free
 from aerialmtl.io.align import AlignedRaster, Grid, reference_grid
-from aerialmtl.training.checkpoint import ModelMeta
 
 #: MC-dropout samples when neither the caller nor the checkpoint says otherwise.
 DEFAULT_MC_SAMPLES = 30
@@ -108,7 +109,7 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta]) -> tuple[t
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>"
-    from aerialmtl.training.checkpoint import load_model
+    from aerialmtl.formats.checkpoint import load_model
 
     model, meta = load_model(checkpoint)
     return model, meta, str(checkpoint)

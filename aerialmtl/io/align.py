@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 import rasterio
@@ -325,7 +326,7 @@ class AlignedRaster:
             self.vrt.close()
         self.src.close()
 
-    def __enter__(self) -> "AlignedRaster":
+    def __enter__(self) -> AlignedRaster:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -394,7 +395,7 @@ class HeightSource:
         for layer in self.layers:
             layer.close()
 
-    def __enter__(self) -> "HeightSource":
+    def __enter__(self) -> HeightSource:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import struct
 import warnings
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -31,12 +31,12 @@ from aerialmtl.errors import OutputError
 COG_BLOCKSIZE = 512
 
 
-@lru_cache(maxsize=None)
+@cache
 def _gdal_version() -> tuple[int, ...]:
     return tuple(int(p) for p in rasterio.__gdal_version__.split(".")[:2])
 
 
-@lru_cache(maxsize=None)
+@cache
 def _zstd_available() -> bool:
     from rasterio.io import MemoryFile
 

@@ -15,7 +15,7 @@ of 512 (or 256) pixels when the raster spans at least two tiles in both directio
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -29,12 +29,12 @@ from aerialmtl.errors import InputError
 BLOCK_SIZES = (512, 256)
 
 
-@lru_cache(maxsize=None)
+@cache
 def zstd_available() -> bool:
     """Whether the linked GDAL can write ZSTD-compressed GeoTIFFs."""
-    from rasterio.io import MemoryFile
-
     import warnings
+
+    from rasterio.io import MemoryFile
 
     try:
         with warnings.catch_warnings(), MemoryFile() as mem:

@@ -219,7 +219,7 @@ class VectorLabels:
     def close(self) -> None:
         """Nothing to release (kept for symmetry with :class:`~aerialmtl.io.align.AlignedRaster`)."""
 
-    def __enter__(self) -> "VectorLabels":
+    def __enter__(self) -> VectorLabels:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -1,4 +1,11 @@
-"""Model configuration of the multi-task D3-Net (saved inside every checkpoint)."""
+"""Model configuration of the multi-task D3-Net (saved inside every checkpoint).
+
+The architecture's hyper-parameters are defined once, in :class:`Architecture`. :class:`ModelConfig`
+adds the three values that depend on the data (bands, tasks, classes) and is what builds a
+:class:`~aerialmtl.models.d3net.D3Net`; a training config's ``model`` section
+(:class:`~aerialmtl.training.config.ModelSection`) is the same :class:`Architecture` with those three
+values optional, filled from the tile folder by ``ModelSection.resolve``.
+"""
 
 from __future__ import annotations
 
@@ -9,15 +16,20 @@ from aerialmtl.errors import ConfigError
 
 Task = Literal["height", "classes"]
 
+#: The tasks a D3-Net can have, in output order.
+TASKS: tuple[Task, ...] = ("height", "classes")
+
 
 @dataclass(frozen=True)
-class ModelConfig:
-    """D3-Net hyper-parameters. The defaults are the paper's (DenseNet-121 encoder, p = 0.5).
+class Architecture:
+    """D3-Net hyper-parameters that do not depend on the data. Defaults are the paper's.
+
+    The authors' network (Carvalho et al., GRSL 2019; their ``DenseUNet``): DenseNet-121 encoder
+    (growth 32, blocks 6-12-24-16, 64 stem features, bottleneck 4, compression 0.5), a stem of
+    conv3×3/2 → BN → LeakyReLU(0.2) → conv4×4/2 → BN → LeakyReLU(0.2), dropout 0.5 in the two deepest
+    shared decoder blocks, two decoder blocks per task.
 
     Attributes:
-        in_channels: number of input image bands.
-        tasks: enabled task heads; ``height`` (1 channel, metres) and/or ``classes`` (K logits).
-        num_classes: K, the number of land-cover classes (ignored without the ``classes`` task).
         growth_rate: DenseNet growth rate k.
         block_config: dense layers per dense block (DenseNet-121: 6-12-24-16).
         num_init_features: channels after the stem.
@@ -25,14 +37,11 @@ class ModelConfig:
         compression: transition channel compression.
         dropout: dropout probability in the deepest shared decoder blocks (MC dropout at test time).
         dropout_blocks: how many of the deepest shared decoder blocks carry dropout (after each of
-            their two BatchNorms). The authors' implementation puts it in the two deepest blocks.
+            their two BatchNorms). The authors put it in the two deepest (their d_block5, d_block4).
         task_blocks: decoder up-blocks owned by each task (the paper: 2), before its 3×3 output conv.
         encoder_weights: optional path of a local torchvision-format DenseNet-121 state dict.
     """
 
-    in_channels: int = 3
-    tasks: tuple[Task, ...] = ("height", "classes")
-    num_classes: int = 20
     growth_rate: int = 32
     block_config: tuple[int, ...] = (6, 12, 24, 16)
     num_init_features: int = 64
@@ -44,14 +53,6 @@ class ModelConfig:
     encoder_weights: str | None = None
 
     def __post_init__(self) -> None:
-        if self.in_channels < 1:
-            raise ConfigError(f"model.in_channels: must be ≥ 1, got {self.in_channels}")
-        if not self.tasks:
-            raise ConfigError("model.tasks: enable at least one of 'height', 'classes'")
-        if len(set(self.tasks)) != len(self.tasks):
-            raise ConfigError(f"model.tasks: duplicate entries in {list(self.tasks)}")
-        if "classes" in self.tasks and self.num_classes < 2:
-            raise ConfigError(f"model.num_classes: must be ≥ 2 with the 'classes' task, got {self.num_classes}")
         if not 0.0 <= self.dropout < 1.0:
             raise ConfigError(f"model.dropout: must be in [0, 1), got {self.dropout}")
         if len(self.block_config) != 4:
@@ -63,3 +64,35 @@ class ModelConfig:
                 f"model.dropout_blocks: must be in 0..{5 - self.task_blocks} (the shared decoder blocks), "
                 f"got {self.dropout_blocks}"
             )
+
+
+def check_data_fields(in_channels: int | None, tasks: tuple[str, ...] | None, num_classes: int | None) -> None:
+    """Validate the data-dependent fields (``None`` = not given yet); errors name the key."""
+    if in_channels is not None and in_channels < 1:
+        raise ConfigError(f"model.in_channels: must be ≥ 1, got {in_channels}")
+    if tasks is not None:
+        if not tasks:
+            raise ConfigError("model.tasks: enable at least one of 'height', 'classes'")
+        if len(set(tasks)) != len(tasks):
+            raise ConfigError(f"model.tasks: duplicate entries in {list(tasks)}")
+        if "classes" in tasks and num_classes is not None and num_classes < 2:
+            raise ConfigError(f"model.num_classes: must be ≥ 2 with the 'classes' task, got {num_classes}")
+
+
+@dataclass(frozen=True)
+class ModelConfig(Architecture):
+    """A complete D3-Net configuration: the :class:`Architecture` plus the data-dependent values.
+
+    Attributes:
+        in_channels: number of input image bands.
+        tasks: enabled task heads; ``height`` (1 channel, metres) and/or ``classes`` (K logits).
+        num_classes: K, the number of land-cover classes (ignored without the ``classes`` task).
+    """
+
+    in_channels: int = 3
+    tasks: tuple[Task, ...] = TASKS
+    num_classes: int = 20
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_data_fields(self.in_channels, tuple(self.tasks), self.num_classes)

@@ -17,7 +17,8 @@ or no window at all (``small="skip"``).
 from __future__ import annotations
 
 import math
-from typing import Iterator, Literal
+from collections.abc import Iterator
+from typing import Literal
 
 from rasterio.windows import Window
 

@@ -28,31 +28,28 @@ from typing import Any, Literal
 
 from aerialmtl.config import from_dict, load_yaml_config, to_dict
 from aerialmtl.errors import ConfigError
-from aerialmtl.models.config import ModelConfig, Task
+from aerialmtl.models.config import Architecture, ModelConfig, Task, check_data_fields
 
 HeightLoss = Literal["l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient"]
 
 
 @dataclass(frozen=True)
-class ModelSection:
-    """:class:`~aerialmtl.models.config.ModelConfig` fields; ``None`` = take it from the tile folder.
+class ModelSection(Architecture):
+    """The ``model`` section: an :class:`~aerialmtl.models.config.Architecture` plus the data-dependent
+    fields of :class:`~aerialmtl.models.config.ModelConfig`, which default to ``None`` = taken from the
+    tile folder.
 
     ``in_channels`` comes from the number of bands, ``num_classes`` from the class scheme and ``tasks``
-    from the tasks present in ``dataset.yaml``.
+    from the tasks present in ``dataset.yaml``; a value given here must agree with the data.
     """
 
     in_channels: int | None = None
     tasks: tuple[Task, ...] | None = None
     num_classes: int | None = None
-    growth_rate: int = 32
-    block_config: tuple[int, ...] = (6, 12, 24, 16)
-    num_init_features: int = 64
-    bn_size: int = 4
-    compression: float = 0.5
-    dropout: float = 0.5
-    dropout_blocks: int = 3
-    task_blocks: int = 2
-    encoder_weights: str | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_data_fields(self.in_channels, None if self.tasks is None else tuple(self.tasks), self.num_classes)
 
     def resolve(self, in_channels: int, tasks: tuple[str, ...], num_classes: int | None) -> ModelConfig:
         """The :class:`ModelConfig` for a tile folder with these bands, tasks and classes.
@@ -220,10 +217,10 @@ class TrainConfig:
         return to_dict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None) -> "TrainConfig":
+    def from_dict(cls, data: dict[str, Any] | None) -> TrainConfig:
         return from_dict(cls, data)
 
-    def with_overrides(self, **sections: dict[str, Any]) -> "TrainConfig":
+    def with_overrides(self, **sections: dict[str, Any]) -> TrainConfig:
         """A copy with some keys replaced, e.g. ``cfg.with_overrides(schedule={"max_steps": 10}, seed=1)``.
 
         Values are validated like YAML values.

@@ -28,9 +28,10 @@ import logging
 import math
 import random
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -42,8 +43,8 @@ from aerialmtl.config import to_dict
 from aerialmtl.data.dataset import PatchDataset, TileFolderInfo, class_pixel_counts, read_manifest, read_tile_info
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
 from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, InputError
+from aerialmtl.formats.checkpoint import ModelMeta, check_same_data, load_checkpoint, save_checkpoint
 from aerialmtl.models.config import ModelConfig
-from aerialmtl.training.checkpoint import ModelMeta, check_same_data, load_checkpoint, save_checkpoint
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 

@@ -70,7 +70,7 @@ class ModelMeta:
         return to_dict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "ModelMeta":
+    def from_dict(cls, data: dict[str, Any]) -> ModelMeta:
         return from_dict(cls, data)
 
 
