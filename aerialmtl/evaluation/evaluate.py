@@ -11,7 +11,6 @@ there are fewer), which the report states.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from datetime import datetime, timezone
@@ -43,35 +42,11 @@ from aerialmtl.evaluation.uncertainty import (
     sparsification,
     spearman,
 )
+from aerialmtl.formats.prediction import CLASS_SCHEME_TAG, LAYERS, layer_filename, read_class_scheme_tag
 from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, Grid, grid_of, open_raster
 
-#: File names of a prediction folder (docs/CONTRACTS.md).
-PREDICTION_FILES = {
-    "height": "height.tif",
-    "height_std": "height_std.tif",
-    "classes": "classes.tif",
-    "class_entropy": "class_entropy.tif",
-    "class_mutual_info": "class_mutual_info.tif",
-    "class_probabilities": "class_probabilities.tif",
-}
-
-#: GeoTIFF tag of ``classes.tif`` holding the class scheme as JSON.
-CLASS_SCHEME_TAG = "AERIALMTL_CLASS_SCHEME"
-
-
-def read_class_scheme_tag(path: str | Path) -> ClassScheme | None:
-    """The :class:`ClassScheme` stored in the ``AERIALMTL_CLASS_SCHEME`` tag of ``path``, or ``None``."""
-    with open_raster(path, "predicted classes") as src:
-        text = src.tags().get(CLASS_SCHEME_TAG) or src.tags(1).get(CLASS_SCHEME_TAG)
-    if not text:
-        return None
-    try:
-        return ClassScheme.from_dict(json.loads(text))
-    except (ValueError, TypeError) as exc:
-        raise InputError(
-            f"'{path}': tag {CLASS_SCHEME_TAG} is not a valid class scheme ({exc}); pass --classes with "
-            "the scheme the model was trained with"
-        ) from exc
+#: Layer name → file name of a prediction folder (see :mod:`aerialmtl.formats.prediction`).
+PREDICTION_FILES = {name: layer_filename(name) for name in LAYERS}
 
 
 def _read_float(src: rasterio.io.DatasetReader, window: Window, bands: int | list[int] = 1) -> tuple[np.ndarray, np.ndarray]:

@@ -27,7 +27,8 @@ from rasterio.windows import Window
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError
-from aerialmtl.evaluation.evaluate import PREDICTION_FILES, read_class_scheme_tag
+from aerialmtl.evaluation.evaluate import PREDICTION_FILES
+from aerialmtl.formats.prediction import read_class_scheme_tag
 from aerialmtl.io.align import AlignedRaster, Grid, grid_of, open_raster
 
 #: Float layers of a prediction folder that can be displayed, in panel order, with their titles.

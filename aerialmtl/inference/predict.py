@@ -36,6 +36,7 @@ from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.formats.prediction import CLASS_SCHEME_TAG
 from aerialmtl.inference.stitch import FLOAT_NODATA, BandStitcher
 from aerialmtl.inference.windows import check_tiling, plan_bands
 from aerialmtl.inference.writer import LayerSpec, PredictionWriter, check_outputs_free
@@ -193,7 +194,7 @@ def _layer_specs(meta: ModelMeta, mc: int, probabilities: bool) -> list[LayerSpe
         names = {str(i): n for i, n in enumerate(scheme.names)}
         specs.append(LayerSpec(
             "classes", 1, "uint8", IGNORE_INDEX, ("land-cover class index",), ("",), categorical=True,
-            colormap=scheme.colormap(), tags={"AERIALMTL_CLASS_SCHEME": json.dumps(scheme.to_dict())},
+            colormap=scheme.colormap(), tags={CLASS_SCHEME_TAG: json.dumps(scheme.to_dict())},
             band_tags={1: {"class_names": json.dumps(names), **{f"CLASS_{i}": n for i, n in names.items()}}},
         ))
         if unc:

@@ -23,14 +23,14 @@ from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from aerialmtl.errors import OutputError, OutputExistsError
+from aerialmtl.formats.prediction import ALL_FILES
 from aerialmtl.inference.stitch import FinalRows
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import COG_BLOCKSIZE, staging_profile, to_cog
 from aerialmtl.io.outputs import make_output_dir
 
 #: Every file name a prediction folder can hold (removed on --overwrite when this run does not write it).
-ALL_OUTPUTS = ("height.tif", "height_std.tif", "classes.tif", "class_entropy.tif", "class_mutual_info.tif",
-               "class_probabilities.tif", "prediction.json")
+ALL_OUTPUTS = ALL_FILES
 
 
 @dataclass(frozen=True)
