@@ -40,7 +40,12 @@ def _check_writable(folder: Path) -> None:
 @click.option("--pred", "pred", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Prediction folder written by `aerialmtl predict`.")
 @click.option("--height", "height_ref", type=click.Path(dir_okay=False, path_type=Path),
-              help="Reference nDSM (metres above ground); any CRS/GSD, reprojected onto the prediction grid.")
+              help="Reference nDSM (heights above ground); any CRS/GSD, reprojected onto the prediction grid.")
+@click.option("--dsm", "dsm_ref", type=click.Path(dir_okay=False, path_type=Path),
+              help="Reference DSM, with --dtm, instead of --height: the reference is DSM − DTM (negatives → 0).")
+@click.option("--dtm", "dtm_ref", type=click.Path(dir_okay=False, path_type=Path), help="Reference DTM (with --dsm).")
+@click.option("--z-unit", type=click.Choice(["m", "ft", "us-ft"]), default=None,
+              help="Unit of the reference heights when a file does not state it [default: m].")
 @click.option("--labels", "labels_ref", type=click.Path(dir_okay=False, path_type=Path),
               help="Reference label raster (raw class codes); any CRS/GSD.")
 @click.option("--classes", "classes", type=str, default=None,
@@ -58,15 +63,22 @@ def _check_writable(folder: Path) -> None:
               help="Report JSON path; report.md and PNG plots are written beside it.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing report.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, classes: str | None,
+def evaluate(pred: Path, height_ref: Path | None, dsm_ref: Path | None, dtm_ref: Path | None, z_unit: str | None,
+             labels_ref: Path | None, classes: str | None,
              height_threshold: float, height_bins: tuple[float, ...], ignore_unknown_codes: bool,
              sample_size: int, seed: int, no_plots: bool, out: Path, overwrite: bool, quiet: bool) -> None:
     """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.
 
     Example: aerialmtl evaluate --pred pred/ --height ndsm.tif --labels gt.tif --out eval/report.json
     """
-    if height_ref is None and labels_ref is None:
-        raise click.UsageError("give at least one reference: --height NDSM.tif and/or --labels LABELS.tif")
+    if height_ref is None and dsm_ref is None and labels_ref is None:
+        raise click.UsageError("give at least one reference: --height NDSM.tif (or --dsm with --dtm) and/or "
+                               "--labels LABELS.tif")
+    if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
+        raise click.BadParameter("give either --height or --dsm with --dtm, not both", param_hint="--height")
+    if (dsm_ref is None) != (dtm_ref is None):
+        raise click.BadParameter("--dsm and --dtm go together; or pass a reference nDSM with --height",
+                                 param_hint="--dsm/--dtm")
     if not pred.is_dir():
         raise click.BadParameter(f"folder '{pred}' does not exist; pass the --out folder of `aerialmtl predict`",
                                  param_hint="--pred")
@@ -80,7 +92,8 @@ def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, class
         )
     _check_writable(out.parent)
     report = evaluate_prediction(
-        pred, height_ref=height_ref, labels_ref=labels_ref, classes=classes, out=out,
+        pred, height_ref=height_ref, labels_ref=labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, z_unit=z_unit,
+        classes=classes, out=out,
         height_threshold=height_threshold, height_bins=height_bins, ignore_unknown_codes=ignore_unknown_codes,
         overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=not quiet,
     )

@@ -14,7 +14,8 @@ import click
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed → same rasters).")
 @click.option("--gsd", type=click.FloatRange(min=0.0, min_open=True), default=0.25, show_default=True,
               help="Pixel size in metres.")
-@click.option("--crs", default="EPSG:32631", show_default=True, help="Projected CRS (metres) of the outputs.")
+@click.option("--crs", default="EPSG:32631", show_default=True,
+              help="Projected CRS of the outputs (metres or feet; --gsd stays in metres).")
 @click.option("--origin", type=(float, float), default=(500000.0, 5000000.0), show_default=True,
               metavar="X Y", help="Map coordinates of the upper-left corner.")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs in OUT.")
@@ -35,7 +36,7 @@ def synth(out: Path, size: int, seed: int, gsd: float, crs: str, origin: tuple[f
     except CRSError as exc:
         raise click.BadParameter(f"{crs!r} is not a valid CRS; pass e.g. EPSG:32631", param_hint="--crs") from exc
     if not crs_obj.is_projected:
-        raise click.BadParameter(f"{crs!r} is not a projected CRS in metres; pass e.g. a UTM zone EPSG:32631",
+        raise click.BadParameter(f"{crs!r} is not a projected CRS; pass e.g. a UTM zone EPSG:32631",
                                  param_hint="--crs")
     result = synthesize(out, size=size, seed=seed, gsd=gsd, crs=crs, origin=origin, overwrite=overwrite)
     click.echo(

@@ -55,19 +55,23 @@ def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) ->
 
 @click.command(name="tile")
 @click.option("--ortho", required=True, type=_FILE, help="Orthophoto GeoTIFF; defines the reference grid.")
-@click.option("--dsm", type=_FILE, help="Digital surface model (metres); needs --dtm.")
-@click.option("--dtm", type=_FILE, help="Digital terrain model (metres); needs --dsm.")
-@click.option("--ndsm", type=_FILE, help="Ready heights above ground (nDSM/CHM, metres) instead of --dsm/--dtm.")
+@click.option("--dsm", type=_FILE, help="Digital surface model; needs --dtm.")
+@click.option("--dtm", type=_FILE, help="Digital terrain model; needs --dsm.")
+@click.option("--ndsm", type=_FILE, help="Ready heights above ground (nDSM/CHM) instead of --dsm/--dtm.")
+@click.option("--z-unit", type=click.Choice(["m", "ft", "us-ft"]), default=None,
+              help="Unit of the DSM/DTM/nDSM values when a file does not state it (its vertical CRS or band unit) "
+                   "[default: m]. Heights are always written in metres.")
 @click.option("--labels", type=_FILE, help="Label raster of raw class codes.")
 @click.option("--labels-vector", type=_FILE, help="GeoJSON label polygons (EPSG:4326 unless it has a 'crs').")
 @click.option("--class-field", help="Attribute of --labels-vector holding class codes or names.")
 @click.option("--classes", "classes", help="Class scheme YAML, or a built-in name: dfc2018, isprs, synthetic.")
 @click.option("--size", default=320, show_default=True, type=click.IntRange(min=1), help="Patch size (pixels).")
 @click.option("--stride", type=click.IntRange(min=1), help="Step between patches (pixels) [default: --size].")
-@click.option("--gsd", type=float, help="Resample every layer to this pixel size (CRS units, metres).")
+@click.option("--gsd", type=float, help="Resample every layer to this pixel size in metres (also for feet CRSs).")
 @click.option("--min-valid", default=0.9, show_default=True, type=click.FloatRange(0, 1),
               help="Keep patches with at least this fraction of valid image pixels.")
-@click.option("--split-block", default=100.0, show_default=True, type=float, help="Split block side (metres).")
+@click.option("--split-block", default=100.0, show_default=True, type=float,
+              help="Split block side in metres, snapped to a whole number of patch strides.")
 @click.option("--split-ratios", default="0.7,0.15,0.15", show_default=True, callback=_ratios,
               help="Fractions of blocks for train,val,test.")
 @click.option("--split-seed", default=0, show_default=True, type=int, help="Seed of the block shuffle.")
@@ -81,7 +85,7 @@ def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) ->
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing tile dataset in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, labels: Path | None,
+def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, z_unit: str | None, labels: Path | None,
          labels_vector: Path | None, class_field: str | None, classes: str | None, size: int, stride: int | None,
          gsd: float | None, min_valid: float, split_block: float, split_ratios: tuple[float, float, float],
          split_seed: int, split_aoi: str | dict[str, str] | None, bands: list[int] | None, clip_negative: bool,
@@ -119,7 +123,7 @@ def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, lab
     result = tile_dataset(
         ortho, out, dsm=dsm, dtm=dtm, ndsm=ndsm, labels=labels, labels_vector=labels_vector,
         class_field=class_field, classes=classes, size=size, stride=stride, gsd=gsd, min_valid=min_valid,
-        splits=spec, bands=bands, ndsm_options=NdsmOptions(clip_negative=clip_negative, max_height=max_height),
+        splits=spec, bands=bands, ndsm_options=NdsmOptions(clip_negative=clip_negative, max_height=max_height, z_unit=z_unit),
         ignore_unknown_codes=ignore_unknown_codes, overwrite=overwrite, progress=not quiet,
     )
     total = sum(result.counts.values())
@@ -136,5 +140,9 @@ def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, lab
         click.echo("warning: no train patch; normalisation statistics are missing (adjust the splits)", err=True)
     empty = [k for k, r in zip(("train", "val", "test"), split_ratios) if r > 0 and result.counts[k] == 0]
     if total and empty and split_aoi is None:
-        click.echo(f"warning: no {'/'.join(empty)} patch: split blocks of {split_block:g} m are too few or too thin "
-                   "here; lower --split-block (it should hold several patches)", err=True)
+        blocks = f"split blocks of {result.block_size_m:.4g} m ({result.block_patches}×{result.block_patches} patches)"
+        if (result.block_patches or 1) > -(-size // (stride or size)):
+            fix = "lower --split-block to get more blocks"
+        else:  # already the smallest block that holds a patch
+            fix = "the area holds too few blocks for these ratios: give a larger area, or other --split-ratios"
+        click.echo(f"warning: no {'/'.join(empty)} patch: {blocks} are too few here; {fix}", err=True)

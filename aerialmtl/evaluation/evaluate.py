@@ -43,7 +43,7 @@ from aerialmtl.evaluation.uncertainty import (
     spearman,
 )
 from aerialmtl.formats.prediction import CLASS_SCHEME_TAG, LAYERS, layer_filename, read_class_scheme_tag
-from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, Grid, grid_of, open_raster
+from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, Grid, HeightSource, NdsmOptions, grid_of, open_raster
 
 #: Layer name → file name of a prediction folder (see :mod:`aerialmtl.formats.prediction`).
 PREDICTION_FILES = {name: layer_filename(name) for name in LAYERS}
@@ -84,6 +84,10 @@ def evaluate_prediction(
     pred_dir: str | Path,
     height_ref: str | Path | None = None,
     labels_ref: str | Path | None = None,
+    *,
+    dsm_ref: str | Path | None = None,
+    dtm_ref: str | Path | None = None,
+    z_unit: str | None = None,
     classes: str | Path | ClassScheme | None = None,
     out: str | Path | None = "report.json",
     height_threshold: float = 1.0,
@@ -103,8 +107,12 @@ def evaluate_prediction(
 
     Args:
         pred_dir: folder written by ``aerialmtl predict`` (``height.tif``, ``classes.tif``, ...).
-        height_ref: reference heights above ground (nDSM raster, metres), any CRS/GSD.
+        height_ref: reference heights above ground (nDSM raster), any CRS/GSD, taken as given.
         labels_ref: reference label raster with the scheme's raw codes, any CRS/GSD.
+        dsm_ref, dtm_ref: instead of ``height_ref``, a DSM and a DTM: the reference is DSM − DTM on the
+            prediction grid, negatives clipped to 0, exactly as ``tile`` derives its training heights.
+        z_unit: unit of the reference heights when a file does not state one (``"m"``, ``"ft"``,
+            ``"us-ft"``; default metres); see :mod:`aerialmtl.io.units`.
         classes: class scheme (YAML path, built-in name or object); default: the scheme in the
             ``AERIALMTL_CLASS_SCHEME`` tag of ``classes.tif``.
         out: report JSON path; ``report.md`` (same stem) and PNG plots are written beside it.
@@ -132,6 +140,11 @@ def evaluate_prediction(
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
     """
     pred_dir = Path(pred_dir)
+    if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
+        raise InputError("give either a reference nDSM (--height) or a DSM and a DTM (--dsm/--dtm), not both")
+    if (dsm_ref is None) != (dtm_ref is None):
+        raise InputError("--dsm and --dtm go together: pass both, or pass a reference nDSM with --height")
+    height_given = height_ref if height_ref is not None else dsm_ref
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder '{pred_dir}' does not exist; pass the --out folder of `aerialmtl predict`")
     files = {k: pred_dir / v for k, v in PREDICTION_FILES.items() if (pred_dir / v).is_file()}
@@ -140,7 +153,7 @@ def evaluate_prediction(
             f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; "
             "pass the --out folder of `aerialmtl predict`"
         )
-    if height_ref is None and labels_ref is None:
+    if height_given is None and labels_ref is None:
         raise InputError("no reference given: pass a reference height raster (--height) and/or labels (--labels)")
     if not height_threshold >= 0:
         raise InputError(f"--height-threshold must be ≥ 0 metres, got {height_threshold}")
@@ -150,8 +163,9 @@ def evaluate_prediction(
             raise OutputExistsError(f"report '{out}' already exists; pass --overwrite to replace it or choose another --out")
 
     notes: list[str] = []
-    do_height = height_ref is not None and "height" in files
-    if height_ref is not None and "height" not in files:
+    height_units: dict[str, dict[str, object]] = {}
+    do_height = height_given is not None and "height" in files
+    if height_given is not None and "height" not in files:
         notes.append("height reference given but the prediction has no height.tif: height metrics skipped")
     scheme, scheme_source = _resolve_scheme(classes, files.get("classes"))
     if labels_ref is not None and scheme is None:
@@ -166,7 +180,7 @@ def evaluate_prediction(
         notes.append("labels given but the prediction has no classes.tif: class metrics skipped")
     if not do_height and not do_classes:
         raise InputError(
-            f"nothing to evaluate in '{pred_dir}': the references given ({'--height' if height_ref else ''}"
+            f"nothing to evaluate in '{pred_dir}': the references given ({'--height' if height_given else ''}"
             f"{' --labels' if labels_ref else ''}) match no predicted layer (found: "
             f"{', '.join(sorted(p.name for p in files.values()))})"
         )
@@ -193,8 +207,10 @@ def evaluate_prediction(
                 )
         href = lab = None
         if do_height:
-            href = AlignedRaster(height_ref, grid, "height", bands=[1], role="height reference")  # type: ignore[arg-type]
+            href = HeightSource(grid, ndsm=height_ref, dsm=dsm_ref, dtm=dtm_ref,
+                                options=NdsmOptions(clip_negative=height_ref is None, z_unit=z_unit))
             opened.append(href)
+            height_units = href.units()
         if use_labels:
             lab = AlignedRaster(labels_ref, grid, "labels", bands=[1], role="label reference")  # type: ignore[arg-type]
             opened.append(lab)
@@ -222,12 +238,12 @@ def evaluate_prediction(
             if hstats is not None and href is not None:
                 hp, hp_valid = _read_float(srcs["height"], win)
                 ref, ref_valid = href.read(win)
-                mask = hstats.update(hp, ref[0], hp_valid & ref_valid, labels_idx)
+                mask = hstats.update(hp, ref, hp_valid & ref_valid, labels_idx)
                 if hsample is not None:
                     sd, sd_valid = _read_float(srcs["height_std"], win)
                     sel = mask & sd_valid
-                    hsample.add(abs_error=np.abs(hp[sel] - ref[0][sel]), std=sd[sel])
-                    terms = gaussian_nll_terms(hp[sel], sd[sel], ref[0][sel], min_std)
+                    hsample.add(abs_error=np.abs(hp[sel] - ref[sel]), std=sd[sel])
+                    terms = gaussian_nll_terms(hp[sel], sd[sel], ref[sel], min_std)
                     nll_sum += float(terms.sum())
                     nll_n += int(sel.sum())
             if do_classes and labels_idx is not None:
@@ -265,7 +281,9 @@ def evaluate_prediction(
         "aerialmtl_version": __version__,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "prediction": str(pred_dir),
-        "references": {"height": str(height_ref) if height_ref else None, "labels": str(labels_ref) if labels_ref else None},
+        "references": {"height": str(height_ref) if height_ref else None, "labels": str(labels_ref) if labels_ref else None,
+                       **({"dsm": str(dsm_ref), "dtm": str(dtm_ref)} if dsm_ref else {}),
+                       **({"height_units": height_units} if height_units else {})},
         "grid": {"crs": grid.crs.to_string() if grid.crs else None, "gsd_m": grid.gsd,
                  "width": grid.width, "height": grid.height},
         "class_scheme": {"name": scheme.name, "source": scheme_source, "classes": names} if scheme else None,

@@ -34,6 +34,7 @@ from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
+from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 
 LayerKind = Literal["image", "height", "labels"]
 
@@ -55,13 +56,22 @@ class Grid:
 
     @property
     def res(self) -> tuple[float, float]:
-        """Pixel size (x, y) in CRS units (metres for projected CRS)."""
+        """Pixel size (x, y) in CRS units (metres, feet, ... : see :attr:`unit_m`)."""
         return (abs(self.transform.a), abs(self.transform.e))
 
     @property
+    def unit_m(self) -> float:
+        """Metres per CRS unit (1 for metres, 0.3048 for international feet).
+
+        Raises:
+            AlignmentError: the CRS is geographic (degrees).
+        """
+        return metres_per_unit(self.crs)
+
+    @property
     def gsd(self) -> float:
-        """Ground sampling distance: the mean of the x and y pixel sizes (CRS units)."""
-        return 0.5 * (self.res[0] + self.res[1])
+        """Ground sampling distance in metres: the mean of the x and y pixel sizes."""
+        return 0.5 * (self.res[0] + self.res[1]) * self.unit_m
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -161,25 +171,31 @@ def grid_of(src: rasterio.io.DatasetReader) -> Grid:
 
 
 def reference_grid(ortho: str | Path, gsd: float | None = None) -> Grid:
-    """The reference grid defined by the orthophoto, optionally resampled to ``gsd`` (CRS units).
+    """The reference grid defined by the orthophoto, optionally resampled to ``gsd`` metres.
 
     With ``gsd`` the grid keeps the ortho's upper-left corner and covers its extent with square pixels
-    of size ``gsd`` (the last row/column may extend up to one pixel beyond the ortho's edge).
+    of ``gsd`` metres (converted to the CRS's unit, e.g. feet; the last row/column may extend up to one
+    pixel beyond the ortho's edge).
 
     Raises:
-        AlignmentError: the ortho has no CRS / geotransform, or ``gsd`` is not positive.
+        AlignmentError: the ortho has no CRS / geotransform, a geographic CRS (degrees: pixels without a
+            size in metres), or ``gsd`` is not positive.
     """
     with open_raster(ortho, "orthophoto") as src:
         _check_georeferenced(src, "orthophoto")
+        if not src.crs.is_projected:
+            lon, lat = transform_bounds(src.crs, "EPSG:4326", *src.bounds)[:2]
+            require_projected(src.crs, "orthophoto", src.name, (lon, lat))
         grid = grid_of(src)
     if gsd is None:
         return grid
     if not gsd > 0:
-        raise AlignmentError(f"--gsd must be a positive pixel size in CRS units, got {gsd}")
+        raise AlignmentError(f"--gsd must be a positive pixel size in metres, got {gsd}")
+    size = gsd / grid.unit_m  # CRS units
     left, bottom, right, top = grid.bounds
-    width = max(1, math.ceil((right - left) / gsd - 1e-6))
-    height = max(1, math.ceil((top - bottom) / gsd - 1e-6))
-    return Grid(grid.crs, Affine(gsd, 0.0, left, 0.0, -gsd, top), width, height)
+    width = max(1, math.ceil((right - left) / size - 1e-6))
+    height = max(1, math.ceil((top - bottom) / size - 1e-6))
+    return Grid(grid.crs, Affine(size, 0.0, left, 0.0, -size, top), width, height)
 
 
 def _fmt_bounds(b: Sequence[float]) -> str:
@@ -207,6 +223,9 @@ class AlignedRaster:
         role: name used in messages (``"DSM"``, ``"labels"``, ...).
         check_overlap: raise :class:`AlignmentError` if the layer does not overlap the grid.
         bands_from: where ``bands`` came from, named in the message when one is out of range.
+        z_unit: for ``height`` layers, the unit of the values when the file states none (``"m"``,
+            ``"ft"``, ``"us-ft"``; ``None`` = metres); values are read as metres
+            (:func:`aerialmtl.io.units.vertical_unit`, resolved into :attr:`z`).
 
     Use as a context manager or call :meth:`close`.
     """
@@ -221,14 +240,19 @@ class AlignedRaster:
         role: str | None = None,
         check_overlap: bool = True,
         bands_from: str = "the requested bands",
+        z_unit: str | None = None,
     ) -> None:
         self.path = Path(path)
         self.grid = grid
         self.kind = kind
         self.role = role or kind
         self.src = open_raster(path, self.role)
+        #: the unit of a height layer's values (converted to metres on read); ``None`` for other kinds
+        self.z: VerticalUnit | None = None
         try:
             self._setup(bands, resampling, check_overlap, bands_from)
+            if kind == "height":
+                self.z = vertical_unit(self.src.crs, self.src.units[self.bands[0] - 1], z_unit, self.role, self.path)
         except Exception:
             self.src.close()
             raise
@@ -267,7 +291,8 @@ class AlignedRaster:
         if src.crs != grid.crs:  # compare in grid units: resolution of the source footprint in grid CRS
             sb = transform_bounds(src.crs, grid.crs, *src.bounds)
             src_res = 0.5 * ((sb[2] - sb[0]) / src.width + (sb[3] - sb[1]) / src.height)
-        self.resampling = resampling or _default_resampling(self.kind, src_res, grid.gsd)
+        grid_res = 0.5 * (grid.res[0] + grid.res[1])  # same units as src_res: the grid CRS's
+        self.resampling = resampling or _default_resampling(self.kind, src_res, grid_res)
         has_mask = self.nodata is not None or self.alpha_band is not None or any(
             MaskFlags.per_dataset in f for f in src.mask_flag_enums
         )
@@ -285,8 +310,8 @@ class AlignedRaster:
         """Read ``window`` of the reference grid.
 
         Returns:
-            ``(data, valid)``: ``data`` is (bands, h, w) in the source dtype (float32 for heights, with
-            invalid pixels set to NaN); ``valid`` is a (h, w) bool mask, ``False`` for nodata, NaN,
+            ``(data, valid)``: ``data`` is (bands, h, w) in the source dtype (float32 metres for heights,
+            with invalid pixels set to NaN); ``valid`` is a (h, w) bool mask, ``False`` for nodata, NaN,
             alpha = 0 and pixels outside the source.
         """
         window = window or self.grid.full_window()
@@ -318,6 +343,8 @@ class AlignedRaster:
             mask &= np.all(np.isfinite(data), axis=0)
         if self.kind == "height":
             data = data.astype(np.float32, copy=False)
+            if self.z is not None and self.z.factor != 1.0:
+                data = data * np.float32(self.z.factor)  # metres
             data[:, ~mask] = np.nan
         return data, mask
 
@@ -336,10 +363,13 @@ class AlignedRaster:
 @dataclass(frozen=True)
 class NdsmOptions:
     """How heights above ground are derived: ``clip_negative`` sets nDSM < 0 to 0; ``max_height``
-    (metres) marks taller pixels as invalid (``None`` keeps all)."""
+    (metres) marks taller pixels as invalid (``None`` keeps all); ``z_unit`` is the unit of the height
+    rasters' values when a file states none (``"m"``, ``"ft"``, ``"us-ft"``; ``None`` = metres; see
+    :mod:`aerialmtl.io.units`). Heights are always derived in metres."""
 
     clip_negative: bool = True
     max_height: float | None = None
+    z_unit: str | None = None
 
 
 class HeightSource:
@@ -367,11 +397,12 @@ class HeightSource:
         self.options = options
         self.layers: list[AlignedRaster] = []
         try:
+            z = options.z_unit
             if ndsm is not None:
-                self.layers.append(AlignedRaster(ndsm, grid, "height", bands=[1], role="nDSM"))
+                self.layers.append(AlignedRaster(ndsm, grid, "height", bands=[1], role="nDSM", z_unit=z))
             else:
-                self.layers.append(AlignedRaster(dsm, grid, "height", bands=[1], role="DSM"))  # type: ignore[arg-type]
-                self.layers.append(AlignedRaster(dtm, grid, "height", bands=[1], role="DTM"))  # type: ignore[arg-type]
+                self.layers.append(AlignedRaster(dsm, grid, "height", bands=[1], role="DSM", z_unit=z))  # type: ignore[arg-type]
+                self.layers.append(AlignedRaster(dtm, grid, "height", bands=[1], role="DTM", z_unit=z))  # type: ignore[arg-type]
         except Exception:
             self.close()
             raise
@@ -390,6 +421,12 @@ class HeightSource:
             valid = valid & ~(height > self.options.max_height)
         height = np.where(valid, height, np.nan).astype(np.float32)
         return height, valid
+
+    def units(self) -> dict[str, dict[str, object]]:
+        """Per layer (``"DSM"``, ``"DTM"`` or ``"nDSM"``): the unit its values were read in and where it
+        came from, e.g. ``{"DSM": {"unit": "us-ft", "metres_per_unit": 0.3048006, "source": "z_unit"}}``."""
+        return {layer.role: {"unit": layer.z.name, "metres_per_unit": layer.z.factor, "source": layer.z.source}
+                for layer in self.layers if layer.z is not None}
 
     def close(self) -> None:
         for layer in self.layers:

@@ -2,11 +2,14 @@
 
 Two methods:
 
-* ``blocks`` — the grid is cut into disjoint square blocks of ``block_size`` map units (metres), anchored at
-  the grid's upper-left corner; blocks are visited in a seeded random order and dealt to the split furthest
-  below its share of the area (``ratios``); every split with a ratio > 0 gets at least one block when there
-  are enough blocks. A patch is kept only if every block it touches belongs to the same split, so patches of
-  different splits never share a pixel, whatever the stride.
+* ``blocks`` — the grid is cut into disjoint square blocks of ``block_size`` metres (converted through the
+  CRS's linear unit, so feet CRSs work), anchored at the grid's upper-left corner. When the patch stride is
+  known (``tile``), the block side is snapped to the whole number of strides nearest to ``block_size`` (at
+  least enough to hold one patch), so blocks follow the patch grid and, with ``stride == size``, no patch straddles two blocks;
+  the side actually used is recorded (:attr:`SplitAssigner.block_size_m`). Blocks are visited in a seeded
+  random order and dealt to the split furthest below its share of the area (``ratios``); every split with a
+  ratio > 0 gets at least one block when there are enough blocks. A patch is kept only if every block it
+  touches belongs to the same split, so patches of different splits never share a pixel, whatever the stride.
 * ``aoi`` — polygons per split: one GeoJSON whose features carry a ``split`` property (``train``, ``val``
   or ``test``), or one GeoJSON per split. A patch belongs to a split when its footprint lies inside that
   split's polygons (and no other split's); others are dropped. AOIs that overlap each other make the
@@ -37,7 +40,8 @@ class SplitSpec:
 
     Attributes:
         method: ``"blocks"`` (random square blocks) or ``"aoi"`` (polygons).
-        block_size: block side in map units (metres), for ``blocks``.
+        block_size: block side in metres, for ``blocks`` (snapped to the patch stride, see the module
+            docstring).
         ratios: fractions of the area for (train, val, test), for ``blocks``; normalised to sum to 1.
         seed: RNG seed of the block shuffle.
         aoi: for ``aoi``: one GeoJSON path whose features have a ``split`` property, or a mapping
@@ -124,11 +128,16 @@ class SplitAssigner:
     Args:
         spec: the split specification.
         grid: the reference :class:`~aerialmtl.io.align.Grid` (north-up).
+        stride: the patch stride in pixels; with it, blocks are snapped to whole strides.
+        size: the patch size in pixels; with ``stride``, a block holds at least one whole patch.
     """
 
-    def __init__(self, spec: SplitSpec, grid: Any) -> None:
+    def __init__(self, spec: SplitSpec, grid: Any, stride: int | None = None, size: int | None = None) -> None:
         self.spec = spec
         self.grid = grid
+        self.stride = stride
+        self.size = size
+        self.block_size_m: float | None = None
         if spec.method == "blocks":
             self._setup_blocks()
         else:
@@ -136,13 +145,23 @@ class SplitAssigner:
 
     # ---- blocks -------------------------------------------------------------------------------
     def _setup_blocks(self) -> None:
-        left, bottom, right, top = self.grid.bounds
-        bs = float(self.spec.block_size)
-        self.nbx = max(1, math.ceil((right - left) / bs - 1e-9))
-        self.nby = max(1, math.ceil((top - bottom) / bs - 1e-9))
-        # area of each block inside the grid (edge blocks are clipped)
-        wx = np.minimum(bs, (right - left) - bs * np.arange(self.nbx))
-        wy = np.minimum(bs, (top - bottom) - bs * np.arange(self.nby))
+        res_x, res_y = self.grid.res
+        unit = self.grid.unit_m
+        # block side in pixels of the grid along x and y (square on the ground)
+        bx = float(self.spec.block_size) / (res_x * unit)
+        by = float(self.spec.block_size) / (res_y * unit)
+        if self.stride is not None:  # follow the patch grid: a whole number of strides, holding a whole patch
+            least = max(1, math.ceil(self.size / self.stride)) if self.size else 1
+            bx = float(max(least, round(bx / self.stride)) * self.stride)
+            by = float(max(least, round(by / self.stride)) * self.stride)
+        self.block_px = (bx, by)
+        #: block side actually used, in metres (mean of x and y)
+        self.block_size_m = 0.5 * (bx * res_x + by * res_y) * unit
+        self.nbx = max(1, math.ceil(self.grid.width / bx - 1e-9))
+        self.nby = max(1, math.ceil(self.grid.height / by - 1e-9))
+        # area of each block inside the grid (edge blocks are clipped), in pixels
+        wx = np.minimum(bx, self.grid.width - bx * np.arange(self.nbx))
+        wy = np.minimum(by, self.grid.height - by * np.arange(self.nby))
         areas = np.outer(np.clip(wy, 0, None), np.clip(wx, 0, None))
         rng = np.random.default_rng(self.spec.seed)
         #: (nby, nbx) split index (0 train, 1 val, 2 test) of each block, top row first.
@@ -150,19 +169,18 @@ class SplitAssigner:
 
     def block_range(self, window: Window) -> tuple[int, int, int, int]:
         """Blocks touched by ``window``: ``(bx0, bx1, by0, by1)`` inclusive, clipped to the block grid."""
-        res_x, res_y = self.grid.res
-        bs = float(self.spec.block_size)
+        bx, by = self.block_px
         c0, r0 = float(window.col_off), float(window.row_off)
         c1, r1 = c0 + float(window.width), r0 + float(window.height)
 
-        def idx(pix: float, res: float) -> int:
-            return math.floor(pix * res / bs + 1e-9)
+        def idx(pix: float, size: float) -> int:
+            return math.floor(pix / size + 1e-9)
 
-        def idx_end(pix: float, res: float) -> int:  # block of the last pixel (exclusive edge)
-            return math.ceil(pix * res / bs - 1e-9) - 1
+        def idx_end(pix: float, size: float) -> int:  # block of the last pixel (exclusive edge)
+            return math.ceil(pix / size - 1e-9) - 1
 
-        bx0, bx1 = idx(c0, res_x), idx_end(c1, res_x)
-        by0, by1 = idx(r0, res_y), idx_end(r1, res_y)
+        bx0, bx1 = idx(c0, bx), idx_end(c1, bx)
+        by0, by1 = idx(r0, by), idx_end(r1, by)
         clip = lambda v, n: min(max(v, 0), n - 1)  # noqa: E731
         return clip(bx0, self.nbx), clip(bx1, self.nbx), clip(by0, self.nby), clip(by1, self.nby)
 
@@ -208,7 +226,7 @@ class SplitAssigner:
         t = self.grid.window_transform(window)
         left, top = t @ (0, 0)
         right, bottom = t @ (window.width, window.height)
-        eps = 1e-6 * self.grid.gsd
+        eps = 1e-6 * self.grid.res[0]
         foot = box(min(left, right) + eps, min(top, bottom) + eps, max(left, right) - eps, max(top, bottom) - eps)
         inside = [s for s, g in self.aoi.items() if g.covers(foot)]
         return inside[0] if len(inside) == 1 else None

@@ -68,6 +68,9 @@ class TileResult:
         windows: windows visited in total.
         dropped_invalid: windows dropped for ``valid_fraction < min_valid``.
         dropped_split: windows dropped because they straddle splits / lie outside every AOI.
+        block_size_m: side of the split blocks actually used (metres; snapped to the patch stride), ``None``
+            for AOI splits.
+        block_patches: patch strides per block side (``None`` for AOI splits).
         mean, std: per-band statistics of the train split (raw units), ``None`` without train patches.
     """
 
@@ -81,6 +84,8 @@ class TileResult:
     mean: list[float] | None = None
     std: list[float] | None = None
     tasks: list[str] = field(default_factory=list)
+    block_size_m: float | None = None
+    block_patches: int | None = None
 
 
 class _BandStats:
@@ -204,19 +209,20 @@ def tile_dataset(
     Args:
         ortho: orthophoto GeoTIFF; defines the reference grid (CRS, origin, pixel size).
         out_dir: output folder (created; must be empty unless ``overwrite``).
-        dsm, dtm: surface and terrain models (metres); height = DSM − DTM. Mutually exclusive with ``ndsm``.
-        ndsm: ready heights above ground (nDSM / CHM, metres).
+        dsm, dtm: surface and terrain models; height = DSM − DTM in metres (values in the unit the file
+            states, else ``ndsm_options.z_unit``, else metres). Mutually exclusive with ``ndsm``.
+        ndsm: ready heights above ground (nDSM / CHM; units as for ``dsm``).
         labels: label raster of raw class codes.
         labels_vector: GeoJSON polygons with a class attribute (``class_field``), instead of ``labels``.
         class_field: attribute of ``labels_vector`` with codes or class names.
         classes: :class:`ClassScheme`, a scheme YAML path, or a built-in name; required with labels.
         size: patch side (pixels of the reference grid).
         stride: step between patches (pixels, ``≤ size``; default ``size``).
-        gsd: resample everything to this pixel size (CRS units) instead of the ortho's.
+        gsd: resample everything to this pixel size in metres (whatever the CRS unit) instead of the ortho's.
         min_valid: minimum fraction of valid image pixels for a patch to be kept (0..1).
         splits: spatial split specification.
         bands: 1-based ortho bands to keep (default: all but alpha).
-        ndsm_options: negative clipping / maximum height.
+        ndsm_options: negative clipping / maximum height / the heights' unit when a file states none.
         ignore_unknown_codes: map label codes (or vector values) outside the scheme to no-label instead of
             raising :class:`~aerialmtl.errors.LabelError`.
         overwrite: replace an existing tile dataset in ``out_dir``.
@@ -241,14 +247,19 @@ def tile_dataset(
     has_labels = labels is not None or labels_vector is not None
     scheme = _load_scheme(classes)
     if has_labels and scheme is None:
-        raise InputError("labels were given without a class scheme: pass --classes (a YAML file or dfc2018, isprs, synthetic)")
+        raise InputError(
+            "labels were given without a class scheme: pass --classes (a YAML file or dfc2018, isprs, synthetic)"
+        )
     if not has_height and not has_labels:
-        raise InputError("nothing to learn: give a height layer (--ndsm, or --dsm/--dtm) and/or labels (--labels/--labels-vector)")
+        raise InputError(
+            "nothing to learn: give a height layer (--ndsm, or --dsm/--dtm) and/or labels (--labels/--labels-vector)"
+        )
     n_windows_check = count_windows(1, 1, size, stride)  # validates size/stride before touching files
     del n_windows_check
 
     grid = reference_grid(ortho, gsd)
     on_unknown = "ignore" if ignore_unknown_codes else "error"
+    height_units: dict[str, dict[str, object]] = {}
     env: dict[str, Any] = {"GDAL_TIFF_INTERNAL_MASK": True}
     if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
         env["GDAL_CACHEMAX"] = DEFAULT_CACHE_MB * 1024 * 1024  # bytes (unambiguous for GDAL and rasterio)
@@ -260,6 +271,7 @@ def tile_dataset(
             heights = HeightSource(grid, ndsm=ndsm, dsm=dsm, dtm=dtm, options=ndsm_options) if has_height else None
             if heights is not None:
                 opened.append(heights)
+                height_units = heights.units()
             label_src: AlignedRaster | VectorLabels | None = None
             if labels is not None:
                 label_src = AlignedRaster(labels, grid, "labels", bands=[1], role="labels")
@@ -267,7 +279,7 @@ def tile_dataset(
                 label_src = VectorLabels(labels_vector, grid, class_field or "", scheme, on_unknown)  # type: ignore[arg-type]
             if label_src is not None:
                 opened.append(label_src)
-            assigner = SplitAssigner(splits, grid)
+            assigner = SplitAssigner(splits, grid, stride=stride, size=size)
             created = _prepare_out_dir(out_dir, overwrite)
             try:
                 result = _tile_loop(
@@ -288,6 +300,9 @@ def tile_dataset(
 
     tasks = (["height"] if has_height else []) + (["classes"] if has_labels else [])
     result.tasks = tasks
+    if assigner.block_size_m is not None:
+        result.block_size_m = assigner.block_size_m
+        result.block_patches = int(round(assigner.block_px[0] / stride))
     meta = {
         "format": "aerialmtl-tiles",
         "format_version": 1,
@@ -307,8 +322,10 @@ def tile_dataset(
             "clip_negative": bool(ndsm_options.clip_negative),
             "max_height": ndsm_options.max_height,
             "source": "ndsm" if ndsm is not None else "dsm-dtm",
+            "units": height_units,
         } if has_height else None,
-        "splits": splits.to_dict(),
+        "splits": {**splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
+                                            if assigner.block_size_m is not None else {})},
         "counts": dict(result.counts),
         "min_valid": float(min_valid),
         "provenance": {

@@ -82,7 +82,8 @@ def synthesize(
         size: width and height in pixels (≥ 32).
         seed: random seed.
         gsd: pixel size in metres (> 0).
-        crs: a projected CRS in metres (EPSG code or WKT).
+        crs: a projected CRS (EPSG code or WKT), in metres or another linear unit (pixels are ``gsd``
+            metres on the ground whatever the unit; heights are written in metres).
         origin: map coordinates (x, y) of the upper-left corner.
         overwrite: replace existing outputs.
 
@@ -101,7 +102,8 @@ def synthesize(
     except CRSError as exc:
         raise InputError(f"crs {crs!r} is not a valid CRS ({exc}); pass an EPSG code such as 'EPSG:32631'") from exc
     if not crs_obj.is_projected:
-        raise InputError(f"crs {crs!r} is not projected; synthetic scenes need metres, e.g. a UTM zone 'EPSG:32631'")
+        raise InputError(f"crs {crs!r} is not projected; synthetic scenes need a projected CRS, e.g. a UTM zone "
+                         "'EPSG:32631'")
     out = Path(out_dir)
     existing = [name for name in _OUTPUTS if (out / name).exists()]
     if existing and not overwrite:
@@ -120,7 +122,8 @@ def synthesize(
     dsm = (scene.dtm + scene.ndsm).astype(np.float32)
     ndsm = dsm - scene.dtm  # exactly DSM − DTM in float32
 
-    transform = Affine(gsd, 0.0, origin[0], 0.0, -gsd, origin[1])
+    px = gsd / float(crs_obj.linear_units_factor[1])  # pixel size in CRS units (e.g. feet)
+    transform = Affine(px, 0.0, origin[0], 0.0, -px, origin[1])
     tags = {
         "AERIALMTL_SYNTH_VERSION": SYNTH_VERSION,
         "AERIALMTL_SYNTH_SEED": str(seed),
