@@ -20,7 +20,7 @@ from aerialmtl.errors import AlignmentError, InputError
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.predict import predict_raster
-from aerialmtl.io.align import AlignedRaster, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.io.align import AlignedRaster, HeightSource, reference_grid
 from aerialmtl.io.units import Z_UNITS, metres_per_unit, utm_epsg, vertical_unit
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net

@@ -2,14 +2,15 @@
 
 Two methods:
 
-* ``blocks`` — the grid is cut into disjoint square blocks of ``block_size`` metres (converted through the
-  CRS's linear unit, so feet CRSs work), anchored at the grid's upper-left corner. When the patch stride is
-  known (``tile``), the block side is snapped to the whole number of strides nearest to ``block_size`` (at
-  least enough to hold one patch), so blocks follow the patch grid and, with ``stride == size``, no patch straddles two blocks;
-  the side actually used is recorded (:attr:`SplitAssigner.block_size_m`). Blocks are visited in a seeded
-  random order and dealt to the split furthest below its share of the area (``ratios``); every split with a
-  ratio > 0 gets at least one block when there are enough blocks. A patch is kept only if every block it
-  touches belongs to the same split, so patches of different splits never share a pixel, whatever the stride.
+* ``blocks`` — the grid is cut into disjoint square blocks of ``block_size`` metres (converted through
+  the CRS's linear unit, so feet CRSs work), anchored at the grid's upper-left corner. When the patch
+  stride is known (``tile``), the block side is snapped to the whole number of strides nearest to
+  ``block_size`` (at least enough to hold one patch), so blocks follow the patch grid and, with
+  ``stride == size``, no patch straddles two blocks; the side actually used is recorded
+  (:attr:`SplitAssigner.block_size_m`). Blocks are visited in a seeded random order and dealt to the
+  split furthest below its share of the area (``ratios``); every split with a ratio > 0 gets at least one
+  block when there are enough blocks. A patch is kept only if every block it touches belongs to the same
+  split, so patches of different splits never share a pixel, whatever the stride.
 * ``aoi`` — polygons per split: one GeoJSON whose features carry a ``split`` property (``train``, ``val``
   or ``test``), or one GeoJSON per split. A patch belongs to a split when its footprint lies inside that
   split's polygons (and no other split's); others are dropped. AOIs that overlap each other make the
