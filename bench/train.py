@@ -1,10 +1,18 @@
-"""Training throughput: samples/s of forward + backward + Adam step (channels_last), fp32 and bf16 autocast.
+"""Training throughput: the model's own step, and the data path that feeds it.
 
-Random inputs/targets of the stated patch size (no data loading, which the DataLoader workers overlap),
-losses as in training (L1 on valid heights + cross-entropy). Warm-up steps are excluded from the timing.
+``--model`` (default): samples/s of forward + backward + Adam step (channels_last), fp32 and bf16
+autocast, on random inputs/targets already on the device (losses as in training: L1 on valid heights +
+cross-entropy). Warm-up steps are excluded from the timing.
 
-    python bench/train.py                       # small (128², batch 8) and full (320², batch 2) configs
+``--data``: samples/s of the training data path alone (no model): batches of the train split exactly as
+``aerialmtl train`` builds them (order, augmentation: flips, rot90, jitter), moved to the device, over a
+tile folder of 320² patches cut from a synthetic town (made once under ``--workdir``). ``geotiff`` is the
+per-sample path (every sample opens its GeoTIFFs, augments in numpy/torch in a DataLoader worker);
+``cache`` is the training path of this version, when it has one.
+
+    python bench/train.py                       # model step: small (128², batch 8) and full (320², batch 2)
     python bench/train.py --configs small --steps 20 --threads 2
+    python bench/train.py --data --workers 0 2 --batch 16 --batches 30
 """
 
 from __future__ import annotations
@@ -12,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -58,8 +67,95 @@ def bench(name: str, precision: str, steps: int, warmup: int, device: torch.devi
             "samples_per_s": batch / per_step, "s_per_sample": per_step / batch}
 
 
+# ---- data path ----------------------------------------------------------------------------------
+def make_tiles(workdir: Path, town_px: int) -> Path:
+    """A synthetic town of ``town_px``² at 0.25 m tiled into 320² patches (90 % train); reused if present."""
+    from aerialmtl.data.synth import synthesize
+    from aerialmtl.tiling.splits import SplitSpec
+    from aerialmtl.tiling.tile import tile_dataset
+
+    tiles = workdir / f"tiles_{town_px}"
+    if (tiles / "dataset.yaml").is_file():
+        return tiles
+    town = synthesize(workdir / f"town_{town_px}", size=town_px, seed=3, gsd=0.25, overwrite=True)
+    tile_dataset(town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, size=320,
+                 stride=320, splits=SplitSpec(block_size=160.0, ratios=(0.9, 0.1, 0.0), seed=0), overwrite=True,
+                 progress=False)
+    return tiles
+
+
+class _Batches:
+    """Batches of ``(index, seed)``: an epoch permutation seeded by (seed, epoch), as training orders them."""
+
+    def __init__(self, n: int, batch: int, seed: int = 0) -> None:
+        self.n, self.bs, self.seed = n, min(batch, n), seed
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        epoch = 0
+        while True:
+            perm = torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed * 7919 + epoch))
+            for b in range(self.n // self.bs):
+                yield [(int(perm[p]), epoch * 100003 + p) for p in range(b * self.bs, (b + 1) * self.bs)]
+            epoch += 1
+
+
+class _Seeded(torch.utils.data.Dataset):
+    def __init__(self, base: torch.utils.data.Dataset, transform: object) -> None:
+        self.base, self.transform = base, transform
+
+    def __getitem__(self, item: tuple[int, int]) -> dict:
+        index, seed = item
+        return self.transform(self.base.load(index), torch.Generator().manual_seed(seed))  # type: ignore[operator]
+
+
+def geotiff_loader(tiles: Path, batch: int, workers: int, device: torch.device) -> Iterator[dict]:
+    """The per-sample GeoTIFF path (``aerialmtl train`` up to this change): PatchDataset + per-sample transforms."""
+    from aerialmtl.data.dataset import PatchDataset
+    from aerialmtl.data.transforms import build_train_transform
+
+    ds = PatchDataset(tiles, "train")
+    loader = torch.utils.data.DataLoader(
+        _Seeded(ds, build_train_transform(True, True, True, None)), batch_sampler=_Batches(len(ds), batch),
+        num_workers=workers, pin_memory=device.type == "cuda", persistent_workers=workers > 0)
+    for b in loader:
+        out = {}
+        for k, v in b.items():
+            if isinstance(v, torch.Tensor):
+                v = v.to(device, non_blocking=True)
+                if k == "image":
+                    v = v.contiguous(memory_format=torch.channels_last)
+            out[k] = v
+        yield out
+
+
+def bench_data(paths: list[str], tiles: Path, batch: int, workers: list[int], batches: int, warmup: int,
+               device: torch.device) -> None:
+    print("| path | workers | batch | batches timed | s | samples/s |")
+    print("|---|---|---|---|---|---|")
+    for path in paths:
+        for nw in workers:
+            if path == "geotiff":
+                it = geotiff_loader(tiles, batch, nw, device)
+            else:
+                raise SystemExit(f"unknown data path {path!r}")
+            for _ in range(warmup):
+                next(it)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            t = time.perf_counter()
+            for _ in range(batches):
+                b = next(it)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            dt = time.perf_counter() - t
+            assert b["image"].shape[0] == batch
+            print(f"| {path} | {nw} | {batch} | {batches} | {dt:.2f} | {batches * batch / dt:.1f} |", flush=True)
+            del it
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", action="store_true", help="time the data path instead of the model step")
     ap.add_argument("--configs", nargs="+", default=["small", "full"], choices=list(SETUPS))
     ap.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
     ap.add_argument("--steps", type=int, default=10)
@@ -67,11 +163,22 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--paths", nargs="+", default=["geotiff"], help="data paths to time (--data)")
+    ap.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="DataLoader workers (--data)")
+    ap.add_argument("--batch", type=int, default=16, help="batch size (--data)")
+    ap.add_argument("--batches", type=int, default=20, help="timed batches (--data)")
+    ap.add_argument("--town", type=int, default=2560, help="synthetic town side in px (--data)")
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/aerialmtl-bench-train"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     print(f"torch {torch.__version__}, device {device}, threads {torch.get_num_threads()}, "
           f"load average {os.getloadavg()}")
+    if args.data:
+        tiles = make_tiles(args.workdir, args.town)
+        bench_data(args.paths, tiles, args.batch, args.workers, args.batches, args.warmup, device)
+        print(f"load average at the end {os.getloadavg()}")
+        return
     print("| config | params (M) | patch | batch | precision | s/step | samples/s | s/sample |")
     print("|---|---|---|---|---|---|---|---|")
     for name in args.configs:
