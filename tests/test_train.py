@@ -207,7 +207,7 @@ def test_height_only_folder_and_bf16(tmp_path: Path) -> None:
 
 def test_balanced_class_weights(tiles: Path, tmp_path: Path) -> None:
     from aerialmtl.data.dataset import read_tile_info
-    from aerialmtl.training.loop import _class_weights
+    from aerialmtl.training.objective import class_weights as _class_weights
 
     w = _class_weights(tiny_cfg(loss={"class_weights": "balanced"}), read_tile_info(tiles), 3)
     assert w is not None and w.shape == (3,) and w.mean() == pytest.approx(1.0)
