@@ -186,16 +186,27 @@ class DistContext:
 
 def peer_failure_message(exc: BaseException) -> str:
     why = " ".join(str(exc).split())[:160] or exc.__class__.__name__
-    return (f"another process of this multi-process run failed or was stopped ({why}); see its own message "
-            "above. The last checkpoint in the run folder is whole: continue with --resume")
+    return (f"another process of this multi-process run failed or was stopped ({why}); its own message or "
+            "torchrun's summary says why. The last checkpoint in the run folder is whole: continue with --resume")
+
+
+def is_peer_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a collective failing because another process is gone (gloo/nccl wording)."""
+    if isinstance(exc, (dist.DistBackendError, dist.DistNetworkError)):
+        return True
+    text = str(exc)
+    return isinstance(exc, RuntimeError) and any(
+        s in text for s in ("Connection reset", "Connection closed", "Broken pipe", "gloo", "NCCL", "by peer"))
 
 
 def _collective(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
     """Call a torch.distributed collective; a broken peer becomes :class:`PeerFailure`."""
     try:
         return fn(*args, **kwargs)
-    except (RuntimeError, dist.DistBackendError) as exc:
-        raise PeerFailure(peer_failure_message(exc)) from exc
+    except RuntimeError as exc:
+        if is_peer_error(exc):
+            raise PeerFailure(peer_failure_message(exc)) from exc
+        raise
 
 
 def install_stop_handler() -> None:
@@ -212,6 +223,17 @@ def install_stop_handler() -> None:
 
 
 # ---- models -------------------------------------------------------------------------------------
+def all_reduce(tensor: torch.Tensor) -> torch.Tensor:
+    """Differentiable sum over ranks (the gradient of each input is the sum of the output gradients)."""
+    from torch.distributed import _functional_collectives as fc
+
+    if hasattr(fc, "all_reduce_backward"):  # functional collectives with autograd (recent torch)
+        return fc.wait_tensor(fc.all_reduce(tensor, "sum", dist.group.WORLD))
+    from torch.distributed.nn.functional import all_reduce as legacy  # pragma: no cover - older torch
+
+    return legacy(tensor)  # type: ignore[no-any-return]  # pragma: no cover
+
+
 class CpuSyncBatchNorm(nn.BatchNorm2d):
     """BatchNorm2d whose training statistics are taken over the batches of every rank, on any device.
 
@@ -225,8 +247,6 @@ class CpuSyncBatchNorm(nn.BatchNorm2d):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if not (self.training and dist.is_initialized() and dist.get_world_size() > 1):
             return super().forward(x)
-        from torch.distributed.nn.functional import all_reduce
-
         xf = x.float()
         count = torch.tensor([xf.numel() // xf.shape[1]], dtype=torch.float32, device=x.device)
         stats = all_reduce(torch.cat([xf.sum(dim=(0, 2, 3)), count]))
@@ -275,4 +295,4 @@ def wrap(module: nn.Module, ctx: DistContext) -> nn.Module:
 
 
 __all__ = ["DistContext", "PeerFailure", "resolve_device", "convert_sync_batchnorm", "CpuSyncBatchNorm", "wrap",
-           "install_stop_handler", "peer_failure_message", "TIMEOUT"]
+           "install_stop_handler", "peer_failure_message", "is_peer_error", "all_reduce", "TIMEOUT"]

@@ -107,9 +107,9 @@ class StepModule(nn.Module):
     def net(self) -> Any:
         return self._net[0]
 
-    @net.setter
-    def net(self, value: Any) -> None:
-        self._net[0] = value
+    def use(self, net: Any) -> None:
+        """Run ``net`` (the model or its compiled wrapper) on the images from now on."""
+        self._net[0] = net
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         with autocast(self.device, self.precision):
@@ -253,7 +253,7 @@ class Trainer:
         self.step_module = StepModule(self.model, self.weighting, self.objective, self.device, self.precision)
         self.compiled_ok = False
         if cfg.compile:
-            self.step_module.net = torch.compile(self.model)
+            self.step_module.use(torch.compile(self.model))
         self.ddp = distributed.wrap(self.step_module, self.ctx)
         if self.ctx.is_main:
             self.write_config(data_dir if data_dir is not None else cfg.data.dir)
@@ -351,7 +351,7 @@ class Trainer:
                 raise
             warnings.warn(f"compile: torch.compile failed ({' '.join(str(exc).split())[:200]}); training without it",
                           UserWarning, stacklevel=2)
-            self.step_module.net = self.model
+            self.step_module.use(self.model)
             total, losses = self.ddp(batch)
         self.compiled_ok = True
         self.optimizer.zero_grad(set_to_none=True)
@@ -544,6 +544,10 @@ class Trainer:
                         stopped_by = "patience"
                         break
                 stopped_by = self.done()
+        except RuntimeError as exc:  # DDP's gradient all-reduce: a peer process is gone
+            if self.ctx.distributed and distributed.is_peer_error(exc):
+                raise distributed.PeerFailure(distributed.peer_failure_message(exc)) from exc
+            raise
         finally:
             bar.close()
             del it
