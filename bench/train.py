@@ -8,7 +8,8 @@ cross-entropy). Warm-up steps are excluded from the timing.
 ``aerialmtl train`` builds them (order, augmentation: flips, rot90, jitter), moved to the device, over a
 tile folder of 320² patches cut from a synthetic town (made once under ``--workdir``). ``geotiff`` is the
 per-sample path (every sample opens its GeoTIFFs, augments in numpy/torch in a DataLoader worker);
-``cache`` is the training path of this version, when it has one.
+``cache`` is the training path since issue 11 (the decoded patch cache, batches augmented on the device);
+the cache's first-use build is timed separately.
 
     python bench/train.py                       # model step: small (128², batch 8) and full (320², batch 2)
     python bench/train.py --configs small --steps 20 --threads 2
@@ -35,7 +36,8 @@ SETUPS = {  # name: (config file, patch size, batch size, classes)
 }
 
 
-def bench(name: str, precision: str, steps: int, warmup: int, device: torch.device) -> dict[str, float]:
+def bench(name: str, precision: str, steps: int, warmup: int, device: torch.device,
+          compile_model: bool = False) -> dict[str, float]:
     from aerialmtl.models.d3net import D3Net
 
     path, size, batch, k = SETUPS[name]
@@ -43,6 +45,7 @@ def bench(name: str, precision: str, steps: int, warmup: int, device: torch.devi
     model = D3Net(cfg.model.resolve(3, ("height", "classes"), k)).to(device).to(memory_format=torch.channels_last)
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas)
+    net = torch.compile(model) if compile_model else model
     g = torch.Generator().manual_seed(0)
     x = torch.randn(batch, 3, size, size, generator=g).to(device).contiguous(memory_format=torch.channels_last)
     h = (torch.rand(batch, 1, size, size, generator=g) * 20).to(device)
@@ -52,7 +55,7 @@ def bench(name: str, precision: str, steps: int, warmup: int, device: torch.devi
     for i in range(warmup + steps):
         t = time.perf_counter()
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
-            out = model(x)
+            out = net(x)
         loss = losses.l1(out["height"].float(), h, valid) + losses.cross_entropy(out["classes"].float(), c)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -128,14 +131,55 @@ def geotiff_loader(tiles: Path, batch: int, workers: int, device: torch.device) 
         yield out
 
 
+def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) -> Iterator[dict]:
+    """The training data path: patch cache → compact batches (workers) → device → normalise + augment there."""
+    from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, prepare_batch
+    from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+    from aerialmtl.data.transforms import build_train_transform
+    from aerialmtl.formats.tiles import TileFolderInfo, cache_dir
+
+    info = TileFolderInfo.read(tiles)
+    index = ensure_patch_cache(info, "train")
+    transform = build_train_transform(True, True, True, None)
+    loader = torch.utils.data.DataLoader(
+        CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks),
+        sampler=RankBatchSampler(EpochPlan(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
+        pin_memory=device.type == "cuda", generator=torch.Generator().manual_seed(0))
+    mean = torch.tensor(info.mean, device=device)
+    std = torch.tensor(info.std, device=device)
+    for raw in loader:
+        yield prepare_batch(raw, transform, mean, std, device)
+
+
+def bench_cache_build(tiles: Path) -> None:
+    """Time building the train split's cache from scratch (first use)."""
+    import shutil
+
+    from aerialmtl.data.cache import ensure_patch_cache
+    from aerialmtl.formats.tiles import TileFolderInfo, cache_dir
+
+    shutil.rmtree(cache_dir(tiles), ignore_errors=True)
+    info = TileFolderInfo.read(tiles)
+    t = time.perf_counter()
+    index = ensure_patch_cache(info, "train")
+    dt = time.perf_counter() - t
+    size = sum(f.stat().st_size for f in cache_dir(tiles).glob("train.*.npy")) / 2**20
+    print(f"cache build (train, {index.count} patches, 0 workers): {dt:.2f} s = {index.count / dt:.1f} patches/s, "
+          f"{size:.1f} MiB on disk")
+
+
 def bench_data(paths: list[str], tiles: Path, batch: int, workers: list[int], batches: int, warmup: int,
                device: torch.device) -> None:
+    if "cache" in paths:
+        bench_cache_build(tiles)
     print("| path | workers | batch | batches timed | s | samples/s |")
     print("|---|---|---|---|---|---|")
     for path in paths:
         for nw in workers:
             if path == "geotiff":
                 it = geotiff_loader(tiles, batch, nw, device)
+            elif path == "cache":
+                it = cache_loader(tiles, batch, nw, device)
             else:
                 raise SystemExit(f"unknown data path {path!r}")
             for _ in range(warmup):
@@ -163,7 +207,9 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--paths", nargs="+", default=["geotiff"], help="data paths to time (--data)")
+    ap.add_argument("--compile", action="store_true", help="torch.compile the model (model step)")
+    ap.add_argument("--paths", nargs="+", default=["geotiff", "cache"], choices=["geotiff", "cache"],
+                    help="data paths to time (--data)")
     ap.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="DataLoader workers (--data)")
     ap.add_argument("--batch", type=int, default=16, help="batch size (--data)")
     ap.add_argument("--batches", type=int, default=20, help="timed batches (--data)")
@@ -184,7 +230,7 @@ def main() -> None:
     for name in args.configs:
         for prec in args.precisions:
             steps = args.full_steps if name == "full" and device.type == "cpu" else args.steps
-            r = bench(name, prec, steps, args.warmup if name == "small" else 1, device)
+            r = bench(name, prec, steps, args.warmup if name == "small" else 1, device, args.compile)
             print(f"| {name} | {r['params_M']:.2f} | {r['patch']}² | {r['batch']} | {prec} | {r['s_per_step']:.3f} | "
                   f"{r['samples_per_s']:.2f} | {r['s_per_sample']:.3f} |", flush=True)
 
