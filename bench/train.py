@@ -141,12 +141,13 @@ def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) ->
     info = TileFolderInfo.read(tiles)
     index = ensure_patch_cache(info, "train")
     transform = build_train_transform(True, True, True, None)
-    loader = torch.utils.data.DataLoader(
-        CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks),
-        sampler=RankBatchSampler(EpochPlan(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
-        pin_memory=device.type == "cuda", generator=torch.Generator().manual_seed(0))
     mean = torch.tensor(info.mean, device=device)
     std = torch.tensor(info.std, device=device)
+    in_workers = (mean.cpu(), std.cpu()) if device.type == "cpu" and workers > 0 else None  # as the trainer does
+    loader = torch.utils.data.DataLoader(
+        CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks, in_workers),
+        sampler=RankBatchSampler(EpochPlan(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
+        pin_memory=device.type == "cuda", generator=torch.Generator().manual_seed(0))
     for raw in loader:
         yield prepare_batch(raw, transform, mean, std, device)
 

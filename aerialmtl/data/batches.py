@@ -12,9 +12,11 @@ The data path of ``aerialmtl train``:
    and returns compact tensors: the raw image in its own dtype (uint8/uint16), uint8 validity and classes,
    float32 heights.
 3. :func:`prepare_batch` (in the training process) copies them to the device (pinned memory,
-   ``non_blocking``), normalises (:func:`~aerialmtl.data.dataset.normalise_batch`), applies flips/rot90/
-   jitter to the whole batch there (:meth:`~aerialmtl.data.transforms.Compose.apply`) and returns a
-   :class:`~aerialmtl.data.types.Sample` batch with the image in ``channels_last``.
+   ``non_blocking``), flips/rotates the compact arrays there, normalises
+   (:func:`~aerialmtl.data.dataset.normalise_batch`), jitters (:meth:`~aerialmtl.data.transforms.Compose.apply`)
+   and returns a :class:`~aerialmtl.data.types.Sample` batch with the image in ``channels_last``.
+   Training on a CPU with DataLoader workers runs this step in the workers instead (one thread each), so
+   the main process only computes the model.
 
 The result equals what :class:`~aerialmtl.data.dataset.PatchDataset` plus the per-sample transforms give
 for the same patches and seeds (tests/test_batches.py compares them).
@@ -135,10 +137,14 @@ class CachedBatches(torch.utils.data.Dataset):
         transform: the augmentation pipeline (:func:`~aerialmtl.data.transforms.build_train_transform` or
             ``build_eval_transform``).
         tasks: reference layers to load (``height`` and/or ``classes``; absent ones are skipped).
+        normalisation: ``(mean, std)`` to finish the batch here (:func:`prepare_batch` on the CPU, in the
+            worker): what training on a CPU does, so that workers augment while the main process computes.
+            ``None`` (training on a GPU): return the compact arrays for the device to finish.
     """
 
-    def __init__(self, cache: PatchCache, transform: Compose, tasks: Sequence[str]) -> None:
-        self.cache, self.transform = cache, transform
+    def __init__(self, cache: PatchCache, transform: Compose, tasks: Sequence[str],
+                 normalisation: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+        self.cache, self.transform, self.normalisation = cache, transform, normalisation
         self.layers = ("image", "image_valid") + tuple(t for t in tasks if t in cache.layers)
 
     def __len__(self) -> int:
@@ -155,7 +161,10 @@ class CachedBatches(torch.utils.data.Dataset):
         else:
             size, rows, cols = window
             data = self.cache.gather(indices, list(zip(rows.tolist(), cols.tolist())), size)
-        return {"data": {k: v for k, v in data.items() if k in self.layers}, "params": params}
+        raw = {"data": {k: v for k, v in data.items() if k in self.layers}, "params": params}
+        if self.normalisation is None:
+            return raw
+        return {"ready": prepare_batch(raw, self.transform, *self.normalisation, torch.device("cpu"))}
 
 
 def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, std: torch.Tensor,
@@ -163,7 +172,8 @@ def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, s
     """A batch from :class:`CachedBatches` → normalised, augmented Sample tensors on ``device``.
 
     Args:
-        raw: the DataLoader's item (``data`` and ``params``).
+        raw: the DataLoader's item (``data`` and ``params``; or ``ready``, a batch finished on the CPU,
+            which is only moved).
         transform: the same pipeline the dataset drew the parameters for.
         mean, std: (C,) float32 normalisation (on ``device`` to avoid a copy per batch).
         device: the training device.
@@ -172,9 +182,12 @@ def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, s
         ``image`` float32 (B, C, H, W) channels_last, ``height`` float32 (B, 1, H, W) metres with
         ``height_valid`` bool, ``classes`` int64 (B, H, W) — for the loaded tasks.
     """
+    if "ready" in raw:
+        return {k: v.to(device, non_blocking=True) for k, v in raw["ready"].items()}
     data = {k: v.to(device, non_blocking=True) for k, v in raw["data"].items()}
+    data = transform.apply(data, raw["params"], stages=("permute",))  # on the compact arrays
     batch = normalise_batch(data["image"], data["image_valid"], mean, std, data.get("height"), data.get("classes"))
-    batch = transform.apply(batch, raw["params"], skip_load=True)
+    batch = transform.apply(batch, raw["params"], stages=("value",))
     batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
     return batch
 

@@ -126,11 +126,10 @@ def normalise_batch(
         ``image`` float32 ``(raw - mean) / std``, 0 where invalid; ``height`` float32 (0 where invalid)
         with ``height_valid`` bool; ``classes`` int64 — the keys whose inputs were given.
     """
-    valid = image_valid.bool()[:, None]
     m = mean.to(image.device).view(1, -1, 1, 1)
     s = std.to(image.device).view(1, -1, 1, 1)
-    norm = (image.to(torch.float32) - m) / s
-    out = {"image": torch.where(valid, norm, torch.zeros((), device=image.device))}
+    norm = image.to(torch.float32, copy=True).sub_(m).div_(s)  # one new tensor, updated in place
+    out = {"image": norm.masked_fill_(~image_valid.bool()[:, None], 0.0)}
     if height is not None:
         hv = torch.isfinite(height)
         out["height"] = torch.where(hv, height, torch.zeros((), device=height.device))

@@ -16,8 +16,16 @@ Every transform is split in two so that a batch can be augmented on the training
 
 ``transform(sample, generator)`` does both for one sample. A :class:`Compose` draws its transforms'
 parameters in order from one generator, so the per-sample and the batched path draw the same numbers and
-give the same result. Transforms whose ``at_load`` is true (crops) come first and may be applied while
-patches are read (the cached data path cuts the crop window out of the memory-mapped patch).
+give the same result. Each transform belongs to a stage, and a pipeline lists them in stage order:
+
+* ``"load"`` (crops): may be applied while patches are read (the cached data path cuts the crop window out
+  of the memory-mapped patch);
+* ``"permute"`` (flips, rotations): only move pixels, so they may run on the compact stored arrays (uint8
+  image, validity, heights with NaN, uint8 classes) before normalisation — fewer bytes to move;
+* ``"value"`` (jitter, and anything that changes values): run on the normalised Sample.
+
+A batch is augmented sample by sample on its device (B small kernels per transform): the same arithmetic
+as the per-sample path, hence the same numbers.
 
 Randomness comes from torch: without a generator a transform uses torch's global RNG, which DataLoader
 seeds per worker. The training loop passes a generator seeded per (seed, epoch, position) so that results
@@ -37,7 +45,10 @@ import torch
 from aerialmtl.data.types import Sample
 from aerialmtl.errors import ConfigError
 
-SPATIAL_KEYS = ("image", "height", "height_valid", "classes")
+SPATIAL_KEYS = ("image", "height", "height_valid", "classes", "image_valid")
+
+#: The stages of a pipeline, in the order transforms must come (see the module docstring).
+STAGES = ("load", "permute", "value")
 
 #: One sample's parameters (``draw``), or a batch's (stacked along a leading B dimension).
 Params = dict[str, torch.Tensor]
@@ -46,11 +57,6 @@ Batch = dict[str, Any]
 
 def _rand(generator: torch.Generator | None) -> float:
     return float(torch.rand((), generator=generator))
-
-
-def _flag(flag: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """A (B,) bool tensor shaped to broadcast against ``like`` (B, ...), on its device."""
-    return flag.to(like.device).view(-1, *([1] * (like.dim() - 1)))
 
 
 def stack_params(per_sample: Sequence[Params]) -> Params:
@@ -63,8 +69,8 @@ def stack_params(per_sample: Sequence[Params]) -> Params:
 class BatchTransform:
     """Base class: ``draw`` one sample's parameters, ``apply`` a batch's; ``__call__`` does both for one sample."""
 
-    #: True for transforms that may be applied while patches are read (crops); they come first.
-    at_load = False
+    #: ``"load"`` (crops), ``"permute"`` (moves pixels only, any dtype) or ``"value"`` (changes values).
+    stage = "value"
 
     def out_shape(self, shape: tuple[int, int, int]) -> tuple[int, int, int]:
         """(C, H, W) of a sample after this transform, given (C, H, W) before."""
@@ -96,11 +102,20 @@ def _map_spatial(batch: Batch, fn: Callable[[torch.Tensor], torch.Tensor]) -> Ba
     return out
 
 
+def _per_sample(batch: Batch, ops: list[Callable[[torch.Tensor], torch.Tensor] | None]) -> Batch:
+    """Apply ``ops[i]`` (``None`` = unchanged) to sample i of every spatial layer."""
+    if all(op is None for op in ops):
+        return batch
+    return _map_spatial(batch, lambda t: torch.stack([t[i] if op is None else op(t[i]) for i, op in enumerate(ops)]))
+
+
 class RandomFlip(BatchTransform):
     """Flip left-right and/or up-down, each with probability ``p``.
 
     Parameters: ``h``, ``v`` bool.
     """
+
+    stage = "permute"
 
     def __init__(self, p: float = 0.5, horizontal: bool = True, vertical: bool = True) -> None:
         self.p, self.horizontal, self.vertical = p, horizontal, vertical
@@ -111,12 +126,11 @@ class RandomFlip(BatchTransform):
         return {"h": torch.tensor(h), "v": torch.tensor(v)}
 
     def apply(self, batch: Batch, params: Params) -> Batch:
-        h, v = params["h"], params["v"]
-        if bool(h.any()):
-            batch = _map_spatial(batch, lambda t: torch.where(_flag(h, t), torch.flip(t, dims=(-1,)), t))
-        if bool(v.any()):
-            batch = _map_spatial(batch, lambda t: torch.where(_flag(v, t), torch.flip(t, dims=(-2,)), t))
-        return batch
+        def op(h: bool, v: bool) -> Callable[[torch.Tensor], torch.Tensor] | None:
+            dims = (-2,) * v + (-1,) * h
+            return (lambda x: torch.flip(x, dims=dims)) if dims else None
+
+        return _per_sample(batch, [op(h, v) for h, v in zip(params["h"].tolist(), params["v"].tolist())])
 
 
 class RandomRot90(BatchTransform):
@@ -126,6 +140,8 @@ class RandomRot90(BatchTransform):
     Parameters: ``k`` int64.
     """
 
+    stage = "permute"
+
     def draw(self, generator: torch.Generator | None, shape: tuple[int, int, int]) -> Params:
         h, w = shape[-2:]
         k = int(torch.randint(0, 4, (), generator=generator)) if h == w else 2 * int(
@@ -133,23 +149,14 @@ class RandomRot90(BatchTransform):
         return {"k": torch.tensor(k, dtype=torch.int64)}
 
     def apply(self, batch: Batch, params: Params) -> Batch:
-        k = params["k"].cpu()
-        if not bool((k != 0).any()):
-            return batch
+        def op(k: int) -> Callable[[torch.Tensor], torch.Tensor] | None:
+            return (lambda x: torch.rot90(x, k, dims=(-2, -1))) if k else None
 
-        def rotate(t: torch.Tensor) -> torch.Tensor:
-            out = t.clone()
-            for kk in (1, 2, 3):
-                sel = (k == kk).nonzero().flatten()
-                if sel.numel():
-                    out[sel.to(t.device)] = torch.rot90(t[sel.to(t.device)], kk, dims=(-2, -1))
-            return out
-
-        return _map_spatial(batch, rotate)
+        return _per_sample(batch, [op(k) for k in params["k"].tolist()])
 
 
 class _Crop(BatchTransform):
-    at_load = True
+    stage = "load"
 
     def __init__(self, size: int) -> None:
         self.size = size
@@ -230,17 +237,20 @@ class PhotometricJitter(BatchTransform):
         return {"on": torch.tensor(True), "contrast": c, "brightness": b}
 
     def apply(self, batch: Batch, params: Params) -> Batch:
-        on = params["on"]
-        if not bool(on.any()):
+        on = params["on"].tolist()
+        if not any(on):
             return batch
         img = batch["image"]
         c = params["contrast"].to(img.device, img.dtype)[:, :, None, None]
         b = params["brightness"].to(img.device, img.dtype)[:, :, None, None]
-        valid = (img != 0).any(dim=1, keepdim=True)
-        count = valid.sum(dim=(-3, -2, -1), keepdim=True).clamp(min=1)
-        m = (img * valid).sum(dim=(-2, -1), keepdim=True) / count
+
+        def jitter(x: torch.Tensor, c: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+            valid = (x != 0).any(dim=0, keepdim=True)
+            m = (x * valid).sum(dim=(-2, -1), keepdim=True) / valid.sum().clamp(min=1)
+            return torch.where(valid, (x - m) * c + m + b, x)
+
         out = dict(batch)
-        out["image"] = torch.where(valid & _flag(on, img), (img - m) * c + m + b, img).to(img.dtype)
+        out["image"] = torch.stack([jitter(img[i], c[i], b[i]) if on[i] else img[i] for i in range(len(on))])
         return out
 
 
@@ -249,9 +259,10 @@ class Compose(BatchTransform):
 
     def __init__(self, transforms: Sequence[BatchTransform]) -> None:
         self.transforms = list(transforms)
-        loads = [t.at_load for t in self.transforms]
-        if loads != sorted(loads, reverse=True):
-            raise ValueError("Compose: crops (at_load transforms) must come before the other transforms")
+        order = [STAGES.index(t.stage) for t in self.transforms]
+        if order != sorted(order):
+            raise ValueError(f"Compose: transforms must come in stage order {STAGES}, got "
+                             f"{[t.stage for t in self.transforms]}")
 
     def out_shape(self, shape: tuple[int, int, int]) -> tuple[int, int, int]:
         for t in self.transforms:
@@ -277,12 +288,11 @@ class Compose(BatchTransform):
             return self.transforms[0].size, p["row"], p["col"]
         return None
 
-    def apply(self, batch: Batch, params: Params, skip_load: bool = False) -> Batch:
-        """Apply every transform (``skip_load``: except the ``at_load`` ones, already applied while reading)."""
+    def apply(self, batch: Batch, params: Params, stages: Sequence[str] = ("load", "permute", "value")) -> Batch:
+        """Apply the transforms of ``stages`` (e.g. without ``"load"`` when crops were cut while reading)."""
         for i, t in enumerate(self.transforms):
-            if skip_load and t.at_load:
-                continue
-            batch = t.apply(batch, self._params(params, i))
+            if t.stage in stages:
+                batch = t.apply(batch, self._params(params, i))
         return batch
 
     def __call__(self, sample: Sample, generator: torch.Generator | None = None) -> Sample:
@@ -318,4 +328,5 @@ def build_eval_transform(crop_size: int | None = None) -> Compose:
 
 
 __all__ = ["BatchTransform", "RandomFlip", "RandomRot90", "RandomCrop", "CenterCrop", "PhotometricJitter",
-           "Compose", "stack_params", "build_train_transform", "build_eval_transform", "SPATIAL_KEYS", "Params"]
+           "Compose", "stack_params", "build_train_transform", "build_eval_transform", "SPATIAL_KEYS", "STAGES",
+           "Params"]

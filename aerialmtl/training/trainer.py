@@ -303,8 +303,10 @@ class Trainer:
         self.train_transform = build_train_transform(cfg.flips, cfg.rot90, cfg.jitter, cfg.crop_size)
         self.mean = torch.tensor(self.info.mean, dtype=torch.float32, device=self.device)
         self.std = torch.tensor(self.info.std, dtype=torch.float32, device=self.device)
+        # on a CPU with workers, the workers finish the batches (the main process computes the model)
+        in_workers = (self.mean.cpu(), self.std.cpu()) if self.device.type == "cpu" and nw > 0 else None
         self.train_loader = torch.utils.data.DataLoader(
-            CachedBatches(PatchCache(folder, train_index), self.train_transform, self.tasks),
+            CachedBatches(PatchCache(folder, train_index), self.train_transform, self.tasks, in_workers),
             sampler=RankBatchSampler(self.plan, ctx.rank, self.state.epoch, self.state.position),
             batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(self.cfg.seed),
         )
@@ -312,7 +314,7 @@ class Trainer:
         self.eval_transform = build_eval_transform(cfg.crop_size)
         if val_index is not None:
             self.val_loader = torch.utils.data.DataLoader(
-                CachedBatches(PatchCache(folder, val_index), self.eval_transform, self.tasks),
+                CachedBatches(PatchCache(folder, val_index), self.eval_transform, self.tasks, in_workers),
                 sampler=eval_batches(val_index.count, cfg.batch_size, ctx.rank, ctx.world_size),
                 batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
                 generator=torch.Generator().manual_seed(self.cfg.seed))
