@@ -81,6 +81,7 @@ def two_rank_run(tiles: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[
     return {"run": run, "writes": root / "writes"}
 
 
+@pytest.mark.slow  # ~20 s: the module's 2-process torchrun (fixture) plus one process training 10 steps
 def test_two_processes_follow_one_process_with_twice_the_batch(two_rank_run: dict[str, Path], tiles: Path,
                                                               tmp_path: Path) -> None:
     one = train(TrainConfig.from_dict(cfg_dict(8, sync_bn=False)), tiles, tmp_path / "one", max_steps=STEPS,

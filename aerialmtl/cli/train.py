@@ -93,7 +93,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
         raise click.BadParameter("pass a training YAML, e.g. configs/d3net_small_synth.yaml", param_hint="--config")
 
     cfg = load_train_config(config_path)
-    overrides = {k: v for k, v in (("device", device), ("precision", precision)) if v is not None}
+    overrides: dict[str, object] = {k: v for k, v in (("device", device), ("precision", precision)) if v is not None}
     if compile_model:
         overrides["compile"] = True
     if overrides:

@@ -243,7 +243,7 @@ class TrainConfig:
     def from_dict(cls, data: dict[str, Any] | None) -> TrainConfig:
         return from_dict(cls, data)
 
-    def with_overrides(self, **sections: dict[str, Any]) -> TrainConfig:
+    def with_overrides(self, **sections: Any) -> TrainConfig:
         """A copy with some keys replaced, e.g. ``cfg.with_overrides(schedule={"max_steps": 10}, seed=1)``.
 
         Values are validated like YAML values.

@@ -227,11 +227,13 @@ def all_reduce(tensor: torch.Tensor) -> torch.Tensor:
     """Differentiable sum over ranks (the gradient of each input is the sum of the output gradients)."""
     from torch.distributed import _functional_collectives as fc
 
+    world = dist.group.WORLD
+    assert world is not None
     if hasattr(fc, "all_reduce_backward"):  # functional collectives with autograd (recent torch)
-        return fc.wait_tensor(fc.all_reduce(tensor, "sum", dist.group.WORLD))
+        return fc.wait_tensor(fc.all_reduce(tensor, "sum", world))
     from torch.distributed.nn.functional import all_reduce as legacy  # pragma: no cover - older torch
 
-    return legacy(tensor)  # type: ignore[no-any-return]  # pragma: no cover
+    return legacy(tensor)  # pragma: no cover
 
 
 class CpuSyncBatchNorm(nn.BatchNorm2d):
