@@ -174,3 +174,18 @@ def test_validation_batches_are_dealt_to_ranks() -> None:
     assert [len(b) for b in full] == [4, 4, 2]
     parts = eval_batches(10, 4, 0, 2) + eval_batches(10, 4, 1, 2)
     assert sorted(map(tuple, parts)) == sorted(map(tuple, full))
+
+
+def test_read_only_tile_folder_trains_with_the_cache_elsewhere(tiles: Path, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.training.config import TrainConfig
+    from aerialmtl.training.loop import train
+
+    (tiles / "cache").write_text("a file where the cache folder would go: the folder cannot be written")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    cfg = TrainConfig.from_dict({"model": {"growth_rate": 8, "block_config": [2, 2, 2, 2], "num_init_features": 16,
+                                           "bn_size": 2}, "data": {"batch_size": 2, "num_workers": 0},
+                                 "device": "cpu"})
+    with pytest.warns(UserWarning, match=r"data\.cache_dir: the tile folder .* is not writable; caching .*xdg"):
+        res = train(cfg, tiles, tmp_path / "run", max_steps=1, progress=False)
+    assert res.step == 1 and list((tmp_path / "xdg" / "aerialmtl").glob("*/train.json"))

@@ -104,8 +104,9 @@ class DataSection:
         flips, rot90: random horizontal/vertical flips and 90° rotations.
         jitter: photometric jitter (contrast/brightness in normalised space).
         crop_size: random crop side in pixels (multiple of 32), ``None`` = whole patches.
-        cache_dir: folder of the decoded patch cache, ``None`` = ``cache/`` inside the tile folder
-            (written on first use; see :mod:`aerialmtl.data.cache`).
+        cache_dir: folder of the decoded patch cache, ``None`` = ``cache/`` inside the tile folder, or
+            ``$XDG_CACHE_HOME/aerialmtl/<hash>`` (with a warning) when that cannot be written (written on
+            first use; see :mod:`aerialmtl.data.cache`).
     """
 
     dir: str | None = None

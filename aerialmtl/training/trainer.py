@@ -24,8 +24,10 @@ execution with a warning if compilation fails.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
+import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -42,7 +44,7 @@ from aerialmtl.config import to_dict
 from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
-from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError
+from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, OutputError
 from aerialmtl.formats.checkpoint import ModelMeta, check_same_data, load_checkpoint, save_checkpoint
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.models.config import ModelConfig
@@ -57,6 +59,12 @@ from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_ever
 log = logging.getLogger(__name__)
 
 RUN_FILES = ("last.pt", "best.pt", "log.csv", "config.yaml")
+
+
+def user_cache_dir(root: Path) -> Path:
+    """Where the patch cache of a read-only tile folder goes: ``$XDG_CACHE_HOME/aerialmtl/<hash of its path>``."""
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "aerialmtl" / hashlib.sha256(str(root.resolve()).encode()).hexdigest()[:16]
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:
@@ -287,8 +295,18 @@ class Trainer:
         """
         cfg = self.cfg.data
         self.cache_folder = Path(cfg.cache_dir) if cfg.cache_dir else cache_dir(self.info.root)
-        self.train_index = ensure_patch_cache(self.info, "train", self.cache_folder, workers=cfg.num_workers,
-                                              progress=self.progress)
+        try:
+            self.train_index = ensure_patch_cache(self.info, "train", self.cache_folder, workers=cfg.num_workers,
+                                                  progress=self.progress)
+        except OutputError:
+            if cfg.cache_dir:
+                raise
+            self.cache_folder = user_cache_dir(self.info.root)  # a read-only tile folder still trains
+            warnings.warn(f"data.cache_dir: the tile folder '{self.info.root}' is not writable; caching its decoded "
+                          f"patches in '{self.cache_folder}' instead (set data.cache_dir to choose)",
+                          UserWarning, stacklevel=2)
+            self.train_index = ensure_patch_cache(self.info, "train", self.cache_folder, workers=cfg.num_workers,
+                                                  progress=self.progress)
         self.val_index = None
         if read_manifest(self.info.root, "val"):
             self.val_index = ensure_patch_cache(self.info, "val", self.cache_folder, workers=cfg.num_workers,
