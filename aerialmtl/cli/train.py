@@ -69,6 +69,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     predict with), RUN/log.csv and RUN/config.yaml. A run stopped by --max-time or --max-steps continues
     with --resume. On N GPUs or machines, start it with torchrun (data.batch_size is then per process):
 
+    \b
         torchrun --nproc_per_node N -m aerialmtl train --config C --data D --out RUN
     """
     from aerialmtl.training.config import load_train_config
