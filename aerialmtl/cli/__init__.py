@@ -21,6 +21,7 @@ from aerialmtl.cli.predict import predict
 from aerialmtl.cli.synth import synth
 from aerialmtl.cli.tile import tile
 from aerialmtl.cli.train import train
+from aerialmtl.errors import AerialMTLError
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -39,9 +40,10 @@ for _command in (synth, tile, train, predict, evaluate, demo):
     cli.add_command(_command)
 
 
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    text = text or exc.__class__.__name__
+def _one_line(exc: BaseException, flags: dict[str, str] | None = None) -> str:
+    """``exc`` as one line; aerialmtl errors with their parameters spelled as ``flags`` (options)."""
+    text = exc.render(flags) if isinstance(exc, AerialMTLError) else str(exc)
+    text = " ".join(text.split()) or exc.__class__.__name__
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # one of several torchrun processes: say which
         text = f"[rank {os.environ.get('RANK', '?')}] {text}"
     return text
@@ -94,8 +96,6 @@ def _interrupted(args: list[str]) -> None:
 def _run(args: list[str], debug: bool) -> None:
     from rasterio.errors import RasterioError
 
-    from aerialmtl.errors import AerialMTLError
-
     try:
         cli.main(args=args, prog_name="aerialmtl", standalone_mode=False)
     except click.exceptions.Abort as exc:  # click turns Ctrl-C (KeyboardInterrupt) into Abort
@@ -115,11 +115,8 @@ def _run(args: list[str], debug: bool) -> None:
     except (AerialMTLError, RasterioError, OSError) as exc:
         if debug:
             raise
-        if isinstance(exc, AerialMTLError):  # parameters spelled as this command's options
-            text, hint = " ".join(exc.render(flags_for(_command_name(args))).split()), ""
-        else:
-            text, hint = _one_line(exc), " (run with --debug for the traceback)"
-        click.echo(f"Error: {text or exc.__class__.__name__}{hint}", err=True)
+        hint = "" if isinstance(exc, AerialMTLError) else " (run with --debug for the traceback)"
+        click.echo(f"Error: {_one_line(exc, flags_for(_command_name(args)))}{hint}", err=True)
         sys.exit(1)
     except Exception as exc:  # a bug: still one line, and the way to get the details
         if debug:
