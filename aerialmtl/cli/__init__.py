@@ -13,6 +13,7 @@ import warnings
 import click
 
 from aerialmtl import __version__
+from aerialmtl.cli.buildings import buildings
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
 from aerialmtl.cli.predict import predict
@@ -31,7 +32,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     ctx.obj["debug"] = debug
 
 
-for _command in (synth, tile, train, predict, evaluate, demo):
+for _command in (synth, tile, train, predict, evaluate, buildings, demo):
     cli.add_command(_command)
 
 

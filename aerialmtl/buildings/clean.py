@@ -1,0 +1,232 @@
+"""Clean a raster footprint (a pixel staircase polygon) into a building outline.
+
+:func:`clean_footprint` fills small holes, simplifies the staircase (Douglas–Peucker, topology kept)
+and, optionally, regularises the outline orthogonally with :func:`regularize`: the building's dominant
+direction θ is the length-weighted circular mean of its edge directions modulo 90° (the mean of
+``exp(4iα)``), every edge within ``angle_tolerance`` of θ or θ + 90° is turned onto that direction
+around its midpoint, consecutive edges that become parallel are merged into one line (length-weighted
+offset), short edges that point elsewhere (corner chamfers left by the staircase) are dropped, and the
+vertices are the intersections of consecutive lines. Edges far from both directions (round or oblique
+walls) keep their own direction. When the result is invalid or moves the outline too much (IoU with
+the simplified outline below :data:`MIN_REGULARIZE_IOU`) the simplified outline is kept instead.
+
+All lengths are in CRS units; the caller converts metres.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import shapely
+from shapely.geometry import MultiPolygon, Polygon
+from shapely.geometry.polygon import orient
+
+#: Edges within this angle of the dominant direction (or its normal) are snapped onto it.
+DEFAULT_ANGLE_TOLERANCE_DEG = 15.0
+#: Edges shorter than this many simplification tolerances that point away from both dominant directions
+#: are dropped by the regularisation (the corner chamfers a pixel staircase leaves).
+SHORT_EDGE = 3.0
+#: A regularised outline must keep this IoU with the simplified one, or the simplified one is kept.
+MIN_REGULARIZE_IOU = 0.9
+
+
+def largest_polygon(geom: shapely.Geometry) -> Polygon | None:
+    """``geom`` itself if it is a polygon, its largest polygon if it is a collection, else ``None``."""
+    if isinstance(geom, Polygon):
+        return None if geom.is_empty else geom
+    if isinstance(geom, MultiPolygon) or hasattr(geom, "geoms"):
+        polys = [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
+        return max(polys, key=lambda g: g.area) if polys else None
+    return None
+
+
+def fill_small_holes(poly: Polygon, max_area: float) -> Polygon:
+    """``poly`` without the holes smaller than ``max_area`` (CRS units²)."""
+    keep = [ring for ring in poly.interiors if Polygon(ring).area >= max_area]
+    return poly if len(keep) == len(poly.interiors) else Polygon(poly.exterior, keep)
+
+
+def dominant_direction(poly: Polygon) -> float:
+    """Length-weighted mean direction of the edges of ``poly`` modulo 90°, in radians in [0, π/2)."""
+    total = 0j
+    for ring in (poly.exterior, *poly.interiors):
+        xy = np.asarray(ring.coords)
+        d = np.diff(xy, axis=0)
+        length = np.hypot(d[:, 0], d[:, 1])
+        total += complex(np.sum(length * np.exp(4j * np.arctan2(d[:, 1], d[:, 0]))))
+    return (math.atan2(total.imag, total.real) / 4.0) % (math.pi / 2)
+
+
+def _intersect(p: np.ndarray, u: np.ndarray, q: np.ndarray, v: np.ndarray) -> np.ndarray | None:
+    """Intersection of the lines p + s·u and q + t·v (``None`` when nearly parallel)."""
+    cross = u[0] * v[1] - u[1] * v[0]
+    if abs(cross) < 1e-6:
+        return None
+    s = ((q[0] - p[0]) * v[1] - (q[1] - p[1]) * v[0]) / cross
+    return p + s * u
+
+
+def _supports(pts: np.ndarray, original: np.ndarray | None) -> list[np.ndarray] | None:
+    """For each edge of the simplified ring ``pts``, the vertices of the ``original`` ring it replaced.
+
+    Douglas–Peucker keeps a subset of the original vertices in order, so edge i of ``pts`` spans the
+    original vertices from ``pts[i]`` to ``pts[i + 1]``. ``None`` when they cannot be found.
+    """
+    if original is None:
+        return None
+    pos = {(float(x), float(y)): i for i, (x, y) in enumerate(original)}
+    found = [pos.get((float(x), float(y))) for x, y in pts]
+    idx = [i for i in found if i is not None]
+    if len(idx) != len(found):
+        return None
+    n = len(original)
+    spans = []
+    for a, b in zip(idx, idx[1:] + idx[:1]):
+        stop = b if b > a else b + n
+        spans.append(original[np.arange(a, stop + 1) % n])
+    if sum(len(s) - 1 for s in spans) != n:  # not one turn around the ring in order
+        return None
+    return spans
+
+
+def _regularize_ring(pts: np.ndarray, theta: float, angle_tol: float, min_edge: float,
+                     original: np.ndarray | None = None) -> np.ndarray | None:
+    """Regularised vertices of the closed ring ``pts`` (n × 2, last vertex not repeated), or ``None``.
+
+    ``original``: the unsimplified ring (pixel staircase) ``pts`` was simplified from; a snapped line then
+    passes through the mean of the staircase vertices it replaces (outer and inner corners alternate
+    around the true wall) instead of the mean of the simplified edges' midpoints, which lie on corners.
+    """
+    n = len(pts)
+    if n < 3:
+        return None
+    start, end = pts, np.roll(pts, -1, axis=0)
+    d = end - start
+    length = np.hypot(d[:, 0], d[:, 1])
+    alpha = np.arctan2(d[:, 1], d[:, 0])
+    quarter = math.pi / 2
+    k = np.round((alpha - theta) / quarter)
+    snapped = np.abs(alpha - theta - k * quarter) <= angle_tol
+    angle = np.where(snapped, theta + k * quarter, alpha)
+    keep = snapped | (length >= min_edge)
+    if keep.sum() < 3:
+        return None
+    idx = np.flatnonzero(keep)
+    axis = np.where(snapped, np.mod(k, 2), -1).astype(int)  # 0 / 1: which axis; -1: free edge
+
+    def mergeable(i: int, j: int) -> bool:
+        return bool(axis[i] >= 0 and axis[i] == axis[j])
+
+    # rotate so that the kept edges start at a group boundary
+    m = len(idx)
+    first = next((s for s in range(m) if not mergeable(int(idx[s - 1]), int(idx[s]))), None)
+    if first is None:  # every edge parallel: a degenerate sliver
+        return None
+    idx = np.roll(idx, -first)
+    groups: list[list[int]] = []
+    for i in idx:
+        if groups and mergeable(groups[-1][-1], int(i)):
+            groups[-1].append(int(i))
+        else:
+            groups.append([int(i)])
+    if len(groups) < 3:
+        return None
+    support = _supports(pts, original)
+    lines = []
+    for g in groups:
+        w = length[g]
+        if support is not None and axis[g[0]] >= 0:
+            point = np.concatenate([support[i] for i in g]).mean(axis=0)
+        else:
+            mid = 0.5 * (start[g] + end[g])
+            point = (mid * w[:, None]).sum(axis=0) / max(w.sum(), 1e-12)
+        a = angle[g[int(np.argmax(w))]]
+        lines.append((point, np.array([math.cos(a), math.sin(a)]), g[-1]))
+    out = []
+    for j, (p, u, last_edge) in enumerate(lines):
+        q, v, _ = lines[(j + 1) % len(lines)]
+        x = _intersect(p, u, q, v)
+        out.append(x if x is not None else end[last_edge])
+    return np.asarray(out)
+
+
+def regularize(poly: Polygon, tolerance: float, angle_tolerance_deg: float = DEFAULT_ANGLE_TOLERANCE_DEG,
+               original: Polygon | None = None) -> Polygon | None:
+    """Orthogonally regularised ``poly`` (see the module docstring), or ``None`` when it cannot be done.
+
+    Args:
+        poly: a simplified outline (CRS units).
+        tolerance: the simplification tolerance; edges shorter than :data:`SHORT_EDGE` times it that point
+            away from both dominant directions are dropped.
+        angle_tolerance_deg: snapping tolerance, degrees.
+        original: the outline before simplification (its vertices place the snapped walls).
+    """
+    theta = dominant_direction(poly)
+    tol = math.radians(angle_tolerance_deg)
+    originals = {}
+    if original is not None:
+        for ring in (original.exterior, *original.interiors):
+            xy = np.asarray(ring.coords)[:-1]
+            for p in xy:
+                originals[(float(p[0]), float(p[1]))] = xy
+    rings = []
+    for i, ring in enumerate((poly.exterior, *poly.interiors)):
+        pts = np.asarray(ring.coords)[:-1]
+        orig = originals.get((float(pts[0, 0]), float(pts[0, 1]))) if len(pts) else None
+        reg = _regularize_ring(pts, theta, tol, SHORT_EDGE * tolerance, orig)
+        if reg is None:
+            if i == 0:
+                return None
+            reg = pts
+        rings.append(reg)
+    try:
+        out = Polygon(rings[0], rings[1:])
+    except (ValueError, shapely.errors.GEOSException):  # pragma: no cover - defensive
+        return None
+    if not out.is_valid or out.is_empty:
+        return None
+    union = out.union(poly).area
+    if union <= 0 or out.intersection(poly).area / union < MIN_REGULARIZE_IOU:
+        return None
+    return out
+
+
+def clean_footprint(
+    poly: Polygon,
+    max_hole_area: float,
+    tolerance: float,
+    orthogonal: bool = True,
+    angle_tolerance_deg: float = DEFAULT_ANGLE_TOLERANCE_DEG,
+) -> Polygon | None:
+    """Fill holes smaller than ``max_hole_area``, simplify with ``tolerance`` and optionally regularise.
+
+    Args:
+        poly: the raster footprint in map coordinates (CRS units).
+        max_hole_area: holes smaller than this (CRS units²) are filled; larger ones (courtyards) are kept.
+        tolerance: Douglas–Peucker tolerance (CRS units); 0 keeps the staircase.
+        orthogonal: regularise orthogonally (see :func:`regularize`).
+        angle_tolerance_deg: snapping tolerance of the regularisation, degrees.
+
+    Returns:
+        the cleaned polygon, exterior counter-clockwise, or ``None`` when nothing valid is left.
+    """
+    out = filled = fill_small_holes(poly, max_hole_area)
+    if tolerance > 0:
+        simple = largest_polygon(shapely.make_valid(out.simplify(tolerance, preserve_topology=True)))
+        out = simple if simple is not None else out
+        if orthogonal:
+            reg = regularize(out, tolerance, angle_tolerance_deg, original=filled)
+            out = reg if reg is not None else out
+    if not out.is_valid:
+        fixed = largest_polygon(shapely.make_valid(out))
+        if fixed is None:
+            return None
+        out = fixed
+    return orient(out, 1.0)
+
+
+__all__ = [
+    "DEFAULT_ANGLE_TOLERANCE_DEG", "MIN_REGULARIZE_IOU", "SHORT_EDGE", "clean_footprint", "dominant_direction",
+    "fill_small_holes", "largest_polygon", "regularize",
+]
