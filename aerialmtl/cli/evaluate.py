@@ -43,6 +43,11 @@ def _check_writable(folder: Path) -> None:
               help="Reference nDSM (metres above ground); any CRS/GSD, reprojected onto the prediction grid.")
 @click.option("--labels", "labels_ref", type=click.Path(dir_okay=False, path_type=Path),
               help="Reference label raster (raw class codes); any CRS/GSD.")
+@click.option("--buildings", "buildings_ref", type=click.Path(dir_okay=False, path_type=Path),
+              help="Reference building footprints with a height_m field (e.g. buildings.geojson of `aerialmtl synth`).")
+@click.option("--pred-buildings", type=click.Path(dir_okay=False, path_type=Path),
+              help="Footprints from `aerialmtl buildings` to score against --buildings [default: extracted from "
+                   "--pred with the default settings].")
 @click.option("--classes", "classes", type=str, default=None,
               help="Class scheme YAML or built-in name; default: the scheme stored in classes.tif.")
 @click.option("--height-threshold", type=float, default=1.0, show_default=True,
@@ -58,15 +63,17 @@ def _check_writable(folder: Path) -> None:
               help="Report JSON path; report.md and PNG plots are written beside it.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing report.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, classes: str | None,
+def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, buildings_ref: Path | None,
+             pred_buildings: Path | None, classes: str | None,
              height_threshold: float, height_bins: tuple[float, ...], ignore_unknown_codes: bool,
              sample_size: int, seed: int, no_plots: bool, out: Path, overwrite: bool, quiet: bool) -> None:
     """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.
 
     Example: aerialmtl evaluate --pred pred/ --height ndsm.tif --labels gt.tif --out eval/report.json
     """
-    if height_ref is None and labels_ref is None:
-        raise click.UsageError("give at least one reference: --height NDSM.tif and/or --labels LABELS.tif")
+    if height_ref is None and labels_ref is None and buildings_ref is None:
+        raise click.UsageError("give at least one reference: --height NDSM.tif and/or --labels LABELS.tif "
+                               "and/or --buildings FOOTPRINTS")
     if not pred.is_dir():
         raise click.BadParameter(f"folder '{pred}' does not exist; pass the --out folder of `aerialmtl predict`",
                                  param_hint="--pred")
@@ -83,6 +90,7 @@ def evaluate(pred: Path, height_ref: Path | None, labels_ref: Path | None, class
         pred, height_ref=height_ref, labels_ref=labels_ref, classes=classes, out=out,
         height_threshold=height_threshold, height_bins=height_bins, ignore_unknown_codes=ignore_unknown_codes,
         overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=not quiet,
+        buildings_ref=buildings_ref, pred_buildings=pred_buildings,
     )
     width = max((len(k) for k, _ in headline(report)), default=0)
     for key, value in headline(report):

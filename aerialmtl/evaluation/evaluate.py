@@ -98,6 +98,8 @@ def evaluate_prediction(
     block_pixels: int = 1 << 20,
     plots: bool = True,
     progress: bool = False,
+    buildings_ref: str | Path | None = None,
+    pred_buildings: str | Path | None = None,
 ) -> dict[str, Any]:
     """Compare a prediction folder with reference heights and/or labels and write a report.
 
@@ -121,6 +123,10 @@ def evaluate_prediction(
         block_pixels: pixels per row band read at once (memory bound).
         plots: write PNG plots when matplotlib is installed.
         progress: show a tqdm progress bar.
+        buildings_ref: reference building footprints with heights (e.g. ``buildings.geojson`` of
+            ``aerialmtl synth``): adds the ``buildings`` section (:mod:`aerialmtl.evaluation.buildings`).
+        pred_buildings: footprints written by ``aerialmtl buildings`` to score; default: extracted from
+            ``pred_dir`` with the default settings.
 
     Returns:
         the report dict (also written as JSON, with ``nan`` → ``null``).
@@ -140,7 +146,7 @@ def evaluate_prediction(
             f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; "
             "pass the --out folder of `aerialmtl predict`"
         )
-    if height_ref is None and labels_ref is None:
+    if height_ref is None and labels_ref is None and buildings_ref is None:
         raise InputError("no reference given: pass a reference height raster (--height) and/or labels (--labels)")
     if not height_threshold >= 0:
         raise InputError(f"--height-threshold must be ≥ 0 metres, got {height_threshold}")
@@ -164,7 +170,7 @@ def evaluate_prediction(
     do_classes = labels_ref is not None and "classes" in files
     if labels_ref is not None and "classes" not in files:
         notes.append("labels given but the prediction has no classes.tif: class metrics skipped")
-    if not do_height and not do_classes:
+    if not do_height and not do_classes and buildings_ref is None:
         raise InputError(
             f"nothing to evaluate in '{pred_dir}': the references given ({'--height' if height_ref else ''}"
             f"{' --labels' if labels_ref else ''}) match no predicted layer (found: "
@@ -183,6 +189,10 @@ def evaluate_prediction(
             if key in files:
                 srcs[key] = open_raster(files[key], f"prediction {files[key].name}")
                 opened.append(srcs[key])
+        if not srcs:  # building footprints only: the grid is the prediction's
+            key = "height" if "height" in files else "classes"
+            srcs[key] = open_raster(files[key], f"prediction {files[key].name}")
+            opened.append(srcs[key])
         first = next(iter(srcs.values()))
         grid = grid_of(first)
         for key, src in srcs.items():
@@ -320,6 +330,11 @@ def evaluate_prediction(
         else:
             notes.append("no class_probabilities.tif: ECE / reliability diagram skipped "
                          "(predict with probabilities saved to get them)")
+    if buildings_ref is not None:
+        from aerialmtl.evaluation.buildings import evaluate_buildings
+
+        report["references"]["buildings"] = str(buildings_ref)
+        report["buildings"] = evaluate_buildings(pred_dir, buildings_ref, grid, pred_buildings, notes=notes)
     if out is not None:
         write_report(report, out, plots=plots)
     return report
