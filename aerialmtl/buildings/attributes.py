@@ -56,7 +56,7 @@ def building_attributes(values: dict[str, np.ndarray], ground_area_m2: float, pe
         class_names: names of the class indices.
 
     Returns:
-        field → value, in the order of :data:`aerialmtl.formats.buildings.PREDICTED_FIELDS` (without ``id``),
+        field → value, in the order of :data:`aerialmtl.formats.buildings.PREDICTED_FIELDS` (without ``building_id``),
         plus ``ground_z_m`` when ``values`` has ``dtm``.
     """
     heights = values["height"]

@@ -1,14 +1,20 @@
 """Clean a raster footprint (a pixel staircase polygon) into a building outline.
 
 :func:`clean_footprint` fills small holes, simplifies the staircase (Douglas–Peucker, topology kept)
-and, optionally, regularises the outline orthogonally with :func:`regularize`: the building's dominant
-direction θ is the length-weighted circular mean of its edge directions modulo 90° (the mean of
-``exp(4iα)``), every edge within ``angle_tolerance`` of θ or θ + 90° is turned onto that direction
-around its midpoint, consecutive edges that become parallel are merged into one line (length-weighted
-offset), short edges that point elsewhere (corner chamfers left by the staircase) are dropped, and the
-vertices are the intersections of consecutive lines. Edges far from both directions (round or oblique
-walls) keep their own direction. When the result is invalid or moves the outline too much (IoU with
-the simplified outline below :data:`MIN_REGULARIZE_IOU`) the simplified outline is kept instead.
+and, optionally, regularises the outline orthogonally with :func:`regularize`:
+
+1. the building's dominant direction θ is the length-weighted circular mean of its edge directions
+   modulo 90° (the mean of ``exp(4iα)``), refined with the principal directions of the pixel-staircase
+   vertices behind the edges close to it;
+2. every edge within ``angle_tolerance`` of θ or θ + 90° (a wider tolerance for short edges, whose
+   direction is uncertain) is turned onto that direction, through the mean of the staircase vertices it
+   replaced; consecutive edges that become parallel are merged into one line;
+3. short edges that point elsewhere (corner chamfers left by the staircase) are dropped; edges far from
+   both directions (round or oblique walls) keep their own direction;
+4. the vertices are the intersections of consecutive lines.
+
+When the result is invalid or moves the outline too much (IoU with the simplified outline below
+:data:`MIN_REGULARIZE_IOU`) the simplified outline is kept instead.
 
 All lengths are in CRS units; the caller converts metres.
 """
@@ -90,26 +96,60 @@ def _supports(pts: np.ndarray, original: np.ndarray | None) -> list[np.ndarray] 
     return spans
 
 
-def _regularize_ring(pts: np.ndarray, theta: float, angle_tol: float, min_edge: float,
-                     original: np.ndarray | None = None) -> np.ndarray | None:
+def _snap(pts: np.ndarray, theta: float, angle_tol: float, tolerance: float) -> tuple[np.ndarray, ...]:
+    """Per edge of the closed ring ``pts``: start, end, length, axis k (angle θ + k·90°), snapped?"""
+    start, end = pts, np.roll(pts, -1, axis=0)
+    d = end - start
+    length = np.hypot(d[:, 0], d[:, 1])
+    alpha = np.arctan2(d[:, 1], d[:, 0])
+    k = np.round((alpha - theta) / (math.pi / 2))
+    allowed = np.maximum(angle_tol, np.arctan2(2.0 * tolerance, length))
+    snapped = np.abs(alpha - theta - k * math.pi / 2) <= allowed
+    return start, end, length, alpha, k, snapped
+
+
+def _refined_direction(rings: list[np.ndarray], supports: list[list[np.ndarray] | None], theta: float,
+                       angle_tol: float, tolerance: float) -> float:
+    """θ re-estimated from the principal direction of the staircase vertices behind each snapped edge.
+
+    The simplified edges run between staircase corners, so their directions are off by up to
+    atan(tolerance / length); the staircase vertices of a whole wall pin its direction much better.
+    """
+    total = 0j
+    for pts, support in zip(rings, supports):
+        if support is None or len(pts) < 3:
+            continue
+        _, _, length, _, _, snapped = _snap(pts, theta, angle_tol, tolerance)
+        for i in np.flatnonzero(snapped):
+            sp = support[i]
+            if len(sp) < 3:
+                continue
+            centred = sp - sp.mean(axis=0)
+            _, _, vt = np.linalg.svd(centred, full_matrices=False)
+            total += length[i] * np.exp(4j * math.atan2(vt[0, 1], vt[0, 0]))
+    if total == 0:
+        return theta
+    return (math.atan2(total.imag, total.real) / 4.0) % (math.pi / 2)
+
+
+def _regularize_ring(pts: np.ndarray, theta: float, angle_tol: float, tolerance: float,
+                     support: list[np.ndarray] | None = None) -> np.ndarray | None:
     """Regularised vertices of the closed ring ``pts`` (n × 2, last vertex not repeated), or ``None``.
 
-    ``original``: the unsimplified ring (pixel staircase) ``pts`` was simplified from; a snapped line then
-    passes through the mean of the staircase vertices it replaces (outer and inner corners alternate
+    An edge is snapped when its direction is within ``angle_tol`` of an axis, or within the direction
+    uncertainty of a simplified edge, atan(2 · ``tolerance`` / length), whichever is larger: both ends of
+    a short edge may be off by the simplification tolerance.
+
+    ``support``: per edge, the vertices of the unsimplified ring (pixel staircase) it replaced (see
+    :func:`_supports`); a snapped line then passes through their mean (outer and inner corners alternate
     around the true wall) instead of the mean of the simplified edges' midpoints, which lie on corners.
     """
     n = len(pts)
     if n < 3:
         return None
-    start, end = pts, np.roll(pts, -1, axis=0)
-    d = end - start
-    length = np.hypot(d[:, 0], d[:, 1])
-    alpha = np.arctan2(d[:, 1], d[:, 0])
-    quarter = math.pi / 2
-    k = np.round((alpha - theta) / quarter)
-    snapped = np.abs(alpha - theta - k * quarter) <= angle_tol
-    angle = np.where(snapped, theta + k * quarter, alpha)
-    keep = snapped | (length >= min_edge)
+    start, end, length, alpha, k, snapped = _snap(pts, theta, angle_tol, tolerance)
+    angle = np.where(snapped, theta + k * math.pi / 2, alpha)
+    keep = snapped | (length >= SHORT_EDGE * tolerance)
     if keep.sum() < 3:
         return None
     idx = np.flatnonzero(keep)
@@ -132,7 +172,6 @@ def _regularize_ring(pts: np.ndarray, theta: float, angle_tol: float, min_edge: 
             groups.append([int(i)])
     if len(groups) < 3:
         return None
-    support = _supports(pts, original)
     lines = []
     for g in groups:
         w = length[g]
@@ -162,7 +201,6 @@ def regularize(poly: Polygon, tolerance: float, angle_tolerance_deg: float = DEF
         angle_tolerance_deg: snapping tolerance, degrees.
         original: the outline before simplification (its vertices place the snapped walls).
     """
-    theta = dominant_direction(poly)
     tol = math.radians(angle_tolerance_deg)
     originals = {}
     if original is not None:
@@ -170,11 +208,13 @@ def regularize(poly: Polygon, tolerance: float, angle_tolerance_deg: float = DEF
             xy = np.asarray(ring.coords)[:-1]
             for p in xy:
                 originals[(float(p[0]), float(p[1]))] = xy
+    simplified = [np.asarray(ring.coords)[:-1] for ring in (poly.exterior, *poly.interiors)]
+    supports = [_supports(pts, originals.get((float(pts[0, 0]), float(pts[0, 1])))) if len(pts) else None
+                for pts in simplified]
+    theta = _refined_direction(simplified, supports, dominant_direction(poly), tol, tolerance)
     rings = []
-    for i, ring in enumerate((poly.exterior, *poly.interiors)):
-        pts = np.asarray(ring.coords)[:-1]
-        orig = originals.get((float(pts[0, 0]), float(pts[0, 1]))) if len(pts) else None
-        reg = _regularize_ring(pts, theta, tol, SHORT_EDGE * tolerance, orig)
+    for i, (pts, support) in enumerate(zip(simplified, supports)):
+        reg = _regularize_ring(pts, theta, tol, tolerance, support)
         if reg is None:
             if i == 0:
                 return None

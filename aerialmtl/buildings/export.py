@@ -21,7 +21,7 @@ from typing import Any
 from aerialmtl.buildings.extract import BuildingOptions, ExtractionStats, extract_buildings
 from aerialmtl.buildings.layers import BuildingLayers
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
-from aerialmtl.formats.buildings import GROUND_Z_FIELD, PREDICTED_FIELDS, FootprintWriter, driver_for
+from aerialmtl.formats.buildings import GROUND_Z_FIELD, ID_FIELD, PREDICTED_FIELDS, FootprintWriter, driver_for
 from aerialmtl.formats.cityjson import CityJSONWriter
 from aerialmtl.io.outputs import make_output_dir
 
@@ -141,7 +141,7 @@ def write_buildings(
 
             count = 0
             for bld in extract_buildings(layers, options, building_classes, stats, progress):
-                row = {"id": bld.id, **bld.attributes}
+                row = {ID_FIELD: bld.id, **bld.attributes}
                 for name in fields:
                     records[name].append(row[name])
                 geoms.append(bld.geometry)

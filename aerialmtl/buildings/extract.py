@@ -97,7 +97,7 @@ class Building:
     Attributes:
         id: 1, 2, ... in the order buildings were completed.
         geometry: cleaned footprint in the prediction's CRS (exterior counter-clockwise).
-        attributes: the fields of :data:`aerialmtl.formats.buildings.PREDICTED_FIELDS` except ``id``
+        attributes: the fields of :data:`aerialmtl.formats.buildings.PREDICTED_FIELDS` except ``building_id``
             (plus ``ground_z_m`` with a DTM).
     """
 

@@ -10,7 +10,7 @@ GeoJSON in a projected CRS carries the (legacy) ``crs`` member GDAL writes, whic
 Fields of a predicted building (:data:`PREDICTED_FIELDS`; metres and square/cubic metres whatever the
 CRS unit)::
 
-    id                int     1, 2, ... in the order the buildings were completed (raster order)
+    building_id       int     1, 2, ... in the order the buildings were completed (raster order)
     class_name        str     the building class most of its pixels have
     height_m          float   roof height above ground: a percentile (default the median) of height.tif
     height_std_m      float   median MC-dropout standard deviation (height_std.tif) over the same pixels
@@ -20,7 +20,7 @@ CRS unit)::
     n_pixels          int     pixels of the building in classes.tif
     ground_z_m        float   median terrain elevation under the footprint (only with a DTM)
 
-Fields of a reference building (:data:`REFERENCE_FIELDS`): ``id``, ``height_m`` (the same statistic of
+Fields of a reference building (:data:`REFERENCE_FIELDS`): ``building_id``, ``height_m`` (the same statistic of
 the true roof surface), ``height_max_m`` (highest roof point).
 
 Undefined values (no ``height_std.tif``, ...) are written as null.
@@ -43,9 +43,12 @@ LAYER = "buildings"
 #: The reference footprints ``aerialmtl synth`` writes beside its rasters.
 REFERENCE_FILE = "buildings.geojson"
 
+#: The building number field. Not "id": GDAL's GeoJSON driver takes an integer "id" property for the
+#: feature id and then reorders the features it appends.
+ID_FIELD = "building_id"
 #: Field name → numpy dtype of the predicted buildings, in file order.
 PREDICTED_FIELDS: dict[str, str] = {
-    "id": "int64",
+    ID_FIELD: "int64",
     "class_name": "object",
     "height_m": "float64",
     "height_std_m": "float64",
@@ -57,7 +60,7 @@ PREDICTED_FIELDS: dict[str, str] = {
 #: Extra field written when a DTM gives the ground elevation.
 GROUND_Z_FIELD = "ground_z_m"
 #: Field name → numpy dtype of the reference buildings.
-REFERENCE_FIELDS: dict[str, str] = {"id": "int64", "height_m": "float64", "height_max_m": "float64"}
+REFERENCE_FIELDS: dict[str, str] = {ID_FIELD: "int64", "height_m": "float64", "height_max_m": "float64"}
 
 #: OGR driver per file suffix.
 DRIVERS = {".gpkg": "GPKG", ".geojson": "GeoJSON", ".json": "GeoJSON"}
@@ -147,6 +150,6 @@ def read_footprints(path: str | Path, role: str = "building footprints") -> tupl
 
 
 __all__ = [
-    "DRIVERS", "GROUND_Z_FIELD", "LAYER", "PREDICTED_FIELDS", "REFERENCE_FIELDS", "REFERENCE_FILE",
+    "DRIVERS", "GROUND_Z_FIELD", "ID_FIELD", "LAYER", "PREDICTED_FIELDS", "REFERENCE_FIELDS", "REFERENCE_FILE",
     "FootprintWriter", "driver_for", "read_footprints",
 ]

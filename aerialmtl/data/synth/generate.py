@@ -21,7 +21,7 @@ from aerialmtl.classes import BUILTIN_DIR, ClassScheme
 from aerialmtl.data.synth.render import render_ortho
 from aerialmtl.data.synth.scene import Scene, build_scene
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
-from aerialmtl.formats.buildings import REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
+from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
 from aerialmtl.io.align import HEIGHT_NODATA
 
 #: Version of the generator; bump it whenever the same seed would produce different rasters.
@@ -178,7 +178,7 @@ def _write_reference_buildings(scene: Scene, path: Path, crs: CRS, origin: tuple
     # scene metres (x east, y south of the upper-left corner) → map coordinates
     to_map = [1.0, 0.0, 0.0, -1.0, origin[0], origin[1]]
     geoms = [orient(affine_transform(b.footprint, to_map), 1.0) for b in scene.buildings]
-    writer.write(geoms, {"id": list(range(1, len(geoms) + 1)),
+    writer.write(geoms, {ID_FIELD: list(range(1, len(geoms) + 1)),
                          "height_m": [b.height_m for b in scene.buildings],
                          "height_max_m": [b.height_max_m for b in scene.buildings]})
     writer.close()
