@@ -423,3 +423,26 @@ def test_no_building_warning_reaches_the_cli(tmp_path: Path, rng: np.random.Gene
         warnings.simplefilter("default")
         code, out, err = _run(capsys, "buildings", pred, "--out", tmp_path / "b.gpkg", "--quiet")
     assert code == 0 and "warning: no building pixel" in err and "0 buildings" in out
+
+
+def test_plot_and_table_of_the_most_uncertain_buildings(tmp_path: Path, rng: np.random.Generator) -> None:
+    pytest.importorskip("matplotlib")
+    from aerialmtl.buildings.plot import format_buildings, most_uncertain_buildings, plot_buildings
+
+    cls, height, std, ent = _layers((80, 80), [(5, 30, 5, 30, 6.0), (40, 75, 10, 70, 15.0)], rng)
+    std[40:75, 10:70] += 3.0  # the big building is the uncertain one
+    cls[50:65, 30:50] = SOIL
+    pred = write_prediction_layers(tmp_path / "pred", cls, height, std, ent)
+    write_buildings(pred, [tmp_path / "b.gpkg"])
+    geoms, fields, _ = read_footprints(tmp_path / "b.gpkg")
+    rows = most_uncertain_buildings(fields, geoms, top_k=1)
+    big = int(np.argmax(fields["ground_area_m2"]))
+    assert rows[0]["building_id"] == fields["building_id"][big]
+    assert (rows[0]["x"], rows[0]["y"]) == pytest.approx((geoms[big].centroid.x, geoms[big].centroid.y))
+    assert str(rows[0]["building_id"]) in format_buildings(rows)
+    fig, axes = plot_buildings(geoms, fields)
+    assert len(axes) == 2 and len(axes[0].collections) == 1
+    left, right = axes[0].get_xlim()
+    assert left <= min(g.bounds[0] for g in geoms) and right >= max(g.bounds[2] for g in geoms)
+    fig.savefig(tmp_path / "b.png")
+    assert (tmp_path / "b.png").stat().st_size > 1000
