@@ -11,8 +11,9 @@ a union–find. When a row of blocks is done, every building that does not reach
 its pieces are merged (:func:`shapely.union_all`) and it is handed on, then forgotten.
 
 Memory therefore holds one block of every layer, one row of pixel ids and heights along the frontier
-(a few bytes × the raster width) and the pixels of the buildings that cross the frontier; it does not
-grow with the raster's size, only with the size of the largest building.
+(a few bytes × the raster width), the pixels of the buildings that cross the frontier and GDAL's block
+cache (capped at :data:`DEFAULT_CACHE_MB` unless ``GDAL_CACHEMAX`` is set); it does not grow with the
+raster's size, only with the size of the largest building.
 
 :func:`iter_buildings` turns each merged component into a :class:`Building`: map coordinates, cleaned
 outline (:mod:`aerialmtl.buildings.clean`) and attributes (:mod:`aerialmtl.buildings.attributes`).
@@ -20,6 +21,7 @@ outline (:mod:`aerialmtl.buildings.clean`) and attributes (:mod:`aerialmtl.build
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
@@ -28,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import rasterio
 import shapely
 from affine import Affine
 from rasterio.features import shapes
@@ -45,6 +48,10 @@ from aerialmtl.buildings.layers import BuildingLayers, building_class_indices
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.errors import InputError
 from aerialmtl.formats.prediction import CLASSES
+
+#: GDAL block cache while extracting (MiB) unless GDAL_CACHEMAX is set: every block is read once, so a
+#: cache larger than one block row of tiles only grows with the raster (GDAL's default is 5 % of the RAM).
+DEFAULT_CACHE_MB = 64
 
 #: 4-connectivity (pixels sharing an edge), as rasterio.features.shapes uses by default.
 FOUR_CONNECTED = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
@@ -208,7 +215,8 @@ def _block_pieces(labels: np.ndarray, n: int, mask: np.ndarray, block: dict[str,
     for i in range(n):
         parts = polys[i + 1]
         poly = parts[0] if len(parts) == 1 else shapely.union_all(parts)
-        pieces.append(PixelBuilding(poly, {key: v[i] for key, v in values.items()}))
+        # copies: a view would keep the whole block's arrays alive while the building stays open
+        pieces.append(PixelBuilding(poly, {key: v[i].copy() for key, v in values.items()}))
     return pieces
 
 
@@ -247,7 +255,8 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
     frontier_ids = np.full(width, -1, np.int64)
     frontier_h = np.full(width, np.nan, np.float32)
     n_blocks = -(-height // b) * -(-width // b)
-    with tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
+    env = {} if "GDAL_CACHEMAX" in os.environ else {"GDAL_CACHEMAX": DEFAULT_CACHE_MB * 1024 * 1024}  # bytes
+    with rasterio.Env(**env), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
         for r0 in range(0, height, b):
             bh = min(b, height - r0)
             last_row = r0 + bh >= height
