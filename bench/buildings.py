@@ -3,7 +3,7 @@
 Usage::
 
     python bench/buildings.py --memory [--sizes 2048,4096,8192] [--block-size 1024]
-    python bench/buildings.py --quality --model RUN/best.pt [--seeds 101,102,103] [--size 1024] [--mc 8]
+    python bench/buildings.py --quality --model RUN/best.pt [--seeds 101,102,103] [--size 1024] [--mc 8] [--reuse]
 
 ``--memory``: for each size N it writes an N×N prediction folder block by block (never a whole layer in
 memory): ``classes.tif`` (synthetic scheme), ``height.tif``, ``height_std.tif``, ``class_entropy.tif``, tiled
@@ -16,7 +16,8 @@ and some 60 m long ones, so that many buildings cross block edges. It then runs 
 ``aerialmtl synth`` (town of ``--size`` px), ``aerialmtl predict`` (``--model``, T = ``--mc``),
 ``aerialmtl buildings`` and ``aerialmtl evaluate --height --labels --buildings``; the same extraction on a
 *perfect* prediction (the town's own labels and nDSM) gives the ceiling of the extraction step alone.
-Prints the commands and a Markdown table of building F1 / height MAE next to the pixel metrics.
+Prints the commands, a Markdown table of building F1 / height MAE next to the pixel metrics and the
+height error when ``height_m`` is another percentile of the predicted heights.
 """
 
 from __future__ import annotations
@@ -194,15 +195,39 @@ def _perfect_prediction(town: Path, out: Path) -> None:
     shutil.copyfile(town / "ndsm.tif", out / layer_filename(HEIGHT))
 
 
-def bench_quality(model: Path, seeds: list[int], size: int, mc: int, work: Path) -> None:
+def percentile_sweep(seeds: list[int], work: Path, percentiles: tuple[float, ...] = (50, 60, 70, 75, 80, 90)) -> None:
+    """Height MAE / bias of the matched buildings when ``height_m`` is another percentile (pooled over seeds)."""
+    from aerialmtl.buildings import BuildingOptions, iter_buildings
+    from aerialmtl.evaluation.buildings import score_buildings
+    from aerialmtl.formats.buildings import read_footprints
+
+    print("\n| height_m = percentile | matched | height MAE (m) | bias (m) | F1 |\n|---|---|---|---|---|")
+    for q in percentiles:
+        n = tp = npred = nref = 0
+        abs_sum = bias_sum = 0.0
+        for seed in seeds:
+            found = list(iter_buildings(work / f"pred_{seed}", BuildingOptions(height_percentile=q)))
+            ref, fields, _ = read_footprints(work / f"town_{seed}" / "buildings.geojson")
+            r = score_buildings([b.geometry for b in found], [b.attributes["height_m"] for b in found],
+                                [b.attributes["height_std_m"] for b in found], ref, fields["height_m"])
+            k = r["height"]["n"]
+            n, abs_sum, bias_sum = n + k, abs_sum + r["height"]["mae"] * k, bias_sum + r["height"]["bias"] * k
+            tp, npred, nref = tp + r["n_matched"], npred + r["n_predicted"], nref + r["n_reference"]
+        f1 = 2 * tp / max(npred + nref, 1)
+        print(f"| {q:g}{' (default)' if q == 50 else ''} | {n} | {abs_sum / n:.2f} | {bias_sum / n:+.2f} | {f1:.3f} |")
+
+
+def bench_quality(model: Path, seeds: list[int], size: int, mc: int, work: Path, reuse: bool = False) -> None:
     variants = {"default": [], "--height-step 2.5": ["--height-step", "2.5"], "--no-orthogonal": ["--no-orthogonal"]}
     rows = []
     for seed in seeds:
         town, pred = work / f"town_{seed}", work / f"pred_{seed}"
-        _cli("synth", town, "--size", size, "--seed", seed, "--overwrite")
         t0 = time.perf_counter()
-        _cli("predict", town / "ortho.tif", "--model", model, "--out", pred, "--mc", mc, "--tile", 512,
-             "--precision", "fp32", "--overwrite", "--quiet")
+        if not (reuse and (pred / "prediction.json").is_file()):
+            _cli("synth", town, "--size", size, "--seed", seed, "--overwrite")
+            t0 = time.perf_counter()
+            _cli("predict", town / "ortho.tif", "--model", model, "--out", pred, "--mc", mc, "--tile", 512,
+                 "--precision", "fp32", "--overwrite", "--quiet")
         predict_s = time.perf_counter() - t0
         for name, extra in variants.items():
             tag = name.replace("-", "").replace(" ", "_")
@@ -252,6 +277,7 @@ def bench_quality(model: Path, seeds: list[int], size: int, mc: int, work: Path)
         f1 = 2 * p * rec / max(p + rec, 1e-9)
         print(f"\npooled over seeds, {name}: precision {p:.3f}, recall {rec:.3f}, F1 {f1:.3f}, "
               f"height MAE {mae:.2f} m over {tp} matched buildings")
+    percentile_sweep(seeds, work)
 
 
 def main() -> None:
@@ -264,6 +290,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="101,102,103")
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--mc", type=int, default=8)
+    ap.add_argument("--reuse", action="store_true", help="--quality: keep towns and predictions already in --workdir")
     ap.add_argument("--workdir", default="/tmp/aerialmtl-bench-buildings")
     ap.add_argument("--keep", action="store_true", help="keep the generated prediction folders")
     args = ap.parse_args()
@@ -275,7 +302,8 @@ def main() -> None:
     if args.quality:
         if args.model is None:
             ap.error("--quality needs --model RUN/best.pt")
-        bench_quality(args.model.resolve(), [int(s) for s in args.seeds.split(",")], args.size, args.mc, work)
+        bench_quality(args.model.resolve(), [int(s) for s in args.seeds.split(",")], args.size, args.mc, work,
+                      args.reuse)
 
 
 if __name__ == "__main__":

@@ -7,11 +7,13 @@ touching buildings of different heights come apart) and every component is polyg
 :func:`rasterio.features.shapes` in **global pixel coordinates** (integers, so pieces of one building in
 two blocks share exactly the same edge coordinates). Components that touch across a block edge — a pair
 of building pixels facing each other on the two sides, under the same height-step rule — are joined in
-a union–find. When a row of blocks is done, every building that does not reach its last row is complete:
-its pieces are merged (:func:`shapely.union_all`) and it is handed on, then forgotten.
+a union–find that counts, per building, the block edges it reaches that have not been read across yet
+(a piece in a block's last row or column). When that count falls to zero the building is complete: its
+pieces are merged (:func:`shapely.union_all`), it is handed on and forgotten, right after the block
+that completed it.
 
 Memory therefore holds one block of every layer, one row of pixel ids and heights along the frontier
-(a few bytes × the raster width), the pixels of the buildings that cross the frontier and GDAL's block
+(a few bytes × the raster width), the pixels of the buildings that cross it and GDAL's block
 cache (capped at :data:`DEFAULT_CACHE_MB` unless ``GDAL_CACHEMAX`` is set); it does not grow with the
 raster's size, only with the size of the largest building.
 
@@ -143,12 +145,19 @@ class PixelBuilding:
         return int(self.values["class"].size)
 
 
-class _UnionFind:
+class _Groups:
+    """Union–find over building pieces that also knows, per group, its pieces and how many block edges
+    through which it may still continue (an open edge of one of its pieces)."""
+
     def __init__(self) -> None:
         self.parent: dict[int, int] = {}
+        self.members: dict[int, list[int]] = {}
+        self.open: dict[int, int] = {}
 
-    def add(self, i: int) -> None:
+    def add(self, i: int, open_edges: int) -> None:
         self.parent[i] = i
+        self.members[i] = [i]
+        self.open[i] = open_edges
 
     def find(self, i: int) -> int:
         root = i
@@ -161,11 +170,27 @@ class _UnionFind:
     def union(self, a: int, b: int) -> None:
         ra, rb = self.find(a), self.find(b)
         if ra != rb:
-            self.parent[max(ra, rb)] = min(ra, rb)
+            keep, drop = min(ra, rb), max(ra, rb)
+            self.parent[drop] = keep
+            self.members[keep] += self.members.pop(drop)
+            self.open[keep] += self.open.pop(drop)
 
-    def forget(self, ids: Sequence[int]) -> None:
-        for i in ids:
-            del self.parent[i]
+    def close_edge(self, i: int) -> None:
+        """The edge through which piece ``i`` could continue has been read: one open edge less."""
+        self.open[self.find(i)] -= 1
+
+    def pop_closed(self, ids: Sequence[int]) -> list[list[int]]:
+        """Remove and return the members of every group of ``ids`` that has no open edge left."""
+        roots = sorted({self.find(i) for i in ids})
+        out = []
+        for root in roots:
+            if self.open[root] == 0:
+                members = self.members.pop(root)
+                del self.open[root]
+                for m in members:
+                    del self.parent[m]
+                out.append(members)
+        return out
 
 
 def _components(mask: np.ndarray, height: np.ndarray, step: float | None) -> tuple[np.ndarray, int]:
@@ -188,7 +213,7 @@ def _components(mask: np.ndarray, height: np.ndarray, step: float | None) -> tup
     return labels, int(uniq.size)
 
 
-def _join(uf: _UnionFind, ids_a: np.ndarray, h_a: np.ndarray, ids_b: np.ndarray, h_b: np.ndarray,
+def _join(groups: _Groups, ids_a: np.ndarray, h_a: np.ndarray, ids_b: np.ndarray, h_b: np.ndarray,
           step: float | None) -> None:
     """Union the pieces of facing pixel pairs (``ids_a[i]`` next to ``ids_b[i]``; −1 = not a building)."""
     ok = (ids_a >= 0) & (ids_b >= 0)
@@ -198,7 +223,7 @@ def _join(uf: _UnionFind, ids_a: np.ndarray, h_a: np.ndarray, ids_b: np.ndarray,
     if not ok.any():
         return
     for a, b in np.unique(np.stack([ids_a[ok], ids_b[ok]], axis=1), axis=0):
-        uf.union(int(a), int(b))
+        groups.union(int(a), int(b))
 
 
 def _block_pieces(labels: np.ndarray, n: int, mask: np.ndarray, block: dict[str, np.ndarray], col_off: int,
@@ -242,18 +267,19 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
         progress: tqdm bar over the blocks.
 
     Yields:
-        every 4-connected building component once, in the order they are completed (raster order of the
-        block row where they end).
+        every 4-connected building component once, as soon as no block still to be read can touch it
+        (after the block holding its last pixel in raster order, or the block below or right of it).
     """
     stats = stats if stats is not None else ExtractionStats()
     height, width = layers.grid.height, layers.grid.width
     b = int(block_size)
     classes = np.asarray(sorted(class_indices), dtype=np.uint8)
-    uf = _UnionFind()
+    groups = _Groups()
     live: dict[int, PixelBuilding] = {}
     next_id = 0
-    frontier_ids = np.full(width, -1, np.int64)
+    frontier_ids = np.full(width, -1, np.int64)  # piece id of the pixels just above this block row
     frontier_h = np.full(width, np.nan, np.float32)
+    above: dict[int, list[int]] = {}  # block column → pieces of the block above that reach its bottom row
     n_blocks = -(-height // b) * -(-width // b)
     env = {} if "GDAL_CACHEMAX" in os.environ else {"GDAL_CACHEMAX": DEFAULT_CACHE_MB * 1024 * 1024}  # bytes
     with rasterio.Env(**env), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
@@ -262,10 +288,13 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
             last_row = r0 + bh >= height
             new_ids = np.full(width, -1, np.int64)
             new_h = np.full(width, np.nan, np.float32)
+            below: dict[int, list[int]] = {}
             left_ids = np.full(bh, -1, np.int64)
             left_h = np.full(bh, np.nan, np.float32)
+            left_open: list[int] = []  # pieces of the block on the left that reach its right column
             for c0 in range(0, width, b):
                 bw = min(b, width - c0)
+                last_col = c0 + bw >= width
                 block = layers.read(Window(c0, r0, bw, bh))
                 stats.blocks += 1
                 bar.update(1)
@@ -273,38 +302,42 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
                 stats.valid_pixels += int(np.count_nonzero(cls != IGNORE_INDEX))
                 mask = np.isin(cls, classes)
                 n_mask = int(np.count_nonzero(mask))
-                if n_mask == 0:
+                new: list[int] = []
+                right_open: list[int] = []
+                if n_mask:
+                    stats.building_pixels += n_mask
+                    labels, n = _components(mask, block["height"], height_step_m)
+                    stats.components += n
+                    gid = np.where(labels > 0, labels.astype(np.int64) + (next_id - 1), -1)
+                    at_bottom = set() if last_row else set(np.unique(gid[-1][gid[-1] >= 0]).tolist())
+                    at_right = set() if last_col else set(np.unique(gid[:, -1][gid[:, -1] >= 0]).tolist())
+                    for i, piece in enumerate(_block_pieces(labels, n, mask, block, c0, r0)):
+                        pid = next_id + i
+                        live[pid] = piece
+                        groups.add(pid, int(pid in at_bottom) + int(pid in at_right))
+                        new.append(pid)
+                    next_id += n
+                    below[c0] = sorted(at_bottom)
+                    right_open = sorted(at_right)
+                    hgt = block["height"]
+                    if c0 > 0:
+                        _join(groups, left_ids, left_h, gid[:, 0], hgt[:, 0], height_step_m)
+                    if r0 > 0:
+                        _join(groups, frontier_ids[c0:c0 + bw], frontier_h[c0:c0 + bw], gid[0], hgt[0],
+                              height_step_m)
+                    left_ids, left_h = gid[:, -1].copy(), hgt[:, -1].copy()
+                    new_ids[c0:c0 + bw] = gid[-1]
+                    new_h[c0:c0 + bw] = hgt[-1]
+                else:
                     left_ids = np.full(bh, -1, np.int64)
-                    continue
-                stats.building_pixels += n_mask
-                labels, n = _components(mask, block["height"], height_step_m)
-                stats.components += n
-                gid = np.where(labels > 0, labels.astype(np.int64) + (next_id - 1), -1)
-                for i, piece in enumerate(_block_pieces(labels, n, mask, block, c0, r0)):
-                    live[next_id + i] = piece
-                    uf.add(next_id + i)
-                next_id += n
-                hgt = block["height"]
-                if c0 > 0:
-                    _join(uf, left_ids, left_h, gid[:, 0], hgt[:, 0], height_step_m)
-                if r0 > 0:
-                    _join(uf, frontier_ids[c0:c0 + bw], frontier_h[c0:c0 + bw], gid[0], hgt[0], height_step_m)
-                left_ids, left_h = gid[:, -1].copy(), hgt[:, -1].copy()
-                new_ids[c0:c0 + bw] = gid[-1]
-                new_h[c0:c0 + bw] = hgt[-1]
-            # buildings that do not reach the last row of this block row are complete
-            open_roots = set() if last_row else {uf.find(int(i)) for i in np.unique(new_ids[new_ids >= 0])}
-            done: dict[int, list[int]] = defaultdict(list)
-            for pid in live:
-                root = uf.find(pid)
-                if root not in open_roots:
-                    done[root].append(pid)
-            for root in sorted(done):
-                members = done[root]
-                merged = _merge([live.pop(pid) for pid in members])
-                uf.forget(members)
-                yield merged
-            frontier_ids, frontier_h = new_ids, new_h
+                # the right column of the block on the left and the bottom row of the block above are read now
+                resolved = left_open + above.get(c0, [])
+                for pid in resolved:
+                    groups.close_edge(pid)
+                left_open = right_open
+                for members in groups.pop_closed(new + resolved):
+                    yield _merge([live.pop(pid) for pid in members])
+            frontier_ids, frontier_h, above = new_ids, new_h, below
 
 
 def extract_buildings(

@@ -4,5 +4,8 @@ Every reader and writer of a format goes through its module here, so each file n
 nodata value is spelled once:
 
 * :mod:`aerialmtl.formats.checkpoint` — the self-describing checkpoint (``best.pt`` / ``last.pt``);
-* :mod:`aerialmtl.formats.prediction` — the prediction folder (layer files, tags, nodata, ``prediction.json``).
+* :mod:`aerialmtl.formats.prediction` — the prediction folder (layer files, tags, nodata, ``prediction.json``);
+* :mod:`aerialmtl.formats.buildings` — building footprint layers (GeoPackage / GeoJSON: fields, layer name,
+  the reference file of ``aerialmtl synth``);
+* :mod:`aerialmtl.formats.cityjson` — CityJSON 2.0 files of LoD1 buildings.
 """
