@@ -197,19 +197,18 @@ def _perfect_prediction(town: Path, out: Path) -> None:
 
 def percentile_sweep(seeds: list[int], work: Path, percentiles: tuple[float, ...] = (50, 60, 70, 75, 80, 90)) -> None:
     """Height MAE / bias of the matched buildings when ``height_m`` is another percentile (pooled over seeds)."""
-    from aerialmtl.buildings import BuildingOptions, iter_buildings
-    from aerialmtl.evaluation.buildings import score_buildings
-    from aerialmtl.formats.buildings import read_footprints
+    from aerialmtl.buildings import BuildingLayers, BuildingOptions
+    from aerialmtl.evaluation.buildings import evaluate_buildings
 
     print("\n| height_m = percentile | matched | height MAE (m) | bias (m) | F1 |\n|---|---|---|---|---|")
     for q in percentiles:
         n = tp = npred = nref = 0
         abs_sum = bias_sum = 0.0
         for seed in seeds:
-            found = list(iter_buildings(work / f"pred_{seed}", BuildingOptions(height_percentile=q)))
-            ref, fields, _ = read_footprints(work / f"town_{seed}" / "buildings.geojson")
-            r = score_buildings([b.geometry for b in found], [b.attributes["height_m"] for b in found],
-                                [b.attributes["height_std_m"] for b in found], ref, fields["height_m"])
+            with BuildingLayers(work / f"pred_{seed}") as layers:
+                grid = layers.grid
+            r = evaluate_buildings(work / f"pred_{seed}", work / f"town_{seed}" / "buildings.geojson", grid,
+                                   options=BuildingOptions(height_percentile=q))
             k = r["height"]["n"]
             n, abs_sum, bias_sum = n + k, abs_sum + r["height"]["mae"] * k, bias_sum + r["height"]["bias"] * k
             tp, npred, nref = tp + r["n_matched"], npred + r["n_predicted"], nref + r["n_reference"]
