@@ -123,6 +123,31 @@ def test_rotated_outlines_are_squared(rng: np.random.Generator) -> None:
             assert iou > 0.96 and iou >= raw.intersection(truth).area / raw.union(truth).area - 0.005
 
 
+def test_fast_supports_and_principal_axis_match_the_plain_versions(rng: np.random.Generator) -> None:
+    """The vectorised vertex lookup and the closed-form principal axis give what a dict lookup and an SVD give."""
+    from aerialmtl.buildings.clean import _supports
+
+    truth = affinity.rotate(box(20, 20, 80, 50), 23.0, origin=(50.3, 50.1))
+    mask = rasterize([truth], out_shape=(100, 100)).astype(np.uint8)
+    (raw,) = [shapely.geometry.shape(g) for g, _ in rasterio.features.shapes(mask, mask=mask > 0)]
+    original = np.asarray(raw.exterior.coords)[:-1]
+    simple = np.asarray(raw.simplify(1.5).exterior.coords)[:-1]
+    spans = _supports(simple, original)
+    pos = {tuple(p): i for i, p in enumerate(original.tolist())}
+    idx = [pos[tuple(p)] for p in simple.tolist()]
+    n = len(original)
+    assert spans is not None and len(spans) == len(simple)
+    for a, b, span in zip(idx, idx[1:] + idx[:1], spans):
+        assert np.array_equal(span, original[[k % n for k in range(a, (b if b > a else b + n) + 1)]])
+    assert _supports(simple + 0.25, original) is None  # vertices not in the original ring
+    for _ in range(20):
+        pts = rng.normal(size=(30, 2)) * [5.0, 1.0] @ np.array([[0.6, 0.8], [-0.8, 0.6]])
+        c = pts - pts.mean(axis=0)
+        axis = 0.5 * math.atan2(2 * c[:, 0] @ c[:, 1], c[:, 0] @ c[:, 0] - c[:, 1] @ c[:, 1])
+        vt = np.linalg.svd(c, full_matrices=False)[2][0]
+        assert abs(math.sin(axis - math.atan2(vt[1], vt[0]))) < 1e-9
+
+
 # ---- streaming ----------------------------------------------------------------------------------
 def test_buildings_across_block_edges_come_out_once(tmp_path: Path, rng: np.random.Generator) -> None:
     shape_ = (90, 110)

@@ -79,13 +79,15 @@ def _supports(pts: np.ndarray, original: np.ndarray | None) -> list[np.ndarray] 
     Douglas–Peucker keeps a subset of the original vertices in order, so edge i of ``pts`` spans the
     original vertices from ``pts[i]`` to ``pts[i + 1]``. ``None`` when they cannot be found.
     """
-    if original is None:
+    if original is None or not len(pts):
         return None
-    pos = {(float(x), float(y)): i for i, (x, y) in enumerate(original)}
-    found = [pos.get((float(x), float(y))) for x, y in pts]
-    idx = [i for i in found if i is not None]
-    if len(idx) != len(found):
+    keys = original[:, 0] + 1j * original[:, 1]  # complex numbers sort by x, then y
+    order = np.argsort(keys)
+    wanted = pts[:, 0] + 1j * pts[:, 1]
+    pos = np.minimum(np.searchsorted(keys[order], wanted), len(keys) - 1)
+    if not np.array_equal(keys[order][pos], wanted):
         return None
+    idx = order[pos].tolist()
     n = len(original)
     spans = []
     for a, b in zip(idx, idx[1:] + idx[:1]):
@@ -124,9 +126,10 @@ def _refined_direction(rings: list[np.ndarray], supports: list[list[np.ndarray] 
             sp = support[i]
             if len(sp) < 3:
                 continue
-            centred = sp - sp.mean(axis=0)
-            _, _, vt = np.linalg.svd(centred, full_matrices=False)
-            total += length[i] * np.exp(4j * math.atan2(vt[0, 1], vt[0, 0]))
+            c = sp - sp.mean(axis=0)
+            # principal axis of the points: angle ½·atan2(2·Sxy, Sxx − Syy)
+            axis = 0.5 * math.atan2(2.0 * float(c[:, 0] @ c[:, 1]), float(c[:, 0] @ c[:, 0] - c[:, 1] @ c[:, 1]))
+            total += length[i] * np.exp(4j * axis)
     if total == 0:
         return theta
     return (math.atan2(total.imag, total.real) / 4.0) % (math.pi / 2)
@@ -202,15 +205,16 @@ def regularize(poly: Polygon, tolerance: float, angle_tolerance_deg: float = DEF
         original: the outline before simplification (its vertices place the snapped walls).
     """
     tol = math.radians(angle_tolerance_deg)
-    originals = {}
-    if original is not None:
-        for ring in (original.exterior, *original.interiors):
-            xy = np.asarray(ring.coords)[:-1]
-            for p in xy:
-                originals[(float(p[0]), float(p[1]))] = xy
+    originals = [] if original is None else [np.asarray(r.coords)[:-1] for r in (original.exterior,
+                                                                                 *original.interiors)]
     simplified = [np.asarray(ring.coords)[:-1] for ring in (poly.exterior, *poly.interiors)]
-    supports = [_supports(pts, originals.get((float(pts[0, 0]), float(pts[0, 1])))) if len(pts) else None
-                for pts in simplified]
+
+    def source(pts: np.ndarray) -> np.ndarray | None:  # the original ring holding the simplified one's vertices
+        if not len(pts):
+            return None
+        return next((o for o in originals if np.any(np.all(o == pts[0], axis=1))), None)
+
+    supports = [_supports(pts, source(pts)) for pts in simplified]
     theta = _refined_direction(simplified, supports, dominant_direction(poly), tol, tolerance)
     rings = []
     for i, (pts, support) in enumerate(zip(simplified, supports)):
