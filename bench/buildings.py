@@ -9,7 +9,8 @@ Usage::
 memory): ``classes.tif`` (synthetic scheme), ``height.tif``, ``height_std.tif``, ``class_entropy.tif``, tiled
 512² GeoTIFFs at 0.25 m, with one rotated rectangular building of 7–20 m (4–30 m high) in most 24 m cells
 and some 60 m long ones, so that many buildings cross block edges. It then runs ``aerialmtl buildings``
-(GeoPackage + CityJSON) in a fresh subprocess and reports its wall time and peak RSS
+(GeoPackage + CityJSON) in a fresh subprocess and reports its wall time, CPU time (user + system, the
+better measure on a shared machine; it includes the imports) and peak RSS
 (``resource.getrusage(RUSAGE_SELF).ru_maxrss``). Prints a Markdown table.
 
 ``--quality``: for each held-out seed it runs, through the command line as a user would,
@@ -132,7 +133,8 @@ t0 = time.perf_counter()
 res = write_buildings(p["pred"], [p["out"] + ".gpkg", p["out"] + ".city.json"],
                       BuildingOptions(block_size=p["block"]), overwrite=True)
 wall = time.perf_counter() - t0
-print(json.dumps({"wall_s": wall, "maxrss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+use = resource.getrusage(resource.RUSAGE_SELF)
+print(json.dumps({"wall_s": wall, "maxrss_mib": use.ru_maxrss / 1024, "cpu_s": use.ru_utime + use.ru_stime,
                   "buildings": res.count, "components": res.stats.components, "blocks": res.stats.blocks}))
 """
 
@@ -156,13 +158,13 @@ def bench_memory(sizes: list[int], block: int, work: Path, keep: bool) -> None:
         if not keep:
             shutil.rmtree(work / f"pred_{n}", ignore_errors=True)
     print(f"block size {block} px; outputs: GeoPackage + CityJSON\n")
-    print("| prediction (px) | Mpx | buildings placed | buildings written | pieces (block cuts) | wall (s) | Mpx/s "
-          "| peak RSS (MiB) | GPKG / CityJSON (MiB) | load avg before → after |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| prediction (px) | Mpx | buildings placed | buildings written | pieces (block cuts) | wall (s) | CPU (s) "
+          "| Mpx/s | peak RSS (MiB) | GPKG / CityJSON (MiB) | load avg before → after |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         mpx = r["n"] ** 2 / 1e6
         print(f"| {r['n']}×{r['n']} | {mpx:.1f} | {r['placed']} | {r['buildings']} | {r['components']} | "
-              f"{r['wall_s']:.1f} | {mpx / r['wall_s']:.1f} | {r['maxrss_mib']:.0f} | "
+              f"{r['wall_s']:.1f} | {r['cpu_s']:.1f} | {mpx / r['wall_s']:.1f} | {r['maxrss_mib']:.0f} | "
               f"{r['gpkg_mib']:.1f} / {r['cityjson_mib']:.1f} | {r['load_before']} → {r['load_after']} |")
 
 
