@@ -161,7 +161,7 @@ def evaluate_buildings(
     """
     options = options or BuildingOptions()
     notes = notes if notes is not None else []
-    unit = metres_per_unit(grid.crs, reference)
+    unit = metres_per_unit(grid.crs, pred_dir)
     min_area = options.min_area_m2 / unit**2
     ref_geoms_all, ref_fields, ref_crs = read_footprints(reference, "building reference")
     if ref_crs is None:
