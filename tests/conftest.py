@@ -46,3 +46,41 @@ def write_raster(
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+def write_prediction_layers(
+    folder: Path,
+    classes: np.ndarray,
+    height: np.ndarray,
+    height_std: np.ndarray | None = None,
+    entropy: np.ndarray | None = None,
+    crs: str = "EPSG:32631",
+    transform: Affine | None = None,
+    scheme: str | None = "synthetic",
+) -> Path:
+    """A prediction folder (aerialmtl.formats.prediction) from (H, W) arrays: ``classes.tif`` (uint8, nodata 255,
+    tagged with the built-in class ``scheme`` unless ``None``), ``height.tif`` and optional ``height_std.tif`` /
+    ``class_entropy.tif`` (float32, nodata -9999); default grid as :func:`write_raster`."""
+    import json
+
+    from aerialmtl.classes import ClassScheme
+    from aerialmtl.formats.prediction import (
+        CLASS_ENTROPY,
+        CLASS_NODATA,
+        CLASS_SCHEME_TAG,
+        CLASSES,
+        FLOAT_NODATA,
+        HEIGHT,
+        HEIGHT_STD,
+        layer_filename,
+    )
+
+    folder.mkdir(parents=True, exist_ok=True)
+    path = write_raster(folder / layer_filename(CLASSES), classes.astype(np.uint8), crs, transform, CLASS_NODATA)
+    if scheme is not None:
+        with rasterio.open(path, "r+") as dst:
+            dst.update_tags(**{CLASS_SCHEME_TAG: json.dumps(ClassScheme.load(scheme).to_dict())})
+    for name, data in ((HEIGHT, height), (HEIGHT_STD, height_std), (CLASS_ENTROPY, entropy)):
+        if data is not None:
+            write_raster(folder / layer_filename(name), data.astype(np.float32), crs, transform, FLOAT_NODATA)
+    return folder

@@ -71,7 +71,8 @@ def test_notebook_runs_the_mini_pipeline(tmp_path: Path, monkeypatch: pytest.Mon
     assert Path(result["prediction"]) == pred
     for name in ("height.tif", "height_std.tif", "classes.tif", "class_entropy.tif", "class_mutual_info.tif"):
         assert (pred / name).is_file(), name
-    assert {"maps.png", "maps_zoom.png", "sparsification.png", "areas_height_std.png"} <= set(result["figures"])
+    assert {"maps.png", "maps_zoom.png", "sparsification.png", "areas_height_std.png", "buildings.png"} <= set(
+        result["figures"])
     for name in result["figures"]:
         assert (work / "figures" / name).stat().st_size > 1000
     assert (work / "report.json").is_file()
@@ -82,6 +83,13 @@ def test_notebook_runs_the_mini_pipeline(tmp_path: Path, monkeypatch: pytest.Mon
         assert math.isfinite(s["ause"]) and s["ause"] >= 0, key
         assert -1 <= s["spearman"] <= 1, key
         assert s["n_pixels"] > 0 and s["mean_error"] >= 0, key
+
+    buildings = result["buildings"]  # LoD1 section: files written, scored against the test town's footprints
+    assert buildings["count"] >= 0 and buildings["files"] == ["buildings.gpkg", "buildings.city.json"]
+    for name in buildings["files"]:
+        assert (work / name).is_file()
+    ev = buildings["evaluation"]
+    assert ev["n_reference"] > 0 and 0 <= ev["n_matched"] <= min(ev["n_reference"], buildings["count"])
 
     with rasterio.open(pred / "height_std.tif") as src:
         b = src.bounds

@@ -87,6 +87,32 @@ def test_ndsm_is_dsm_minus_dtm_and_heights_fit_each_class(town) -> None:
         assert np.ptp(dtm[ponds == i]) == 0, "a water body must be flat"
 
 
+def test_reference_buildings_match_the_rasters(town) -> None:
+    """buildings.geojson: one footprint per building in the rasters' CRS, where the labels show roofs, with
+    the roofs' median and top heights."""
+    from rasterio.features import rasterize
+
+    from aerialmtl.formats.buildings import read_footprints
+
+    result, a = town
+    geoms, fields, crs = read_footprints(result.buildings)
+    with rasterio.open(result.labels) as src:
+        assert crs == src.crs
+        transform, shape = src.transform, (src.height, src.width)
+    assert len(geoms) >= 5 and list(fields["building_id"]) == list(range(1, len(geoms) + 1))
+    burnt = rasterize([(g, i + 1) for i, g in enumerate(geoms)], out_shape=shape, transform=transform, dtype="int32")
+    labels, ndsm = a["labels.tif"][0], a["ndsm.tif"][0]
+    roof = labels == BUILDING
+    assert (roof & (burnt > 0)).sum() / roof.sum() > 0.99       # every roof pixel lies in a footprint
+    assert (roof & (burnt > 0)).sum() / (burnt > 0).sum() > 0.8  # footprints are roofs (trees may hide some)
+    for i in range(len(geoms)):
+        seen = (burnt == i + 1) & roof
+        if seen.sum() > 0.9 * (burnt == i + 1).sum():  # not hidden by trees
+            assert fields["height_m"][i] == pytest.approx(np.median(ndsm[seen]), abs=0.05)
+            assert fields["height_max_m"][i] == pytest.approx(ndsm[seen].max(), abs=0.05)
+    assert np.all(fields["height_max_m"] >= fields["height_m"]) and fields["height_m"].min() >= 3
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_all_six_classes_present_at_512_px(tmp_path: Path, seed: int) -> None:
     synthesize(tmp_path, size=512, seed=seed)

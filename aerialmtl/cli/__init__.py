@@ -14,6 +14,7 @@ import warnings
 import click
 
 from aerialmtl import __version__
+from aerialmtl.cli.buildings import buildings
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
 from aerialmtl.cli.options import flags_for, usage_errors
@@ -34,7 +35,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     ctx.obj["debug"] = debug
 
 
-for _command in (synth, tile, train, predict, evaluate, demo):
+for _command in (synth, tile, train, predict, evaluate, buildings, demo):
     assert _command.name is not None and _command.callback is not None
     _command.callback = usage_errors(_command.name, _command.callback)
     cli.add_command(_command)

@@ -48,6 +48,11 @@ def _check_writable(folder: Path) -> None:
               help="Unit of the reference heights when a file does not state it [default: m].")
 @click.option("--labels", "labels_ref", type=click.Path(dir_okay=False, path_type=Path),
               help="Reference label raster (raw class codes); any CRS/GSD.")
+@click.option("--buildings", "buildings_ref", type=click.Path(dir_okay=False, path_type=Path),
+              help="Reference building footprints with a height_m field (e.g. buildings.geojson of `aerialmtl synth`).")
+@click.option("--pred-buildings", type=click.Path(dir_okay=False, path_type=Path),
+              help="Footprints from `aerialmtl buildings` to score against --buildings [default: extracted from "
+                   "--pred with the default settings].")
 @click.option("--classes", "classes", type=str, default=None,
               help="Class scheme YAML or built-in name; default: the scheme stored in classes.tif.")
 @click.option("--height-threshold", type=float, default=1.0, show_default=True,
@@ -64,16 +69,16 @@ def _check_writable(folder: Path) -> None:
 @click.option("--overwrite", is_flag=True, help="Replace an existing report.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def evaluate(pred: Path, height_ref: Path | None, dsm_ref: Path | None, dtm_ref: Path | None, z_unit: str | None,
-             labels_ref: Path | None, classes: str | None,
+             labels_ref: Path | None, buildings_ref: Path | None, pred_buildings: Path | None, classes: str | None,
              height_threshold: float, height_bins: tuple[float, ...], ignore_unknown_codes: bool,
              sample_size: int, seed: int, no_plots: bool, out: Path, overwrite: bool, quiet: bool) -> None:
     """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.
 
     Example: aerialmtl evaluate --pred pred/ --height ndsm.tif --labels gt.tif --out eval/report.json
     """
-    if height_ref is None and dsm_ref is None and labels_ref is None:
+    if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
         raise click.UsageError("give at least one reference: --height NDSM.tif (or --dsm with --dtm) and/or "
-                               "--labels LABELS.tif")
+                               "--labels LABELS.tif and/or --buildings FOOTPRINTS")
     if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
         raise click.BadParameter("give either --height or --dsm with --dtm, not both", param_hint="--height")
     if (dsm_ref is None) != (dtm_ref is None):
@@ -96,6 +101,7 @@ def evaluate(pred: Path, height_ref: Path | None, dsm_ref: Path | None, dtm_ref:
         classes=classes, out=out,
         height_threshold=height_threshold, height_bins=height_bins, ignore_unknown_codes=ignore_unknown_codes,
         overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=not quiet,
+        buildings_ref=buildings_ref, pred_buildings=pred_buildings,
     )
     width = max((len(k) for k, _ in headline(report)), default=0)
     for key, value in headline(report):

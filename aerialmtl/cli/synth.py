@@ -21,7 +21,8 @@ import click
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs in OUT.")
 def synth(out: Path, size: int, seed: int, gsd: float, crs: str, origin: tuple[float, float],
           overwrite: bool) -> None:
-    """Generate a synthetic town in OUT: ortho.tif (RGB), dsm/dtm/ndsm.tif (metres), labels.tif, classes.yaml.
+    """Generate a synthetic town in OUT: ortho.tif (RGB), dsm/dtm/ndsm.tif (metres), labels.tif, classes.yaml,
+    buildings.geojson (true footprints and heights).
 
     Height is visible in the orthophoto through sun shadows and roof shading, so a model can learn
     both tasks from it. Use it to try `tile`, `train`, `predict` and `evaluate` without downloads.

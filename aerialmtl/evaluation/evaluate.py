@@ -118,6 +118,8 @@ def evaluate_prediction(
     block_pixels: int = 1 << 20,
     plots: bool = True,
     progress: bool = False,
+    buildings_ref: str | Path | None = None,
+    pred_buildings: str | Path | None = None,
 ) -> dict[str, Any]:
     """Compare a prediction folder with reference heights and/or labels and write a report.
 
@@ -145,6 +147,10 @@ def evaluate_prediction(
         block_pixels: pixels per row band read at once (memory bound).
         plots: write PNG plots when matplotlib is installed.
         progress: show a tqdm progress bar.
+        buildings_ref: reference building footprints with heights (e.g. ``buildings.geojson`` of
+            ``aerialmtl synth``): adds the ``buildings`` section (:mod:`aerialmtl.evaluation.buildings`).
+        pred_buildings: footprints written by ``aerialmtl buildings`` to score; default: extracted from
+            ``pred_dir`` with the default settings.
 
     Returns:
         the report dict (also written as JSON, with ``nan`` → ``null``).
@@ -156,7 +162,8 @@ def evaluate_prediction(
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
     """
     pred_dir = Path(pred_dir)
-    files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, height_threshold, out, overwrite)
+    files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, buildings_ref, height_threshold, out,
+                             overwrite)
     height_given = height_ref if height_ref is not None else dsm_ref
     notes: list[str] = []
     do_height = height_given is not None and "height" in files
@@ -173,7 +180,7 @@ def evaluate_prediction(
     do_classes = labels_ref is not None and "classes" in files
     if labels_ref is not None and "classes" not in files:
         notes.append("labels given but the prediction has no classes.tif: class metrics skipped")
-    if not do_height and not do_classes:
+    if not do_height and not do_classes and buildings_ref is None:
         raise InputError(
             f"nothing to evaluate in '{pred_dir}': the references given ({'--height' if height_given else ''}"
             f"{' --labels' if labels_ref else ''}) match no predicted layer (found: "
@@ -240,6 +247,11 @@ def evaluate_prediction(
         heights.report_into(report, steps)
     if classes_eval is not None:
         classes_eval.report_into(report, names, steps)
+    if buildings_ref is not None:
+        from aerialmtl.evaluation.buildings import evaluate_buildings
+
+        report["references"]["buildings"] = str(buildings_ref)
+        report["buildings"] = evaluate_buildings(pred_dir, buildings_ref, grid, pred_buildings, notes=notes)
     if out is not None:
         write_report(report, Path(out), plots=plots)
     return report
@@ -247,7 +259,8 @@ def evaluate_prediction(
 
 def _check_arguments(
     pred_dir: Path, height_ref: str | Path | None, dsm_ref: str | Path | None, dtm_ref: str | Path | None,
-    labels_ref: str | Path | None, height_threshold: float, out: str | Path | None, overwrite: bool,
+    labels_ref: str | Path | None, buildings_ref: str | Path | None, height_threshold: float, out: str | Path | None,
+    overwrite: bool,
 ) -> dict[str, Path]:
     """Validate the arguments of :func:`evaluate_prediction`; returns the predicted layers present."""
     if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
@@ -262,7 +275,7 @@ def _check_arguments(
             f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; "
             "pass the --out folder of `aerialmtl predict`"
         )
-    if height_ref is None and dsm_ref is None and labels_ref is None:
+    if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
         raise InputError("no reference given: pass a reference height raster (--height) and/or labels (--labels)")
     if not height_threshold >= 0:
         raise InputError(f"--height-threshold must be ≥ 0 metres, got {height_threshold}")
@@ -278,6 +291,8 @@ def _open_prediction(
 ) -> tuple[dict[str, rasterio.io.DatasetReader], Grid]:
     """Open the ``needed`` layers present in ``files`` (appended to ``opened``); check they share one grid."""
     srcs: dict[str, rasterio.io.DatasetReader] = {}
+    if not any(key in files for key in needed):  # building footprints only: the grid is the prediction's
+        needed = [HEIGHT if HEIGHT in files else CLASSES]
     for key in needed:
         if key in files:
             srcs[key] = open_raster(files[key], f"prediction {files[key].name}")

@@ -63,6 +63,16 @@ def headline(report: dict[str, Any]) -> list[tuple[str, str]]:
         rows.append(("class entropy AUSE", _fmt(u["class_entropy"]["sparsification"]["ause"])))
     if "calibration" in u:
         rows.append(("class ECE", _fmt(u["calibration"]["ece"])))
+    b = report.get("buildings")
+    if b:
+        rows += [(f"building F1 (IoU ≥ {b['iou_threshold']:g})", _fmt(b["f1"])),
+                 ("building precision / recall", f"{_fmt(b['precision'])} / {_fmt(b['recall'])}"),
+                 ("buildings matched / reference / predicted",
+                  f"{b['n_matched']} / {b['n_reference']} / {b['n_predicted']}")]
+        if b.get("height"):
+            rows += [("building height MAE (m)", _fmt(b["height"]["mae"])),
+                     ("building height RMSE (m)", _fmt(b["height"]["rmse"])),
+                     ("building height std Spearman", _fmt(b["spearman_std_vs_abs_error"]))]
     return rows
 
 
@@ -70,7 +80,7 @@ def markdown_summary(report: dict[str, Any]) -> str:
     """A short Markdown summary: headline table, per-class and per-bin tables, notes."""
     lines = ["# aerialmtl evaluation", "", f"Prediction: `{report['prediction']}`  "]
     refs = report.get("references") or {}
-    for key in ("height", "labels"):
+    for key in ("height", "labels", "buildings"):
         if refs.get(key):
             lines.append(f"Reference {key}: `{refs[key]}`  ")
     lines += ["", "| metric | value |", "|---|---|"]

@@ -5,5 +5,8 @@ nodata value is spelled once:
 
 * :mod:`aerialmtl.formats.tiles` — the tile folder (``dataset.yaml``, ``manifest.csv``, the patch cache);
 * :mod:`aerialmtl.formats.checkpoint` — the self-describing checkpoint (``best.pt`` / ``last.pt``);
-* :mod:`aerialmtl.formats.prediction` — the prediction folder (layer files, tags, nodata, ``prediction.json``).
+* :mod:`aerialmtl.formats.prediction` — the prediction folder (layer files, tags, nodata, ``prediction.json``);
+* :mod:`aerialmtl.formats.buildings` — building footprint layers (GeoPackage / GeoJSON: fields, layer name,
+  the reference file of ``aerialmtl synth``);
+* :mod:`aerialmtl.formats.cityjson` — CityJSON 2.0 files of LoD1 buildings.
 """

@@ -64,14 +64,23 @@ def require_projected(crs: CRS, role: str, path: object, lonlat: tuple[float, fl
     )
 
 
-def metres_per_unit(crs: CRS) -> float:
+def metres_per_unit(crs: CRS | None, role: str = "raster", path: object = "<grid>") -> float:
     """Metres per linear unit of the projected ``crs`` (1 for metres, 0.3048 for international feet).
 
+    Args:
+        crs: the CRS (``None`` when the file has none).
+        role, path: the layer and file, named in messages.
+
     Raises:
-        AlignmentError: ``crs`` is geographic (see :func:`require_projected`).
+        AlignmentError: ``crs`` is missing or geographic (see :func:`require_projected`).
     """
+    if crs is None:
+        raise AlignmentError(
+            f"{role} '{path}' has no CRS, so its pixels have no size in metres; assign one "
+            f"(e.g. `gdal_edit.py -a_srs EPSG:XXXX {path}`)"
+        )
     if not crs.is_projected:
-        require_projected(crs, "raster", "<grid>")
+        require_projected(crs, role, path)
     return float(crs.linear_units_factor[1])
 
 

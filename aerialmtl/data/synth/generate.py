@@ -14,11 +14,14 @@ from affine import Affine
 from rasterio.crs import CRS
 from rasterio.enums import ColorInterp
 from rasterio.errors import CRSError
+from shapely.affinity import affine_transform
+from shapely.geometry.polygon import orient
 
 from aerialmtl.classes import BUILTIN_DIR, ClassScheme
 from aerialmtl.data.synth.render import render_ortho
-from aerialmtl.data.synth.scene import build_scene
+from aerialmtl.data.synth.scene import Scene, build_scene
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
 from aerialmtl.io.align import HEIGHT_NODATA
 
 #: Version of the generator; bump it whenever the same seed would produce different rasters.
@@ -27,7 +30,7 @@ SYNTH_VERSION = "1"
 #: Smallest scene size accepted (pixels).
 MIN_SIZE = 32
 
-_OUTPUTS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "labels.tif", "classes.yaml")
+_OUTPUTS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "labels.tif", "classes.yaml", REFERENCE_FILE)
 
 
 @dataclass(frozen=True)
@@ -44,6 +47,7 @@ class SynthResult:
     sun_azimuth: float
     sun_elevation: float
     seconds: float
+    buildings: Path
 
 
 def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict:
@@ -72,8 +76,10 @@ def synthesize(
     Files (all ``size`` × ``size`` pixels, north-up, ``gsd`` metres, upper-left corner at ``origin``):
     ``ortho.tif`` (uint8 RGB), ``dsm.tif``, ``dtm.tif``, ``ndsm.tif`` (float32 metres, nodata
     :data:`HEIGHT_NODATA`, nDSM = DSM − DTM), ``labels.tif`` (uint8 raw codes of the built-in
-    ``synthetic`` class scheme, nodata 0) and ``classes.yaml`` (that scheme). Every raster carries the
-    tags ``AERIALMTL_SYNTH_VERSION``, ``AERIALMTL_SYNTH_SEED``, ``AERIALMTL_SYNTH_SIZE``,
+    ``synthetic`` class scheme, nodata 0), ``classes.yaml`` (that scheme) and ``buildings.geojson``
+    (the true footprint of every building, clipped to the scene, with ``height_m`` = the median roof
+    height above ground and ``height_max_m``; in ``crs``, see :mod:`aerialmtl.formats.buildings`).
+    Every raster carries the tags ``AERIALMTL_SYNTH_VERSION``, ``AERIALMTL_SYNTH_SEED``, ``AERIALMTL_SYNTH_SIZE``,
     ``AERIALMTL_SYNTH_GSD``, ``AERIALMTL_SUN_AZIMUTH`` and ``AERIALMTL_SUN_ELEVATION``.
     The same (seed, size, gsd) always gives identical arrays.
 
@@ -161,6 +167,22 @@ def synthesize(
     cmap.update({code: (0, 0, 0, 0) for code in scheme.ignore_codes})
     write("labels.tif", scene.labels, 0, ("land cover (raw code)",), colormap=cmap)
     shutil.copyfile(BUILTIN_DIR / "synthetic.yaml", paths["classes.yaml"])
+    _write_reference_buildings(scene, paths[REFERENCE_FILE], crs_obj, origin)
     return SynthResult(out, paths["ortho.tif"], paths["dsm.tif"], paths["dtm.tif"], paths["ndsm.tif"],
                        paths["labels.tif"], paths["classes.yaml"], scene.sun_azimuth, scene.sun_elevation,
-                       time.perf_counter() - start)
+                       time.perf_counter() - start, paths[REFERENCE_FILE])
+
+
+def _write_reference_buildings(scene: Scene, path: Path, crs: CRS, origin: tuple[float, float]) -> None:
+    """The scene's true building footprints (map coordinates) and heights as GeoJSON."""
+    tmp = path.with_name(f".{path.name}.part")
+    tmp.unlink(missing_ok=True)
+    writer = FootprintWriter(tmp, crs, REFERENCE_FIELDS, driver="GeoJSON")
+    # scene metres (x east, y south of the upper-left corner) → map coordinates
+    to_map = [1.0, 0.0, 0.0, -1.0, origin[0], origin[1]]
+    geoms = [orient(affine_transform(b.footprint, to_map), 1.0) for b in scene.buildings]
+    writer.write(geoms, {ID_FIELD: list(range(1, len(geoms) + 1)),
+                         "height_m": [b.height_m for b in scene.buildings],
+                         "height_max_m": [b.height_max_m for b in scene.buildings]})
+    writer.close()
+    os.replace(tmp, path)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from shapely.geometry import Polygon, box
+from shapely.ops import unary_union
 from skimage.draw import disk, polygon
 
 from aerialmtl.data.synth.noise import smooth_noise
@@ -80,6 +81,25 @@ class TreeSpec:
     color: tuple[float, float, float]
 
 
+@dataclass(frozen=True)
+class BuildingTruth:
+    """The true footprint and roof heights of one building of a scene.
+
+    Attributes:
+        footprint: union of its roof parts, clipped to the scene, in scene metres: x east and y **south**
+            of the scene's upper-left corner.
+        height_m: median height above ground of its roof over the pixels it covers (the statistic
+            ``aerialmtl buildings`` reports by default; eave + half the rise for a gable roof).
+        height_max_m: its highest roof point above ground (metres).
+        n_pixels: pixels covered by its roof parts (some may be hidden under trees in the rasters).
+    """
+
+    footprint: Polygon
+    height_m: float
+    height_max_m: float
+    n_pixels: int
+
+
 @dataclass
 class Scene:
     """Rasterised scene on an (H, W) grid of ``gsd`` metres.
@@ -90,6 +110,7 @@ class Scene:
         labels: uint8 (H, W) raw codes of the "synthetic" scheme (1..6).
         albedo: float32 (3, H, W) surface colour in DN (0–255) before illumination.
         sun_azimuth, sun_elevation: degrees (azimuth clockwise from north).
+        buildings: true footprint and heights of every building at least partly in the scene.
     """
 
     dtm: np.ndarray
@@ -100,6 +121,7 @@ class Scene:
     sun_elevation: float
     gsd: float
     stats: dict[str, int] = field(default_factory=dict)
+    buildings: list[BuildingTruth] = field(default_factory=list)
 
 
 class _Canvas:
@@ -479,13 +501,17 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
     cv.ndsm[grass] = np.clip(0.22 + 0.15 * tex_mid[grass] + 0.05 * tex_small[grass], 0.0, 0.5)
 
     # ---- objects -----------------------------------------------------------------------------
+    truths = []
     for bld in plan.buildings:
-        _draw_building(cv, bld, tex_small, fine)
+        drawn = _draw_building(cv, bld, tex_small, fine)
+        truth = _building_truth(cv, bld, drawn, box(0.0, 0.0, extent, extent))
+        if truth is not None:
+            truths.append(truth)
     for tr in plan.trees:
         _draw_tree(cv, tr, tex_small, tex_mid, fine)
     stats.update(buildings=len(plan.buildings), trees=len(plan.trees), ponds=len(plan.ponds))
     np.clip(cv.albedo, 0, 255, out=cv.albedo)
-    return Scene(dtm, cv.ndsm, cv.labels, cv.albedo, sun_azimuth, sun_elevation, gsd, stats)
+    return Scene(dtm, cv.ndsm, cv.labels, cv.albedo, sun_azimuth, sun_elevation, gsd, stats, truths)
 
 
 def _terrain(rng: np.random.Generator, xs: np.ndarray, extent: float) -> np.ndarray:
@@ -508,8 +534,39 @@ def _terrain(rng: np.random.Generator, xs: np.ndarray, extent: float) -> np.ndar
     return dtm
 
 
-def _draw_building(cv: _Canvas, bld: Building, tex_small: np.ndarray, fine: np.ndarray) -> None:
+def _building_truth(cv: _Canvas, bld: Building, drawn: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                    scene_box: Polygon) -> BuildingTruth | None:
+    """Footprint (scene metres, x east, y south) and roof statistics of ``bld`` from its drawn parts."""
+    if not drawn:
+        return None
+    rr = np.concatenate([d[0] for d in drawn]).astype(np.int64)
+    cc = np.concatenate([d[1] for d in drawn]).astype(np.int64)
+    h = np.concatenate([d[2] for d in drawn])
+    if rr.size == 0:
+        return None
+    pixel = rr * cv.n + cc
+    order = np.lexsort((-h, pixel))  # per pixel, the highest part first: the roof surface
+    first = np.concatenate([[True], pixel[order][1:] != pixel[order][:-1]])
+    roof = h[order][first]
+    parts = []
+    for p in bld.parts:
+        u = np.array([p.u0, p.u1, p.u1, p.u0])
+        v = np.array([p.v0, p.v0, p.v1, p.v1])
+        parts.append(Polygon(np.c_[u * cv.cos - v * cv.sin, u * cv.sin + v * cv.cos]))
+    footprint = unary_union(parts).intersection(scene_box)
+    if footprint.is_empty or not isinstance(footprint, Polygon):
+        polys = [g for g in getattr(footprint, "geoms", []) if isinstance(g, Polygon)]
+        if not polys:
+            return None
+        footprint = max(polys, key=lambda g: g.area)
+    return BuildingTruth(footprint, float(np.median(roof)), float(roof.max()), int(roof.size))
+
+
+def _draw_building(cv: _Canvas, bld: Building, tex_small: np.ndarray,
+                   fine: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Draw ``bld``; returns (rows, cols, roof heights) of each part's pixels."""
     color = np.array(bld.color, np.float32)[:, None]
+    drawn = []
     for part in bld.parts:
         rr, cc = cv.fill_rect(part.u0, part.u1, part.v0, part.v1)
         if rr.size == 0:
@@ -526,6 +583,8 @@ def _draw_building(cv: _Canvas, bld: Building, tex_small: np.ndarray, fine: np.n
         else:
             h = np.full(rr.shape, part.eave, np.float32)
         cv.put(rr, cc, h.astype(np.float32), BUILDING, color * texture[None, :])
+        drawn.append((rr, cc, h.astype(np.float32)))
+    return drawn
 
 
 def _draw_tree(cv: _Canvas, tr: TreeSpec, tex_small: np.ndarray, tex_mid: np.ndarray, fine: np.ndarray) -> None:
