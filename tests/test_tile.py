@@ -244,7 +244,7 @@ def test_refuses_non_empty_out_without_overwrite(scene: dict[str, Path], tmp_pat
     out = tmp_path / "out"
     kw = dict(ndsm=scene["ndsm"], size=64, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
     tile_dataset(scene["ortho"], out, **kw)
-    with pytest.raises(OutputExistsError, match=r"out.*--overwrite"):
+    with pytest.raises(OutputExistsError, match=r"out.*overwrite=True"):
         tile_dataset(scene["ortho"], out, **kw)
     res = tile_dataset(scene["ortho"], out, overwrite=True, size=32, ndsm=scene["ndsm"], min_valid=0.0,
                        splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
@@ -283,5 +283,5 @@ def test_raster_smaller_than_a_patch_gives_one_padded_patch(tmp_path: Path, rng:
         mask, h = im.read_masks(1) > 0, hf.read(1)
     assert im.shape == (64, 64) and mask[:48, :40].all() and not mask[48:].any() and not mask[:, 40:].any()
     assert np.all(h[~mask] == HEIGHT_NODATA) and np.all(h[mask] != HEIGHT_NODATA)
-    with pytest.raises(InputError, match="min-valid"):
+    with pytest.raises(InputError, match="min_valid must be a fraction in 0..1, got 1.5"):
         tile_dataset(ortho, tmp_path / "o2", ndsm=ndsm, min_valid=1.5, progress=False)

@@ -97,19 +97,6 @@ def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, z_u
     from aerialmtl.tiling.splits import SplitSpec
     from aerialmtl.tiling.tile import tile_dataset
 
-    if ndsm is not None and (dsm is not None or dtm is not None):
-        raise click.BadParameter("give either --ndsm or --dsm with --dtm, not both", param_hint="--ndsm")
-    if (dsm is None) != (dtm is None):
-        raise click.BadParameter("--dsm and --dtm go together; or pass a ready nDSM with --ndsm", param_hint="--dsm/--dtm")
-    if labels is not None and labels_vector is not None:
-        raise click.BadParameter("give either --labels or --labels-vector, not both", param_hint="--labels-vector")
-    if labels_vector is not None and not class_field:
-        raise click.BadParameter("--labels-vector needs --class-field NAME", param_hint="--class-field")
-    if (labels is not None or labels_vector is not None) and not classes:
-        raise click.BadParameter("labels need a class scheme: a YAML file or dfc2018, isprs, synthetic",
-                                 param_hint="--classes")
-    if max_height is not None and not max_height > 0:
-        raise click.BadParameter(f"must be positive metres, got {max_height}", param_hint="--max-height")
     if split_aoi is not None:
         spec = SplitSpec(method="aoi", aoi=split_aoi)
     else:

@@ -144,7 +144,7 @@ def check_bands(
     bad = [int(b) for b in bands if not 1 <= int(b) <= src.count]
     if bad:
         if fix is None:
-            fix = f"choose bands within 1..{src.count}" + (f" with {bands_from}" if bands_from.startswith("--") else "")
+            fix = f"choose bands within 1..{src.count}" + (f" with {bands_from}" if bands_from.startswith("‹") else "")
         raise InputError(
             f"{role} '{src.name}': band(s) {bad} requested by {bands_from} but the file has {src.count} band(s); {fix}"
         )
@@ -370,6 +370,11 @@ class NdsmOptions:
     clip_negative: bool = True
     max_height: float | None = None
     z_unit: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.max_height is not None and not self.max_height > 0:
+            raise InputError(f"‹max_height› must be a positive height in metres, got {self.max_height}",
+                             param="max_height")
 
 
 class HeightSource:

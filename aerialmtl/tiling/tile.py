@@ -45,9 +45,10 @@ from aerialmtl.formats.tiles import (
     PART_SUFFIX,
     ManifestWriter,
     TileFolderInfo,
+    patch_path,
     read_manifest,
 )
-from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.outputs import make_output_dir
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
@@ -146,15 +147,15 @@ def _prepare_out_dir(out_dir: Path, overwrite: bool) -> bool:
     A folder left unfinished by an interrupted or failed run is replaced without ``overwrite``.
     """
     if out_dir.exists() and not out_dir.is_dir():
-        raise OutputError(f"--out '{out_dir}' is a file; pass a folder path")
+        raise OutputError(f"‹out_dir› '{out_dir}' is a file; pass a folder path")
     if out_dir.is_dir() and any(out_dir.iterdir()):
         if not overwrite and not _unfinished(out_dir):
             raise OutputExistsError(
-                f"output folder '{out_dir}' is not empty; choose another --out or pass --overwrite to replace "
+                f"output folder '{out_dir}' is not empty; choose another ‹out_dir› or pass ‹overwrite=True› to replace "
                 "the tile dataset in it"
             )
         _clear(out_dir)
-    return make_output_dir(out_dir, "--out folder")
+    return make_output_dir(out_dir, "‹out_dir› folder")
 
 
 def _band_names(src: rasterio.io.DatasetReader, bands: Sequence[int]) -> list[str]:
@@ -239,172 +240,221 @@ def tile_dataset(
     """
     out_dir = Path(out_dir)
     stride = size if stride is None else stride
-    if not 0.0 <= min_valid <= 1.0:
-        raise InputError(f"--min-valid must be a fraction in 0..1, got {min_valid}")
-    if labels is not None and labels_vector is not None:
-        raise InputError("give either a label raster (--labels) or label polygons (--labels-vector), not both")
-    if labels_vector is not None and not class_field:
-        raise InputError("--labels-vector needs --class-field NAME, the attribute holding the class code or name")
-    has_height = any(p is not None for p in (dsm, dtm, ndsm))
-    has_labels = labels is not None or labels_vector is not None
-    scheme = _load_scheme(classes)
-    if has_labels and scheme is None:
-        raise InputError(
-            "labels were given without a class scheme: pass --classes (a YAML file or dfc2018, isprs, synthetic)"
-        )
-    if not has_height and not has_labels:
-        raise InputError(
-            "nothing to learn: give a height layer (--ndsm, or --dsm/--dtm) and/or labels (--labels/--labels-vector)"
-        )
-    n_windows_check = count_windows(1, 1, size, stride)  # validates size/stride before touching files
-    del n_windows_check
-
+    scheme = _check_arguments(size, stride, min_valid, dsm, dtm, ndsm, labels, labels_vector, class_field, classes)
     grid = reference_grid(ortho, gsd)
-    on_unknown = "ignore" if ignore_unknown_codes else "error"
-    height_units: dict[str, dict[str, object]] = {}
     env: dict[str, Any] = {"GDAL_TIFF_INTERNAL_MASK": True}
     if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
         env["GDAL_CACHEMAX"] = DEFAULT_CACHE_MB * 1024 * 1024  # bytes (unambiguous for GDAL and rasterio)
-    opened: list[Any] = []
-    with rasterio.Env(**env):
+    with rasterio.Env(**env), TileSources(
+        ortho, grid, bands=bands, dsm=dsm, dtm=dtm, ndsm=ndsm, ndsm_options=ndsm_options, labels=labels,
+        labels_vector=labels_vector, class_field=class_field, scheme=scheme, ignore_unknown_codes=ignore_unknown_codes,
+    ) as sources:
+        assigner = SplitAssigner(splits, grid, stride=stride, size=size)
+        created = _prepare_out_dir(out_dir, overwrite)
         try:
-            image = AlignedRaster(ortho, grid, "image", bands=bands, role="orthophoto", bands_from="--bands")
-            opened.append(image)
-            heights = HeightSource(grid, ndsm=ndsm, dsm=dsm, dtm=dtm, options=ndsm_options) if has_height else None
-            if heights is not None:
-                opened.append(heights)
-                height_units = heights.units()
-            label_src: AlignedRaster | VectorLabels | None = None
-            if labels is not None:
-                label_src = AlignedRaster(labels, grid, "labels", bands=[1], role="labels")
-            elif labels_vector is not None:
-                label_src = VectorLabels(labels_vector, grid, class_field or "", scheme, on_unknown)  # type: ignore[arg-type]
-            if label_src is not None:
-                opened.append(label_src)
-            assigner = SplitAssigner(splits, grid, stride=stride, size=size)
-            created = _prepare_out_dir(out_dir, overwrite)
-            try:
-                result = _tile_loop(
-                    image, heights, label_src, scheme, assigner, grid, out_dir, size, stride, min_valid,
-                    on_unknown, progress,
-                )
-            except BaseException:  # a failed or interrupted run leaves no half dataset behind
-                with contextlib.suppress(OSError):
-                    _clear(out_dir)
-                    if created:
-                        out_dir.rmdir()
-                raise
-            band_names = _band_names(image.src, image.bands)
-            dtype = image.src.dtypes[image.bands[0] - 1]
-        finally:
-            for layer in reversed(opened):
-                layer.close()
-
-    tasks = (["height"] if has_height else []) + (["classes"] if has_labels else [])
-    result.tasks = tasks
+            result = _tile_loop(sources, assigner, grid, out_dir, size, stride, min_valid, progress)
+        except BaseException:  # a failed or interrupted run leaves no half dataset behind
+            with contextlib.suppress(OSError):
+                _clear(out_dir)
+                if created:
+                    out_dir.rmdir()
+            raise
+    result.tasks = list(sources.tasks)
     if assigner.block_size_m is not None:
         result.block_size_m = assigner.block_size_m
         result.block_patches = int(round(assigner.block_px[0] / stride))
-    TileFolderInfo(
-        root=out_dir,
+    _describe(sources, grid, size, stride, min_valid, splits, assigner, result, ndsm_options).write()
+    return result
+
+
+def _check_arguments(
+    size: int, stride: int, min_valid: float, dsm: str | Path | None, dtm: str | Path | None, ndsm: str | Path | None,
+    labels: str | Path | None, labels_vector: str | Path | None, class_field: str | None,
+    classes: ClassScheme | str | Path | None,
+) -> ClassScheme | None:
+    """Validate :func:`tile_dataset`'s arguments before any file is read; returns the class scheme."""
+    if not 0.0 <= min_valid <= 1.0:
+        raise InputError(f"‹min_valid› must be a fraction in 0..1, got {min_valid}", param="min_valid")
+    if labels is not None and labels_vector is not None:
+        raise InputError("give either a label raster (‹labels›) or label polygons (‹labels_vector›), not both",
+                         param="labels_vector")
+    if labels_vector is not None and not class_field:
+        raise InputError("‹labels_vector› needs ‹class_field=NAME›, the attribute holding the class code or name",
+                         param="class_field")
+    if ndsm is not None and (dsm is not None or dtm is not None):
+        raise InputError("give either an nDSM (‹ndsm›) or a DSM and a DTM (‹dsm›/‹dtm›), not both", param="ndsm")
+    if ndsm is None and (dsm is None) != (dtm is None):
+        raise InputError("‹dsm› and ‹dtm› go together: pass both, or pass a ready nDSM with ‹ndsm›",
+                         param="dtm" if dtm is None else "dsm")
+    has_height = any(p is not None for p in (dsm, dtm, ndsm))
+    has_labels = labels is not None or labels_vector is not None
+    scheme = classes if classes is None or isinstance(classes, ClassScheme) else ClassScheme.load(classes)
+    if has_labels and scheme is None:
+        raise InputError(
+            "labels were given without a class scheme: pass ‹classes› (a YAML file or dfc2018, isprs, synthetic)",
+            param="classes",
+        )
+    if not has_height and not has_labels:
+        raise InputError(
+            "nothing to learn: give a height layer (‹ndsm›, or ‹dsm›/‹dtm›) and/or labels (‹labels›/‹labels_vector›)"
+        )
+    count_windows(1, 1, size, stride)  # validates size/stride
+    return scheme
+
+
+class TileSources:
+    """Every input layer of a tile run, opened on the reference grid (a context manager).
+
+    Attributes:
+        image: the orthophoto bands (:class:`~aerialmtl.io.align.AlignedRaster`).
+        heights: heights above ground in metres, or ``None`` without a height layer.
+        labels: label codes (raster) or polygons (vector), or ``None`` without labels.
+        scheme: the class scheme of the labels.
+        tasks: ``("height", "classes")`` or the subset the layers allow.
+        paths: the input paths by role (for the provenance in ``dataset.yaml``).
+        band_names, dtype, height_units: what ``dataset.yaml`` records of the layers (kept after closing).
+    """
+
+    def __init__(
+        self, ortho: str | Path, grid: Grid, *, bands: Sequence[int] | None, dsm: str | Path | None,
+        dtm: str | Path | None, ndsm: str | Path | None, ndsm_options: NdsmOptions, labels: str | Path | None,
+        labels_vector: str | Path | None, class_field: str | None, scheme: ClassScheme | None,
+        ignore_unknown_codes: bool,
+    ) -> None:
+        self.scheme = scheme
+        self.on_unknown = "ignore" if ignore_unknown_codes else "error"
+        self.paths = {"ortho": ortho, "ndsm": ndsm, "dsm": dsm, "dtm": dtm, "labels": labels,
+                      "labels_vector": labels_vector}
+        self.class_field = class_field
+        self._opened: list[Any] = []
+        try:
+            self.image = self._open(AlignedRaster(ortho, grid, "image", bands=bands, role="orthophoto",
+                                                  bands_from="‹bands›"))
+            has_height = any(p is not None for p in (dsm, dtm, ndsm))
+            self.heights = (self._open(HeightSource(grid, ndsm=ndsm, dsm=dsm, dtm=dtm, options=ndsm_options))
+                            if has_height else None)
+            self.labels: AlignedRaster | VectorLabels | None = None
+            if labels is not None:
+                self.labels = self._open(AlignedRaster(labels, grid, "labels", bands=[1], role="labels"))
+            elif labels_vector is not None and scheme is not None:
+                self.labels = self._open(VectorLabels(labels_vector, grid, class_field or "", scheme,
+                                                      self.on_unknown))  # type: ignore[arg-type]
+        except BaseException:
+            self.close()
+            raise
+        self.tasks = (("height",) if self.heights is not None else ()) + (
+            ("classes",) if self.labels is not None else ())
+        #: one name per kept orthophoto band (its description, colour interpretation or ``bandN``)
+        self.band_names = _band_names(self.image.src, self.image.bands)
+        #: the orthophoto's band dtype (the image patches keep it)
+        self.dtype = str(self.image.src.dtypes[self.image.bands[0] - 1])
+        #: the unit each height layer was read in
+        self.height_units = self.heights.units() if self.heights is not None else {}
+
+    def read_classes(self, win: Window) -> np.ndarray:
+        """(h, w) uint8 class indices of ``win`` (``IGNORE_INDEX`` where unlabelled)."""
+        assert self.labels is not None and self.scheme is not None
+        if isinstance(self.labels, VectorLabels):
+            return self.labels.read(win)[0]
+        codes, valid = self.labels.read(win)
+        return self.scheme.remap(codes[0], valid=valid, on_unknown=self.on_unknown,  # type: ignore[arg-type]
+                                 source=f"labels '{self.labels.path}'")
+
+    def _open(self, layer: Any) -> Any:
+        self._opened.append(layer)
+        return layer
+
+    def close(self) -> None:
+        for layer in reversed(self._opened):
+            layer.close()
+        self._opened.clear()
+
+    def __enter__(self) -> TileSources:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _describe(
+    sources: TileSources, grid: Grid, size: int, stride: int, min_valid: float, splits: SplitSpec,
+    assigner: SplitAssigner, result: TileResult, ndsm_options: NdsmOptions,
+) -> TileFolderInfo:
+    """The ``dataset.yaml`` of a finished tile run."""
+    paths = sources.paths
+    return TileFolderInfo(
+        root=result.out_dir,
         crs=grid.crs.to_string(),
         gsd=float(grid.gsd),
         patch_size=int(size),
         stride=int(stride),
-        bands=tuple(int(b) for b in image.bands),
-        band_names=tuple(band_names),
-        dtype=dtype,
+        bands=tuple(int(b) for b in sources.image.bands),
+        band_names=tuple(sources.band_names),
+        dtype=sources.dtype,
         mean=tuple(result.mean or ()),
         std=tuple(result.std or ()),
-        tasks=tuple(tasks),
-        classes=scheme if has_labels else None,
+        tasks=tuple(sources.tasks),
+        classes=sources.scheme if sources.labels is not None else None,
         height={
             "nodata": HEIGHT_NODATA,
             "clip_negative": bool(ndsm_options.clip_negative),
             "max_height": ndsm_options.max_height,
-            "source": "ndsm" if ndsm is not None else "dsm-dtm",
-            "units": height_units,
-        } if has_height else None,
+            "source": "ndsm" if paths["ndsm"] is not None else "dsm-dtm",
+            "units": sources.height_units,
+        } if sources.heights is not None else None,
         splits={**splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
                                        if assigner.block_size_m is not None else {})},
         counts=dict(result.counts),
         min_valid=float(min_valid),
         provenance={
-            "ortho": str(Path(ortho).resolve()),
-            "ndsm": str(Path(ndsm).resolve()) if ndsm else None,
-            "dsm": str(Path(dsm).resolve()) if dsm else None,
-            "dtm": str(Path(dtm).resolve()) if dtm else None,
-            "labels": str(Path(labels).resolve()) if labels else None,
-            "labels_vector": str(Path(labels_vector).resolve()) if labels_vector else None,
-            "class_field": class_field,
+            **{k: str(Path(v).resolve()) if v else None for k, v in paths.items()},
+            "class_field": sources.class_field,
             "aerialmtl_version": __version__,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         },
-    ).write()
-    return result
+    )
 
 
 def _tile_loop(
-    image: AlignedRaster,
-    heights: HeightSource | None,
-    label_src: AlignedRaster | VectorLabels | None,
-    scheme: ClassScheme | None,
-    assigner: SplitAssigner,
-    grid: Any,
-    out_dir: Path,
-    size: int,
-    stride: int,
-    min_valid: float,
-    on_unknown: str,
-    progress: bool,
+    sources: TileSources, assigner: SplitAssigner, grid: Grid, out_dir: Path, size: int, stride: int,
+    min_valid: float, progress: bool,
 ) -> TileResult:
+    """Visit every window of the (size, stride) grid, write its patches and stream the manifest."""
     counts = {s: 0 for s in SPLITS}
-    stats = _BandStats(len(image.bands))
+    stats = _BandStats(len(sources.image.bands))
     dropped_invalid = dropped_split = 0
-    crs_str = grid.crs.to_string()
     total = count_windows(grid.width, grid.height, size, stride)
-    img_dtype = image.src.dtypes[image.bands[0] - 1]
     windows = tile_windows(grid.width, grid.height, size, stride)
     with ManifestWriter(out_dir) as writer:  # streamed row by row, renamed once every patch is written
         for win in tqdm(windows, total=total, desc="tiling", unit="patch", disable=not progress):
-            dropped = _tile_one(win, image, heights, label_src, scheme, assigner, grid, out_dir, min_valid,
-                                on_unknown, img_dtype, crs_str, writer, counts, stats)
-            dropped_invalid += dropped == "invalid"
-            dropped_split += dropped == "split"
-    manifest = writer.path
+            split = assigner.split_of(win)
+            if split is None:
+                dropped_split += 1
+                continue
+            data, valid = sources.image.read(win)
+            if float(valid.mean()) < min_valid or not valid.any():
+                dropped_invalid += 1
+                continue
+            writer.writerow(_write_patches(sources, grid, win, split, data, valid, out_dir))
+            if split == "train":
+                stats.update(data, valid)
+            counts[split] += 1
     ms = stats.result()
     return TileResult(
-        out_dir=out_dir, manifest=manifest, dataset_yaml=out_dir / DATASET_YAML, counts=counts,
+        out_dir=out_dir, manifest=writer.path, dataset_yaml=out_dir / DATASET_YAML, counts=counts,
         windows=total, dropped_invalid=dropped_invalid, dropped_split=dropped_split,
         mean=ms[0] if ms else None, std=ms[1] if ms else None,
     )
 
 
-def _tile_one(
-    win: Window,
-    image: AlignedRaster,
-    heights: HeightSource | None,
-    label_src: AlignedRaster | VectorLabels | None,
-    scheme: ClassScheme | None,
-    assigner: SplitAssigner,
-    grid: Any,
-    out_dir: Path,
-    min_valid: float,
-    on_unknown: str,
-    img_dtype: str,
-    crs_str: str,
-    writer: ManifestWriter,
-    counts: dict[str, int],
-    stats: _BandStats,
-) -> str | None:
-    """Write the patches of one window and its manifest row; returns why it was dropped, if it was."""
-    split = assigner.split_of(win)
-    if split is None:
-        return "split"
-    data, valid = image.read(win)
-    valid_fraction = float(valid.mean())
-    if valid_fraction < min_valid or not valid.any():
-        return "invalid"
+def _write_patches(
+    sources: TileSources, grid: Grid, win: Window, split: str, data: np.ndarray, valid: np.ndarray, out_dir: Path,
+) -> dict[str, Any]:
+    """Write the image, height and class patches of ``win``; returns its manifest row.
+
+    Args:
+        data: (C, h, w) orthophoto bands of the window (source dtype); ``valid``: (h, w) bool.
+    """
     pid = f"r{int(win.row_off):06d}_c{int(win.col_off):06d}"
     row: dict[str, Any] = {c: "" for c in MANIFEST_COLUMNS}
     t = grid.window_transform(win)
@@ -412,40 +462,27 @@ def _tile_one(
     right, bottom = t @ (win.width, win.height)
     row.update(patch_id=pid, split=split, col_off=int(win.col_off), row_off=int(win.row_off),
                width=int(win.width), height=int(win.height), left=_fmt(left), bottom=_fmt(bottom),
-               right=_fmt(right), top=_fmt(top), crs=crs_str, valid_fraction=f"{valid_fraction:.6f}")
-
-    rel = f"{split}/image/{pid}.tif"
-    _write(out_dir / rel, patch_profile(grid, win, data.shape[0], img_dtype, None), data, valid)
-    row["image_path"] = rel
-    if heights is not None:
-        h, hvalid = heights.read(win)
+               right=_fmt(right), top=_fmt(top), crs=grid.crs.to_string(), valid_fraction=f"{float(valid.mean()):.6f}")
+    row["image_path"] = rel = patch_path(split, "image", pid)
+    _write(out_dir / rel, patch_profile(grid, win, data.shape[0], sources.dtype, None), data, valid)
+    if sources.heights is not None:
+        h, hvalid = sources.heights.read(win)
         hvalid = hvalid & valid
         hv = h[hvalid]
-        out = np.where(hvalid, h, HEIGHT_NODATA).astype(np.float32)
-        rel = f"{split}/height/{pid}.tif"
-        _write(out_dir / rel, patch_profile(grid, win, 1, "float32", HEIGHT_NODATA), out[None])
-        row["height_path"] = rel
+        row["height_path"] = rel = patch_path(split, "height", pid)
+        _write(out_dir / rel, patch_profile(grid, win, 1, "float32", HEIGHT_NODATA),
+               np.where(hvalid, h, HEIGHT_NODATA).astype(np.float32)[None])
         if hv.size:
             row.update(height_min=_fmt(float(hv.min())), height_mean=_fmt(float(hv.astype(np.float64).mean())),
                        height_max=_fmt(float(hv.max())))
-    if label_src is not None and scheme is not None:
-        if isinstance(label_src, VectorLabels):
-            cls, _ = label_src.read(win)
-        else:
-            codes, lvalid = label_src.read(win)
-            cls = scheme.remap(codes[0], valid=lvalid, on_unknown=on_unknown,  # type: ignore[arg-type]
-                               source=f"labels '{label_src.path}'")
-        cls = np.where(valid, cls, IGNORE_INDEX).astype(np.uint8)
-        rel = f"{split}/classes/{pid}.tif"
+    if sources.labels is not None and sources.scheme is not None:
+        cls = np.where(valid, sources.read_classes(win), IGNORE_INDEX).astype(np.uint8)
+        row["classes_path"] = rel = patch_path(split, "classes", pid)
         _write(out_dir / rel, patch_profile(grid, win, 1, "uint8", IGNORE_INDEX), cls[None])
-        row["classes_path"] = rel
-        hist = np.bincount(cls[cls != IGNORE_INDEX].ravel(), minlength=scheme.num_classes)
-        row["class_hist"] = ";".join(str(int(v)) for v in hist[: scheme.num_classes])
-    if split == "train":
-        stats.update(data, valid)
-    counts[split] += 1
-    writer.writerow(row)
-    return None
+        k = sources.scheme.num_classes
+        hist = np.bincount(cls[cls != IGNORE_INDEX].ravel(), minlength=k)
+        row["class_hist"] = ";".join(str(int(v)) for v in hist[:k])
+    return row
 
 
 __all__ = ["MANIFEST_COLUMNS", "TileResult", "read_manifest", "tile_dataset"]
