@@ -306,7 +306,7 @@ def test_outputs_are_refused_when_present_and_written_all_or_nothing(tmp_path: P
     cls, height, std, ent = _layers((40, 40), [(5, 30, 5, 30, 6.0)], rng)
     pred = write_prediction_layers(tmp_path / "pred", cls, height, std, ent)
     write_buildings(pred, [tmp_path / "b.gpkg"])
-    with pytest.raises(OutputExistsError, match="b.gpkg already exist.*--overwrite"):
+    with pytest.raises(OutputExistsError, match="b.gpkg already exist.*overwrite=True"):
         write_buildings(pred, [tmp_path / "b.gpkg"])
     with pytest.raises(InputError, match=r"\.gpkg .*\.geojson .*\.city\.json"):
         write_buildings(pred, [tmp_path / "b.shp"])

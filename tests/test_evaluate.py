@@ -193,7 +193,7 @@ def test_unknown_label_codes_raise_unless_ignored(tmp_path: Path) -> None:
 
 def test_scheme_from_option_when_tag_missing(tmp_path: Path) -> None:
     s = make_scene(tmp_path, tag=False)
-    with pytest.raises(InputError, match="--classes"):
+    with pytest.raises(InputError, match="pass classes with the scheme"):
         evaluate_prediction(s["pred"], labels_ref=s["labels"], out=None)
     yml = tmp_path / "toy.yaml"
     yml.write_text(yaml.safe_dump(SCHEME.to_dict()))
@@ -205,7 +205,7 @@ def test_refuses_to_overwrite_and_rejects_bad_inputs(tmp_path: Path) -> None:
     s = make_scene(tmp_path)
     out = tmp_path / "report.json"
     evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out, plots=False)
-    with pytest.raises(OutputExistsError, match="--overwrite"):
+    with pytest.raises(OutputExistsError, match="overwrite=True"):
         evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out)
     evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out, overwrite=True, plots=False)
     with pytest.raises(InputError, match="does not exist"):

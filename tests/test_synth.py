@@ -15,6 +15,7 @@ from scipy import ndimage
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.cli import cli
+from aerialmtl.cli.options import flags_for
 from aerialmtl.data.synth import SYNTH_VERSION, cast_shadows, hillshade, synthesize
 from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.io.align import HEIGHT_NODATA
@@ -159,7 +160,7 @@ def test_cast_shadows_darken_the_ortho(town) -> None:
 
 def test_refuses_to_overwrite_and_validates_options(tmp_path: Path) -> None:
     synthesize(tmp_path, size=64, seed=0, gsd=1.0)
-    with pytest.raises(OutputExistsError, match="--overwrite"):
+    with pytest.raises(OutputExistsError, match="overwrite=True"):
         synthesize(tmp_path, size=64, seed=1, gsd=1.0)
     synthesize(tmp_path, size=64, seed=1, gsd=1.0, overwrite=True)
     with rasterio.open(tmp_path / "ortho.tif") as src:
@@ -179,7 +180,7 @@ def test_cli_writes_scene_and_needs_overwrite(tmp_path: Path) -> None:
     with rasterio.open(out / "labels.tif") as src:
         assert src.res == (1.0, 1.0)
     res = runner.invoke(cli, ["synth", str(out), "--size", "64"])
-    assert isinstance(res.exception, OutputExistsError) and "--overwrite" in str(res.exception)
+    assert isinstance(res.exception, OutputExistsError) and "--overwrite" in res.exception.render(flags_for("synth"))
     res = runner.invoke(cli, ["synth", str(out), "--size", "64", "--overwrite"])
     assert res.exit_code == 0, res.output
     res = runner.invoke(cli, ["synth", str(out), "--size", "8", "--overwrite"])

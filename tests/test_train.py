@@ -81,7 +81,7 @@ def test_model_section_checks_data(tiles: Path) -> None:
 def test_cuda_requested_without_gpu(tiles: Path, tmp_path: Path) -> None:
     if torch.cuda.is_available():
         pytest.skip("a GPU is present")
-    with pytest.raises(ConfigError, match="cuda.*--device cpu"):
+    with pytest.raises(ConfigError, match="cuda.*device=cpu"):
         train(tiny_cfg(device="cuda"), tiles, tmp_path / "r", max_steps=1, progress=False)
 
 

@@ -111,7 +111,7 @@ def write_buildings(
         raise InputError(f"outputs: {', '.join(dup)} given more than once")
     existing = [str(p) for p in paths if p.exists()]
     if existing and not overwrite:
-        raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass --overwrite (overwrite=True) to "
+        raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass ‹overwrite=True› to "
                                 "replace them or choose other output names")
     stats = ExtractionStats()
     with BuildingLayers(pred_dir, dtm=dtm) as layers:
@@ -163,7 +163,7 @@ def write_buildings(
                 _hidden(p).unlink(missing_ok=True)
             if isinstance(exc, OSError) and not isinstance(exc, (OutputError, InputError)):
                 raise OutputError(f"cannot write the building outputs ({' '.join(str(exc).split())[:160]}); "
-                                  "choose a writable --out with free space") from exc
+                                  "choose a writable ‹outputs› with free space") from exc
             raise
         crs = grid.crs.to_string()
     for p in paths:

@@ -62,6 +62,7 @@ COMMAND_FLAGS: dict[str, dict[str, str]] = {
     "evaluate": {"pred_dir": "--pred", "height_ref": "--height", "labels_ref": "--labels", "dsm_ref": "--dsm",
                  "dtm_ref": "--dtm"},
     "synth": {"out_dir": "OUT"},
+    "buildings": {"pred_dir": "PRED_DIR", "outputs": "--out", "building_classes": "--building-class"},
 }
 
 

@@ -174,16 +174,16 @@ def evaluate_prediction(
         if "classes" in files:
             raise InputError(
                 f"no class scheme for the labels '{labels_ref}': {files['classes']} has no {CLASS_SCHEME_TAG} "
-                "tag; pass --classes with the scheme YAML the model was trained with"
+                "tag; pass ‹classes› with the scheme YAML the model was trained with"
             )
-        notes.append("labels given without classes.tif or --classes: per-class height errors skipped")
+        notes.append("labels given without classes.tif or ‹classes›: per-class height errors skipped")
     do_classes = labels_ref is not None and "classes" in files
     if labels_ref is not None and "classes" not in files:
         notes.append("labels given but the prediction has no classes.tif: class metrics skipped")
     if not do_height and not do_classes and buildings_ref is None:
         raise InputError(
-            f"nothing to evaluate in '{pred_dir}': the references given ({'--height' if height_given else ''}"
-            f"{' --labels' if labels_ref else ''}) match no predicted layer (found: "
+            f"nothing to evaluate in '{pred_dir}': the references given ({'‹height_ref›' if height_given else ''}"
+            f"{' ‹labels_ref›' if labels_ref else ''}) match no predicted layer (found: "
             f"{', '.join(sorted(p.name for p in files.values()))})"
         )
     k = scheme.num_classes if scheme is not None else 0
@@ -264,9 +264,11 @@ def _check_arguments(
 ) -> dict[str, Path]:
     """Validate the arguments of :func:`evaluate_prediction`; returns the predicted layers present."""
     if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
-        raise InputError("give either a reference nDSM (--height) or a DSM and a DTM (--dsm/--dtm), not both")
+        raise InputError("give either a reference nDSM (‹height_ref›) or a DSM and a DTM (‹dsm_ref›/‹dtm_ref›), not both",
+                         param="height_ref")
     if (dsm_ref is None) != (dtm_ref is None):
-        raise InputError("--dsm and --dtm go together: pass both, or pass a reference nDSM with --height")
+        raise InputError("‹dsm_ref› and ‹dtm_ref› go together: pass both, or pass a reference nDSM with ‹height_ref›",
+                         param="dtm_ref" if dtm_ref is None else "dsm_ref")
     if not pred_dir.is_dir():
         raise InputError(f"prediction folder '{pred_dir}' does not exist; pass the --out folder of `aerialmtl predict`")
     files = PredictionFolder(pred_dir).layers()
@@ -276,12 +278,12 @@ def _check_arguments(
             "pass the --out folder of `aerialmtl predict`"
         )
     if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
-        raise InputError("no reference given: pass a reference height raster (--height) and/or labels (--labels)")
+        raise InputError("no reference given: pass a reference height raster (‹height_ref›) and/or labels (‹labels_ref›)")
     if not height_threshold >= 0:
-        raise InputError(f"--height-threshold must be ≥ 0 metres, got {height_threshold}")
+        raise InputError(f"‹height_threshold› must be ≥ 0 metres, got {height_threshold}", param="height_threshold")
     if out is not None and Path(out).exists() and not overwrite:
         raise OutputExistsError(
-            f"report '{out}' already exists; pass --overwrite to replace it or choose another --out"
+            f"report '{out}' already exists; pass ‹overwrite=True› to replace it or choose another ‹out›"
         )
     return files
 
@@ -418,7 +420,7 @@ class ClassEvaluation:
             name = self.scheme.name if self.scheme is not None else ""
             raise InputError(
                 f"'{self.classes_path}' holds class index {int(cp[bad].max())} but the class scheme "
-                f"'{name}' ({self.scheme_source}) has {self.k} classes; pass --classes with the scheme "
+                f"'{name}' ({self.scheme_source}) has {self.k} classes; pass ‹classes› with the scheme "
                 "the model was trained with"
             )
         self.cm += confusion_matrix(labels_idx, cp, self.k)

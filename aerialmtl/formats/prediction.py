@@ -68,7 +68,7 @@ def read_class_scheme_tag(path: str | Path) -> ClassScheme | None:
         return ClassScheme.from_dict(json.loads(text))
     except (ValueError, TypeError) as exc:
         raise InputError(
-            f"'{path}': tag {CLASS_SCHEME_TAG} is not a valid class scheme ({exc}); pass --classes with "
+            f"'{path}': tag {CLASS_SCHEME_TAG} is not a valid class scheme ({exc}); pass ‹classes› with "
             "the scheme the model was trained with"
         ) from exc
 

@@ -176,7 +176,7 @@ class TileFolderInfo:
         """
         root = Path(data_dir)
         if not root.is_dir():
-            raise InputError(f"data folder '{root}' does not exist; run `aerialmtl tile` first or pass --data")
+            raise InputError(f"data folder '{root}' does not exist; run `aerialmtl tile` first or pass ‹data_dir›")
         yml = root / DATASET_YAML
         if not yml.is_file():
             raise _not_a_tile_folder(root, f"'{yml}' is missing")

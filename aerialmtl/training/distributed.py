@@ -58,7 +58,7 @@ def resolve_device(name: str, local_rank: int = 0) -> torch.device:
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: 'cuda' was requested but no CUDA GPU is available; use --device cpu or auto")
+        raise ConfigError("device: 'cuda' was requested but no CUDA GPU is available; use ‹device=cpu› or auto")
     if name == "cuda":
         return torch.device("cuda", local_rank)
     return torch.device(name)
@@ -187,7 +187,7 @@ class DistContext:
 def peer_failure_message(exc: BaseException) -> str:
     why = " ".join(str(exc).split())[:160] or exc.__class__.__name__
     return (f"another process of this multi-process run failed or was stopped ({why}); its own message or "
-            "torchrun's summary says why. The last checkpoint in the run folder is whole: continue with --resume")
+            "torchrun's summary says why. The last checkpoint in the run folder is whole: continue with ‹resume=True›")
 
 
 def is_peer_error(exc: BaseException) -> bool:

@@ -275,7 +275,8 @@ class Trainer:
         """The tile folder and the model config it implies; checks ``data.crop_size`` against its patches."""
         data = data_dir if data_dir is not None else self.cfg.data.dir
         if data is None:
-            raise ConfigError("data.dir: no tile folder given; set data.dir in the config or pass --data")
+            raise ConfigError("data.dir: no tile folder given; set data.dir in the config or pass ‹data_dir›",
+                              param="data_dir")
         info = TileFolderInfo.read(data)
         k = info.classes.num_classes if info.classes is not None else None
         model_cfg = self.cfg.model.resolve(info.num_bands, info.tasks, k)
@@ -469,7 +470,7 @@ class Trainer:
         payload, old_meta = load_checkpoint(path, map_location=self.device)
         ts = payload.get("train_state")
         if not ts:
-            raise CheckpointError(f"checkpoint '{path}' has no training state; cannot --resume from it")
+            raise CheckpointError(f"checkpoint '{path}' has no training state; cannot ‹resume› from it")
         check_same_data(path, old_meta, self.meta)
         if to_dict(old_meta.model) != to_dict(self.model_cfg):
             raise CheckpointError(

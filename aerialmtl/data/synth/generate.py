@@ -100,9 +100,11 @@ def synthesize(
     """
     start = time.perf_counter()
     if int(size) != size or size < MIN_SIZE:
-        raise InputError(f"size must be an integer ≥ {MIN_SIZE} pixels, got {size}; pass e.g. --size 1024")
+        raise InputError(f"‹size› must be an integer ≥ {MIN_SIZE} pixels, got {size}; pass e.g. ‹size=1024›",
+                         param="size")
     if not gsd > 0:
-        raise InputError(f"gsd must be a positive pixel size in metres, got {gsd}; pass e.g. --gsd 0.25")
+        raise InputError(f"‹gsd› must be a positive pixel size in metres, got {gsd}; pass e.g. ‹gsd=0.25›",
+                         param="gsd")
     try:
         crs_obj = CRS.from_user_input(crs)
     except CRSError as exc:
@@ -114,7 +116,7 @@ def synthesize(
     existing = [name for name in _OUTPUTS if (out / name).exists()]
     if existing and not overwrite:
         raise OutputExistsError(
-            f"{out}: {', '.join(existing)} already exist; pass --overwrite (overwrite=True) to replace them "
+            f"{out}: {', '.join(existing)} already exist; pass ‹overwrite=True› to replace them "
             "or choose another output folder"
         )
     try:
