@@ -109,7 +109,7 @@ class ClassScheme:
         """GDAL colour table for index rasters: index → RGBA, ``IGNORE_INDEX`` transparent black."""
         cmap = {i: (*c.color, 255) for i, c in enumerate(self.classes)}
         cmap[IGNORE_INDEX] = (0, 0, 0, 0)
-        return cmap  # type: ignore[return-value]
+        return cmap
 
     # ---- remapping ----------------------------------------------------------------------------
     def remap(
@@ -156,7 +156,8 @@ class ClassScheme:
                 raise LabelError(
                     f"{source}: label codes {shown} are not in class scheme '{self.name}' "
                     f"(known codes: {self.codes}, ignored: {list(self.ignore_codes)}); add them to the "
-                    f"scheme's 'classes' or 'ignore_codes', or pass ‹ignore_unknown_codes=True› to treat them as no label"
+                    f"scheme's 'classes' or 'ignore_codes', or pass ‹ignore_unknown_codes=True› to treat them as "
+                    "no label"
                 )
         out[~considered] = IGNORE_INDEX
         return out

@@ -71,7 +71,7 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
             raise ConfigError(f"{where}: got {value!r}; valid choices are {', '.join(repr(a) for a in args)}"
                               + _did_you_mean(value, [str(a) for a in args]))
         return value
-    if dataclasses.is_dataclass(tp):
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected a mapping of keys for {tp.__name__}, got {value!r}")
         return from_dict(tp, value, path)
@@ -131,7 +131,7 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
     if not isinstance(data, dict):
         raise ConfigError(f"{path or '<root>'}: expected a mapping, got {data!r}")
     hints = get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     unknown = [k for k in data if k not in fields]
     if unknown:
         key = f"{path}.{unknown[0]}" if path else str(unknown[0])
@@ -142,7 +142,7 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
         sub = f"{path}.{name}" if path else name
         if name in data:
             kwargs[name] = _convert(hints[name], data[name], sub)
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:  # type: ignore[misc]
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(f"missing required key '{sub}'")
     try:
         return cls(**kwargs)

@@ -170,7 +170,7 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
     from aerialmtl.classes import IGNORE_INDEX
     from aerialmtl.evaluation.evaluate import read_class_scheme_tag
 
-    def read(path: Path, masked: bool = True) -> np.ndarray | None:
+    def read(path: Path | None, masked: bool = True) -> np.ndarray | None:
         if path is None or not Path(path).exists():
             return None
         with rasterio.open(path) as src:
@@ -195,8 +195,9 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
         kw = dict(cmap=cmap, vmin=-0.5, vmax=scheme.num_classes - 0.5, interpolation="nearest")
         if labels_ref is not None:
             lab = read(labels_ref, masked=False)
-            idx = scheme.remap(lab, on_unknown="ignore")
-            panels.append(("reference classes", np.ma.masked_equal(idx, IGNORE_INDEX), kw))
+            if lab is not None:
+                idx = scheme.remap(lab, on_unknown="ignore")
+                panels.append(("reference classes", np.ma.masked_equal(idx, IGNORE_INDEX), kw))
         cls = read(pred_dir / "classes.tif")
         if cls is not None:
             panels.append(("predicted classes", cls, kw))

@@ -162,7 +162,8 @@ def main() -> None:
               f"{f(r.get('height_aurg'))} | {f(r.get('class_entropy_ause'))} / {f(r.get('class_entropy_aurg'))} | "
               f"{f(r.get('class_mutual_info_ause'))} / {f(r.get('class_mutual_info_aurg'))} | {r['train_s']:.0f} |")
     b = baselines
-    print(f"| train-mean height ({b['train-mean height']['value_m']:.2f} m) | {f(b['train-mean height']['height_mae'], 2)}"
+    tm = b["train-mean height"]
+    print(f"| train-mean height ({tm['value_m']:.2f} m) | {f(tm['height_mae'], 2)}"
           f" | {f(b['train-mean height']['height_rmse'], 2)} | | | | | | | |")
     print(f"| majority class ({b['majority class']['class']}) | | | {f(b['majority class']['oa'])} | "
           f"{f(b['majority class']['miou'])} | | | | | |")

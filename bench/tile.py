@@ -41,7 +41,8 @@ def make_inputs(folder: Path, n: int) -> dict[str, str]:
     common = dict(driver="GTiff", crs=crs, tiled=True, blockxsize=BLOCK, blockysize=BLOCK, compress="deflate")
     paths = {k: str(folder / f"{k}.tif") for k in ("ortho", "ndsm", "labels")}
     with rasterio.open(paths["ortho"], "w", width=n, height=n, count=3, dtype="uint8", transform=t, **common) as o, \
-            rasterio.open(paths["labels"], "w", width=n, height=n, count=1, dtype="uint8", transform=t, **common) as lab:
+            rasterio.open(paths["labels"], "w", width=n, height=n, count=1, dtype="uint8", transform=t,
+                          **common) as lab:
         for r in range(0, n, BLOCK):
             for c in range(0, n, BLOCK):
                 win = Window(c, r, min(BLOCK, n - c), min(BLOCK, n - r))

@@ -32,7 +32,9 @@ def _centres(grid) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(xs), np.asarray(ys)
 
 
-def _linear_dsm(path: Path, crs: str, res: tuple[float, float], coef: tuple[float, float, float], margin: float) -> Path:
+def _linear_dsm(
+    path: Path, crs: str, res: tuple[float, float], coef: tuple[float, float, float], margin: float
+) -> tuple[Path, tuple[float, float]]:
     """A DSM whose value is ``c0 + c1·(x − x0) + c2·(y − y0)`` in its own CRS, covering the ortho plus a margin."""
     left, bottom, right, top = 700000.0, 5000000.0 - N * 0.5, 700000.0 + N * 0.5, 5000000.0
     xs, ys = warp_transform(ORTHO_CRS, crs, [left, right, left, right], [bottom, bottom, top, top])

@@ -17,7 +17,8 @@ def _staging(path: Path, data: np.ndarray, nodata: float) -> Path:
                            data.shape[1], data.shape[0], data.dtype.name, nodata)
     with rasterio.open(path, "w", **prof) as dst:
         dst.write(data)
-        dst.write_colormap(1, {0: (255, 0, 0, 255), 1: (0, 255, 0, 255), 255: (0, 0, 0, 0)}) if data.dtype == np.uint8 else None
+        if data.dtype == np.uint8:
+            dst.write_colormap(1, {0: (255, 0, 0, 255), 1: (0, 255, 0, 255), 255: (0, 0, 0, 0)})
         dst.set_band_description(1, "layer")
         dst.units = ("m",)
         dst.update_tags(AERIALMTL_CLASS_SCHEME='{"name": "x"}')

@@ -17,7 +17,8 @@ from aerialmtl.tiling.grid import count_windows
 
 def test_marks_read_as_python_names_or_as_the_commands_options() -> None:
     text = "‹tile› must be a multiple of 32, got 100; pass e.g. ‹tile=512›, or ‹overwrite=True›; see `gdalinfo`"
-    assert render(text) == "tile must be a multiple of 32, got 100; pass e.g. tile=512, or overwrite=True; see `gdalinfo`"
+    assert render(text) == (
+        "tile must be a multiple of 32, got 100; pass e.g. tile=512, or overwrite=True; see `gdalinfo`")
     assert render(text, flags_for("predict")) == (
         "--tile must be a multiple of 32, got 100; pass e.g. --tile 512, or --overwrite; see `gdalinfo`")
     err = InputError(text, param="tile")

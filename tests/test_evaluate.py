@@ -22,6 +22,7 @@ from rasterio.warp import transform_bounds
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.cli import cli
+from aerialmtl.cli.options import flags_for
 from aerialmtl.errors import InputError, LabelError, OutputExistsError
 from aerialmtl.evaluation.evaluate import CLASS_SCHEME_TAG, evaluate_prediction
 from tests.conftest import write_raster
@@ -226,7 +227,8 @@ def test_cli_prints_headline_and_writes_report(tmp_path: Path) -> None:
     assert [b["range_m"][0] for b in data["height"]["per_bin"]] == [0.0, 2.0, 6.0]
     assert data["classes"]["overall_accuracy"] == pytest.approx(s["oa"])
     again = CliRunner().invoke(cli, args)
-    assert again.exit_code == 1 and "--overwrite" in str(again.exception)  # refused like every command's outputs
+    # refused like every command's outputs
+    assert again.exit_code == 1 and "--overwrite" in again.exception.render(flags_for("evaluate"))
 
 
 @pytest.mark.parametrize(

@@ -176,7 +176,8 @@ def test_manifest_agrees_with_files(scene: dict[str, Path], tmp_path: Path) -> N
             h = hf.read(1)
             hv = h[h != HEIGHT_NODATA]
             assert np.all(h[~valid] == HEIGHT_NODATA)  # invalid image → invalid height
-            assert float(r["height_min"]) == pytest.approx(hv.min()) and float(r["height_max"]) == pytest.approx(hv.max())
+            assert float(r["height_min"]) == pytest.approx(hv.min())
+            assert float(r["height_max"]) == pytest.approx(hv.max())
             assert float(r["height_mean"]) == pytest.approx(hv.mean(), rel=1e-5)
         with rasterio.open(out / r["classes_path"]) as cf:
             assert cf.transform == expected_t and cf.nodata == IGNORE_INDEX

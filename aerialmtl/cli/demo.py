@@ -32,7 +32,8 @@ def demo(out: Path, train_seconds: float, train_size: int, test_size: int, mc: i
     if h:
         click.echo(f"  height MAE {h.get('mae', float('nan')):.2f} m, RMSE {h.get('rmse', float('nan')):.2f} m")
     if c:
-        click.echo(f"  classes OA {c.get('overall_accuracy', float('nan')):.3f}, mIoU {c.get('miou', float('nan')):.3f}")
+        oa, miou = c.get("overall_accuracy", float("nan")), c.get("miou", float("nan"))
+        click.echo(f"  classes OA {oa:.3f}, mIoU {miou:.3f}")
     click.echo("Outputs:")
     for name, path in res.paths.items():
         click.echo(f"  {name:<11} {path}")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from aerialmtl.errors import OutputError, OutputExistsError
+from aerialmtl.errors import OutputError
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
 from aerialmtl.evaluation.report import headline
@@ -20,7 +20,8 @@ def _parse_bins(ctx: click.Context, param: click.Parameter, value: str | None) -
     try:
         edges = tuple(math.inf if v.strip().lower() in ("inf", "infinity") else float(v) for v in value.split(","))
     except ValueError:
-        raise click.BadParameter(f"expected comma-separated metres like '0,1,2,5,10,20,inf', got {value!r}", ctx, param)
+        raise click.BadParameter(f"expected comma-separated metres like '0,1,2,5,10,20,inf', got {value!r}", ctx,
+                                 param) from None
     if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise click.BadParameter(f"need at least 2 increasing edges, got {value!r}", ctx, param)
     return edges
@@ -79,22 +80,6 @@ def evaluate(pred: Path, height_ref: Path | None, dsm_ref: Path | None, dtm_ref:
     if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
         raise click.UsageError("give at least one reference: --height NDSM.tif (or --dsm with --dtm) and/or "
                                "--labels LABELS.tif and/or --buildings FOOTPRINTS")
-    if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
-        raise click.BadParameter("give either --height or --dsm with --dtm, not both", param_hint="--height")
-    if (dsm_ref is None) != (dtm_ref is None):
-        raise click.BadParameter("--dsm and --dtm go together; or pass a reference nDSM with --height",
-                                 param_hint="--dsm/--dtm")
-    if not pred.is_dir():
-        raise click.BadParameter(f"folder '{pred}' does not exist; pass the --out folder of `aerialmtl predict`",
-                                 param_hint="--pred")
-    if not (height_threshold >= 0 and math.isfinite(height_threshold)):
-        raise click.BadParameter(f"must be ≥ 0 metres, got {height_threshold}", param_hint="--height-threshold")
-    if sample_size < 1:
-        raise click.BadParameter(f"must be a positive number of pixels, got {sample_size}", param_hint="--sample-size")
-    if out.exists() and not overwrite:  # an existing output is an error (exit 1) like in every command
-        raise OutputExistsError(
-            f"report '{out}' already exists; pass --overwrite to replace it or choose another --out"
-        )
     _check_writable(out.parent)
     report = evaluate_prediction(
         pred, height_ref=height_ref, labels_ref=labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, z_unit=z_unit,

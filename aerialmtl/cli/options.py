@@ -23,6 +23,7 @@ FLAGS: dict[str, str] = {
     "bands": "--bands",
     "batch_size": "--batch-size",
     "class_field": "--class-field",
+    "crs": "--crs",
     "classes": "--classes",
     "device": "--device",
     "dsm": "--dsm",

@@ -17,7 +17,8 @@ def _int_list(ctx: click.Context, param: click.Parameter, value: str | None) -> 
     try:
         out = [int(v) for v in value.split(",") if v.strip()]
     except ValueError:
-        raise click.BadParameter(f"expected comma-separated 1-based band numbers like 1,2,3, got {value!r}", ctx, param)
+        raise click.BadParameter(f"expected comma-separated 1-based band numbers like 1,2,3, got {value!r}", ctx,
+                                 param) from None
     if not out or any(b < 1 for b in out):
         raise click.BadParameter(f"expected 1-based band numbers like 1,2,3, got {value!r}", ctx, param)
     return out
@@ -29,9 +30,9 @@ def _ratios(ctx: click.Context, param: click.Parameter, value: str) -> tuple[flo
     except ValueError:
         r = ()
     if len(r) != 3 or any(x < 0 for x in r) or sum(r) <= 0:
-        raise click.BadParameter(f"expected three non-negative numbers train,val,test like 0.7,0.15,0.15, got {value!r}",
-                                 ctx, param)
-    return r  # type: ignore[return-value]
+        raise click.BadParameter(
+            f"expected three non-negative numbers train,val,test like 0.7,0.15,0.15, got {value!r}", ctx, param)
+    return r
 
 
 def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> str | dict[str, str] | None:
@@ -104,7 +105,8 @@ def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, z_u
     result = tile_dataset(
         ortho, out, dsm=dsm, dtm=dtm, ndsm=ndsm, labels=labels, labels_vector=labels_vector,
         class_field=class_field, classes=classes, size=size, stride=stride, gsd=gsd, min_valid=min_valid,
-        splits=spec, bands=bands, ndsm_options=NdsmOptions(clip_negative=clip_negative, max_height=max_height, z_unit=z_unit),
+        splits=spec, bands=bands,
+        ndsm_options=NdsmOptions(clip_negative=clip_negative, max_height=max_height, z_unit=z_unit),
         ignore_unknown_codes=ignore_unknown_codes, overwrite=overwrite, progress=not quiet,
     )
     total = sum(result.counts.values())

@@ -74,12 +74,10 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     """
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.distributed import DistContext, install_stop_handler
+    from aerialmtl.training.loop import check_budget
     from aerialmtl.training.loop import train as train_loop
 
-    if max_steps is not None and max_steps < 1:
-        raise click.BadParameter(f"must be ≥ 1, got {max_steps}", param_hint="--max-steps")
-    if max_time is not None and max_time <= 0:
-        raise click.BadParameter(f"must be > 0 seconds, got {max_time}", param_hint="--max-time")
+    check_budget(max_steps, max_time)  # before the run folder is touched
     if resume and overwrite:
         raise click.BadParameter("--resume continues a run and --overwrite deletes it; pass only one",
                                  param_hint="--resume/--overwrite")

@@ -162,8 +162,8 @@ def evaluate_prediction(
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
     """
     pred_dir = Path(pred_dir)
-    files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, buildings_ref, height_threshold, out,
-                             overwrite)
+    files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, buildings_ref, height_threshold,
+                             sample_size, out, overwrite)
     height_given = height_ref if height_ref is not None else dsm_ref
     notes: list[str] = []
     do_height = height_given is not None and "height" in files
@@ -259,28 +259,35 @@ def evaluate_prediction(
 
 def _check_arguments(
     pred_dir: Path, height_ref: str | Path | None, dsm_ref: str | Path | None, dtm_ref: str | Path | None,
-    labels_ref: str | Path | None, buildings_ref: str | Path | None, height_threshold: float, out: str | Path | None,
-    overwrite: bool,
+    labels_ref: str | Path | None, buildings_ref: str | Path | None, height_threshold: float, sample_size: int,
+    out: str | Path | None, overwrite: bool,
 ) -> dict[str, Path]:
     """Validate the arguments of :func:`evaluate_prediction`; returns the predicted layers present."""
     if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
-        raise InputError("give either a reference nDSM (‹height_ref›) or a DSM and a DTM (‹dsm_ref›/‹dtm_ref›), not both",
-                         param="height_ref")
+        raise InputError(
+            "give either a reference nDSM (‹height_ref›) or a DSM and a DTM (‹dsm_ref›/‹dtm_ref›), not both",
+            param="height_ref",
+        )
     if (dsm_ref is None) != (dtm_ref is None):
         raise InputError("‹dsm_ref› and ‹dtm_ref› go together: pass both, or pass a reference nDSM with ‹height_ref›",
                          param="dtm_ref" if dtm_ref is None else "dsm_ref")
+    if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
+        raise InputError(
+            "no reference given: pass a reference height raster (‹height_ref›) and/or labels (‹labels_ref›)"
+        )
+    if sample_size < 1:
+        raise InputError(f"‹sample_size› must be a positive number of pixels, got {sample_size}", param="sample_size")
+    if not (height_threshold >= 0 and math.isfinite(height_threshold)):
+        raise InputError(f"‹height_threshold› must be ≥ 0 metres, got {height_threshold}", param="height_threshold")
     if not pred_dir.is_dir():
-        raise InputError(f"prediction folder '{pred_dir}' does not exist; pass the --out folder of `aerialmtl predict`")
+        raise InputError(f"prediction folder '{pred_dir}' does not exist; pass the --out folder of `aerialmtl predict`",
+                         param="pred_dir")
     files = PredictionFolder(pred_dir).layers()
     if HEIGHT not in files and CLASSES not in files:
         raise InputError(
             f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; "
             "pass the --out folder of `aerialmtl predict`"
         )
-    if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
-        raise InputError("no reference given: pass a reference height raster (‹height_ref›) and/or labels (‹labels_ref›)")
-    if not height_threshold >= 0:
-        raise InputError(f"‹height_threshold› must be ≥ 0 metres, got {height_threshold}", param="height_threshold")
     if out is not None and Path(out).exists() and not overwrite:
         raise OutputExistsError(
             f"report '{out}' already exists; pass ‹overwrite=True› to replace it or choose another ‹out›"

@@ -117,7 +117,7 @@ def load_prediction_maps(
             f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; set PRED_DIR / pred_dir "
             "to the --out folder of `aerialmtl predict`"
         )
-    first = files.get("height", files.get("classes"))
+    first = files["height"] if "height" in files else files["classes"]
     with open_raster(first, f"prediction {first.name}") as src:
         grid, factor = display_grid(grid_of(src), max_side)
     maps = PredictionMaps(grid, factor)
@@ -202,7 +202,8 @@ def most_uncertain_areas(
 
 def format_areas(areas: Sequence[dict[str, Any]], units: str = "") -> str:
     """A plain-text table of :func:`most_uncertain_areas` results (centre and bounds in map units)."""
-    head = f"{'rank':>4} {'mean ' + units:>12} {'max ' + units:>12} {'centre x':>12} {'centre y':>12}   bounds (left, bottom, right, top)"
+    head = (f"{'rank':>4} {'mean ' + units:>12} {'max ' + units:>12} {'centre x':>12} {'centre y':>12}   "
+            "bounds (left, bottom, right, top)")
     rows = [head]
     for a in areas:
         rows.append(
@@ -255,10 +256,12 @@ def _draw(ax: Any, maps: PredictionMaps, key: str, extent: Sequence[float], crop
         ax.imshow(np.nan_to_num(maps.rgb[sl], nan=1.0), **common)  # type: ignore[index]
         return
     if key == "classes":
-        k = maps.scheme.num_classes if maps.scheme is not None else int(maps.classes[maps.classes != IGNORE_INDEX].max(initial=0)) + 1  # type: ignore[union-attr]
+        assert maps.classes is not None
+        k = (maps.scheme.num_classes if maps.scheme is not None
+             else int(maps.classes[maps.classes != IGNORE_INDEX].max(initial=0)) + 1)
         colors = np.array(maps.scheme.colors, float) / 255 if maps.scheme is not None else None
         cmap = ListedColormap(colors) if colors is not None else "tab10"
-        data = np.ma.masked_equal(maps.classes[sl], IGNORE_INDEX)  # type: ignore[index]
+        data = np.ma.masked_equal(maps.classes[sl], IGNORE_INDEX)
         ax.imshow(data, cmap=cmap, vmin=-0.5, vmax=k - 0.5, **common)
         if legend and maps.scheme is not None:
             handles = [Patch(facecolor=c, edgecolor="k", label=n) for c, n in zip(colors, maps.scheme.names)]  # type: ignore[arg-type]

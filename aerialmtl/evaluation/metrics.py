@@ -191,7 +191,8 @@ class HeightStats:
         self.bin_err = np.zeros(nb)
         self.num_classes = num_classes
         if num_classes is not None:
-            self.class_names = list(class_names) if class_names is not None else [f"class_{i}" for i in range(num_classes)]
+            self.class_names = (list(class_names) if class_names is not None
+                                else [f"class_{i}" for i in range(num_classes)])
             self.cls_n = np.zeros(num_classes, np.int64)
             self.cls_abs = np.zeros(num_classes)
             self.cls_sq = np.zeros(num_classes)

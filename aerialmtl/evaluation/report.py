@@ -87,12 +87,13 @@ def markdown_summary(report: dict[str, Any]) -> str:
     lines += [f"| {k} | {v} |" for k, v in headline(report)]
     h = report.get("height")
     if h:
-        lines += ["", "## Height error per reference-height bin", "", "| bin (m) | pixels | MAE (m) | RMSE (m) | bias (m) |",
-                  "|---|---|---|---|---|"]
+        lines += ["", "## Height error per reference-height bin", "",
+                  "| bin (m) | pixels | MAE (m) | RMSE (m) | bias (m) |", "|---|---|---|---|---|"]
         for b in h["per_bin"]:
             lo, hi = b["range_m"]
             hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
-            lines.append(f"| [{lo:g}, {hi_s}) | {b['n_pixels']} | {_fmt(b['mae'])} | {_fmt(b['rmse'])} | {_fmt(b['bias'])} |")
+            lines.append(f"| [{lo:g}, {hi_s}) | {b['n_pixels']} | {_fmt(b['mae'])} | {_fmt(b['rmse'])} | "
+                         f"{_fmt(b['bias'])} |")
     c = report.get("classes")
     if c:
         lines += ["", "## Classes", "", "| class | IoU | F1 | reference px | predicted px |", "|---|---|---|---|---|"]

@@ -93,7 +93,7 @@ def sparsification(
     random = np.full(steps, full)
     scale = full if (normalise and full > 0) else 1.0
     curve, oracle, random = curve / scale, oracle / scale, random / scale
-    trapz = getattr(np, "trapezoid", None) or np.trapz  # numpy < 2 has only trapz
+    trapz = getattr(np, "trapezoid", None) or getattr(np, "trapz")  # noqa: B009 - numpy < 2 has only trapz
     return {
         "n_pixels": int(n),
         "mean_error": full,
@@ -183,7 +183,10 @@ class CalibrationBins:
 def expected_calibration_error(
     confidence: np.ndarray, correct: np.ndarray, n_bins: int = DEFAULT_ECE_BINS
 ) -> float:
-    """ECE of ``confidence`` (max class probability, [0, 1]) against ``correct`` (bool), see :class:`CalibrationBins`."""
+    """ECE of ``confidence`` (max class probability, [0, 1]) against ``correct`` (bool).
+
+    See :class:`CalibrationBins`.
+    """
     bins = CalibrationBins(n_bins)
     bins.update(confidence, correct)
     return bins.result()["ece"]

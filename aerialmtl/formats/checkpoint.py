@@ -60,7 +60,8 @@ class ModelMeta:
                 f"checkpoint meta is inconsistent: model.in_channels={n} but bands={list(self.bands)}, "
                 f"{len(self.mean)} means and {len(self.std)} stds"
             )
-        if ("classes" in self.model.tasks) and (self.classes is None or self.classes.num_classes != self.model.num_classes):
+        k = self.model.num_classes
+        if "classes" in self.model.tasks and (self.classes is None or self.classes.num_classes != k):
             raise CheckpointError(
                 "checkpoint meta is inconsistent: the classes task needs a class scheme with "
                 f"{self.model.num_classes} classes"

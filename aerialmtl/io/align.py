@@ -326,7 +326,7 @@ class AlignedRaster:
             inner = Window(ic0, ir0, ic1 - ic0, ir1 - ir0)
             sl = (slice(ir0 - r0, ir1 - r0), slice(ic0 - c0, ic1 - c0))
             try:
-                data[(slice(None), *sl)] = self.reader.read(self.bands, window=inner)
+                data[:, sl[0], sl[1]] = self.reader.read(self.bands, window=inner)
                 inner_mask = self.reader.read_masks(1, window=inner) > 0
                 if self.vrt is None and self.alpha_band is not None:
                     inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0

@@ -137,7 +137,9 @@ class D3Net(nn.Module):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
         for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
-            nn.init.normal_(head.head.weight, std=1e-3)
+            weight = head.get_submodule("head").weight
+            assert isinstance(weight, torch.Tensor)
+            nn.init.normal_(weight, std=1e-3)
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
@@ -176,10 +178,11 @@ class D3Net(nn.Module):
         results: dict[str, torch.Tensor] = {}
         for task, dec in self.heads.items():
             y = out
-            for i, block in enumerate(dec.blocks):
+            blocks: nn.ModuleList = dec.get_submodule("blocks")  # type: ignore[assignment]
+            for i, block in enumerate(blocks):
                 j = n_shared + i
                 y = block(torch.cat([feats[n - 1 - j], y], 1))
-            results[task] = dec.head(y)
+            results[task] = dec.get_submodule("head")(y)
         return results
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:

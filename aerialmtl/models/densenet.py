@@ -23,6 +23,7 @@ Output strides of the returned features: 2, 4, 8, 16, 32 (highest resolution fir
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import nn
@@ -178,7 +179,7 @@ class DenseNetEncoder(nn.Module):
             Five feature maps, highest resolution first: strides 2, 4, 8, 16, 32 with
             ``self.out_channels`` channels (stem skip, three pre-pool transition outputs, bottleneck).
         """
-        f = self.features
+        f: Any = self.features  # a ModuleDict: its entries are called as modules
         stem = f.relu0(f.norm0(f.conv0(x)))
         out = f.relu1(f.norm1(f.downconv0(stem)))
         feats = [stem]

@@ -33,7 +33,9 @@ from aerialmtl.models.densenet import DenseNetEncoder
 
 log = logging.getLogger(__name__)
 
-_OLD_LAYER_KEY = re.compile(r"^(.*denselayer\d+\.(?:norm|relu|conv))\.([12])\.(weight|bias|running_mean|running_var|num_batches_tracked)$")
+_OLD_LAYER_KEY = re.compile(
+    r"^(.*denselayer\d+\.(?:norm|relu|conv))\.([12])\.(weight|bias|running_mean|running_var|num_batches_tracked)$"
+)
 _STEM_PREFIXES = ("features.conv0.", "features.norm0.", "features.downconv0.", "features.norm1.")
 _PROBE_KEY = "features.denseblock1.denselayer1.conv1.weight"
 
@@ -57,7 +59,8 @@ class LoadReport:
     def summary(self) -> str:
         """One-line human summary."""
         return (f"loaded {len(self.loaded)} tensors; stem: {self.stem}; "
-                f"{len(self.missing)} missing (random init){': ' + ', '.join(self.missing[:5]) if self.missing else ''}; "
+                f"{len(self.missing)} missing (random init)"
+                f"{': ' + ', '.join(self.missing[:5]) if self.missing else ''}; "
                 f"{len(self.unexpected)} unused{': ' + ', '.join(self.unexpected[:5]) if self.unexpected else ''}")
 
 

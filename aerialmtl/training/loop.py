@@ -30,11 +30,24 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from aerialmtl.errors import InputError
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.distributed import DistContext, resolve_device
 from aerialmtl.training.runlog import LOG_COLUMNS
 from aerialmtl.training.state import seed_everything
 from aerialmtl.training.trainer import Trainer, TrainResult
+
+
+def check_budget(max_steps: int | None, max_time_s: float | None) -> None:
+    """Validate the step and time budgets of :func:`train` (``None`` = the config's).
+
+    Raises:
+        InputError: ``max_steps`` < 1 or ``max_time_s`` ≤ 0 (``param`` names which).
+    """
+    if max_steps is not None and max_steps < 1:
+        raise InputError(f"‹max_steps› must be ≥ 1, got {max_steps}", param="max_steps")
+    if max_time_s is not None and not max_time_s > 0:
+        raise InputError(f"‹max_time_s› must be > 0 seconds, got {max_time_s}", param="max_time_s")
 
 
 def train(
@@ -72,6 +85,7 @@ def train(
             with other bands or another architecture.
         OutputError: the patch cache cannot be written (set ``data.cache_dir``).
     """
+    check_budget(max_steps, max_time_s)
     trainer = Trainer(cfg, data_dir, out_dir, max_steps=max_steps, max_time_s=max_time_s, resume=resume, init=init,
                       progress=progress, ctx=ctx)
     try:
@@ -80,4 +94,4 @@ def train(
         trainer.close()
 
 
-__all__ = ["train", "TrainResult", "resolve_device", "seed_everything", "LOG_COLUMNS"]
+__all__ = ["check_budget", "train", "TrainResult", "resolve_device", "seed_everything", "LOG_COLUMNS"]

@@ -108,10 +108,11 @@ def synthesize(
     try:
         crs_obj = CRS.from_user_input(crs)
     except CRSError as exc:
-        raise InputError(f"crs {crs!r} is not a valid CRS ({exc}); pass an EPSG code such as 'EPSG:32631'") from exc
+        raise InputError(f"‹crs› {crs!r} is not a valid CRS ({exc}); pass an EPSG code such as 'EPSG:32631'",
+                         param="crs") from exc
     if not crs_obj.is_projected:
-        raise InputError(f"crs {crs!r} is not projected; synthetic scenes need a projected CRS, e.g. a UTM zone "
-                         "'EPSG:32631'")
+        raise InputError(f"‹crs› {crs!r} is not projected; synthetic scenes need a projected CRS, e.g. a UTM zone "
+                         "'EPSG:32631'", param="crs")
     out = Path(out_dir)
     existing = [name for name in _OUTPUTS if (out / name).exists()]
     if existing and not overwrite:

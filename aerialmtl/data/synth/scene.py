@@ -162,8 +162,9 @@ class _Canvas:
         self.albedo[:, rr, cc] = rgb[:, win]
 
 
-def _jitter(rng: np.random.Generator, rgb: tuple[int, int, int], amount: float = 12.0) -> tuple[float, ...]:
-    return tuple(float(np.clip(c + rng.normal(0, amount), 0, 255)) for c in rgb)
+def _jitter(rng: np.random.Generator, rgb: tuple[int, int, int], amount: float = 12.0) -> tuple[float, float, float]:
+    r, g, b = (float(np.clip(c + rng.normal(0, amount), 0, 255)) for c in rgb)
+    return r, g, b
 
 
 class _Planner:
@@ -188,7 +189,7 @@ class _Planner:
         top = float(np.clip(top, 4.0, 25.0))
         base = max(3.0, top * rng.uniform(0.3, 0.55))
         rgb = _jitter(rng, _TREE_GREENS[rng.integers(len(_TREE_GREENS))], 8.0)
-        rgb = tuple(c * (1.0 - dark) for c in rgb)
+        rgb = (rgb[0] * (1.0 - dark), rgb[1] * (1.0 - dark), rgb[2] * (1.0 - dark))
         self.trees.append(TreeSpec(u, v, radius, top, base, rgb))
 
     def visible(self, u0: float, u1: float, v0: float, v1: float) -> Polygon:
@@ -266,22 +267,25 @@ class _Planner:
             if rng.random() < 0.5:  # gravel driveway from the street to the house
                 side = ca - 3.5 if ca - 3.5 > la0 + 0.3 else ca + wh + 0.5
                 if side + 3 < la1:
-                    self.cover_rect(*rect(side, side + 3, street, street + sign * setback), GRAVEL)
+                    g0, g1, g2, g3 = rect(side, side + 3, street, street + sign * setback)
+                    self.cover_rect(g0, g1, g2, g3, GRAVEL)
             yard0 = s1 + 1
         else:
             yard0 = 2.0
         if rng.random() < 0.3 and depth - yard0 > 5:  # vegetable patch / bare garden
             pa = rng.uniform(la0 + 1, max(la0 + 1, la1 - 7))
             ps = rng.uniform(yard0, depth - 4)
-            self.cover_rect(*rect(pa, min(la1 - 0.5, pa + rng.uniform(4, 8)), street + sign * ps,
-                                  street + sign * min(depth - 0.5, ps + rng.uniform(3, 6))), SOIL)
+            s0, s1_, s2, s3 = rect(pa, min(la1 - 0.5, pa + rng.uniform(4, 8)), street + sign * ps,
+                                   street + sign * min(depth - 0.5, ps + rng.uniform(3, 6)))
+            self.cover_rect(s0, s1_, s2, s3, SOIL)
         for _ in range(rng.poisson(1.3)):
             radius = rng.uniform(2.0, 4.5)
             if depth - yard0 < 1.0:
                 break
             ps = rng.uniform(yard0 + 0.5 * radius, max(yard0 + 0.5 * radius, depth - 0.5 * radius))
             pa = rng.uniform(la0 + 0.5, la1 - 0.5)
-            self.tree(*uv(pa, street + sign * ps), radius, rng.uniform(4, 14))
+            tu, tv = uv(pa, street + sign * ps)
+            self.tree(tu, tv, radius, rng.uniform(4, 14))
 
     def commercial(self, u0: float, u1: float, v0: float, v1: float, paved: bool) -> None:
         rng = self.rng
@@ -309,7 +313,8 @@ class _Planner:
                     continue
                 bu, bv = rng.uniform(cu + 1, cu + w - bw - 1), rng.uniform(cvv + 1, cvv + d - bd - 1)
                 parts.append(RoofPart(bu, bu + bw, bv, bv + bd, "flat", min(40.0, height + rng.uniform(1, 3))))
-            self.buildings.append(Building(tuple(parts), _jitter(rng, _ROOF_FLAT[rng.integers(len(_ROOF_FLAT))]), False))
+            roof = _jitter(rng, _ROOF_FLAT[rng.integers(len(_ROOF_FLAT))])
+            self.buildings.append(Building(tuple(parts), roof, False))
         if rng.random() < 0.5:
             self._tree_row(u0, u1, v0 + 2.5, along_u=True)
 
@@ -588,8 +593,8 @@ def _draw_building(cv: _Canvas, bld: Building, tex_small: np.ndarray,
 
 
 def _draw_tree(cv: _Canvas, tr: TreeSpec, tex_small: np.ndarray, tex_mid: np.ndarray, fine: np.ndarray) -> None:
-    r, c = cv.to_px(np.array([tr.u]), np.array([tr.v]))
-    r, c = float(r[0]), float(c[0])
+    rows, cols = cv.to_px(np.array([tr.u]), np.array([tr.v]))
+    r, c = float(rows[0]), float(cols[0])
     rad_px = tr.radius / cv.gsd
     if r < -rad_px or c < -rad_px or r > cv.n + rad_px or c > cv.n + rad_px:
         return

@@ -36,8 +36,8 @@ def hillshade(surface: np.ndarray, gsd: float, azimuth: float, elevation: float,
     """
     z = np.asarray(surface, dtype=np.float32)
     d_row, d_col = np.gradient(z, gsd)
-    dz_east = d_col
-    dz_north = -d_row  # rows grow southwards
+    dz_east = np.asarray(d_col)
+    dz_north = -np.asarray(d_row)  # rows grow southwards
     steep = np.hypot(dz_east, dz_north) > max_slope
     dz_east[steep] = 0.0
     dz_north[steep] = 0.0
