@@ -16,10 +16,16 @@ Parts (select with flags; each can run alone):
   the difference is MC sampling noise plus blending).
 * ``--rss``: peak RSS (``ru_maxrss``) of ``predict_raster`` (small model, T = 1) on each of
   ``--rss-sizes`` (WxH), each in its own subprocess.
+* ``--pipeline``: the pipeline around the model, through the CLI as a user runs it: a near-null D3-Net
+  (growth 1, blocks 1-1-1-1, 2 stem features, bn_size 1, 20 classes, untrained; its forward costs almost
+  nothing) saved as a checkpoint, then ``python -m aerialmtl predict`` in a subprocess on a synthetic
+  raster for each of ``--pipeline-cases`` (``SIZE:T``), wall time including process start, plus the
+  child's peak RSS and the stage timings of ``prediction.json``. ``--pipeline-args`` adds CLI flags.
 
 Usage::
 
     python bench/predict.py --speed --components --baseline --rss
+    python bench/predict.py --pipeline --pipeline-cases 8192:1,4096:30
 """
 
 from __future__ import annotations
@@ -240,6 +246,57 @@ def bench_rss(sizes: list[tuple[int, int]], tmp: Path) -> dict:
             "ratio_to_first": [r["max_rss_mb"] / runs[0]["max_rss_mb"] for r in runs], "load_avg": load_avg()}
 
 
+# ---- (d) the pipeline around a near-null model, through the CLI ---------------------------------
+NULL = dict(growth_rate=1, block_config=(1, 1, 1, 1), num_init_features=2, bn_size=1)
+
+
+def cpu_name() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        return next(line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("Model name"))
+    except (OSError, subprocess.CalledProcessError, StopIteration):  # pragma: no cover - not Linux
+        return "unknown CPU"
+
+
+def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, cache: Path) -> dict:
+    """Rasters are kept in ``cache`` (``--tmp``) between invocations; outputs go to ``tmp``."""
+    from aerialmtl.formats.checkpoint import save_checkpoint
+
+    torch.manual_seed(0)
+    k = 20
+    cfg = ModelConfig(num_classes=k, **NULL)  # type: ignore[arg-type]
+    scheme = ClassScheme("bench", tuple(ClassDef(i + 1, f"c{i}", (i * 12 % 256, 100, 200)) for i in range(k)))
+    meta = ModelMeta(cfg, scheme, (1, 2, 3), (110.0, 110.0, 100.0), (45.0, 45.0, 45.0), 0.5)
+    ckpt = tmp / "null.pt"
+    save_checkpoint(ckpt, D3Net(cfg).eval(), meta)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    runs = []
+    for size, samples in cases:
+        src = cache / f"pipe_{size}.tif"
+        if not src.exists():
+            synthetic_raster(src, size, size)
+        out = tmp / f"pipe_out_{size}_{samples}"
+        cmd = [sys.executable, "-m", "aerialmtl", "predict", str(src), "--model", str(ckpt), "--out", str(out),
+               "--mc", str(samples), "--quiet", "--overwrite", *extra]
+        load_before = load_avg()
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        stdout, stderr = proc.stdout.read(), proc.stderr.read()  # type: ignore[union-attr]
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode != 0:
+            raise RuntimeError(f"predict failed ({proc.returncode}): {stderr.strip()[-2000:]}")
+        info = json.loads((out / "prediction.json").read_text())
+        runs.append({"size": size, "T": samples, "wall_s": round(wall, 2), "mpx_per_s": size * size / 1e6 / wall,
+                     "peak_rss_mb": round(usage.ru_maxrss / 1024), "timings_s": info.get("timings_s"),
+                     "cli_extra": extra, "load_avg_before": load_before, "load_avg_after": load_avg(),
+                     "stdout": stdout.strip().splitlines()[-1:]})
+        print(json.dumps(runs[-1]), flush=True)
+    return {"part": "pipeline", "model": "near-null D3-Net (growth 1, blocks 1-1-1-1, 2 stem, bn_size 1, 20 classes)",
+            "cpu": cpu_name(), "runs": runs}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--speed", action="store_true")
@@ -253,6 +310,9 @@ def main() -> None:
     ap.add_argument("--rss", action="store_true")
     ap.add_argument("--rss-sizes", default="2048x2048,2048x32768,8192x8192", help="WxH list, smallest first")
     ap.add_argument("--rss-child", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--pipeline", action="store_true")
+    ap.add_argument("--pipeline-cases", default="8192:1,4096:30", help="comma list of SIZE:T")
+    ap.add_argument("--pipeline-args", default="", help="extra predict CLI flags, space separated")
     ap.add_argument("--tmp", default=None)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -269,6 +329,10 @@ def main() -> None:
             print(json.dumps(bench_components()), flush=True)
         if args.baseline:
             print(json.dumps(bench_baseline(args.baseline_size, args.baseline_model, args.mc, tmp)), flush=True)
+        if args.pipeline:
+            cases = [(int(a), int(b)) for a, b in (c.split(":") for c in args.pipeline_cases.split(","))]
+            cache = Path(args.tmp) if args.tmp else tmp
+            print(json.dumps(bench_pipeline(cases, args.pipeline_args.split(), tmp, cache)), flush=True)
         if args.rss:
             sizes = [tuple(int(v) for v in s.split("x")) for s in args.rss_sizes.split(",")]
             print(json.dumps(bench_rss(sizes, tmp)), flush=True)  # type: ignore[arg-type]
