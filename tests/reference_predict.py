@@ -4,11 +4,11 @@ It holds the whole orthophoto and whole-raster float32 accumulators in numpy, ru
 window of the plan that has a valid pixel (in batches of ``batch_size`` windows of one window row, the
 documented batching), blends ``acc += value * weight`` in plan order and finalises like the old numpy
 stitcher did: weighted means, argmax, entropy of the mean probabilities, mutual information
-``clip(entropy − mean per-sample entropy, 0, entropy)``. Per-window statistics use the model's own
-formulas written out here (softmax over the class axis, per-sample entropy ``−Σ p log p``), with the
-dropout masks seeded per window exactly as the pipeline seeds them. Mean probabilities are summed in
-float32 sample by sample, as the pipeline does when it decodes one sample per call
-(``max_decode_pixels`` small), so classes compare exactly.
+``clip(entropy − mean per-sample entropy, 0, entropy)``. It uses the model as the pipeline prepares it
+(:func:`aerialmtl.inference.runner.inference_model`) and, for T = 1, the same softmax, so with the same
+batches the T = 1 maps must match bit for bit. For T > 1 the per-window statistics are written out here
+in float64 (softmax, per-sample entropy ``−Σ p log p``, population std) with the dropout masks seeded
+per window as the pipeline seeds them, one sample per decoder call: they match to float rounding.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import torch
 from rasterio.features import geometry_mask
 
 from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.inference.runner import inference_model
 from aerialmtl.inference.windows import plan_bands
 from aerialmtl.io.align import AlignedRaster, Grid, reference_grid
 from aerialmtl.io.vector import load_geometries
@@ -31,7 +32,7 @@ CLASS_NODATA = 255
 
 def _window_stats(model: torch.nn.Module, x: torch.Tensor, mc: int, keys: list[int],
                   seed: int) -> dict[str, np.ndarray]:
-    """(B, C, h, w) → per-window statistics as numpy: height (B,h,w), height_std, probs (B,h,w,K), mean_entropy."""
+    """(B, C, h, w) → per-window statistics as numpy: height (B,h,w), height_std, probs (B,K,h,w), mean_entropy."""
     out: dict[str, np.ndarray] = {}
     with torch.inference_mode():
         if mc == 1:
@@ -40,7 +41,7 @@ def _window_stats(model: torch.nn.Module, x: torch.Tensor, mc: int, keys: list[i
             if "height" in raw:
                 out["height_mean"] = raw["height"][:, 0].float().numpy()
             if "classes" in raw:
-                out["probs"] = torch.softmax(raw["classes"].float().permute(0, 2, 3, 1).contiguous(), -1).numpy()
+                out["probs"] = torch.softmax(raw["classes"].float().contiguous(), 1).numpy()
             return out
         masks = _SeededMasks(model)
         model.eval()
@@ -58,18 +59,15 @@ def _window_stats(model: torch.nn.Module, x: torch.Tensor, mc: int, keys: list[i
                 if "height" in dec:
                     heights.append(dec["height"][:, 0].double())
                 if "classes" in dec:
-                    p = torch.softmax(dec["classes"].float().permute(0, 2, 3, 1).contiguous(), -1)
+                    p = torch.softmax(dec["classes"].double(), 1)
                     probs.append(p)
-                    ents.append(-(p.double() * torch.log(p.double().clamp_min(1e-300))).sum(-1))
+                    ents.append(-(p * torch.log(p.clamp_min(1e-300))).sum(1))
     if heights:
         hs = torch.stack(heights)
         out["height_mean"] = hs.mean(0).float().numpy()
         out["height_std"] = hs.std(0, unbiased=False).float().numpy()
     if probs:
-        p_sum = probs[0].clone()
-        for p in probs[1:]:  # float32, sample by sample: the pipeline's order with one sample per decode
-            p_sum += p
-        out["probs"] = (p_sum / mc).numpy()
+        out["probs"] = torch.stack(probs).mean(0).float().numpy()
         out["mean_entropy"] = torch.stack(ents).mean(0).float().numpy()
     return out
 
@@ -105,6 +103,7 @@ def reference_predict(
     ok[:grid.height, :grid.width] = valid
     img[:, ~ok] = 0.0
     k = meta.classes.num_classes if meta.classes is not None and "classes" in meta.model.tasks else 0
+    model = inference_model(model, torch.device("cpu"))
     acc: dict[str, np.ndarray] = {"weight": np.zeros(ok.shape, np.float32)}
     n_cols = len(cols.starts)
     for i, r in enumerate(rows.starts):
@@ -121,8 +120,8 @@ def reference_predict(
                 acc["weight"][sl] += w
                 for name, v in stats.items():
                     if name not in acc:
-                        acc[name] = np.zeros(ok.shape + v.shape[3:], np.float32)
-                    acc[name][sl] += v[n] * (w[..., None] if v.ndim == 4 else w)
+                        acc[name] = np.zeros(v.shape[1:-2] + ok.shape, np.float32)
+                    acc[name][(Ellipsis, *sl)] += v[n] * w
     h, w_ = grid.height, grid.width
     wsum = acc["weight"][:h, :w_]
     valid_out = wsum > 0
@@ -139,13 +138,13 @@ def reference_predict(
     if "height_std" in acc:
         layers["height_std"] = fl(np.maximum(acc["height_std"][:h, :w_] / safe, 0.0))[None]
     if k:
-        probs = acc["probs"][:h, :w_] / safe[..., None]
-        cls = np.argmax(probs, axis=-1).astype(np.uint8)
+        probs = acc["probs"][:, :h, :w_] / safe
+        cls = np.argmax(probs, axis=0).astype(np.uint8)
         cls[~valid_out] = CLASS_NODATA
         layers["classes"] = cls[None]
         if mc > 1:
-            ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(-1), 0.0)
+            ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(0), 0.0)
             layers["class_entropy"] = fl(ent)[None]
             layers["class_mutual_info"] = fl(np.clip(ent - acc["mean_entropy"][:h, :w_] / safe, 0.0, ent))[None]
-        layers["class_probabilities"] = fl(np.moveaxis(probs, -1, 0))
+        layers["class_probabilities"] = fl(probs)
     return layers

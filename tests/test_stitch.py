@@ -9,53 +9,16 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import write_raster
+from conftest import IdentityModel, identity_meta, write_raster
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from torch import nn
 
 from aerialmtl.classes import ClassDef, ClassScheme
 from aerialmtl.errors import InputError
-from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.prediction import prediction_layers
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.inference.windows import axis_plan, plan_bands
-from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.mc_dropout import McStatistics
-
-
-class IdentityModel(nn.Module):
-    """Receptive-field-free model: height = band 1 de-normalised; class logits = band values (argmax band)."""
-
-    def __init__(self, mean: tuple[float, ...], std: tuple[float, ...], dropout: float = 0.0) -> None:
-        super().__init__()
-        c = len(mean)
-        self.height = nn.Conv2d(c, 1, 1)
-        self.classes = nn.Conv2d(c, c, 1)
-        self.drop = nn.Dropout2d(dropout)
-        with torch.no_grad():
-            self.height.weight.zero_()
-            self.height.weight[0, 0] = std[0]
-            self.height.bias.fill_(mean[0])
-            self.classes.weight.copy_(torch.diag(torch.tensor(std, dtype=torch.float32))[:, :, None, None])
-            self.classes.bias.copy_(torch.tensor(mean, dtype=torch.float32))
-
-    def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
-        return [x]
-
-    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-        x = feats[0]
-        return {"height": self.height(x), "classes": self.classes(self.drop(x))}
-
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        return self.decode(self.encode(x))
-
-
-def identity_meta(bands: int = 3, mean: float = 0.0, std: float = 1.0, gsd: float = 0.5) -> ModelMeta:
-    scheme = ClassScheme("bands", tuple(ClassDef(i + 1, f"band {i + 1}", (40 * i, 80, 200 - 40 * i))
-                                        for i in range(bands)))
-    return ModelMeta(ModelConfig(in_channels=bands, num_classes=bands), scheme, tuple(range(1, bands + 1)),
-                     (mean,) * bands, (std,) * bands, gsd)
 
 
 # ---- plan --------------------------------------------------------------------------------------
@@ -132,7 +95,7 @@ def test_identity_model_is_reproduced_exactly(height: int, width: int, tile: int
 
 
 def _random_windows(plan, k: int, seed: int, skip: float = 0.15) -> dict[tuple[int, int], tuple]:
-    """Random per-window statistics (h, w[, K]) and validity; some windows skipped (None)."""
+    """Random per-window statistics ([K,] h, w) and validity; some windows skipped (None)."""
     rng = np.random.default_rng(seed)
     out: dict[tuple[int, int], tuple] = {}
     h, w = plan.rows.size, plan.cols.size
@@ -141,7 +104,7 @@ def _random_windows(plan, k: int, seed: int, skip: float = 0.15) -> dict[tuple[i
             if rng.random() < skip:
                 out[i, j] = (None, None)
                 continue
-            p = rng.dirichlet(np.ones(k), size=(h, w)).astype(np.float32)
+            p = np.ascontiguousarray(rng.dirichlet(np.ones(k), size=(h, w)).astype(np.float32).transpose(2, 0, 1))
             stats = McStatistics(rng.normal(5, 2, (h, w)).astype(np.float32), rng.random((h, w)).astype(np.float32),
                                  p, (rng.random((h, w)) * 0.5).astype(np.float32))
             out[i, j] = (stats, rng.random((h, w)) > 0.1)
@@ -152,7 +115,7 @@ def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
     """Whole-raster float32 accumulation in plan order (acc += value * weight), finalised like the old stitcher."""
     ext = (plan.rows.extent, plan.cols.extent)
     acc = {"w": np.zeros(ext, np.float32), "h": np.zeros(ext, np.float32), "s": np.zeros(ext, np.float32),
-           "p": np.zeros(ext + (k,), np.float32), "e": np.zeros(ext, np.float32)}
+           "p": np.zeros((k, *ext), np.float32), "e": np.zeros(ext, np.float32)}
     for (i, j), (stats, valid) in windows.items():
         if stats is None:
             continue
@@ -162,20 +125,20 @@ def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
         acc["w"][sl] += w
         acc["h"][sl] += stats.height_mean * w
         acc["s"][sl] += stats.height_std * w
-        acc["p"][sl] += stats.probs * w[..., None]
+        acc["p"][(slice(None), *sl)] += stats.probs * w
         acc["e"][sl] += stats.mean_entropy * w
     hh, ww = plan.rows.length, plan.cols.length
     wsum = acc["w"][:hh, :ww]
     valid = wsum > 0
     safe = np.where(valid, wsum, np.float32(1.0))
-    probs = acc["p"][:hh, :ww] / safe[..., None]
-    ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(-1), 0.0)
-    cls = probs.argmax(-1).astype(np.uint8)
+    probs = acc["p"][:, :hh, :ww] / safe
+    ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(0), 0.0)
+    cls = probs.argmax(0).astype(np.uint8)
     cls[~valid] = 255
     out = {"height": acc["h"][:hh, :ww] / safe, "height_std": np.maximum(acc["s"][:hh, :ww] / safe, 0.0),
            "class_entropy": ent, "class_mutual_info": np.clip(ent - acc["e"][:hh, :ww] / safe, 0.0, ent)}
     layers = {n: np.where(valid, v, np.float32(-9999.0)).astype(np.float32)[None] for n, v in out.items()}
-    layers["class_probabilities"] = np.where(valid, np.moveaxis(probs, -1, 0), np.float32(-9999.0))
+    layers["class_probabilities"] = np.where(valid, probs, np.float32(-9999.0))
     layers["classes"] = cls[None]
     return layers
 

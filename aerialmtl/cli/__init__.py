@@ -7,8 +7,14 @@ one-line message on stderr with exit code 1. ``--debug`` shows the traceback ins
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
+
+# Large CPU tensors on transparent huge pages (torch's allocator, read when torch first allocates): on
+# VMs a fresh 4 KiB page fault costs microseconds, and predict allocates model activations of tens of
+# MiB per window (bench/RESULTS.md, predict). Before anything imports torch; a user's setting wins.
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 import click
 

@@ -367,7 +367,7 @@ class Predictor:
         out_px = grid.width * grid.height
         return PredictResult(out_dir, files, grid, self.mc, plan.num_windows, strip.windows_computed,
                              self.overlap_factor(plan, strip.windows_computed), plan.overlap_factor,
-                             out_px / 1e6 / max(timings["total"], 1e-9), timings)
+                             out_px / 1e6 / max(timings["total"], 1e-9), timings, Path(ortho))
 
     # ---- run information --------------------------------------------------------------------------
     @staticmethod

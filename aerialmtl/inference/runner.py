@@ -9,6 +9,11 @@ the device, dropout masks seeded per window so results do not depend on batching
 Also here: the device, precision and batch-size choices (:func:`resolve_device`,
 :func:`resolve_precision`, :func:`auto_batch_size`, :func:`mc_sample_batch`) and the optional
 ``torch.compile`` of the deterministic parts (:func:`compile_model`).
+
+The runner predicts with its own copy of the model, prepared for inference (:func:`inference_model`):
+decoder convolutions and their BatchNorms folded into one (:func:`~aerialmtl.models.d3net.fold_batchnorm`),
+channels-last activations, and the class head computed on class planes so that softmax, blending and
+argmax run along the pixels (K = 20 classes in a channels-last row are too short to vectorise).
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from torch import nn
 
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.models.d3net import fold_batchnorm
 from aerialmtl.models.mc_dropout import McStatistics, class_probabilities, mc_statistics
 
 Precision = Literal["auto", "bf16", "fp32"]
@@ -143,6 +149,21 @@ class _Compiled(nn.Module):
         return cast(dict[str, torch.Tensor], self._call("forward", x))
 
 
+def _planar(module: nn.Module, args: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+    return (args[0].contiguous(),)
+
+
+def inference_model(model: nn.Module, device: torch.device) -> nn.Module:
+    """A copy of ``model`` on ``device`` prepared for prediction (see the module docstring)."""
+    prepared = fold_batchnorm(model).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    heads = getattr(prepared, "heads", None)
+    head = getattr(heads["classes"], "head", None) if isinstance(heads, nn.ModuleDict) and "classes" in heads else None
+    if isinstance(head, nn.Module):
+        head.register_forward_pre_hook(_planar)  # logits come out as class planes
+    prepared.eval()
+    return prepared
+
+
 def compile_model(model: nn.Module) -> nn.Module:
     """The model with ``torch.compile`` applied where it can be (see :class:`_Compiled`)."""
     return _Compiled(model)
@@ -152,7 +173,7 @@ class ModelRunner:
     """Run the model on batches of raw windows.
 
     Args:
-        model: a D3-Net-like model (``encode``/``decode``/``forward``), moved to ``device``.
+        model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy.
         meta: its checkpoint metadata (bands' mean/std for normalisation).
         device: the device to run on.
         precision: ``"bf16"`` (autocast) or ``"fp32"``.
@@ -169,8 +190,7 @@ class ModelRunner:
         self.mc = mc
         self.seed = seed
         self.max_decode_pixels = max_decode_pixels
-        self.model = model.to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-        self.model.eval()
+        self.model = inference_model(model, device)
         self.net: nn.Module = compile_model(self.model) if compile else self.model
         self.tasks = tuple(meta.model.tasks)
         self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]

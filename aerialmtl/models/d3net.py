@@ -44,11 +44,11 @@ class UpBlock(nn.Module):
         super().__init__()
         # The convolutions feed a BatchNorm, so their bias would be redundant.
         self.up = nn.ConvTranspose2d(in_channels, out_channels, kernel_size=4, stride=2, padding=1, bias=False)
-        self.norm1 = nn.BatchNorm2d(out_channels)
+        self.norm1: nn.Module = nn.BatchNorm2d(out_channels)
         self.drop1: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
         self.relu1 = nn.ReLU(inplace=True)
         self.conv = nn.Conv2d(out_channels, out_channels, kernel_size=3, padding=1, bias=False)
-        self.norm2 = nn.BatchNorm2d(out_channels)
+        self.norm2: nn.Module = nn.BatchNorm2d(out_channels)
         self.drop2: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
         self.relu2 = nn.ReLU(inplace=True)
 
@@ -187,4 +187,29 @@ class D3Net(nn.Module):
         return self.decode(self.encode(x))
 
 
-__all__ = ["D3Net", "UpBlock", "pad_to_multiple", "SIZE_MULTIPLE"]
+def fold_batchnorm(model: nn.Module) -> nn.Module:
+    """A copy of ``model`` for inference with each decoder convolution and its BatchNorm folded into one.
+
+    In every :class:`UpBlock` the (transposed) convolution feeds a BatchNorm directly (dropout comes
+    after it), so in eval mode the pair is one affine map: ``BN(conv(x)) = conv'(x)`` with scaled
+    weights and a bias (equal up to float rounding, ~1e-7 relative). The encoder (BN → ReLU → conv)
+    has nothing to fold. MC dropout is unaffected. The original model is left as it is; a model
+    without :class:`UpBlock` is returned itself.
+    """
+    import copy
+
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    if not any(isinstance(m, UpBlock) and isinstance(m.norm1, nn.BatchNorm2d) for m in model.modules()):
+        return model
+    folded = copy.deepcopy(model).eval()
+    for m in folded.modules():
+        if isinstance(m, UpBlock) and isinstance(m.norm1, nn.BatchNorm2d):
+            m.up = fuse_conv_bn_eval(m.up, m.norm1, transpose=True)
+            m.norm1 = nn.Identity()
+            m.conv = fuse_conv_bn_eval(m.conv, m.norm2)  # type: ignore[arg-type]
+            m.norm2 = nn.Identity()
+    return folded
+
+
+__all__ = ["D3Net", "UpBlock", "fold_batchnorm", "pad_to_multiple", "SIZE_MULTIPLE"]
