@@ -31,8 +31,8 @@ pytestmark = pytest.mark.slow
 
 
 def _predict(orthos: list[Path], ckpt: Path, out: Path, ranks: int) -> subprocess.CompletedProcess:
-    launch = [sys.executable, "-m", "aerialmtl"] if ranks == 1 else [
-        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(ranks), "-m", "aerialmtl"]
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(ranks)]
+    launch = [sys.executable, "-m", "aerialmtl"] if ranks == 1 else [*torchrun, "-m", "aerialmtl"]
     cmd = [*launch, "predict", *map(str, orthos), "--model", str(ckpt), "--out", str(out), *ARGS]
     return subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=600)
 

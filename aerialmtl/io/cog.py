@@ -136,10 +136,10 @@ _TYPE_SIZES = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 
 _TYPE_FMT = {3: "H", 4: "I", 16: "Q"}
 
 
-def _read_ifds(path: Path) -> list[dict[int, Any]]:
+def _read_ifds(path: Path) -> list[dict[Any, Any]]:
     """Parse the IFD chain of a (Big)TIFF: tag → value(s) for the tags needed here, plus its offset."""
     wanted = {256, 257, 322, 323, 324, 325, 254}
-    ifds: list[dict[int, Any]] = []
+    ifds: list[dict[Any, Any]] = []
     with open(path, "rb") as fh:
         head = fh.read(16)
         bo = {b"II": "<", b"MM": ">"}.get(head[:2])
@@ -153,7 +153,7 @@ def _read_ifds(path: Path) -> list[dict[int, Any]]:
             n = struct.unpack(bo + ("Q" if big else "H"), fh.read(8 if big else 2))[0]
             entry_size = 20 if big else 12
             raw = fh.read(n * entry_size)
-            ifd: dict[int, Any] = {"offset": offset}  # type: ignore[dict-item]
+            ifd: dict[Any, Any] = {"offset": offset}
             for k in range(n):
                 e = raw[k * entry_size:(k + 1) * entry_size]
                 tag, typ = struct.unpack(bo + "HH", e[:4])
