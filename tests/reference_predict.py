@@ -32,7 +32,7 @@ CLASS_NODATA = 255
 
 def _window_stats(model: torch.nn.Module, x: torch.Tensor, mc: int, keys: list[int],
                   seed: int) -> dict[str, np.ndarray]:
-    """(B, C, h, w) → per-window statistics as numpy: height (B,h,w), height_std, probs (B,K,h,w), mean_entropy."""
+    """(B, C, h, w) → per-window statistics as numpy: height (B,h,w), height_std, probs (B,h,w,K), mean_entropy."""
     out: dict[str, np.ndarray] = {}
     with torch.inference_mode():
         if mc == 1:
@@ -41,7 +41,7 @@ def _window_stats(model: torch.nn.Module, x: torch.Tensor, mc: int, keys: list[i
             if "height" in raw:
                 out["height_mean"] = raw["height"][:, 0].float().numpy()
             if "classes" in raw:
-                out["probs"] = torch.softmax(raw["classes"].float().contiguous(), 1).numpy()
+                out["probs"] = torch.softmax(raw["classes"].float().permute(0, 2, 3, 1).contiguous(), -1).numpy()
             return out
         masks = _SeededMasks(model)
         model.eval()
@@ -59,9 +59,9 @@ def _window_stats(model: torch.nn.Module, x: torch.Tensor, mc: int, keys: list[i
                 if "height" in dec:
                     heights.append(dec["height"][:, 0].double())
                 if "classes" in dec:
-                    p = torch.softmax(dec["classes"].double(), 1)
+                    p = torch.softmax(dec["classes"].double().permute(0, 2, 3, 1), -1)
                     probs.append(p)
-                    ents.append(-(p * torch.log(p.clamp_min(1e-300))).sum(1))
+                    ents.append(-(p * torch.log(p.clamp_min(1e-300))).sum(-1))
     if heights:
         hs = torch.stack(heights)
         out["height_mean"] = hs.mean(0).float().numpy()
@@ -120,8 +120,8 @@ def reference_predict(
                 acc["weight"][sl] += w
                 for name, v in stats.items():
                     if name not in acc:
-                        acc[name] = np.zeros(v.shape[1:-2] + ok.shape, np.float32)
-                    acc[name][(Ellipsis, *sl)] += v[n] * w
+                        acc[name] = np.zeros(ok.shape + v.shape[3:], np.float32)
+                    acc[name][sl] += v[n] * (w[..., None] if v.ndim == 4 else w)
     h, w_ = grid.height, grid.width
     wsum = acc["weight"][:h, :w_]
     valid_out = wsum > 0
@@ -138,13 +138,13 @@ def reference_predict(
     if "height_std" in acc:
         layers["height_std"] = fl(np.maximum(acc["height_std"][:h, :w_] / safe, 0.0))[None]
     if k:
-        probs = acc["probs"][:, :h, :w_] / safe
-        cls = np.argmax(probs, axis=0).astype(np.uint8)
+        probs = acc["probs"][:h, :w_] / safe[..., None]
+        cls = np.argmax(probs, axis=-1).astype(np.uint8)
         cls[~valid_out] = CLASS_NODATA
         layers["classes"] = cls[None]
         if mc > 1:
-            ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(0), 0.0)
+            ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(-1), 0.0)
             layers["class_entropy"] = fl(ent)[None]
             layers["class_mutual_info"] = fl(np.clip(ent - acc["mean_entropy"][:h, :w_] / safe, 0.0, ent))[None]
-        layers["class_probabilities"] = fl(probs)
+        layers["class_probabilities"] = fl(np.moveaxis(probs, -1, 0))
     return layers

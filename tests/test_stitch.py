@@ -95,7 +95,7 @@ def test_identity_model_is_reproduced_exactly(height: int, width: int, tile: int
 
 
 def _random_windows(plan, k: int, seed: int, skip: float = 0.15) -> dict[tuple[int, int], tuple]:
-    """Random per-window statistics ([K,] h, w) and validity; some windows skipped (None)."""
+    """Random per-window statistics (h, w[, K]) and validity; some windows skipped (None)."""
     rng = np.random.default_rng(seed)
     out: dict[tuple[int, int], tuple] = {}
     h, w = plan.rows.size, plan.cols.size
@@ -104,7 +104,7 @@ def _random_windows(plan, k: int, seed: int, skip: float = 0.15) -> dict[tuple[i
             if rng.random() < skip:
                 out[i, j] = (None, None)
                 continue
-            p = np.ascontiguousarray(rng.dirichlet(np.ones(k), size=(h, w)).astype(np.float32).transpose(2, 0, 1))
+            p = rng.dirichlet(np.ones(k), size=(h, w)).astype(np.float32)
             stats = McStatistics(rng.normal(5, 2, (h, w)).astype(np.float32), rng.random((h, w)).astype(np.float32),
                                  p, (rng.random((h, w)) * 0.5).astype(np.float32))
             out[i, j] = (stats, rng.random((h, w)) > 0.1)
@@ -115,7 +115,7 @@ def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
     """Whole-raster float32 accumulation in plan order (acc += value * weight), finalised like the old stitcher."""
     ext = (plan.rows.extent, plan.cols.extent)
     acc = {"w": np.zeros(ext, np.float32), "h": np.zeros(ext, np.float32), "s": np.zeros(ext, np.float32),
-           "p": np.zeros((k, *ext), np.float32), "e": np.zeros(ext, np.float32)}
+           "p": np.zeros(ext + (k,), np.float32), "e": np.zeros(ext, np.float32)}
     for (i, j), (stats, valid) in windows.items():
         if stats is None:
             continue
@@ -125,20 +125,20 @@ def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
         acc["w"][sl] += w
         acc["h"][sl] += stats.height_mean * w
         acc["s"][sl] += stats.height_std * w
-        acc["p"][(slice(None), *sl)] += stats.probs * w
+        acc["p"][sl] += stats.probs * w[..., None]
         acc["e"][sl] += stats.mean_entropy * w
     hh, ww = plan.rows.length, plan.cols.length
     wsum = acc["w"][:hh, :ww]
     valid = wsum > 0
     safe = np.where(valid, wsum, np.float32(1.0))
-    probs = acc["p"][:, :hh, :ww] / safe
-    ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(0), 0.0)
-    cls = probs.argmax(0).astype(np.uint8)
+    probs = acc["p"][:hh, :ww] / safe[..., None]
+    ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(-1), 0.0)
+    cls = probs.argmax(-1).astype(np.uint8)
     cls[~valid] = 255
     out = {"height": acc["h"][:hh, :ww] / safe, "height_std": np.maximum(acc["s"][:hh, :ww] / safe, 0.0),
            "class_entropy": ent, "class_mutual_info": np.clip(ent - acc["e"][:hh, :ww] / safe, 0.0, ent)}
     layers = {n: np.where(valid, v, np.float32(-9999.0)).astype(np.float32)[None] for n, v in out.items()}
-    layers["class_probabilities"] = np.where(valid, probs, np.float32(-9999.0))
+    layers["class_probabilities"] = np.where(valid, np.moveaxis(probs, -1, 0), np.float32(-9999.0))
     layers["classes"] = cls[None]
     return layers
 

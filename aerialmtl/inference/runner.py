@@ -11,9 +11,9 @@ Also here: the device, precision and batch-size choices (:func:`resolve_device`,
 ``torch.compile`` of the deterministic parts (:func:`compile_model`).
 
 The runner predicts with its own copy of the model, prepared for inference (:func:`inference_model`):
-decoder convolutions and their BatchNorms folded into one (:func:`~aerialmtl.models.d3net.fold_batchnorm`),
-channels-last activations, and the class head computed on class planes so that softmax, blending and
-argmax run along the pixels (K = 20 classes in a channels-last row are too short to vectorise).
+decoder convolutions and their BatchNorms folded into one (:func:`~aerialmtl.models.d3net.fold_batchnorm`)
+and channels-last activations (measured faster on CPU than class planes for the head, the softmax
+and the blending alike; bench/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -149,17 +149,9 @@ class _Compiled(nn.Module):
         return cast(dict[str, torch.Tensor], self._call("forward", x))
 
 
-def _planar(module: nn.Module, args: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
-    return (args[0].contiguous(),)
-
-
 def inference_model(model: nn.Module, device: torch.device) -> nn.Module:
     """A copy of ``model`` on ``device`` prepared for prediction (see the module docstring)."""
     prepared = fold_batchnorm(model).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-    heads = getattr(prepared, "heads", None)
-    head = getattr(heads["classes"], "head", None) if isinstance(heads, nn.ModuleDict) and "classes" in heads else None
-    if isinstance(head, nn.Module):
-        head.register_forward_pre_hook(_planar)  # logits come out as class planes
     prepared.eval()
     return prepared
 

@@ -16,7 +16,7 @@ grows with the raster height, and only the carry (a few KiB per column) with its
 Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each window):
 
 * ``height_mean`` → ``height``; ``height_std`` → ``height_std`` (weighted mean of the window stds);
-* ``probs`` (K class planes) → ``classes`` (argmax), ``class_entropy`` (entropy of the blended
+* ``probs`` (K, channels last) → ``classes`` (argmax), ``class_entropy`` (entropy of the blended
   probabilities), ``class_probabilities``;
 * ``mean_entropy`` (mean per-sample entropy) → ``class_mutual_info = clip(entropy − blended mean
   entropy, 0, entropy)``, so ``0 ≤ MI ≤ entropy ≤ log K`` holds exactly in the blended result.
@@ -139,7 +139,7 @@ class Stitcher:
     def _alloc(self, h: int, w: int) -> dict[str, torch.Tensor]:
         acc = {"weight": torch.zeros((h, w), dtype=torch.float32, device=self.device)}
         for q in self.quantities:
-            shape = (self.k, h, w) if q == "probs" else (h, w)
+            shape = (h, w, self.k) if q == "probs" else (h, w)
             acc[q] = torch.zeros(shape, dtype=torch.float32, device=self.device)
         return acc
 
@@ -154,7 +154,7 @@ class Stitcher:
         """``dst = base + src·mult`` (``accumulate``: ``base`` is ``dst`` itself).
 
         ``src`` None: no contribution (``dst = base``, or 0 without a base); ``mult`` None: the
-        contribution is ``src`` itself. Shapes ([K,] h, w), ``mult`` (h, w). One rounding for the product
+        contribution is ``src`` itself. Shapes (h, w[, K]), ``mult`` (h, w). One rounding for the product
         and one for the sum, in this order, like ``acc += value * weight`` in numpy.
         """
         if dst.numel() == 0:
@@ -167,13 +167,15 @@ class Stitcher:
             else:
                 dst.copy_(base)
             return
-        rows = dst.shape[-2]
-        for r0, r1 in self._row_chunks(rows, dst.numel() // max(1, rows)):
-            s, d = src[..., r0:r1, :], dst[..., r0:r1, :]
+        per_row = int(np.prod(dst.shape[1:]))
+        for r0, r1 in self._row_chunks(dst.shape[0], per_row):
+            s, d = src[r0:r1], dst[r0:r1]
             if mult is None:
                 prod = s
             else:
                 m = mult[r0:r1]
+                if s.dim() == 3:
+                    m = m.unsqueeze(-1)
                 if base is None and not accumulate:
                     torch.mul(s, m, out=d)
                     continue
@@ -189,7 +191,7 @@ class Stitcher:
             elif base is None:
                 d.copy_(prod)
             else:
-                torch.add(base[..., r0:r1, :], prod, out=d)
+                torch.add(base[r0:r1], prod, out=d)
 
     # ---- windows ----------------------------------------------------------------------------------
     def add(self, i: int, j: int, stats: McStatistics | None, valid: torch.Tensor | None) -> list[Block]:
@@ -197,7 +199,7 @@ class Stitcher:
 
         Args:
             i, j: the window; windows must come in plan order from row :attr:`first_row` on.
-            stats: the window's statistics (tensors of one window, on the device: (h, w) and (K, h, w)),
+            stats: the window's statistics (tensors of one window, on the device: (h, w) and (h, w, K)),
                 or ``None`` for a window that was not computed (no valid input pixel).
             valid: (h, w) bool input validity (ignored when ``stats`` is None).
         """
@@ -232,21 +234,21 @@ class Stitcher:
                     raise ValueError(f"Stitcher: window statistics lack '{name}'")
 
             def part(t: torch.Tensor | None, r: slice, c: slice) -> torch.Tensor | None:
-                return None if t is None else t[..., r, c]
+                return None if t is None else t[r, c]
 
             if keep:  # columns shared with the previous window: previous sums + this window
-                dst[..., top:, :keep] = old[name][..., top:, shift:shift + keep]
+                dst[top:, :keep] = old[name][top:, shift:shift + keep]
                 k_ = (slice(top, None), slice(0, keep))
-                self._combine(dst[..., k_[0], k_[1]], part(src, *k_), part(mult, *k_), None, accumulate=True)
+                self._combine(dst[k_], part(src, *k_), part(mult, *k_), None, accumulate=True)
             if keep < sc:  # new columns: carried rows (+ this window), then fresh rows (= this window)
                 carried = (slice(top, top + nc), slice(keep, keep + n))
                 if nc and n:
-                    self._combine(dst[..., carried[0], carried[1]], part(src, *carried), part(mult, *carried),
-                                  self._carry[name][..., :nc, c_lo:c_hi])
+                    self._combine(dst[carried], part(src, *carried), part(mult, *carried),
+                                  self._carry[name][:nc, c_lo:c_hi])
                     rest = (slice(top, top + nc), slice(keep + n, None))
-                    self._combine(dst[..., rest[0], rest[1]], part(src, *rest), part(mult, *rest), None)
+                    self._combine(dst[rest], part(src, *rest), part(mult, *rest), None)
                 fresh = (slice(top + (nc if n else 0), None), slice(keep, None))
-                self._combine(dst[..., fresh[0], fresh[1]], part(src, *fresh), part(mult, *fresh), None)
+                self._combine(dst[fresh], part(src, *fresh), part(mult, *fresh), None)
         self._cur = 1 - self._cur
         self._a0 = a0
         # finished columns of this band
@@ -263,7 +265,7 @@ class Stitcher:
                 p_hi = min(sr, self.height - band.row_off)
                 if p_hi > p_lo:
                     for name, acc in new.items():
-                        self._next_carry[name][..., :p_hi - p_lo, self._done:stop] = acc[..., p_lo:p_hi, lo:hi]
+                        self._next_carry[name][:p_hi - p_lo, self._done:stop] = acc[p_lo:p_hi, lo:hi]
                 assert nxt.out_start == band.out_stop
             self._done = stop
         # move on
@@ -315,31 +317,19 @@ class Stitcher:
             values[HEIGHT_STD] = (acc["height_std"][rs, cs] / safe).clamp_min_(0.0)
         if "probs" not in acc:
             return values
-        probs = acc["probs"][:, rs, cs] / safe
+        probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)
         if CLASSES in specs:
-            values[CLASSES] = _argmax_planes(probs)
+            values[CLASSES] = probs.argmax(-1).to(torch.uint8)
         if CLASS_ENTROPY in specs or CLASS_MUTUAL_INFO in specs:
-            ent = (probs * torch.log(probs.clamp(1e-12, 1.0))).sum(0).neg_().clamp_min_(0.0)
+            ent = (probs * torch.log(probs.clamp(1e-12, 1.0))).sum(-1).neg_().clamp_min_(0.0)
             if CLASS_MUTUAL_INFO in specs:
                 values[CLASS_MUTUAL_INFO] = torch.minimum((ent - acc["mean_entropy"][rs, cs] / safe).clamp_min_(0.0),
                                                           ent)
             if CLASS_ENTROPY in specs:
                 values[CLASS_ENTROPY] = ent
         if CLASS_PROBABILITIES in specs:
-            values[CLASS_PROBABILITIES] = probs
+            values[CLASS_PROBABILITIES] = probs.permute(2, 0, 1)
         return values
-
-
-def _argmax_planes(p: torch.Tensor) -> torch.Tensor:
-    """(K, h, w) → (h, w) uint8 index of the first largest plane (``argmax`` over dim 0, which torch
-    runs as a slow strided reduction; here K vectorised passes over the pixels). K ≤ 256."""
-    best = p[0].clone()
-    idx = torch.zeros(p.shape[1:], dtype=torch.uint8, device=p.device)
-    for k in range(1, p.shape[0]):
-        larger = torch.gt(p[k], best)
-        idx.masked_fill_(larger, k)
-        torch.maximum(best, p[k], out=best)
-    return idx
 
 
 def _to_host(t: torch.Tensor) -> np.ndarray:

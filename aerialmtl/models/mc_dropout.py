@@ -20,10 +20,10 @@ heights far from zero.
 :func:`mc_statistics` returns the raw statistics a stitcher blends (:class:`McStatistics`: mean
 height, height std, mean probabilities channels-last, mean per-sample entropy); :func:`mc_predict`
 derives the entropy of the mean and the mutual information from them. Class statistics are computed
-on class planes (B×K×H×W contiguous: every operation runs along the pixels, vectorised), row block by
-row block so that temporaries stay in the CPU caches, and the per-sample entropy costs one logarithm
-per pixel instead of K: with ``d = z − max_k z`` and ``S = Σ_k exp(d_k)``, ``p = exp(d) / S`` and
-``H_t = log S − Σ_k exp(d_k)·d_k / S`` (= logsumexp(z) − Σ softmax(z)·z).
+channels-last (the layout the model computes in), row block by row block so that temporaries stay in
+the CPU caches, and the per-sample entropy costs one logarithm per pixel instead of K: with
+``d = z − max_k z`` and ``S = Σ_k exp(d_k)``, ``p = exp(d) / S`` and ``H_t = log S − Σ_k exp(d_k)·d_k / S``
+(= logsumexp(z) − Σ softmax(z)·z).
 
 Dropout masks. By default they come from torch's global RNG, so they depend on how windows are batched
 and samples chunked. With ``keys`` (one integer per image of the batch, e.g. a window index), the mask
@@ -144,7 +144,7 @@ class McStatistics:
 
     Attributes:
         height_mean, height_std: B×H×W metres (population std over the samples); ``None`` without height.
-        probs: B×K×H×W mean class probabilities (contiguous class planes); ``None`` without classes.
+        probs: B×H×W×K mean class probabilities (channels last); ``None`` without classes.
         mean_entropy: B×H×W mean over the samples of each sample's entropy (nats), i.e. the expected
             entropy; the mutual information is ``H[probs] − mean_entropy``.
     """
@@ -156,25 +156,30 @@ class McStatistics:
 
 
 def class_probabilities(logits: torch.Tensor) -> torch.Tensor:
-    """B×K×H×W logits → B×K×H×W float32 softmax on contiguous class planes."""
-    return torch.softmax(logits.float().contiguous(), dim=1)
+    """B×K×H×W logits → B×H×W×K float32 softmax (the per-pixel kernel over the last dimension).
+
+    Each pixel's probabilities are computed alone, so they do not depend on the batch or the
+    position of the window (unlike a softmax over dimension 1, whose rounding follows the memory layout).
+    """
+    zl = logits.float().permute(0, 2, 3, 1)
+    return torch.softmax(zl if zl.is_contiguous() else zl.contiguous(), dim=-1)
 
 
 def _class_sums(logits: torch.Tensor, s: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(s·B)×K×H×W logits → (Σ_t p_t: B×K×H×W, Σ_t H_t: B×H×W), row block by row block."""
-    z_all = logits.float().contiguous()
-    n, k, h, w = z_all.shape
-    p_sum = torch.empty((b, k, h, w), dtype=torch.float32, device=z_all.device)
-    e_sum = torch.empty((b, h, w), dtype=torch.float32, device=z_all.device)
-    rows = max(1, _ROW_BLOCK_ELEMENTS // max(1, n * w * k)) if z_all.device.type == "cpu" else h
+    """(s·B)×K×H×W logits → (Σ_t p_t: B×H×W×K, Σ_t H_t: B×H×W), row block by row block."""
+    zl = logits.permute(0, 2, 3, 1)  # N×H×W×K (a view; contiguous for channels-last logits)
+    n, h, w, k = zl.shape
+    p_sum = torch.empty((b, h, w, k), dtype=torch.float32, device=zl.device)
+    e_sum = torch.empty((b, h, w), dtype=torch.float32, device=zl.device)
+    rows = max(1, _ROW_BLOCK_ELEMENTS // max(1, n * w * k)) if zl.device.type == "cpu" else h
     for r in range(0, h, rows):
-        z = z_all[:, :, r:r + rows]
-        d = z - z.amax(1, keepdim=True)  # ≤ 0, exactly 0 at the largest logit
+        z = zl[:, r:r + rows].float()
+        d = z - z.amax(-1, keepdim=True)  # ≤ 0, exactly 0 at the largest logit
         e = torch.exp(d)
-        inv = e.sum(1, keepdim=True).reciprocal_()  # 1 / S
-        ent = (d.mul_(e).sum(1).mul_(inv[:, 0])).neg_().sub_(torch.log(inv[:, 0]))  # log S − Σ e·d / S
+        inv = e.sum(-1, keepdim=True).reciprocal_()  # 1 / S
+        ent = d.mul_(e).sum(-1).mul_(inv[..., 0]).neg_().sub_(torch.log(inv[..., 0]))  # log S − Σ e·d / S
         ent.clamp_min_(0.0)
-        p_sum[:, :, r:r + rows] = e.mul_(inv).unflatten(0, (s, b)).sum(0)
+        p_sum[:, r:r + rows] = e.mul_(inv).unflatten(0, (s, b)).sum(0)
         e_sum[:, r:r + rows] = ent.unflatten(0, (s, b)).sum(0)
     return p_sum, e_sum
 
@@ -299,10 +304,10 @@ def mc_predict(
     if stats.height_mean is not None and stats.height_std is not None:
         result["height"] = {"mean": stats.height_mean.unsqueeze(1), "std": stats.height_std.unsqueeze(1)}
     if stats.probs is not None and stats.mean_entropy is not None:
-        entropy = _entropy(stats.probs, dim=1)
+        entropy = _entropy(stats.probs, dim=-1)
         # one sample has no epistemic part; the two entropy formulas differ in the last bit
         mi = (entropy - stats.mean_entropy).clamp_min(0) if samples > 1 else torch.zeros_like(entropy)
-        result["classes"] = {"probs": stats.probs, "entropy": entropy, "mutual_info": mi}
+        result["classes"] = {"probs": stats.probs.permute(0, 3, 1, 2), "entropy": entropy, "mutual_info": mi}
     return result
 
 
