@@ -299,7 +299,8 @@ def test_batch_size_auto_and_compile_fallback(ortho: Path, tmp_path: Path, monke
                              compile=True, progress=False)
     info = json.loads((tmp_path / "p" / "prediction.json").read_text())
     assert info["batch_size"] == CPU_BATCH and info["compile"] is True and res.windows_computed > 0
-    plain = predict_raster(ortho, (model, meta), tmp_path / "q", mc=1, tile=64, overlap=16, progress=False)
+    plain = predict_raster(ortho, (model, meta), tmp_path / "q", mc=1, tile=64, overlap=16, batch_size=CPU_BATCH,
+                           progress=False)
     for name in ("height", "classes"):
         with rasterio.open(res.files[name]) as a, rasterio.open(plain.files[name]) as b:
             np.testing.assert_array_equal(a.read(), b.read())

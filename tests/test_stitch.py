@@ -144,18 +144,20 @@ def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
 
 
 def _stitch(plan, windows: dict, k: int, band_start: int = 0, band_stop: int | None = None,
-            chunk: int | None = None) -> dict[str, np.ndarray]:
+            chunk: int | None = None, carry_in_memory: int | None = None) -> dict[str, np.ndarray]:
     """Run the Stitcher and paint its blocks into full-size arrays (NaN where no block landed)."""
     import aerialmtl.inference.stitch as stitch_mod
 
     specs = prediction_layers(("height", "classes"), _scheme(k), mc=3, probabilities=True)
-    old = stitch_mod.CHUNK_ELEMENTS
+    old = stitch_mod.CHUNK_ELEMENTS, stitch_mod.CARRY_IN_MEMORY
     if chunk is not None:
         stitch_mod.CHUNK_ELEMENTS = chunk
+    if carry_in_memory is not None:
+        stitch_mod.CARRY_IN_MEMORY = carry_in_memory
     try:
         st = stitch_mod.Stitcher(plan, specs, k, "cpu", band_start, band_stop)
     finally:
-        stitch_mod.CHUNK_ELEMENTS = old
+        stitch_mod.CHUNK_ELEMENTS, stitch_mod.CARRY_IN_MEMORY = old
     hh, ww = plan.rows.length, plan.cols.length
     out = {s.name: np.full((s.count, hh, ww), np.nan if s.dtype == "float32" else 254, s.dtype) for s in specs}
     hits = np.zeros((hh, ww), int)
@@ -198,8 +200,10 @@ def test_strips_give_the_rows_of_the_whole_run_and_chunking_changes_nothing() ->
     windows = _random_windows(plan, 3, seed=7)
     whole = _stitch(plan, windows, 3)
     chunked = _stitch(plan, windows, 3, chunk=257)
+    on_disk = _stitch(plan, windows, 3, carry_in_memory=0)  # the carry of a wide raster, in a file
     for name in whole:
         np.testing.assert_array_equal(chunked[name], whole[name], err_msg=name)
+        np.testing.assert_array_equal(on_disk[name], whole[name], err_msg=name)
     n = len(plan.bands)
     for a, b in ((0, 1), (1, n), (2, n), (n - 1, n)):
         strip = _stitch(plan, windows, 3, a, b)

@@ -30,12 +30,11 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-import rasterio
 import torch
 
 from aerialmtl.errors import AerialMTLError, InputError
 from aerialmtl.formats.prediction import INFO_FILE, PredictionFolder, mosaic_filename
-from aerialmtl.inference.predict import GDAL_CACHE_MB, Predictor, PredictResult, StripResult, _record_timings
+from aerialmtl.inference.predict import Predictor, PredictResult, StripResult, _record_timings, gdal_env
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import PredictionWriter, check_outputs_free, remove_leftovers
 from aerialmtl.io.align import Grid, check_bands, open_raster, reference_grid
@@ -268,7 +267,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
     failures: list[tuple[str, int, str]] = []
     strips: dict[int, tuple[int, StripResult]] = {}
     writers: dict[int, PredictionWriter] = {}
-    with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
+    with gdal_env():
         for share in mine:
             t = targets[share.target]
             if share.target not in split:

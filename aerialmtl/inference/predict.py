@@ -61,8 +61,10 @@ from aerialmtl.models.mc_dropout import McStatistics
 DEFAULT_MC_SAMPLES = 30
 #: Relative GSD difference above which the orthophoto is resampled to the model's GSD.
 GSD_TOLERANCE = 0.01
-#: GDAL block cache while predicting (MB): bounded, whatever the raster size.
-GDAL_CACHE_MB = 128
+#: GDAL block cache while predicting (MB): bounded, whatever the raster size. It serves the windows being
+#: read (a few tiles each) and the staging tiles being written; a larger cache only grows memory with
+#: the raster width. A ``GDAL_CACHEMAX`` environment variable wins (:func:`gdal_env`).
+GDAL_CACHE_MB = 32
 
 BatchSize = int | Literal["auto"]
 
@@ -117,6 +119,11 @@ def model_grid(ortho: str | Path, meta: ModelMeta) -> tuple[Grid, float | None]:
     if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd:
         return reference_grid(ortho, gsd=meta.gsd), native.gsd
     return native, None
+
+
+def gdal_env() -> rasterio.Env:
+    """GDAL settings while predicting: the block cache bounded to :data:`GDAL_CACHE_MB` unless the user set one."""
+    return rasterio.Env() if "GDAL_CACHEMAX" in os.environ else rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
 
 
 def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta]) -> tuple[torch.nn.Module, ModelMeta, str]:
@@ -276,7 +283,7 @@ class Predictor:
         computed = 0
         bar = tqdm(total=len(rows) * n_cols, unit="win", desc=Path(ortho).name, disable=not progress,
                    dynamic_ncols=True)
-        depth = max(8, 2 * batch_size, n_cols + batch_size)
+        depth = max(4, 2 * batch_size)  # windows read ahead: a batch being computed and the next one
         reader = WindowReader(ortho, grid, list(self.meta.bands), plan, rows, aoi_mask,
                               threads=self.reader_threads, depth=depth, pin=self.device.type == "cuda")
         try:
@@ -344,7 +351,7 @@ class Predictor:
         out_dir = Path(out)
         grid = grid or self.grid(ortho)
         plan = self.plan(grid)
-        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
+        with gdal_env():
             self.warn_unused_bands(ortho)
             writer = PredictionWriter(out_dir, grid, self.layers, overwrite=overwrite, check=check_outputs)
             try:

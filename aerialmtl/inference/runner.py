@@ -39,9 +39,9 @@ Precision = Literal["auto", "bf16", "fp32"]
 #: of 4 windows of 512² with T = 30 decoded at once would need ~36 GiB; the MC samples are split into
 #: chunks that fit instead (the result is the same: masks are drawn per window and sample).
 DECODE_PIXELS = {"cpu": 2**21, "cuda": 2**23}
-#: Windows per model call with ``batch_size="auto"`` on a CPU (measured: larger batches gain nothing
-#: there and cost memory).
-CPU_BATCH = 2
+#: Windows per model call with ``batch_size="auto"`` on a CPU: one window already keeps the cores busy,
+#: and a second one costs ~250 MiB of activations at tile 1024 for no measured speed (bench/RESULTS.md).
+CPU_BATCH = 1
 #: Share of the free device memory ``auto`` plans to use.
 MEMORY_SHARE = 0.6
 

@@ -9,9 +9,12 @@ back as a :class:`Block` of host arrays in the output dtypes of the schema
 (:func:`aerialmtl.formats.prediction.prediction_layers`), nodata filled in. Only finished pixels cross
 to the host.
 
-Memory: accumulators for one window (two, ping-pong, as a window moves right) plus the rows a window
-row shares with the next one (``overlap − margin`` rows over the raster width, the "carry"); nothing
-grows with the raster height, and only the carry (a few KiB per column) with its width.
+Memory: accumulators for one window (shifted in place as the window moves right) plus the rows of a
+window row that still get weight from the next one (about ``overlap − 2·margin`` rows over the raster
+width, the "carry", read as columns enter the window and rewritten as they are finished). Nothing grows
+with the raster height. The carry (~(K + 2) · 4 B per carried row and column) is kept in memory up to
+:data:`CARRY_IN_MEMORY` bytes and in an anonymous temporary file beyond (wide rasters: 138 MiB at
+32768 px wide with 20 classes), so memory does not grow with the width either.
 
 Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each window):
 
@@ -28,6 +31,7 @@ gets the same bits; the result does not depend on batching or on where a strip o
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -48,6 +52,8 @@ from aerialmtl.models.mc_dropout import McStatistics
 
 #: Elements per temporary on CPU (~4 MiB of float32): the blending loops stay in the caches.
 CHUNK_ELEMENTS = 1 << 20
+#: Largest carry held in memory (bytes); a larger one goes to a temporary file (see the module docstring).
+CARRY_IN_MEMORY = 32 << 20
 
 _QUANTITIES = ("height_mean", "height_std", "probs", "mean_entropy")
 
@@ -123,12 +129,15 @@ class Stitcher:
         self._cw = torch.from_numpy(cols.weights).to(self.device)
         sr, sc = rows.size, cols.size
         # carry: rows still pending after a band, over the raster width (see the module docstring)
-        carry_rows = max([min(self.height, r + sr) - b.out_stop for r, b in zip(rows.starts, plan.bands)] + [0])
-        self._ring = [self._alloc(sr, sc), self._alloc(sr, sc)]
-        self._carry = self._alloc(carry_rows, self.width)
-        self._next_carry = self._alloc(carry_rows, self.width)
+        # rows still reached by a window row after its band is finished (from the band's out_stop)
+        self._pending = [max(0, min(self.height, rows.reach(k)) - b.out_stop) for k, b in enumerate(plan.bands)]
+        self._ring = self._alloc(sr, sc)
+        carry_rows = max(self._pending + [0])
+        per_column = carry_rows * (1 + sum(self.k if q == "probs" else 1 for q in self.quantities)) * 4
+        self._carry = _Carry(self._alloc(carry_rows, self.width) if per_column * self.width <= CARRY_IN_MEMORY
+                             else None, carry_rows, {n: t.shape[2:] for n, t in self._ring.items()}, self.width,
+                             self.device)
         self._carry_rows = 0  # rows of _carry in use (from the current band's out_start)
-        self._cur = 0  # index of the ring in use
         self._expect = (self.first_row, 0)
         self._a0 = 0  # grid column of ring column 0
         self._done = 0  # first grid column of the current band not yet handed back
@@ -206,13 +215,13 @@ class Stitcher:
         if (i, j) != self._expect:
             raise ValueError(f"Stitcher: expected window {self._expect}, got {(i, j)}")
         plan = self.plan
-        rows, cols = plan.rows, plan.cols
+        cols = plan.cols
         band = plan.bands[i]
-        sr, sc = rows.size, cols.size
+        sc = cols.size
         n_cols = len(cols.starts)
         a0 = cols.starts[j]
         top = band.out_start - band.row_off  # ring rows above are final already
-        old, new = self._ring[self._cur], self._ring[1 - self._cur]
+        ring = self._ring
         keep = max(0, self._a0 + sc - a0) if j > 0 else 0
         shift = a0 - self._a0
         # carry columns entering the ring with this window
@@ -223,7 +232,7 @@ class Stitcher:
             assert valid is not None
             w = torch.outer(self._rw[i], self._cw[j]) * valid
         n = max(0, c_hi - c_lo)  # new columns that have a carry
-        for name, dst in new.items():
+        for name, dst in ring.items():
             if stats is None:
                 src, mult = None, None
             elif name == "weight":
@@ -237,19 +246,19 @@ class Stitcher:
                 return None if t is None else t[r, c]
 
             if keep:  # columns shared with the previous window: previous sums + this window
-                dst[top:, :keep] = old[name][top:, shift:shift + keep]
+                moved = dst[top:, shift:shift + keep]
+                dst[top:, :keep] = moved.clone() if shift < keep else moved  # overlapping copy: via a temporary
                 k_ = (slice(top, None), slice(0, keep))
                 self._combine(dst[k_], part(src, *k_), part(mult, *k_), None, accumulate=True)
             if keep < sc:  # new columns: carried rows (+ this window), then fresh rows (= this window)
                 carried = (slice(top, top + nc), slice(keep, keep + n))
                 if nc and n:
                     self._combine(dst[carried], part(src, *carried), part(mult, *carried),
-                                  self._carry[name][:nc, c_lo:c_hi])
+                                  self._carry.read(name, nc, c_lo, c_hi))
                     rest = (slice(top, top + nc), slice(keep + n, None))
                     self._combine(dst[rest], part(src, *rest), part(mult, *rest), None)
                 fresh = (slice(top + (nc if n else 0), None), slice(keep, None))
                 self._combine(dst[fresh], part(src, *fresh), part(mult, *fresh), None)
-        self._cur = 1 - self._cur
         self._a0 = a0
         # finished columns of this band
         stop = cols.final_until(j)
@@ -258,23 +267,18 @@ class Stitcher:
             lo, hi = self._done - a0, stop - a0
             r_lo, r_hi = top, band.out_stop - band.row_off
             if i >= self.band_start and r_hi > r_lo:
-                blocks.append(self._finalise(new, band.out_start, self._done, r_lo, r_hi, lo, hi))
-            if i + 1 < len(plan.bands):  # rows still pending after this band → next carry
-                nxt = plan.bands[i + 1]
+                blocks.append(self._finalise(ring, band.out_start, self._done, r_lo, r_hi, lo, hi))
+            pending = self._pending[i] if i + 1 < len(plan.bands) else 0
+            if pending:  # rows still reached after this band → the carry (these columns were read already)
                 p_lo = band.out_stop - band.row_off
-                p_hi = min(sr, self.height - band.row_off)
-                if p_hi > p_lo:
-                    for name, acc in new.items():
-                        self._next_carry[name][:p_hi - p_lo, self._done:stop] = acc[p_lo:p_hi, lo:hi]
-                assert nxt.out_start == band.out_stop
+                for name, acc in ring.items():
+                    self._carry.write(name, self._done, acc[p_lo:p_lo + pending, lo:hi])
             self._done = stop
         # move on
         if j + 1 < n_cols:
             self._expect = (i, j + 1)
         else:
-            pending = max(0, min(sr, self.height - band.row_off) - (band.out_stop - band.row_off))
-            self._carry, self._next_carry = self._next_carry, self._carry
-            self._carry_rows = pending if i + 1 < len(plan.bands) else 0
+            self._carry_rows = self._pending[i] if i + 1 < len(plan.bands) else 0
             self._expect = (i + 1, 0)
             self._done = 0
             self._a0 = 0
@@ -330,6 +334,55 @@ class Stitcher:
         if CLASS_PROBABILITIES in specs:
             values[CLASS_PROBABILITIES] = probs.permute(2, 0, 1)
         return values
+
+
+class _Carry:
+    """The carried rows of every accumulator over the raster width: in memory, or in a temporary file.
+
+    In the file each accumulator is stored column by column (``rows × channels`` floats per column), so
+    a range of columns is one contiguous read or write.
+    """
+
+    def __init__(self, tensors: dict[str, torch.Tensor] | None, rows: int, channels: dict[str, torch.Size],
+                 width: int, device: torch.device) -> None:
+        self.tensors = tensors
+        self.rows, self.width, self.device = rows, width, device
+        self.shapes = {n: tuple(c) for n, c in channels.items()}
+        self.file = None
+        if tensors is None:
+            import tempfile
+
+            self.file = tempfile.TemporaryFile(prefix="aerialmtl-carry-")
+            self.offsets: dict[str, int] = {}
+            off = 0
+            for n, shape in self.shapes.items():
+                self.offsets[n] = off
+                off += width * self._column_bytes(shape)
+
+    def _column_bytes(self, shape: tuple[int, ...]) -> int:
+        return self.rows * int(np.prod(shape, dtype=np.int64)) * 4
+
+    def read(self, name: str, rows: int, c0: int, c1: int) -> torch.Tensor:
+        """(rows, c1 − c0[, K]) carried sums of columns ``[c0, c1)``."""
+        if self.tensors is not None:
+            return self.tensors[name][:rows, c0:c1]
+        assert self.file is not None
+        shape = self.shapes[name]
+        size = self._column_bytes(shape)
+        raw = os.pread(self.file.fileno(), (c1 - c0) * size, self.offsets[name] + c0 * size)
+        cols = torch.from_numpy(np.frombuffer(raw, np.float32).reshape(c1 - c0, self.rows, *shape).copy())
+        return cols[:, :rows].transpose(0, 1).to(self.device)
+
+    def write(self, name: str, c0: int, values: torch.Tensor) -> None:
+        """Store ``values`` (rows, columns[, K]) as the carried sums of columns ``[c0, c0 + columns)``."""
+        if self.tensors is not None:
+            self.tensors[name][:values.shape[0], c0:c0 + values.shape[1]] = values
+            return
+        assert self.file is not None
+        shape = self.shapes[name]
+        block = torch.zeros((values.shape[1], self.rows, *shape), dtype=torch.float32)
+        block[:, :values.shape[0]] = values.transpose(0, 1).cpu()
+        os.pwrite(self.file.fileno(), block.numpy().tobytes(), self.offsets[name] + c0 * self._column_bytes(shape))
 
 
 def _to_host(t: torch.Tensor) -> np.ndarray:
