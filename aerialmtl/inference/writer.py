@@ -80,7 +80,7 @@ def remove_leftovers(out_dir: Path) -> None:
     if not out_dir.is_dir():
         return
     for name in ALL_OUTPUTS:
-        for pattern in (f".{name}.staging*", f".{name}.partial", f".{name}.merge.vrt", f".{name}.strip-*"):
+        for pattern in (f".{name}.staging*", f".{name}.partial", f".{name}.merge.vrt"):
             for path in out_dir.glob(pattern):
                 try:
                     path.unlink(missing_ok=True)
