@@ -4,7 +4,7 @@
 ``gdalbuildvrt`` does:
 
 * grid: the CRS of the first source; the union of the sources' bounds; the finest pixel size among
-  them (x and y separately);
+  the sources in that CRS (x and y separately);
 * each source is placed by its bounds (a source at a coarser pixel size is resampled on the fly,
   ``nearest`` for categorical rasters, ``bilinear`` otherwise); nodata pixels are transparent
   (``ComplexSource`` with ``NODATA``), so where sources overlap the later one is shown where it has data;
@@ -102,6 +102,7 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
         descriptions, units, tags = first.descriptions, first.units, first.tags()
         band_tags = [first.tags(b) for b in range(1, count + 1)]
     placed: list[_Source] = []
+    native: list[_Source] = []  # sources already in the mosaic's CRS: they set the pixel size
     resampling = Resampling.nearest if categorical else Resampling.bilinear
     for k, path in enumerate(Path(p) for p in sources):
         with rasterio.open(path) as src:
@@ -112,14 +113,15 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
                 )
             if src.crs == crs:
                 placed.append(_Source(path, src.transform, src.width, src.height))
+                native.append(placed[-1])
                 continue
             warped_dir.mkdir(parents=True, exist_ok=True)
             wpath = warped_dir / f"{k}.vrt"
             with WarpedVRT(src, crs=crs, resampling=resampling) as vrt:
                 rasterio.shutil.copy(vrt, str(wpath), driver="VRT")
                 placed.append(_Source(wpath, vrt.transform, vrt.width, vrt.height))
-    xres = min(abs(s.transform.a) for s in placed)
-    yres = min(abs(s.transform.e) for s in placed)
+    xres = min(abs(s.transform.a) for s in native)
+    yres = min(abs(s.transform.e) for s in native)
     left = min(s.bounds[0] for s in placed)
     bottom = min(s.bounds[1] for s in placed)
     right = max(s.bounds[2] for s in placed)

@@ -20,6 +20,8 @@ owns the last ``cfg.task_blocks`` blocks plus a 3×3 output convolution (with bi
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -137,7 +139,7 @@ class D3Net(nn.Module):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
         for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
-            nn.init.normal_(head.head.weight, std=1e-3)
+            nn.init.normal_(cast(TaskDecoder, head).head.weight, std=1e-3)
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
@@ -174,7 +176,8 @@ class D3Net(nn.Module):
             out = block(out)
         n_shared = len(self.shared)
         results: dict[str, torch.Tensor] = {}
-        for task, dec in self.heads.items():
+        for task, module in self.heads.items():
+            dec = cast(TaskDecoder, module)
             y = out
             for i, block in enumerate(dec.blocks):
                 j = n_shared + i
