@@ -14,12 +14,18 @@ Parts (select with flags; each can run alone):
   overlap 64, precision auto) at T = 30 on a ``--baseline-size``² raster with the ``--baseline-model``
   config (``small`` by default): speed ratio and mean |Δ height| (different dropout masks, so
   the difference is MC sampling noise plus blending).
-* ``--rss``: peak RSS (``ru_maxrss``) of ``predict_raster`` (small model, T = 1) on each of
-  ``--rss-sizes`` (WxH), each in its own subprocess.
+* ``--rss``: peak RSS (``ru_maxrss``) of ``predict_raster`` (``--rss-model``: small by default, or the
+  near-null model of ``--pipeline``; T = 1) on each of ``--rss-sizes`` (WxH), each in its own subprocess.
+* ``--pipeline``: the pipeline around the model, through the CLI as a user runs it: a near-null D3-Net
+  (growth 1, blocks 1-1-1-1, 2 stem features, bn_size 1, 20 classes, untrained; its forward costs almost
+  nothing) saved as a checkpoint, then ``python -m aerialmtl predict`` in a subprocess on a synthetic
+  raster for each of ``--pipeline-cases`` (``SIZE:T``), wall time including process start, plus the
+  child's peak RSS and the stage timings of ``prediction.json``. ``--pipeline-args`` adds CLI flags.
 
 Usage::
 
     python bench/predict.py --speed --components --baseline --rss
+    python bench/predict.py --pipeline --pipeline-cases 8192:1,4096:30
 """
 
 from __future__ import annotations
@@ -52,7 +58,8 @@ SMALL = dict(growth_rate=12, block_config=(2, 4, 8, 6), num_init_features=32)
 
 def make_model(kind: str, k: int = 20) -> tuple[D3Net, ModelMeta]:
     torch.manual_seed(0)
-    cfg = ModelConfig(num_classes=k, **(SMALL if kind == "small" else {}))  # type: ignore[arg-type]
+    arch = {"small": SMALL, "null": NULL}.get(kind, {})
+    cfg = ModelConfig(num_classes=k, **arch)  # type: ignore[arg-type]
     scheme = ClassScheme("bench", tuple(ClassDef(i + 1, f"c{i}", (i * 12 % 256, 100, 200)) for i in range(k)))
     meta = ModelMeta(cfg, scheme, (1, 2, 3), (110.0, 110.0, 100.0), (45.0, 45.0, 45.0), 0.5)
     return D3Net(cfg).eval(), meta
@@ -192,7 +199,7 @@ def bench_baseline(size: int, kind: str, samples: int, tmp: Path) -> dict:
 
 
 # ---- (c) peak RSS ------------------------------------------------------------------------------
-def rss_child(width: int, height: int, tmp: Path) -> None:
+def rss_child(width: int, height: int, tmp: Path, kind: str = "small", batch: str = "2") -> None:
     """Predict one raster; print peak RSS overall and per phase (window loop vs COG conversion)."""
     import threading
 
@@ -217,27 +224,80 @@ def rss_child(width: int, height: int, tmp: Path) -> None:
         return commit(self, info)
 
     writer_mod.PredictionWriter.commit = commit_phase  # type: ignore[method-assign]
-    model, meta = make_model("small")
-    src = synthetic_raster(tmp / f"rss_{width}x{height}.tif", width, height)
+    model, meta = make_model(kind)
+    src = tmp / f"rss_{width}x{height}.tif"
+    if not src.exists():
+        synthetic_raster(src, width, height)
     phase[0] = "window loop"
     t0 = time.perf_counter()
     res = predict_raster(src, (model, meta), tmp / f"rss_out_{width}x{height}", mc=1, progress=False,
-                         overwrite=True)
+                         overwrite=True, batch_size=batch if batch == "auto" else int(batch))  # type: ignore[arg-type]
     print(json.dumps({"width": width, "height": height, "mpx": width * height / 1e6,
                       "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "phase_peak_rss_mb": {k: round(v) for k, v in peaks.items()},
                       "seconds": time.perf_counter() - t0, "mpx_per_s": res.megapixels_per_s}))
 
 
-def bench_rss(sizes: list[tuple[int, int]], tmp: Path) -> dict:
+def bench_rss(sizes: list[tuple[int, int]], tmp: Path, kind: str = "small", batch: str = "2") -> dict:
     runs = []
     for w, h in sizes:
-        out = subprocess.run([sys.executable, __file__, "--rss-child", f"{w}x{h}", "--tmp", str(tmp)],
-                             check=True, capture_output=True, text=True)
+        out = subprocess.run([sys.executable, __file__, "--rss-child", f"{w}x{h}", "--tmp", str(tmp),
+                              "--rss-model", kind, "--rss-batch", batch], check=True, capture_output=True, text=True)
         runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
         print(json.dumps(runs[-1]), flush=True)
-    return {"part": "rss", "model": "small", "runs": runs,
+    return {"part": "rss", "model": kind, "batch_size": batch, "runs": runs,
             "ratio_to_first": [r["max_rss_mb"] / runs[0]["max_rss_mb"] for r in runs], "load_avg": load_avg()}
+
+
+# ---- (d) the pipeline around a near-null model, through the CLI ---------------------------------
+NULL = dict(growth_rate=1, block_config=(1, 1, 1, 1), num_init_features=2, bn_size=1)
+
+
+def cpu_name() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        return next(line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("Model name"))
+    except (OSError, subprocess.CalledProcessError, StopIteration):  # pragma: no cover - not Linux
+        return "unknown CPU"
+
+
+def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, cache: Path) -> dict:
+    """Rasters are kept in ``cache`` (``--tmp``) between invocations; outputs go to ``tmp``."""
+    from aerialmtl.formats.checkpoint import save_checkpoint
+
+    torch.manual_seed(0)
+    k = 20
+    cfg = ModelConfig(num_classes=k, **NULL)  # type: ignore[arg-type]
+    scheme = ClassScheme("bench", tuple(ClassDef(i + 1, f"c{i}", (i * 12 % 256, 100, 200)) for i in range(k)))
+    meta = ModelMeta(cfg, scheme, (1, 2, 3), (110.0, 110.0, 100.0), (45.0, 45.0, 45.0), 0.5)
+    ckpt = tmp / "null.pt"
+    save_checkpoint(ckpt, D3Net(cfg).eval(), meta)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    runs = []
+    for size, samples in cases:
+        src = cache / f"pipe_{size}.tif"
+        if not src.exists():
+            synthetic_raster(src, size, size)
+        out = tmp / f"pipe_out_{size}_{samples}"
+        cmd = [sys.executable, "-m", "aerialmtl", "predict", str(src), "--model", str(ckpt), "--out", str(out),
+               "--mc", str(samples), "--quiet", "--overwrite", *extra]
+        load_before = load_avg()
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        stdout, stderr = proc.stdout.read(), proc.stderr.read()  # type: ignore[union-attr]
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode != 0:
+            raise RuntimeError(f"predict failed ({proc.returncode}): {stderr.strip()[-2000:]}")
+        info = json.loads((out / "prediction.json").read_text())
+        runs.append({"size": size, "T": samples, "wall_s": round(wall, 2), "mpx_per_s": size * size / 1e6 / wall,
+                     "peak_rss_mb": round(usage.ru_maxrss / 1024), "timings_s": info.get("timings_s"),
+                     "cli_extra": extra, "load_avg_before": load_before, "load_avg_after": load_avg(),
+                     "stdout": stdout.strip().splitlines()[-1:]})
+        print(json.dumps(runs[-1]), flush=True)
+    return {"part": "pipeline", "model": "near-null D3-Net (growth 1, blocks 1-1-1-1, 2 stem, bn_size 1, 20 classes)",
+            "cpu": cpu_name(), "runs": runs}
 
 
 def main() -> None:
@@ -251,8 +311,13 @@ def main() -> None:
     ap.add_argument("--baseline-model", choices=["small", "full"], default="small")
     ap.add_argument("--mc", type=int, default=30)
     ap.add_argument("--rss", action="store_true")
-    ap.add_argument("--rss-sizes", default="2048x2048,2048x32768,8192x8192", help="WxH list, smallest first")
+    ap.add_argument("--rss-sizes", default="2048x2048,2048x32768,32768x2048", help="WxH list, smallest first")
+    ap.add_argument("--rss-model", choices=["small", "null"], default="small")
+    ap.add_argument("--rss-batch", default="2", help="batch_size of the RSS runs (a number, or auto)")
     ap.add_argument("--rss-child", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--pipeline", action="store_true")
+    ap.add_argument("--pipeline-cases", default="8192:1,4096:30", help="comma list of SIZE:T")
+    ap.add_argument("--pipeline-args", default="", help="extra predict CLI flags, space separated")
     ap.add_argument("--tmp", default=None)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -261,7 +326,7 @@ def main() -> None:
         tmp = Path(args.tmp) if args.rss_child else Path(t)
         if args.rss_child:
             w, h = (int(v) for v in args.rss_child.split("x"))
-            rss_child(w, h, tmp)
+            rss_child(w, h, tmp, args.rss_model, args.rss_batch)
             return
         if args.speed:
             print(json.dumps(bench_speed(args.size, args.precisions.split(","), tmp)), flush=True)
@@ -269,9 +334,14 @@ def main() -> None:
             print(json.dumps(bench_components()), flush=True)
         if args.baseline:
             print(json.dumps(bench_baseline(args.baseline_size, args.baseline_model, args.mc, tmp)), flush=True)
+        if args.pipeline:
+            cases = [(int(a), int(b)) for a, b in (c.split(":") for c in args.pipeline_cases.split(","))]
+            cache = Path(args.tmp) if args.tmp else tmp
+            print(json.dumps(bench_pipeline(cases, args.pipeline_args.split(), tmp, cache)), flush=True)
         if args.rss:
             sizes = [tuple(int(v) for v in s.split("x")) for s in args.rss_sizes.split(",")]
-            print(json.dumps(bench_rss(sizes, tmp)), flush=True)  # type: ignore[arg-type]
+            cache = Path(args.tmp) if args.tmp else tmp  # rasters kept there between invocations
+            print(json.dumps(bench_rss(sizes, cache, args.rss_model, args.rss_batch)), flush=True)  # type: ignore[arg-type]
 
 
 if __name__ == "__main__":

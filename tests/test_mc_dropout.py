@@ -139,3 +139,30 @@ def test_single_task_and_bf16_autocast() -> None:
 def test_samples_must_be_positive() -> None:
     with pytest.raises(ValueError, match="samples"):
         mc_predict(_model(), torch.randn(1, 3, 32, 32), samples=0)
+
+
+def test_keyed_masks_do_not_depend_on_batch_or_sample_chunks() -> None:
+    """With keys, an image's masks come from (seed, key, sample): batch company and chunking change nothing."""
+    from aerialmtl.models.mc_dropout import mc_statistics
+
+    model = _model().eval()
+    x = torch.randn(3, 3, 64, 64)
+    full = mc_statistics(model, x, 5, sample_batch=5, seed=2, keys=[10, 11, 12])
+    alone = mc_statistics(model, x[1:2], 5, sample_batch=2, seed=2, keys=[11])
+    torch.testing.assert_close(alone.height_mean[0], full.height_mean[1], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(alone.probs[0], full.probs[1], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(alone.mean_entropy[0], full.mean_entropy[1], rtol=1e-5, atol=1e-5)
+    other = mc_statistics(model, x[1:2], 5, seed=2, keys=[99])  # another window: other masks
+    assert not torch.allclose(other.height_std[0], full.height_std[1], rtol=1e-2, atol=0)
+    assert all(not m.training for m in model.modules())  # modes restored
+
+
+def test_entropy_with_one_log_per_pixel_equals_the_definition() -> None:
+    from aerialmtl.models.mc_dropout import _class_sums
+
+    z = (torch.randn(2, 6, 9, 11) * 8).contiguous(memory_format=torch.channels_last)
+    p_sum, e_sum = _class_sums(z, 2, 1)
+    p = torch.softmax(z.double(), 1)
+    torch.testing.assert_close(p_sum[0].double(), p.sum(0).permute(1, 2, 0), rtol=1e-5, atol=1e-6)
+    ent = -(p * torch.log(p.clamp_min(1e-300))).sum(1)
+    torch.testing.assert_close(e_sum[0].double(), ent.sum(0), rtol=1e-5, atol=1e-5)

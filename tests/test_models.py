@@ -274,3 +274,23 @@ def test_config_with_encoder_weights_loads_them(tmp_path: Path) -> None:
 def test_config_rejects_bad_dropout_blocks() -> None:
     with pytest.raises(ConfigError, match="dropout_blocks"):
         ModelConfig(task_blocks=2, dropout_blocks=4)
+
+
+def test_batchnorm_folding_keeps_outputs_and_leaves_the_model_alone() -> None:
+    from aerialmtl.models.d3net import fold_batchnorm
+
+    torch.manual_seed(0)
+    model = D3Net(ModelConfig(num_classes=4, growth_rate=4, block_config=(1, 1, 1, 1), num_init_features=8))
+    model.train()
+    with torch.no_grad():  # non-trivial running statistics
+        model(torch.randn(2, 3, 64, 64))
+    model.eval()
+    folded = fold_batchnorm(model)
+    assert folded is not model
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():
+        a, b = model(x), folded(x)
+    for k in a:
+        torch.testing.assert_close(b[k], a[k], rtol=1e-4, atol=1e-5)
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules()) < \
+        sum(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())

@@ -12,29 +12,16 @@ import rasterio
 import torch
 from affine import Affine
 from click.testing import CliRunner
-from conftest import NEON_DIR, write_raster
-from test_stitch import IdentityModel, identity_meta
+from conftest import NEON_DIR, IdentityModel, identity_meta, tiny_d3net, write_raster
+from reference_predict import reference_predict
 
-from aerialmtl.classes import ClassScheme
 from aerialmtl.cli import cli
 from aerialmtl.errors import OutputExistsError
-from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
+from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.cog import cog_problems
-from aerialmtl.models.config import ModelConfig
-from aerialmtl.models.d3net import D3Net
 
-TINY = dict(growth_rate=4, block_config=(1, 1, 1, 1), num_init_features=8, bn_size=2)
 UNCERTAINTY = ("height_std.tif", "class_entropy.tif", "class_mutual_info.tif")
-
-
-def tiny_d3net(gsd: float = 0.5, k: int = 4) -> tuple[D3Net, ModelMeta]:
-    torch.manual_seed(0)
-    scheme = ClassScheme.load("synthetic")
-    scheme = ClassScheme(scheme.name, scheme.classes[:k])
-    cfg = ModelConfig(num_classes=k, **TINY)  # type: ignore[arg-type]
-    meta = ModelMeta(cfg, scheme, (1, 2, 3), (120.0, 110.0, 100.0), (40.0, 40.0, 40.0), gsd, ("r", "g", "b"))
-    return D3Net(cfg).eval(), meta
 
 
 @pytest.fixture
@@ -77,7 +64,8 @@ def test_mc_outputs_georeferencing_and_cog_layout(ortho: Path, tmp_path: Path) -
     for name, arr in layers.items():
         nod = 255 if name == "classes" else -9999.0
         assert np.all(arr[:, ~valid] == nod) and np.all(arr[:, valid] != nod), name
-    std, ent, mi = layers["height_std"][0][valid], layers["class_entropy"][0][valid], layers["class_mutual_info"][0][valid]
+    std, ent = layers["height_std"][0][valid], layers["class_entropy"][0][valid]
+    mi = layers["class_mutual_info"][0][valid]
     assert std.min() >= 0 and std.max() > 0  # dropout makes samples differ
     assert ent.min() >= 0 and ent.max() <= math.log(k) + 1e-5
     assert np.all(mi >= 0) and np.all(mi <= ent + 1e-6)
@@ -225,3 +213,130 @@ def test_precision_auto_is_fp32_on_cpu_and_bad_values_name_the_option() -> None:
         resolve_precision("fp16", torch.device("cpu"))
     assert mc_sample_batch(2, 512, 512, torch.device("cpu"), max_pixels=2**21) == 4
     assert mc_sample_batch(8, 1024, 1024, torch.device("cpu"), max_pixels=2**21) == 1  # never 0
+
+
+# ---- the streaming path against a whole-raster reference ------------------------------------------
+def _read_layers(folder: Path) -> dict[str, np.ndarray]:
+    out = {}
+    for path in folder.glob("*.tif"):
+        with rasterio.open(path) as ds:
+            out[path.stem] = ds.read()
+    return out
+
+
+EQUIVALENCE = {  # shape, tile, overlap, nodata corner, AOI
+    "nodata corner": ((90, 130), 64, 16, True, False),
+    "3-way overlaps": ((150, 97), 64, 32, False, False),
+    "aoi": ((70, 200), 96, 24, False, True),
+    "one window": ((40, 45), 64, 16, True, False),
+}
+
+
+@pytest.mark.parametrize("mc", [1, 3])
+@pytest.mark.parametrize("case", list(EQUIVALENCE))
+def test_outputs_equal_a_whole_raster_reference(tmp_path: Path, rng: np.random.Generator, case: str, mc: int) -> None:
+    """Floats within 1e-5 and classes equal (T = 1: bit for bit) to a whole-raster-in-memory blend."""
+    shape, tile, overlap, corner, use_aoi = EQUIVALENCE[case]
+    img = rng.integers(1, 256, size=(3, *shape)).astype(np.uint8)
+    if corner:
+        img[:, shape[0] // 2:, : shape[1] // 3] = 0
+    ortho = write_raster(tmp_path / "o.tif", img, nodata=0)
+    aoi = None
+    if use_aoi:  # a triangle over part of the raster (0.5 m pixels from (500000, 5000000))
+        ring = [[500005.0, 4999999.0], [500090.0, 4999999.0], [500020.0, 4999970.0], [500005.0, 4999999.0]]
+        aoi = tmp_path / "aoi.geojson"
+        aoi.write_text(json.dumps({"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {},
+                       "geometry": {"type": "Polygon", "coordinates": [ring]}}],
+                       "crs": {"type": "name", "properties": {"name": "EPSG:32631"}}}))
+    model, meta = tiny_d3net()
+    res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=mc, tile=tile, overlap=overlap, batch_size=2,
+                         aoi=aoi, probabilities=True, progress=False, seed=3)
+    ref = reference_predict(ortho, model, meta, mc=mc, tile=tile, overlap=overlap, batch_size=2, aoi=aoi, seed=3)
+    got = _read_layers(tmp_path / "p")
+    assert set(got) == set(ref) == {n for n in res.files if n != "prediction"}
+    valid = got["classes"][0] != 255
+    assert valid.any() and (~valid).any() == (corner or use_aoi)
+    for name, arr in ref.items():
+        if name == "classes":
+            continue
+        if mc == 1:
+            np.testing.assert_array_equal(got[name], arr, err_msg=name)
+        else:
+            np.testing.assert_allclose(got[name], arr, rtol=0, atol=1e-5, err_msg=name)
+    if mc == 1:
+        np.testing.assert_array_equal(got["classes"], ref["classes"])
+    else:  # equal wherever the two best classes are not tied to float precision
+        probs = np.sort(ref["class_probabilities"][:, valid], axis=0)
+        clear = probs[-1] - probs[-2] > 1e-5
+        assert clear.mean() > 0.99
+        np.testing.assert_array_equal(got["classes"][0][valid][clear], ref["classes"][0][valid][clear])
+        assert (got["classes"][0][~valid] == 255).all()
+
+
+def test_results_do_not_depend_on_batch_size_or_sample_chunks(ortho: Path, tmp_path: Path) -> None:
+    model, meta = tiny_d3net()
+    outs = []
+    for k, (batch, budget) in enumerate(((1, None), (3, 2 * 64 * 64))):
+        predict_raster(ortho, (model, meta), tmp_path / f"p{k}", mc=4, tile=64, overlap=16, batch_size=batch,
+                       max_decode_pixels=budget, progress=False)
+        outs.append(_read_layers(tmp_path / f"p{k}"))
+    for name in outs[0]:  # the same per-window dropout masks: only float rounding differs
+        np.testing.assert_allclose(outs[0][name], outs[1][name], rtol=0, atol=1e-5, err_msg=name)
+
+
+def test_batch_size_auto_and_compile_fallback(ortho: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.inference.runner import CPU_BATCH, batch_from_memory
+
+    def broken_compile(fn, *a, **k):  # noqa: ANN001, ANN202 - stands in for torch.compile
+        def call(*args, **kwargs):  # noqa: ANN202
+            raise RuntimeError("no C++ compiler found")
+        return call
+
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    model, meta = tiny_d3net()
+    with pytest.warns(UserWarning, match="torch.compile is not available here .*no C\\+\\+ compiler"):
+        res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=1, tile=64, overlap=16, batch_size="auto",
+                             compile=True, progress=False)
+    info = json.loads((tmp_path / "p" / "prediction.json").read_text())
+    assert info["batch_size"] == CPU_BATCH and info["compile"] is True and res.windows_computed > 0
+    plain = predict_raster(ortho, (model, meta), tmp_path / "q", mc=1, tile=64, overlap=16, batch_size=CPU_BATCH,
+                           progress=False)
+    for name in ("height", "classes"):
+        with rasterio.open(res.files[name]) as a, rasterio.open(plain.files[name]) as b:
+            np.testing.assert_array_equal(a.read(), b.read())
+    assert batch_from_memory(10 * 2**30, 2**30) == 6 and batch_from_memory(2**20, 2**30) == 1
+
+
+def test_several_inputs_mosaic_and_skip_existing(tmp_path: Path, rng: np.random.Generator) -> None:
+    model, meta = tiny_d3net()
+    save_checkpoint(tmp_path / "m.pt", model, meta)
+    paths = []
+    for k, (x0, y0) in enumerate(((500000.0, 5000000.0), (500030.0, 4999990.0), (500080.0, 5000020.0))):
+        img = rng.integers(1, 256, size=(3, 60, 70)).astype(np.uint8)
+        paths.append(write_raster(tmp_path / f"t{k}.tif", img, transform=Affine(0.5, 0, x0, 0, -0.5, y0)))
+    args = ["predict", *map(str, paths), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "out"),
+            "--mc", "2", "--tile", "64", "--overlap", "16", "--quiet"]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "out"
+    for name in ("height", "classes", "class_entropy"):
+        with rasterio.open(out / f"{name}.mosaic.vrt") as vrt:
+            left, bottom, right, top = vrt.bounds
+            for path in paths:
+                with rasterio.open(path) as src, rasterio.open(out / path.stem / f"{name}.tif") as layer:
+                    b = src.bounds
+                    assert left <= b.left and bottom <= b.bottom and right >= b.right and top >= b.top
+                    win = vrt.window(*layer.bounds)  # the mosaic shows each input's own values where it alone lies
+                    mos = vrt.read(1, window=win)
+                    own = layer.read(1)
+                    assert mos.shape == own.shape and (mos == own).mean() > 0.5
+            assert vrt.crs == "EPSG:32631" and vrt.res == (0.5, 0.5)
+    stamp = (out / "t1" / "height.tif").stat().st_mtime_ns
+    (out / "t2" / "prediction.json").unlink()  # as if the run had stopped before t2 was complete
+    (out / "t2" / "height.tif").unlink()
+    r = CliRunner().invoke(cli, [*args, "--skip-existing", "--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert "t0.tif: skipped" in r.output and "t1.tif: skipped" in r.output and "t2.tif →" in r.output
+    assert (out / "t1" / "height.tif").stat().st_mtime_ns == stamp and (out / "t2" / "height.tif").exists()
+    r = CliRunner().invoke(cli, args)  # without --skip-existing or --overwrite: refused before any work
+    assert r.exit_code == 1 and "--overwrite" in str(r.exception)

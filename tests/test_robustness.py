@@ -25,9 +25,8 @@ import rasterio
 import torch
 import yaml
 from affine import Affine
-from conftest import write_raster
+from conftest import TINY, tiny_d3net, write_raster
 from rasterio.warp import transform_bounds
-from test_predict import TINY, tiny_d3net
 
 from aerialmtl.cli import main
 from aerialmtl.errors import AlignmentError

@@ -9,51 +9,16 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import write_raster
+from conftest import IdentityModel, identity_meta, write_raster
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from torch import nn
 
 from aerialmtl.classes import ClassDef, ClassScheme
 from aerialmtl.errors import InputError
-from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.formats.prediction import prediction_layers
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.inference.windows import axis_plan, plan_bands
-from aerialmtl.models.config import ModelConfig
-
-
-class IdentityModel(nn.Module):
-    """Receptive-field-free model: height = band 1 de-normalised; class logits = band values (argmax band)."""
-
-    def __init__(self, mean: tuple[float, ...], std: tuple[float, ...], dropout: float = 0.0) -> None:
-        super().__init__()
-        c = len(mean)
-        self.height = nn.Conv2d(c, 1, 1)
-        self.classes = nn.Conv2d(c, c, 1)
-        self.drop = nn.Dropout2d(dropout)
-        with torch.no_grad():
-            self.height.weight.zero_()
-            self.height.weight[0, 0] = std[0]
-            self.height.bias.fill_(mean[0])
-            self.classes.weight.copy_(torch.diag(torch.tensor(std, dtype=torch.float32))[:, :, None, None])
-            self.classes.bias.copy_(torch.tensor(mean, dtype=torch.float32))
-
-    def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
-        return [x]
-
-    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-        x = feats[0]
-        return {"height": self.height(x), "classes": self.classes(self.drop(x))}
-
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        return self.decode(self.encode(x))
-
-
-def identity_meta(bands: int = 3, mean: float = 0.0, std: float = 1.0, gsd: float = 0.5) -> ModelMeta:
-    scheme = ClassScheme("bands", tuple(ClassDef(i + 1, f"band {i + 1}", (40 * i, 80, 200 - 40 * i))
-                                        for i in range(bands)))
-    return ModelMeta(ModelConfig(in_channels=bands, num_classes=bands), scheme, tuple(range(1, bands + 1)),
-                     (mean,) * bands, (std,) * bands, gsd)
+from aerialmtl.models.mc_dropout import McStatistics
 
 
 # ---- plan --------------------------------------------------------------------------------------
@@ -129,29 +94,119 @@ def test_identity_model_is_reproduced_exactly(height: int, width: int, tile: int
     np.testing.assert_array_equal(classes_out, np.argmax(img, axis=0).astype(np.uint8))
 
 
-def test_flush_in_column_chunks_equals_one_pass() -> None:
-    from aerialmtl.inference.stitch import BandStitcher
+def _random_windows(plan, k: int, seed: int, skip: float = 0.15) -> dict[tuple[int, int], tuple]:
+    """Random per-window statistics (h, w[, K]) and validity; some windows skipped (None)."""
+    rng = np.random.default_rng(seed)
+    out: dict[tuple[int, int], tuple] = {}
+    h, w = plan.rows.size, plan.cols.size
+    for i in range(len(plan.rows.starts)):
+        for j in range(len(plan.cols.starts)):
+            if rng.random() < skip:
+                out[i, j] = (None, None)
+                continue
+            p = rng.dirichlet(np.ones(k), size=(h, w)).astype(np.float32)
+            stats = McStatistics(rng.normal(5, 2, (h, w)).astype(np.float32), rng.random((h, w)).astype(np.float32),
+                                 p, (rng.random((h, w)) * 0.5).astype(np.float32))
+            out[i, j] = (stats, rng.random((h, w)) > 0.1)
+    return out
 
-    plan = plan_bands(150, 230, 64, 16)
-    outputs = ("height", "height_std", "classes", "class_entropy", "class_mutual_info", "class_probabilities")
-    channels = {"height": 1, "height_std": 1, "probs": 4, "expected_entropy": 1}
-    rng = np.random.default_rng(3)
-    stitchers = [BandStitcher(plan, channels, outputs) for _ in range(2)]
-    for band in plan.bands:
-        for st_ in stitchers:
-            st_.start_band(band.index)
-        for j, win in enumerate(band.windows):
-            h, w = int(win.height), int(win.width)
-            p = rng.dirichlet(np.ones(4), size=(h, w)).transpose(2, 0, 1).astype(np.float32)
-            vals = {"height": rng.normal(5, 2, (1, h, w)).astype(np.float32),
-                    "height_std": rng.random((1, h, w)).astype(np.float32), "probs": p,
-                    "expected_entropy": rng.random((1, h, w)).astype(np.float32) * 0.1}
-            valid = rng.random((h, w)) > 0.1
-            for st_ in stitchers:
-                st_.add(j, vals, valid)
-        one, chunked = stitchers[0].flush(), stitchers[1].flush(chunk_cols=7)
-        assert (one.row_start, one.row_stop) == (chunked.row_start, chunked.row_stop)
-        np.testing.assert_array_equal(one.valid, chunked.valid)
-        assert one.layers.keys() == chunked.layers.keys() == set(outputs)
-        for name in outputs:
-            np.testing.assert_array_equal(one.layers[name], chunked.layers[name])
+
+def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
+    """Whole-raster float32 accumulation in plan order (acc += value * weight), finalised like the old stitcher."""
+    ext = (plan.rows.extent, plan.cols.extent)
+    acc = {"w": np.zeros(ext, np.float32), "h": np.zeros(ext, np.float32), "s": np.zeros(ext, np.float32),
+           "p": np.zeros(ext + (k,), np.float32), "e": np.zeros(ext, np.float32)}
+    for (i, j), (stats, valid) in windows.items():
+        if stats is None:
+            continue
+        r, c = plan.rows.starts[i], plan.cols.starts[j]
+        sl = (slice(r, r + plan.rows.size), slice(c, c + plan.cols.size))
+        w = plan.weight(i, j) * valid
+        acc["w"][sl] += w
+        acc["h"][sl] += stats.height_mean * w
+        acc["s"][sl] += stats.height_std * w
+        acc["p"][sl] += stats.probs * w[..., None]
+        acc["e"][sl] += stats.mean_entropy * w
+    hh, ww = plan.rows.length, plan.cols.length
+    wsum = acc["w"][:hh, :ww]
+    valid = wsum > 0
+    safe = np.where(valid, wsum, np.float32(1.0))
+    probs = acc["p"][:hh, :ww] / safe[..., None]
+    ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(-1), 0.0)
+    cls = probs.argmax(-1).astype(np.uint8)
+    cls[~valid] = 255
+    out = {"height": acc["h"][:hh, :ww] / safe, "height_std": np.maximum(acc["s"][:hh, :ww] / safe, 0.0),
+           "class_entropy": ent, "class_mutual_info": np.clip(ent - acc["e"][:hh, :ww] / safe, 0.0, ent)}
+    layers = {n: np.where(valid, v, np.float32(-9999.0)).astype(np.float32)[None] for n, v in out.items()}
+    layers["class_probabilities"] = np.where(valid, np.moveaxis(probs, -1, 0), np.float32(-9999.0))
+    layers["classes"] = cls[None]
+    return layers
+
+
+def _stitch(plan, windows: dict, k: int, band_start: int = 0, band_stop: int | None = None,
+            chunk: int | None = None, carry_in_memory: int | None = None) -> dict[str, np.ndarray]:
+    """Run the Stitcher and paint its blocks into full-size arrays (NaN where no block landed)."""
+    import aerialmtl.inference.stitch as stitch_mod
+
+    specs = prediction_layers(("height", "classes"), _scheme(k), mc=3, probabilities=True)
+    old = stitch_mod.CHUNK_ELEMENTS, stitch_mod.CARRY_IN_MEMORY
+    if chunk is not None:
+        stitch_mod.CHUNK_ELEMENTS = chunk
+    if carry_in_memory is not None:
+        stitch_mod.CARRY_IN_MEMORY = carry_in_memory
+    try:
+        st = stitch_mod.Stitcher(plan, specs, k, "cpu", band_start, band_stop)
+    finally:
+        stitch_mod.CHUNK_ELEMENTS, stitch_mod.CARRY_IN_MEMORY = old
+    hh, ww = plan.rows.length, plan.cols.length
+    out = {s.name: np.full((s.count, hh, ww), np.nan if s.dtype == "float32" else 254, s.dtype) for s in specs}
+    hits = np.zeros((hh, ww), int)
+    for i in range(st.first_row, st.band_stop):
+        for j in range(len(plan.cols.starts)):
+            stats, valid = windows[i, j]
+            t = None if stats is None else McStatistics(*(torch.from_numpy(a) for a in (
+                stats.height_mean, stats.height_std, stats.probs, stats.mean_entropy)))
+            for b in st.add(i, j, t, None if valid is None else torch.from_numpy(valid)):
+                sl = (slice(b.row_off, b.row_off + b.height), slice(b.col_off, b.col_off + b.width))
+                hits[sl] += 1
+                for name, arr in b.layers.items():
+                    out[name][(slice(None), *sl)] = arr
+    assert st.finished
+    rows = slice(plan.bands[band_start].out_start, plan.bands[(band_stop or len(plan.bands)) - 1].out_stop)
+    assert (hits[rows] == 1).all() and (hits.sum() == hits[rows].sum())  # every pixel of the strip exactly once
+    return out
+
+
+def _scheme(k: int) -> ClassScheme:
+    return ClassScheme("k", tuple(ClassDef(i + 1, f"c{i}", (10 * i, 20, 30)) for i in range(k)))
+
+
+@pytest.mark.parametrize("shape,tile,overlap", [((150, 230), 64, 16), ((100, 100), 64, 32), ((33, 200), 32, 8),
+                                                ((20, 45), 64, 0), ((97, 131), 96, 40)])
+def test_stitcher_equals_a_whole_raster_blend(shape: tuple[int, int], tile: int, overlap: int) -> None:
+    plan = plan_bands(*shape, tile, overlap)
+    windows = _random_windows(plan, 4, seed=sum(shape))
+    ref = _numpy_blend(plan, windows, 4)
+    got = _stitch(plan, windows, 4)
+    for name in ("height", "height_std", "classes", "class_probabilities"):
+        np.testing.assert_array_equal(got[name], ref[name], err_msg=name)
+    for name in ("class_entropy", "class_mutual_info"):  # numpy's and torch's log differ in the last bit
+        np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=2e-6, err_msg=name)
+
+
+def test_strips_give_the_rows_of_the_whole_run_and_chunking_changes_nothing() -> None:
+    plan = plan_bands(100, 120, 64, 32)  # small tiles, large overlap: window rows reach two rows down
+    assert any(len(b.sources) > 2 for b in plan.bands)
+    windows = _random_windows(plan, 3, seed=7)
+    whole = _stitch(plan, windows, 3)
+    chunked = _stitch(plan, windows, 3, chunk=257)
+    on_disk = _stitch(plan, windows, 3, carry_in_memory=0)  # the carry of a wide raster, in a file
+    for name in whole:
+        np.testing.assert_array_equal(chunked[name], whole[name], err_msg=name)
+        np.testing.assert_array_equal(on_disk[name], whole[name], err_msg=name)
+    n = len(plan.bands)
+    for a, b in ((0, 1), (1, n), (2, n), (n - 1, n)):
+        strip = _stitch(plan, windows, 3, a, b)
+        rows = slice(plan.bands[a].out_start, plan.bands[b - 1].out_stop)
+        for name in whole:
+            np.testing.assert_array_equal(strip[name][:, rows], whole[name][:, rows], err_msg=f"{name} bands {a}:{b}")

@@ -1,6 +1,6 @@
 """Run ``aerialmtl`` under torchrun and record which files this process changes inside a folder.
 
-Usage (by tests/test_distributed.py): ``torchrun ... tests/torchrun_audit.py WATCHED RECORD_DIR train ...``.
+Usage (by tests/test_train_distributed.py): ``torchrun ... tests/torchrun_audit.py WATCHED RECORD_DIR train ...``.
 A Python audit hook notes every file opened for writing, renamed, removed or created under WATCHED; at exit
 the list goes to ``RECORD_DIR/writes-rank<RANK>.txt`` (outside WATCHED). torch.save writes through C++,
 but its atomic rename into place is seen.

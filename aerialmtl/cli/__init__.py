@@ -11,6 +11,16 @@ import os
 import sys
 import warnings
 
+# Process settings read once by torch's allocator and its OpenMP runtime, so set before anything imports
+# torch (a user's own setting wins; bench/RESULTS.md, predict, has the measurements):
+# - large CPU tensors on transparent huge pages: on VMs a fresh 4 KiB page fault costs microseconds, and
+#   predict allocates model activations of tens of MiB per window;
+# - OpenMP threads that sleep instead of spinning between parallel regions: predict runs reader, writer
+#   and COG threads beside torch's, and on a busy machine spinning threads wait for descheduled ones
+#   (3-4x slower on 2 shared cores).
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import click
 
 from aerialmtl import __version__

@@ -1,33 +1,26 @@
 """`aerialmtl predict`: height and land-cover maps (with MC-dropout uncertainty) for whole orthophotos.
 
-A thin command over :func:`aerialmtl.inference.predict.predict_raster`.
+A thin command over :func:`aerialmtl.inference.jobs.predict_many` (one process, or many under
+``torchrun --nproc_per_node N -m aerialmtl predict ...``).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import click
 
-if TYPE_CHECKING:
-    from aerialmtl.formats.checkpoint import ModelMeta
 
-
-def _check_input(ortho: Path, meta: ModelMeta) -> None:
-    """Georeferencing and bands of ``ortho`` against the checkpoint (errors name the file and the fix).
-
-    Run for every input before the first prediction starts, so a bad last input fails at once; bands
-    beyond the trained ones are reported (with a warning) by ``predict_raster`` itself.
-    """
-    from aerialmtl.io.align import check_bands, open_raster, reference_grid
-
-    reference_grid(ortho)  # readable, with a CRS and a north-up geotransform
-    trained = f"bands {list(meta.bands)}" + (f" ({', '.join(meta.band_names)})" if meta.band_names else "")
-    with open_raster(ortho, "orthophoto") as src:
-        check_bands(src, meta.bands, "orthophoto", bands_from=f"the checkpoint (trained on {trained})",
-                    fix="predict on an orthophoto with those bands, or train a model on this one's bands "
-                        "(`aerialmtl tile --bands ...`)")
+def _batch_size(value: str) -> int | str:
+    if value == "auto":
+        return value
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise click.BadParameter(f"must be a number ≥ 1 or 'auto', got {value!r}", param_hint="--batch-size")
+    return n
 
 
 @click.command(name="predict")
@@ -35,30 +28,37 @@ def _check_input(ortho: Path, meta: ModelMeta) -> None:
 @click.option("--model", "model", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Checkpoint (best.pt / last.pt) written by `aerialmtl train`.")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Prediction folder; with several orthophotos, one sub-folder per input (file stem).")
+              help="Prediction folder; with several orthophotos, one sub-folder per input (file stem) and "
+                   "a <layer>.mosaic.vrt per layer over all of them.")
 @click.option("--mc", type=int, default=None,
               help="MC-dropout samples T (1 = single pass, no uncertainty maps). Default: 30 if the model has dropout.")
 @click.option("--tile", type=int, default=1024, show_default=True,
-              help="Largest window side (pixels, multiple of 32); smaller tiles use less memory but recompute more overlap.")
+              help="Largest window side (pixels, multiple of 32); smaller tiles use less memory but recompute more "
+                   "overlap.")
 @click.option("--overlap", type=int, default=64, show_default=True,
               help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
-@click.option("--batch-size", type=int, default=2, show_default=True, help="Windows per model call.")
+@click.option("--batch-size", "batch_size", default="auto", show_default=True,
+              help="Windows per model call, or 'auto' (from the free GPU memory; 2 on a CPU).")
 @click.option("--precision", type=click.Choice(["auto", "bf16", "fp32"]), default="auto", show_default=True,
               help="auto = bf16 autocast on CUDA, fp32 on CPU (CPUs without bf16 units run bf16 far slower).")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+              help="Under torchrun, each process uses GPU LOCAL_RANK.")
+@click.option("--compile", "compile_", is_flag=True,
+              help="torch.compile the model (a warning and the plain model where compiling is unavailable).")
 @click.option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="GeoJSON polygons: compute only there, nodata elsewhere.")
 @click.option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@click.option("--skip-existing", is_flag=True, help="Skip inputs whose prediction folder is complete (resume a job).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def predict(
-    orthos: tuple[Path, ...], model: Path, out: Path, mc: int | None, tile: int, overlap: int, batch_size: int,
-    precision: str, device: str, aoi: Path | None, probabilities: bool, overwrite: bool, quiet: bool,
+    orthos: tuple[Path, ...], model: Path, out: Path, mc: int | None, tile: int, overlap: int, batch_size: str,
+    precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool, overwrite: bool,
+    skip_existing: bool, quiet: bool,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties)."""
-    from aerialmtl.formats.checkpoint import load_model
-    from aerialmtl.inference.predict import predict_raster
-    from aerialmtl.inference.writer import check_outputs_free
+    from aerialmtl.inference.jobs import predict_many
+    from aerialmtl.inference.predict import PredictResult
 
     if mc is not None and mc < 1:
         raise click.BadParameter(f"must be ≥ 1 (1 = single pass), got {mc}", param_hint="--mc")
@@ -67,29 +67,24 @@ def predict(
     if not 0 <= overlap <= tile // 2:
         raise click.BadParameter(f"must be between 0 and --tile/2 = {tile // 2}, got {overlap}; try 64",
                                  param_hint="--overlap")
-    if batch_size < 1:
-        raise click.BadParameter(f"must be ≥ 1, got {batch_size}", param_hint="--batch-size")
-    stems = [p.stem for p in orthos]
-    dup = sorted({s for s in stems if stems.count(s) > 1})
-    if len(orthos) > 1 and dup:
-        raise click.BadParameter(f"several inputs share the file stem(s) {dup}, so their sub-folders would clash; "
-                                 "rename them or run predict once per input", param_hint="ORTHOS")
-    targets = [(p, out if len(orthos) == 1 else out / p.stem) for p in orthos]
-    if not overwrite:  # refuse before spending time on the first input
-        for _, d in targets:
-            check_outputs_free(d, ["height.tif", "classes.tif", "prediction.json"], overwrite=False)
-    loaded = load_model(model)
-    for ortho in orthos:  # every input usable before the first one takes time
-        _check_input(ortho, loaded[1])
-    for ortho, target in targets:
-        res = predict_raster(
-            ortho, loaded, target, mc=mc, tile=tile, overlap=overlap, batch_size=batch_size,
-            precision=precision, device=device, aoi=aoi, probabilities=probabilities, overwrite=overwrite,
-            progress=not quiet, checkpoint_name=str(model),
-        )
+    batch = _batch_size(batch_size)
+
+    def report(res: PredictResult) -> None:
         t = res.timings
         click.echo(
-            f"{ortho.name} → {target}: {res.grid.width}×{res.grid.height} px at {res.grid.gsd:.3g} m, T={res.mc}, "
+            f"{Path(str(res.ortho)).name} → {res.out_dir}: "
+            f"{res.grid.width}×{res.grid.height} px at {res.grid.gsd:.3g} m, T={res.mc}, "
             f"{res.windows_computed}/{res.windows_total} windows, overlap factor {res.overlap_factor:.2f}, "
-            f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); files: {', '.join(p.name for p in res.files.values())}"
+            f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); "
+            f"files: {', '.join(p.name for p in res.files.values())}"
         )
+
+    job = predict_many(
+        orthos, model, out, aoi=aoi, overwrite=overwrite, skip_existing=skip_existing, progress=not quiet,
+        on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
+        device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
+    )
+    for path in job.skipped:
+        click.echo(f"{path.name}: skipped, its prediction folder is complete")
+    if job.mosaics:
+        click.echo(f"mosaics: {', '.join(str(p) for p in job.mosaics.values())}")

@@ -13,14 +13,24 @@ model's GSD)::
     class_probabilities.tif  K × float32, MC mean class probabilities                 (optional)
     prediction.json          run information (checkpoint, T, tile, overlap, grid, timings)
 
-Layers exist only for the tasks the model has. This module owns the names, tags and nodata values;
-every reader and writer imports them from here.
+Layers exist only for the tasks the model has. This module owns the names, tags and nodata values
+and the output schema (:func:`prediction_layers`: one :class:`LayerSpec` per layer, which the
+stitcher fills and the writer writes); every reader and writer imports them from here.
+
+A run over several orthophotos writes one such folder per input (named after the file stem) and one
+GDAL VRT mosaic per layer beside them, ``<layer>.mosaic.vrt`` (:func:`mosaic_filename`), so that a GIS
+opens one layer over all inputs.
+
+A folder is complete (:meth:`PredictionFolder.is_complete`) when ``prediction.json`` exists and every
+file it lists exists: the writer renames ``prediction.json`` into place last, so a run that stopped
+earlier leaves no complete-looking folder.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +64,80 @@ def layer_filename(name: str) -> str:
 
 #: Every file name a prediction folder can hold.
 ALL_FILES = tuple(layer_filename(n) for n in LAYERS) + (INFO_FILE,)
+
+
+def mosaic_filename(name: str) -> str:
+    """File name of the VRT mosaic of layer ``name`` over all inputs of a run (``"height.mosaic.vrt"``)."""
+    return f"{name}.mosaic.vrt"
+
+
+# ---- the output schema -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class LayerSpec:
+    """One output raster of a prediction folder.
+
+    Attributes:
+        name: layer name (file :func:`layer_filename`).
+        count, dtype, nodata: bands, numpy dtype name, nodata value.
+        descriptions: one description per band.
+        units: unit per band (``"m"``, ``"nats"``, ...; empty for none).
+        categorical: class indices (``mode`` overviews) rather than continuous values.
+        colormap: optional GDAL colour table of band 1.
+        tags: dataset tags; ``band_tags``: tags per band (1-based index → mapping).
+    """
+
+    name: str
+    count: int
+    dtype: str
+    nodata: float | int
+    descriptions: tuple[str, ...]
+    units: tuple[str, ...] = ()
+    categorical: bool = False
+    colormap: dict[int, tuple[int, int, int, int]] | None = None
+    tags: dict[str, str] = field(default_factory=dict)
+    band_tags: dict[int, dict[str, str]] = field(default_factory=dict)
+
+    @property
+    def filename(self) -> str:
+        return layer_filename(self.name)
+
+
+def prediction_layers(
+    tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False
+) -> tuple[LayerSpec, ...]:
+    """The layers a prediction writes, in :data:`LAYERS` order.
+
+    Args:
+        tasks: the model's tasks (``"height"``, ``"classes"``).
+        classes: the class scheme (required with the ``classes`` task).
+        mc: MC-dropout samples T; uncertainty layers only for T > 1.
+        probabilities: also the K-band ``class_probabilities`` layer.
+    """
+    specs: list[LayerSpec] = []
+    unc = mc > 1
+    if HEIGHT in tasks:
+        specs.append(LayerSpec(HEIGHT, 1, "float32", FLOAT_NODATA, ("height above ground (MC mean)",), ("m",)))
+        if unc:
+            specs.append(LayerSpec(HEIGHT_STD, 1, "float32", FLOAT_NODATA,
+                                   ("height standard deviation (MC dropout)",), ("m",)))
+    if CLASSES in tasks:
+        if classes is None:
+            raise InputError("the classes task needs a class scheme; pass the checkpoint's ModelMeta.classes")
+        names = {str(i): n for i, n in enumerate(classes.names)}
+        specs.append(LayerSpec(
+            CLASSES, 1, "uint8", CLASS_NODATA, ("land-cover class index",), ("",), categorical=True,
+            colormap=classes.colormap(), tags={CLASS_SCHEME_TAG: json.dumps(classes.to_dict())},
+            band_tags={1: {"class_names": json.dumps(names), **{f"CLASS_{i}": n for i, n in names.items()}}},
+        ))
+        if unc:
+            specs.append(LayerSpec(CLASS_ENTROPY, 1, "float32", FLOAT_NODATA,
+                                   ("predictive entropy of the class probabilities",), ("nats",)))
+            specs.append(LayerSpec(CLASS_MUTUAL_INFO, 1, "float32", FLOAT_NODATA,
+                                   ("mutual information (epistemic part of the entropy)",), ("nats",)))
+        if probabilities:
+            specs.append(LayerSpec(CLASS_PROBABILITIES, classes.num_classes, "float32", FLOAT_NODATA,
+                                   tuple(f"P({n})" for n in classes.names), ("",) * classes.num_classes))
+    return tuple(specs)
 
 
 def read_class_scheme_tag(path: str | Path) -> ClassScheme | None:
@@ -109,9 +193,19 @@ class PredictionFolder:
         path = self.layer_path(CLASSES)
         return read_class_scheme_tag(path) if path.is_file() else None
 
+    def is_complete(self) -> bool:
+        """Whether a run finished here: ``prediction.json`` parses and every file it lists exists."""
+        try:
+            files = self.info().get("files")
+        except (OSError, ValueError):
+            return False
+        if not isinstance(files, dict) or not files:
+            return False
+        return all((self.path / str(name)).is_file() for name in files.values())
+
 
 __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
-    "CLASS_SCHEME_TAG", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "LAYERS", "PredictionFolder",
-    "layer_filename", "read_class_scheme_tag",
+    "CLASS_SCHEME_TAG", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "LAYERS", "LayerSpec",
+    "PredictionFolder", "layer_filename", "mosaic_filename", "prediction_layers", "read_class_scheme_tag",
 ]

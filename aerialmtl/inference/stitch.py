@@ -1,164 +1,393 @@
-"""Blend window outputs into row bands and hand back the rows that are final.
+"""Blend window statistics on the model's device and hand back finished blocks in their output dtypes.
 
-:class:`BandStitcher` keeps weighted sums for one window row (``window height × grid width`` pixels)
-plus the rows it shares with the next window row; nothing else of the raster is held in memory.
-Blended quantities (each ``(C, h, w)`` float32 per window):
+:class:`Stitcher` follows the window plan of :mod:`aerialmtl.inference.windows`: windows arrive row by
+row, left to right. Each one is added, weighted by its dyadic blending weights times its input
+validity, into accumulators on the model's device; after window ``(i, j)`` the rows of band ``i`` and the
+columns before :meth:`~aerialmtl.inference.windows.AxisPlan.final_until` ``(j)`` get no more weight, so
+that block is finalised on the device (weighted means, argmax, entropy, mutual information) and handed
+back as a :class:`Block` of host arrays in the output dtypes of the schema
+(:func:`aerialmtl.formats.prediction.prediction_layers`), nodata filled in. Only finished pixels cross
+to the host.
 
-* ``height``: MC mean height (metres);
-* ``height_std``: MC standard deviation (metres);
-* ``probs``: MC mean class probabilities (K channels);
-* ``expected_entropy``: MC mean of the per-sample entropies (nats), i.e. entropy − mutual information.
+Memory: accumulators for one window (shifted in place as the window moves right) plus the rows of a
+window row that still get weight from the next one (about ``overlap − 2·margin`` rows over the raster
+width, the "carry", read as columns enter the window and rewritten as they are finished). Nothing grows
+with the raster height. The carry (~(K + 2) · 4 B per carried row and column) is kept in memory up to
+:data:`CARRY_IN_MEMORY` bytes and in an anonymous temporary file beyond (wide rasters: 138 MiB at
+32768 px wide with 20 classes), so memory does not grow with the width either.
 
-When rows are flushed, predictive entropy is recomputed from the blended probabilities and mutual
-information as ``entropy − expected_entropy`` (clamped at 0), so ``0 ≤ MI ≤ entropy ≤ log K`` holds
-exactly in the blended result too.
+Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each window):
+
+* ``height_mean`` → ``height``; ``height_std`` → ``height_std`` (weighted mean of the window stds);
+* ``probs`` (K, channels last) → ``classes`` (argmax), ``class_entropy`` (entropy of the blended
+  probabilities), ``class_probabilities``;
+* ``mean_entropy`` (mean per-sample entropy) → ``class_mutual_info = clip(entropy − blended mean
+  entropy, 0, entropy)``, so ``0 ≤ MI ≤ entropy ≤ log K`` holds exactly in the blended result.
+
+Every sum is formed in window order with one rounding per product and per addition, so any
+implementation that adds the same products in the same order (e.g. a whole-raster reference in numpy)
+gets the same bits; the result does not depend on batching or on where a strip of bands starts.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
-from aerialmtl.classes import IGNORE_INDEX
+from aerialmtl.formats.prediction import (
+    CLASS_ENTROPY,
+    CLASS_MUTUAL_INFO,
+    CLASS_PROBABILITIES,
+    CLASSES,
+    HEIGHT,
+    HEIGHT_STD,
+    LayerSpec,
+)
 from aerialmtl.inference.windows import Plan
+from aerialmtl.models.mc_dropout import McStatistics
 
-#: float nodata of every float output (same as the height patches).
-FLOAT_NODATA = -9999.0
+#: Elements per temporary on CPU (~4 MiB of float32): the blending loops stay in the caches.
+CHUNK_ELEMENTS = 1 << 20
+#: Largest carry held in memory (bytes); a larger one goes to a temporary file (see the module docstring).
+CARRY_IN_MEMORY = 32 << 20
+
+_QUANTITIES = ("height_mean", "height_std", "probs", "mean_entropy")
 
 
 @dataclass
-class FinalRows:
-    """Finished output rows ``[row_start, row_stop)`` over the full grid width.
+class Block:
+    """Finished output pixels: grid rows ``[row_off, row_off + height)`` × columns ``[col_off, col_off + width)``.
 
     Attributes:
-        valid: (h, W) bool, input valid (and inside the AOI) and computed.
-        layers: output name → (bands, h, W) arrays in the output dtype with nodata filled in
-            (``height``, ``height_std``, ``classes``, ``class_entropy``, ``class_mutual_info``,
-            ``class_probabilities``; only those requested).
+        layers: layer name → (bands, height, width) host array in the layer's dtype, nodata filled in.
     """
 
-    row_start: int
-    row_stop: int
-    valid: np.ndarray
+    row_off: int
+    col_off: int
+    height: int
+    width: int
     layers: dict[str, np.ndarray]
 
 
-class BandStitcher:
-    """Accumulate blended window outputs band by band.
+def _quantities(names: set[str]) -> tuple[str, ...]:
+    """The blended statistics the output layers ``names`` need."""
+    need = []
+    if HEIGHT in names:
+        need.append("height_mean")
+    if HEIGHT_STD in names:
+        need.append("height_std")
+    if names & {CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES}:
+        need.append("probs")
+    if CLASS_MUTUAL_INFO in names:
+        need.append("mean_entropy")
+    return tuple(need)
+
+
+class Stitcher:
+    """Blend the windows of bands ``[band_start, band_stop)`` of ``plan`` into finished blocks.
 
     Args:
         plan: the window plan.
-        channels: blended quantity name → number of channels (e.g. ``{"height": 1, "probs": K}``).
-        outputs: names of the output layers to produce on flush (see :class:`FinalRows`).
+        layers: the output schema (:func:`~aerialmtl.formats.prediction.prediction_layers`).
+        num_classes: K (0 without the classes task).
+        device: where the accumulators live (the model's device).
+        band_start, band_stop: the bands to hand back (a strip of the raster); default all. The
+            stitcher then expects the windows of rows :attr:`first_row` … ``band_stop − 1``: rows before
+            ``band_start`` are only accumulated (they reach into the strip), nothing of them is handed back.
     """
 
-    def __init__(self, plan: Plan, channels: dict[str, int], outputs: tuple[str, ...]) -> None:
+    def __init__(
+        self,
+        plan: Plan,
+        layers: Sequence[LayerSpec],
+        num_classes: int,
+        device: torch.device | str = "cpu",
+        band_start: int = 0,
+        band_stop: int | None = None,
+    ) -> None:
         self.plan = plan
-        self.channels = dict(channels)
-        self.outputs = outputs
-        self.width = plan.cols.length
-        self._ext_w = plan.cols.extent
-        self._band = -1
-        self._row0 = 0
-        self._acc: dict[str, np.ndarray] = {}
-        self._wsum = np.zeros((0, self._ext_w), np.float32)
-        self._valid = np.zeros((0, self._ext_w), bool)
+        self.specs = {s.name: s for s in layers}
+        self.quantities = _quantities(set(self.specs))
+        self.k = int(num_classes)
+        if "probs" in self.quantities and self.k < 1:
+            raise ValueError("Stitcher: class layers need num_classes ≥ 1")
+        self.device = torch.device(device)
+        n_bands = len(plan.bands)
+        self.band_start = band_start
+        self.band_stop = n_bands if band_stop is None else band_stop
+        if not 0 <= band_start < self.band_stop <= n_bands:
+            raise ValueError(f"Stitcher: bands [{band_start}, {band_stop}) outside the plan's {n_bands} bands")
+        #: The first window row the stitcher needs (the first source of ``band_start``).
+        self.first_row = plan.bands[band_start].sources[0]
+        rows, cols = plan.rows, plan.cols
+        self.height, self.width = rows.length, cols.length
+        self._rw = torch.from_numpy(rows.weights).to(self.device)
+        self._cw = torch.from_numpy(cols.weights).to(self.device)
+        sr, sc = rows.size, cols.size
+        # carry: rows still pending after a band, over the raster width (see the module docstring)
+        # rows still reached by a window row after its band is finished (from the band's out_stop)
+        self._pending = [max(0, min(self.height, rows.reach(k)) - b.out_stop) for k, b in enumerate(plan.bands)]
+        self._ring = self._alloc(sr, sc)
+        carry_rows = max(self._pending + [0])
+        per_column = carry_rows * (1 + sum(self.k if q == "probs" else 1 for q in self.quantities)) * 4
+        self._carry = _Carry(self._alloc(carry_rows, self.width) if per_column * self.width <= CARRY_IN_MEMORY
+                             else None, carry_rows, {n: t.shape[2:] for n, t in self._ring.items()}, self.width,
+                             self.device)
+        self._carry_rows = 0  # rows of _carry in use (from the current band's out_start)
+        self._expect = (self.first_row, 0)
+        self._a0 = 0  # grid column of ring column 0
+        self._done = 0  # first grid column of the current band not yet handed back
+        self.chunk = CHUNK_ELEMENTS
+        self._tmp = torch.empty(0, device=self.device)
 
-    # ------------------------------------------------------------------------------------------
-    def start_band(self, i: int) -> None:
-        """Move to window row ``i``, keeping the rows it shares with the previous window row.
+    # ---- storage ----------------------------------------------------------------------------------
+    def _alloc(self, h: int, w: int) -> dict[str, torch.Tensor]:
+        acc = {"weight": torch.zeros((h, w), dtype=torch.float32, device=self.device)}
+        for q in self.quantities:
+            shape = (h, w, self.k) if q == "probs" else (h, w)
+            acc[q] = torch.zeros(shape, dtype=torch.float32, device=self.device)
+        return acc
 
-        The accumulators are reused in place (every window row has the same height), so moving on
-        never holds two bands' worth of memory.
+    def _row_chunks(self, rows: int, per_row: int) -> list[tuple[int, int]]:
+        if self.device.type != "cpu":
+            return [(0, rows)]
+        step = max(1, self.chunk // max(1, per_row))
+        return [(r, min(rows, r + step)) for r in range(0, rows, step)]
+
+    def _combine(self, dst: torch.Tensor, src: torch.Tensor | None, mult: torch.Tensor | None,
+                 base: torch.Tensor | None, accumulate: bool = False) -> None:
+        """``dst = base + src·mult`` (``accumulate``: ``base`` is ``dst`` itself).
+
+        ``src`` None: no contribution (``dst = base``, or 0 without a base); ``mult`` None: the
+        contribution is ``src`` itself. Shapes (h, w[, K]), ``mult`` (h, w). One rounding for the product
+        and one for the sum, in this order, like ``acc += value * weight`` in numpy.
         """
-        rows = self.plan.rows
-        new_row0, h = rows.starts[i], rows.size
-        keep = max(0, self._row0 + self._wsum.shape[0] - new_row0) if self._band >= 0 else 0
-        shift = new_row0 - self._row0
+        if dst.numel() == 0:
+            return
+        if src is None:
+            if accumulate:
+                return
+            if base is None:
+                dst.zero_()
+            else:
+                dst.copy_(base)
+            return
+        per_row = int(np.prod(dst.shape[1:]))
+        for r0, r1 in self._row_chunks(dst.shape[0], per_row):
+            s, d = src[r0:r1], dst[r0:r1]
+            if mult is None:
+                prod = s
+            else:
+                m = mult[r0:r1]
+                if s.dim() == 3:
+                    m = m.unsqueeze(-1)
+                if base is None and not accumulate:
+                    torch.mul(s, m, out=d)
+                    continue
+                if self.device.type == "cpu":  # a reused scratch buffer: no page faults, stays in cache
+                    if self._tmp.numel() < s.numel():
+                        self._tmp = torch.empty(max(s.numel(), self.chunk), device=self.device)
+                    prod = self._tmp[: s.numel()].view(s.shape)
+                    torch.mul(s, m, out=prod)
+                else:
+                    prod = s * m
+            if accumulate:
+                d.add_(prod)
+            elif base is None:
+                d.copy_(prod)
+            else:
+                torch.add(base[r0:r1], prod, out=d)
 
-        def moved(old: np.ndarray | None, shape: tuple[int, ...], dtype: type) -> np.ndarray:
-            if old is None or old.shape != shape:
-                return np.zeros(shape, dtype)
-            if keep:
-                old[..., :keep, :] = old[..., shift:shift + keep, :].copy()
-            old[..., keep:, :] = 0
-            return old
-
-        self._acc = {k: moved(self._acc.get(k), (c, h, self._ext_w), np.float32) for k, c in self.channels.items()}
-        self._wsum = moved(self._wsum, (h, self._ext_w), np.float32)
-        self._valid = moved(self._valid, (h, self._ext_w), bool)
-        self._band, self._row0 = i, new_row0
-
-    def add(self, j: int, values: dict[str, np.ndarray], valid: np.ndarray) -> None:
-        """Add the outputs of window (current row, column ``j``).
+    # ---- windows ----------------------------------------------------------------------------------
+    def add(self, i: int, j: int, stats: McStatistics | None, valid: torch.Tensor | None) -> list[Block]:
+        """Add window (row ``i``, column ``j``); returns the blocks it finished (possibly none).
 
         Args:
-            j: window column index.
-            values: quantity name → (C, h, w) float32 for the whole window.
-            valid: (h, w) bool input validity of the window.
+            i, j: the window; windows must come in plan order from row :attr:`first_row` on.
+            stats: the window's statistics (tensors of one window, on the device: (h, w) and (h, w, K)),
+                or ``None`` for a window that was not computed (no valid input pixel).
+            valid: (h, w) bool input validity (ignored when ``stats`` is None).
         """
-        i = self._band
-        w = self.plan.weight(i, j) * valid
-        c0 = self.plan.cols.starts[j]
-        sl = (slice(0, self.plan.rows.size), slice(c0, c0 + self.plan.cols.size))
-        for k, acc in self._acc.items():
-            acc[(slice(None), *sl)] += values[k] * w
-        self._wsum[sl] += w
-        self._valid[sl] |= valid
+        if (i, j) != self._expect:
+            raise ValueError(f"Stitcher: expected window {self._expect}, got {(i, j)}")
+        plan = self.plan
+        cols = plan.cols
+        band = plan.bands[i]
+        sc = cols.size
+        n_cols = len(cols.starts)
+        a0 = cols.starts[j]
+        top = band.out_start - band.row_off  # ring rows above are final already
+        ring = self._ring
+        keep = max(0, self._a0 + sc - a0) if j > 0 else 0
+        shift = a0 - self._a0
+        # carry columns entering the ring with this window
+        c_lo, c_hi = min(self.width, a0 + keep), min(self.width, a0 + sc)
+        nc = self._carry_rows
+        w = None
+        if stats is not None:
+            assert valid is not None
+            w = torch.outer(self._rw[i], self._cw[j]) * valid
+        n = max(0, c_hi - c_lo)  # new columns that have a carry
+        for name, dst in ring.items():
+            if stats is None:
+                src, mult = None, None
+            elif name == "weight":
+                src, mult = w, None
+            else:
+                src, mult = getattr(stats, name), w
+                if src is None:
+                    raise ValueError(f"Stitcher: window statistics lack '{name}'")
 
-    def flush(self, chunk_cols: int = 2048) -> FinalRows:
-        """Rows that are final after the current window row, converted to output layers.
+            def part(t: torch.Tensor | None, r: slice, c: slice) -> torch.Tensor | None:
+                return None if t is None else t[r, c]
 
-        The conversion runs over column chunks of ``chunk_cols`` pixels, so its temporaries (K-channel
-        means, logs for the entropy) stay bounded whatever the raster width; only the output layers
-        themselves span the full width.
-        """
-        band = self.plan.bands[self._band]
-        a, b = band.out_start - self._row0, band.out_stop - self._row0
-        rows, width = b - a, self.width
-        valid = self._valid[a:b, :width] & (self._wsum[a:b, :width] > 0)
-        counts = {"height": 1, "height_std": 1, "classes": 1, "class_entropy": 1, "class_mutual_info": 1,
-                  "class_probabilities": self.channels.get("probs", 0)}
-        wanted = [n for n in counts if n in self.outputs and (n.startswith("height") or "probs" in self.channels)]
-        layers = {n: np.empty((counts[n], rows, width), np.uint8 if n == "classes" else np.float32) for n in wanted}
-        for c0 in range(0, width, chunk_cols):
-            cs = slice(c0, min(width, c0 + chunk_cols))
-            self._convert(a, b, cs, valid[:, cs], {n: arr[:, :, cs] for n, arr in layers.items()})
-        return FinalRows(band.out_start, band.out_stop, valid, layers)
+            if keep:  # columns shared with the previous window: previous sums + this window
+                moved = dst[top:, shift:shift + keep]
+                dst[top:, :keep] = moved.clone() if shift < keep else moved  # overlapping copy: via a temporary
+                k_ = (slice(top, None), slice(0, keep))
+                self._combine(dst[k_], part(src, *k_), part(mult, *k_), None, accumulate=True)
+            if keep < sc:  # new columns: carried rows (+ this window), then fresh rows (= this window)
+                carried = (slice(top, top + nc), slice(keep, keep + n))
+                if nc and n:
+                    self._combine(dst[carried], part(src, *carried), part(mult, *carried),
+                                  self._carry.read(name, nc, c_lo, c_hi))
+                    rest = (slice(top, top + nc), slice(keep + n, None))
+                    self._combine(dst[rest], part(src, *rest), part(mult, *rest), None)
+                fresh = (slice(top + (nc if n else 0), None), slice(keep, None))
+                self._combine(dst[fresh], part(src, *fresh), part(mult, *fresh), None)
+        self._a0 = a0
+        # finished columns of this band
+        stop = cols.final_until(j)
+        blocks: list[Block] = []
+        if stop > self._done:
+            lo, hi = self._done - a0, stop - a0
+            r_lo, r_hi = top, band.out_stop - band.row_off
+            if i >= self.band_start and r_hi > r_lo:
+                blocks.append(self._finalise(ring, band.out_start, self._done, r_lo, r_hi, lo, hi))
+            pending = self._pending[i] if i + 1 < len(plan.bands) else 0
+            if pending:  # rows still reached after this band → the carry (these columns were read already)
+                p_lo = band.out_stop - band.row_off
+                for name, acc in ring.items():
+                    self._carry.write(name, self._done, acc[p_lo:p_lo + pending, lo:hi])
+            self._done = stop
+        # move on
+        if j + 1 < n_cols:
+            self._expect = (i, j + 1)
+        else:
+            self._carry_rows = self._pending[i] if i + 1 < len(plan.bands) else 0
+            self._expect = (i + 1, 0)
+            self._done = 0
+            self._a0 = 0
+        return blocks
 
-    def _convert(self, a: int, b: int, cs: slice, valid: np.ndarray, out: dict[str, np.ndarray]) -> None:
-        """Fill the output views ``out`` for accumulator rows ``[a, b)`` and columns ``cs``."""
-        safe = np.where(valid, self._wsum[a:b, cs], 1.0).astype(np.float32)
-        inv = ~valid
+    @property
+    def finished(self) -> bool:
+        """Whether every window up to ``band_stop`` has been added."""
+        return self._expect[0] >= self.band_stop
 
-        def mean(key: str) -> np.ndarray:
-            return self._acc[key][:, a:b, cs] / safe
+    # ---- finalising -------------------------------------------------------------------------------
+    def _finalise(self, acc: dict[str, torch.Tensor], row_off: int, col_off: int, r_lo: int, r_hi: int,
+                  c_lo: int, c_hi: int) -> Block:
+        h, w = r_hi - r_lo, c_hi - c_lo
+        specs = self.specs
+        out: dict[str, torch.Tensor] = {
+            n: torch.empty((s.count, h, w), dtype=getattr(torch, s.dtype), device=self.device)
+            for n, s in specs.items()
+        }
+        per_row = w * max(1, self.k)
+        for r0, r1 in self._row_chunks(h, per_row):
+            rs, cs = slice(r_lo + r0, r_lo + r1), slice(c_lo, c_hi)
+            invalid = acc["weight"][rs, cs] <= 0
+            for name, value in self._layer_values(acc, rs, cs, invalid).items():
+                nodata = torch.as_tensor(specs[name].nodata, dtype=value.dtype, device=self.device)
+                value = value if value.dim() == 3 else value.unsqueeze(0)
+                torch.where(invalid, nodata, value, out=out[name][:, r0:r1])
+        return Block(row_off, col_off, h, w, {n: _to_host(t) for n, t in out.items()})
 
-        def fl(name: str, x: np.ndarray) -> None:
-            x = x.astype(np.float32, copy=False)
-            x[..., inv] = FLOAT_NODATA
-            out[name][...] = x
+    def _layer_values(self, acc: dict[str, torch.Tensor], rs: slice, cs: slice,
+                      invalid: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Output layer values (before nodata) of accumulator rows ``rs`` × columns ``cs``."""
+        specs = self.specs
+        wsum = acc["weight"][rs, cs]
+        safe = torch.where(invalid, torch.ones_like(wsum), wsum)
+        values: dict[str, torch.Tensor] = {}
+        if HEIGHT in specs:
+            values[HEIGHT] = acc["height_mean"][rs, cs] / safe
+        if HEIGHT_STD in specs:
+            values[HEIGHT_STD] = (acc["height_std"][rs, cs] / safe).clamp_min_(0.0)
+        if "probs" not in acc:
+            return values
+        probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)
+        if CLASSES in specs:
+            values[CLASSES] = probs.argmax(-1).to(torch.uint8)
+        if CLASS_ENTROPY in specs or CLASS_MUTUAL_INFO in specs:
+            ent = (probs * torch.log(probs.clamp(1e-12, 1.0))).sum(-1).neg_().clamp_min_(0.0)
+            if CLASS_MUTUAL_INFO in specs:
+                values[CLASS_MUTUAL_INFO] = torch.minimum((ent - acc["mean_entropy"][rs, cs] / safe).clamp_min_(0.0),
+                                                          ent)
+            if CLASS_ENTROPY in specs:
+                values[CLASS_ENTROPY] = ent
+        if CLASS_PROBABILITIES in specs:
+            values[CLASS_PROBABILITIES] = probs.permute(2, 0, 1)
+        return values
 
-        if "height" in out:
-            fl("height", mean("height"))
-        if "height_std" in out:
-            fl("height_std", np.maximum(mean("height_std"), 0.0))
-        if "probs" not in self._acc:
+
+class _Carry:
+    """The carried rows of every accumulator over the raster width: in memory, or in a temporary file.
+
+    In the file each accumulator is stored column by column (``rows × channels`` floats per column), so
+    a range of columns is one contiguous read or write.
+    """
+
+    def __init__(self, tensors: dict[str, torch.Tensor] | None, rows: int, channels: dict[str, torch.Size],
+                 width: int, device: torch.device) -> None:
+        self.tensors = tensors
+        self.rows, self.width, self.device = rows, width, device
+        self.shapes = {n: tuple(c) for n, c in channels.items()}
+        self.file = None
+        if tensors is None:
+            import tempfile
+
+            self.file = tempfile.TemporaryFile(prefix="aerialmtl-carry-")
+            self.offsets: dict[str, int] = {}
+            off = 0
+            for n, shape in self.shapes.items():
+                self.offsets[n] = off
+                off += width * self._column_bytes(shape)
+
+    def _column_bytes(self, shape: tuple[int, ...]) -> int:
+        return self.rows * int(np.prod(shape, dtype=np.int64)) * 4
+
+    def read(self, name: str, rows: int, c0: int, c1: int) -> torch.Tensor:
+        """(rows, c1 − c0[, K]) carried sums of columns ``[c0, c1)``."""
+        if self.tensors is not None:
+            return self.tensors[name][:rows, c0:c1]
+        assert self.file is not None
+        shape = self.shapes[name]
+        size = self._column_bytes(shape)
+        raw = os.pread(self.file.fileno(), (c1 - c0) * size, self.offsets[name] + c0 * size)
+        cols = torch.from_numpy(np.frombuffer(raw, np.float32).reshape(c1 - c0, self.rows, *shape).copy())
+        return cols[:, :rows].transpose(0, 1).to(self.device)
+
+    def write(self, name: str, c0: int, values: torch.Tensor) -> None:
+        """Store ``values`` (rows, columns[, K]) as the carried sums of columns ``[c0, c0 + columns)``."""
+        if self.tensors is not None:
+            self.tensors[name][:values.shape[0], c0:c0 + values.shape[1]] = values
             return
-        probs = mean("probs")
-        if "classes" in out:
-            cls = np.argmax(probs, axis=0).astype(np.uint8)
-            cls[inv] = IGNORE_INDEX
-            out["classes"][0] = cls
-        if "class_entropy" in out or "class_mutual_info" in out:
-            ent = np.maximum(-(probs * np.log(np.clip(probs, 1e-12, 1.0))).sum(axis=0), 0.0)[None]
-            if "class_mutual_info" in out:
-                fl("class_mutual_info", np.clip(ent - mean("expected_entropy"), 0.0, ent))
-            if "class_entropy" in out:
-                fl("class_entropy", ent)
-        if "class_probabilities" in out:
-            fl("class_probabilities", probs)
+        assert self.file is not None
+        shape = self.shapes[name]
+        block = torch.zeros((values.shape[1], self.rows, *shape), dtype=torch.float32)
+        block[:, :values.shape[0]] = values.transpose(0, 1).cpu()
+        os.pwrite(self.file.fileno(), block.numpy().tobytes(), self.offsets[name] + c0 * self._column_bytes(shape))
 
 
-__all__ = ["FLOAT_NODATA", "BandStitcher", "FinalRows"]
+def _to_host(t: torch.Tensor) -> np.ndarray:
+    """A finished layer block on the host (synchronous copy on CUDA; a view on CPU)."""
+    return t.numpy() if t.device.type == "cpu" else t.cpu().numpy()
+
+
+__all__ = ["CHUNK_ELEMENTS", "Block", "Stitcher"]

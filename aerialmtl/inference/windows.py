@@ -21,8 +21,11 @@ float rounding otherwise) and no seam can appear.
 
 Row bands. Window rows are processed top to bottom; after window row ``i`` the output rows
 ``[out_start, out_stop)`` of :class:`Band` ``i`` are final (no later window touches them) and can be
-written. A band depends only on window rows ``i − 1`` and ``i`` (:attr:`Band.sources`), so bands can be
-sharded across processes: a worker that starts at band ``a`` runs window row ``a − 1`` first.
+written. A band depends only on the window rows :attr:`Band.sources` (usually ``i − 1`` and ``i``; with
+small tiles and a large overlap a window row can reach two rows down), so bands can be sharded across
+processes: a worker that starts at band ``a`` runs window rows ``sources[0] … a − 1`` first. The same
+holds along a row for columns (:meth:`AxisPlan.final_until`), which lets the stitcher hand back finished
+blocks while it moves left to right and keep only one window of accumulators per band.
 """
 
 from __future__ import annotations
@@ -52,7 +55,8 @@ def check_tiling(tile: int, overlap: int) -> None:
         InputError: ``tile`` is not a positive multiple of 32, or ``overlap`` is outside ``[0, tile / 2]``.
     """
     if not isinstance(tile, int) or tile < SIZE_MULTIPLE or tile % SIZE_MULTIPLE:
-        raise InputError(f"tile must be a positive multiple of {SIZE_MULTIPLE} pixels, got {tile!r}; pass e.g. --tile 512")
+        raise InputError(
+            f"tile must be a positive multiple of {SIZE_MULTIPLE} pixels, got {tile!r}; pass e.g. --tile 512")
     if not isinstance(overlap, int) or not 0 <= overlap <= tile // 2:
         raise InputError(
             f"overlap must be between 0 and tile/2 = {tile // 2} pixels, got {overlap!r}; pass e.g. --overlap 64"
@@ -87,6 +91,11 @@ class AxisPlan:
         if i + 1 >= len(self.starts):
             return self.length
         return min(self.length, self.starts[i + 1] + self.margin)
+
+    def reach(self, i: int) -> int:
+        """One past the last pixel to which window ``i`` gives a non-zero weight."""
+        nonzero = np.flatnonzero(self.weights[i])
+        return self.starts[i] + int(nonzero[-1]) + 1 if nonzero.size else self.starts[i]
 
 
 def _base_weight(size: int, margin: int, ramp: int, left: bool, right: bool) -> np.ndarray:
@@ -145,7 +154,7 @@ class Band:
         height: window height (pixels).
         out_start, out_stop: grid rows that become final once window rows ``≤ i`` are done.
         windows: the windows of the row, left to right (may reach past the grid edges).
-        col_plan: the column plan shared by all bands.
+        first_source: the first window row whose weights reach row ``out_start``.
     """
 
     index: int
@@ -154,11 +163,12 @@ class Band:
     out_start: int
     out_stop: int
     windows: tuple[Window, ...]
+    first_source: int = 0
 
     @property
     def sources(self) -> tuple[int, ...]:
         """Window rows whose outputs reach rows ``[out_start, out_stop)``."""
-        return (self.index - 1, self.index) if self.index > 0 else (self.index,)
+        return tuple(range(min(self.first_source, self.index), self.index + 1))
 
 
 @dataclass(frozen=True)
@@ -201,10 +211,12 @@ def plan_bands(height: int, width: int, tile: int = 512, overlap: int = 64) -> P
     cols = axis_plan(width, tile, overlap)
     bands = []
     out_start = 0
+    reach = [rows.reach(k) for k in range(len(rows.starts))]
     for i, r in enumerate(rows.starts):
         out_stop = rows.final_until(i)
         wins = tuple(Window(c, r, cols.size, rows.size) for c in cols.starts)
-        bands.append(Band(i, r, rows.size, out_start, out_stop, wins))
+        first = next(k for k in range(i + 1) if k == i or reach[k] > out_start)
+        bands.append(Band(i, r, rows.size, out_start, out_stop, wins, first))
         out_start = out_stop
     return Plan(rows, cols, tuple(bands))
 

@@ -1,118 +1,65 @@
 """Streaming, all-or-nothing writer of the prediction folder.
 
-Each output layer is written row band by row band into a hidden staging GeoTIFF in the output folder
-(``.height.tif.staging``); rows are buffered until whole 512-pixel block rows are complete so GDAL
-never holds half-written tiles. :meth:`PredictionWriter.commit` converts every staging file into a
-COG (``.height.tif.partial``) and only then renames all of them to their final names, so an
-interrupted run leaves no file at a final path. :meth:`PredictionWriter.abort` removes the hidden files
-(and the folder, if this run created it and it is empty); hidden files that a killed run could not
-remove are deleted when the next run into the same folder starts, so a plain re-run completes.
+Each output layer (:class:`~aerialmtl.formats.prediction.LayerSpec`) is first written into a hidden
+staging GeoTIFF in the output folder (``.height.tif.staging``; ``.height.tif.staging-<row>`` for the
+strip of rows one process of a distributed run computes). Staging files are raw (uncompressed) tiled
+GeoTIFFs: the stitcher's finished blocks are written as they come, in any shape, by a background
+thread while the model runs, and GDAL rewrites a partly written tile in place, so nothing is buffered
+(memory does not grow with the raster) and no compression is paid twice. :meth:`PredictionWriter.commit`
+converts every layer into a COG (``.height.tif.partial``; the layers in parallel, each compressed on
+several threads; strips of several processes are first joined by a VRT), writes ``prediction.json``
+and only then renames everything to the final names, ``prediction.json`` last: an interrupted run
+leaves no file at a final path, and a folder with ``prediction.json`` is complete.
+:meth:`PredictionWriter.abort` removes the hidden files (and the folder, if this run created it and it
+is empty); hidden files that a killed run could not remove are deleted when the next run into the same
+folder starts, so a plain re-run completes.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field
+import threading
+from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import rasterio
 from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from aerialmtl.errors import OutputError, OutputExistsError
-from aerialmtl.formats.prediction import ALL_FILES
-from aerialmtl.inference.stitch import FinalRows
+from aerialmtl.formats.prediction import ALL_FILES, INFO_FILE, LayerSpec
+from aerialmtl.inference.stitch import Block
 from aerialmtl.io.align import Grid
-from aerialmtl.io.cog import COG_BLOCKSIZE, staging_profile, to_cog
+from aerialmtl.io.cog import staging_profile, to_cog
 from aerialmtl.io.outputs import make_output_dir
 
 #: Every file name a prediction folder can hold (removed on --overwrite when this run does not write it).
 ALL_OUTPUTS = ALL_FILES
+#: Blocks queued for the writer thread at most (the model waits beyond; memory stays bounded).
+MAX_PENDING_BLOCKS = 4
+#: DEFLATE level of the COGs: 1 writes 1.1-2x faster than GDAL's default 6 for 1-4 % larger files on float
+#: heights (bench/RESULTS.md, predict); None = GDAL's default.
+COG_LEVEL: int | None = 1
 
 
-@dataclass(frozen=True)
-class LayerSpec:
-    """One output raster.
-
-    Attributes:
-        name: layer name (file ``<name>.tif``).
-        count, dtype, nodata: bands, numpy dtype name, nodata value.
-        descriptions: one description per band.
-        units: unit per band (``"m"``, ``"nats"``, ...; empty for none).
-        categorical: class indices (``mode`` overviews) rather than continuous values.
-        colormap: optional GDAL colour table of band 1.
-        tags: dataset tags; ``band_tags``: tags per band (1-based index → mapping).
-    """
-
-    name: str
-    count: int
-    dtype: str
-    nodata: float | int
-    descriptions: tuple[str, ...]
-    units: tuple[str, ...] = ()
-    categorical: bool = False
-    colormap: dict[int, tuple[int, int, int, int]] | None = None
-    tags: dict[str, str] = field(default_factory=dict)
-    band_tags: dict[int, dict[str, str]] = field(default_factory=dict)
-
-    @property
-    def filename(self) -> str:
-        return f"{self.name}.tif"
-
-
-class _Layer:
-    def __init__(self, spec: LayerSpec, grid: Grid, staging: Path) -> None:
-        self.spec = spec
-        self.staging = staging
-        profile = staging_profile(grid.crs, grid.transform, grid.width, grid.height, spec.count, spec.dtype,
-                                  spec.nodata)
-        self.dst = rasterio.open(staging, "w", **profile)
-        for b, desc in enumerate(spec.descriptions, start=1):
-            self.dst.set_band_description(b, desc)
-        if spec.units:
-            self.dst.units = spec.units
-            for b, unit in enumerate(spec.units, start=1):
-                if unit:
-                    self.dst.update_tags(b, units=unit)
-        if spec.colormap is not None:
-            self.dst.write_colormap(1, spec.colormap)
-        if spec.tags:
-            self.dst.update_tags(**spec.tags)
-        for b, tags in spec.band_tags.items():
-            self.dst.update_tags(b, **tags)
-        self.pending: list[np.ndarray] = []
-        self.pending_start = 0
-        self.width = grid.width
-        self.height = grid.height
-
-    def write(self, row_start: int, data: np.ndarray) -> None:
-        """Queue rows ``[row_start, row_start + h)``; write every complete block row."""
-        if not self.pending:
-            self.pending_start = row_start
-        self.pending.append(data)
-        stop = row_start + data.shape[1]
-        cut = stop if stop >= self.height else (stop // COG_BLOCKSIZE) * COG_BLOCKSIZE
-        if cut > self.pending_start:
-            buf = np.concatenate(self.pending, axis=1) if len(self.pending) > 1 else self.pending[0]
-            n = cut - self.pending_start
-            self.dst.write(buf[:, :n], window=Window(0, self.pending_start, self.width, n))
-            rest = buf[:, n:]
-            self.pending = [rest] if rest.shape[1] else []
-            self.pending_start = cut
-
-    def close(self) -> None:
-        if self.pending:  # pragma: no cover - the last band always reaches the bottom row
-            buf = np.concatenate(self.pending, axis=1)
-            self.dst.write(buf, window=Window(0, self.pending_start, self.width, buf.shape[1]))
-            self.pending = []
-        self.dst.close()
+def cog_threads() -> int:
+    """Threads for COG compression: the CPUs this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 def hidden(out_dir: Path, filename: str, suffix: str) -> Path:
     return out_dir / f".{filename}.{suffix}"
+
+
+def staging_path(out_dir: Path, filename: str, row_start: int | None = None) -> Path:
+    """Staging file of layer ``filename``: the whole raster, or the strip starting at grid row ``row_start``."""
+    return hidden(out_dir, filename, "staging" if row_start is None else f"staging-{row_start}")
 
 
 def check_outputs_free(out_dir: Path, filenames: list[str], overwrite: bool) -> None:
@@ -130,12 +77,39 @@ def remove_leftovers(out_dir: Path) -> None:
 
     They never sit at a final path, so they are only clutter; a new run writes its own from scratch.
     """
+    if not out_dir.is_dir():
+        return
     for name in ALL_OUTPUTS:
-        for suffix in ("staging", "partial"):
-            try:
-                hidden(out_dir, name, suffix).unlink(missing_ok=True)
-            except OSError:  # pragma: no cover - e.g. a read-only folder; writing will say so
-                pass
+        for pattern in (f".{name}.staging*", f".{name}.partial", f".{name}.merge.vrt"):
+            for path in out_dir.glob(pattern):
+                try:
+                    path.unlink(missing_ok=True)
+                except OSError:  # pragma: no cover - e.g. a read-only folder; writing will say so
+                    pass
+
+
+def _apply_metadata(dst: Any, spec: LayerSpec) -> None:
+    """Band descriptions, units, colour table and tags of ``spec`` on an open dataset."""
+    for b, desc in enumerate(spec.descriptions, start=1):
+        dst.set_band_description(b, desc)
+    if spec.units:
+        dst.units = spec.units
+        for b, unit in enumerate(spec.units, start=1):
+            if unit:
+                dst.update_tags(b, units=unit)
+    if spec.colormap is not None:
+        dst.write_colormap(1, spec.colormap)
+    if spec.tags:
+        dst.update_tags(**spec.tags)
+    for b, tags in spec.band_tags.items():
+        dst.update_tags(b, **tags)
+
+
+def _writable_error(out_dir: Path, exc: BaseException) -> OutputError:
+    return OutputError(
+        f"cannot write in output folder '{out_dir}' ({' '.join(str(exc).split())[:160]}); "
+        "choose a writable --out with free space"
+    )
 
 
 class PredictionWriter:
@@ -146,80 +120,194 @@ class PredictionWriter:
         grid: the reference grid (CRS, transform, size of every output).
         specs: the layers to write.
         overwrite: replace existing outputs (and remove outputs of earlier runs this run does not write).
+        rows: write only grid rows ``[start, stop)`` (one strip of a distributed run): the staging files
+            are then named after ``start``, and only the process that calls :meth:`commit` with every
+            strip converts them. Default: the whole grid.
+        clean: delete hidden files a killed run left behind first (off for strips: another process may
+            already be writing its own).
+        check: refuse existing outputs (off when the caller checked them already, once per input).
 
     Raises:
         OutputExistsError: an output exists and ``overwrite`` is false.
         OutputError: the folder cannot be created.
     """
 
-    def __init__(self, out_dir: str | Path, grid: Grid, specs: list[LayerSpec], overwrite: bool = False) -> None:
+    def __init__(self, out_dir: str | Path, grid: Grid, specs: Sequence[LayerSpec], overwrite: bool = False,
+                 rows: tuple[int, int] | None = None, clean: bool = True, check: bool = True) -> None:
         self.out_dir = Path(out_dir)
         self.grid = grid
         self.specs = {s.name: s for s in specs}
         self.overwrite = overwrite
-        check_outputs_free(self.out_dir, [s.filename for s in specs] + ["prediction.json"], overwrite)
+        self.rows = rows or (0, grid.height)
+        self._strip_start = None if rows is None else rows[0]
+        if check:
+            check_outputs_free(self.out_dir, [s.filename for s in specs] + [INFO_FILE], overwrite)
         self._created_dir = make_output_dir(self.out_dir)
-        self._layers: dict[str, _Layer] = {}
-        remove_leftovers(self.out_dir)
+        self._datasets: dict[str, Any] = {}
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aerialmtl-writer")
+        self._pending: list[Future] = []
+        self._slots = threading.BoundedSemaphore(MAX_PENDING_BLOCKS)
+        self.seconds_writing = 0.0
+        if clean:
+            remove_leftovers(self.out_dir)
         try:
+            r0, r1 = self.rows
+            transform = grid.window_transform(Window(0, r0, grid.width, r1 - r0))
             for s in specs:
-                self._layers[s.name] = _Layer(s, grid, hidden(self.out_dir, s.filename, "staging"))
+                profile = staging_profile(grid.crs, transform, grid.width, r1 - r0, s.count, s.dtype, s.nodata,
+                                          compress=False)
+                dst = rasterio.open(self.staging(s.name), "w", **profile)
+                self._datasets[s.name] = dst
+                _apply_metadata(dst, s)
         except Exception as exc:
             self.abort()
             if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
-                raise OutputError(
-                    f"cannot write in output folder '{self.out_dir}' ({' '.join(str(exc).split())[:160]}); "
-                    "choose a writable --out with free space"
-                ) from exc
+                raise _writable_error(self.out_dir, exc) from exc
             raise
 
-    def write(self, rows: FinalRows) -> None:
-        """Write finished rows (every layer in ``rows.layers`` that this writer owns)."""
-        for name, layer in self._layers.items():
-            layer.write(rows.row_start, rows.layers[name])
+    def staging(self, name: str, row_start: int | None = -1) -> Path:
+        """Staging path of layer ``name`` (of this writer's strip by default)."""
+        start = self._strip_start if row_start == -1 else row_start
+        return staging_path(self.out_dir, self.specs[name].filename, start)
 
-    def commit(self, info: dict[str, Any]) -> dict[str, Path]:
+    # ---- writing ----------------------------------------------------------------------------------
+    def write(self, block: Block) -> None:
+        """Queue a finished block for the writer thread (waits while :data:`MAX_PENDING_BLOCKS` are queued).
+
+        Raises whatever an earlier queued write raised.
+        """
+        self._raise_done()
+        self._slots.acquire()
+        try:
+            self._pending.append(self._pool.submit(self._write, block))
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def _write(self, block: Block) -> None:
+        import time
+
+        t0 = time.perf_counter()
+        try:
+            win = Window(block.col_off, block.row_off - self.rows[0], block.width, block.height)
+            for name, dst in self._datasets.items():
+                dst.write(block.layers[name], window=win)
+        finally:
+            self._slots.release()
+            self.seconds_writing += time.perf_counter() - t0
+
+    def _raise_done(self, wait: bool = False) -> None:
+        keep = []
+        for fut in self._pending:
+            if wait or fut.done():
+                exc = fut.exception()
+                if exc is not None:
+                    self._pending = []
+                    if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
+                        raise _writable_error(self.out_dir, exc) from exc
+                    raise exc
+            else:
+                keep.append(fut)
+        self._pending = keep
+
+    def finish(self) -> dict[str, Path]:
+        """Wait for the queued blocks and close the staging files; returns layer name → staging path."""
+        try:
+            self._raise_done(wait=True)
+        finally:
+            for dst in self._datasets.values():
+                if not dst.closed:
+                    dst.close()
+        self._pool.shutdown(wait=True)
+        return {name: self.staging(name) for name in self.specs}
+
+    # ---- committing -------------------------------------------------------------------------------
+    def commit(self, info: dict[str, Any], strips: Sequence[int] = ()) -> dict[str, Path]:
         """Convert every layer to a COG, write ``prediction.json``, then rename all to their final names.
+
+        Args:
+            info: the run information written to ``prediction.json`` (``files`` is added).
+            strips: first rows of the other strips of a distributed run (their staging files, written
+                by other processes, are joined with this writer's through a VRT).
 
         Returns:
             name → final path (``"prediction"`` for the JSON file).
         """
+        from aerialmtl.io.vrt import mosaic_vrt
+
         partials: dict[str, tuple[Path, Path]] = {}
+        merged: list[Path] = []
         try:
-            for name, layer in self._layers.items():
-                layer.close()
-            for name, layer in self._layers.items():
-                partial = hidden(self.out_dir, layer.spec.filename, "partial")
-                to_cog(layer.staging, partial, categorical=layer.spec.categorical)
-                layer.staging.unlink()
-                partials[name] = (partial, self.out_dir / layer.spec.filename)
+            self.finish()
+            starts = sorted({self.rows[0], *strips})
+            stagings = {n: [self.staging(n)] if len(starts) == 1 else [self.staging(n, s) for s in starts]
+                        for n in self.specs}
+            sources: dict[str, Path] = {}
+            for name, spec in self.specs.items():
+                if len(starts) == 1:
+                    sources[name] = stagings[name][0]
+                else:
+                    vrt = hidden(self.out_dir, spec.filename, "merge.vrt")
+                    mosaic_vrt(vrt, stagings[name], categorical=spec.categorical)
+                    merged.append(vrt)
+                    sources[name] = vrt
+            threads = cog_threads()
+
+            def convert(name: str) -> tuple[str, Path]:
+                spec = self.specs[name]
+                partial = hidden(self.out_dir, spec.filename, "partial")
+                to_cog(sources[name], partial, categorical=spec.categorical, level=COG_LEVEL, num_threads=threads)
+                return name, partial
+
+            with ThreadPoolExecutor(max_workers=max(1, len(self.specs)), thread_name_prefix="aerialmtl-cog") as pool:
+                futures = [pool.submit(convert, n) for n in self.specs]
+                for fut in futures:
+                    name, partial = fut.result()
+                    partials[name] = (partial, self.out_dir / self.specs[name].filename)
+            for paths in stagings.values():
+                for path in paths:
+                    path.unlink(missing_ok=True)
+            for vrt in merged:
+                vrt.unlink(missing_ok=True)
             info = dict(info, files={n: p.name for n, (_, p) in partials.items()})
-            js = hidden(self.out_dir, "prediction.json", "partial")
+            js = hidden(self.out_dir, INFO_FILE, "partial")
             js.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
-            partials["prediction"] = (js, self.out_dir / "prediction.json")
-        except BaseException:
+            partials["prediction"] = (js, self.out_dir / INFO_FILE)
+        except BaseException as exc:
             for tmp, _ in partials.values():
                 tmp.unlink(missing_ok=True)
+            for vrt in merged:
+                vrt.unlink(missing_ok=True)
             self.abort()
+            if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
+                raise _writable_error(self.out_dir, exc) from exc
             raise
         if self.overwrite:  # outputs of an earlier run that this run does not produce would be stale
             produced = {p.name for _, p in partials.values()}
             for f in ALL_OUTPUTS:
                 if f not in produced:
                     (self.out_dir / f).unlink(missing_ok=True)
-        for tmp, final in partials.values():
+        for tmp, final in partials.values():  # prediction.json last: its presence marks a complete folder
             os.replace(tmp, final)
         return {n: final for n, (_, final) in partials.items()}
 
     def abort(self) -> None:
-        """Close and delete every hidden file of this run (final paths are never touched)."""
-        for layer in self._layers.values():
+        """Close and delete the hidden files of this run (final paths are never touched)."""
+        for fut in self._pending:
+            fut.cancel()
+        self._pool.shutdown(wait=True)
+        self._pending = []
+        for dst in self._datasets.values():
             try:
-                if not layer.dst.closed:
-                    layer.dst.close()
+                if not dst.closed:
+                    dst.close()
             except Exception:  # pragma: no cover - best effort cleanup
                 pass
-        remove_leftovers(self.out_dir)
+        if self._strip_start is None:
+            remove_leftovers(self.out_dir)
+        else:  # only this strip's files: other processes may still be writing theirs
+            for name in self.specs:
+                self.staging(name).unlink(missing_ok=True)
         if self._created_dir:  # leave no empty folder behind either
             try:
                 self.out_dir.rmdir()
@@ -227,4 +315,5 @@ class PredictionWriter:
                 pass
 
 
-__all__ = ["ALL_OUTPUTS", "LayerSpec", "PredictionWriter", "check_outputs_free", "remove_leftovers"]
+__all__ = ["ALL_OUTPUTS", "LayerSpec", "PredictionWriter", "check_outputs_free", "remove_leftovers",
+           "staging_path"]

@@ -1,11 +1,12 @@
 """Cloud-Optimized GeoTIFFs: write a tiled GeoTIFF band by band, then copy it to a COG.
 
 Large outputs are never held in memory: the caller writes a temporary tiled GeoTIFF window by window
-(:func:`staging_profile`, fast light compression), then :func:`to_cog` lets GDAL's COG driver
+(:func:`staging_profile`: fast light compression, or none), then :func:`to_cog` lets GDAL's COG driver
 (GDAL ≥ 3.1) read it block-wise, build internal overviews and write the final layout: 512-pixel tiles,
 DEFLATE with predictor 2 (integers) or 3 (floats), overviews resampled with ``average`` (continuous)
 or ``mode`` (classes), the main image IFD first and the smallest overview's data first. Nodata, colour
-table, band descriptions, units and tags of the staging file are carried over.
+table, band descriptions, units and tags of the staging file are carried over. ``to_cog(...,
+num_threads=N)`` lets GDAL compress tiles on N threads; ``level`` trades compression for speed.
 
 :func:`cog_problems` re-checks a file (tiling, overviews, IFD order, GDAL's ``LAYOUT=COG`` marker) by
 reading the TIFF structure itself.
@@ -52,14 +53,24 @@ def _zstd_available() -> bool:
 
 
 def staging_profile(
-    crs: CRS, transform: Affine, width: int, height: int, count: int, dtype: str, nodata: float | None
+    crs: CRS, transform: Affine, width: int, height: int, count: int, dtype: str, nodata: float | None,
+    compress: bool = True,
 ) -> dict[str, Any]:
-    """Profile of the temporary tiled GeoTIFF that :func:`to_cog` converts (fast, light compression)."""
+    """Profile of the temporary tiled GeoTIFF that :func:`to_cog` converts.
+
+    Args:
+        compress: light compression (ZSTD level 1, else DEFLATE level 1); ``False`` writes raw tiles
+            (fastest, and the only layout in which tiles can be rewritten in place when they are
+            written in parts), at the cost of disk space while the file exists.
+    """
     profile: dict[str, Any] = dict(
         driver="GTiff", crs=crs, transform=transform, width=int(width), height=int(height), count=int(count),
         dtype=np.dtype(dtype).name, nodata=nodata, tiled=True, blockxsize=COG_BLOCKSIZE,
         blockysize=COG_BLOCKSIZE, bigtiff="IF_SAFER", interleave="band",
     )
+    if not compress:
+        profile["bigtiff"] = "IF_NEEDED"  # the size is known exactly without compression
+        return profile
     if _zstd_available():
         profile.update(compress="zstd", zstd_level=1)
     else:  # pragma: no cover - depends on the GDAL build
@@ -67,26 +78,41 @@ def staging_profile(
     return profile
 
 
-def cog_options(dtype: str | np.dtype, categorical: bool = False, compress: str = "deflate") -> dict[str, Any]:
+def cog_options(
+    dtype: str | np.dtype, categorical: bool = False, compress: str = "deflate", level: int | None = None,
+    num_threads: int | str | None = None,
+) -> dict[str, Any]:
     """GDAL COG-driver creation options for rasters of ``dtype``.
 
     Args:
         dtype: band dtype.
         categorical: class rasters (overviews by ``mode``) instead of continuous values (``average``).
         compress: ``"deflate"`` (readable everywhere) or ``"zstd"`` (falls back to deflate without it).
+        level: compression level (GDAL's default when ``None``: 6 for DEFLATE).
+        num_threads: threads GDAL compresses tiles with (an integer or ``"ALL_CPUS"``).
     """
     compress = "zstd" if compress.lower() == "zstd" and _zstd_available() else "deflate"
-    return {
+    options: dict[str, Any] = {
         "blocksize": COG_BLOCKSIZE,
         "compress": compress,
         "predictor": "floating_point" if np.dtype(dtype).kind == "f" else "standard",
         "overview_resampling": "mode" if categorical else "average",
         "bigtiff": "if_safer",
     }
+    if level is not None:
+        options["level"] = int(level)
+    if num_threads is not None:
+        options["num_threads"] = str(num_threads)
+    return options
 
 
-def to_cog(src: str | Path, dst: str | Path, categorical: bool = False, compress: str = "deflate") -> None:
-    """Copy GeoTIFF ``src`` to a Cloud-Optimized GeoTIFF ``dst`` (block-wise; flat memory).
+def to_cog(
+    src: str | Path, dst: str | Path, categorical: bool = False, compress: str = "deflate", level: int | None = None,
+    num_threads: int | str | None = None,
+) -> None:
+    """Copy a GeoTIFF (or VRT) ``src`` to a Cloud-Optimized GeoTIFF ``dst`` (block-wise; flat memory).
+
+    ``level`` and ``num_threads``: see :func:`cog_options`.
 
     Raises:
         OutputError: GDAL older than 3.1 (no COG driver) or the copy failed.
@@ -99,7 +125,8 @@ def to_cog(src: str | Path, dst: str | Path, categorical: bool = False, compress
     with rasterio.open(src) as s:
         dtype = s.dtypes[0]
     try:
-        rasterio.shutil.copy(str(src), str(dst), driver="COG", **cog_options(dtype, categorical, compress))
+        rasterio.shutil.copy(str(src), str(dst), driver="COG",
+                             **cog_options(dtype, categorical, compress, level, num_threads))
     except rasterio.errors.RasterioError as exc:
         raise OutputError(f"could not write COG '{dst}' from '{src}': {exc}; check free disk space") from exc
 

@@ -20,6 +20,8 @@ owns the last ``cfg.task_blocks`` blocks plus a 3×3 output convolution (with bi
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -44,11 +46,11 @@ class UpBlock(nn.Module):
         super().__init__()
         # The convolutions feed a BatchNorm, so their bias would be redundant.
         self.up = nn.ConvTranspose2d(in_channels, out_channels, kernel_size=4, stride=2, padding=1, bias=False)
-        self.norm1 = nn.BatchNorm2d(out_channels)
+        self.norm1: nn.Module = nn.BatchNorm2d(out_channels)
         self.drop1: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
         self.relu1 = nn.ReLU(inplace=True)
         self.conv = nn.Conv2d(out_channels, out_channels, kernel_size=3, padding=1, bias=False)
-        self.norm2 = nn.BatchNorm2d(out_channels)
+        self.norm2: nn.Module = nn.BatchNorm2d(out_channels)
         self.drop2: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
         self.relu2 = nn.ReLU(inplace=True)
 
@@ -137,9 +139,7 @@ class D3Net(nn.Module):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
         for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
-            weight = head.get_submodule("head").weight
-            assert isinstance(weight, torch.Tensor)
-            nn.init.normal_(weight, std=1e-3)
+            nn.init.normal_(cast(TaskDecoder, head).head.weight, std=1e-3)
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
@@ -176,7 +176,8 @@ class D3Net(nn.Module):
             out = block(out)
         n_shared = len(self.shared)
         results: dict[str, torch.Tensor] = {}
-        for task, dec in self.heads.items():
+        for task, module in self.heads.items():
+            dec = cast(TaskDecoder, module)
             y = out
             blocks: nn.ModuleList = dec.get_submodule("blocks")  # type: ignore[assignment]
             for i, block in enumerate(blocks):
@@ -190,4 +191,29 @@ class D3Net(nn.Module):
         return self.decode(self.encode(x))
 
 
-__all__ = ["D3Net", "UpBlock", "pad_to_multiple", "SIZE_MULTIPLE"]
+def fold_batchnorm(model: nn.Module) -> nn.Module:
+    """A copy of ``model`` for inference with each decoder convolution and its BatchNorm folded into one.
+
+    In every :class:`UpBlock` the (transposed) convolution feeds a BatchNorm directly (dropout comes
+    after it), so in eval mode the pair is one affine map: ``BN(conv(x)) = conv'(x)`` with scaled
+    weights and a bias (equal up to float rounding, ~1e-7 relative). The encoder (BN → ReLU → conv)
+    has nothing to fold. MC dropout is unaffected. The original model is left as it is; a model
+    without :class:`UpBlock` is returned itself.
+    """
+    import copy
+
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    if not any(isinstance(m, UpBlock) and isinstance(m.norm1, nn.BatchNorm2d) for m in model.modules()):
+        return model
+    folded = copy.deepcopy(model).eval()
+    for m in folded.modules():
+        if isinstance(m, UpBlock) and isinstance(m.norm1, nn.BatchNorm2d):
+            m.up = fuse_conv_bn_eval(m.up, m.norm1, transpose=True)
+            m.norm1 = nn.Identity()
+            m.conv = fuse_conv_bn_eval(m.conv, m.norm2)  # type: ignore[arg-type]
+            m.norm2 = nn.Identity()
+    return folded
+
+
+__all__ = ["D3Net", "UpBlock", "fold_batchnorm", "pad_to_multiple", "SIZE_MULTIPLE"]

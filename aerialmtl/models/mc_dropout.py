@@ -16,13 +16,30 @@ Outputs per enabled task:
 All statistics are accumulated in float32 (also under bf16 autocast); the height spread uses Chan's
 parallel combination of per-chunk means and squared deviations (Welford), which stays stable for
 heights far from zero.
+
+:func:`mc_statistics` returns the raw statistics a stitcher blends (:class:`McStatistics`: mean
+height, height std, mean probabilities channels-last, mean per-sample entropy); :func:`mc_predict`
+derives the entropy of the mean and the mutual information from them. Class statistics are computed
+channels-last (the layout the model computes in), row block by row block so that temporaries stay in
+the CPU caches, and the per-sample entropy costs one logarithm per pixel instead of K: with
+``d = z − max_k z`` and ``S = Σ_k exp(d_k)``, ``p = exp(d) / S`` and ``H_t = log S − Σ_k exp(d_k)·d_k / S``
+(= logsumexp(z) − Σ softmax(z)·z).
+
+Dropout masks. By default they come from torch's global RNG, so they depend on how windows are batched
+and samples chunked. With ``keys`` (one integer per image of the batch, e.g. a window index), the mask
+of image ``b`` in sample ``t`` is drawn from a generator seeded by ``(seed, keys[b], t)``: results no
+longer depend on the batch, the sample chunks or which process computes the window (``nn.Dropout`` and
+``nn.Dropout1d/2d/3d``; alpha-dropout layers keep the global RNG).
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import cast
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -49,39 +66,170 @@ def _entropy(p: torch.Tensor, dim: int = 1) -> torch.Tensor:
     return -(p * torch.log(p.clamp_min(1e-12))).sum(dim)
 
 
+#: Dropout modules whose masks :func:`mc_statistics` can draw per image from seeded generators.
+_SEEDABLE = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)
+#: Elements per temporary of the softmax/entropy loop (~1 MiB of float32: stays in the CPU caches).
+_ROW_BLOCK_ELEMENTS = 1 << 18
+
+
+def sample_seed(seed: int, key: int, sample: int) -> int:
+    """The 63-bit seed of the dropout masks of image ``key`` in MC sample ``sample``."""
+    state = np.random.SeedSequence([int(seed) & (2**63 - 1), int(key) & (2**63 - 1), int(sample)])
+    return int(state.generate_state(1, np.uint64)[0]) & (2**63 - 1)
+
+
+class _SeededMasks:
+    """Forward hooks that apply per-image seeded dropout masks (dropout modules otherwise in eval mode).
+
+    ``generators`` holds one generator per image of the batch the next ``decode`` call sees, in batch
+    order; each hook draws the masks of image ``n`` from ``generators[n]``, so an image's masks depend
+    only on its generator, never on the other images of the batch.
+    """
+
+    def __init__(self, model: nn.Module) -> None:
+        self.model = model
+        self.generators: list[torch.Generator] = []
+        self._handles: list[torch.utils.hooks.RemovableHandle] = []
+
+    def _hook(self, module: nn.Module, inputs: tuple[torch.Tensor, ...], output: torch.Tensor) -> torch.Tensor:
+        p = float(module.p)  # type: ignore[arg-type]
+        if p <= 0.0:
+            return output
+        x = output  # eval mode: the module returned its input unchanged
+        if x.shape[0] != len(self.generators):  # pragma: no cover - guarded by mc_statistics
+            raise RuntimeError(f"seeded dropout: batch of {x.shape[0]} images but {len(self.generators)} generators")
+        keep = 1.0 - p
+        if isinstance(module, nn.Dropout):
+            shape = tuple(x.shape[1:])
+        else:  # channel-wise dropout: one draw per channel
+            shape = (x.shape[1],) + (1,) * (x.dim() - 2)
+        mask = torch.empty((x.shape[0], *shape), dtype=torch.float32, device=x.device)
+        for n, gen in enumerate(self.generators):
+            mask[n].bernoulli_(keep, generator=gen)
+        mask.div_(keep)
+        return x * mask.to(x.dtype)
+
+    def __enter__(self) -> _SeededMasks:
+        for m in self.model.modules():
+            if isinstance(m, _SEEDABLE):
+                m.eval()
+                self._handles.append(m.register_forward_hook(self._hook))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for h in self._handles:
+            h.remove()
+        self._handles.clear()
+
+
+@contextlib.contextmanager
+def _seeded_mode(model: nn.Module, masks: _SeededMasks) -> Iterator[nn.Module]:
+    """Eval mode with seeded masks on the seedable dropout layers (alpha dropout: global RNG); modes restored."""
+    modes = {m: m.training for m in model.modules()}
+    try:
+        model.eval()
+        for m in model.modules():
+            if isinstance(m, (nn.AlphaDropout, nn.FeatureAlphaDropout)):
+                m.train()
+        with masks:
+            yield model
+    finally:
+        for m, mode in modes.items():
+            m.training = mode
+
+
+@dataclass
+class McStatistics:
+    """What T MC-dropout samples say about each pixel (float32, on the input's device).
+
+    Attributes:
+        height_mean, height_std: B×H×W metres (population std over the samples); ``None`` without height.
+        probs: B×H×W×K mean class probabilities (channels last); ``None`` without classes.
+        mean_entropy: B×H×W mean over the samples of each sample's entropy (nats), i.e. the expected
+            entropy; the mutual information is ``H[probs] − mean_entropy``.
+    """
+
+    height_mean: torch.Tensor | None = None
+    height_std: torch.Tensor | None = None
+    probs: torch.Tensor | None = None
+    mean_entropy: torch.Tensor | None = None
+
+
+def class_probabilities(logits: torch.Tensor) -> torch.Tensor:
+    """B×K×H×W logits → B×H×W×K float32 softmax (the per-pixel kernel over the last dimension).
+
+    Each pixel's probabilities are computed alone, so they do not depend on the batch or the
+    position of the window (unlike a softmax over dimension 1, whose rounding follows the memory layout).
+    """
+    zl = logits.float().permute(0, 2, 3, 1)
+    return torch.softmax(zl if zl.is_contiguous() else zl.contiguous(), dim=-1)
+
+
+def _class_sums(logits: torch.Tensor, s: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(s·B)×K×H×W logits → (Σ_t p_t: B×H×W×K, Σ_t H_t: B×H×W), row block by row block."""
+    zl = logits.permute(0, 2, 3, 1)  # N×H×W×K (a view; contiguous for channels-last logits)
+    n, h, w, k = zl.shape
+    p_sum = torch.empty((b, h, w, k), dtype=torch.float32, device=zl.device)
+    e_sum = torch.empty((b, h, w), dtype=torch.float32, device=zl.device)
+    rows = max(1, _ROW_BLOCK_ELEMENTS // max(1, n * w * k)) if zl.device.type == "cpu" else h
+    for r in range(0, h, rows):
+        z = zl[:, r:r + rows].float()
+        d = z - z.amax(-1, keepdim=True)  # ≤ 0, exactly 0 at the largest logit
+        e = torch.exp(d)
+        inv = e.sum(-1, keepdim=True).reciprocal_()  # 1 / S
+        ent = d.mul_(e).sum(-1).mul_(inv[..., 0]).neg_().sub_(torch.log(inv[..., 0]))  # log S − Σ e·d / S
+        ent.clamp_min_(0.0)
+        p_sum[:, r:r + rows] = e.mul_(inv).unflatten(0, (s, b)).sum(0)
+        e_sum[:, r:r + rows] = ent.unflatten(0, (s, b)).sum(0)
+    return p_sum, e_sum
+
+
 @torch.no_grad()
-def mc_predict(
+def mc_statistics(
     model: nn.Module,
     x: torch.Tensor,
     samples: int,
     sample_batch: int | None = None,
     seed: int | None = None,
-) -> dict[str, dict[str, torch.Tensor]]:
-    """MC-dropout prediction of a D3-Net-like model (with ``encode``/``decode``).
+    keys: Sequence[int] | None = None,
+) -> McStatistics:
+    """MC-dropout statistics of a D3-Net-like model (with ``encode``/``decode``); encoder run once.
 
     Args:
         model: a model with ``encode(x) -> list[Tensor]`` (deterministic) and ``decode(feats) -> dict``.
         x: B×C×H×W normalised image batch.
-        samples: T ≥ 1 decoder samples (T = 1 gives std 0 and mutual information 0).
+        samples: T ≥ 1 decoder samples.
         sample_batch: decode at most this many samples per pass (bounds memory: the decoder sees
             ``B·sample_batch`` images at once); default all T at once.
-        seed: seed the dropout masks (the global RNG state is restored afterwards); default: the
-            current global RNG.
+        seed: without ``keys``: seed torch's global RNG for the masks (its state is restored afterwards);
+            with ``keys``: the base seed of the per-image generators (default 0).
+        keys: one integer per image; image ``b``'s masks in sample ``t`` come from a generator seeded by
+            ``(seed, keys[b], t)`` (see the module docstring).
 
     Returns:
-        ``{"height": {"mean", "std"}, "classes": {"probs", "entropy", "mutual_info"}}`` for the tasks the
-        model returns, float32 (shapes in the module docstring).
+        :class:`McStatistics` for the tasks the model returns.
     """
     if samples < 1:
         raise ValueError(f"mc_predict: samples must be ≥ 1, got {samples}")
+    b = x.shape[0]
+    if keys is not None and len(keys) != b:
+        raise ValueError(f"mc_statistics: {len(keys)} keys for a batch of {b} images")
     chunk = samples if sample_batch is None else max(1, min(int(sample_batch), samples))
-    devices = [x.device] if x.device.type == "cuda" else []
-    rng = torch.random.fork_rng(devices=devices) if seed is not None else contextlib.nullcontext()
-    with mc_dropout_mode(model), rng:
-        if seed is not None:
+    masks = _SeededMasks(model) if keys is not None else None
+    if masks is not None:
+        mode: contextlib.AbstractContextManager = _seeded_mode(model, masks)
+        rng: contextlib.AbstractContextManager = contextlib.nullcontext()
+    else:
+        mode = mc_dropout_mode(model)
+        devices = [x.device] if x.device.type == "cuda" else []
+        rng = torch.random.fork_rng(devices=devices) if seed is not None else contextlib.nullcontext()
+    stats = McStatistics()
+    with mode, rng:
+        if masks is None and seed is not None:
             torch.manual_seed(seed)
-        feats = model.encode(x)
-        b = x.shape[0]
+        encode = cast(Callable[[torch.Tensor], list[torch.Tensor]], model.encode)
+        decode = cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)
+        feats = encode(x)
         h_mean: torch.Tensor | None = None
         h_m2: torch.Tensor | None = None
         p_sum: torch.Tensor | None = None
@@ -89,10 +237,19 @@ def mc_predict(
         done = 0
         while done < samples:
             s = min(chunk, samples - done)
+            if masks is not None:
+                assert keys is not None
+                gens = []
+                for t in range(done, done + s):
+                    for key in keys:
+                        gen = torch.Generator(device=x.device)
+                        gen.manual_seed(sample_seed(seed or 0, key, t))
+                        gens.append(gen)
+                masks.generators = gens
             rep = [f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats]
-            out = model.decode(rep)
+            out = decode(rep)
             if "height" in out:
-                hs = out["height"].float().unflatten(0, (s, b))  # s×B×1×H×W
+                hs = out["height"].float().unflatten(0, (s, b))[:, :, 0]  # s×B×H×W
                 c_mean = hs.mean(0)
                 c_m2 = ((hs - c_mean) ** 2).sum(0)
                 if h_mean is None:
@@ -104,24 +261,54 @@ def mc_predict(
                     h_mean = h_mean + delta * (s / n)
                     h_m2 = h_m2 + c_m2 + delta**2 * (done * s / n)
             if "classes" in out:
-                ps = torch.softmax(out["classes"].float(), dim=1).unflatten(0, (s, b))  # s×B×K×H×W
-                c_p = ps.sum(0)
-                c_e = _entropy(ps, dim=2).sum(0)
-                p_sum = c_p if p_sum is None else p_sum + c_p
-                ent_sum = c_e if ent_sum is None else ent_sum + c_e
+                c_p, c_e = _class_sums(out["classes"], s, b)
+                p_sum = c_p if p_sum is None else p_sum.add_(c_p)
+                ent_sum = c_e if ent_sum is None else ent_sum.add_(c_e)
             done += s
-    result: dict[str, dict[str, torch.Tensor]] = {}
     if h_mean is not None and h_m2 is not None:
-        result["height"] = {"mean": h_mean, "std": (h_m2 / samples).clamp_min(0).sqrt()}
+        stats.height_mean = h_mean
+        stats.height_std = (h_m2 / samples).clamp_min(0).sqrt()
     if p_sum is not None and ent_sum is not None:
-        probs = p_sum / samples
-        entropy = _entropy(probs, dim=1)
-        result["classes"] = {
-            "probs": probs,
-            "entropy": entropy,
-            "mutual_info": (entropy - ent_sum / samples).clamp_min(0),
-        }
+        stats.probs = p_sum.div_(samples)
+        stats.mean_entropy = ent_sum.div_(samples)
+    return stats
+
+
+@torch.no_grad()
+def mc_predict(
+    model: nn.Module,
+    x: torch.Tensor,
+    samples: int,
+    sample_batch: int | None = None,
+    seed: int | None = None,
+    keys: Sequence[int] | None = None,
+) -> dict[str, dict[str, torch.Tensor]]:
+    """MC-dropout prediction of a D3-Net-like model (with ``encode``/``decode``).
+
+    Args:
+        model: a model with ``encode(x) -> list[Tensor]`` (deterministic) and ``decode(feats) -> dict``.
+        x: B×C×H×W normalised image batch.
+        samples: T ≥ 1 decoder samples (T = 1 gives std 0 and mutual information 0).
+        sample_batch: decode at most this many samples per pass (bounds memory: the decoder sees
+            ``B·sample_batch`` images at once); default all T at once.
+        seed: seed the dropout masks (the global RNG state is restored afterwards); default: the
+            current global RNG. With ``keys``, the base seed of the per-image masks.
+        keys: per-image mask seeds (see :func:`mc_statistics`).
+
+    Returns:
+        ``{"height": {"mean", "std"}, "classes": {"probs", "entropy", "mutual_info"}}`` for the tasks the
+        model returns, float32 (shapes in the module docstring).
+    """
+    stats = mc_statistics(model, x, samples, sample_batch, seed, keys)
+    result: dict[str, dict[str, torch.Tensor]] = {}
+    if stats.height_mean is not None and stats.height_std is not None:
+        result["height"] = {"mean": stats.height_mean.unsqueeze(1), "std": stats.height_std.unsqueeze(1)}
+    if stats.probs is not None and stats.mean_entropy is not None:
+        entropy = _entropy(stats.probs, dim=-1)
+        # one sample has no epistemic part; the two entropy formulas differ in the last bit
+        mi = (entropy - stats.mean_entropy).clamp_min(0) if samples > 1 else torch.zeros_like(entropy)
+        result["classes"] = {"probs": stats.probs.permute(0, 3, 1, 2), "entropy": entropy, "mutual_info": mi}
     return result
 
 
-__all__ = ["mc_dropout_mode", "mc_predict"]
+__all__ = ["McStatistics", "class_probabilities", "mc_dropout_mode", "mc_predict", "mc_statistics", "sample_seed"]

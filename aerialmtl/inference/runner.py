@@ -1,0 +1,227 @@
+"""The model on batches of windows: raw pixels in, per-window statistics out, all on the model's device.
+
+:class:`ModelRunner` copies a batch of raw windows to the device (asynchronously from pinned memory on
+CUDA), normalises them with the checkpoint's per-band mean/std there, and runs either one
+deterministic forward pass (T = 1: height and softmax probabilities) or MC dropout
+(:func:`~aerialmtl.models.mc_dropout.mc_statistics`: encoder once, T decoder samples in chunks that fit
+the device, dropout masks seeded per window so results do not depend on batching).
+
+Also here: the device, precision and batch-size choices (:func:`resolve_device`,
+:func:`resolve_precision`, :func:`auto_batch_size`, :func:`mc_sample_batch`) and the optional
+``torch.compile`` of the deterministic parts (:func:`compile_model`).
+
+The runner predicts with its own copy of the model, prepared for inference (:func:`inference_model`):
+decoder convolutions and their BatchNorms folded into one (:func:`~aerialmtl.models.d3net.fold_batchnorm`)
+and channels-last activations (measured faster on CPU than class planes for the head, the softmax
+and the blending alike; bench/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from collections.abc import Callable, Sequence
+from typing import Any, Literal, cast
+
+import numpy as np
+import torch
+from torch import nn
+
+from aerialmtl.errors import InputError
+from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.models.d3net import fold_batchnorm
+from aerialmtl.models.mc_dropout import McStatistics, class_probabilities, mc_statistics
+
+Precision = Literal["auto", "bf16", "fp32"]
+
+#: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
+#: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
+#: of 4 windows of 512² with T = 30 decoded at once would need ~36 GiB; the MC samples are split into
+#: chunks that fit instead (the result is the same: masks are drawn per window and sample).
+DECODE_PIXELS = {"cpu": 2**21, "cuda": 2**23}
+#: Windows per model call with ``batch_size="auto"`` on a CPU: one window already keeps the cores busy,
+#: and a second one costs ~250 MiB of activations at tile 1024 for no measured speed (bench/RESULTS.md).
+CPU_BATCH = 1
+#: Share of the free device memory ``auto`` plans to use.
+MEMORY_SHARE = 0.6
+
+
+def resolve_device(device: str) -> torch.device:
+    """``auto`` → ``cuda`` when available, else ``cpu``; ``cuda:N`` is accepted."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise InputError(f"device={device!r} but no CUDA GPU is available; pass --device cpu or --device auto")
+    if device not in ("cpu",) and not device.startswith("cuda"):
+        raise InputError(f"device={device!r} is not supported; use auto, cpu or cuda")
+    return torch.device(device)
+
+
+def resolve_precision(precision: str, device: torch.device) -> Literal["bf16", "fp32"]:
+    """``auto`` → bf16 autocast on CUDA, fp32 on CPU.
+
+    CPUs without native bf16 matrix instructions (AVX-512-BF16/AMX; e.g. AMD Zen 3) emulate bf16
+    convolutions more than 10× slower than fp32 (bench/RESULTS.md, predict).
+    """
+    if precision == "auto":
+        return "bf16" if device.type == "cuda" else "fp32"
+    if precision not in ("bf16", "fp32"):
+        raise InputError(f"precision={precision!r} is not supported; use auto, bf16 or fp32 (--precision)")
+    return precision  # type: ignore[return-value]
+
+
+def mc_sample_batch(batch: int, height: int, width: int, device: torch.device, max_pixels: int | None = None) -> int:
+    """MC samples decoded per call so that ``batch × samples × height × width ≤ max_pixels`` (at least 1)."""
+    budget = DECODE_PIXELS.get(device.type, DECODE_PIXELS["cpu"]) if max_pixels is None else max_pixels
+    return max(1, int(budget) // max(1, batch * height * width))
+
+
+def batch_from_memory(free_bytes: int, bytes_per_window: int, limit: int = 64) -> int:
+    """Windows per call that fit :data:`MEMORY_SHARE` of ``free_bytes`` (1 … ``limit``)."""
+    return int(max(1, min(limit, (free_bytes * MEMORY_SHARE) // max(1, bytes_per_window))))
+
+
+def auto_batch_size(model: nn.Module, in_channels: int, height: int, width: int, device: torch.device,
+                    precision: Literal["bf16", "fp32"]) -> int:
+    """Windows per model call for ``batch_size="auto"``.
+
+    CPU: :data:`CPU_BATCH`. CUDA: one probe forward of a window measures the peak memory per window;
+    the batch fills :data:`MEMORY_SHARE` of the free memory (at most 64).
+    """
+    if device.type != "cuda":
+        return CPU_BATCH
+    x = torch.zeros((1, in_channels, height, width), device=device).contiguous(memory_format=torch.channels_last)
+    torch.cuda.synchronize(device)
+    torch.cuda.reset_peak_memory_stats(device)
+    base = torch.cuda.memory_allocated(device)
+    with torch.inference_mode(), _autocast(device, precision):
+        model.eval()
+        model.forward(x)
+    torch.cuda.synchronize(device)
+    per_window = torch.cuda.max_memory_allocated(device) - base
+    free, _ = torch.cuda.mem_get_info(device)
+    return batch_from_memory(int(free), int(per_window))
+
+
+def _autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
+    return torch.autocast(device.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
+
+
+class _Compiled(nn.Module):
+    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC) with a fallback.
+
+    The decoder stays eager under MC dropout: its per-window seeded masks are drawn by Python hooks.
+    If compiling fails (no compiler, an unsupported op), a warning says so once and the model runs
+    uncompiled.
+    """
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        self.model = model
+        self._calls: dict[str, Callable[..., Any]] = {}
+        self._failed = False
+
+    def _call(self, name: str, *args: Any) -> Any:
+        eager = getattr(self.model, name)
+        if self._failed:
+            return eager(*args)
+        fn = self._calls.get(name)
+        try:
+            if fn is None:
+                fn = torch.compile(eager)
+                self._calls[name] = fn
+            return fn(*args)
+        except Exception as exc:  # compilation errors surface at the first call
+            self._failed = True
+            why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
+            warnings.warn(f"torch.compile is not available here ({why}); running the model without compilation",
+                          stacklevel=3)
+            return eager(*args)
+
+    def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return cast(list[torch.Tensor], self._call("encode", x))
+
+    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+        decode: Callable[[list[torch.Tensor]], dict[str, torch.Tensor]] = getattr(self.model, "decode")  # noqa: B009
+        return decode(feats)
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        return cast(dict[str, torch.Tensor], self._call("forward", x))
+
+
+def inference_model(model: nn.Module, device: torch.device) -> nn.Module:
+    """A copy of ``model`` on ``device`` prepared for prediction (see the module docstring)."""
+    prepared = fold_batchnorm(model).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    prepared.eval()
+    return prepared
+
+
+def compile_model(model: nn.Module) -> nn.Module:
+    """The model with ``torch.compile`` applied where it can be (see :class:`_Compiled`)."""
+    return _Compiled(model)
+
+
+class ModelRunner:
+    """Run the model on batches of raw windows.
+
+    Args:
+        model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy.
+        meta: its checkpoint metadata (bands' mean/std for normalisation).
+        device: the device to run on.
+        precision: ``"bf16"`` (autocast) or ``"fp32"``.
+        mc: MC-dropout samples T.
+        seed: base seed of the per-window dropout masks (T > 1).
+        max_decode_pixels: see :data:`DECODE_PIXELS`.
+        compile: apply ``torch.compile`` (:func:`compile_model`).
+    """
+
+    def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
+                 mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False) -> None:
+        self.device = device
+        self.precision = precision
+        self.mc = mc
+        self.seed = seed
+        self.max_decode_pixels = max_decode_pixels
+        self.model = inference_model(model, device)
+        self.net: nn.Module = compile_model(self.model) if compile else self.model
+        self.tasks = tuple(meta.model.tasks)
+        self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
+        self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
+
+    def to_device(self, data: Sequence[np.ndarray | torch.Tensor], valid: Sequence[np.ndarray]) -> tuple[
+            torch.Tensor, torch.Tensor]:
+        """Stack raw windows and their validity on the device: (B, C, h, w) raw, (B, h, w) bool."""
+        raw = torch.stack([d if isinstance(d, torch.Tensor) else torch.from_numpy(d) for d in data])
+        ok = torch.from_numpy(np.stack(valid))
+        if self.device.type == "cuda":
+            if not raw.is_pinned():
+                raw = raw.pin_memory()
+            raw = raw.to(self.device, non_blocking=True)
+            ok = ok.pin_memory().to(self.device, non_blocking=True)
+        return raw, ok
+
+    def normalise(self, raw: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """(B, C, h, w) raw → normalised float32 channels-last, 0 where invalid (as ``(x − mean) / std``)."""
+        x = (raw.float() - self.mean) / self.std
+        x = torch.where(valid.unsqueeze(1), x, torch.zeros((), device=x.device))
+        return x.contiguous(memory_format=torch.channels_last)
+
+    def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
+        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
+        with torch.inference_mode(), _autocast(self.device, self.precision):
+            if self.mc == 1:
+                self.model.eval()
+                raw = self.net(x)
+                stats = McStatistics()
+                if "height" in self.tasks:
+                    stats.height_mean = raw["height"][:, 0].float()
+                if "classes" in self.tasks:
+                    stats.probs = class_probabilities(raw["classes"])
+                return stats
+            b, _, h, w = x.shape
+            chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
+            return mc_statistics(self.net, x, self.mc, sample_batch=chunk, seed=self.seed, keys=keys)
+
+
+__all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "Precision", "auto_batch_size", "batch_from_memory",
+           "compile_model", "mc_sample_batch", "resolve_device", "resolve_precision"]
