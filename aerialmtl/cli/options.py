@@ -47,6 +47,7 @@ FLAGS: dict[str, str] = {
     "probabilities": "--probabilities",
     "resume": "--resume",
     "sample_size": "--sample-size",
+    "skip_existing": "--skip-existing",
     "size": "--size",
     "split_block": "--split-block",
     "split_ratios": "--split-ratios",

@@ -12,15 +12,11 @@ import click
 
 
 def _batch_size(value: str) -> int | str:
-    if value == "auto":
-        return value
+    """``auto`` or a number (the library checks the value)."""
     try:
-        n = int(value)
+        return value if value == "auto" else int(value)
     except ValueError:
-        n = 0
-    if n < 1:
-        raise click.BadParameter(f"must be a number ≥ 1 or 'auto', got {value!r}", param_hint="--batch-size")
-    return n
+        return value
 
 
 @click.command(name="predict")
@@ -60,13 +56,6 @@ def predict(
     from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.predict import PredictResult
 
-    if mc is not None and mc < 1:
-        raise click.BadParameter(f"must be ≥ 1 (1 = single pass), got {mc}", param_hint="--mc")
-    if tile < 32 or tile % 32:
-        raise click.BadParameter(f"must be a positive multiple of 32, got {tile}; try 512", param_hint="--tile")
-    if not 0 <= overlap <= tile // 2:
-        raise click.BadParameter(f"must be between 0 and --tile/2 = {tile // 2}, got {overlap}; try 64",
-                                 param_hint="--overlap")
     batch = _batch_size(batch_size)
 
     def report(res: PredictResult) -> None:

@@ -339,7 +339,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
         more = f" ({len(all_failures) - 1} more input(s) failed too)" if len(all_failures) > 1 else ""
         raise PredictionFailed(
             f"rank {rank} failed on input '{ortho}': {message}{more}; the other inputs are complete: fix it and "
-            "re-run with --skip-existing to finish"
+            "re-run with ‹skip_existing=True› to finish"
         )
     if len(targets) > 1 and ranks.rank == 0:
         job.mosaics = write_mosaics(predictor, targets, out)

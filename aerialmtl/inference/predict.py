@@ -199,9 +199,11 @@ class Predictor:
         check_tiling(tile, overlap)
         if mc is not None and (not isinstance(mc, int) or mc < 1):
             raise InputError(
-                f"mc must be a positive number of MC-dropout samples, got {mc!r}; pass e.g. --mc 30 (or 1)")
+                f"‹mc› must be a positive number of MC-dropout samples, got {mc!r}; pass e.g. ‹mc=30› (or 1)",
+                param="mc")
         if batch_size != "auto" and (not isinstance(batch_size, int) or batch_size < 1):
-            raise InputError(f"batch_size must be ≥ 1, got {batch_size!r}; pass e.g. --batch-size 4")
+            raise InputError(f"‹batch_size› must be ≥ 1 or 'auto', got {batch_size!r}; pass e.g. ‹batch_size=4›",
+                             param="batch_size")
         self.device = resolve_device(device)
         self.precision = resolve_precision(precision, self.device)
         model, self.meta, name = _load(checkpoint)

@@ -44,9 +44,9 @@ class Aoi:
     def __init__(self, path: str | Path, grid: Grid) -> None:
         from aerialmtl.io.vector import load_geometries
 
-        self.geoms: list[BaseGeometry] = [g for g, _ in load_geometries(path, grid.crs, role="AOI (--aoi)")]
+        self.geoms: list[BaseGeometry] = [g for g, _ in load_geometries(path, grid.crs, role="AOI (‹aoi›)")]
         if not self.geoms:
-            raise InputError(f"AOI (--aoi) '{path}' holds no polygon; pass a GeoJSON with polygons")
+            raise InputError(f"AOI (‹aoi›) '{path}' holds no polygon; pass a GeoJSON with polygons", param="aoi")
         self.tree = STRtree(self.geoms)
         self.grid = grid
 

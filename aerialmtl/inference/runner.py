@@ -51,9 +51,10 @@ def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError(f"device={device!r} but no CUDA GPU is available; pass --device cpu or --device auto")
+        raise InputError(f"‹device={device}› but no CUDA GPU is available; pass ‹device=cpu› or ‹device=auto›",
+                         param="device")
     if device not in ("cpu",) and not device.startswith("cuda"):
-        raise InputError(f"device={device!r} is not supported; use auto, cpu or cuda")
+        raise InputError(f"‹device={device}› is not supported; use auto, cpu or cuda", param="device")
     return torch.device(device)
 
 
@@ -66,7 +67,7 @@ def resolve_precision(precision: str, device: torch.device) -> Literal["bf16", "
     if precision == "auto":
         return "bf16" if device.type == "cuda" else "fp32"
     if precision not in ("bf16", "fp32"):
-        raise InputError(f"precision={precision!r} is not supported; use auto, bf16 or fp32 (--precision)")
+        raise InputError(f"‹precision={precision}› is not supported; use auto, bf16 or fp32", param="precision")
     return precision  # type: ignore[return-value]
 
 

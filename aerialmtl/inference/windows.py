@@ -56,11 +56,12 @@ def check_tiling(tile: int, overlap: int) -> None:
     """
     if not isinstance(tile, int) or tile < SIZE_MULTIPLE or tile % SIZE_MULTIPLE:
         raise InputError(
-            f"tile must be a positive multiple of {SIZE_MULTIPLE} pixels, got {tile!r}; pass e.g. --tile 512")
+            f"‹tile› must be a positive multiple of {SIZE_MULTIPLE} pixels, got {tile!r}; pass e.g. ‹tile=512›",
+            param="tile")
     if not isinstance(overlap, int) or not 0 <= overlap <= tile // 2:
         raise InputError(
-            f"overlap must be between 0 and tile/2 = {tile // 2} pixels, got {overlap!r}; pass e.g. --overlap 64"
-        )
+            f"‹overlap› must be between 0 and ‹tile›/2 = {tile // 2} pixels, got {overlap!r}; pass e.g. ‹overlap=64›",
+            param="overlap")
 
 
 @dataclass(frozen=True)

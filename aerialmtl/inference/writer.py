@@ -67,8 +67,8 @@ def check_outputs_free(out_dir: Path, filenames: list[str], overwrite: bool) -> 
     existing = [f for f in filenames if (out_dir / f).exists()]
     if existing and not overwrite:
         raise OutputExistsError(
-            f"output folder '{out_dir}' already holds {', '.join(existing)}; pass --overwrite to replace them "
-            "or choose another --out folder"
+            f"output folder '{out_dir}' already holds {', '.join(existing)}; pass ‹overwrite=True› to replace them "
+            "or choose another ‹out_dir› folder"
         )
 
 
@@ -108,7 +108,7 @@ def _apply_metadata(dst: Any, spec: LayerSpec) -> None:
 def _writable_error(out_dir: Path, exc: BaseException) -> OutputError:
     return OutputError(
         f"cannot write in output folder '{out_dir}' ({' '.join(str(exc).split())[:160]}); "
-        "choose a writable --out with free space"
+        "choose a writable ‹out_dir› with free space"
     )
 
 
