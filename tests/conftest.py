@@ -90,6 +90,39 @@ def write_prediction_layers(
         if data is not None:
             write_raster(folder / layer_filename(name), data.astype(np.float32), crs, transform, FLOAT_NODATA)
     return folder
+def write_prediction_folder(folder: Path, rng: np.random.Generator, size: int = 64) -> Path:
+    """A tiny prediction folder with every uncertainty layer on 0.5 m pixels (random values, nodata in the
+    upper-left 4×4 corner), plus ``ortho.tif`` beside it at twice the resolution over the same footprint."""
+    from aerialmtl.formats.prediction import CLASS_MUTUAL_INFO, CLASS_NODATA, FLOAT_NODATA, layer_filename
+
+    scheme = ClassScheme.load("synthetic")
+    height = rng.uniform(0, 20, (size, size)).astype(np.float32)
+    std, entropy, mutual_info = (rng.uniform(0, hi, (size, size)).astype(np.float32) for hi in (2.0, 1.0, 1.0))
+    cls = rng.integers(0, scheme.num_classes, (size, size)).astype(np.uint8)
+    for layer in (height, std, entropy, mutual_info):
+        layer[:4, :4] = FLOAT_NODATA
+    cls[:4, :4] = CLASS_NODATA
+    write_prediction_layers(folder, cls, height, std, entropy)
+    write_raster(folder / layer_filename(CLASS_MUTUAL_INFO), mutual_info, nodata=FLOAT_NODATA)
+    write_raster(folder.parent / "ortho.tif", rng.integers(0, 255, (3, 2 * size, 2 * size)).astype(np.uint8),
+                 transform=Affine(0.25, 0, 500000.0, 0, -0.25, 5000000.0))
+    return folder
+
+
+def run_cli(capsys: pytest.CaptureFixture, *args: object) -> tuple[int, str, str]:
+    """Run ``aerialmtl ARGS`` in-process like the console script; returns (exit code, stdout, stderr)."""
+    from aerialmtl.cli import main
+
+    capsys.readouterr()
+    try:
+        main([str(a) for a in args])
+        code = 0
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
 # ---- tiny models ------------------------------------------------------------------------------
 class IdentityModel(nn.Module):
     """Receptive-field-free model: height = band 1 de-normalised; class logits = band values (argmax band)."""

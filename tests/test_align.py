@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
+from conftest import write_raster
 from rasterio.warp import transform as warp_transform
 
 from aerialmtl.errors import AlignmentError
 from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import read_manifest, tile_dataset
-from tests.conftest import write_raster
 
 # ortho near the UTM 31/32 boundary (≈ 5.9° E, 45° N) so a zone-32 DSM is a genuinely different projection
 ORTHO_CRS = "EPSG:32631"

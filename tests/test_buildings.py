@@ -12,6 +12,7 @@ import pytest
 import rasterio
 import shapely
 from affine import Affine
+from conftest import run_cli, write_prediction_layers, write_raster
 from rasterio.crs import CRS
 from rasterio.features import rasterize
 from scipy import ndimage
@@ -27,10 +28,8 @@ from aerialmtl.buildings import (
 )
 from aerialmtl.buildings.clean import clean_footprint
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
-from aerialmtl.cli import main
 from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.buildings import LAYER, PREDICTED_FIELDS, read_footprints
-from tests.conftest import write_prediction_layers, write_raster
 
 pyogrio = pytest.importorskip("pyogrio")
 
@@ -408,35 +407,24 @@ def test_dtm_gives_ground_elevation(tmp_path: Path, rng: np.random.Generator) ->
 
 
 # ---- command line ----------------------------------------------------------------------------------
-def _run(capsys: pytest.CaptureFixture, *args: object) -> tuple[int, str, str]:
-    capsys.readouterr()
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 def test_cli(tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture) -> None:
     cls, height, std, ent = _layers((64, 64), [(5, 25, 5, 25, 6.0), (35, 60, 10, 60, 15.0)], rng)
     pred = write_prediction_layers(tmp_path / "pred", cls, height, std, ent)
-    code, out, err = _run(capsys, "buildings", pred, "--out", tmp_path / "b.gpkg", "--out", tmp_path / "b.city.json",
+    code, out, err = run_cli(capsys, "buildings", pred, "--out", tmp_path / "b.gpkg", "--out", tmp_path / "b.city.json",
                           "--quiet")
     assert code == 0, err
     assert "2 buildings (classes: building)" in out and "GPKG:" in out and "CityJSON:" in out and "EPSG:32631" in out
-    code, _, err = _run(capsys, "buildings", pred, "--out", tmp_path / "b.gpkg", "--quiet")
+    code, _, err = run_cli(capsys, "buildings", pred, "--out", tmp_path / "b.gpkg", "--quiet")
     assert code == 1 and "already exist" in err and "--overwrite" in err and "Traceback" not in err
-    code, _, err = _run(capsys, "buildings", pred, "--out", tmp_path / "x.gpkg", "--building-class", "roof")
+    code, _, err = run_cli(capsys, "buildings", pred, "--out", tmp_path / "x.gpkg", "--building-class", "roof")
     assert code == 2 and "--building-class" in err and "'roof' is not a class" in err
-    code, _, err = _run(capsys, "buildings", pred, "--out", tmp_path / "x.shp")
+    code, _, err = run_cli(capsys, "buildings", pred, "--out", tmp_path / "x.shp")
     assert code == 2 and "--out" in err and ".city.json" in err
     other = write_prediction_layers(tmp_path / "veg", cls, height, scheme=None)
-    code, _, err = _run(capsys, "buildings", other, "--out", tmp_path / "y.gpkg")
+    code, _, err = run_cli(capsys, "buildings", other, "--out", tmp_path / "y.gpkg")
     assert code == 2 and "pass --building-class with the class index" in err
-    code, out, err = _run(capsys, "buildings", other, "--out", tmp_path / "y.gpkg", "--building-class", "2", "--quiet",
-                          "--min-area", "150")
+    code, out, err = run_cli(capsys, "buildings", other, "--out", tmp_path / "y.gpkg", "--building-class", "2",
+                             "--quiet", "--min-area", "150")
     assert code == 0 and "1 buildings" in out and "1 smaller than 150 m² dropped" in out
 
 
@@ -446,7 +434,7 @@ def test_no_building_warning_reaches_the_cli(tmp_path: Path, rng: np.random.Gene
     pred = write_prediction_layers(tmp_path / "pred", cls, height)
     with warnings.catch_warnings():
         warnings.simplefilter("default")
-        code, out, err = _run(capsys, "buildings", pred, "--out", tmp_path / "b.gpkg", "--quiet")
+        code, out, err = run_cli(capsys, "buildings", pred, "--out", tmp_path / "b.gpkg", "--quiet")
     assert code == 0 and "warning: no building pixel" in err and "0 buildings" in out
 
 

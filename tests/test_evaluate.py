@@ -17,6 +17,7 @@ import rasterio
 import yaml
 from affine import Affine
 from click.testing import CliRunner
+from conftest import write_raster
 from rasterio.warp import transform as warp_transform
 from rasterio.warp import transform_bounds
 
@@ -25,7 +26,6 @@ from aerialmtl.cli import cli
 from aerialmtl.cli.options import flags_for
 from aerialmtl.errors import InputError, LabelError, OutputExistsError
 from aerialmtl.evaluation.evaluate import CLASS_SCHEME_TAG, evaluate_prediction
-from tests.conftest import write_raster
 
 NODATA = -9999.0
 W, H = 40, 32

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import rasterio
 from click.testing import CliRunner
+from conftest import write_prediction_layers
 from shapely import affinity
 from shapely.geometry import box
 
@@ -20,7 +21,6 @@ from aerialmtl.data.synth import synthesize
 from aerialmtl.evaluation.buildings import match_footprints, score_buildings
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.formats.buildings import REFERENCE_FIELDS, FootprintWriter
-from tests.conftest import write_prediction_layers
 
 pytest.importorskip("pyogrio")
 

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from affine import Affine
+from conftest import write_prediction_folder
 
-from aerialmtl.classes import IGNORE_INDEX, ClassScheme
+from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.errors import InputError
-from aerialmtl.evaluation.evaluate import CLASS_SCHEME_TAG
 from aerialmtl.evaluation.maps import (
     load_prediction_maps,
     most_uncertain_areas,
@@ -21,8 +20,6 @@ from aerialmtl.evaluation.maps import (
     zoom_to,
 )
 from aerialmtl.evaluation.uncertainty import sparsification
-from aerialmtl.io.align import HEIGHT_NODATA
-from tests.conftest import write_raster
 
 T = Affine(0.5, 0, 500000.0, 0, -0.5, 5000000.0)
 
@@ -52,29 +49,6 @@ def test_most_uncertain_areas_skips_mostly_nodata_cells_and_handles_edges() -> N
     assert len(areas) == 9 - 1
     with pytest.raises(InputError, match="size"):
         most_uncertain_areas(values, T, size=0)
-
-
-def write_prediction_folder(folder: Path, rng: np.random.Generator, size: int = 64) -> Path:
-    """A tiny prediction folder (docs/CONTRACTS.md) on 0.5 m pixels, nodata in the upper-left 4×4 corner,
-    plus ``ortho.tif`` beside it at twice the resolution over the same footprint."""
-    import rasterio
-
-    folder.mkdir(parents=True)
-    scheme = ClassScheme.load("synthetic")
-    height = rng.uniform(0, 20, (size, size)).astype(np.float32)
-    height[:4, :4] = HEIGHT_NODATA
-    write_raster(folder / "height.tif", height, transform=T, nodata=HEIGHT_NODATA)
-    for name, hi in (("height_std.tif", 2.0), ("class_entropy.tif", 1.0), ("class_mutual_info.tif", 1.0)):
-        write_raster(folder / name, rng.uniform(0, hi, (size, size)).astype(np.float32), transform=T,
-                     nodata=HEIGHT_NODATA)
-    cls = rng.integers(0, scheme.num_classes, (size, size)).astype(np.uint8)
-    cls[:4, :4] = IGNORE_INDEX
-    path = write_raster(folder / "classes.tif", cls, transform=T, nodata=IGNORE_INDEX)
-    with rasterio.open(path, "r+") as dst:
-        dst.update_tags(**{CLASS_SCHEME_TAG: json.dumps(scheme.to_dict())})
-    write_raster(folder.parent / "ortho.tif", rng.integers(0, 255, (3, 2 * size, 2 * size)).astype(np.uint8),
-                 transform=Affine(0.25, 0, 500000.0, 0, -0.25, 5000000.0))
-    return folder
 
 
 @pytest.fixture

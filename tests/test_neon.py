@@ -9,6 +9,7 @@ import pytest
 import rasterio
 import yaml
 from click.testing import CliRunner
+from conftest import NEON_DIR
 from rasterio.windows import Window
 from rasterio.windows import transform as window_transform
 
@@ -16,7 +17,6 @@ from aerialmtl.cli import cli
 from aerialmtl.io.align import HEIGHT_NODATA
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import read_manifest, tile_dataset
-from tests.conftest import NEON_DIR
 
 RGB = NEON_DIR / "rgb_0p1m.tif"
 CHM = NEON_DIR / "chm_1m.tif"

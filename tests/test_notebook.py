@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-
-from tests.test_maps import write_prediction_folder
+from conftest import write_prediction_folder
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")

@@ -25,7 +25,7 @@ import rasterio
 import torch
 import yaml
 from affine import Affine
-from conftest import TINY, tiny_d3net, write_raster
+from conftest import TINY, run_cli, tiny_d3net, write_raster
 from rasterio.warp import transform_bounds
 
 from aerialmtl.cli import main
@@ -42,16 +42,7 @@ MAIN_OUTPUTS = ("height.tif", "height_std.tif", "classes.tif", "class_entropy.ti
 
 
 # ---- helpers ------------------------------------------------------------------------------------
-def run(capsys: pytest.CaptureFixture, *args: object) -> tuple[int, str, str]:
-    """Run ``aerialmtl ARGS`` in-process like the console script; returns (exit code, stdout, stderr)."""
-    capsys.readouterr()
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out, err = capsys.readouterr()
-    return code, out, err
+run = run_cli
 
 
 def assert_error(result: tuple[int, str, str], *needles: str, code: int = 1) -> str:

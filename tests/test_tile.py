@@ -12,6 +12,7 @@ import rasterio
 import yaml
 from affine import Affine
 from click.testing import CliRunner
+from conftest import write_raster
 from rasterio.warp import transform as warp_transform
 from rasterio.windows import Window
 from rasterio.windows import transform as window_transform
@@ -23,7 +24,6 @@ from aerialmtl.io.align import HEIGHT_NODATA
 from aerialmtl.tiling.grid import axis_offsets, count_windows, num_offsets, tile_windows
 from aerialmtl.tiling.splits import SplitAssigner, SplitSpec, assign_blocks
 from aerialmtl.tiling.tile import read_manifest, tile_dataset
-from tests.conftest import write_raster
 
 CRS = "EPSG:32631"
 ORIGIN = (500000.0, 5000000.0)
