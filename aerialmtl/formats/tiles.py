@@ -52,6 +52,10 @@ SPLITS = ("train", "val", "test")
 TASKS = ("height", "classes")
 LAYERS = ("image", *TASKS)
 
+#: ``manifest.csv`` columns: the patch id and split; each layer's patch path relative to the folder (empty
+#: when absent); the window on the reference grid (pixels) and its bounds (map units) and CRS; the valid
+#: image fraction; ``class_hist`` (pixels per class index joined by ``;``, empty without classes); the
+#: patch's min / mean / max height in metres (empty without height).
 MANIFEST_COLUMNS = (
     "patch_id", "split", "image_path", "height_path", "classes_path",
     "col_off", "row_off", "width", "height", "left", "bottom", "right", "top", "crs",
@@ -97,8 +101,11 @@ class TileFolderInfo:
         stride: step between patches (pixels).
         dtype: numpy dtype name of the image patches.
         classes: the class scheme, ``None`` without the classes task.
-        height: how heights were made (``nodata``, ``clip_negative``, ``max_height``, ``source``), or ``None``.
-        splits: the spatial split specification.
+        height: how heights were made (``nodata``, ``clip_negative``, ``max_height`` in metres, ``source``
+            ``ndsm``/``dsm-dtm``, ``units``: the unit each height raster was read in and where that came
+            from), or ``None``.
+        splits: the spatial split specification (``method``, ``block_size`` asked and
+            ``block_size_used_m`` after snapping to the patch stride, ``ratios``, ``seed``; or the AOIs).
         counts: patches per split.
         min_valid: minimum valid fraction of a kept patch.
         provenance: input paths, aerialmtl version, creation time.
