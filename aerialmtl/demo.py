@@ -168,7 +168,16 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
     import rasterio
 
     from aerialmtl.classes import IGNORE_INDEX
-    from aerialmtl.evaluation.evaluate import read_class_scheme_tag
+    from aerialmtl.formats.prediction import (
+        CLASS_ENTROPY,
+        CLASS_MUTUAL_INFO,
+        CLASSES,
+        HEIGHT,
+        HEIGHT_STD,
+        PredictionFolder,
+    )
+
+    pred = PredictionFolder(pred_dir)
 
     def read(path: Path | None, masked: bool = True) -> np.ndarray | None:
         if path is None or not Path(path).exists():
@@ -179,15 +188,15 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
     folder.mkdir(parents=True, exist_ok=True)
     with rasterio.open(ortho) as src:
         rgb = np.moveaxis(src.read([1, 2, 3]), 0, -1)
-    scheme = read_class_scheme_tag(pred_dir / "classes.tif") if (pred_dir / "classes.tif").exists() else None
+    scheme = pred.class_scheme()
     panels: list[tuple[str, Any, dict[str, Any]]] = [("orthophoto", rgb, {})]
-    h_ref, h = read(height_ref), read(pred_dir / "height.tif")
+    h_ref, h = read(height_ref), read(pred.layer_path(HEIGHT))
     vmax = float(np.nanpercentile(np.ma.filled(h_ref.astype(float), np.nan), 99.5)) if h_ref is not None else None
     if h_ref is not None:
         panels.append(("reference height (m)", h_ref, dict(cmap="viridis", vmin=0, vmax=vmax)))
     if h is not None:
         panels.append(("predicted height (m)", h, dict(cmap="viridis", vmin=0, vmax=vmax)))
-    std = read(pred_dir / "height_std.tif")
+    std = read(pred.layer_path(HEIGHT_STD))
     if std is not None:
         panels.append(("height std (m)", std, dict(cmap="magma")))
     if scheme is not None:
@@ -198,13 +207,13 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
             if lab is not None:
                 idx = scheme.remap(lab, on_unknown="ignore")
                 panels.append(("reference classes", np.ma.masked_equal(idx, IGNORE_INDEX), kw))
-        cls = read(pred_dir / "classes.tif")
+        cls = read(pred.layer_path(CLASSES))
         if cls is not None:
             panels.append(("predicted classes", cls, kw))
-    ent = read(pred_dir / "class_entropy.tif")
+    ent = read(pred.layer_path(CLASS_ENTROPY))
     if ent is not None:
         panels.append(("class entropy (nats)", ent, dict(cmap="magma")))
-    mi = read(pred_dir / "class_mutual_info.tif")
+    mi = read(pred.layer_path(CLASS_MUTUAL_INFO))
     if mi is not None:
         panels.append(("mutual information (nats)", mi, dict(cmap="magma")))
     cols = 3

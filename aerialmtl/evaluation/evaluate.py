@@ -48,6 +48,7 @@ from aerialmtl.formats.prediction import (
     CLASS_PROBABILITIES,
     CLASS_SCHEME_TAG,
     CLASSES,
+    FLOAT_NODATA,
     HEIGHT,
     HEIGHT_STD,
     LAYERS,
@@ -55,7 +56,7 @@ from aerialmtl.formats.prediction import (
     layer_filename,
     read_class_scheme_tag,
 )
-from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, Grid, HeightSource, NdsmOptions, grid_of, open_raster
+from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, grid_of, open_raster
 
 #: Layer name → file name of a prediction folder (see :mod:`aerialmtl.formats.prediction`).
 PREDICTION_FILES = {name: layer_filename(name) for name in LAYERS}
@@ -67,7 +68,7 @@ def _read_float(
     """Read float band(s) as float32 with NaN where nodata/non-finite; returns ``(data, valid)``."""
     data = src.read(bands, window=window).astype(np.float32, copy=False)
     invalid = ~np.isfinite(data)
-    nodata = src.nodata if src.nodata is not None else HEIGHT_NODATA
+    nodata = src.nodata if src.nodata is not None else FLOAT_NODATA
     invalid |= data == np.float32(nodata)
     if data.ndim == 3:
         invalid = invalid.any(axis=0)

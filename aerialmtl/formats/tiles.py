@@ -41,6 +41,8 @@ FORMAT = "aerialmtl-tiles"
 FORMAT_VERSION = 1
 
 DATASET_YAML = "dataset.yaml"
+#: nodata of the float32 height patches (and of the height rasters ``aerialmtl synth`` writes).
+HEIGHT_NODATA = -9999.0
 MANIFEST_CSV = "manifest.csv"
 #: Suffix of a file being written; renamed to its final name once complete.
 PART_SUFFIX = ".part"

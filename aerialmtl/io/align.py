@@ -34,12 +34,11 @@ from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
+from aerialmtl.formats.tiles import HEIGHT_NODATA as HEIGHT_NODATA  # re-exported: height rasters aerialmtl writes
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 
 LayerKind = Literal["image", "height", "labels"]
 
-#: nodata written in float height rasters (patches and predictions).
-HEIGHT_NODATA = -9999.0
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.formats.tiles import (
     CACHE_DIR,
     DATASET_YAML,
+    HEIGHT_NODATA,
     MANIFEST_COLUMNS,
     MANIFEST_CSV,
     PART_SUFFIX,
@@ -48,7 +49,7 @@ from aerialmtl.formats.tiles import (
     patch_path,
     read_manifest,
 )
-from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.outputs import make_output_dir
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
