@@ -90,6 +90,8 @@ def write_prediction_layers(
         if data is not None:
             write_raster(folder / layer_filename(name), data.astype(np.float32), crs, transform, FLOAT_NODATA)
     return folder
+
+
 def write_prediction_folder(folder: Path, rng: np.random.Generator, size: int = 64) -> Path:
     """A tiny prediction folder with every uncertainty layer on 0.5 m pixels (random values, nodata in the
     upper-left 4×4 corner), plus ``ortho.tif`` beside it at twice the resolution over the same footprint."""
