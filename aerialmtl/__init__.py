@@ -45,7 +45,9 @@ _EXPORTS: dict[str, str] = {
     "load_model": "aerialmtl.formats.checkpoint",
     "save_checkpoint": "aerialmtl.formats.checkpoint",
     # mapping
+    "Predictor": "aerialmtl.inference.predict",
     "predict_raster": "aerialmtl.inference.predict",
+    "predict_many": "aerialmtl.inference.jobs",
     "PredictResult": "aerialmtl.inference.predict",
     "PredictionFolder": "aerialmtl.formats.prediction",
     "extract_buildings": "aerialmtl.buildings",
@@ -80,7 +82,9 @@ __all__ = [
     "load_checkpoint",
     "load_model",
     "save_checkpoint",
+    "Predictor",
     "predict_raster",
+    "predict_many",
     "PredictResult",
     "PredictionFolder",
     "extract_buildings",
@@ -116,7 +120,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from aerialmtl.evaluation.evaluate import evaluate_prediction
     from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
     from aerialmtl.formats.prediction import PredictionFolder
-    from aerialmtl.inference.predict import PredictResult, predict_raster
+    from aerialmtl.inference.jobs import predict_many
+    from aerialmtl.inference.predict import Predictor, PredictResult, predict_raster
     from aerialmtl.io.align import Grid, NdsmOptions, reference_grid
     from aerialmtl.models.config import ModelConfig
     from aerialmtl.models.d3net import D3Net
