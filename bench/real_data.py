@@ -35,6 +35,7 @@ every ``--val-steps`` steps.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
 import os
@@ -110,6 +111,11 @@ class Recipe:
         size, stride: patch size and stride in pixels of the working grid.
         config: training YAML (relative to the repository root).
         overrides: ``TrainConfig.with_overrides`` sections.
+        pretrain: synthetic pretraining first (``PretrainSettings`` fields plus ``budget_mpx`` and
+            ``config``), at the recipe's GSD; the real-area training starts from its ``best.pt``.
+        zero_shot: evaluate the pretrained model as it is, without training on the real area.
+        stratify: height-stratified sampling: the share of tall (≥ 2 m) pixels per drawn patch to reach
+            (:mod:`aerialmtl.data.sampling`), applied as whole repeats of train patches in a manifest view.
         note: one line saying what the recipe tries.
     """
 
@@ -118,6 +124,9 @@ class Recipe:
     stride: int | None = None
     config: str = "configs/d3net_small_synth.yaml"
     overrides: dict[str, Any] = field(default_factory=dict)
+    pretrain: dict[str, Any] | None = None
+    zero_shot: bool = False
+    stratify: float | None = None
     note: str = ""
 
 
@@ -173,6 +182,70 @@ def tiles_for(recipe: Recipe, data: Path, split: dict[str, Path], out: Path) -> 
             "dropped_split": res.dropped_split, "seconds": time.perf_counter() - t0}
     info_file.write_text(json.dumps(info, indent=1))
     return tdir, info
+
+
+def oversampled_view(tdir: Path, target: float) -> tuple[Path, dict[str, Any]]:
+    """A tile folder that repeats train patches by :func:`~aerialmtl.data.sampling.repeat_counts` of their
+    stratified weights (symlinks to ``tdir``'s patches; val and test rows unchanged)."""
+    import csv
+
+    from aerialmtl.data.sampling import repeat_counts, stratified_weights, tall_shares
+
+    vdir = tdir.with_name(f"{tdir.name}_strat{target:g}")
+    shares = tall_shares(tdir, "train", TALL_M)
+    reps = repeat_counts(stratified_weights(shares, target))
+    info = {"target": target, "mean_share": float(shares.mean()),
+            "share_after": float((reps * shares).sum() / reps.sum()), "patches": int(reps.sum())}
+    if (vdir / "manifest.csv").is_file():
+        return vdir, info
+    vdir.mkdir(parents=True, exist_ok=True)
+    for name in ("train", "val", "test"):
+        if (tdir / name).exists() and not (vdir / name).exists():
+            (vdir / name).symlink_to((tdir / name).resolve())
+    shutil.copyfile(tdir / "dataset.yaml", vdir / "dataset.yaml")
+    with (tdir / "manifest.csv").open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows, fields = list(reader), reader.fieldnames or []
+    out_rows, k = [], 0
+    for row in rows:
+        if row["split"] != "train":
+            out_rows.append(row)
+            continue
+        for j in range(int(reps[k])):
+            out_rows.append({**row, "patch_id": f"{row['patch_id']}#{j}"})
+        k += 1
+    with (vdir / "manifest.csv").open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(out_rows)
+    return vdir, info
+
+
+def pretrained_checkpoint(recipe: Recipe, args: argparse.Namespace) -> tuple[Path, dict[str, Any]]:
+    """Run (once, cached by its settings) the recipe's synthetic pretraining; returns ``best.pt`` and a record."""
+    from aerialmtl.training.pretrain import PretrainSettings, pretrain_synthetic
+
+    p = dict(recipe.pretrain or {})
+    budget = float(p.pop("budget_mpx"))
+    config = p.pop("config", recipe.config)
+    cfg = load_train_config(ROOT / config).with_overrides(**p.pop("overrides", {}))
+    settings = PretrainSettings(gsd=recipe.gsd or 0.3048, patch=p.pop("patch", recipe.size), **p)
+    key = f"pretrain_g{settings.gsd}_n{settings.towns}_t{settings.town_size}_p{settings.patch}_b{budget:g}"
+    pdir = args.out / key
+    record_file = pdir / "pretrain.json"
+    if record_file.is_file():
+        return pdir / "run" / "best.pt", json.loads(record_file.read_text())
+    side = cfg.data.crop_size or settings.patch
+    steps = max(1, round(budget * 1e6 / (cfg.data.batch_size * side * side)))
+    cfg = cfg.with_overrides(data={"num_workers": args.workers}, schedule={"val_every": 1})
+    t0, load0 = time.perf_counter(), os.getloadavg()
+    res = pretrain_synthetic(pdir, settings, cfg, max_steps=steps, max_time_s=args.max_time * 2, overwrite=True,
+                             progress=not args.quiet, log=print)
+    record = {"settings": asdict(settings), "config": config, "budget_mpx": budget, "steps": res.train.step,
+              "train_s": res.train.elapsed_s, "total_s": time.perf_counter() - t0, "patches": res.patches,
+              "val": res.train.metrics, "load_start": load0, "load_end": os.getloadavg()}
+    record_file.write_text(json.dumps(record, indent=1, default=float))
+    return res.checkpoint, record
 
 
 def train_mean(pred_height: Path, data: Path, train_aoi: Path) -> float:
@@ -240,6 +313,10 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
     split = write_split(args.data / ORTHO, out / "split")
     load0 = os.getloadavg()
     tdir, tinfo = tiles_for(recipe, args.data, split, out)
+    n_train = tinfo["counts"]["train"]
+    if recipe.stratify:
+        tdir, sinfo = oversampled_view(tdir, recipe.stratify)
+        tinfo, n_train = {**tinfo, "stratify": sinfo}, sinfo["patches"]
     cfg: TrainConfig = load_train_config(ROOT / recipe.config)
     overrides = {**recipe.overrides}
     for key, value in _parse_set(args.set).items():
@@ -249,7 +326,7 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
     cfg = cfg.with_overrides(**overrides)
     side = cfg.data.crop_size or recipe.size
     steps = args.max_steps or max(1, round(args.budget_mpx * 1e6 / (cfg.data.batch_size * side * side)))
-    per_epoch = max(1, tinfo["counts"]["train"] // cfg.data.batch_size)
+    per_epoch = max(1, n_train // cfg.data.batch_size)
     val_every = max(1, round(args.val_steps / per_epoch))
     cfg = cfg.with_overrides(schedule={"val_every": val_every})
     rdir = out / "runs" / name
@@ -257,20 +334,34 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
         shutil.rmtree(rdir)
     rdir.mkdir(parents=True)
     torch.set_num_threads(args.threads)
-    result = train(cfg, data_dir=tdir, out_dir=rdir, max_steps=steps, max_time_s=args.max_time,
-                   progress=not args.quiet)
+    init, pre_record = (None, None)
+    if recipe.pretrain:
+        init, pre_record = pretrained_checkpoint(recipe, args)
+    if recipe.zero_shot:
+        assert init is not None, "zero_shot needs a pretrain section"
+        shutil.copyfile(init, rdir / "best.pt")
+        train_record: dict[str, Any] = {"steps": 0, "epochs": 0, "stopped_by": "zero-shot", "seconds": 0.0, "val": {}}
+    else:
+        kwargs: dict[str, Any] = {}
+        if init is not None:
+            if "init" not in inspect.signature(train).parameters:
+                raise SystemExit("this recipe fine-tunes a pretrained model: it needs `train(init=...)` (train --init)")
+            kwargs["init"] = init
+        result = train(cfg, data_dir=tdir, out_dir=rdir, max_steps=steps, max_time_s=args.max_time,
+                       progress=not args.quiet, **kwargs)
+        train_record = {"steps": result.step, "epochs": result.epoch, "stopped_by": result.stopped_by,
+                        "seconds": result.elapsed_s, "val": result.metrics}
     load1 = os.getloadavg()
     record: dict[str, Any] = {
         "name": name, "recipe": asdict(recipe), "set": args.set, "tiles": str(tdir), "tile_info": tinfo,
         "budget": {"mpx": args.budget_mpx, "max_steps": steps, "val_every_epochs": val_every},
-        "train": {"steps": result.step, "epochs": result.epoch, "stopped_by": result.stopped_by,
-                  "seconds": result.elapsed_s, "val": result.metrics},
+        "pretrain": pre_record, "train": train_record,
         "machine": {"cpu": cpu_model(), "torch": torch.__version__, "threads": torch.get_num_threads(),
                     "load_start": load0, "load_after_train": load1},
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "mc": args.mc, "checkpoints": {},
     }
-    for ckpt in ["best.pt"] + (["last.pt"] if args.also_last else []):
+    for ckpt in ["best.pt"] + (["last.pt"] if args.also_last and not recipe.zero_shot else []):
         pdir = rdir / f"pred_{Path(ckpt).stem}"
         t0 = time.perf_counter()
         pr = predict_raster(args.data / ORTHO, rdir / ckpt, pdir, mc=args.mc, aoi=split["test"], overwrite=True,
