@@ -156,7 +156,7 @@ class ClassScheme:
                 raise LabelError(
                     f"{source}: label codes {shown} are not in class scheme '{self.name}' "
                     f"(known codes: {self.codes}, ignored: {list(self.ignore_codes)}); add them to the "
-                    f"scheme's 'classes' or 'ignore_codes', or pass --ignore-unknown-codes to treat them as no label"
+                    f"scheme's 'classes' or 'ignore_codes', or pass ‹ignore_unknown_codes=True› to treat them as no label"
                 )
         out[~considered] = IGNORE_INDEX
         return out

@@ -90,7 +90,7 @@ def run_demo(
 
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise OutputExistsError(f"demo folder '{out}' is not empty; choose a new folder or pass --overwrite")
+        raise OutputExistsError(f"demo folder '{out}' is not empty; choose a new folder or pass ‹overwrite=True›")
     out.mkdir(parents=True, exist_ok=True)
     res = DemoResult(out)
     s = settings

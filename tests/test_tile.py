@@ -201,7 +201,7 @@ def test_unknown_label_codes(scene: dict[str, Path], tmp_path: Path) -> None:
     codes[40:44, 40:44] = 9
     codes[60, 60] = 42
     bad = write_raster(tmp_path / "bad_labels.tif", codes, CRS, T05)
-    with pytest.raises(LabelError, match=r"9, 42.*--ignore-unknown-codes"):
+    with pytest.raises(LabelError, match=r"9, 42.*ignore_unknown_codes=True"):
         tile_dataset(scene["ortho"], tmp_path / "o1", labels=bad, classes=SCHEME, size=64, min_valid=0.0,
                      splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
     res = tile_dataset(scene["ortho"], tmp_path / "o2", labels=bad, classes=SCHEME, size=64, min_valid=0.0,

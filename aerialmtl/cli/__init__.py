@@ -15,6 +15,7 @@ import click
 from aerialmtl import __version__
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
+from aerialmtl.cli.options import flags_for, usage_errors
 from aerialmtl.cli.predict import predict
 from aerialmtl.cli.synth import synth
 from aerialmtl.cli.tile import tile
@@ -32,6 +33,8 @@ def cli(ctx: click.Context, debug: bool) -> None:
 
 
 for _command in (synth, tile, train, predict, evaluate, demo):
+    assert _command.name is not None and _command.callback is not None
+    _command.callback = usage_errors(_command.name, _command.callback)
     cli.add_command(_command)
 
 
@@ -65,9 +68,14 @@ def main(argv: list[str] | None = None) -> None:
         _run(args, debug)
 
 
+def _command_name(args: list[str]) -> str | None:
+    """The sub-command named in ``args`` (``None`` when there is none)."""
+    return next((a for a in args if a in cli.commands), None)
+
+
 def _interrupted(args: list[str]) -> None:
     """Say what an interrupted command left behind and how to finish; exit 130."""
-    command = next((a for a in args if a in cli.commands), None)
+    command = _command_name(args)
     if command == "train":
         click.echo("Error: interrupted; checkpoints are only ever replaced whole: continue from the run's last.pt "
                    "with `aerialmtl train --out RUN --resume`, or start again with --overwrite", err=True)
@@ -103,8 +111,11 @@ def _run(args: list[str], debug: bool) -> None:
     except (AerialMTLError, RasterioError, OSError) as exc:
         if debug:
             raise
-        hint = "" if isinstance(exc, AerialMTLError) else " (run with --debug for the traceback)"
-        click.echo(f"Error: {_one_line(exc)}{hint}", err=True)
+        if isinstance(exc, AerialMTLError):  # parameters spelled as this command's options
+            text, hint = " ".join(exc.render(flags_for(_command_name(args))).split()), ""
+        else:
+            text, hint = _one_line(exc), " (run with --debug for the traceback)"
+        click.echo(f"Error: {text or exc.__class__.__name__}{hint}", err=True)
         sys.exit(1)
     except Exception as exc:  # a bug: still one line, and the way to get the details
         if debug:

@@ -108,12 +108,6 @@ def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, z_u
     if (labels is not None or labels_vector is not None) and not classes:
         raise click.BadParameter("labels need a class scheme: a YAML file or dfc2018, isprs, synthetic",
                                  param_hint="--classes")
-    if stride is not None and stride > size:
-        raise click.BadParameter(f"stride {stride} > --size {size} would leave gaps", param_hint="--stride")
-    if gsd is not None and not gsd > 0:
-        raise click.BadParameter(f"must be a positive pixel size, got {gsd}", param_hint="--gsd")
-    if split_block <= 0:
-        raise click.BadParameter(f"must be a positive size in metres, got {split_block}", param_hint="--split-block")
     if max_height is not None and not max_height > 0:
         raise click.BadParameter(f"must be positive metres, got {max_height}", param_hint="--max-height")
     if split_aoi is not None:

@@ -42,14 +42,28 @@ from aerialmtl.evaluation.uncertainty import (
     sparsification,
     spearman,
 )
-from aerialmtl.formats.prediction import CLASS_SCHEME_TAG, LAYERS, layer_filename, read_class_scheme_tag
+from aerialmtl.formats.prediction import (
+    CLASS_ENTROPY,
+    CLASS_MUTUAL_INFO,
+    CLASS_PROBABILITIES,
+    CLASS_SCHEME_TAG,
+    CLASSES,
+    HEIGHT,
+    HEIGHT_STD,
+    LAYERS,
+    PredictionFolder,
+    layer_filename,
+    read_class_scheme_tag,
+)
 from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, Grid, HeightSource, NdsmOptions, grid_of, open_raster
 
 #: Layer name → file name of a prediction folder (see :mod:`aerialmtl.formats.prediction`).
 PREDICTION_FILES = {name: layer_filename(name) for name in LAYERS}
 
 
-def _read_float(src: rasterio.io.DatasetReader, window: Window, bands: int | list[int] = 1) -> tuple[np.ndarray, np.ndarray]:
+def _read_float(
+    src: rasterio.io.DatasetReader, window: Window, bands: int | list[int] = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """Read float band(s) as float32 with NaN where nodata/non-finite; returns ``(data, valid)``."""
     data = src.read(bands, window=window).astype(np.float32, copy=False)
     invalid = ~np.isfinite(data)
@@ -68,7 +82,9 @@ def _row_bands(grid: Grid, block_pixels: int) -> list[Window]:
     return [Window(0, r, grid.width, min(rows, grid.height - r)) for r in range(0, grid.height, rows)]
 
 
-def _resolve_scheme(classes: str | Path | ClassScheme | None, classes_tif: Path | None) -> tuple[ClassScheme | None, str]:
+def _resolve_scheme(
+    classes: str | Path | ClassScheme | None, classes_tif: Path | None
+) -> tuple[ClassScheme | None, str]:
     if isinstance(classes, ClassScheme):
         return classes, "argument"
     if classes is not None:
@@ -140,30 +156,9 @@ def evaluate_prediction(
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
     """
     pred_dir = Path(pred_dir)
-    if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
-        raise InputError("give either a reference nDSM (--height) or a DSM and a DTM (--dsm/--dtm), not both")
-    if (dsm_ref is None) != (dtm_ref is None):
-        raise InputError("--dsm and --dtm go together: pass both, or pass a reference nDSM with --height")
+    files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, height_threshold, out, overwrite)
     height_given = height_ref if height_ref is not None else dsm_ref
-    if not pred_dir.is_dir():
-        raise InputError(f"prediction folder '{pred_dir}' does not exist; pass the --out folder of `aerialmtl predict`")
-    files = {k: pred_dir / v for k, v in PREDICTION_FILES.items() if (pred_dir / v).is_file()}
-    if "height" not in files and "classes" not in files:
-        raise InputError(
-            f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; "
-            "pass the --out folder of `aerialmtl predict`"
-        )
-    if height_given is None and labels_ref is None:
-        raise InputError("no reference given: pass a reference height raster (--height) and/or labels (--labels)")
-    if not height_threshold >= 0:
-        raise InputError(f"--height-threshold must be ≥ 0 metres, got {height_threshold}")
-    if out is not None:
-        out = Path(out)
-        if out.exists() and not overwrite:
-            raise OutputExistsError(f"report '{out}' already exists; pass --overwrite to replace it or choose another --out")
-
     notes: list[str] = []
-    height_units: dict[str, dict[str, object]] = {}
     do_height = height_given is not None and "height" in files
     if height_given is not None and "height" not in files:
         notes.append("height reference given but the prediction has no height.tif: height metrics skipped")
@@ -184,106 +179,51 @@ def evaluate_prediction(
             f"{' --labels' if labels_ref else ''}) match no predicted layer (found: "
             f"{', '.join(sorted(p.name for p in files.values()))})"
         )
-    use_labels = labels_ref is not None and scheme is not None
+    k = scheme.num_classes if scheme is not None else 0
+    names = scheme.names if scheme is not None else []
 
-    # ---- open everything ---------------------------------------------------------------------
     opened: list[Any] = []
     try:
-        srcs: dict[str, rasterio.io.DatasetReader] = {}
-        needed = (["height", "height_std"] if do_height else []) + (
-            ["classes", "class_entropy", "class_mutual_info", "class_probabilities"] if do_classes else []
+        needed = ([HEIGHT, HEIGHT_STD] if do_height else []) + (
+            [CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES] if do_classes else []
         )
-        for key in needed:
-            if key in files:
-                srcs[key] = open_raster(files[key], f"prediction {files[key].name}")
-                opened.append(srcs[key])
-        first = next(iter(srcs.values()))
-        grid = grid_of(first)
-        for key, src in srcs.items():
-            if (src.width, src.height) != (grid.width, grid.height) or not src.transform.almost_equals(grid.transform):
-                raise InputError(
-                    f"'{files[key]}' is not on the grid of '{first.name}' ({src.width}×{src.height} vs "
-                    f"{grid.width}×{grid.height}); all files of a prediction folder must share one grid"
-                )
-        href = lab = None
+        srcs, grid = _open_prediction(files, needed, opened)
+        labels = None
+        if labels_ref is not None and scheme is not None:
+            labels = LabelReference(labels_ref, grid, scheme, ignore_unknown_codes)
+            opened.append(labels)
+        heights = None
         if do_height:
-            href = HeightSource(grid, ndsm=height_ref, dsm=dsm_ref, dtm=dtm_ref,
-                                options=NdsmOptions(clip_negative=height_ref is None, z_unit=z_unit))
-            opened.append(href)
-            height_units = href.units()
-        if use_labels:
-            lab = AlignedRaster(labels_ref, grid, "labels", bands=[1], role="label reference")  # type: ignore[arg-type]
-            opened.append(lab)
-        k = scheme.num_classes if scheme is not None else 0
-        names = scheme.names if scheme is not None else []
-
-        hstats = HeightStats(height_threshold, height_bins, k if use_labels else None, names or None,
-                             sample_cap=sample_size, seed=seed) if do_height else None
-        hsample = Subsample(sample_size, seed + 1) if do_height and "height_std" in srcs else None
-        nll_sum, nll_n = 0.0, 0
-        cm = np.zeros((k, k), np.int64)
-        n_unpredicted = 0
-        has_cu = do_classes and ("class_entropy" in srcs or "class_mutual_info" in srcs)
-        csample = Subsample(sample_size, seed + 2) if has_cu else None
-        calib = CalibrationBins(ece_bins) if do_classes and "class_probabilities" in srcs else None
-
-        windows = _row_bands(grid, block_pixels)
-        for win in tqdm(windows, desc="evaluate", unit="band", disable=not progress):
-            labels_idx = None
-            if lab is not None:
-                codes, lvalid = lab.read(win)
-                labels_idx = scheme.remap(  # type: ignore[union-attr]
-                    codes[0], lvalid, on_unknown="ignore" if ignore_unknown_codes else "error", source=str(labels_ref)
-                )
-            if hstats is not None and href is not None:
-                hp, hp_valid = _read_float(srcs["height"], win)
-                ref, ref_valid = href.read(win)
-                mask = hstats.update(hp, ref, hp_valid & ref_valid, labels_idx)
-                if hsample is not None:
-                    sd, sd_valid = _read_float(srcs["height_std"], win)
-                    sel = mask & sd_valid
-                    hsample.add(abs_error=np.abs(hp[sel] - ref[sel]), std=sd[sel])
-                    terms = gaussian_nll_terms(hp[sel], sd[sel], ref[sel], min_std)
-                    nll_sum += float(terms.sum())
-                    nll_n += int(sel.sum())
-            if do_classes and labels_idx is not None:
-                cp = srcs["classes"].read(1, window=win)
-                bad = (cp != IGNORE_INDEX) & (cp >= k)
-                if bad.any():
-                    raise InputError(
-                        f"'{files['classes']}' holds class index {int(cp[bad].max())} but the class scheme "
-                        f"'{scheme.name}' ({scheme_source}) has {k} classes; pass --classes with the scheme "  # type: ignore[union-attr]
-                        "the model was trained with"
-                    )
-                cm += confusion_matrix(labels_idx, cp, k)
-                ref_ok = labels_idx != IGNORE_INDEX
-                n_unpredicted += int((ref_ok & (cp == IGNORE_INDEX)).sum())
-                sel = ref_ok & (cp != IGNORE_INDEX)
-                correct = labels_idx == cp
-                if csample is not None:
-                    cols = {"error": (~correct[sel]).astype(np.uint8)}
-                    for key in ("class_entropy", "class_mutual_info"):
-                        if key in srcs:
-                            cols[key] = _read_float(srcs[key], win)[0][sel]
-                        else:
-                            cols[key] = np.full(int(sel.sum()), np.nan, np.float32)
-                    csample.add(**cols)
-                if calib is not None:
-                    probs, p_valid = _read_float(srcs["class_probabilities"], win, list(range(1, srcs["class_probabilities"].count + 1)))
-                    psel = sel & p_valid
-                    calib.update(probs[:, psel].max(axis=0), correct[psel])
+            reference = HeightSource(grid, ndsm=height_ref, dsm=dsm_ref, dtm=dtm_ref,
+                                     options=NdsmOptions(clip_negative=height_ref is None, z_unit=z_unit))
+            opened.append(reference)
+            heights = HeightEvaluation(
+                srcs[HEIGHT], srcs.get(HEIGHT_STD), reference,
+                HeightStats(height_threshold, height_bins, k if labels is not None else None, names or None,
+                            sample_cap=sample_size, seed=seed),
+                sample_size, seed, min_std,
+            )
+        classes_eval = None
+        if do_classes:
+            classes_eval = ClassEvaluation(srcs, files[CLASSES], scheme, scheme_source, sample_size, seed, ece_bins)
+        for win in tqdm(_row_bands(grid, block_pixels), desc="evaluate", unit="band", disable=not progress):
+            labels_idx = labels.read(win) if labels is not None else None
+            if heights is not None:
+                heights.update(win, labels_idx)
+            if classes_eval is not None and labels_idx is not None:
+                classes_eval.update(win, labels_idx)
     finally:
         for obj in opened:
             obj.close()
 
-    # ---- assemble ------------------------------------------------------------------------------
     report: dict[str, Any] = {
         "aerialmtl_version": __version__,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "prediction": str(pred_dir),
-        "references": {"height": str(height_ref) if height_ref else None, "labels": str(labels_ref) if labels_ref else None,
+        "references": {"height": str(height_ref) if height_ref else None,
+                       "labels": str(labels_ref) if labels_ref else None,
                        **({"dsm": str(dsm_ref), "dtm": str(dtm_ref)} if dsm_ref else {}),
-                       **({"height_units": height_units} if height_units else {})},
+                       **({"height_units": heights.units} if heights is not None and heights.units else {})},
         "grid": {"crs": grid.crs.to_string() if grid.crs else None, "gsd_m": grid.gsd,
                  "width": grid.width, "height": grid.height},
         "class_scheme": {"name": scheme.name, "source": scheme_source, "classes": names} if scheme else None,
@@ -296,51 +236,221 @@ def evaluate_prediction(
         "uncertainty": {},
         "notes": notes,
     }
-    if hstats is not None:
-        report["height"] = hstats.result()
-        report["sampling"]["height_pixels"] = hstats.n
-        report["sampling"]["height_sampled"] = len(hstats.sample)
-        if hstats.n == 0:
-            notes.append("no pixel has both a predicted and a reference height: check that the files overlap")
-        if hsample is not None:
-            ae, sd = hsample.get("abs_error"), hsample.get("std")
-            sp = sparsification(ae, sd, steps)
-            report["uncertainty"]["height_std"] = {
-                "spearman_std_vs_abs_error": spearman(sd, ae),
-                "nll": nll_sum / nll_n if nll_n else math.nan,
-                "nll_min_std_m": min_std,
-                "n_pixels": nll_n,
-                "n_sampled": len(hsample),
-                "sparsification": sp,
-            }
-        else:
-            notes.append("no height_std.tif (prediction made with T = 1?): height uncertainty metrics skipped")
-    if do_classes:
-        cls = classification_metrics(cm, names)
-        cls["n_reference_without_prediction"] = n_unpredicted
-        report["classes"] = cls
-        if csample is not None:
-            err = csample.get("error").astype(np.float64)
-            for key in ("class_entropy", "class_mutual_info"):
-                if key in srcs:
-                    u = csample.get(key)
-                    report["uncertainty"][key] = {
-                        "n_sampled": len(csample),
-                        "spearman_vs_error": spearman(u, err),
-                        "sparsification": sparsification(err, u, steps),
-                    }
-            report["sampling"]["class_pixels"] = csample.total
-            report["sampling"]["class_sampled"] = len(csample)
-        else:
-            notes.append("no class_entropy.tif / class_mutual_info.tif: class uncertainty metrics skipped")
-        if calib is not None:
-            report["uncertainty"]["calibration"] = calib.result()
-        else:
-            notes.append("no class_probabilities.tif: ECE / reliability diagram skipped "
-                         "(predict with probabilities saved to get them)")
+    if heights is not None:
+        heights.report_into(report, steps)
+    if classes_eval is not None:
+        classes_eval.report_into(report, names, steps)
     if out is not None:
-        write_report(report, out, plots=plots)
+        write_report(report, Path(out), plots=plots)
     return report
 
 
-__all__ = ["CLASS_SCHEME_TAG", "PREDICTION_FILES", "evaluate_prediction", "read_class_scheme_tag"]
+def _check_arguments(
+    pred_dir: Path, height_ref: str | Path | None, dsm_ref: str | Path | None, dtm_ref: str | Path | None,
+    labels_ref: str | Path | None, height_threshold: float, out: str | Path | None, overwrite: bool,
+) -> dict[str, Path]:
+    """Validate the arguments of :func:`evaluate_prediction`; returns the predicted layers present."""
+    if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
+        raise InputError("give either a reference nDSM (--height) or a DSM and a DTM (--dsm/--dtm), not both")
+    if (dsm_ref is None) != (dtm_ref is None):
+        raise InputError("--dsm and --dtm go together: pass both, or pass a reference nDSM with --height")
+    if not pred_dir.is_dir():
+        raise InputError(f"prediction folder '{pred_dir}' does not exist; pass the --out folder of `aerialmtl predict`")
+    files = PredictionFolder(pred_dir).layers()
+    if HEIGHT not in files and CLASSES not in files:
+        raise InputError(
+            f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; "
+            "pass the --out folder of `aerialmtl predict`"
+        )
+    if height_ref is None and dsm_ref is None and labels_ref is None:
+        raise InputError("no reference given: pass a reference height raster (--height) and/or labels (--labels)")
+    if not height_threshold >= 0:
+        raise InputError(f"--height-threshold must be ≥ 0 metres, got {height_threshold}")
+    if out is not None and Path(out).exists() and not overwrite:
+        raise OutputExistsError(
+            f"report '{out}' already exists; pass --overwrite to replace it or choose another --out"
+        )
+    return files
+
+
+def _open_prediction(
+    files: dict[str, Path], needed: list[str], opened: list[Any]
+) -> tuple[dict[str, rasterio.io.DatasetReader], Grid]:
+    """Open the ``needed`` layers present in ``files`` (appended to ``opened``); check they share one grid."""
+    srcs: dict[str, rasterio.io.DatasetReader] = {}
+    for key in needed:
+        if key in files:
+            srcs[key] = open_raster(files[key], f"prediction {files[key].name}")
+            opened.append(srcs[key])
+    first = next(iter(srcs.values()))
+    grid = grid_of(first)
+    for key, src in srcs.items():
+        if (src.width, src.height) != (grid.width, grid.height) or not src.transform.almost_equals(grid.transform):
+            raise InputError(
+                f"'{files[key]}' is not on the grid of '{first.name}' ({src.width}×{src.height} vs "
+                f"{grid.width}×{grid.height}); all files of a prediction folder must share one grid"
+            )
+    return srcs, grid
+
+
+class LabelReference:
+    """Reference labels on the prediction grid, as class indices of ``scheme``.
+
+    Args:
+        path: label raster of raw codes (any CRS/GSD).
+        grid: the prediction grid.
+        scheme: the class scheme mapping codes to indices.
+        ignore_unknown_codes: codes outside the scheme become no-label instead of raising.
+    """
+
+    def __init__(self, path: str | Path, grid: Grid, scheme: ClassScheme, ignore_unknown_codes: bool) -> None:
+        self.path = path
+        self.scheme = scheme
+        self.on_unknown = "ignore" if ignore_unknown_codes else "error"
+        self.raster = AlignedRaster(path, grid, "labels", bands=[1], role="label reference")
+
+    def read(self, win: Window) -> np.ndarray:
+        """(h, w) uint8 class indices of ``win``, ``IGNORE_INDEX`` where unlabelled."""
+        codes, valid = self.raster.read(win)
+        return self.scheme.remap(codes[0], valid, on_unknown=self.on_unknown, source=str(self.path))  # type: ignore[arg-type]
+
+    def close(self) -> None:
+        self.raster.close()
+
+
+class HeightEvaluation:
+    """Height errors (and the quality of ``height_std``) accumulated row band by row band.
+
+    Args:
+        pred, std: the predicted ``height`` and (optional) ``height_std`` layers.
+        reference: reference heights on the prediction grid (metres).
+        stats: the error accumulator (:class:`~aerialmtl.evaluation.metrics.HeightStats`).
+        sample_size, seed: cap and seed of the subsample for the rank-based uncertainty metrics.
+        min_std: floor of the standard deviation in the Gaussian NLL (metres).
+    """
+
+    def __init__(self, pred: rasterio.io.DatasetReader, std: rasterio.io.DatasetReader | None,
+                 reference: HeightSource, stats: HeightStats, sample_size: int, seed: int, min_std: float) -> None:
+        self.pred, self.std, self.reference, self.stats = pred, std, reference, stats
+        self.sample = Subsample(sample_size, seed + 1) if std is not None else None
+        self.min_std = min_std
+        self.nll_sum, self.nll_n = 0.0, 0
+        #: the unit each reference layer was read in (see :meth:`HeightSource.units`)
+        self.units = reference.units()
+
+    def update(self, win: Window, labels_idx: np.ndarray | None) -> None:
+        """Add the pixels of ``win`` (per-class errors when ``labels_idx`` is given)."""
+        hp, hp_valid = _read_float(self.pred, win)
+        ref, ref_valid = self.reference.read(win)
+        mask = self.stats.update(hp, ref, hp_valid & ref_valid, labels_idx)
+        if self.sample is not None and self.std is not None:
+            sd, sd_valid = _read_float(self.std, win)
+            sel = mask & sd_valid
+            self.sample.add(abs_error=np.abs(hp[sel] - ref[sel]), std=sd[sel])
+            self.nll_sum += float(gaussian_nll_terms(hp[sel], sd[sel], ref[sel], self.min_std).sum())
+            self.nll_n += int(sel.sum())
+
+    def report_into(self, report: dict[str, Any], steps: int) -> None:
+        """Fill ``report["height"]``, ``report["uncertainty"]["height_std"]``, sampling counts and notes."""
+        notes = report["notes"]
+        report["height"] = self.stats.result()
+        report["sampling"]["height_pixels"] = self.stats.n
+        report["sampling"]["height_sampled"] = len(self.stats.sample)
+        if self.stats.n == 0:
+            notes.append("no pixel has both a predicted and a reference height: check that the files overlap")
+        if self.sample is None:
+            notes.append("no height_std.tif (prediction made with T = 1?): height uncertainty metrics skipped")
+            return
+        ae, sd = self.sample.get("abs_error"), self.sample.get("std")
+        report["uncertainty"]["height_std"] = {
+            "spearman_std_vs_abs_error": spearman(sd, ae),
+            "nll": self.nll_sum / self.nll_n if self.nll_n else math.nan,
+            "nll_min_std_m": self.min_std,
+            "n_pixels": self.nll_n,
+            "n_sampled": len(self.sample),
+            "sparsification": sparsification(ae, sd, steps),
+        }
+
+
+class ClassEvaluation:
+    """Confusion matrix, class-uncertainty samples and calibration, accumulated row band by row band.
+
+    Args:
+        srcs: the open prediction layers (``classes`` and any of ``class_entropy``,
+            ``class_mutual_info``, ``class_probabilities``).
+        classes_path: path of ``classes.tif`` (named in messages).
+        scheme, scheme_source: the class scheme and where it came from (named in messages).
+        sample_size, seed: cap and seed of the subsample for the rank-based uncertainty metrics.
+        ece_bins: bins of the expected calibration error.
+    """
+
+    def __init__(self, srcs: dict[str, rasterio.io.DatasetReader], classes_path: Path, scheme: ClassScheme | None,
+                 scheme_source: str, sample_size: int, seed: int, ece_bins: int) -> None:
+        self.srcs, self.classes_path = srcs, classes_path
+        self.scheme, self.scheme_source = scheme, scheme_source
+        self.k = scheme.num_classes if scheme is not None else 0
+        self.cm = np.zeros((self.k, self.k), np.int64)
+        self.n_unpredicted = 0
+        has_u = CLASS_ENTROPY in srcs or CLASS_MUTUAL_INFO in srcs
+        self.sample = Subsample(sample_size, seed + 2) if has_u else None
+        self.calib = CalibrationBins(ece_bins) if CLASS_PROBABILITIES in srcs else None
+
+    def update(self, win: Window, labels_idx: np.ndarray) -> None:
+        """Add the labelled pixels of ``win``."""
+        cp = self.srcs[CLASSES].read(1, window=win)
+        bad = (cp != IGNORE_INDEX) & (cp >= self.k)
+        if bad.any():
+            name = self.scheme.name if self.scheme is not None else ""
+            raise InputError(
+                f"'{self.classes_path}' holds class index {int(cp[bad].max())} but the class scheme "
+                f"'{name}' ({self.scheme_source}) has {self.k} classes; pass --classes with the scheme "
+                "the model was trained with"
+            )
+        self.cm += confusion_matrix(labels_idx, cp, self.k)
+        ref_ok = labels_idx != IGNORE_INDEX
+        self.n_unpredicted += int((ref_ok & (cp == IGNORE_INDEX)).sum())
+        sel = ref_ok & (cp != IGNORE_INDEX)
+        correct = labels_idx == cp
+        if self.sample is not None:
+            cols = {"error": (~correct[sel]).astype(np.uint8)}
+            for key in (CLASS_ENTROPY, CLASS_MUTUAL_INFO):
+                if key in self.srcs:
+                    cols[key] = _read_float(self.srcs[key], win)[0][sel]
+                else:
+                    cols[key] = np.full(int(sel.sum()), np.nan, np.float32)
+            self.sample.add(**cols)
+        if self.calib is not None:
+            src = self.srcs[CLASS_PROBABILITIES]
+            probs, p_valid = _read_float(src, win, list(range(1, src.count + 1)))
+            psel = sel & p_valid
+            self.calib.update(probs[:, psel].max(axis=0), correct[psel])
+
+    def report_into(self, report: dict[str, Any], names: Sequence[str], steps: int) -> None:
+        """Fill ``report["classes"]``, the class entries of ``report["uncertainty"]``, counts and notes."""
+        notes = report["notes"]
+        cls = classification_metrics(self.cm, list(names))
+        cls["n_reference_without_prediction"] = self.n_unpredicted
+        report["classes"] = cls
+        if self.sample is not None:
+            err = self.sample.get("error").astype(np.float64)
+            for key in (CLASS_ENTROPY, CLASS_MUTUAL_INFO):
+                if key in self.srcs:
+                    u = self.sample.get(key)
+                    report["uncertainty"][key] = {
+                        "n_sampled": len(self.sample),
+                        "spearman_vs_error": spearman(u, err),
+                        "sparsification": sparsification(err, u, steps),
+                    }
+            report["sampling"]["class_pixels"] = self.sample.total
+            report["sampling"]["class_sampled"] = len(self.sample)
+        else:
+            notes.append("no class_entropy.tif / class_mutual_info.tif: class uncertainty metrics skipped")
+        if self.calib is not None:
+            report["uncertainty"]["calibration"] = self.calib.result()
+        else:
+            notes.append("no class_probabilities.tif: ECE / reliability diagram skipped "
+                         "(predict with probabilities saved to get them)")
+
+
+__all__ = ["CLASS_SCHEME_TAG", "PREDICTION_FILES", "ClassEvaluation", "HeightEvaluation", "LabelReference",
+           "evaluate_prediction", "read_class_scheme_tag"]

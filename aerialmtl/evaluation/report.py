@@ -185,7 +185,7 @@ def write_report(report: dict[str, Any], out: str | Path, plots: bool = True) ->
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"cannot create the folder of --out '{out}' ({exc}); choose a writable location") from exc
+        raise OutputError(f"cannot create the folder of ‹out› '{out}' ({exc}); choose a writable location") from exc
     stem = out.with_suffix("")
     report["plots"] = []
     if plots:
@@ -199,7 +199,7 @@ def write_report(report: dict[str, Any], out: str | Path, plots: bool = True) ->
         os.replace(tmp, out)
         out.with_suffix(".md").write_text(markdown_summary(report), encoding="utf-8")
     except OSError as exc:
-        raise OutputError(f"cannot write the report '{out}' ({exc}); choose a writable --out") from exc
+        raise OutputError(f"cannot write the report '{out}' ({exc}); choose a writable ‹out›") from exc
     return out
 
 

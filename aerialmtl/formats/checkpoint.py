@@ -171,13 +171,13 @@ def check_same_data(path: str | Path, saved: ModelMeta, current: ModelMeta) -> N
 
         raise CheckpointError(
             f"checkpoint '{path}' was trained with {name(saved.classes)} but the tile folder has "
-            f"{name(current.classes)}; resume with the tile folder of that run (--data), or start a new run "
-            "(another --out, or --overwrite)"
+            f"{name(current.classes)}; resume with the tile folder of that run (‹data_dir›), or start a new run "
+            "(another ‹out_dir›, or ‹overwrite=True›)"
         )
     if tuple(saved.bands) != tuple(current.bands):
         raise CheckpointError(
             f"checkpoint '{path}' was trained on orthophoto bands {list(saved.bands)} but the tile folder has bands "
-            f"{list(current.bands)}; resume with the tile folder of that run (--data), or start a new run"
+            f"{list(current.bands)}; resume with the tile folder of that run (‹data_dir›), or start a new run"
         )
 
 

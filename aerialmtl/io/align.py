@@ -138,7 +138,7 @@ def check_bands(
         src: the open raster.
         bands: requested 1-based band indexes.
         role: what the raster is (``"orthophoto"``), named in the message.
-        bands_from: where the band list came from (an option such as ``--bands``, or a checkpoint).
+        bands_from: where the band list came from (a parameter mark such as ``‹bands›``, or a checkpoint).
         fix: what to do about it (default: choose bands that exist, with the option if it is one).
     """
     bad = [int(b) for b in bands if not 1 <= int(b) <= src.count]
@@ -190,7 +190,7 @@ def reference_grid(ortho: str | Path, gsd: float | None = None) -> Grid:
     if gsd is None:
         return grid
     if not gsd > 0:
-        raise AlignmentError(f"--gsd must be a positive pixel size in metres, got {gsd}")
+        raise AlignmentError(f"‹gsd› must be a positive pixel size in metres, got {gsd}", param="gsd")
     size = gsd / grid.unit_m  # CRS units
     left, bottom, right, top = grid.bounds
     width = max(1, math.ceil((right - left) / size - 1e-6))
@@ -389,11 +389,11 @@ class HeightSource:
         options: NdsmOptions = NdsmOptions(),
     ) -> None:
         if ndsm is not None and (dsm is not None or dtm is not None):
-            raise InputError("give either an nDSM (--ndsm) or a DSM and a DTM (--dsm/--dtm), not both")
+            raise InputError("give either an nDSM (‹ndsm›) or a DSM and a DTM (‹dsm›/‹dtm›), not both")
         if ndsm is None and (dsm is None) != (dtm is None):
-            raise InputError("--dsm and --dtm go together: pass both, or pass a ready nDSM with --ndsm")
+            raise InputError("‹dsm› and ‹dtm› go together: pass both, or pass a ready nDSM with ‹ndsm›")
         if ndsm is None and dsm is None:
-            raise InputError("no height layer given: pass --ndsm, or --dsm with --dtm")
+            raise InputError("no height layer given: pass ‹ndsm›, or ‹dsm› with ‹dtm›")
         self.options = options
         self.layers: list[AlignedRaster] = []
         try:

@@ -7,13 +7,13 @@ from pathlib import Path
 from aerialmtl.errors import OutputError
 
 
-def make_output_dir(path: str | Path, what: str = "output folder", option: str = "--out") -> bool:
+def make_output_dir(path: str | Path, what: str = "output folder", option: str = "‹out_dir›") -> bool:
     """Create ``path`` (and its parents) if missing.
 
     Args:
         path: the folder.
-        what: how the message calls it (``"run folder"``, ``"--out folder"``, ...).
-        option: the command-line option that names it.
+        what: how the message calls it (``"run folder"``, ``"‹out_dir› folder"``, ...).
+        option: the parameter that names it, as a mark (see :mod:`aerialmtl.errors`).
 
     Returns:
         True when this call created the folder (so a failed run may remove it again).

@@ -161,7 +161,7 @@ class VectorLabels:
         if items and not any(class_field in props for _, props in items):
             fields = sorted({k for _, props in items for k in props})
             raise InputError(
-                f"labels vector '{self.path}': no feature has the attribute --class-field '{class_field}'; "
+                f"labels vector '{self.path}': no feature has the attribute ‹class_field› '{class_field}'; "
                 f"available attributes: {', '.join(fields) or '(none)'}"
             )
         geoms, values, unknown = [], [], set()
@@ -179,7 +179,7 @@ class VectorLabels:
                 f"labels vector '{self.path}': values {', '.join(sorted(unknown))} of attribute '{class_field}' "
                 f"are neither codes ({scheme.codes}, ignored: {list(scheme.ignore_codes)}) nor names "
                 f"({scheme.names}) of class scheme '{scheme.name}'; fix the attribute, add them to the scheme, "
-                "or pass --ignore-unknown-codes to leave those polygons unlabelled"
+                "or pass ‹ignore_unknown_codes=True› to leave those polygons unlabelled"
             )
         gb = grid.bounds
         grid_box = box(*gb)

@@ -29,13 +29,15 @@ SmallPolicy = Literal["pad", "clip", "skip"]
 
 def _check(size: int, stride: int) -> None:
     if not isinstance(size, int) or size < 1:
-        raise InputError(f"patch size must be a positive number of pixels, got {size!r}; pass e.g. --size 320")
+        raise InputError(f"patch ‹size› must be a positive number of pixels, got {size!r}; pass e.g. ‹size=320›",
+                         param="size")
     if not isinstance(stride, int) or stride < 1:
-        raise InputError(f"stride must be a positive number of pixels, got {stride!r}; pass e.g. --stride {size}")
+        raise InputError(f"‹stride› must be a positive number of pixels, got {stride!r}; pass e.g. ‹stride={size}›",
+                         param="stride")
     if stride > size:
         raise InputError(
             f"stride {stride} is larger than the patch size {size}, which would leave gaps; "
-            f"use --stride ≤ --size (e.g. --stride {size})"
+            f"use ‹stride› ≤ ‹size› (e.g. ‹stride={size}›)", param="stride"
         )
 
 

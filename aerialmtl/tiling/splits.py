@@ -62,15 +62,16 @@ class SplitSpec:
             raise InputError(f"split method must be 'blocks' or 'aoi', got {self.method!r}")
         if self.method == "blocks":
             if not self.block_size > 0:
-                raise InputError(f"--split-block must be a positive size in metres, got {self.block_size}")
+                raise InputError(f"‹block_size› must be a positive size in metres, got {self.block_size}",
+                                 param="block_size")
             r = tuple(float(x) for x in self.ratios)
             if len(r) != 3 or any(x < 0 or not math.isfinite(x) for x in r) or sum(r) <= 0:
                 raise InputError(
-                    f"--split-ratios must be three non-negative numbers for train,val,test with a positive sum, "
-                    f"got {self.ratios}; e.g. --split-ratios 0.7,0.15,0.15"
+                    f"‹ratios› must be three non-negative numbers for train,val,test with a positive sum, "
+                    f"got {self.ratios}; e.g. ‹ratios=0.7,0.15,0.15›", param="ratios"
                 )
         elif self.aoi is None:
-            raise InputError("split method 'aoi' needs AOI polygons: pass --split-aoi FILE")
+            raise InputError("split method 'aoi' needs AOI polygons: pass ‹aoi=FILE›")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain mapping for ``dataset.yaml``."""
