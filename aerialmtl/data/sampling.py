@@ -40,7 +40,7 @@ def tall_shares(data_dir: str | Path, split: str = "train", threshold_m: float =
         rel = (row.get("height_path") or "").strip()
         if not rel:
             raise InputError(f"manifest row '{row.get('patch_id')}' of '{root / 'manifest.csv'}' has no height_path; "
-                             "height-stratified sampling needs a tile folder made with heights (--dsm/--dtm or --ndsm)")
+                             "height-stratified sampling needs a tile folder made with heights (‹dsm›/‹dtm› or ‹ndsm›)")
         with rasterio.open(root / rel) as src:
             h = src.read(1, masked=True)
         valid = ~np.ma.getmaskarray(h) & np.isfinite(h.filled(np.nan))
@@ -61,7 +61,7 @@ def stratified_weights(shares: np.ndarray, target: float = 0.5) -> np.ndarray:
         ``target`` or no patch has tall pixels; ``a`` is capped at :data:`MAX_SLOPE`).
     """
     if not 0 < target < 1:
-        raise InputError(f"target: the tall share to reach must be in (0, 1), got {target}")
+        raise InputError(f"‹target›: the tall share to reach must be in (0, 1), got {target}", param="target")
     s = np.asarray(shares, dtype=np.float64)
     if s.size == 0:
         return s
@@ -81,7 +81,7 @@ def repeat_counts(weights: np.ndarray) -> np.ndarray:
     if w.size == 0:
         return np.zeros(0, np.int64)
     if (w <= 0).any():
-        raise InputError("weights: every patch needs a positive weight")
+        raise InputError("‹weights›: every patch needs a positive weight", param="weights")
     return np.maximum(1, np.rint(w / w.min())).astype(np.int64)
 
 

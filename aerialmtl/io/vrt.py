@@ -42,7 +42,7 @@ def mosaic_vrt(sources: Sequence[str | Path], out: str | Path, nodata: float | N
             what differs).
     """
     if not sources:
-        raise InputError("sources: no raster given to mosaic; pass at least one file")
+        raise InputError("‹sources›: no raster given to mosaic; pass at least one file", param="sources")
     out = Path(out)
     metas = []
     for path in sources:

@@ -55,14 +55,16 @@ class PretrainSettings:
 
     def __post_init__(self) -> None:
         if not self.gsd > 0:
-            raise InputError(f"gsd must be a positive pixel size in metres, got {self.gsd}; pass e.g. 0.6")
+            raise InputError(f"‹gsd› must be a positive pixel size in metres, got {self.gsd}; pass e.g. ‹gsd=0.6›",
+                             param="gsd")
         if self.patch < 32 or self.patch % 32:
-            raise InputError(f"patch must be a multiple of 32 pixels, got {self.patch}; pass e.g. 256")
+            raise InputError(f"‹patch› must be a multiple of 32 pixels, got {self.patch}; pass e.g. ‹patch=256›",
+                             param="patch")
         if self.patch > self.town_size:
-            raise InputError(f"patch {self.patch} is larger than town_size {self.town_size}; lower patch or raise "
-                             "town_size")
+            raise InputError(f"‹patch› {self.patch} is larger than ‹town_size› {self.town_size}; lower ‹patch› or "
+                             "raise ‹town_size›", param="patch")
         if not 0 <= self.val_fraction < 1:
-            raise InputError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+            raise InputError(f"‹val_fraction› must be in [0, 1), got {self.val_fraction}", param="val_fraction")
 
 
 @dataclass(frozen=True)
@@ -110,8 +112,8 @@ def pretrain_synthetic(
     say = log or (lambda _msg: None)
     run_dir = out / "run"
     if run_dir.is_dir() and any(run_dir.iterdir()) and not overwrite:
-        raise OutputExistsError(f"'{out}' already holds a pretraining run; pass overwrite=True (--overwrite) "
-                                "or choose another folder")
+        raise OutputExistsError(f"'{out}' already holds a pretraining run; pass ‹overwrite=True› or choose another "
+                                "‹out_dir›")
     s = settings
     say(f"synthesising {s.towns} towns of {s.town_size} px at {s.gsd:g} m")
     corpus = synthesize_corpus(out / "corpus", towns=s.towns, size=s.town_size, gsd=s.gsd, seed=s.seed, crs=s.crs,

@@ -85,17 +85,20 @@ def synthesize_corpus(
     """
     t0 = time.perf_counter()
     if int(towns) != towns or towns < 1:
-        raise InputError(f"towns must be a positive number of towns, got {towns}; pass e.g. 16")
+        raise InputError(f"‹towns› must be a positive number of towns, got {towns}; pass e.g. ‹towns=16›",
+                         param="towns")
     if int(gap_px) != gap_px or gap_px < 0:
-        raise InputError(f"gap_px must be a number of pixels ≥ 0, got {gap_px}; use at least the patch size")
+        raise InputError(f"‹gap_px› must be a number of pixels ≥ 0, got {gap_px}; use at least the patch size",
+                         param="gap_px")
     if int(size) != size or size < MIN_SIZE:
-        raise InputError(f"size must be an integer ≥ {MIN_SIZE} pixels, got {size}; pass e.g. 1024")
+        raise InputError(f"‹size› must be an integer ≥ {MIN_SIZE} pixels, got {size}; pass e.g. ‹size=1024›",
+                         param="size")
     out = Path(out_dir)
     info_path = out / "corpus.json"
     if info_path.exists() or any((out / f"{name}.vrt").exists() for name in MOSAIC_LAYERS):
         if not overwrite:
-            raise OutputExistsError(f"'{out}' already holds a synthetic corpus; pass overwrite=True (--overwrite) "
-                                    "to replace it or choose another folder")
+            raise OutputExistsError(f"'{out}' already holds a synthetic corpus; pass ‹overwrite=True› to replace it "
+                                    "or choose another ‹out_dir›")
         for child in out.glob("town_*"):
             shutil.rmtree(child)
     out.mkdir(parents=True, exist_ok=True)
