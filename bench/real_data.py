@@ -130,10 +130,22 @@ class Recipe:
     note: str = ""
 
 
+#: Synthetic pretraining at 1 m: 16 towns of 768 m, 128-px patches, the same budget as a real run.
+SYNTH_G10: dict[str, Any] = {"towns": 16, "town_size": 768, "patch": 128, "stride": 64,
+                             "budget_mpx": 600 * 8 * 128 * 128 / 1e6}
+
 RECIPES: dict[str, Recipe] = {
     "scratch": Recipe(note="what a user gets today: small config, native 1 ft GSD, 320-px patches (97 m)"),
     "gsd06": Recipe(gsd=0.6, size=256, stride=128, note="0.6 m working GSD: 3.9x fewer pixels, 256-px patches (154 m)"),
     "gsd10": Recipe(gsd=1.0, size=128, stride=32, note="1 m working GSD (the reference's): 128-px patches (128 m)"),
+    "berhu_g10": Recipe(gsd=1.0, size=128, stride=32, overrides={"loss": {"height": "berhu"}},
+                        note="gsd10 + reverse Huber height loss (L2 on large errors: tall objects)"),
+    "strat_g10": Recipe(gsd=1.0, size=128, stride=32, stratify=0.5,
+                        note="gsd10 + height-stratified sampling (half the pixels drawn are >= 2 m)"),
+    "synth_zero_g10": Recipe(gsd=1.0, size=128, stride=32, pretrain=SYNTH_G10, zero_shot=True,
+                             note="pretrained on 16 synthetic towns at 1 m only, no real training (zero-shot)"),
+    "synth_ft_g10": Recipe(gsd=1.0, size=128, stride=32, pretrain=SYNTH_G10,
+                           note="pretrained on 16 synthetic towns at 1 m, then fine-tuned on the real area"),
 }
 
 
