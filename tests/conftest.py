@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+import os
 
-import numpy as np
-import pytest
-import rasterio
-import torch
-from affine import Affine
+# Before torch loads OpenMP: threads that sleep instead of spinning while they wait. On a CPU shared with
+# other jobs, spinning threads steal the cores the work needs (bench/RESULTS.md, train: 6× slower model
+# steps at load 6); results do not change, only their speed. Child processes (torchrun, notebooks) inherit it.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import rasterio  # noqa: E402
+import torch  # noqa: E402
+from affine import Affine  # noqa: E402
 
 #: Real sample data shipped beside the repository (see ../shared/data/README.md).
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

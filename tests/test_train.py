@@ -207,7 +207,7 @@ def test_height_only_folder_and_bf16(tmp_path: Path) -> None:
 
 def test_balanced_class_weights(tiles: Path, tmp_path: Path) -> None:
     from aerialmtl.data.dataset import read_tile_info
-    from aerialmtl.training.loop import _class_weights
+    from aerialmtl.training.objective import class_weights as _class_weights
 
     w = _class_weights(tiny_cfg(loss={"class_weights": "balanced"}), read_tile_info(tiles), 3)
     assert w is not None and w.shape == (3,) and w.mean() == pytest.approx(1.0)
@@ -241,3 +241,159 @@ def test_cli_train_and_refuse_reuse(tiles: Path, tmp_path: Path) -> None:
     assert res.exit_code == 0 and "after 2 steps" in res.output
     res = CliRunner().invoke(cli, args[:-3] + ["--max-steps", "0"])
     assert res.exit_code == 2 and "--max-steps" in res.output
+
+
+# ---- precision, compile, optimizer ----------------------------------------------------------------
+def test_precision_auto_is_fp32_on_cpu_and_the_default() -> None:
+    from aerialmtl.training.trainer import resolve_precision
+
+    assert TrainConfig().precision == "auto"
+    assert resolve_precision("auto", torch.device("cpu")) == "fp32"
+    assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
+
+
+def test_loss_registries_match_the_config_choices() -> None:
+    import typing
+
+    from aerialmtl.training import losses
+    from aerialmtl.training.config import HeightLoss, LossSection
+
+    assert set(typing.get_args(HeightLoss)) == set(losses.HEIGHT_LOSSES)
+    assert set(typing.get_args(typing.get_type_hints(LossSection)["classes"])) == set(losses.CLASS_LOSSES)
+
+
+def test_weight_decay_spares_biases_batchnorm_and_task_weighting() -> None:
+    from aerialmtl.models.d3net import D3Net
+    from aerialmtl.training.trainer import build_optimizer
+    from aerialmtl.training.weighting import build_weighting
+
+    cfg = tiny_cfg(optim={"name": "adamw", "lr": 0.1, "weight_decay": 0.5})
+    model = D3Net(cfg.model.resolve(3, ("height", "classes"), 3))
+    weighting = build_weighting("uncertainty", ["height", "classes"])
+    opt = build_optimizer(cfg.optim, model, weighting)
+    decay, rest = opt.param_groups
+    assert decay["weight_decay"] == 0.5 and rest["weight_decay"] == 0.0
+    n_params = len(list(model.parameters())) + len(list(weighting.parameters()))
+    assert len(decay["params"]) + len(rest["params"]) == n_params
+    conv = model.encoder.features.conv0.weight
+    bn = model.encoder.features.norm0.weight
+    log_var = weighting.log_vars["height"]
+    before = {"conv": conv.detach().clone(), "bn": bn.detach().clone(), "s": log_var.detach().clone()}
+    for p in list(model.parameters()) + list(weighting.parameters()):
+        p.grad = torch.zeros_like(p)
+    opt.step()  # zero gradients: AdamW only applies its decoupled decay, p ← p (1 − lr·wd)
+    torch.testing.assert_close(conv.detach(), before["conv"] * (1 - 0.1 * 0.5))
+    assert torch.equal(bn.detach(), before["bn"]) and torch.equal(log_var.detach(), before["s"])
+    with pytest.raises(ConfigError, match="optim.weight_decay.*≥ 0"):
+        tiny_cfg(optim={"weight_decay": -1.0})
+
+
+def test_compile_failure_falls_back_to_eager(tiles: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def broken_compile(model: torch.nn.Module, **kw: object) -> object:
+        def run(*a: object, **k: object) -> object:
+            raise RuntimeError("no C++ compiler for inductor")
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    with pytest.warns(UserWarning, match="compile: torch.compile failed.*no C\\+\\+ compiler.*without it"):
+        res = train(tiny_cfg(compile=True), tiles, tmp_path / "r", max_steps=2, progress=False)
+    assert res.step == 2 and all(v == v for v in train_losses(res.log_path))
+
+
+# ---- early stopping ---------------------------------------------------------------------------------
+def test_early_stopping_after_patience_validations_without_improvement(tiles: Path, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.training.trainer import Trainer
+
+    val_losses = iter([1.0, 0.8, 0.9, 0.85, 0.7])  # best at the 2nd validation, then two worse ones
+
+    def fake_validate(self: Trainer) -> dict[str, float]:
+        v = next(val_losses)
+        return {"val_loss_height": v, "val_loss_classes": v}
+
+    monkeypatch.setattr(Trainer, "validate", fake_validate)
+    cfg = tiny_cfg(schedule={"patience": 2})  # 8 patches / batch 4: a validation every 2 steps
+    res = train(cfg, tiles, tmp_path / "r", progress=False)
+    assert res.stopped_by == "patience" and res.step == 8
+    with res.log_path.open() as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh) if r["kind"] == "val"] == [2, 4, 6, 8]
+    best = load_checkpoint(res.best_checkpoint)[0]["train_state"]
+    assert best["step"] == 4 and best["best_score"] == pytest.approx(1.6)
+    assert load_checkpoint(res.last_checkpoint)[0]["train_state"]["since_best"] == 2
+    with pytest.raises(ConfigError, match="schedule.patience"):
+        tiny_cfg(schedule={"patience": 0})
+
+
+# ---- fine-tuning from a checkpoint (--init) -------------------------------------------------------
+@pytest.fixture(scope="module")
+def trained(tiles: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = tmp_path_factory.mktemp("init") / "run"
+    return train(tiny_cfg(), tiles, run, max_steps=2, progress=False).last_checkpoint
+
+
+def _retag(src: Path, dst: Path, **changes: object) -> Path:
+    """A copy of tile folder ``src`` whose dataset.yaml has ``changes`` (e.g. another class scheme)."""
+    import dataclasses
+    import shutil
+
+    from aerialmtl.formats.tiles import TileFolderInfo
+
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("cache"))
+    info = TileFolderInfo.read(dst)
+    dataclasses.replace(info, **changes).write()
+    return dst
+
+
+def test_init_loads_what_fits_and_reinitialises_other_class_heads(trained: Path, tiles: Path, tmp_path: Path) -> None:
+    from aerialmtl.classes import ClassScheme
+
+    scheme = ClassScheme.from_dict({"name": "other", "classes": [
+        {"code": 1, "name": "water", "color": [0, 0, 255]}, {"code": 2, "name": "road", "color": [90, 90, 90]},
+        {"code": 3, "name": "grass", "color": [0, 200, 0]}]})
+    other = _retag(tiles, tmp_path / "other", classes=scheme)
+    with pytest.warns(UserWarning, match=r"init: loaded \d+ tensors.*the classes head \(the checkpoint has class "
+                                         r"scheme 'toy' \(3 classes\), the tile folder class scheme 'other'"):
+        # lr 1e-30: one step leaves the weights as they were loaded
+        res = train(tiny_cfg(optim={"lr": 1e-30}), other, tmp_path / "ft", max_steps=1, init=trained, progress=False)
+    assert res.model is not None
+    source, state = load_checkpoint(trained)[0]["state_dict"], res.model.state_dict()
+    for key in ("encoder.features.conv0.weight", "shared.0.up.weight", "heads.height.head.weight"):
+        torch.testing.assert_close(state[key], source[key])
+    assert not torch.allclose(state["heads.classes.head.weight"], source["heads.classes.head.weight"])  # afresh
+
+
+def test_init_refuses_other_bands_and_architectures(trained: Path, tiles: Path, tmp_path: Path) -> None:
+    from aerialmtl.errors import CheckpointError
+
+    other = _retag(tiles, tmp_path / "bands", bands=(4, 1, 2))
+    with pytest.raises(CheckpointError, match=r"init: .*bands \[1, 2, 3\].*bands \[4, 1, 2\].*same bands"):
+        train(tiny_cfg(), other, tmp_path / "a", max_steps=1, init=trained, progress=False)
+    with pytest.raises(CheckpointError, match=r"init: .*another architecture \(model.growth_rate: checkpoint 8, "
+                                              r"config 12\).*config.yaml"):
+        train(tiny_cfg(model={"growth_rate": 12}), tiles, tmp_path / "b", max_steps=1, init=trained, progress=False)
+
+
+def test_init_into_a_new_task_and_cli_flags(trained: Path, tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from aerialmtl.cli import cli
+
+    height_only = write_tile_folder(tmp_path / "h", counts={"train": 4, "val": 0}, tasks=("height",))
+    res = train(tiny_cfg(), height_only, tmp_path / "r", max_steps=1, init=trained, progress=False)  # no warning
+    assert res.model is not None and tuple(res.model.tasks) == ("height",)
+    runner = CliRunner()
+    out = runner.invoke(cli, ["train", "--data", str(height_only), "--out", str(tmp_path / "r"), "--resume",
+                              "--init", str(trained)])
+    assert out.exit_code == 2 and "--resume/--init" in out.output
+    out = runner.invoke(cli, ["train", "--data", str(height_only), "--out", str(tmp_path / "x"), "--init",
+                              str(tmp_path / "missing.pt")])
+    assert out.exit_code == 2 and "--init" in out.output and "missing.pt" in out.output
+
+
+def test_sync_bn_is_a_training_option_not_saved_in_the_model(tiles: Path, tmp_path: Path) -> None:
+    res = train(tiny_cfg(model={"sync_bn": True}), tiles, tmp_path / "r", max_steps=1, progress=False)
+    _, meta = load_checkpoint(res.last_checkpoint)
+    assert not hasattr(meta.model, "sync_bn")
+    assert load_train_config(res.config_path).model.sync_bn is True  # --resume keeps it
+    with pytest.raises(ConfigError, match=r"model\.sync_bn.*true or false"):
+        TrainConfig.from_dict({"model": {"sync_bn": "yes"}})

@@ -6,13 +6,14 @@ small network can fit both tasks in a few dozen steps.
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
 import rasterio
-import yaml
 from affine import Affine
+
+from aerialmtl.classes import ClassScheme
+from aerialmtl.formats.tiles import MANIFEST_COLUMNS, ManifestWriter, TileFolderInfo, patch_path
 
 CRS = "EPSG:32631"
 SCHEME = {
@@ -24,9 +25,6 @@ SCHEME = {
         {"code": 3, "name": "tree", "color": [20, 120, 30]},
     ],
 }
-COLUMNS = ["patch_id", "split", "image_path", "height_path", "classes_path", "col_off", "row_off", "width",
-           "height", "left", "bottom", "right", "top", "crs", "valid_fraction", "class_hist", "height_min",
-           "height_mean", "height_max"]
 
 
 def toy_patch(rng: np.random.Generator, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -66,7 +64,7 @@ def write_tile_folder(
     for split, count in counts.items():
         for layer in ("image", *tasks):
             (root / split / layer).mkdir(parents=True, exist_ok=True)
-        for i in range(count):
+        for _ in range(count):
             pid = f"p{n:04d}"
             image, height, cls = toy_patch(rng, size)
             valid = np.ones((size, size), bool)
@@ -76,11 +74,11 @@ def write_tile_folder(
             left, top = 500000.0 + n * size * gsd, 5000000.0
             tr = Affine(gsd, 0, left, 0, -gsd, top)
             base = dict(driver="GTiff", width=size, height=size, crs=CRS, transform=tr)
-            row = {c: "" for c in COLUMNS}
+            row = {c: "" for c in MANIFEST_COLUMNS}
             row.update(patch_id=pid, split=split, col_off=n * size, row_off=0, width=size, height=size,
                        left=left, bottom=top - size * gsd, right=left + size * gsd, top=top, crs=CRS,
                        valid_fraction=float(valid.mean()))
-            row["image_path"] = f"{split}/image/{pid}.tif"
+            row["image_path"] = patch_path(split, "image", pid)
             with rasterio.open(root / row["image_path"], "w", count=3, dtype="uint8", **base) as dst:
                 dst.write(image)
                 dst.write_mask(valid.astype(np.uint8) * 255)
@@ -88,7 +86,7 @@ def write_tile_folder(
                 stats.append(image[:, valid].astype(np.float64))
             if "height" in tasks:
                 h = np.where(valid, height, -9999.0).astype(np.float32)
-                row["height_path"] = f"{split}/height/{pid}.tif"
+                row["height_path"] = patch_path(split, "height", pid)
                 with rasterio.open(root / row["height_path"], "w", count=1, dtype="float32", nodata=-9999.0,
                                    **base) as dst:
                     dst.write(h[None])
@@ -96,7 +94,7 @@ def write_tile_folder(
                            height_max=float(height[valid].max()))
             if "classes" in tasks:
                 c = np.where(valid, cls, 255).astype(np.uint8)
-                row["classes_path"] = f"{split}/classes/{pid}.tif"
+                row["classes_path"] = patch_path(split, "classes", pid)
                 with rasterio.open(root / row["classes_path"], "w", count=1, dtype="uint8", nodata=255,
                                    **base) as dst:
                     dst.write(c[None])
@@ -104,19 +102,16 @@ def write_tile_folder(
             rows.append(row)
             n += 1
     allpix = np.concatenate(stats, axis=1)
-    meta = {
-        "format": "aerialmtl-tiles", "format_version": 1, "crs": CRS, "gsd": gsd, "patch_size": size,
-        "stride": size, "bands": [1, 2, 3], "band_names": ["red", "green", "blue"], "dtype": "uint8",
-        "mean": [float(v) for v in allpix.mean(axis=1)], "std": [float(v) for v in allpix.std(axis=1)],
-        "tasks": list(tasks), "classes": SCHEME if "classes" in tasks else None,
-        "height": {"nodata": -9999.0, "clip_negative": True, "max_height": None, "source": "ndsm"}
+    TileFolderInfo(
+        root=root, crs=CRS, gsd=gsd, patch_size=size, stride=size, bands=(1, 2, 3),
+        band_names=("red", "green", "blue"), dtype="uint8",
+        mean=tuple(float(v) for v in allpix.mean(axis=1)), std=tuple(float(v) for v in allpix.std(axis=1)),
+        tasks=tasks, classes=ClassScheme.from_dict(SCHEME) if "classes" in tasks else None,
+        height={"nodata": -9999.0, "clip_negative": True, "max_height": None, "source": "ndsm"}
         if "height" in tasks else None,
-        "splits": {"method": "test"}, "counts": counts, "provenance": {"inputs": "tests/tilefolder.py"},
-    }
-    with (root / "dataset.yaml").open("w") as fh:
-        yaml.safe_dump(meta, fh)
-    with (root / "manifest.csv").open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
+        splits={"method": "test"}, counts=counts, provenance={"inputs": "tests/tilefolder.py"},
+    ).write()
+    with ManifestWriter(root) as manifest:
+        for row in rows:
+            manifest.writerow(row)
     return root

@@ -7,6 +7,7 @@ one-line message on stderr with exit code 1. ``--debug`` shows the traceback ins
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 
@@ -40,7 +41,10 @@ for _command in (synth, tile, train, predict, evaluate, demo):
 
 def _one_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
-    return text or exc.__class__.__name__
+    text = text or exc.__class__.__name__
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # one of several torchrun processes: say which
+        text = f"[rank {os.environ.get('RANK', '?')}] {text}"
+    return text
 
 
 def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,

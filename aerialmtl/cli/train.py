@@ -1,4 +1,8 @@
-"""`aerialmtl train`: train a D3-Net on a tile folder (thin wrapper over :func:`aerialmtl.training.loop.train`)."""
+"""`aerialmtl train`: train a D3-Net on a tile folder (thin wrapper over :func:`aerialmtl.training.loop.train`).
+
+Under ``torchrun`` every process runs this command: they all check the options and the run folder (nobody
+writes before they agree), then rank 0 alone prepares the folder and later writes into it.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +15,31 @@ from aerialmtl.errors import OutputExistsError
 from aerialmtl.io.outputs import make_output_dir
 
 
+def _check_run_folder(out_dir: Path, resume: bool, overwrite: bool, config_path: Path | None) -> Path | None:
+    """Validate --out against --resume/--overwrite (read-only); returns the config path to use."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise click.BadParameter(f"'{out_dir}' is a file; pass a folder", param_hint="--out")
+    non_empty = out_dir.is_dir() and any(out_dir.iterdir())
+    if resume:
+        if not (out_dir / "last.pt").is_file():
+            raise click.BadParameter(f"'{out_dir / 'last.pt'}' does not exist; there is no run to resume there",
+                                     param_hint="--resume")
+        return config_path or out_dir / "config.yaml"
+    if non_empty and not overwrite:
+        raise OutputExistsError(
+            f"run folder '{out_dir}' is not empty; pass --resume to continue it, --overwrite to replace it, "
+            "or another --out"
+        )
+    return config_path
+
+
+def _prepare_run_folder(out_dir: Path, clear: bool) -> None:
+    if clear and out_dir.is_dir():
+        for child in out_dir.iterdir():
+            shutil.rmtree(child) if child.is_dir() else child.unlink()
+    make_output_dir(out_dir, "run folder")
+
+
 @click.command(name="train")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Training YAML (e.g. configs/d3net_small_synth.yaml). With --resume, defaults to RUN/config.yaml.")
@@ -20,20 +49,31 @@ from aerialmtl.io.outputs import make_output_dir
               show_default=True, help="Run folder for last.pt, best.pt, log.csv and config.yaml.")
 @click.option("--max-steps", type=int, help="Stop after this many optimisation steps in total.")
 @click.option("--max-time", "max_time", type=float, help="Wall-clock budget of this call in seconds.")
-@click.option("--resume", is_flag=True, help="Continue the run in --out from its last.pt.")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last.pt (any number of processes).")
+@click.option("--init", "init_ckpt", type=click.Path(dir_okay=False, path_type=Path),
+              help="Start from the weights of this aerialmtl checkpoint (fine-tuning); task heads of other "
+                   "classes or tasks start afresh.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), help="Overrides the config's device.")
-@click.option("--precision", type=click.Choice(["fp32", "bf16"]), help="Overrides the config's precision.")
+@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]),
+              help="Overrides the config's precision (auto: bf16 autocast on a GPU, fp32 on a CPU).")
+@click.option("--compile", "compile_model", is_flag=True,
+              help="torch.compile the model (training continues without it, with a warning, if it fails).")
 @click.option("--overwrite", is_flag=True, help="Delete the contents of a non-empty --out first.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_steps: int | None,
-          max_time: float | None, resume: bool, device: str | None, precision: str | None, overwrite: bool,
-          quiet: bool) -> None:
+          max_time: float | None, resume: bool, init_ckpt: Path | None, device: str | None, precision: str | None,
+          compile_model: bool, overwrite: bool, quiet: bool) -> None:
     """Train the multi-task D3-Net (height + land cover) on patches made by `aerialmtl tile`.
 
-    Writes RUN/last.pt (every validation and at the end), RUN/best.pt (best validation score),
-    RUN/log.csv and RUN/config.yaml. A run stopped by --max-time or --max-steps continues with --resume.
+    Writes RUN/last.pt (every validation and at the end), RUN/best.pt (best validation score; the one to
+    predict with), RUN/log.csv and RUN/config.yaml. A run stopped by --max-time or --max-steps continues
+    with --resume. On N GPUs or machines, start it with torchrun (data.batch_size is then per process):
+
+    \b
+        torchrun --nproc_per_node N -m aerialmtl train --config C --data D --out RUN
     """
     from aerialmtl.training.config import load_train_config
+    from aerialmtl.training.distributed import DistContext, install_stop_handler
     from aerialmtl.training.loop import train as train_loop
 
     if max_steps is not None and max_steps < 1:
@@ -43,32 +83,34 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     if resume and overwrite:
         raise click.BadParameter("--resume continues a run and --overwrite deletes it; pass only one",
                                  param_hint="--resume/--overwrite")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise click.BadParameter(f"'{out_dir}' is a file; pass a folder", param_hint="--out")
-    non_empty = out_dir.is_dir() and any(out_dir.iterdir())
-    if resume:
-        if not (out_dir / "last.pt").is_file():
-            raise click.BadParameter(f"'{out_dir / 'last.pt'}' does not exist; there is no run to resume there",
-                                     param_hint="--resume")
-        config_path = config_path or out_dir / "config.yaml"
-    elif non_empty:
-        if not overwrite:
-            raise OutputExistsError(
-                f"run folder '{out_dir}' is not empty; pass --resume to continue it, --overwrite to replace it, "
-                "or another --out"
-            )
-        for child in out_dir.iterdir():
-            shutil.rmtree(child) if child.is_dir() else child.unlink()
+    if resume and init_ckpt is not None:
+        raise click.BadParameter("--resume continues the run's own weights; --init starts a new run from a "
+                                 "checkpoint; pass only one", param_hint="--resume/--init")
+    if init_ckpt is not None and not init_ckpt.is_file():
+        raise click.BadParameter(f"'{init_ckpt}' does not exist; pass the best.pt or last.pt of a training run",
+                                 param_hint="--init")
+    config_path = _check_run_folder(out_dir, resume, overwrite, config_path)
     if config_path is None:
         raise click.BadParameter("pass a training YAML, e.g. configs/d3net_small_synth.yaml", param_hint="--config")
 
     cfg = load_train_config(config_path)
-    make_output_dir(out_dir, "run folder")
-    overrides = {k: v for k, v in (("device", device), ("precision", precision)) if v is not None}
+    overrides: dict[str, object] = {k: v for k, v in (("device", device), ("precision", precision)) if v is not None}
+    if compile_model:
+        overrides["compile"] = True
     if overrides:
         cfg = cfg.with_overrides(**overrides)
-    result = train_loop(cfg, data_dir=data_dir, out_dir=out_dir, max_steps=max_steps, max_time_s=max_time,
-                        resume=resume, progress=not quiet)
+    ctx = DistContext.from_env(cfg.device)
+    try:
+        if ctx.distributed:
+            install_stop_handler()
+        ctx.barrier()  # every process has checked the folder before rank 0 changes it
+        ctx.main_first(lambda: _prepare_run_folder(out_dir, overwrite and not resume))
+        result = train_loop(cfg, data_dir=data_dir, out_dir=out_dir, max_steps=max_steps, max_time_s=max_time,
+                            resume=resume, progress=not quiet, init=init_ckpt, ctx=ctx)
+    finally:
+        ctx.close()
+    if not ctx.is_main:
+        return
     m = result.metrics
     parts = [f"{k}={m[k]:.4g}" for k in ("height_mae", "height_rmse", "oa", "miou") if k in m]
     click.echo(f"stopped by {result.stopped_by} after {result.step} steps ({result.epoch} epochs, "

@@ -1,134 +1,36 @@
-"""Torch dataset over a tile folder written by ``aerialmtl tile`` (see docs/CONTRACTS.md).
+"""Torch dataset over a tile folder written by ``aerialmtl tile`` (format: :mod:`aerialmtl.formats.tiles`).
 
 A tile folder holds ``dataset.yaml`` (normalisation, class scheme, tasks, ...), ``manifest.csv`` (one row
-per patch) and one GeoTIFF per patch and layer. :class:`PatchDataset` reads one split of it and returns
-:class:`~aerialmtl.data.types.Sample` dicts; patches are opened with rasterio inside ``__getitem__`` so
-the dataset can be used with DataLoader worker processes (nothing holds an open file handle).
+per patch) and one GeoTIFF per patch and layer. :func:`read_raw_patch` decodes one patch's layers as
+stored (the one place that turns GeoTIFF masks and nodata into validity); :class:`PatchDataset` reads one
+split of it and returns normalised :class:`~aerialmtl.data.types.Sample` dicts; patches are opened with
+rasterio inside ``__getitem__`` so the dataset can be used with DataLoader worker processes (nothing holds
+an open file handle). Training reads the same values from the decoded cache (:mod:`aerialmtl.data.cache`).
 """
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import rasterio
 import torch
 
-from aerialmtl.classes import IGNORE_INDEX, ClassScheme
-from aerialmtl.config import read_yaml
+from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.data.types import Sample
-from aerialmtl.errors import ConfigError, InputError
-
-TASKS = ("height", "classes")
-SPLITS = ("train", "val", "test")
-TILE_FORMAT = "aerialmtl-tiles"
+from aerialmtl.errors import InputError
+from aerialmtl.formats.tiles import (
+    MANIFEST_CSV,
+    SPLITS,
+    TASKS,
+    TileFolderInfo,
+    read_manifest,
+    read_tile_info,
+)
 
 Transform = Callable[[Sample], Sample]
-
-
-@dataclass(frozen=True)
-class TileFolderInfo:
-    """The parts of ``dataset.yaml`` that datasets, training and checkpoints use.
-
-    Attributes:
-        root: the tile folder.
-        tasks: tasks whose layers are present (subset of ``("height", "classes")``).
-        bands: 1-based orthophoto band indexes stored in the image patches.
-        band_names: one name per band.
-        mean, std: per-band normalisation in raw image units (train split, valid pixels).
-        gsd: ground sampling distance in metres per pixel.
-        crs: CRS string of the patches.
-        patch_size: patch side in pixels.
-        classes: the class scheme, ``None`` without the classes task.
-        raw: the whole parsed ``dataset.yaml``.
-    """
-
-    root: Path
-    tasks: tuple[str, ...]
-    bands: tuple[int, ...]
-    band_names: tuple[str, ...]
-    mean: tuple[float, ...]
-    std: tuple[float, ...]
-    gsd: float
-    crs: str | None
-    patch_size: int
-    classes: ClassScheme | None
-    raw: dict[str, Any]
-
-    @property
-    def num_bands(self) -> int:
-        return len(self.bands)
-
-
-def _not_a_tile_folder(root: Path, what: str) -> InputError:
-    return InputError(
-        f"'{root}' is not a tile folder: {what}. Run `aerialmtl tile` to make one, "
-        "and pass the folder it wrote (the one holding dataset.yaml and manifest.csv)"
-    )
-
-
-def read_tile_info(data_dir: str | Path) -> TileFolderInfo:
-    """Parse and check ``data_dir/dataset.yaml``.
-
-    Raises:
-        InputError: the folder or ``dataset.yaml`` is missing, or the file is not a tile-folder description.
-    """
-    root = Path(data_dir)
-    if not root.is_dir():
-        raise InputError(f"data folder '{root}' does not exist; run `aerialmtl tile` first or pass --data")
-    yml = root / "dataset.yaml"
-    if not yml.is_file():
-        raise _not_a_tile_folder(root, f"'{yml}' is missing")
-    if not (root / "manifest.csv").is_file():
-        raise _not_a_tile_folder(root, f"'{root / 'manifest.csv'}' is missing")
-    try:
-        raw = read_yaml(yml)
-    except ConfigError as exc:
-        raise _not_a_tile_folder(root, str(exc)) from exc
-    if not isinstance(raw, dict) or raw.get("format") != TILE_FORMAT:
-        raise _not_a_tile_folder(root, f"'{yml}' has no 'format: {TILE_FORMAT}' entry")
-    try:
-        bands = tuple(int(b) for b in raw["bands"])
-        mean = tuple(float(v) for v in raw["mean"])
-        std = tuple(float(v) for v in raw["std"])
-        tasks = tuple(t for t in raw.get("tasks") or () if t in TASKS)
-        classes = ClassScheme.from_dict(raw["classes"]) if raw.get("classes") else None
-        info = TileFolderInfo(
-            root=root,
-            tasks=tasks,
-            bands=bands,
-            band_names=tuple(str(n) for n in (raw.get("band_names") or [f"band{b}" for b in bands])),
-            mean=mean,
-            std=std,
-            gsd=float(raw["gsd"]),
-            crs=None if raw.get("crs") is None else str(raw["crs"]),
-            patch_size=int(raw["patch_size"]),
-            classes=classes,
-            raw=raw,
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"'{yml}' is incomplete or invalid ({exc!r}); re-run `aerialmtl tile`") from exc
-    if not (len(info.bands) == len(info.mean) == len(info.std)):
-        raise InputError(f"'{yml}': bands, mean and std have different lengths; re-run `aerialmtl tile`")
-    if any(s <= 0 for s in info.std):
-        raise InputError(f"'{yml}': std must be > 0 for every band, got {list(info.std)}")
-    if "classes" in info.tasks and info.classes is None:
-        raise InputError(f"'{yml}': tasks include 'classes' but 'classes' (the class scheme) is empty")
-    return info
-
-
-def read_manifest(data_dir: str | Path, split: str | None = None) -> list[dict[str, str]]:
-    """Rows of ``manifest.csv`` (all, or those of ``split``) as dicts of strings."""
-    path = Path(data_dir) / "manifest.csv"
-    with path.open("r", newline="", encoding="utf-8") as fh:
-        rows = list(csv.DictReader(fh))
-    if rows and "split" not in rows[0]:
-        raise _not_a_tile_folder(Path(data_dir), f"'{path}' has no 'split' column")
-    return [r for r in rows if split is None or r["split"] == split]
 
 
 def class_pixel_counts(data_dir: str | Path, split: str, num_classes: int) -> np.ndarray:
@@ -140,6 +42,101 @@ def class_pixel_counts(data_dir: str | Path, split: str, num_classes: int) -> np
             values = [int(float(v)) for v in hist.split(";")]
             counts[: min(num_classes, len(values))] += values[:num_classes]
     return counts
+
+
+@dataclass
+class RawPatch:
+    """One patch's layers as stored (before normalisation).
+
+    Attributes:
+        image: (C, H, W) in the image patches' dtype.
+        image_valid: bool (H, W), True where the image is valid.
+        height: float32 (H, W) metres, NaN where invalid (nodata, non-finite, or the image invalid);
+            ``None`` when not requested.
+        classes: uint8 (H, W) class indices, ``IGNORE_INDEX`` where unlabelled or the image is invalid;
+            ``None`` when not requested.
+    """
+
+    image: np.ndarray
+    image_valid: np.ndarray
+    height: np.ndarray | None = None
+    classes: np.ndarray | None = None
+
+
+def _layer_path(root: Path, row: dict[str, str], key: str) -> Path:
+    rel = (row.get(key) or "").strip()
+    if not rel:
+        raise InputError(
+            f"manifest row '{row.get('patch_id')}' of '{root / MANIFEST_CSV}' has no {key}; "
+            "re-run `aerialmtl tile`"
+        )
+    return root / rel
+
+
+def read_raw_patch(root: Path, row: dict[str, str], num_bands: int, tasks: Sequence[str]) -> RawPatch:
+    """Decode the patch of manifest ``row`` of tile folder ``root``: the image and the layers of ``tasks``.
+
+    Raises:
+        InputError: the row lacks a layer's path, or the image patch has another number of bands than
+            ``dataset.yaml`` lists.
+    """
+    image_path = _layer_path(root, row, "image_path")
+    with rasterio.open(image_path) as src:
+        image = src.read()
+        img_valid = src.dataset_mask() > 0
+    if image.shape[0] != num_bands:
+        raise InputError(
+            f"image patch '{image_path}' has {image.shape[0]} bands but dataset.yaml "
+            f"lists {num_bands}; re-run `aerialmtl tile`"
+        )
+    patch = RawPatch(image=image, image_valid=img_valid)
+    if "height" in tasks:
+        with rasterio.open(_layer_path(root, row, "height_path")) as src:
+            h = src.read(1).astype(np.float32)
+            valid = src.read_masks(1) > 0
+        valid &= np.isfinite(h) & img_valid
+        patch.height = np.where(valid, h, np.float32(np.nan)).astype(np.float32)
+    if "classes" in tasks:
+        with rasterio.open(_layer_path(root, row, "classes_path")) as src:
+            c = src.read(1).astype(np.uint8)
+            valid = src.read_masks(1) > 0
+        c[~(valid & img_valid)] = IGNORE_INDEX
+        patch.classes = c
+    return patch
+
+
+def normalise_batch(
+    image: torch.Tensor,
+    image_valid: torch.Tensor,
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    height: torch.Tensor | None = None,
+    classes: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """Stored values → the :class:`~aerialmtl.data.types.Sample` tensors of a batch, on their device.
+
+    Args:
+        image: (B, C, H, W) raw values (any numeric dtype).
+        image_valid: (B, H, W) bool or uint8.
+        mean, std: (C,) float32 per-band normalisation.
+        height: (B, 1, H, W) float32 metres, NaN where invalid.
+        classes: (B, H, W) uint8 or int64 class indices, ``IGNORE_INDEX`` where unlabelled.
+
+    Returns:
+        ``image`` float32 ``(raw - mean) / std``, 0 where invalid; ``height`` float32 (0 where invalid)
+        with ``height_valid`` bool; ``classes`` int64 — the keys whose inputs were given.
+    """
+    m = mean.to(image.device).view(1, -1, 1, 1)
+    s = std.to(image.device).view(1, -1, 1, 1)
+    norm = image.to(torch.float32, copy=True).sub_(m).div_(s)  # one new tensor, updated in place
+    out = {"image": norm.masked_fill_(~image_valid.bool()[:, None], 0.0)}
+    if height is not None:
+        hv = torch.isfinite(height)
+        out["height"] = torch.where(hv, height, torch.zeros((), device=height.device))
+        out["height_valid"] = hv
+    if classes is not None:
+        out["classes"] = classes.long()
+    return out
 
 
 class PatchDataset(torch.utils.data.Dataset):
@@ -182,53 +179,26 @@ class PatchDataset(torch.utils.data.Dataset):
         self.rows = read_manifest(self.root, split)
         if not self.rows:
             raise InputError(
-                f"split '{split}' of '{self.root}' has no patches (see {self.root / 'manifest.csv'}); "
+                f"split '{split}' of '{self.root}' has no patches (see {self.root / MANIFEST_CSV}); "
                 "re-run `aerialmtl tile` with a larger area or other split fractions"
             )
-        self._mean = np.asarray(self.info.mean, np.float32)[:, None, None]
-        self._std = np.asarray(self.info.std, np.float32)[:, None, None]
+        self._mean = torch.tensor(self.info.mean, dtype=torch.float32)
+        self._std = torch.tensor(self.info.std, dtype=torch.float32)
 
     def __len__(self) -> int:
         return len(self.rows)
 
-    def _path(self, row: dict[str, str], key: str) -> Path:
-        rel = (row.get(key) or "").strip()
-        if not rel:
-            raise InputError(
-                f"manifest row '{row.get('patch_id')}' of '{self.root / 'manifest.csv'}' has no {key}; "
-                "re-run `aerialmtl tile`"
-            )
-        return self.root / rel
-
     def load(self, index: int) -> Sample:
         """Read patch ``index`` without applying the transform."""
         row = self.rows[index]
-        with rasterio.open(self._path(row, "image_path")) as src:
-            raw = src.read().astype(np.float32)
-            img_valid = src.dataset_mask() > 0
-        if raw.shape[0] != self._mean.shape[0]:
-            raise InputError(
-                f"image patch '{self._path(row, 'image_path')}' has {raw.shape[0]} bands but dataset.yaml "
-                f"lists {self._mean.shape[0]}; re-run `aerialmtl tile`"
-            )
-        image = (raw - self._mean) / self._std
-        image[:, ~img_valid] = 0.0
-        sample: Sample = {"image": torch.from_numpy(np.ascontiguousarray(image)), "patch_id": row["patch_id"]}
-        if "height" in self.tasks:
-            with rasterio.open(self._path(row, "height_path")) as src:
-                h = src.read(1).astype(np.float32)
-                valid = src.read_masks(1) > 0
-            valid &= np.isfinite(h) & img_valid
-            h = np.where(valid, h, 0.0).astype(np.float32)
-            sample["height"] = torch.from_numpy(h[None])
-            sample["height_valid"] = torch.from_numpy(valid[None])
-        if "classes" in self.tasks:
-            with rasterio.open(self._path(row, "classes_path")) as src:
-                c = src.read(1)
-                valid = src.read_masks(1) > 0
-            cls = c.astype(np.int64)
-            cls[~(valid & img_valid)] = IGNORE_INDEX
-            sample["classes"] = torch.from_numpy(cls)
+        raw = read_raw_patch(self.root, row, self.info.num_bands, self.tasks)
+        batch = normalise_batch(
+            torch.from_numpy(raw.image[None]), torch.from_numpy(raw.image_valid[None]), self._mean, self._std,
+            None if raw.height is None else torch.from_numpy(raw.height[None, None]),
+            None if raw.classes is None else torch.from_numpy(raw.classes[None]),
+        )
+        sample: Sample = {k: v[0] for k, v in batch.items()}  # type: ignore[assignment]
+        sample["patch_id"] = row["patch_id"]
         return sample
 
     def __getitem__(self, index: int) -> Sample:
@@ -236,5 +206,5 @@ class PatchDataset(torch.utils.data.Dataset):
         return self.transform(sample) if self.transform is not None else sample
 
 
-__all__ = ["PatchDataset", "TileFolderInfo", "read_tile_info", "read_manifest", "class_pixel_counts",
-           "TASKS", "SPLITS"]
+__all__ = ["PatchDataset", "RawPatch", "read_raw_patch", "normalise_batch", "TileFolderInfo", "read_tile_info",
+           "read_manifest", "class_pixel_counts", "TASKS", "SPLITS"]

@@ -21,7 +21,6 @@ accumulated over valid pixels of the train split only (float64, merged patch by 
 from __future__ import annotations
 
 import contextlib
-import csv
 import datetime as _dt
 import os
 import shutil
@@ -32,25 +31,28 @@ from typing import Any
 
 import numpy as np
 import rasterio
-import yaml
 from rasterio.windows import Window
 from tqdm import tqdm
 
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.formats.tiles import (
+    CACHE_DIR,
+    DATASET_YAML,
+    MANIFEST_COLUMNS,
+    MANIFEST_CSV,
+    PART_SUFFIX,
+    ManifestWriter,
+    TileFolderInfo,
+    read_manifest,
+)
 from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.outputs import make_output_dir
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
 from aerialmtl.tiling.grid import count_windows, tile_windows
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
-
-MANIFEST_COLUMNS = (
-    "patch_id", "split", "image_path", "height_path", "classes_path",
-    "col_off", "row_off", "width", "height", "left", "bottom", "right", "top", "crs",
-    "valid_fraction", "class_hist", "height_min", "height_mean", "height_max",
-)
 
 #: GDAL block cache while tiling (MB) unless GDAL_CACHEMAX is set: keeps memory flat on huge rasters.
 DEFAULT_CACHE_MB = 128
@@ -117,18 +119,18 @@ class _BandStats:
 
 
 #: What a tile run writes into its folder; a folder holding only these but no dataset.yaml is unfinished.
-_OWN_ENTRIES = (*SPLITS, "manifest.csv", "manifest.csv.part", "dataset.yaml.part")
+_OWN_ENTRIES = (*SPLITS, MANIFEST_CSV, MANIFEST_CSV + PART_SUFFIX, DATASET_YAML + PART_SUFFIX, CACHE_DIR)
 
 
 def _unfinished(out_dir: Path) -> bool:
     """True when ``out_dir`` holds only what an interrupted or failed tile run leaves (no dataset.yaml)."""
     names = {p.name for p in out_dir.iterdir()}
-    return "dataset.yaml" not in names and names <= set(_OWN_ENTRIES)
+    return DATASET_YAML not in names and names <= set(_OWN_ENTRIES)
 
 
 def _clear(out_dir: Path) -> None:
     """Remove the tile dataset in ``out_dir`` (only the entries a tile run writes)."""
-    for name in ("dataset.yaml", "manifest.csv"):  # first, so a half-replaced folder reads as unfinished
+    for name in (DATASET_YAML, MANIFEST_CSV):  # first, so a half-replaced folder reads as unfinished
         (out_dir / name).unlink(missing_ok=True)
     for name in _OWN_ENTRIES:
         path = out_dir / name
@@ -303,32 +305,31 @@ def tile_dataset(
     if assigner.block_size_m is not None:
         result.block_size_m = assigner.block_size_m
         result.block_patches = int(round(assigner.block_px[0] / stride))
-    meta = {
-        "format": "aerialmtl-tiles",
-        "format_version": 1,
-        "crs": grid.crs.to_string(),
-        "gsd": float(grid.gsd),
-        "patch_size": int(size),
-        "stride": int(stride),
-        "bands": [int(b) for b in image.bands],
-        "band_names": band_names,
-        "dtype": dtype,
-        "mean": result.mean,
-        "std": result.std,
-        "tasks": tasks,
-        "classes": scheme.to_dict() if (has_labels and scheme is not None) else None,
-        "height": {
+    TileFolderInfo(
+        root=out_dir,
+        crs=grid.crs.to_string(),
+        gsd=float(grid.gsd),
+        patch_size=int(size),
+        stride=int(stride),
+        bands=tuple(int(b) for b in image.bands),
+        band_names=tuple(band_names),
+        dtype=dtype,
+        mean=tuple(result.mean or ()),
+        std=tuple(result.std or ()),
+        tasks=tuple(tasks),
+        classes=scheme if has_labels else None,
+        height={
             "nodata": HEIGHT_NODATA,
             "clip_negative": bool(ndsm_options.clip_negative),
             "max_height": ndsm_options.max_height,
             "source": "ndsm" if ndsm is not None else "dsm-dtm",
             "units": height_units,
         } if has_height else None,
-        "splits": {**splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
-                                            if assigner.block_size_m is not None else {})},
-        "counts": dict(result.counts),
-        "min_valid": float(min_valid),
-        "provenance": {
+        splits={**splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
+                                       if assigner.block_size_m is not None else {})},
+        counts=dict(result.counts),
+        min_valid=float(min_valid),
+        provenance={
             "ortho": str(Path(ortho).resolve()),
             "ndsm": str(Path(ndsm).resolve()) if ndsm else None,
             "dsm": str(Path(dsm).resolve()) if dsm else None,
@@ -339,11 +340,7 @@ def tile_dataset(
             "aerialmtl_version": __version__,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         },
-    }
-    tmp = out_dir / "dataset.yaml.part"
-    with tmp.open("w", encoding="utf-8") as fh:
-        yaml.safe_dump(meta, fh, sort_keys=False, allow_unicode=True)
-    tmp.replace(result.dataset_yaml)
+    ).write()
     return result
 
 
@@ -368,23 +365,16 @@ def _tile_loop(
     total = count_windows(grid.width, grid.height, size, stride)
     img_dtype = image.src.dtypes[image.bands[0] - 1]
     windows = tile_windows(grid.width, grid.height, size, stride)
-    manifest = out_dir / "manifest.csv"
-    tmp = out_dir / "manifest.csv.part"  # streamed row by row, renamed once every patch is written
-    fh = tmp.open("w", newline="", encoding="utf-8")
-    writer = csv.DictWriter(fh, fieldnames=list(MANIFEST_COLUMNS))
-    writer.writeheader()
-    try:
+    with ManifestWriter(out_dir) as writer:  # streamed row by row, renamed once every patch is written
         for win in tqdm(windows, total=total, desc="tiling", unit="patch", disable=not progress):
             dropped = _tile_one(win, image, heights, label_src, scheme, assigner, grid, out_dir, min_valid,
                                 on_unknown, img_dtype, crs_str, writer, counts, stats)
             dropped_invalid += dropped == "invalid"
             dropped_split += dropped == "split"
-    finally:
-        fh.close()
-    tmp.replace(manifest)
+    manifest = writer.path
     ms = stats.result()
     return TileResult(
-        out_dir=out_dir, manifest=manifest, dataset_yaml=out_dir / "dataset.yaml", counts=counts,
+        out_dir=out_dir, manifest=manifest, dataset_yaml=out_dir / DATASET_YAML, counts=counts,
         windows=total, dropped_invalid=dropped_invalid, dropped_split=dropped_split,
         mean=ms[0] if ms else None, std=ms[1] if ms else None,
     )
@@ -403,7 +393,7 @@ def _tile_one(
     on_unknown: str,
     img_dtype: str,
     crs_str: str,
-    writer: csv.DictWriter,
+    writer: ManifestWriter,
     counts: dict[str, int],
     stats: _BandStats,
 ) -> str | None:
@@ -456,12 +446,6 @@ def _tile_one(
     counts[split] += 1
     writer.writerow(row)
     return None
-
-
-def read_manifest(path: str | Path) -> list[dict[str, str]]:
-    """Rows of a ``manifest.csv`` as dicts of strings (see ``docs/CONTRACTS.md`` for the columns)."""
-    with Path(path).open("r", newline="", encoding="utf-8") as fh:
-        return list(csv.DictReader(fh))
 
 
 __all__ = ["MANIFEST_COLUMNS", "TileResult", "read_manifest", "tile_dataset"]

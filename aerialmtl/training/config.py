@@ -4,20 +4,22 @@ A config file has the sections below; every key is optional and defaults to the 
 setting. Unknown keys, wrong types and bad choices raise :class:`~aerialmtl.errors.ConfigError` naming
 the key path (``optim.lr``) and the valid keys/choices::
 
-    model:     {block_config: [6, 12, 24, 16], dropout: 0.5, ...}   # ModelConfig; in_channels,
+    model:     {block_config: [6, 12, 24, 16], dropout: 0.5, ..., sync_bn: false}   # ModelConfig; in_channels,
                                                                    # num_classes, tasks from dataset.yaml
     data:      {dir: tiles/, batch_size: 8, num_workers: 2, flips: true, rot90: true, jitter: false,
-                crop_size: null}
+                crop_size: null, cache_dir: null}
     loss:      {height: l1, classes: ce, class_weights: none}      # or balanced, or a list of K floats
     weighting: {method: equal, task_weights: {height: 1.0, classes: 1.0}}
     optim:     {name: adam, lr: 2.0e-4, betas: [0.5, 0.999], weight_decay: 0.0}
-    schedule:  {epochs: 50, max_steps: null, max_time_s: null, val_every: 1, log_every: 10}
+    schedule:  {epochs: 50, max_steps: null, max_time_s: null, val_every: 1, log_every: 10, patience: null}
     predict:   {mc_samples: 30}
     seed: 0
     device: auto          # auto | cpu | cuda
-    precision: fp32       # fp32 | bf16 (autocast)
+    precision: auto       # auto (bf16 autocast on a CUDA GPU that has bf16, fp32 otherwise) | fp32 | bf16
+    compile: false        # torch.compile the model (falls back to eager with a warning if it fails)
 
-Relative ``data.dir`` paths are resolved against the current working directory.
+Relative ``data.dir`` paths are resolved against the current working directory. With several processes
+(``torchrun``), ``data.batch_size`` is per process: a step uses ``batch_size × processes`` patches.
 """
 
 from __future__ import annotations
@@ -41,11 +43,16 @@ class ModelSection(Architecture):
 
     ``in_channels`` comes from the number of bands, ``num_classes`` from the class scheme and ``tasks``
     from the tasks present in ``dataset.yaml``; a value given here must agree with the data.
+
+    ``sync_bn`` is a training option, not part of the model (it is not saved in :class:`ModelConfig`):
+    with several processes, BatchNorm statistics are computed over the global batch instead of each
+    process's share. It has no effect in a single process.
     """
 
     in_channels: int | None = None
     tasks: tuple[Task, ...] | None = None
     num_classes: int | None = None
+    sync_bn: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -80,7 +87,7 @@ class ModelSection(Architecture):
             k = num_classes
         else:
             k = self.num_classes if self.num_classes is not None else ModelConfig.num_classes
-        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values = {f.name: getattr(self, f.name) for f in fields(Architecture)}
         values.update(in_channels=in_channels, tasks=want, num_classes=k)
         return ModelConfig(**values)
 
@@ -91,11 +98,15 @@ class DataSection:
 
     Attributes:
         dir: tile folder written by ``aerialmtl tile`` (``--data`` overrides it).
-        batch_size: patches per optimisation step.
+        batch_size: patches per optimisation step and process (with ``torchrun --nproc_per_node N``
+            a step uses ``N × batch_size`` patches).
         num_workers: DataLoader worker processes (0 = load in the main process).
         flips, rot90: random horizontal/vertical flips and 90° rotations.
         jitter: photometric jitter (contrast/brightness in normalised space).
         crop_size: random crop side in pixels (multiple of 32), ``None`` = whole patches.
+        cache_dir: folder of the decoded patch cache, ``None`` = ``cache/`` inside the tile folder, or
+            ``$XDG_CACHE_HOME/aerialmtl/<hash>`` (with a warning) when that cannot be written (written on
+            first use; see :mod:`aerialmtl.data.cache`).
     """
 
     dir: str | None = None
@@ -105,6 +116,7 @@ class DataSection:
     rot90: bool = True
     jitter: bool = False
     crop_size: int | None = None
+    cache_dir: str | None = None
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -146,7 +158,11 @@ class WeightingSection:
 
 @dataclass(frozen=True)
 class OptimSection:
-    """Optimiser (the paper: Adam, lr 2e-4, β = (0.5, 0.999))."""
+    """Optimiser (the paper: Adam, lr 2e-4, β = (0.5, 0.999)).
+
+    ``weight_decay`` applies to the network's convolution weights only, never to biases, BatchNorm
+    parameters or the learned task weighting: L2 in the gradient with ``adam``, decoupled with ``adamw``.
+    """
 
     name: Literal["adam", "adamw"] = "adam"
     lr: float = 2e-4
@@ -156,6 +172,8 @@ class OptimSection:
     def __post_init__(self) -> None:
         if self.lr <= 0:
             raise ConfigError(f"optim.lr: must be > 0, got {self.lr}")
+        if self.weight_decay < 0:
+            raise ConfigError(f"optim.weight_decay: must be ≥ 0, got {self.weight_decay}")
 
 
 @dataclass(frozen=True)
@@ -168,6 +186,8 @@ class ScheduleSection:
         max_time_s: wall-clock budget in seconds; training stops cleanly and saves when it is spent.
         val_every: validate every this many epochs (and always at the end).
         log_every: write a training row to ``log.csv`` every this many steps.
+        patience: early stopping: stop after this many validations in a row without a better score
+            (``best.pt`` keeps the best model); ``None`` = never.
     """
 
     epochs: int = 50
@@ -175,6 +195,7 @@ class ScheduleSection:
     max_time_s: float | None = None
     val_every: int = 1
     log_every: int = 10
+    patience: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("epochs", "val_every", "log_every"):
@@ -184,6 +205,8 @@ class ScheduleSection:
             raise ConfigError(f"schedule.max_steps: must be ≥ 1, got {self.max_steps}")
         if self.max_time_s is not None and self.max_time_s <= 0:
             raise ConfigError(f"schedule.max_time_s: must be > 0, got {self.max_time_s}")
+        if self.patience is not None and self.patience < 1:
+            raise ConfigError(f"schedule.patience: must be ≥ 1 validations, got {self.patience}")
 
 
 @dataclass(frozen=True)
@@ -210,7 +233,8 @@ class TrainConfig:
     predict: PredictSection = field(default_factory=PredictSection)
     seed: int = 0
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    precision: Literal["fp32", "bf16"] = "fp32"
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
+    compile: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """Plain mapping (YAML / checkpoint safe)."""
@@ -220,7 +244,7 @@ class TrainConfig:
     def from_dict(cls, data: dict[str, Any] | None) -> TrainConfig:
         return from_dict(cls, data)
 
-    def with_overrides(self, **sections: dict[str, Any]) -> TrainConfig:
+    def with_overrides(self, **sections: Any) -> TrainConfig:
         """A copy with some keys replaced, e.g. ``cfg.with_overrides(schedule={"max_steps": 10}, seed=1)``.
 
         Values are validated like YAML values.

@@ -181,6 +181,8 @@ def cross_entropy(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tens
     return total / torch.where(denom > 0, denom, torch.ones_like(denom))
 
 
+#: Height losses by ``loss.height`` name: ``fn(pred, target, mask) -> scalar``. To add one, add it here and
+#: to ``HeightLoss`` in :mod:`aerialmtl.training.config` (a test keeps the two in step).
 HEIGHT_LOSSES: dict[str, Callable[..., torch.Tensor]] = {
     "l1": l1,
     "l2": l2,
@@ -188,6 +190,12 @@ HEIGHT_LOSSES: dict[str, Callable[..., torch.Tensor]] = {
     "berhu": berhu,
     "scale_invariant": scale_invariant,
     "scale_invariant_gradient": scale_invariant_gradient,
+}
+
+
+#: Classification losses by ``loss.classes`` name: ``fn(logits, target, weight=, ignore_index=) -> scalar``.
+CLASS_LOSSES: dict[str, Callable[..., torch.Tensor]] = {
+    "ce": cross_entropy,
 }
 
 
@@ -221,4 +229,4 @@ class CrossEntropyLoss(nn.Module):
 
 
 __all__ = ["l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
-           "HEIGHT_LOSSES", "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]
+           "HEIGHT_LOSSES", "CLASS_LOSSES", "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]

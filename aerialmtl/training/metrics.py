@@ -7,10 +7,14 @@ pixels at once. Full evaluation reports live in :mod:`aerialmtl.evaluation`.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
 from aerialmtl.classes import IGNORE_INDEX
+
+#: Sums a tensor over the processes of a run, in place (``DistContext.all_reduce_sum``).
+Reduce = Callable[[torch.Tensor], torch.Tensor]
 
 
 class HeightMeter:
@@ -27,6 +31,11 @@ class HeightMeter:
         self.abs_sum += float(err.abs().sum())
         self.sq_sum += float((err * err).sum())
         self.count += int(err.numel())
+
+    def sync(self, reduce: Reduce) -> None:
+        """Replace the sums by their totals over every process (call on every process)."""
+        total = reduce(torch.tensor([self.abs_sum, self.sq_sum, float(self.count)], dtype=torch.float64))
+        self.abs_sum, self.sq_sum, self.count = float(total[0]), float(total[1]), int(total[2])
 
     def compute(self) -> dict[str, float]:
         """``{"height_mae", "height_rmse"}`` in metres (NaN without valid pixels)."""
@@ -48,6 +57,10 @@ class ConfusionMeter:
         keep = (target != IGNORE_INDEX) & (target >= 0) & (target < self.k)
         idx = target[keep].to(torch.int64) * self.k + pred[keep].to(torch.int64)
         self.matrix += torch.bincount(idx.cpu(), minlength=self.k * self.k).reshape(self.k, self.k)
+
+    def sync(self, reduce: Reduce) -> None:
+        """Replace the matrix by its total over every process (call on every process)."""
+        self.matrix = reduce(self.matrix.clone())
 
     def compute(self) -> dict[str, float]:
         """``{"oa", "miou"}``: overall accuracy and mean IoU over classes present in the reference or prediction."""

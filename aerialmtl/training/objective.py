@@ -1,0 +1,91 @@
+"""What training minimises and how validation is scored.
+
+* :class:`Objective` — the per-task losses of a batch (``loss.height`` from
+  :data:`~aerialmtl.training.losses.HEIGHT_LOSSES`, ``loss.classes`` from
+  :data:`~aerialmtl.training.losses.CLASS_LOSSES`), masked to valid pixels, times the fixed task weights;
+* :func:`class_weights` — ``loss.class_weights`` resolved against the tile folder;
+* :func:`validation_score` — the number ``best.pt`` and early stopping are chosen by.
+
+Validation score (lower is better): ``Σ_t w_t · L_t / L_t⁰`` over the model's tasks, where ``L_t`` is the
+validation loss of task t, ``L_t⁰`` its value at the first validation of the run and ``w_t`` the task
+weight (``weighting.task_weights``, default 1). Normalising by the first value puts height (metres) and
+classes (nats) on the same footing, so neither task dominates the choice of ``best.pt``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from aerialmtl.classes import IGNORE_INDEX
+from aerialmtl.data.dataset import class_pixel_counts
+from aerialmtl.errors import ConfigError, InputError
+from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo
+from aerialmtl.training import losses
+from aerialmtl.training.config import TrainConfig
+
+
+def class_weights(cfg: TrainConfig, info: TileFolderInfo, k: int) -> torch.Tensor | None:
+    """The K class weights of ``loss.class_weights`` (``None`` for ``none``).
+
+    Raises:
+        InputError: ``balanced`` without ``class_hist`` in the manifest.
+        ConfigError: an explicit list of the wrong length.
+    """
+    spec = cfg.loss.class_weights
+    if spec == "none":
+        return None
+    if spec == "balanced":
+        counts = class_pixel_counts(info.root, "train", k).astype(np.float64)
+        present = counts > 0
+        if not present.any():
+            raise InputError(f"loss.class_weights: 'balanced' needs class_hist in '{info.root / MANIFEST_CSV}'")
+        w = np.ones(k)
+        w[present] = counts[present].sum() / (present.sum() * counts[present])
+        w[present] /= w[present].mean()
+        return torch.tensor(w, dtype=torch.float32)
+    if len(spec) != k:
+        raise ConfigError(f"loss.class_weights: got {len(spec)} weights but the class scheme has {k} classes")
+    return torch.tensor(spec, dtype=torch.float32)
+
+
+class Objective:
+    """Per-task losses of a batch (float32 scalars), masked to valid pixels.
+
+    Args:
+        cfg: the training config (``loss`` and ``weighting.task_weights``).
+        tasks: the model's tasks.
+        class_weights: optional K class weights for the classes loss.
+    """
+
+    def __init__(self, cfg: TrainConfig, tasks: tuple[str, ...], class_weights: torch.Tensor | None) -> None:
+        self.tasks = tasks
+        self.height_fn = losses.HEIGHT_LOSSES[cfg.loss.height]
+        self.classes_fn = losses.CLASS_LOSSES[cfg.loss.classes]
+        self.class_weights = class_weights
+        self.task_weights = {t: float(cfg.weighting.task_weights.get(t, 1.0)) for t in tasks}
+
+    def __call__(self, out: dict[str, torch.Tensor], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """``{task: loss}`` for the model outputs ``out`` and the batch's references."""
+        result: dict[str, torch.Tensor] = {}
+        if "height" in self.tasks:
+            result["height"] = self.height_fn(out["height"].float(), batch["height"], batch["height_valid"])
+        if "classes" in self.tasks:
+            w = None if self.class_weights is None else self.class_weights.to(out["classes"].device)
+            result["classes"] = self.classes_fn(out["classes"].float(), batch["classes"], weight=w,
+                                                ignore_index=IGNORE_INDEX)
+        return result
+
+    def weighted(self, task_losses: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Each task loss times its fixed task weight (the input of the weighting module)."""
+        return {t: self.task_weights[t] * v for t, v in task_losses.items()}
+
+
+def validation_score(task_losses: dict[str, float], reference: dict[str, float], weights: dict[str, float]) -> float:
+    """``Σ_t w_t · L_t / L_t⁰`` (lower is better); see the module docstring."""
+    return float(sum(weights[t] * v / max(reference[t], 1e-12) for t, v in task_losses.items()))
+
+
+__all__ = ["Objective", "class_weights", "validation_score"]

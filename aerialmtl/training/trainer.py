@@ -1,0 +1,598 @@
+"""The trainer behind ``aerialmtl train``: data → D3-Net → masked losses → task weighting → Adam.
+
+:class:`Trainer` is built from small parts, each readable and testable alone:
+
+* data — :meth:`Trainer.build_data`: the decoded patch cache (:mod:`aerialmtl.data.cache`), the run's batch
+  order (:class:`~aerialmtl.data.batches.EpochPlan`) and the DataLoaders; batches are augmented on the
+  training device (:func:`~aerialmtl.data.batches.prepare_batch`);
+* model and optimizer — :meth:`Trainer.build_model`, :func:`build_optimizer`;
+* the step — :class:`StepModule` (forward, losses, weighting; what DistributedDataParallel wraps) and
+  :meth:`Trainer.train_step`;
+* validation — :meth:`Trainer.validate` (all processes, sums reduced);
+* checkpoints and resume — :meth:`Trainer.checkpoint`, :meth:`Trainer.restore`, :mod:`aerialmtl.training.state`;
+  fine-tuning from a checkpoint — :mod:`aerialmtl.training.finetune`;
+* logging — :class:`~aerialmtl.training.runlog.CsvLog` and :class:`LossWindow`.
+
+Several processes (``torchrun``) are handled by :mod:`aerialmtl.training.distributed`; here they appear
+only as ``self.ctx`` (rank, world size, collectives that are no-ops for one process).
+
+Precision: ``precision: auto`` is bf16 autocast on a CUDA GPU with bf16 and fp32 otherwise (CPUs without
+bf16 units run it hundreds of times slower). Losses are computed in float32 either way. The model runs in
+``channels_last``; ``compile: true`` (``--compile``) wraps it in ``torch.compile`` and falls back to eager
+execution with a warning if compilation fails.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+from torch import nn
+from tqdm.auto import tqdm
+
+from aerialmtl.config import to_dict
+from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, eval_batches, prepare_batch
+from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+from aerialmtl.data.transforms import build_eval_transform, build_train_transform
+from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, OutputError
+from aerialmtl.formats.checkpoint import ModelMeta, check_same_data, load_checkpoint, save_checkpoint
+from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
+from aerialmtl.models.config import ModelConfig
+from aerialmtl.training import distributed
+from aerialmtl.training.config import OptimSection, TrainConfig
+from aerialmtl.training.distributed import DistContext
+from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
+from aerialmtl.training.objective import Objective, class_weights, validation_score
+from aerialmtl.training.runlog import LOG_COLUMNS, CsvLog
+from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_everything, set_rng_state
+
+log = logging.getLogger(__name__)
+
+RUN_FILES = ("last.pt", "best.pt", "log.csv", "config.yaml")
+
+
+def user_cache_dir(root: Path) -> Path:
+    """Where the patch cache of a read-only tile folder goes: ``$XDG_CACHE_HOME/aerialmtl/<hash of its path>``."""
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "aerialmtl" / hashlib.sha256(str(root.resolve()).encode()).hexdigest()[:16]
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """``auto`` → ``bf16`` on a CUDA device with bf16 support, else ``fp32``; others unchanged."""
+    if precision == "auto":
+        return "bf16" if device.type == "cuda" and torch.cuda.is_bf16_supported() else "fp32"
+    return precision
+
+
+def autocast(device: torch.device, precision: str) -> Any:
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
+def build_optimizer(optim: OptimSection, model: nn.Module, weighting: nn.Module) -> torch.optim.Optimizer:
+    """Adam or AdamW over the model and the weighting module.
+
+    With ``weight_decay > 0`` only the model's convolution weights (tensors of ≥ 2 dimensions) decay;
+    biases, BatchNorm parameters and the learned task weighting do not. With 0, one parameter group.
+    """
+    cls = torch.optim.AdamW if optim.name == "adamw" else torch.optim.Adam
+    params = list(model.parameters()) + list(weighting.parameters())
+    groups: list[dict[str, Any]]
+    if optim.weight_decay > 0:
+        decay = [p for p in model.parameters() if p.dim() >= 2]
+        rest = [p for p in params if p.dim() < 2 or not any(p is q for q in model.parameters())]
+        groups = [{"params": decay}, {"params": rest, "weight_decay": 0.0}]
+    else:
+        groups = [{"params": params}]
+    return cls(groups, lr=optim.lr, betas=optim.betas, weight_decay=optim.weight_decay)
+
+
+class StepModule(nn.Module):
+    """Forward + losses + task weighting of a batch: ``(total, {task: loss})``.
+
+    This is what DistributedDataParallel wraps, so the gradients of the learned task weighting are
+    averaged over processes like the network's. ``net`` is the callable run on the image (the model, or
+    its ``torch.compile`` wrapper sharing the same parameters).
+    """
+
+    def __init__(self, model: nn.Module, weighting: nn.Module, objective: Objective, device: torch.device,
+                 precision: str) -> None:
+        super().__init__()
+        self.model, self.weighting = model, weighting
+        self.objective, self.device, self.precision = objective, device, precision
+        self._net: list[Any] = [model]  # a list: not registered as a second copy of the model's parameters
+
+    @property
+    def net(self) -> Any:
+        return self._net[0]
+
+    def use(self, net: Any) -> None:
+        """Run ``net`` (the model or its compiled wrapper) on the images from now on."""
+        self._net[0] = net
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        with autocast(self.device, self.precision):
+            out = self.net(batch["image"])
+        losses = self.objective(out, batch)
+        return self.weighting(self.objective.weighted(losses)), losses
+
+
+class LossWindow:
+    """Per-step losses kept on the device, read (one synchronisation, reduced over processes) only when
+    logged or before a validation — not after every step, which would stall a GPU.
+
+    ``flush`` checks every pending step for a non-finite loss and raises naming the first one.
+    """
+
+    def __init__(self, tasks: tuple[str, ...], ctx: DistContext) -> None:
+        self.tasks, self.ctx = tasks, ctx
+        self.pending: list[torch.Tensor] = []
+        self.first_step = 0
+        self.window: dict[str, list[float]] = {"loss": [], **{t: [] for t in tasks}}
+        self.since_val: list[float] = []
+
+    def add(self, step: int, total: torch.Tensor, losses: dict[str, torch.Tensor]) -> None:
+        if not self.pending:
+            self.first_step = step
+        self.pending.append(torch.stack([total.float()] + [losses[t].float() for t in self.tasks]))
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        values = self.ctx.all_reduce_sum(torch.stack(self.pending)) / self.ctx.world_size
+        rows = values.cpu().tolist()
+        first = self.first_step
+        self.pending = []
+        for i, row in enumerate(rows):
+            if not math.isfinite(row[0]):
+                raise AerialMTLError(
+                    f"training diverged at step {first + i} (loss {row[0]}); lower optim.lr, "
+                    "use precision fp32, or check the references in the tile folder"
+                )
+            self.window["loss"].append(row[0])
+            self.since_val.append(row[0])
+            for t, v in zip(self.tasks, row[1:]):
+                self.window[t].append(v)
+
+    def take(self) -> dict[str, float]:
+        """Means since the last ``take`` (after a flush); resets the window."""
+        means = {k: float(np.mean(v)) for k, v in self.window.items() if v}
+        self.window = {k: [] for k in self.window}
+        return means
+
+    def take_since_validation(self) -> float:
+        value = float(np.mean(self.since_val)) if self.since_val else math.inf
+        self.since_val = []
+        return value
+
+
+@dataclass
+class TrainResult:
+    """What a call to :func:`~aerialmtl.training.loop.train` produced.
+
+    Attributes:
+        run_dir: the run folder.
+        last_checkpoint, best_checkpoint, log_path, config_path: files in ``run_dir``.
+        step: optimisation steps done in total (including resumed ones).
+        epoch: completed epochs.
+        stopped_by: ``"epochs"``, ``"max_steps"``, ``"max_time"`` or ``"patience"`` (early stopping).
+        elapsed_s: wall-clock seconds of this call.
+        metrics: the last validation (``val_loss_<task>``, ``height_mae``/``height_rmse`` in metres,
+            ``oa``/``miou``, ``score``); only ``score`` without a validation split.
+        best_score: best validation score of the run (lower is better).
+        model: the trained model as it is in ``last.pt`` (in train mode, on the training device).
+    """
+
+    run_dir: Path
+    last_checkpoint: Path
+    best_checkpoint: Path
+    log_path: Path
+    config_path: Path
+    step: int
+    epoch: int
+    stopped_by: str
+    elapsed_s: float
+    metrics: dict[str, float] = field(default_factory=dict)
+    best_score: float = math.inf
+    model: torch.nn.Module | None = None
+
+
+class Trainer:
+    """Train a D3-Net on a tile folder; :meth:`fit` runs it (see :func:`aerialmtl.training.loop.train`).
+
+    Args:
+        cfg: the training configuration.
+        data_dir: tile folder (overrides ``cfg.data.dir``).
+        out_dir: run folder.
+        max_steps, max_time_s: override ``schedule.max_steps`` / ``schedule.max_time_s``.
+        resume: continue from ``out_dir/last.pt``.
+        init: start from the weights of this checkpoint (fine-tuning).
+        progress: show a progress bar (rank 0 only).
+        ctx: the process context (default: from torchrun's environment, one process without it).
+    """
+
+    def __init__(self, cfg: TrainConfig, data_dir: str | Path | None = None, out_dir: str | Path = "runs/train", *,
+                 max_steps: int | None = None, max_time_s: float | None = None, resume: bool = False,
+                 init: str | Path | None = None, progress: bool = True, ctx: DistContext | None = None) -> None:
+        self.t0 = time.perf_counter()
+        if resume and init is not None:
+            raise ConfigError("init: a resumed run continues its own weights; pass init only when starting a run")
+        self.cfg = cfg
+        self.owns_ctx = ctx is None
+        self.ctx = ctx if ctx is not None else DistContext.from_env(cfg.device)
+        self.device = self.ctx.device
+        self.precision = resolve_precision(cfg.precision, self.device)
+        self.steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
+        self.time_cap = max_time_s if max_time_s is not None else cfg.schedule.max_time_s
+        self.progress = progress and self.ctx.is_main
+        self.run = Path(out_dir)
+        self.paths = {n: self.run / n for n in RUN_FILES}
+
+        self.info, self.model_cfg = self.read_data_folder(data_dir)
+        self.tasks: tuple[str, ...] = tuple(self.model_cfg.tasks)
+        self.k = self.info.classes.num_classes if self.info.classes is not None else None
+        self.meta = ModelMeta(model=self.model_cfg, classes=self.info.classes if "classes" in self.tasks else None,
+                              bands=self.info.bands, mean=self.info.mean, std=self.info.std, gsd=self.info.gsd,
+                              band_names=self.info.band_names, crs=self.info.crs)
+        if self.ctx.is_main:
+            self.run.mkdir(parents=True, exist_ok=True)
+        self.objective = Objective(cfg, self.tasks, class_weights(cfg, self.info, self.k or 2)
+                                   if "classes" in self.tasks else None)
+        self.state = TrainState()
+        self.prepare_caches()
+        self.build_model()
+        saved_rng: dict[str, Any] | None = None
+        if resume:
+            saved_rng = self.restore(self.paths["last.pt"])
+        elif init is not None:
+            from aerialmtl.training.finetune import load_init_weights
+
+            load_init_weights(self.model, init, self.meta)
+        self.seed_rank_stream(saved_rng)
+        self.step_module = StepModule(self.model, self.weighting, self.objective, self.device, self.precision)
+        self.compiled_ok = False
+        if cfg.compile:
+            self.step_module.use(torch.compile(self.model))
+        self.ddp = distributed.wrap(self.step_module, self.ctx)
+        if self.ctx.is_main:
+            self.write_config(data_dir if data_dir is not None else cfg.data.dir)
+        self.build_data()
+        self.csv_log = CsvLog(self.paths["log.csv"], append=resume) if self.ctx.is_main else None
+        self.losses = LossWindow(self.tasks, self.ctx)
+        self.metrics: dict[str, float] = {}
+
+    # ---- data ---------------------------------------------------------------------------------------
+    def read_data_folder(self, data_dir: str | Path | None) -> tuple[TileFolderInfo, ModelConfig]:
+        """The tile folder and the model config it implies; checks ``data.crop_size`` against its patches."""
+        data = data_dir if data_dir is not None else self.cfg.data.dir
+        if data is None:
+            raise ConfigError("data.dir: no tile folder given; set data.dir in the config or pass --data")
+        info = TileFolderInfo.read(data)
+        k = info.classes.num_classes if info.classes is not None else None
+        model_cfg = self.cfg.model.resolve(info.num_bands, info.tasks, k)
+        side = self.cfg.data.crop_size or info.patch_size
+        if side % 32 or side > info.patch_size:
+            raise ConfigError(
+                f"data.crop_size: the network needs sides that are multiples of 32 and at most the {info.patch_size} "
+                f"px patches of '{info.root}', got {side}; set data.crop_size to a multiple of 32 ≤ "
+                f"{info.patch_size} or re-tile with --size a multiple of 32"
+            )
+        return info, model_cfg
+
+    def prepare_caches(self) -> None:
+        """Make sure the train (and val) split's patch caches are up to date (built on first use).
+
+        Every process calls it; a lock file lets one build while the others wait.
+        """
+        cfg = self.cfg.data
+        self.cache_folder = Path(cfg.cache_dir) if cfg.cache_dir else cache_dir(self.info.root)
+        try:
+            self.train_index = ensure_patch_cache(self.info, "train", self.cache_folder, workers=cfg.num_workers,
+                                                  progress=self.progress)
+        except OutputError:
+            if cfg.cache_dir:
+                raise
+            self.cache_folder = user_cache_dir(self.info.root)  # a read-only tile folder still trains
+            warnings.warn(f"data.cache_dir: the tile folder '{self.info.root}' is not writable; caching its decoded "
+                          f"patches in '{self.cache_folder}' instead (set data.cache_dir to choose)",
+                          UserWarning, stacklevel=2)
+            self.train_index = ensure_patch_cache(self.info, "train", self.cache_folder, workers=cfg.num_workers,
+                                                  progress=self.progress)
+        self.val_index = None
+        if read_manifest(self.info.root, "val"):
+            self.val_index = ensure_patch_cache(self.info, "val", self.cache_folder, workers=cfg.num_workers,
+                                                progress=self.progress)
+
+    def build_data(self) -> None:
+        """The batch plan from the current position, and the train and val loaders over the caches."""
+        cfg, ctx, nw = self.cfg.data, self.ctx, self.cfg.data.num_workers
+        folder, train_index, val_index = self.cache_folder, self.train_index, self.val_index
+        pin = self.device.type == "cuda"
+        self.plan = EpochPlan(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world_size)
+        self.train_transform = build_train_transform(cfg.flips, cfg.rot90, cfg.jitter, cfg.crop_size)
+        self.mean = torch.tensor(self.info.mean, dtype=torch.float32, device=self.device)
+        self.std = torch.tensor(self.info.std, dtype=torch.float32, device=self.device)
+        # on a CPU with workers, the workers finish the batches (the main process computes the model)
+        in_workers = (self.mean.cpu(), self.std.cpu()) if self.device.type == "cpu" and nw > 0 else None
+        self.train_loader = torch.utils.data.DataLoader(
+            CachedBatches(PatchCache(folder, train_index), self.train_transform, self.tasks, in_workers),
+            sampler=RankBatchSampler(self.plan, ctx.rank, self.state.epoch, self.state.position),
+            batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(self.cfg.seed),
+        )
+        self.val_loader: torch.utils.data.DataLoader | None = None
+        self.eval_transform = build_eval_transform(cfg.crop_size)
+        if val_index is not None:
+            self.val_loader = torch.utils.data.DataLoader(
+                CachedBatches(PatchCache(folder, val_index), self.eval_transform, self.tasks, in_workers),
+                sampler=eval_batches(val_index.count, cfg.batch_size, ctx.rank, ctx.world_size),
+                batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
+                generator=torch.Generator().manual_seed(self.cfg.seed))
+        elif ctx.is_main:
+            log.warning("no 'val' patches in %s: best.pt is chosen by the training loss", self.info.root / MANIFEST_CSV)
+
+    # ---- model and optimizer ------------------------------------------------------------------------
+    def build_model(self) -> None:
+        """Seeded D3-Net (channels_last, SyncBatchNorm if asked with several processes), weighting, optimizer."""
+        from aerialmtl.models.d3net import D3Net
+        from aerialmtl.training.weighting import build_weighting
+
+        seed_everything(self.cfg.seed)
+        model: nn.Module = D3Net(self.model_cfg).to(self.device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        if self.cfg.model.sync_bn and self.ctx.distributed:
+            model = distributed.convert_sync_batchnorm(model, self.device)
+        self.model = model
+        self.weighting = build_weighting(self.cfg.weighting.method, list(self.tasks)).to(self.device)
+        self.optimizer = build_optimizer(self.cfg.optim, self.model, self.weighting)
+
+    def seed_rank_stream(self, saved: dict[str, Any] | None) -> None:
+        """Give this process its RNG stream: the saved one when resuming, else rank 0 keeps the seeded
+        stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks)."""
+        if saved:
+            set_rng_state(saved)
+        elif self.ctx.rank > 0:
+            seed_everything(rank_seed(self.cfg.seed + self.state.step, self.ctx.rank))
+
+    # ---- the step -----------------------------------------------------------------------------------
+    def train_step(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """One optimisation step on a prepared batch; returns the detached total and task losses."""
+        try:
+            total, losses = self.ddp(batch)
+        except Exception as exc:  # torch.compile failed at its first call: continue without it
+            if self.step_module.net is self.model or self.compiled_ok or isinstance(exc, AerialMTLError):
+                raise
+            warnings.warn(f"compile: torch.compile failed ({' '.join(str(exc).split())[:200]}); training without it",
+                          UserWarning, stacklevel=2)
+            self.step_module.use(self.model)
+            total, losses = self.ddp(batch)
+        self.compiled_ok = True
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        self.optimizer.step()
+        return total.detach(), {t: v.detach() for t, v in losses.items()}
+
+    # ---- validation ---------------------------------------------------------------------------------
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """Mean validation loss per task and height/classification metrics over the whole val split.
+
+        Every process evaluates its share of the batches; sums are reduced, so the result is the same as
+        one process evaluating all of them.
+
+        Returns:
+            ``val_loss_<task>``, and ``height_mae``/``height_rmse`` (metres) and/or ``oa``/``miou``.
+        """
+        assert self.val_loader is not None
+        was_training = self.model.training
+        self.model.eval()
+        sums = torch.zeros(len(self.tasks) + 1, dtype=torch.float64)
+        hm, cm = HeightMeter(), ConfusionMeter(self.k or 2)
+        for raw in self.val_loader:
+            batch = prepare_batch(raw, self.eval_transform, self.mean, self.std, self.device)
+            with autocast(self.device, self.precision):
+                out = self.model(batch["image"])
+            losses = self.objective(out, batch)
+            for i, t in enumerate(self.tasks):
+                if torch.isfinite(losses[t]):
+                    sums[i] += float(losses[t])
+            sums[-1] += 1
+            if "height" in self.tasks:
+                hm.update(out["height"].float(), batch["height"], batch["height_valid"])
+            if "classes" in self.tasks:
+                cm.update(out["classes"].float(), batch["classes"])
+        self.model.train(was_training)
+        self.ctx.all_reduce_sum(sums)
+        metrics = {f"val_loss_{t}": float(sums[i]) / max(1.0, float(sums[-1])) for i, t in enumerate(self.tasks)}
+        if "height" in self.tasks:
+            hm.sync(self.ctx.all_reduce_sum)
+            metrics.update(hm.compute())
+        if "classes" in self.tasks:
+            cm.sync(self.ctx.all_reduce_sum)
+            metrics.update(cm.compute())
+        return metrics
+
+    def after_epoch_validation(self) -> bool:
+        """Validate (or score by the training loss without a val split), log, write best.pt/last.pt.
+
+        Returns:
+            True when early stopping says to stop (``schedule.patience`` validations without improvement).
+        """
+        self.losses.flush()
+        st = self.state
+        if self.val_loader is not None:
+            self.metrics = self.validate()
+            current = {t: self.metrics[f"val_loss_{t}"] for t in self.tasks}
+            st.ref_losses = reference = st.ref_losses or current
+            score = validation_score(current, reference, self.objective.task_weights)
+            self.losses.take_since_validation()
+        else:
+            score = self.losses.take_since_validation()
+        self.metrics["score"] = score
+        if self.csv_log is not None:
+            self.csv_log.write(kind="val", step=st.step, epoch=st.epoch, time_s=self.elapsed(), lr=self.lr,
+                               **{m: self.metrics.get(m) for m in LOG_COLUMNS if m in self.metrics})
+        improved = score < st.best_score
+        if improved or not self.paths["best.pt"].exists():
+            st.best_score = min(st.best_score, score)
+            self.checkpoint(self.paths["best.pt"])
+        st.since_best = 0 if improved else st.since_best + 1
+        self.checkpoint(self.paths["last.pt"])
+        patience = self.cfg.schedule.patience
+        return patience is not None and st.since_best >= patience
+
+    # ---- checkpoints --------------------------------------------------------------------------------
+    def checkpoint(self, target: Path) -> None:
+        """Write a checkpoint with the full training state (rank 0 writes; every process must call it)."""
+        rngs = self.ctx.gather_objects(rng_state())
+        if not self.ctx.is_main:
+            return
+        state = {"optimizer": self.optimizer.state_dict(), "weighting": self.weighting.state_dict(),
+                 **self.state.to_dict(self.plan.global_batch), "rng": rngs[0], "rng_ranks": rngs,
+                 "world_size": self.ctx.world_size, "global_batch": self.plan.global_batch,
+                 "config": self.cfg.to_dict()}
+        save_checkpoint(target, self.model, self.meta, state)
+
+    def restore(self, path: Path) -> dict[str, Any]:
+        """Load weights, optimizer, weighting and counters from ``path``; returns this process's RNG state.
+
+        Raises:
+            CheckpointError: no training state, other data, or another model config.
+        """
+        payload, old_meta = load_checkpoint(path, map_location=self.device)
+        ts = payload.get("train_state")
+        if not ts:
+            raise CheckpointError(f"checkpoint '{path}' has no training state; cannot --resume from it")
+        check_same_data(path, old_meta, self.meta)
+        if to_dict(old_meta.model) != to_dict(self.model_cfg):
+            raise CheckpointError(
+                f"checkpoint '{path}' was trained with another model config; "
+                "resume with the run's config.yaml or start a new run (--overwrite)"
+            )
+        self.model.load_state_dict(payload["state_dict"])
+        try:
+            self.optimizer.load_state_dict(ts["optimizer"])
+        except ValueError as exc:
+            raise CheckpointError(
+                f"checkpoint '{path}': its optimizer state does not fit this optimizer ({exc}); resume with the "
+                "run's config.yaml (same optim section) or start a new run"
+            ) from exc
+        self.weighting.load_state_dict(ts["weighting"])
+        old_global = int(ts.get("global_batch") or 0)
+        self.state = TrainState.from_dict(ts, old_global or self._global_batch_guess())
+        ranks = ts.get("rng_ranks")
+        if ranks and int(ts.get("world_size", 1)) == self.ctx.world_size:
+            return ranks[self.ctx.rank]
+        if self.ctx.rank == 0:
+            return ts["rng"]
+        return {}
+
+    def _global_batch_guess(self) -> int:
+        """The global batch of a checkpoint written before it was recorded (one process, this batch size)."""
+        n = len(read_manifest(self.info.root, "train"))
+        return min(self.cfg.data.batch_size, n)
+
+    def write_config(self, data: str | Path | None) -> None:
+        """``config.yaml``: the config with the model fields taken from the data and the absolute data dir."""
+        resolved = self.cfg.to_dict()
+        resolved["model"] = {**to_dict(self.model_cfg), "sync_bn": self.cfg.model.sync_bn}
+        resolved["data"]["dir"] = str(Path(data).resolve()) if data is not None else None
+        with self.paths["config.yaml"].open("w") as fh:
+            yaml.safe_dump(resolved, fh, sort_keys=False)
+
+    # ---- the loop -----------------------------------------------------------------------------------
+    @property
+    def lr(self) -> float:
+        return float(self.optimizer.param_groups[0]["lr"])
+
+    def elapsed(self) -> float:
+        return round(time.perf_counter() - self.t0, 3)
+
+    def log_train_row(self) -> dict[str, float]:
+        """Write the ``train`` row of the steps since the last one; returns its mean losses."""
+        self.losses.flush()
+        means = self.losses.take()
+        if self.csv_log is not None and means:
+            self.csv_log.write(kind="train", step=self.state.step, epoch=self.state.epoch, time_s=self.elapsed(),
+                               lr=self.lr, loss=means["loss"], **{f"loss_{t}": means.get(t) for t in self.tasks})
+        return means
+
+    def done(self) -> str | None:
+        """Why training must stop now (``max_steps``, ``epochs``, ``max_time``), or ``None``."""
+        st = self.state
+        if self.steps_cap is not None and st.step >= self.steps_cap:
+            return "max_steps"
+        if st.epoch >= self.cfg.schedule.epochs:
+            return "epochs"
+        if self.time_cap is not None and self.ctx.any(time.perf_counter() - self.t0 >= self.time_cap):
+            return "max_time"
+        return None
+
+    def fit(self) -> TrainResult:
+        """Train until a stop condition (each process returns the same counters and metrics)."""
+        st, sched = self.state, self.cfg.schedule
+        nb = self.plan.steps_per_epoch
+        total = sched.epochs * nb if self.steps_cap is None else min(self.steps_cap, sched.epochs * nb)
+        stopped_by = self.done_before_start()
+        validated_at = -1
+        self.model.train()
+        bar = tqdm(total=total, initial=min(st.step, total), disable=not self.progress, desc="train", unit="step",
+                   dynamic_ncols=True)
+        it = iter(self.train_loader) if stopped_by is None else None
+        try:
+            while stopped_by is None:
+                assert it is not None
+                batch = prepare_batch(next(it), self.train_transform, self.mean, self.std, self.device)
+                total_loss, losses = self.train_step(batch)
+                st.step += 1
+                self.losses.add(st.step, total_loss, losses)
+                st.epoch, st.position = self.plan.advance(st.epoch, st.position)
+                bar.update(1)
+                if st.step % sched.log_every == 0:
+                    means = self.log_train_row()
+                    bar.set_postfix(loss=f"{means.get('loss', math.nan):.4f}", epoch=st.epoch)
+                if st.position == 0 and st.epoch % sched.val_every == 0:
+                    validated_at = st.step
+                    if self.after_epoch_validation():
+                        stopped_by = "patience"
+                        break
+                stopped_by = self.done()
+        except RuntimeError as exc:  # DDP's gradient all-reduce: a peer process is gone
+            if self.ctx.distributed and distributed.is_peer_error(exc):
+                raise distributed.PeerFailure(distributed.peer_failure_message(exc)) from exc
+            raise
+        finally:
+            bar.close()
+            del it
+        if validated_at != st.step or not self.paths["last.pt"].exists():
+            self.after_epoch_validation()
+        return TrainResult(run_dir=self.run, last_checkpoint=self.paths["last.pt"],
+                           best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
+                           config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
+                           elapsed_s=time.perf_counter() - self.t0, metrics=self.metrics, best_score=st.best_score,
+                           model=self.model)
+
+    def done_before_start(self) -> str | None:
+        """Stop reason of a resumed run that has nothing left to do (no time check: it has not started)."""
+        st = self.state
+        if self.steps_cap is not None and st.step >= self.steps_cap:
+            return "max_steps"
+        if st.epoch >= self.cfg.schedule.epochs:
+            return "epochs"
+        return None
+
+    def close(self) -> None:
+        """Release the process group if this trainer created it."""
+        if self.owns_ctx:
+            self.ctx.close()
+
+
+__all__ = ["Trainer", "TrainResult", "StepModule", "LossWindow", "build_optimizer", "resolve_precision", "autocast",
+           "RUN_FILES"]
