@@ -116,6 +116,8 @@ class Recipe:
         zero_shot: evaluate the pretrained model as it is, without training on the real area.
         stratify: height-stratified sampling: the share of tall (≥ 2 m) pixels per drawn patch to reach
             (:mod:`aerialmtl.data.sampling`), applied as whole repeats of train patches in a manifest view.
+        mix: train on the synthetic pretraining tiles and the real ones together, real patches repeated so
+            that they make about this share of every epoch (validation: real patches only).
         note: one line saying what the recipe tries.
     """
 
@@ -127,6 +129,7 @@ class Recipe:
     pretrain: dict[str, Any] | None = None
     zero_shot: bool = False
     stratify: float | None = None
+    mix: float | None = None
     note: str = ""
 
 
@@ -146,6 +149,9 @@ RECIPES: dict[str, Recipe] = {
                              note="pretrained on 16 synthetic towns at 1 m only, no real training (zero-shot)"),
     "synth_ft_g10": Recipe(gsd=1.0, size=128, stride=32, pretrain=SYNTH_G10,
                            note="pretrained on 16 synthetic towns at 1 m, then fine-tuned on the real area"),
+    "synth_mix_g10": Recipe(gsd=1.0, size=128, stride=32, pretrain=SYNTH_G10, mix=0.5,
+                            note="pretrained on the synthetic towns, then trained on synthetic + real patches "
+                                 "together (half real)"),
 }
 
 
@@ -158,6 +164,11 @@ def _parse_set(items: list[str]) -> dict[str, Any]:
         key, _, value = item.partition("=")
         section, _, sub = key.partition(".")
         parsed = yaml.safe_load(value)
+        if isinstance(parsed, str):  # YAML 1.1 reads 1e-4 as a string
+            try:
+                parsed = float(parsed)
+            except ValueError:
+                pass
         if sub:
             out.setdefault(section, {})[sub] = parsed
         else:
@@ -226,6 +237,44 @@ def oversampled_view(tdir: Path, target: float) -> tuple[Path, dict[str, Any]]:
         for j in range(int(reps[k])):
             out_rows.append({**row, "patch_id": f"{row['patch_id']}#{j}"})
         k += 1
+    with (vdir / "manifest.csv").open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(out_rows)
+    return vdir, info
+
+
+def mixed_view(tdir: Path, synth_tiles: Path, real_share: float) -> tuple[Path, dict[str, Any]]:
+    """A tile folder whose train split is the synthetic train patches plus the real ones repeated to make
+    ``real_share`` of the patches; val/test rows and ``dataset.yaml`` (normalisation, tasks) are the real
+    folder's. Synthetic patches are reached through a ``synthetic`` symlink."""
+    import csv
+
+    vdir = tdir.with_name(f"{tdir.name}_mix{real_share:g}_{synth_tiles.parent.name}")
+    with (tdir / "manifest.csv").open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows, fields = list(reader), list(reader.fieldnames or [])
+    with (synth_tiles / "manifest.csv").open(newline="") as fh:
+        synth = [r for r in csv.DictReader(fh) if r["split"] == "train"]
+    real = [r for r in rows if r["split"] == "train"]
+    reps = max(1, round(real_share * len(synth) / ((1 - real_share) * len(real))))
+    info = {"real_share": real_share, "real_patches": len(real), "real_repeats": reps, "synthetic_patches": len(synth),
+            "patches": len(real) * reps + len(synth)}
+    if (vdir / "manifest.csv").is_file():
+        return vdir, info
+    vdir.mkdir(parents=True, exist_ok=True)
+    for name in ("train", "val", "test"):
+        if (tdir / name).exists() and not (vdir / name).exists():
+            (vdir / name).symlink_to((tdir / name).resolve())
+    if not (vdir / "synthetic").exists():
+        (vdir / "synthetic").symlink_to(synth_tiles.resolve())
+    shutil.copyfile(tdir / "dataset.yaml", vdir / "dataset.yaml")
+    out_rows = [r for r in rows if r["split"] != "train"]
+    out_rows += [{**r, "patch_id": f"{r['patch_id']}#{j}"} for r in real for j in range(reps)]
+    for r in synth:
+        out_rows.append({k: (f"synthetic/{r[k]}" if k.endswith("_path") and k != "classes_path" and r.get(k) else
+                             ("" if k == "classes_path" else r.get(k, ""))) for k in fields}
+                        | {"patch_id": f"synthetic_{r['patch_id']}", "class_hist": ""})
     with (vdir / "manifest.csv").open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields)
         writer.writeheader()
@@ -349,6 +398,12 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
     init, pre_record = (None, None)
     if recipe.pretrain:
         init, pre_record = pretrained_checkpoint(recipe, args)
+    if recipe.mix:
+        assert init is not None, "mix needs a pretrain section (its tiles)"
+        tdir, minfo = mixed_view(tdir, init.parent.parent / "tiles", recipe.mix)
+        tinfo = {**tinfo, "mix": minfo}
+        per_epoch = max(1, minfo["patches"] // cfg.data.batch_size)
+        cfg = cfg.with_overrides(schedule={"val_every": max(1, round(args.val_steps / per_epoch))})
     if recipe.zero_shot:
         assert init is not None, "zero_shot needs a pretrain section"
         shutil.copyfile(init, rdir / "best.pt")
