@@ -1,0 +1,524 @@
+"""Real-data benchmark: how well does a model trained on part of ``autzen_west`` predict a held-out block?
+
+Fixed protocol (issue 12, part 3):
+
+* **Split** — three bands across the survey's long (north–south) axis, written as GeoJSON polygons in the
+  orthophoto's CRS (EPSG:2994, feet) by :func:`write_split` from the fractions in :data:`SPLIT`:
+  held-out **test** block = the northern 25 % (buildings, car parks, tree rows), **train** = the middle,
+  **val** = the southern 20 % (river, forest), with :data:`GAP_M` metres left unused between blocks so that
+  no tree crown or roof is cut between train and test. Only train and val are tiled (patches lie wholly
+  inside their AOI); the test block is predicted as a whole with ``predict_raster(aoi=test)``, so every
+  window sees its real context and the prediction is nodata outside the block.
+* **Tiling** through the library (``tile_dataset`` with the DSM/DTM pair, heights in metres, the
+  working GSD given in metres), cached per (GSD, patch size, stride).
+* **Training** with :func:`aerialmtl.training.loop.train` under a step and/or wall-clock budget.
+* **Evaluation** of ``best.pt`` (and optionally ``last.pt``) with ``evaluate_prediction(dsm_ref=...,
+  dtm_ref=...)`` on the held-out block: MAE, RMSE, MAE on pixels whose reference height is ≥ 2 m,
+  Spearman(height std, |error|) with T MC-dropout samples; the same evaluation of two constant
+  predictions on the same pixels: the **train-mean** baseline (mean reference nDSM over the train block on
+  the working grid) and the all-ground baseline (0 m).
+
+Usage::
+
+    python bench/real_data.py --list                        # the recipes
+    nice -n 10 python bench/real_data.py --recipe scratch    # one recipe; prints a Markdown row
+    python bench/real_data.py --table                       # every result so far as a Markdown table
+
+Every run writes ``OUT/runs/<name>/result.json`` (settings, counts, training time, metrics, the CPU
+model and the load average at start and end). The training budget is **megapixels of patches processed**
+(steps × batch × patch side², ``--budget-mpx``), so that recipes at different GSDs and patch sizes get
+the same arithmetic work whatever else shares the machine (wall time on a shared CPU is recorded but is
+not a fair budget); ``--max-time`` is only a safety cap. Validation (which picks ``best.pt``) runs about
+every ``--val-steps`` steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import math
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+import torch
+
+from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, layer_filename
+from aerialmtl.inference.predict import predict_raster
+from aerialmtl.io.align import HeightSource, reference_grid
+from aerialmtl.io.vector import load_geometries
+from aerialmtl.tiling.splits import SplitSpec
+from aerialmtl.tiling.tile import tile_dataset
+from aerialmtl.training.config import TrainConfig, load_train_config
+from aerialmtl.training.loop import train
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path("/work/shared/data/autzen_west")
+ORTHO, DSM, DTM = "ortho_1ft.tif", "dsm_1m_utm.tif", "dtm_1m_utm.tif"
+
+#: Bands along the north–south axis, as fractions of the orthophoto's extent from its north edge.
+SPLIT = {"test": (0.0, 0.25), "train": (0.25, 0.80), "val": (0.80, 1.0)}
+#: Metres left unused on each side of an inner block edge (between test/train and train/val).
+GAP_M = 10.0
+#: Reference-height threshold (metres) of the "tall pixels" MAE.
+TALL_M = 2.0
+
+
+# ---- split ---------------------------------------------------------------------------------------
+def write_split(ortho: Path, out_dir: Path) -> dict[str, Path]:
+    """Write ``train/val/test.geojson`` (one rectangle each, in the orthophoto's CRS) and return their paths.
+
+    The bands follow :data:`SPLIT`; each inner edge is pulled back by :data:`GAP_M` metres on both sides.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with rasterio.open(ortho) as src:
+        left, bottom, right, top = src.bounds
+        crs = src.crs
+        unit = crs.linear_units_factor[1]
+    gap = GAP_M / unit
+    extent = top - bottom
+    paths = {}
+    for name, (f0, f1) in SPLIT.items():
+        y_top = top - f0 * extent - (gap if f0 > 0 else 0.0)
+        y_bottom = top - f1 * extent + (gap if f1 < 1 else 0.0)
+        ring = [[left, y_bottom], [right, y_bottom], [right, y_top], [left, y_top], [left, y_bottom]]
+        fc = {"type": "FeatureCollection",
+              "crs": {"type": "name", "properties": {"name": f"EPSG:{crs.to_epsg()}"}},
+              "features": [{"type": "Feature", "properties": {"split": name},
+                            "geometry": {"type": "Polygon", "coordinates": [ring]}}]}
+        paths[name] = out_dir / f"{name}.geojson"
+        paths[name].write_text(json.dumps(fc))
+    return paths
+
+
+# ---- recipes -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Recipe:
+    """One way of training on the real area.
+
+    Attributes:
+        gsd: working GSD in metres (``None`` = the orthophoto's, 1 ft).
+        size, stride: patch size and stride in pixels of the working grid.
+        config: training YAML (relative to the repository root).
+        overrides: ``TrainConfig.with_overrides`` sections.
+        pretrain: synthetic pretraining first (``PretrainSettings`` fields plus ``budget_mpx`` and
+            ``config``), at the recipe's GSD; the real-area training starts from its ``best.pt``.
+        zero_shot: evaluate the pretrained model as it is, without training on the real area.
+        stratify: height-stratified sampling: the share of tall (≥ 2 m) pixels per drawn patch to reach
+            (:func:`real_data_recipes.stratified_weights`), applied as whole repeats of train patches in a
+            manifest view.
+        mix: train on the synthetic pretraining tiles and the real ones together, real patches repeated so
+            that they make about this share of every epoch (validation: real patches only).
+        note: one line saying what the recipe tries.
+    """
+
+    gsd: float | None = None
+    size: int = 320
+    stride: int | None = None
+    config: str = "configs/d3net_small_synth.yaml"
+    overrides: dict[str, Any] = field(default_factory=dict)
+    pretrain: dict[str, Any] | None = None
+    zero_shot: bool = False
+    stratify: float | None = None
+    mix: float | None = None
+    note: str = ""
+
+
+#: Synthetic pretraining at 1 m: 16 towns of 768 m, 128-px patches, the same budget as a real run.
+SYNTH_G10: dict[str, Any] = {"towns": 16, "town_size": 768, "patch": 128, "stride": 64,
+                             "budget_mpx": 600 * 8 * 128 * 128 / 1e6}
+
+RECIPES: dict[str, Recipe] = {
+    "scratch": Recipe(note="what a user gets today: small config, native 1 ft GSD, 320-px patches (97 m)"),
+    "gsd06": Recipe(gsd=0.6, size=256, stride=128, note="0.6 m working GSD: 3.9x fewer pixels, 256-px patches (154 m)"),
+    "gsd10": Recipe(gsd=1.0, size=128, stride=32, note="1 m working GSD (the reference's): 128-px patches (128 m)"),
+    "berhu_g10": Recipe(gsd=1.0, size=128, stride=32, overrides={"loss": {"height": "berhu"}},
+                        note="gsd10 + reverse Huber height loss (L2 on large errors: tall objects)"),
+    "strat_g10": Recipe(gsd=1.0, size=128, stride=32, stratify=0.5,
+                        note="gsd10 + height-stratified sampling (half the pixels drawn are >= 2 m)"),
+    "synth_zero_g10": Recipe(gsd=1.0, size=128, stride=32, pretrain=SYNTH_G10, zero_shot=True,
+                             note="pretrained on 16 synthetic towns at 1 m only, no real training (zero-shot)"),
+    "synth_ft_g10": Recipe(gsd=1.0, size=128, stride=32, pretrain=SYNTH_G10,
+                           note="pretrained on 16 synthetic towns at 1 m, then fine-tuned on the real area"),
+    "synth_mix_g10": Recipe(gsd=1.0, size=128, stride=32, pretrain=SYNTH_G10, mix=0.5,
+                            note="pretrained on the synthetic towns, then trained on synthetic + real patches "
+                                 "together (half real)"),
+}
+
+
+def _parse_set(items: list[str]) -> dict[str, Any]:
+    """``["optim.lr=5e-4", "loss.height=berhu"]`` → nested overrides (values parsed as YAML)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        section, _, sub = key.partition(".")
+        parsed = yaml.safe_load(value)
+        if isinstance(parsed, str):  # YAML 1.1 reads 1e-4 as a string
+            try:
+                parsed = float(parsed)
+            except ValueError:
+                pass
+        if sub:
+            out.setdefault(section, {})[sub] = parsed
+        else:
+            out[section] = parsed
+    return out
+
+
+# ---- helpers -------------------------------------------------------------------------------------
+def cpu_model() -> str:
+    try:
+        text = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return platform.processor() or "unknown CPU"
+    fields = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
+    name = fields.get("Model name", "?").strip()
+    return f"{name} (family {fields.get('CPU family', '?').strip()}, model {fields.get('Model', '?').strip()}), " \
+           f"{os.cpu_count()} cores"
+
+
+def tiles_for(recipe: Recipe, data: Path, split: dict[str, Path], out: Path) -> tuple[Path, dict[str, Any]]:
+    """Tile folder of the recipe's (GSD, size, stride), made once and reused."""
+    stride = recipe.stride or recipe.size
+    tdir = out / f"tiles_g{recipe.gsd or 'native'}_s{recipe.size}_st{stride}"
+    info_file = tdir / "tile_info.json"
+    if info_file.is_file():
+        return tdir, json.loads(info_file.read_text())
+    if tdir.exists():
+        shutil.rmtree(tdir)
+    t0 = time.perf_counter()
+    res = tile_dataset(data / ORTHO, tdir, dsm=data / DSM, dtm=data / DTM, size=recipe.size, stride=stride,
+                       gsd=recipe.gsd, splits=SplitSpec(method="aoi", aoi={k: str(split[k]) for k in ("train", "val")}),
+                       progress=False)
+    info = {"counts": res.counts, "windows": res.windows, "dropped_invalid": res.dropped_invalid,
+            "dropped_split": res.dropped_split, "seconds": time.perf_counter() - t0}
+    info_file.write_text(json.dumps(info, indent=1))
+    return tdir, info
+
+
+def oversampled_view(tdir: Path, target: float) -> tuple[Path, dict[str, Any]]:
+    """A tile folder that repeats train patches by :func:`real_data_recipes.repeat_counts` of their
+    stratified weights (symlinks to ``tdir``'s patches; val and test rows unchanged)."""
+    import csv
+
+    from real_data_recipes import repeat_counts, stratified_weights, tall_shares
+
+    vdir = tdir.with_name(f"{tdir.name}_strat{target:g}")
+    shares = tall_shares(tdir, "train", TALL_M)
+    reps = repeat_counts(stratified_weights(shares, target))
+    info = {"target": target, "mean_share": float(shares.mean()),
+            "share_after": float((reps * shares).sum() / reps.sum()), "patches": int(reps.sum())}
+    if (vdir / "manifest.csv").is_file():
+        return vdir, info
+    vdir.mkdir(parents=True, exist_ok=True)
+    for name in ("train", "val", "test"):
+        if (tdir / name).exists() and not (vdir / name).exists():
+            (vdir / name).symlink_to((tdir / name).resolve())
+    shutil.copyfile(tdir / "dataset.yaml", vdir / "dataset.yaml")
+    with (tdir / "manifest.csv").open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows, fields = list(reader), reader.fieldnames or []
+    out_rows, k = [], 0
+    for row in rows:
+        if row["split"] != "train":
+            out_rows.append(row)
+            continue
+        for j in range(int(reps[k])):
+            out_rows.append({**row, "patch_id": f"{row['patch_id']}#{j}"})
+        k += 1
+    with (vdir / "manifest.csv").open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(out_rows)
+    return vdir, info
+
+
+def mixed_view(tdir: Path, synth_tiles: Path, real_share: float) -> tuple[Path, dict[str, Any]]:
+    """A tile folder whose train split is the synthetic train patches plus the real ones repeated to make
+    ``real_share`` of the patches; val/test rows and ``dataset.yaml`` (normalisation, tasks) are the real
+    folder's. Synthetic patches are reached through a ``synthetic`` symlink."""
+    import csv
+
+    vdir = tdir.with_name(f"{tdir.name}_mix{real_share:g}_{synth_tiles.parent.name}")
+    with (tdir / "manifest.csv").open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows, fields = list(reader), list(reader.fieldnames or [])
+    with (synth_tiles / "manifest.csv").open(newline="") as fh:
+        synth = [r for r in csv.DictReader(fh) if r["split"] == "train"]
+    real = [r for r in rows if r["split"] == "train"]
+    reps = max(1, round(real_share * len(synth) / ((1 - real_share) * len(real))))
+    info = {"real_share": real_share, "real_patches": len(real), "real_repeats": reps, "synthetic_patches": len(synth),
+            "patches": len(real) * reps + len(synth)}
+    if (vdir / "manifest.csv").is_file():
+        return vdir, info
+    vdir.mkdir(parents=True, exist_ok=True)
+    for name in ("train", "val", "test"):
+        if (tdir / name).exists() and not (vdir / name).exists():
+            (vdir / name).symlink_to((tdir / name).resolve())
+    if not (vdir / "synthetic").exists():
+        (vdir / "synthetic").symlink_to(synth_tiles.resolve())
+    shutil.copyfile(tdir / "dataset.yaml", vdir / "dataset.yaml")
+    out_rows = [r for r in rows if r["split"] != "train"]
+    out_rows += [{**r, "patch_id": f"{r['patch_id']}#{j}"} for r in real for j in range(reps)]
+    for r in synth:
+        out_rows.append({k: (f"synthetic/{r[k]}" if k.endswith("_path") and k != "classes_path" and r.get(k) else
+                             ("" if k == "classes_path" else r.get(k, ""))) for k in fields}
+                        | {"patch_id": f"synthetic_{r['patch_id']}", "class_hist": ""})
+    with (vdir / "manifest.csv").open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(out_rows)
+    return vdir, info
+
+
+def pretrained_checkpoint(recipe: Recipe, args: argparse.Namespace) -> tuple[Path, dict[str, Any]]:
+    """Run (once, cached by its settings) the recipe's synthetic pretraining; returns ``best.pt`` and a record."""
+    from real_data_recipes import PretrainSettings, pretrain_synthetic
+
+    p = dict(recipe.pretrain or {})
+    budget = float(p.pop("budget_mpx"))
+    config = p.pop("config", recipe.config)
+    cfg = load_train_config(ROOT / config).with_overrides(**p.pop("overrides", {}))
+    settings = PretrainSettings(gsd=recipe.gsd or 0.3048, patch=p.pop("patch", recipe.size), **p)
+    key = f"pretrain_g{settings.gsd}_n{settings.towns}_t{settings.town_size}_p{settings.patch}_b{budget:g}"
+    pdir = args.out / key
+    record_file = pdir / "pretrain.json"
+    if record_file.is_file():
+        return pdir / "run" / "best.pt", json.loads(record_file.read_text())
+    side = cfg.data.crop_size or settings.patch
+    steps = max(1, round(budget * 1e6 / (cfg.data.batch_size * side * side)))
+    cfg = cfg.with_overrides(data={"num_workers": args.workers}, schedule={"val_every": 1})
+    t0, load0 = time.perf_counter(), os.getloadavg()
+    res = pretrain_synthetic(pdir, settings, cfg, max_steps=steps, max_time_s=args.max_time * 2, overwrite=True,
+                             progress=not args.quiet, log=print)
+    record = {"settings": asdict(settings), "config": config, "budget_mpx": budget, "steps": res.train.step,
+              "train_s": res.train.elapsed_s, "total_s": time.perf_counter() - t0, "patches": res.patches,
+              "val": res.train.metrics, "load_start": load0, "load_end": os.getloadavg()}
+    record_file.write_text(json.dumps(record, indent=1, default=float))
+    return res.checkpoint, record
+
+
+def train_mean(pred_height: Path, data: Path, train_aoi: Path) -> float:
+    """Mean reference nDSM (DSM − DTM, negatives → 0, metres) over the train block, on the prediction grid."""
+    from rasterio.features import geometry_mask
+
+    grid = reference_grid(pred_height)
+    geoms = [g for g, _ in load_geometries(train_aoi, grid.crs, "train AOI")]
+    total, n = 0.0, 0
+    with HeightSource(grid, dsm=data / DSM, dtm=data / DTM) as hs:
+        rows = max(1, (1 << 20) // grid.width)
+        for r in range(0, grid.height, rows):
+            win = rasterio.windows.Window(0, r, grid.width, min(rows, grid.height - r))
+            h, valid = hs.read(win)
+            inside = geometry_mask(geoms, out_shape=h.shape, transform=grid.window_transform(win), invert=True)
+            sel = valid & inside
+            total += float(h[sel].sum(dtype=np.float64))
+            n += int(sel.sum())
+    return total / n
+
+
+def constant_prediction(pred_dir: Path, value: float, out_dir: Path) -> Path:
+    """A prediction folder holding only ``height.tif`` = ``value`` wherever ``pred_dir``'s height is valid."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    src_path = pred_dir / layer_filename(HEIGHT)
+    with rasterio.open(src_path) as src:
+        profile = src.profile.copy()
+        data = src.read(1)
+    profile.update(driver="GTiff", compress="deflate", predictor=3, tiled=True, blockxsize=512, blockysize=512)
+    for key in ("copy_src_overviews",):
+        profile.pop(key, None)
+    out = np.where(data == FLOAT_NODATA, FLOAT_NODATA, np.float32(value)).astype(np.float32)
+    with rasterio.open(out_dir / layer_filename(HEIGHT), "w", **profile) as dst:
+        dst.write(out, 1)
+    return out_dir
+
+
+def summarise(report: dict[str, Any]) -> dict[str, float]:
+    """MAE, RMSE, bias, MAE on pixels ≥ :data:`TALL_M`, their share, and Spearman(std, |err|)."""
+    h = report["height"]
+    tall = [b for b in h["per_bin"] if b["range_m"][0] >= TALL_M and b["n_pixels"]]
+    n_tall = sum(b["n_pixels"] for b in tall)
+    out = {
+        "mae": h["mae"], "rmse": h["rmse"], "bias": h["bias"], "n_pixels": h["n_pixels"],
+        "mae_tall": sum(b["mae"] * b["n_pixels"] for b in tall) / n_tall if n_tall else math.nan,
+        "bias_tall": sum(b["bias"] * b["n_pixels"] for b in tall) / n_tall if n_tall else math.nan,
+        "tall_share": n_tall / h["n_pixels"] if h["n_pixels"] else math.nan,
+        "gsd_m": report["grid"]["gsd_m"],
+    }
+    unc = report.get("uncertainty", {}).get("height_std")
+    out["spearman_std_abs_err"] = unc["spearman_std_vs_abs_error"] if unc else math.nan
+    return out
+
+
+def evaluate_dir(pred_dir: Path, data: Path, out_json: Path) -> dict[str, float]:
+    bins = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
+    report = evaluate_prediction(pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
+                                 height_bins=bins, plots=False)
+    return summarise(report)
+
+
+# ---- one run -------------------------------------------------------------------------------------
+def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
+    out: Path = args.out
+    split = write_split(args.data / ORTHO, out / "split")
+    load0 = os.getloadavg()
+    tdir, tinfo = tiles_for(recipe, args.data, split, out)
+    n_train = tinfo["counts"]["train"]
+    if recipe.stratify:
+        tdir, sinfo = oversampled_view(tdir, recipe.stratify)
+        tinfo, n_train = {**tinfo, "stratify": sinfo}, sinfo["patches"]
+    cfg: TrainConfig = load_train_config(ROOT / recipe.config)
+    overrides = {**recipe.overrides}
+    for key, value in _parse_set(args.set).items():
+        overrides[key] = {**overrides.get(key, {}), **value} if isinstance(value, dict) else value
+    overrides.setdefault("data", {})
+    overrides["data"] = {**overrides["data"], "num_workers": args.workers}
+    cfg = cfg.with_overrides(**overrides)
+    side = cfg.data.crop_size or recipe.size
+    steps = args.max_steps or max(1, round(args.budget_mpx * 1e6 / (cfg.data.batch_size * side * side)))
+    per_epoch = max(1, n_train // cfg.data.batch_size)
+    val_every = max(1, round(args.val_steps / per_epoch))
+    cfg = cfg.with_overrides(schedule={"val_every": val_every})
+    rdir = out / "runs" / name
+    if rdir.exists():
+        shutil.rmtree(rdir)
+    rdir.mkdir(parents=True)
+    torch.set_num_threads(args.threads)
+    init, pre_record = (None, None)
+    if recipe.pretrain:
+        init, pre_record = pretrained_checkpoint(recipe, args)
+    if recipe.mix:
+        assert init is not None, "mix needs a pretrain section (its tiles)"
+        tdir, minfo = mixed_view(tdir, init.parent.parent / "tiles", recipe.mix)
+        tinfo = {**tinfo, "mix": minfo}
+        per_epoch = max(1, minfo["patches"] // cfg.data.batch_size)
+        cfg = cfg.with_overrides(schedule={"val_every": max(1, round(args.val_steps / per_epoch))})
+    if recipe.zero_shot:
+        assert init is not None, "zero_shot needs a pretrain section"
+        shutil.copyfile(init, rdir / "best.pt")
+        train_record: dict[str, Any] = {"steps": 0, "epochs": 0, "stopped_by": "zero-shot", "seconds": 0.0, "val": {}}
+    else:
+        kwargs: dict[str, Any] = {}
+        if init is not None:
+            if "init" not in inspect.signature(train).parameters:
+                raise SystemExit("this recipe fine-tunes a pretrained model: it needs `train(init=...)` (train --init)")
+            kwargs["init"] = init
+        result = train(cfg, data_dir=tdir, out_dir=rdir, max_steps=steps, max_time_s=args.max_time,
+                       progress=not args.quiet, **kwargs)
+        train_record = {"steps": result.step, "epochs": result.epoch, "stopped_by": result.stopped_by,
+                        "seconds": result.elapsed_s, "val": result.metrics}
+    load1 = os.getloadavg()
+    record: dict[str, Any] = {
+        "name": name, "recipe": asdict(recipe), "set": args.set, "tiles": str(tdir), "tile_info": tinfo,
+        "budget": {"mpx": args.budget_mpx, "max_steps": steps, "val_every_epochs": val_every},
+        "pretrain": pre_record, "train": train_record,
+        "machine": {"cpu": cpu_model(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+                    "load_start": load0, "load_after_train": load1},
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "mc": args.mc, "checkpoints": {},
+    }
+    for ckpt in ["best.pt"] + (["last.pt"] if args.also_last and not recipe.zero_shot else []):
+        pdir = rdir / f"pred_{Path(ckpt).stem}"
+        t0 = time.perf_counter()
+        pr = predict_raster(args.data / ORTHO, rdir / ckpt, pdir, mc=args.mc, aoi=split["test"], overwrite=True,
+                            progress=False)
+        metrics = evaluate_dir(pdir, args.data, rdir / f"report_{Path(ckpt).stem}.json")
+        metrics["predict_s"] = time.perf_counter() - t0
+        metrics["predict_gsd_m"] = pr.grid.gsd
+        record["checkpoints"][ckpt] = metrics
+        if "baselines" not in record:
+            mean = train_mean(pdir / layer_filename(HEIGHT), args.data, split["train"])
+            record["baselines"] = {"train_mean_value_m": mean}
+            for label, value in (("train_mean", mean), ("zero", 0.0)):
+                bdir = constant_prediction(pdir, value, rdir / f"baseline_{label}")
+                record["baselines"][label] = evaluate_dir(bdir, args.data, rdir / f"report_baseline_{label}.json")
+    record["machine"]["load_end"] = os.getloadavg()
+    (rdir / "result.json").write_text(json.dumps(record, indent=1, default=float))
+    return record
+
+
+# ---- tables --------------------------------------------------------------------------------------
+HEADER = ("| run | GSD (m) | patch | steps | train s | height MAE (m) | RMSE (m) | MAE ≥ 2 m (m) | "
+          "Spearman(std, \\|err\\|) | train-mean MAE / RMSE / MAE ≥ 2 m | MAE / train-mean | "
+          "load (start → end) |\n|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def row(rec: dict[str, Any], ckpt: str = "best.pt") -> str:
+    m = rec["checkpoints"][ckpt]
+    b = rec["baselines"]["train_mean"]
+    r = rec["recipe"]
+    ld = rec["machine"]
+    return (f"| {rec['name']}{'' if ckpt == 'best.pt' else ' (' + ckpt + ')'} | {m['gsd_m']:.3g} | {r['size']}/"
+            f"{r['stride'] or r['size']} | {rec['train']['steps']} | {rec['train']['seconds']:.0f} | "
+            f"{m['mae']:.2f} | {m['rmse']:.2f} | {m['mae_tall']:.2f} | {m['spearman_std_abs_err']:.2f} | "
+            f"{b['mae']:.2f} / {b['rmse']:.2f} / {b['mae_tall']:.2f} | {m['mae'] / b['mae']:.2f} | "
+            f"{ld['load_start'][0]:.1f} → {ld['load_end'][0]:.1f} |")
+
+
+def table(out: Path) -> str:
+    recs = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*/result.json"), key=os.path.getmtime)]
+    lines = [HEADER]
+    for rec in recs:
+        for ckpt in rec["checkpoints"]:
+            lines.append(row(rec, ckpt))
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--recipe", default="scratch", help="a name from --list")
+    ap.add_argument("--name", help="run name (default: the recipe's)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="config override, e.g. --set optim.name=adamw --set optim.weight_decay=1e-4")
+    ap.add_argument("--gsd", type=float, help="override the recipe's working GSD (m)")
+    ap.add_argument("--size", type=int, help="override the recipe's patch size (px)")
+    ap.add_argument("--stride", type=int, help="override the recipe's patch stride (px)")
+    ap.add_argument("--budget-mpx", type=float, default=600 * 8 * 128 * 128 / 1e6,
+                    help="training budget in megapixels of patches processed (steps x batch x side^2); the default "
+                         "is 600 steps of 8 patches of 128^2, about 10 min on 2 quiet cores")
+    ap.add_argument("--max-steps", type=int, help="a step budget instead of --budget-mpx")
+    ap.add_argument("--val-steps", type=int, default=20, help="validate about every this many steps")
+    ap.add_argument("--max-time", type=float, default=3600.0, help="wall-clock cap of the training (s)")
+    ap.add_argument("--mc", type=int, default=16, help="MC-dropout samples at prediction")
+    ap.add_argument("--also-last", action="store_true", help="evaluate last.pt too")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "real_data")
+    ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--list", action="store_true", help="list the recipes")
+    ap.add_argument("--table", action="store_true", help="print every result in OUT as a Markdown table")
+    args = ap.parse_args()
+    if args.list:
+        for k, r in RECIPES.items():
+            print(f"{k}: {r.note}\n    {r}")
+        return
+    if args.table:
+        print(table(args.out))
+        return
+    recipe = RECIPES[args.recipe]
+    changes = {k: getattr(args, k) for k in ("gsd", "size", "stride") if getattr(args, k) is not None}
+    if changes:
+        recipe = Recipe(**{**asdict(recipe), **changes})
+    rec = run(args.name or args.recipe, recipe, args)
+    print(HEADER)
+    for ckpt in rec["checkpoints"]:
+        print(row(rec, ckpt))
+    print(f"CPU: {rec['machine']['cpu']}; train-mean value {rec['baselines']['train_mean_value_m']:.2f} m; "
+          f"all-ground MAE {rec['baselines']['zero']['mae']:.2f} m")
+
+
+if __name__ == "__main__":
+    main()
