@@ -58,6 +58,7 @@ from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, layer_filename
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.align import HeightSource, reference_grid
+from aerialmtl.io.units import metres_per_unit
 from aerialmtl.io.vector import load_geometries
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import tile_dataset
@@ -95,8 +96,7 @@ def write_split(ortho: Path, out_dir: Path, bands: dict[str, list[tuple[float, f
     with rasterio.open(ortho) as src:
         left, bottom, right, top = src.bounds
         crs = src.crs
-        unit = crs.linear_units_factor[1]
-    gap = GAP_M / unit
+    gap = GAP_M / metres_per_unit(crs, "orthophoto", ortho)
     extent = top - bottom
     paths = {}
     for name, spans in bands.items():

@@ -33,6 +33,7 @@ from rasterio.crs import CRS
 from aerialmtl.data.synth.generate import MIN_SIZE, SYNTH_VERSION, synthesize
 from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.tiles import HEIGHT_NODATA, read_manifest
+from aerialmtl.io.units import metres_per_unit
 from aerialmtl.io.vrt import mosaic_vrt
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import tile_dataset
@@ -176,8 +177,7 @@ def synthesize_corpus(
             shutil.rmtree(child)
     out.mkdir(parents=True, exist_ok=True)
     crs_obj = CRS.from_user_input(crs)
-    unit = float(crs_obj.linear_units_factor[1]) if crs_obj.is_projected else 1.0
-    step = (size + gap_px) * gsd / unit  # CRS units between neighbouring towns' origins
+    step = (size + gap_px) * gsd / metres_per_unit(crs_obj, "corpus")  # CRS units between neighbouring towns' origins
     ncols = math.ceil(math.sqrt(towns))
     records = []
     for i in range(towns):
