@@ -68,8 +68,8 @@ def _entropy(p: torch.Tensor, dim: int = 1) -> torch.Tensor:
 
 #: Dropout modules whose masks :func:`mc_statistics` can draw per image from seeded generators.
 _SEEDABLE = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)
-#: Elements per temporary of the softmax/entropy loop (~1 MiB of float32: stays in the CPU caches).
-_ROW_BLOCK_ELEMENTS = 1 << 18
+#: Elements per temporary of the softmax/entropy loop (4 MiB of float32; 1 MiB and 16 MiB were slower).
+_ROW_BLOCK_ELEMENTS = 1 << 20
 
 
 def sample_seed(seed: int, key: int, sample: int) -> int:
@@ -166,20 +166,26 @@ def class_probabilities(logits: torch.Tensor) -> torch.Tensor:
 
 
 def _class_sums(logits: torch.Tensor, s: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(s·B)×K×H×W logits → (Σ_t p_t: B×H×W×K, Σ_t H_t: B×H×W), row block by row block."""
-    zl = logits.permute(0, 2, 3, 1)  # N×H×W×K (a view; contiguous for channels-last logits)
-    n, h, w, k = zl.shape
-    p_sum = torch.empty((b, h, w, k), dtype=torch.float32, device=zl.device)
-    e_sum = torch.empty((b, h, w), dtype=torch.float32, device=zl.device)
-    rows = max(1, _ROW_BLOCK_ELEMENTS // max(1, n * w * k)) if zl.device.type == "cpu" else h
+    """(s·B)×K×H×W logits → (Σ_t p_t: K×B×H×W class planes, Σ_t H_t: B×H×W), row block by row block.
+
+    Each block is gathered into class planes (K×N×rows×W) first: the max and the sums over K are then
+    reductions across K whole planes, which vectorise over pixels, where reductions over K = 20 adjacent
+    values of a channels-last tensor do not (measured 1.5× faster for the whole function on 2 Zen 4
+    cores, bench/RESULTS.md).
+    """
+    n, k, h, w = logits.shape
+    zp = logits.permute(1, 0, 2, 3)  # K×N×H×W (a view)
+    p_sum = torch.empty((k, b, h, w), dtype=torch.float32, device=logits.device)
+    e_sum = torch.empty((b, h, w), dtype=torch.float32, device=logits.device)
+    rows = max(1, _ROW_BLOCK_ELEMENTS // max(1, n * w * k)) if logits.device.type == "cpu" else h
     for r in range(0, h, rows):
-        z = zl[:, r:r + rows].float()
-        d = z - z.amax(-1, keepdim=True)  # ≤ 0, exactly 0 at the largest logit
+        z = zp[:, :, r:r + rows].float().contiguous()  # K×N×rows×W planes
+        d = z.sub_(z.amax(0))  # ≤ 0, exactly 0 at the largest logit
         e = torch.exp(d)
-        inv = e.sum(-1, keepdim=True).reciprocal_()  # 1 / S
-        ent = d.mul_(e).sum(-1).mul_(inv[..., 0]).neg_().sub_(torch.log(inv[..., 0]))  # log S − Σ e·d / S
+        inv = e.sum(0).reciprocal_()  # 1 / S
+        ent = d.mul_(e).sum(0).mul_(inv).neg_().sub_(torch.log(inv))  # log S − Σ e·d / S
         ent.clamp_min_(0.0)
-        p_sum[:, r:r + rows] = e.mul_(inv).unflatten(0, (s, b)).sum(0)
+        p_sum[:, :, r:r + rows] = e.mul_(inv).unflatten(1, (s, b)).sum(1)
         e_sum[:, r:r + rows] = ent.unflatten(0, (s, b)).sum(0)
     return p_sum, e_sum
 
@@ -269,7 +275,7 @@ def mc_statistics(
         stats.height_mean = h_mean
         stats.height_std = (h_m2 / samples).clamp_min(0).sqrt()
     if p_sum is not None and ent_sum is not None:
-        stats.probs = p_sum.div_(samples)
+        stats.probs = p_sum.div_(samples).permute(1, 2, 3, 0).contiguous()  # planes → channels last, once
         stats.mean_entropy = ent_sum.div_(samples)
     return stats
 
