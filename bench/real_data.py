@@ -56,6 +56,7 @@ import torch
 
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, layer_filename
+from aerialmtl.formats.tiles import ManifestWriter, read_manifest
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.align import HeightSource, reference_grid
 from aerialmtl.io.units import metres_per_unit
@@ -223,11 +224,23 @@ def tiles_for(recipe: Recipe, data: Path, split: dict[str, Path], out: Path,
     return tdir, info
 
 
+def manifest_view(tdir: Path, vdir: Path, rows: list[dict[str, str]], links: dict[str, Path] | None = None) -> None:
+    """Write tile folder ``vdir``: ``tdir``'s ``dataset.yaml``, symlinks to its split folders (and ``links``:
+    name → folder) and a manifest of ``rows`` (through the package's own manifest writer)."""
+    vdir.mkdir(parents=True, exist_ok=True)
+    targets = {name: tdir / name for name in ("train", "val", "test") if (tdir / name).exists()}
+    for name, target in {**targets, **(links or {})}.items():
+        if not (vdir / name).exists():
+            (vdir / name).symlink_to(target.resolve())
+    shutil.copyfile(tdir / "dataset.yaml", vdir / "dataset.yaml")
+    with ManifestWriter(vdir) as manifest:
+        for row in rows:
+            manifest.writerow(row)
+
+
 def oversampled_view(tdir: Path, target: float) -> tuple[Path, dict[str, Any]]:
     """A tile folder that repeats train patches by :func:`real_data_recipes.repeat_counts` of their
     stratified weights (symlinks to ``tdir``'s patches; val and test rows unchanged)."""
-    import csv
-
     from real_data_recipes import repeat_counts, stratified_weights, tall_shares
 
     vdir = tdir.with_name(f"{tdir.name}_strat{target:g}")
@@ -237,26 +250,15 @@ def oversampled_view(tdir: Path, target: float) -> tuple[Path, dict[str, Any]]:
             "share_after": float((reps * shares).sum() / reps.sum()), "patches": int(reps.sum())}
     if (vdir / "manifest.csv").is_file():
         return vdir, info
-    vdir.mkdir(parents=True, exist_ok=True)
-    for name in ("train", "val", "test"):
-        if (tdir / name).exists() and not (vdir / name).exists():
-            (vdir / name).symlink_to((tdir / name).resolve())
-    shutil.copyfile(tdir / "dataset.yaml", vdir / "dataset.yaml")
-    with (tdir / "manifest.csv").open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        rows, fields = list(reader), reader.fieldnames or []
     out_rows, k = [], 0
-    for row in rows:
+    for row in read_manifest(tdir):
         if row["split"] != "train":
             out_rows.append(row)
             continue
         for j in range(int(reps[k])):
             out_rows.append({**row, "patch_id": f"{row['patch_id']}#{j}"})
         k += 1
-    with (vdir / "manifest.csv").open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(out_rows)
+    manifest_view(tdir, vdir, out_rows)
     return vdir, info
 
 
@@ -264,37 +266,22 @@ def mixed_view(tdir: Path, synth_tiles: Path, real_share: float) -> tuple[Path, 
     """A tile folder whose train split is the synthetic train patches plus the real ones repeated to make
     ``real_share`` of the patches; val/test rows and ``dataset.yaml`` (normalisation, tasks) are the real
     folder's. Synthetic patches are reached through a ``synthetic`` symlink."""
-    import csv
-
     vdir = tdir.with_name(f"{tdir.name}_mix{real_share:g}_{synth_tiles.parent.name}")
-    with (tdir / "manifest.csv").open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        rows, fields = list(reader), list(reader.fieldnames or [])
-    with (synth_tiles / "manifest.csv").open(newline="") as fh:
-        synth = [r for r in csv.DictReader(fh) if r["split"] == "train"]
+    rows = read_manifest(tdir)
+    synth = read_manifest(synth_tiles, "train")
     real = [r for r in rows if r["split"] == "train"]
     reps = max(1, round(real_share * len(synth) / ((1 - real_share) * len(real))))
     info = {"real_share": real_share, "real_patches": len(real), "real_repeats": reps, "synthetic_patches": len(synth),
             "patches": len(real) * reps + len(synth)}
     if (vdir / "manifest.csv").is_file():
         return vdir, info
-    vdir.mkdir(parents=True, exist_ok=True)
-    for name in ("train", "val", "test"):
-        if (tdir / name).exists() and not (vdir / name).exists():
-            (vdir / name).symlink_to((tdir / name).resolve())
-    if not (vdir / "synthetic").exists():
-        (vdir / "synthetic").symlink_to(synth_tiles.resolve())
-    shutil.copyfile(tdir / "dataset.yaml", vdir / "dataset.yaml")
     out_rows = [r for r in rows if r["split"] != "train"]
     out_rows += [{**r, "patch_id": f"{r['patch_id']}#{j}"} for r in real for j in range(reps)]
     for r in synth:
-        out_rows.append({k: (f"synthetic/{r[k]}" if k.endswith("_path") and k != "classes_path" and r.get(k) else
-                             ("" if k == "classes_path" else r.get(k, ""))) for k in fields}
+        out_rows.append({k: (f"synthetic/{v}" if k.endswith("_path") and k != "classes_path" and v else
+                             ("" if k == "classes_path" else v)) for k, v in r.items()}
                         | {"patch_id": f"synthetic_{r['patch_id']}", "class_hist": ""})
-    with (vdir / "manifest.csv").open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(out_rows)
+    manifest_view(tdir, vdir, out_rows, {"synthetic": synth_tiles})
     return vdir, info
 
 
