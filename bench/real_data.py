@@ -418,10 +418,24 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
             if "init" not in inspect.signature(train).parameters:
                 raise SystemExit("this recipe fine-tunes a pretrained model: it needs `train(init=...)` (train --init)")
             kwargs["init"] = init
-        result = train(cfg, data_dir=tdir, out_dir=rdir, max_steps=steps, max_time_s=args.max_time,
-                       progress=not args.quiet, **kwargs)
+        snaps = sorted({int(v) for v in args.snapshots.split(",")} | {steps}) if args.snapshots else [steps]
+        snaps = [v for v in snaps if v <= steps]
+        segments: list[dict[str, Any]] = []
+        seconds = 0.0
+        for i, until in enumerate(snaps):
+            # one train() call per snapshot, resuming from last.pt (constant lr: same as one call)
+            seg_load0 = os.getloadavg()
+            result = train(cfg, data_dir=tdir, out_dir=rdir, max_steps=until, max_time_s=args.max_time,
+                           progress=not args.quiet, resume=i > 0, **(kwargs if i == 0 else {}))
+            seconds += result.elapsed_s
+            if len(snaps) > 1:
+                shutil.copyfile(rdir / "last.pt", rdir / f"snap_{until}.pt")
+                shutil.copyfile(rdir / "best.pt", rdir / f"best_{until}.pt")
+            segments.append({"step": result.step, "seconds": result.elapsed_s, "load_start": seg_load0,
+                             "load_end": os.getloadavg(), "val": result.metrics})
+            (rdir / "segments.json").write_text(json.dumps(segments, indent=1, default=float))
         train_record = {"steps": result.step, "epochs": result.epoch, "stopped_by": result.stopped_by,
-                        "seconds": result.elapsed_s, "val": result.metrics}
+                        "seconds": seconds, "val": result.metrics, "segments": segments}
     load1 = os.getloadavg()
     record: dict[str, Any] = {
         "name": name, "split": args.split, "recipe": asdict(recipe), "set": args.set, "tiles": str(tdir),
@@ -433,6 +447,9 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "mc": args.mc, "checkpoints": {},
     }
+    (rdir / "result.json").write_text(json.dumps(record, indent=1, default=float))
+    if args.no_eval:
+        return record
     for ckpt in ["best.pt"] + (["last.pt"] if args.also_last and not recipe.zero_shot else []):
         pdir = rdir / f"pred_{Path(ckpt).stem}"
         t0 = time.perf_counter()
@@ -503,6 +520,9 @@ def main() -> None:
                     help="where validation is (the test block is the same): see SPLITS")
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "real_data")
+    ap.add_argument("--snapshots", help="comma-separated steps at which to keep snap_<step>.pt (last) and "
+                    "best_<step>.pt (best so far) for learning curves")
+    ap.add_argument("--no-eval", action="store_true", help="train only (evaluate later with --evaluate)")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--list", action="store_true", help="list the recipes")
     ap.add_argument("--table", action="store_true", help="print every result in OUT as a Markdown table")
@@ -519,6 +539,9 @@ def main() -> None:
     if changes:
         recipe = Recipe(**{**asdict(recipe), **changes})
     rec = run(args.name or args.recipe, recipe, args)
+    if args.no_eval:
+        print(json.dumps(rec["train"], default=float)[:2000])
+        return
     print(HEADER)
     for ckpt in rec["checkpoints"]:
         print(row(rec, ckpt))

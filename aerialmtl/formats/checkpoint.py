@@ -52,6 +52,9 @@ class ModelMeta:
     gsd: float
     band_names: tuple[str, ...] = field(default_factory=tuple)
     crs: str | None = None
+    #: where ``mean``/``std`` come from: ``dataset`` (the tile folder's train statistics) or ``encoder`` (the
+    #: scaling the pretrained encoder weights were trained with, e.g. (x − 127) / 128 for EfficientNet-Lite).
+    normalization: str = "dataset"
 
     def __post_init__(self) -> None:
         n = self.model.in_channels

