@@ -21,7 +21,7 @@ from rasterio.features import geometry_mask
 
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.runner import inference_model
-from aerialmtl.inference.windows import plan_bands
+from aerialmtl.inference.windows import plan_windows
 from aerialmtl.io.align import AlignedRaster, Grid, reference_grid
 from aerialmtl.io.vector import load_geometries
 from aerialmtl.models.mc_dropout import _SeededMasks, sample_seed
@@ -87,7 +87,7 @@ def reference_predict(
 ) -> dict[str, np.ndarray]:
     """Layer name → (bands, H, W) array, as a prediction folder holds them."""
     grid = grid or reference_grid(ortho)
-    plan = plan_bands(grid.height, grid.width, tile, overlap)
+    plan = plan_windows(grid.height, grid.width, tile, overlap)
     rows, cols = plan.rows, plan.cols
     with AlignedRaster(ortho, grid, "image", bands=list(meta.bands), role="orthophoto") as src:
         data, valid = src.read()

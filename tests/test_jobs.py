@@ -20,9 +20,9 @@ def test_partition_gives_contiguous_equal_shares_and_keeps_small_inputs_whole() 
     shares = partition([[1.0] * 2] * 3, 2)  # 6 bands over 2 ranks: the middle input is cut
     assert shares == [[Share(0, 0, 2), Share(1, 0, 1)], [Share(1, 1, 2), Share(2, 0, 2)]]
     shares = partition([[1.0] * 8], 3)  # one raster, three strips of about equal size
-    assert [(s.band_start, s.band_stop) for r in shares for s in r] == [(0, 3), (3, 5), (5, 8)]
+    assert [(s.start, s.stop) for r in shares for s in r] == [(0, 3), (3, 5), (5, 8)]
     covered = sorted((s.target, b) for r in partition([[1, 2, 3], [5], [1] * 4], 4) for s in r
-                     for b in range(s.band_start, s.band_stop))
+                     for b in range(s.start, s.stop))
     assert covered == [(0, 0), (0, 1), (0, 2), (1, 0), (2, 0), (2, 1), (2, 2), (2, 3)]  # each band once
     assert sum(len(r) for r in partition([[1.0]], 3)) == 1  # more ranks than bands: some get nothing
 

@@ -203,12 +203,18 @@ def test_mc_samples_are_decoded_in_chunks_that_fit_the_pixel_budget(ortho: Path,
         np.testing.assert_allclose(h.read(1)[valid], src.read(1)[valid].astype(np.float32), atol=1e-3)
 
 
-def test_precision_auto_is_fp32_on_cpu_and_bad_values_name_the_option() -> None:
+def test_precision_auto_follows_native_bf16_and_bad_values_name_the_option(monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl import runtime
     from aerialmtl.errors import InputError
     from aerialmtl.inference.predict import mc_sample_batch, resolve_precision
 
-    assert resolve_precision("auto", torch.device("cpu")) == "fp32"
+    monkeypatch.setattr(runtime, "native_bf16", lambda device: True)
+    assert resolve_precision("auto", torch.device("cpu")) == "fp32"  # torch's CPU path: fp32 (bench/RESULTS.md)
+    assert resolve_precision("auto", torch.device("cpu"), cpu_bf16=True) == "bf16"  # the OpenVINO engine
     assert resolve_precision("auto", torch.device("cuda")) == "bf16"
+    monkeypatch.setattr(runtime, "native_bf16", lambda device: False)
+    assert resolve_precision("auto", torch.device("cpu"), cpu_bf16=True) == "fp32"
+    assert resolve_precision("auto", torch.device("cuda")) == "fp32"
     assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
     with pytest.raises(InputError, match="precision=fp16 is not supported"):
         resolve_precision("fp16", torch.device("cpu"))

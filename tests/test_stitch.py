@@ -17,7 +17,7 @@ from aerialmtl.classes import ClassDef, ClassScheme
 from aerialmtl.errors import InputError
 from aerialmtl.formats.prediction import prediction_layers
 from aerialmtl.inference.predict import predict_raster
-from aerialmtl.inference.windows import axis_plan, plan_bands
+from aerialmtl.inference.windows import axis_plan, plan_windows
 from aerialmtl.models.mc_dropout import McStatistics
 
 
@@ -37,12 +37,12 @@ def test_axis_plan_covers_with_overlap_and_weights_sum_to_one(length: int) -> No
 
 
 def test_bands_partition_rows_and_only_touch_their_sources() -> None:
-    plan = plan_bands(1500, 700, 256, 64)
+    plan = plan_windows(1500, 700, 256, 64)
     rows = plan.rows
-    assert plan.bands[0].out_start == 0 and plan.bands[-1].out_stop == 1500
-    for a, b in zip(plan.bands, plan.bands[1:]):
+    assert plan.window_rows[0].out_start == 0 and plan.window_rows[-1].out_stop == 1500
+    for a, b in zip(plan.window_rows, plan.window_rows[1:]):
         assert a.out_stop == b.out_start
-    for band in plan.bands:
+    for band in plan.window_rows:
         # rows that become final at this band get no weight from later window rows
         for later in range(band.index + 1, len(rows.starts)):
             s = rows.starts[later]
@@ -56,7 +56,7 @@ def test_bands_partition_rows_and_only_touch_their_sources() -> None:
 
 
 def test_overlap_factor_close_to_theory_on_large_rasters() -> None:
-    plan = plan_bands(8192, 8192, 512, 64)
+    plan = plan_windows(8192, 8192, 512, 64)
     assert plan.overlap_factor == pytest.approx(
         len(plan.rows.starts) ** 2 * plan.rows.size ** 2 / 8192 ** 2)
     assert plan.overlap_factor < 1.45
@@ -65,7 +65,7 @@ def test_overlap_factor_close_to_theory_on_large_rasters() -> None:
 @pytest.mark.parametrize("tile,overlap", [(100, 10), (0, 0), (512, 300), (512, -1)])
 def test_bad_tiling_is_refused(tile: int, overlap: int) -> None:
     with pytest.raises(InputError, match="tile|overlap"):
-        plan_bands(100, 100, tile, overlap)
+        plan_windows(100, 100, tile, overlap)
 
 
 # ---- property: identity model ------------------------------------------------------------------
@@ -143,7 +143,7 @@ def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
     return layers
 
 
-def _stitch(plan, windows: dict, k: int, band_start: int = 0, band_stop: int | None = None,
+def _stitch(plan, windows: dict, k: int, start: int = 0, stop: int | None = None,
             chunk: int | None = None, carry_in_memory: int | None = None) -> dict[str, np.ndarray]:
     """Run the Stitcher and paint its blocks into full-size arrays (NaN where no block landed)."""
     import aerialmtl.inference.stitch as stitch_mod
@@ -155,13 +155,13 @@ def _stitch(plan, windows: dict, k: int, band_start: int = 0, band_stop: int | N
     if carry_in_memory is not None:
         stitch_mod.CARRY_IN_MEMORY = carry_in_memory
     try:
-        st = stitch_mod.Stitcher(plan, specs, k, "cpu", band_start, band_stop)
+        st = stitch_mod.Stitcher(plan, specs, k, "cpu", start, stop)
     finally:
         stitch_mod.CHUNK_ELEMENTS, stitch_mod.CARRY_IN_MEMORY = old
     hh, ww = plan.rows.length, plan.cols.length
     out = {s.name: np.full((s.count, hh, ww), np.nan if s.dtype == "float32" else 254, s.dtype) for s in specs}
     hits = np.zeros((hh, ww), int)
-    for i in range(st.first_row, st.band_stop):
+    for i in range(st.first_row, st.stop):
         for j in range(len(plan.cols.starts)):
             stats, valid = windows[i, j]
             t = None if stats is None else McStatistics(*(torch.from_numpy(a) for a in (
@@ -172,7 +172,7 @@ def _stitch(plan, windows: dict, k: int, band_start: int = 0, band_stop: int | N
                 for name, arr in b.layers.items():
                     out[name][(slice(None), *sl)] = arr
     assert st.finished
-    rows = slice(plan.bands[band_start].out_start, plan.bands[(band_stop or len(plan.bands)) - 1].out_stop)
+    rows = slice(plan.window_rows[start].out_start, plan.window_rows[(stop or len(plan.window_rows)) - 1].out_stop)
     assert (hits[rows] == 1).all() and (hits.sum() == hits[rows].sum())  # every pixel of the strip exactly once
     return out
 
@@ -184,7 +184,7 @@ def _scheme(k: int) -> ClassScheme:
 @pytest.mark.parametrize("shape,tile,overlap", [((150, 230), 64, 16), ((100, 100), 64, 32), ((33, 200), 32, 8),
                                                 ((20, 45), 64, 0), ((97, 131), 96, 40)])
 def test_stitcher_equals_a_whole_raster_blend(shape: tuple[int, int], tile: int, overlap: int) -> None:
-    plan = plan_bands(*shape, tile, overlap)
+    plan = plan_windows(*shape, tile, overlap)
     windows = _random_windows(plan, 4, seed=sum(shape))
     ref = _numpy_blend(plan, windows, 4)
     got = _stitch(plan, windows, 4)
@@ -195,8 +195,8 @@ def test_stitcher_equals_a_whole_raster_blend(shape: tuple[int, int], tile: int,
 
 
 def test_strips_give_the_rows_of_the_whole_run_and_chunking_changes_nothing() -> None:
-    plan = plan_bands(100, 120, 64, 32)  # small tiles, large overlap: window rows reach two rows down
-    assert any(len(b.sources) > 2 for b in plan.bands)
+    plan = plan_windows(100, 120, 64, 32)  # small tiles, large overlap: window rows reach two rows down
+    assert any(len(b.sources) > 2 for b in plan.window_rows)
     windows = _random_windows(plan, 3, seed=7)
     whole = _stitch(plan, windows, 3)
     chunked = _stitch(plan, windows, 3, chunk=257)
@@ -204,9 +204,9 @@ def test_strips_give_the_rows_of_the_whole_run_and_chunking_changes_nothing() ->
     for name in whole:
         np.testing.assert_array_equal(chunked[name], whole[name], err_msg=name)
         np.testing.assert_array_equal(on_disk[name], whole[name], err_msg=name)
-    n = len(plan.bands)
+    n = len(plan.window_rows)
     for a, b in ((0, 1), (1, n), (2, n), (n - 1, n)):
         strip = _stitch(plan, windows, 3, a, b)
-        rows = slice(plan.bands[a].out_start, plan.bands[b - 1].out_stop)
+        rows = slice(plan.window_rows[a].out_start, plan.window_rows[b - 1].out_stop)
         for name in whole:
             np.testing.assert_array_equal(strip[name][:, rows], whole[name][:, rows], err_msg=f"{name} bands {a}:{b}")

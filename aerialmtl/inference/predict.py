@@ -1,11 +1,17 @@
 """Streaming prediction of one orthophoto into a prediction folder of Cloud-Optimized GeoTIFFs.
 
-A :class:`Predictor` holds the model, its metadata, the device and the settings; ``run(ortho, out)`` is
-read → model → stitch → write, each stage overlapping the others:
+A :class:`Predictor` is a model loaded once with its settings (device, precision, MC samples, tiles):
+it predicts any number of orthophotos. One job is one orthophoto (:meth:`Predictor.run`) or one strip of
+its window rows (:meth:`Predictor.strip`, what a ``torchrun`` rank computes of an input it shares); the
+whole raster is the one-strip case, and :meth:`Predictor.commit` turns the strips into the final COGs.
+The orthophoto's header is read once into an :class:`~aerialmtl.inference.ortho.OrthoInput` (grid,
+bands, window plan) that travels through the job.
+
+A strip is read → model → stitch → write, each stage overlapping the others:
 
 1. :class:`~aerialmtl.inference.reader.WindowReader` reads and decodes the windows of the plan
-   (:func:`~aerialmtl.inference.windows.plan_bands`) on the reference grid at the model's GSD
-   (:func:`model_grid`) in background threads, a few windows ahead;
+   (:func:`~aerialmtl.inference.windows.plan_windows`) on the prediction grid at the model's GSD in
+   background threads, a few windows ahead;
 2. :class:`~aerialmtl.inference.runner.ModelRunner` normalises them on the device and runs the model in
    batches of windows of one window row (plain forward for T = 1, MC dropout for T > 1);
 3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device and hands
@@ -14,6 +20,9 @@ read → model → stitch → write, each stage overlapping the others:
 4. :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files in a
    background thread, then converts every layer to a COG (the layers in parallel, each on several
    threads) and renames everything into place at once.
+
+Device, precision, autocast, the compile fallback and the GDAL settings come from
+:mod:`aerialmtl.runtime`, as for training.
 
 Memory holds a few windows (reader queue, accumulators, blocks in flight) plus the rows two window rows
 share (a few KiB per raster column): it does not grow with the raster height, and barely with its
@@ -28,12 +37,11 @@ from __future__ import annotations
 import json
 import os
 import time
-import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import rasterio
 import torch
 from tqdm.auto import tqdm
 
@@ -41,6 +49,7 @@ from aerialmtl import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.prediction import LayerSpec, prediction_layers
+from aerialmtl.inference.ortho import GSD_TOLERANCE, OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
 from aerialmtl.inference.runner import (
     DECODE_PIXELS,
@@ -52,19 +61,14 @@ from aerialmtl.inference.runner import (
     resolve_precision,
 )
 from aerialmtl.inference.stitch import Stitcher
-from aerialmtl.inference.windows import Plan, check_tiling, plan_bands
+from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
 from aerialmtl.inference.writer import PredictionWriter
-from aerialmtl.io.align import Grid, open_raster, reference_grid
+from aerialmtl.io.align import Grid
 from aerialmtl.models.mc_dropout import McStatistics
+from aerialmtl.runtime import GDAL_CACHE_MB, gdal_env
 
 #: MC-dropout samples when neither the caller nor the checkpoint says otherwise.
 DEFAULT_MC_SAMPLES = 30
-#: Relative GSD difference above which the orthophoto is resampled to the model's GSD.
-GSD_TOLERANCE = 0.01
-#: GDAL block cache while predicting (MB): bounded, whatever the raster size. It serves the windows being
-#: read (a few tiles each) and the staging tiles being written; a larger cache only grows memory with
-#: the raster width. A ``GDAL_CACHEMAX`` environment variable wins (:func:`gdal_env`).
-GDAL_CACHE_MB = 32
 
 BatchSize = int | Literal["auto"]
 
@@ -82,7 +86,8 @@ class PredictResult:
         plan_overlap_factor: the same if every window were computed.
         megapixels_per_s: output megapixels per second of total time.
         timings: seconds per stage (``read`` and ``write`` run in background threads and overlap the
-            others; ``model``, ``stitch_write`` (stitching plus waiting for the writer), ``cog``, ``total``).
+            others; ``model``, ``stitch_write`` (stitching plus waiting for the writer), ``strip_total``
+            (the slowest strip, or the whole raster), ``cog``, ``total``).
         ortho: the orthophoto.
     """
 
@@ -101,30 +106,35 @@ class PredictResult:
 
 @dataclass
 class StripResult:
-    """What one strip of bands (or the whole raster) computed (see :meth:`Predictor.compute`)."""
+    """What one strip of window rows (or the whole raster) computed (see :meth:`Predictor.strip`).
+
+    Attributes:
+        windows_computed: windows run through the model.
+        timings: seconds per stage (see :class:`PredictResult`).
+        row_start: the first grid row the strip wrote (its staging files are named after it).
+        writer: the strip's writer (held by the process that commits; ``None`` once handed over).
+    """
 
     windows_computed: int
     timings: dict[str, float]
+    row_start: int = 0
+    writer: PredictionWriter | None = field(default=None, repr=False, compare=False)
+
+    def __getstate__(self) -> dict[str, Any]:  # strips travel between ranks without their writer
+        return {**self.__dict__, "writer": None}
 
 
 # ---- the grid ----------------------------------------------------------------------------------
 def model_grid(ortho: str | Path, meta: ModelMeta) -> tuple[Grid, float | None]:
-    """The grid predictions are made on: the orthophoto's, resampled to the model's GSD (metres, whatever the CRS unit)
-    when they differ.
+    """The grid predictions are made on: the orthophoto's, resampled to the model's GSD (metres, whatever
+    the CRS unit) when they differ by more than :data:`~aerialmtl.inference.ortho.GSD_TOLERANCE`.
 
     Returns:
         ``(grid, resampled_from)``: ``resampled_from`` is the orthophoto's own GSD when it was
-        resampled (more than :data:`GSD_TOLERANCE` away from ``meta.gsd``), else ``None``.
+        resampled, else ``None``.
     """
-    native = reference_grid(ortho)
-    if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd:
-        return reference_grid(ortho, gsd=meta.gsd), native.gsd
-    return native, None
-
-
-def gdal_env() -> rasterio.Env:
-    """GDAL settings while predicting: the block cache bounded to :data:`GDAL_CACHE_MB` unless the user set one."""
-    return rasterio.Env() if "GDAL_CACHEMAX" in os.environ else rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
+    src = OrthoInput.open(ortho, meta, 32, 0)
+    return src.grid, src.resampled_from
 
 
 def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta]) -> tuple[torch.nn.Module, ModelMeta, str]:
@@ -227,21 +237,36 @@ class Predictor:
     def model(self) -> torch.nn.Module:
         return self.runner.model
 
-    # ---- planning ---------------------------------------------------------------------------------
+    # ---- inputs -----------------------------------------------------------------------------------
+    def open(self, ortho: str | Path | OrthoInput, warn: bool = True, grid: Grid | None = None) -> OrthoInput:
+        """Read the header of ``ortho`` once (:class:`~aerialmtl.inference.ortho.OrthoInput`); an
+        :class:`OrthoInput` is returned as it is.
+
+        Args:
+            ortho: the orthophoto.
+            warn: warn when it is resampled to the model's GSD or has bands the model does not read.
+            grid: the prediction grid when the caller knows it already.
+
+        Raises:
+            AlignmentError / InputError: unusable georeferencing or bands (messages name the fix).
+        """
+        if isinstance(ortho, OrthoInput):
+            return ortho
+        src = OrthoInput.open(ortho, self.meta, self.tile, self.overlap, grid=grid)
+        if warn:
+            src.warn_resampled(self.meta, stacklevel=4)
+            src.warn_unused_bands(self.meta, stacklevel=4)
+        return src
+
     def grid(self, ortho: str | Path, warn: bool = True) -> Grid:
         """The prediction grid of ``ortho`` (:func:`model_grid`), warning when it is resampled."""
-        grid, resampled_from = model_grid(ortho, self.meta)
-        if resampled_from is not None and warn:
-            g = self.meta.gsd
-            warnings.warn(
-                f"orthophoto '{ortho}' has a GSD of {resampled_from:.4g} m but the model was trained at {g:.4g} m; "
-                f"resampling the orthophoto to {g:.4g} m (outputs are on the {g:.4g} m grid)",
-                stacklevel=3,
-            )
-        return grid
+        src = OrthoInput.open(ortho, self.meta, self.tile, self.overlap)
+        if warn:
+            src.warn_resampled(self.meta, stacklevel=4)
+        return src.grid
 
     def plan(self, grid: Grid) -> Plan:
-        return plan_bands(grid.height, grid.width, self.tile, self.overlap)
+        return plan_windows(grid.height, grid.width, self.tile, self.overlap)
 
     def resolved_batch_size(self, plan: Plan) -> int:
         """Windows per model call for windows of ``plan`` (resolves ``"auto"`` once per window size)."""
@@ -253,41 +278,33 @@ class Predictor:
                                                self.precision)
         return self._batch[key]
 
-    def warn_unused_bands(self, ortho: str | Path) -> None:
+    def warn_unused_bands(self, ortho: str | Path | OrthoInput) -> None:
         """Warn when the orthophoto has bands the model does not read."""
-        meta = self.meta
-        with open_raster(ortho, "orthophoto") as src:
-            from rasterio.enums import ColorInterp
-
-            alpha = [i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha]
-            unused = [b for b in range(1, src.count + 1) if b not in meta.bands and b not in alpha[:1]]
-            count = src.count
-        if unused:
-            trained = f"bands {list(meta.bands)}" + (f" ({', '.join(meta.band_names)})" if meta.band_names else "")
-            warnings.warn(f"orthophoto '{ortho}' has {count} bands; the model reads {trained} as recorded "
-                          f"in its checkpoint and ignores band(s) {unused}", stacklevel=3)
+        self.open(ortho, warn=False).warn_unused_bands(self.meta, stacklevel=4)
 
     # ---- computing --------------------------------------------------------------------------------
-    def compute(self, ortho: str | Path, grid: Grid, plan: Plan, writer: PredictionWriter, *,
-                aoi: str | Path | None = None, bands: tuple[int, int] | None = None,
+    def compute(self, ortho: str | Path | OrthoInput, grid: Grid, plan: Plan, writer: PredictionWriter, *,
+                aoi: str | Path | None = None, window_rows: tuple[int, int] | None = None,
                 progress: bool = True) -> StripResult:
-        """Read, run and stitch bands ``[start, stop)`` of ``plan`` (default all) into ``writer``.
+        """Read, run and stitch window rows ``[start, stop)`` of ``plan`` (default all) into ``writer``.
 
-        The window rows before ``start`` that reach into it (:attr:`~aerialmtl.inference.windows.Band.sources`)
-        are computed too, so a strip gives exactly the rows a whole-raster run gives.
+        The window rows before ``start`` that reach into it
+        (:attr:`~aerialmtl.inference.windows.WindowRow.sources`) are computed too, so a strip gives exactly
+        the output rows a whole-raster run gives.
         """
-        band_start, band_stop = bands or (0, len(plan.bands))
-        stitcher = Stitcher(plan, self.layers, self.num_classes, self.device, band_start, band_stop)
+        path = ortho.path if isinstance(ortho, OrthoInput) else ortho
+        start, stop = window_rows or (0, len(plan.window_rows))
+        stitcher = Stitcher(plan, self.layers, self.num_classes, self.device, start, stop)
         batch_size = self.resolved_batch_size(plan)
         aoi_mask = Aoi(aoi, grid) if aoi is not None else None
-        rows = range(stitcher.first_row, band_stop)
+        rows = range(stitcher.first_row, stop)
         n_cols = len(plan.cols.starts)
         timings = {"read": 0.0, "model": 0.0, "stitch_write": 0.0}
         computed = 0
-        bar = tqdm(total=len(rows) * n_cols, unit="win", desc=Path(ortho).name, disable=not progress,
+        bar = tqdm(total=len(rows) * n_cols, unit="win", desc=Path(str(path)).name, disable=not progress,
                    dynamic_ncols=True)
         depth = max(4, 2 * batch_size)  # windows read ahead: a batch being computed and the next one
-        reader = WindowReader(ortho, grid, list(self.meta.bands), plan, rows, aoi_mask,
+        reader = WindowReader(path, grid, list(self.meta.bands), plan, rows, aoi_mask,
                               threads=self.reader_threads, depth=depth, pin=self.device.type == "cuda")
         try:
             with reader:
@@ -332,65 +349,112 @@ class Predictor:
             bar.close()
         return StripResult(computed, timings)
 
-    def run(self, ortho: str | Path, out: str | Path, *, aoi: str | Path | None = None, overwrite: bool = False,
-            progress: bool = True, check_outputs: bool = True, grid: Grid | None = None) -> PredictResult:
-        """Predict ``ortho`` into the prediction folder ``out``; see the module docstring.
+    def strip(self, src: OrthoInput, out: str | Path, *, aoi: str | Path | None = None,
+              window_rows: tuple[int, int] | None = None, overwrite: bool = False, check_outputs: bool = True,
+              progress: bool = True) -> StripResult:
+        """Compute window rows ``[start, stop)`` of ``src`` (default all) into staging files in ``out``.
+
+        The result holds the strip's writer; :meth:`commit` (with every strip of the input) turns the
+        staging files into the final COGs, :meth:`PredictionWriter.abort` removes them.
 
         Args:
-            ortho: orthophoto GeoTIFF (any size; read window by window).
+            src: the input (:meth:`open`).
+            out: its prediction folder.
+            aoi: optional GeoJSON AOI.
+            window_rows: the strip; ``None`` is the whole raster.
+            overwrite, check_outputs: see :meth:`run` (a strip of a shared input checks nothing: the job did).
+            progress: a progress bar.
+        """
+        t0 = time.perf_counter()
+        plan = src.plan
+        whole = window_rows is None or tuple(window_rows) == (0, len(plan.window_rows))
+        start, stop = (0, len(plan.window_rows)) if window_rows is None else window_rows
+        rows = (plan.window_rows[start].out_start, plan.window_rows[stop - 1].out_stop)
+        writer = PredictionWriter(out, src.grid, self.layers, overwrite=overwrite, rows=None if whole else rows,
+                                  clean=whole, check=check_outputs and whole)
+        try:
+            res = self.compute(src, src.grid, plan, writer, aoi=aoi, window_rows=(start, stop), progress=progress)
+            t1 = time.perf_counter()
+            writer.finish()
+            res.timings["stitch_write"] += time.perf_counter() - t1
+            res.timings["write"] = writer.seconds_writing
+        except BaseException:
+            writer.abort()
+            raise
+        res.timings["strip_total"] = time.perf_counter() - t0
+        res.row_start, res.writer = rows[0], writer
+        return res
+
+    def commit(self, src: OrthoInput, out: str | Path, strips: Sequence[StripResult], *,
+               aoi: str | Path | None = None, processes: int = 1, started: float | None = None) -> PredictResult:
+        """Join the strips of ``src`` (the first one holding its writer) into the final COGs and
+        ``prediction.json``; aborts the writer if that fails.
+
+        Args:
+            started: ``time.perf_counter()`` when the job started (default: the strips' time is the total).
+        """
+        writer = strips[0].writer
+        assert writer is not None, "commit needs the writer of the first strip"
+        t0 = time.perf_counter()
+        computed = sum(r.windows_computed for r in strips)
+        timings: dict[str, float] = {}
+        for r in strips:  # the slowest strip's stage times
+            for key, v in r.timings.items():
+                timings[key] = max(timings.get(key, 0.0), v)
+        before = (t0 - started) if started is not None else timings.get("strip_total", 0.0)
+        try:
+            info = self.info(src, src.grid, src.plan, aoi, computed, {**timings, "before_cog": before},
+                             processes=processes)
+            files = writer.commit(info, strips=[r.row_start for r in strips])
+        except BaseException:
+            writer.abort()
+            raise
+        timings["cog"] = time.perf_counter() - t0
+        timings["total"] = before + timings["cog"]
+        _record_timings(files["prediction"], timings)
+        grid, plan = src.grid, src.plan
+        out_px = grid.width * grid.height
+        return PredictResult(Path(out), files, grid, self.mc, plan.num_windows, computed,
+                             self.overlap_factor(plan, computed), plan.overlap_factor,
+                             out_px / 1e6 / max(timings["total"], 1e-9), timings, Path(str(src.path)))
+
+    def run(self, ortho: str | Path | OrthoInput, out: str | Path, *, aoi: str | Path | None = None,
+            overwrite: bool = False, progress: bool = True, check_outputs: bool = True,
+            grid: Grid | None = None) -> PredictResult:
+        """Predict ``ortho`` into the prediction folder ``out``: the whole raster as one strip.
+
+        Args:
+            ortho: orthophoto GeoTIFF (any size; read window by window), or an input from :meth:`open`.
             out: prediction folder (see :mod:`aerialmtl.formats.prediction`).
             aoi: optional GeoJSON of polygons; only windows intersecting them are computed, pixels
                 outside are nodata.
             overwrite: replace existing outputs instead of raising.
             progress: show a tqdm progress bar.
             check_outputs: refuse existing outputs (off when the caller checked every input already).
-            grid: the prediction grid when the caller has it already (:meth:`grid`; no second warning).
+            grid: the prediction grid when the caller has it already (no second warning).
 
         Raises:
             OutputExistsError: outputs exist and ``overwrite`` is false.
             InputError / AlignmentError: unusable inputs (messages name the fix).
         """
-        t_start = time.perf_counter()
-        out_dir = Path(out)
-        grid = grid or self.grid(ortho)
-        plan = self.plan(grid)
+        started = time.perf_counter()
         with gdal_env():
-            self.warn_unused_bands(ortho)
-            writer = PredictionWriter(out_dir, grid, self.layers, overwrite=overwrite, check=check_outputs)
-            try:
-                strip = self.compute(ortho, grid, plan, writer, aoi=aoi, progress=progress)
-                t0 = time.perf_counter()
-                writer.finish()
-                strip.timings["stitch_write"] += time.perf_counter() - t0
-                strip.timings["write"] = writer.seconds_writing
-                t0 = time.perf_counter()
-                info = self.info(ortho, grid, plan, aoi, strip.windows_computed,
-                                 {**strip.timings, "before_cog": t0 - t_start})
-                files = writer.commit(info)
-                strip.timings["cog"] = time.perf_counter() - t0
-            except BaseException:
-                writer.abort()
-                raise
-        timings = strip.timings
-        timings["total"] = time.perf_counter() - t_start
-        _record_timings(files["prediction"], timings)
-        out_px = grid.width * grid.height
-        return PredictResult(out_dir, files, grid, self.mc, plan.num_windows, strip.windows_computed,
-                             self.overlap_factor(plan, strip.windows_computed), plan.overlap_factor,
-                             out_px / 1e6 / max(timings["total"], 1e-9), timings, Path(ortho))
+            src = self.open(ortho, grid=grid, warn=grid is None)
+            strip = self.strip(src, out, aoi=aoi, overwrite=overwrite, check_outputs=check_outputs, progress=progress)
+            return self.commit(src, out, [strip], aoi=aoi, started=started)
 
     # ---- run information --------------------------------------------------------------------------
     @staticmethod
     def overlap_factor(plan: Plan, computed: int) -> float:
         return computed * plan.rows.size * plan.cols.size / float(plan.rows.length * plan.cols.length)
 
-    def info(self, ortho: str | Path, grid: Grid, plan: Plan, aoi: str | Path | None, computed: int,
+    def info(self, ortho: str | Path | OrthoInput, grid: Grid, plan: Plan, aoi: str | Path | None, computed: int,
              timings: dict[str, float], processes: int = 1) -> dict[str, Any]:
         """The ``prediction.json`` content of a run."""
-        _, resampled_from = model_grid(ortho, self.meta)
+        src = self.open(ortho, warn=False, grid=grid)
         return {
             "aerialmtl_version": __version__,
-            "orthophoto": str(ortho),
+            "orthophoto": str(src.path),
             "checkpoint": self.checkpoint_name,
             "mc_samples": self.mc,
             "seed": self.seed,
@@ -405,7 +469,7 @@ class Predictor:
             "aoi": None if aoi is None else str(aoi),
             "grid": {"crs": grid.crs.to_string(), "transform": list(grid.transform)[:6],
                      "width": grid.width, "height": grid.height, "gsd": grid.gsd},
-            "resampled_from_gsd": resampled_from,
+            "resampled_from_gsd": src.resampled_from,
             "windows_total": plan.num_windows,
             "windows_computed": computed,
             "overlap_factor": self.overlap_factor(plan, computed),
@@ -453,5 +517,6 @@ def predict_raster(
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 
-__all__ = ["DECODE_PIXELS", "DEFAULT_MC_SAMPLES", "PredictResult", "Predictor", "StripResult", "mc_sample_batch",
-           "model_grid", "predict_raster", "resolve_precision"]
+__all__ = ["DECODE_PIXELS", "DEFAULT_MC_SAMPLES", "GDAL_CACHE_MB", "GSD_TOLERANCE", "OrthoInput", "PredictResult",
+           "Predictor", "StripResult", "gdal_env", "mc_sample_batch", "model_grid", "predict_raster",
+           "resolve_precision"]

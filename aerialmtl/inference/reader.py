@@ -121,7 +121,7 @@ class WindowReader:
         import time
 
         t0 = time.perf_counter()
-        win = self.plan.bands[i].windows[j]
+        win = self.plan.window_rows[i].windows[j]
         data, valid = self._source().read(win)
         if self.aoi is not None:
             valid &= self.aoi.mask(win)

@@ -6,9 +6,9 @@ deterministic forward pass (T = 1: height and softmax probabilities) or MC dropo
 (:func:`~aerialmtl.models.mc_dropout.mc_statistics`: encoder once, T decoder samples in chunks that fit
 the device, dropout masks seeded per window so results do not depend on batching).
 
-Also here: the device, precision and batch-size choices (:func:`resolve_device`,
-:func:`resolve_precision`, :func:`auto_batch_size`, :func:`mc_sample_batch`) and the optional
-``torch.compile`` of the deterministic parts (:func:`compile_model`).
+Also here: the batch-size choices (:func:`auto_batch_size`, :func:`mc_sample_batch`) and the optional
+``torch.compile`` of the deterministic parts (:func:`compile_model`); device, precision, autocast and the
+compile fallback come from :mod:`aerialmtl.runtime`.
 
 The runner predicts with its own copy of the model, prepared for inference (:func:`inference_model`):
 decoder convolutions and their BatchNorms folded into one (:func:`~aerialmtl.models.d3net.fold_batchnorm`)
@@ -19,20 +19,19 @@ and the blending alike; bench/RESULTS.md).
 from __future__ import annotations
 
 import contextlib
-import warnings
 from collections.abc import Callable, Sequence
-from typing import Any, Literal, cast
+from typing import Literal, cast
 
 import numpy as np
 import torch
 from torch import nn
 
-from aerialmtl.errors import InputError
+from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.models.d3net import fold_batchnorm
 from aerialmtl.models.mc_dropout import McStatistics, class_probabilities, mc_statistics
 
-Precision = Literal["auto", "bf16", "fp32"]
+Precision = runtime.Precision
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
 #: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
@@ -47,28 +46,19 @@ MEMORY_SHARE = 0.6
 
 
 def resolve_device(device: str) -> torch.device:
-    """``auto`` → ``cuda`` when available, else ``cpu``; ``cuda:N`` is accepted."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError(f"‹device={device}› but no CUDA GPU is available; pass ‹device=cpu› or ‹device=auto›",
-                         param="device")
-    if device not in ("cpu",) and not device.startswith("cuda"):
-        raise InputError(f"‹device={device}› is not supported; use auto, cpu or cuda", param="device")
-    return torch.device(device)
+    """``auto`` → ``cuda`` when available, else ``cpu``; ``cuda:N`` is accepted
+    (:func:`aerialmtl.runtime.resolve_device`)."""
+    return runtime.resolve_device(device)
 
 
-def resolve_precision(precision: str, device: torch.device) -> Literal["bf16", "fp32"]:
-    """``auto`` → bf16 autocast on CUDA, fp32 on CPU.
+def resolve_precision(precision: str, device: torch.device, cpu_bf16: bool = False) -> Literal["bf16", "fp32"]:
+    """``auto`` → bf16 on CUDA GPUs with bf16 and, with ``cpu_bf16`` (the OpenVINO engine), on CPUs with
+    native bf16; fp32 otherwise (:func:`aerialmtl.runtime.resolve_precision`).
 
-    CPUs without native bf16 matrix instructions (AVX-512-BF16/AMX; e.g. AMD Zen 3) emulate bf16
-    convolutions more than 10× slower than fp32 (bench/RESULTS.md, predict).
+    torch's own bf16 convolutions on a CPU pay only with AMX; CPUs without native bf16 (e.g. AMD Zen 3)
+    emulate it more than 10× slower than fp32 (bench/RESULTS.md, predict).
     """
-    if precision == "auto":
-        return "bf16" if device.type == "cuda" else "fp32"
-    if precision not in ("bf16", "fp32"):
-        raise InputError(f"‹precision={precision}› is not supported; use auto, bf16 or fp32", param="precision")
-    return precision  # type: ignore[return-value]
+    return runtime.resolve_precision(precision, device, cpu_bf16=cpu_bf16)
 
 
 def mc_sample_batch(batch: int, height: int, width: int, device: torch.device, max_pixels: int | None = None) -> int:
@@ -105,49 +95,30 @@ def auto_batch_size(model: nn.Module, in_channels: int, height: int, width: int,
 
 
 def _autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
-    return torch.autocast(device.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
+    return runtime.autocast(device, precision)
 
 
 class _Compiled(nn.Module):
-    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC) with a fallback.
+    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC) with the
+    fallback of :class:`aerialmtl.runtime.CompileFallback`.
 
     The decoder stays eager under MC dropout: its per-window seeded masks are drawn by Python hooks.
-    If compiling fails (no compiler, an unsupported op), a warning says so once and the model runs
-    uncompiled.
     """
 
     def __init__(self, model: nn.Module) -> None:
         super().__init__()
         self.model = model
-        self._calls: dict[str, Callable[..., Any]] = {}
-        self._failed = False
-
-    def _call(self, name: str, *args: Any) -> Any:
-        eager = getattr(self.model, name)
-        if self._failed:
-            return eager(*args)
-        fn = self._calls.get(name)
-        try:
-            if fn is None:
-                fn = torch.compile(eager)
-                self._calls[name] = fn
-            return fn(*args)
-        except Exception as exc:  # compilation errors surface at the first call
-            self._failed = True
-            why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
-            warnings.warn(f"torch.compile is not available here ({why}); running the model without compilation",
-                          stacklevel=3)
-            return eager(*args)
+        self._compiled = runtime.CompileFallback(model, "the model")
 
     def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
-        return cast(list[torch.Tensor], self._call("encode", x))
+        return cast(list[torch.Tensor], self._compiled("encode", x))
 
     def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
         decode: Callable[[list[torch.Tensor]], dict[str, torch.Tensor]] = getattr(self.model, "decode")  # noqa: B009
         return decode(feats)
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        return cast(dict[str, torch.Tensor], self._call("forward", x))
+        return cast(dict[str, torch.Tensor], self._compiled("forward", x))
 
 
 def inference_model(model: nn.Module, device: torch.device) -> nn.Module:

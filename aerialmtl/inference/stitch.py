@@ -2,7 +2,7 @@
 
 :class:`Stitcher` follows the window plan of :mod:`aerialmtl.inference.windows`: windows arrive row by
 row, left to right. Each one is added, weighted by its dyadic blending weights times its input
-validity, into accumulators on the model's device; after window ``(i, j)`` the rows of band ``i`` and the
+validity, into accumulators on the model's device; after window ``(i, j)`` the output rows of window row ``i`` and the
 columns before :meth:`~aerialmtl.inference.windows.AxisPlan.final_until` ``(j)`` get no more weight, so
 that block is finalised on the device (weighted means, argmax, entropy, mutual information) and handed
 back as a :class:`Block` of host arrays in the output dtypes of the schema
@@ -26,7 +26,7 @@ Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each w
 
 Every sum is formed in window order with one rounding per product and per addition, so any
 implementation that adds the same products in the same order (e.g. a whole-raster reference in numpy)
-gets the same bits; the result does not depend on batching or on where a strip of bands starts.
+gets the same bits; the result does not depend on batching or on where a strip of window rows starts.
 """
 
 from __future__ import annotations
@@ -88,16 +88,17 @@ def _quantities(names: set[str]) -> tuple[str, ...]:
 
 
 class Stitcher:
-    """Blend the windows of bands ``[band_start, band_stop)`` of ``plan`` into finished blocks.
+    """Blend the windows of window rows ``[start, stop)`` of ``plan`` into finished blocks.
 
     Args:
         plan: the window plan.
         layers: the output schema (:func:`~aerialmtl.formats.prediction.prediction_layers`).
         num_classes: K (0 without the classes task).
         device: where the accumulators live (the model's device).
-        band_start, band_stop: the bands to hand back (a strip of the raster); default all. The
-            stitcher then expects the windows of rows :attr:`first_row` … ``band_stop − 1``: rows before
-            ``band_start`` are only accumulated (they reach into the strip), nothing of them is handed back.
+        start, stop: the window rows whose output rows to hand back (a strip of the raster); default
+            all. The stitcher then expects the windows of window rows :attr:`first_row` … ``stop − 1``:
+            window rows before ``start`` are only accumulated (they reach into the strip), nothing of
+            them is handed back.
     """
 
     def __init__(
@@ -106,8 +107,8 @@ class Stitcher:
         layers: Sequence[LayerSpec],
         num_classes: int,
         device: torch.device | str = "cpu",
-        band_start: int = 0,
-        band_stop: int | None = None,
+        start: int = 0,
+        stop: int | None = None,
     ) -> None:
         self.plan = plan
         self.specs = {s.name: s for s in layers}
@@ -116,31 +117,32 @@ class Stitcher:
         if "probs" in self.quantities and self.k < 1:
             raise ValueError("Stitcher: class layers need num_classes ≥ 1")
         self.device = torch.device(device)
-        n_bands = len(plan.bands)
-        self.band_start = band_start
-        self.band_stop = n_bands if band_stop is None else band_stop
-        if not 0 <= band_start < self.band_stop <= n_bands:
-            raise ValueError(f"Stitcher: bands [{band_start}, {band_stop}) outside the plan's {n_bands} bands")
-        #: The first window row the stitcher needs (the first source of ``band_start``).
-        self.first_row = plan.bands[band_start].sources[0]
+        n_rows = len(plan.window_rows)
+        self.start = start
+        self.stop = n_rows if stop is None else stop
+        if not 0 <= start < self.stop <= n_rows:
+            raise ValueError(f"Stitcher: window rows [{start}, {stop}) outside the plan's {n_rows} window rows")
+        #: The first window row the stitcher needs (the first source of ``start``).
+        self.first_row = plan.window_rows[start].sources[0]
         rows, cols = plan.rows, plan.cols
         self.height, self.width = rows.length, cols.length
         self._rw = torch.from_numpy(rows.weights).to(self.device)
         self._cw = torch.from_numpy(cols.weights).to(self.device)
         sr, sc = rows.size, cols.size
-        # carry: rows still pending after a band, over the raster width (see the module docstring)
-        # rows still reached by a window row after its band is finished (from the band's out_stop)
-        self._pending = [max(0, min(self.height, rows.reach(k)) - b.out_stop) for k, b in enumerate(plan.bands)]
+        # carry: output rows still reached by window row k after its own rows are final (from its
+        # out_stop), over the raster width (see the module docstring)
+        self._pending = [max(0, min(self.height, rows.reach(k)) - b.out_stop)
+                         for k, b in enumerate(plan.window_rows)]
         self._ring = self._alloc(sr, sc)
         carry_rows = max(self._pending + [0])
         per_column = carry_rows * (1 + sum(self.k if q == "probs" else 1 for q in self.quantities)) * 4
         self._carry = _Carry(self._alloc(carry_rows, self.width) if per_column * self.width <= CARRY_IN_MEMORY
                              else None, carry_rows, {n: t.shape[2:] for n, t in self._ring.items()}, self.width,
                              self.device)
-        self._carry_rows = 0  # rows of _carry in use (from the current band's out_start)
+        self._carry_rows = 0  # rows of _carry in use (from the current window row's out_start)
         self._expect = (self.first_row, 0)
         self._a0 = 0  # grid column of ring column 0
-        self._done = 0  # first grid column of the current band not yet handed back
+        self._done = 0  # first grid column of the current window row not yet handed back
         self.chunk = CHUNK_ELEMENTS
         self._tmp = torch.empty(0, device=self.device)
 
@@ -216,11 +218,11 @@ class Stitcher:
             raise ValueError(f"Stitcher: expected window {self._expect}, got {(i, j)}")
         plan = self.plan
         cols = plan.cols
-        band = plan.bands[i]
+        wrow = plan.window_rows[i]
         sc = cols.size
         n_cols = len(cols.starts)
         a0 = cols.starts[j]
-        top = band.out_start - band.row_off  # ring rows above are final already
+        top = wrow.out_start - wrow.row_off  # ring rows above are final already
         ring = self._ring
         keep = max(0, self._a0 + sc - a0) if j > 0 else 0
         shift = a0 - self._a0
@@ -260,17 +262,17 @@ class Stitcher:
                 fresh = (slice(top + (nc if n else 0), None), slice(keep, None))
                 self._combine(dst[fresh], part(src, *fresh), part(mult, *fresh), None)
         self._a0 = a0
-        # finished columns of this band
+        # finished columns of this window row
         stop = cols.final_until(j)
         blocks: list[Block] = []
         if stop > self._done:
             lo, hi = self._done - a0, stop - a0
-            r_lo, r_hi = top, band.out_stop - band.row_off
-            if i >= self.band_start and r_hi > r_lo:
-                blocks.append(self._finalise(ring, band.out_start, self._done, r_lo, r_hi, lo, hi))
-            pending = self._pending[i] if i + 1 < len(plan.bands) else 0
-            if pending:  # rows still reached after this band → the carry (these columns were read already)
-                p_lo = band.out_stop - band.row_off
+            r_lo, r_hi = top, wrow.out_stop - wrow.row_off
+            if i >= self.start and r_hi > r_lo:
+                blocks.append(self._finalise(ring, wrow.out_start, self._done, r_lo, r_hi, lo, hi))
+            pending = self._pending[i] if i + 1 < len(plan.window_rows) else 0
+            if pending:  # rows still reached after this window row → the carry (these columns were read already)
+                p_lo = wrow.out_stop - wrow.row_off
                 for name, acc in ring.items():
                     self._carry.write(name, self._done, acc[p_lo:p_lo + pending, lo:hi])
             self._done = stop
@@ -278,7 +280,7 @@ class Stitcher:
         if j + 1 < n_cols:
             self._expect = (i, j + 1)
         else:
-            self._carry_rows = self._pending[i] if i + 1 < len(plan.bands) else 0
+            self._carry_rows = self._pending[i] if i + 1 < len(plan.window_rows) else 0
             self._expect = (i + 1, 0)
             self._done = 0
             self._a0 = 0
@@ -286,8 +288,8 @@ class Stitcher:
 
     @property
     def finished(self) -> bool:
-        """Whether every window up to ``band_stop`` has been added."""
-        return self._expect[0] >= self.band_stop
+        """Whether every window up to window row ``stop`` has been added."""
+        return self._expect[0] >= self.stop
 
     # ---- finalising -------------------------------------------------------------------------------
     def _finalise(self, acc: dict[str, torch.Tensor], row_off: int, col_off: int, r_lo: int, r_hi: int,

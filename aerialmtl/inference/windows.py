@@ -19,13 +19,17 @@ multiples of 1/256 that still sum to exactly 1, so a model that returns the same
 gives that value back bit for bit (for values with ≤ 8 significant bits, e.g. 8-bit imagery, and to
 float rounding otherwise) and no seam can appear.
 
-Row bands. Window rows are processed top to bottom; after window row ``i`` the output rows
-``[out_start, out_stop)`` of :class:`Band` ``i`` are final (no later window touches them) and can be
-written. A band depends only on the window rows :attr:`Band.sources` (usually ``i − 1`` and ``i``; with
-small tiles and a large overlap a window row can reach two rows down), so bands can be sharded across
-processes: a worker that starts at band ``a`` runs window rows ``sources[0] … a − 1`` first. The same
-holds along a row for columns (:meth:`AxisPlan.final_until`), which lets the stitcher hand back finished
-blocks while it moves left to right and keep only one window of accumulators per band.
+Window rows. The windows are processed one :class:`WindowRow` at a time, top to bottom; after window row
+``i`` the output rows ``[out_start, out_stop)`` of that window row are final (no later window touches
+them) and can be written. They depend only on the window rows :attr:`WindowRow.sources` (usually ``i − 1``
+and ``i``; with small tiles and a large overlap a window row can reach two rows down), so a raster can be
+cut into strips of window rows shared among processes: a worker whose strip starts at window row ``a``
+runs window rows ``sources[0] … a − 1`` first. The same holds along a window row for columns
+(:meth:`AxisPlan.final_until`), which lets the stitcher hand back finished blocks while it moves left to
+right and keep only one window of accumulators per window row.
+
+(Words: a *window row* is a row of windows of this plan; *bands* are always the spectral bands of a
+raster.)
 """
 
 from __future__ import annotations
@@ -146,8 +150,8 @@ def axis_plan(length: int, tile: int, overlap: int) -> AxisPlan:
 
 
 @dataclass(frozen=True)
-class Band:
-    """One row band of the plan.
+class WindowRow:
+    """One row of windows of the plan.
 
     Attributes:
         index: window row ``i``.
@@ -174,11 +178,16 @@ class Band:
 
 @dataclass(frozen=True)
 class Plan:
-    """Windows over a ``height`` × ``width`` grid: row and column :class:`AxisPlan` and the bands."""
+    """Windows over a ``height`` × ``width`` grid: row and column :class:`AxisPlan` and the window rows."""
 
     rows: AxisPlan
     cols: AxisPlan
-    bands: tuple[Band, ...]
+    window_rows: tuple[WindowRow, ...]
+
+    @property
+    def bands(self) -> tuple[WindowRow, ...]:
+        """Former name of :attr:`window_rows`."""
+        return self.window_rows
 
     @property
     def num_windows(self) -> int:
@@ -195,10 +204,10 @@ class Plan:
         return self.rows.weights[i][:, None] * self.cols.weights[j][None, :]
 
 
-def plan_bands(height: int, width: int, tile: int = 512, overlap: int = 64) -> Plan:
-    """Plan the prediction windows over a ``height`` × ``width`` grid, grouped in row bands.
+def plan_windows(height: int, width: int, tile: int = 512, overlap: int = 64) -> Plan:
+    """Plan the prediction windows over a ``height`` × ``width`` grid, grouped in window rows.
 
-    Pure function of its arguments; bands are independent given their :attr:`Band.sources`.
+    Pure function of its arguments; window rows are independent given their :attr:`WindowRow.sources`.
 
     Args:
         height, width: grid size in pixels.
@@ -210,16 +219,21 @@ def plan_bands(height: int, width: int, tile: int = 512, overlap: int = 64) -> P
     """
     rows = axis_plan(height, tile, overlap)
     cols = axis_plan(width, tile, overlap)
-    bands = []
+    window_rows = []
     out_start = 0
     reach = [rows.reach(k) for k in range(len(rows.starts))]
     for i, r in enumerate(rows.starts):
         out_stop = rows.final_until(i)
         wins = tuple(Window(c, r, cols.size, rows.size) for c in cols.starts)
         first = next(k for k in range(i + 1) if k == i or reach[k] > out_start)
-        bands.append(Band(i, r, rows.size, out_start, out_stop, wins, first))
+        window_rows.append(WindowRow(i, r, rows.size, out_start, out_stop, wins, first))
         out_start = out_stop
-    return Plan(rows, cols, tuple(bands))
+    return Plan(rows, cols, tuple(window_rows))
 
 
-__all__ = ["SIZE_MULTIPLE", "AxisPlan", "Band", "Plan", "axis_plan", "check_tiling", "plan_bands"]
+#: Former names (before "bands" meant only spectral bands).
+Band = WindowRow
+plan_bands = plan_windows
+
+__all__ = ["SIZE_MULTIPLE", "AxisPlan", "Band", "Plan", "WindowRow", "axis_plan", "check_tiling", "plan_bands",
+           "plan_windows"]

@@ -181,13 +181,22 @@ def reference_grid(ortho: str | Path, gsd: float | None = None) -> Grid:
             size in metres), or ``gsd`` is not positive.
     """
     with open_raster(ortho, "orthophoto") as src:
-        _check_georeferenced(src, "orthophoto")
-        if not src.crs.is_projected:
-            lon, lat = transform_bounds(src.crs, "EPSG:4326", *src.bounds)[:2]
-            require_projected(src.crs, "orthophoto", src.name, (lon, lat))
-        grid = grid_of(src)
-    if gsd is None:
-        return grid
+        grid = ortho_grid(src)
+    return grid if gsd is None else resampled_grid(grid, gsd)
+
+
+def ortho_grid(src: rasterio.io.DatasetReader) -> Grid:
+    """The grid of an open orthophoto, checked as :func:`reference_grid` checks it (projected, north-up)."""
+    _check_georeferenced(src, "orthophoto")
+    if not src.crs.is_projected:
+        lon, lat = transform_bounds(src.crs, "EPSG:4326", *src.bounds)[:2]
+        require_projected(src.crs, "orthophoto", src.name, (lon, lat))
+    return grid_of(src)
+
+
+def resampled_grid(grid: Grid, gsd: float) -> Grid:
+    """``grid`` with square pixels of ``gsd`` metres over its extent, from its upper-left corner
+    (see :func:`reference_grid`)."""
     if not gsd > 0:
         raise AlignmentError(f"‹gsd› must be a positive pixel size in metres, got {gsd}", param="gsd")
     size = gsd / grid.unit_m  # CRS units

@@ -2,9 +2,10 @@
 
 ``torchrun --nproc_per_node N -m aerialmtl train ...`` starts N processes with ``RANK``, ``WORLD_SIZE``,
 ``LOCAL_RANK``, ``MASTER_ADDR`` and ``MASTER_PORT`` set; :meth:`DistContext.from_env` turns them into a
-process group: ``nccl`` with one GPU per process (``cuda:LOCAL_RANK``) when training on CUDA, ``gloo``
-with one CPU process each otherwise. Without ``WORLD_SIZE`` (a plain ``aerialmtl train``) the context is a
-single process and every method here is a no-op, so the trainer has no ``if distributed`` branches.
+process group (through :class:`aerialmtl.runtime.Torchrun`, which prediction uses too): ``nccl`` with one GPU
+per process (``cuda:LOCAL_RANK``) when training on CUDA, ``gloo`` with one CPU process each otherwise. Without
+``WORLD_SIZE`` (a plain ``aerialmtl train``) the context is a single process and every method here is a no-op,
+so the trainer has no ``if distributed`` branches.
 
 What each part does with several processes:
 
@@ -25,8 +26,6 @@ Checkpoints are written atomically by rank 0, so the last one stays whole.
 
 from __future__ import annotations
 
-import datetime as _dt
-import os
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -37,13 +36,13 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, ConfigError
 
 T = TypeVar("T")
 
-#: How long a collective may wait for a peer before the run is declared hung (cache builds are locked
-#: per file, not by collectives, so this only bounds a real hang).
-TIMEOUT = _dt.timedelta(minutes=30)
+#: How long a collective may wait for a peer (:data:`aerialmtl.runtime.COLLECTIVE_TIMEOUT`).
+TIMEOUT = runtime.COLLECTIVE_TIMEOUT
 
 
 class PeerFailure(AerialMTLError, RuntimeError):
@@ -51,17 +50,12 @@ class PeerFailure(AerialMTLError, RuntimeError):
 
 
 def resolve_device(name: str, local_rank: int = 0) -> torch.device:
-    """``auto`` → CUDA when available, else CPU; ``cuda`` without a GPU is an error.
+    """``auto`` → CUDA when available, else CPU; ``cuda`` without a GPU is an error
+    (:func:`aerialmtl.runtime.resolve_device`, raising :class:`ConfigError`).
 
     With several processes on CUDA each gets ``cuda:local_rank``.
     """
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: 'cuda' was requested but no CUDA GPU is available; use ‹device=cpu› or auto")
-    if name == "cuda":
-        return torch.device("cuda", local_rank)
-    return torch.device(name)
+    return runtime.resolve_device(name, local_rank, ConfigError)
 
 
 @dataclass
@@ -101,23 +95,10 @@ class DistContext:
         Raises:
             ConfigError: ``cuda`` without a GPU, or more processes on this machine than GPUs.
         """
-        world = int(os.environ.get("WORLD_SIZE", "1"))
-        if world <= 1:
-            return cls(device=resolve_device(device))
-        rank, local = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
-        dev = resolve_device(device, local)
-        if dev.type == "cuda":
-            if local >= torch.cuda.device_count():
-                raise ConfigError(
-                    f"device: process {local} of this machine needs cuda:{local} but only "
-                    f"{torch.cuda.device_count()} GPU(s) are visible; start at most that many processes per machine"
-                )
-            torch.cuda.set_device(dev)
-        owns = False
-        if not dist.is_initialized():
-            dist.init_process_group("nccl" if dev.type == "cuda" else "gloo", timeout=TIMEOUT)
-            owns = True
-        return cls(device=dev, rank=rank, world_size=world, local_rank=local, owns_group=owns)
+        env = runtime.Torchrun.from_env()
+        dev = env.device(device, ConfigError)
+        owns = env.join(dev, TIMEOUT)
+        return cls(device=dev, rank=env.rank, world_size=env.world, local_rank=env.local_rank, owns_group=owns)
 
     def close(self) -> None:
         """Destroy the process group if this context created it."""

@@ -16,10 +16,11 @@
 Several processes (``torchrun``) are handled by :mod:`aerialmtl.training.distributed`; here they appear
 only as ``self.ctx`` (rank, world size, collectives that are no-ops for one process).
 
-Precision: ``precision: auto`` is bf16 autocast on a CUDA GPU with bf16 and fp32 otherwise (CPUs without
-bf16 units run it hundreds of times slower). Losses are computed in float32 either way. The model runs in
-``channels_last``; ``compile: true`` (``--compile``) wraps it in ``torch.compile`` and falls back to eager
-execution with a warning if compilation fails.
+Device, precision, autocast and the compile fallback come from :mod:`aerialmtl.runtime` (as for prediction).
+``precision: auto`` is bf16 autocast on a CUDA GPU with bf16 and fp32 otherwise (CPUs without bf16 units run
+it hundreds of times slower; on CPUs with them see :data:`CPU_BF16_TRAINING`). Losses are computed in float32
+either way. The model runs in ``channels_last``; ``compile: true`` (``--compile``) wraps it in
+``torch.compile`` and falls back to eager execution with a warning if compilation fails.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import yaml
 from torch import nn
 from tqdm.auto import tqdm
 
+from aerialmtl import runtime
 from aerialmtl.config import to_dict
 from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
@@ -67,15 +69,23 @@ def user_cache_dir(root: Path) -> Path:
     return base / "aerialmtl" / hashlib.sha256(str(root.resolve()).encode()).hexdigest()[:16]
 
 
+#: Whether ``precision: auto`` trains in bf16 autocast on a CPU with native bf16 (measured: bench/RESULTS.md,
+#: "CPU training precision"; fp32 until bf16 is both faster and as good there).
+CPU_BF16_TRAINING = False
+
+
 def resolve_precision(precision: str, device: torch.device) -> str:
-    """``auto`` → ``bf16`` on a CUDA device with bf16 support, else ``fp32``; others unchanged."""
+    """``auto`` → ``bf16`` where the device computes it natively and training gains from it (CUDA GPUs
+    with bf16; CPUs only if :data:`CPU_BF16_TRAINING`), else ``fp32``; others unchanged
+    (:func:`aerialmtl.runtime.resolve_precision`)."""
     if precision == "auto":
-        return "bf16" if device.type == "cuda" and torch.cuda.is_bf16_supported() else "fp32"
+        return runtime.resolve_precision("auto", device, cpu_bf16=CPU_BF16_TRAINING)
     return precision
 
 
 def autocast(device: torch.device, precision: str) -> Any:
-    return torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+    """bf16 autocast for ``precision == "bf16"`` (:func:`aerialmtl.runtime.autocast`)."""
+    return runtime.autocast(device, precision)
 
 
 def build_optimizer(optim: OptimSection, model: nn.Module, weighting: nn.Module) -> torch.optim.Optimizer:
@@ -391,8 +401,7 @@ class Trainer:
         except Exception as exc:  # torch.compile failed at its first call: continue without it
             if self.step_module.net is self.model or self.compiled_ok or isinstance(exc, AerialMTLError):
                 raise
-            warnings.warn(f"compile: torch.compile failed ({' '.join(str(exc).split())[:200]}); training without it",
-                          UserWarning, stacklevel=2)
+            runtime.warn_compile_failed(exc, "training")
             self.step_module.use(self.model)
             total, losses = self.ddp(batch)
         self.compiled_ok = True

@@ -1,0 +1,107 @@
+"""One orthophoto as prediction needs it, opened once: :class:`OrthoInput`.
+
+Everything prediction asks of an orthophoto's header — its grid (checked: projected, north-up), the
+prediction grid at the model's GSD, whether it has the checkpoint's bands, which of its bands the model
+does not read, the window plan — is read in one opening by :meth:`OrthoInput.open` and travels with the
+input from the job (:mod:`aerialmtl.inference.jobs`) through the predictor to ``prediction.json``. Only
+the pixel readers open the file again: one handle per reader thread
+(:class:`~aerialmtl.inference.reader.WindowReader`), because a GDAL dataset handle must not be shared
+between threads.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from rasterio.enums import ColorInterp
+
+from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.inference.windows import Plan, plan_windows
+from aerialmtl.io.align import Grid, check_bands, open_raster, ortho_grid, resampled_grid
+
+#: Relative GSD difference above which the orthophoto is resampled to the model's GSD.
+GSD_TOLERANCE = 0.01
+
+
+def trained_bands(meta: ModelMeta) -> str:
+    """``bands [1, 2, 3] (r, g, b)``: the spectral bands a checkpoint reads, for messages."""
+    return f"bands {list(meta.bands)}" + (f" ({', '.join(meta.band_names)})" if meta.band_names else "")
+
+
+@dataclass(frozen=True)
+class OrthoInput:
+    """An orthophoto ready to predict with one model.
+
+    Attributes:
+        path: the orthophoto as given (a path, or anything GDAL opens).
+        native: its own grid.
+        grid: the prediction grid: ``native`` resampled to the model's GSD when they differ by more than
+            :data:`GSD_TOLERANCE`, else ``native``.
+        resampled_from: the orthophoto's GSD (m) when it is resampled, else ``None``.
+        count: its number of spectral bands.
+        unused_bands: its 1-based bands the model does not read (an alpha band excepted).
+        plan: the window plan over ``grid``.
+    """
+
+    path: str | Path
+    native: Grid
+    grid: Grid
+    resampled_from: float | None
+    count: int
+    unused_bands: tuple[int, ...]
+    plan: Plan
+
+    @classmethod
+    def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int, grid: Grid | None = None) -> OrthoInput:
+        """Read what prediction needs from the header of ``path`` (one opening).
+
+        Args:
+            path: the orthophoto.
+            meta: the checkpoint metadata (GSD, bands).
+            tile, overlap: the window plan's settings.
+            grid: the prediction grid when the caller knows it already (skips the GSD decision).
+
+        Raises:
+            AlignmentError: not georeferenced, geographic CRS.
+            InputError: the file lacks a band the checkpoint reads (the message names the fix).
+        """
+        with open_raster(path, "orthophoto") as src:
+            native = ortho_grid(src)
+            check_bands(src, meta.bands, "orthophoto", bands_from=f"the checkpoint (trained on {trained_bands(meta)})",
+                        fix="predict on an orthophoto with those bands, or train a model on this one's bands "
+                            "(`aerialmtl tile --bands ...`)")
+            alpha = [i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha]
+            count = int(src.count)
+        unused = tuple(b for b in range(1, count + 1) if b not in meta.bands and b not in alpha[:1])
+        resampled_from = native.gsd if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd else None
+        if grid is None:
+            grid = resampled_grid(native, meta.gsd) if resampled_from is not None else native
+        return cls(path, native, grid, resampled_from, count, unused,
+                   plan_windows(grid.height, grid.width, tile, overlap))
+
+    @property
+    def name(self) -> str:
+        """The file name (for progress bars)."""
+        return Path(str(self.path)).name
+
+    def warn_resampled(self, meta: ModelMeta, stacklevel: int = 3) -> None:
+        """Warn that the orthophoto is resampled to the model's GSD (when it is)."""
+        if self.resampled_from is not None:
+            g = meta.gsd
+            warnings.warn(
+                f"orthophoto '{self.path}' has a GSD of {self.resampled_from:.4g} m but the model was trained at "
+                f"{g:.4g} m; resampling the orthophoto to {g:.4g} m (outputs are on the {g:.4g} m grid)",
+                stacklevel=stacklevel,
+            )
+
+    def warn_unused_bands(self, meta: ModelMeta, stacklevel: int = 3) -> None:
+        """Warn when the orthophoto has bands the model does not read."""
+        if self.unused_bands:
+            warnings.warn(f"orthophoto '{self.path}' has {self.count} bands; the model reads {trained_bands(meta)} "
+                          f"as recorded in its checkpoint and ignores band(s) {list(self.unused_bands)}",
+                          stacklevel=stacklevel)
+
+
+__all__ = ["GSD_TOLERANCE", "OrthoInput", "trained_bands"]
