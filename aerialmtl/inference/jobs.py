@@ -42,6 +42,7 @@ from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import check_outputs_free, remove_leftovers
 from aerialmtl.io.align import Grid
+from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
 
 #: How long a rank waits for the others at the end of its share (:data:`aerialmtl.runtime.SHARE_TIMEOUT`).
@@ -87,7 +88,7 @@ class Ranks(runtime.Torchrun):
 class Target:
     """One input, its prediction folder and, once opened, its header (:class:`OrthoInput`)."""
 
-    ortho: Path
+    ortho: str
     out: Path
     src: OrthoInput | None = None
 
@@ -110,23 +111,23 @@ class Share:
 
 
 def targets_for(orthos: Sequence[str | Path], out: str | Path) -> list[Target]:
-    """One input → ``out``; several → ``out/<stem>`` each.
+    """One input → ``out``; several → ``out/<stem>`` each (inputs may be URLs: :mod:`aerialmtl.io.paths`).
 
     Raises:
         InputError: several inputs share a file stem (their folders would clash).
     """
-    paths = [Path(p) for p in orthos]
+    paths = [gdal_path(p) for p in orthos]
     if not paths:
         raise InputError("no orthophoto given; pass one or more GeoTIFFs")
-    stems = [p.stem for p in paths]
+    stems = [raster_stem(p) for p in paths]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if len(paths) > 1 and dup:
         raise InputError(f"several inputs share the file stem(s) {dup}, so their sub-folders would clash; "
                          "rename them or run predict once per input")
-    return [Target(p, Path(out) if len(paths) == 1 else Path(out) / p.stem) for p in paths]
+    return [Target(p, Path(out) if len(paths) == 1 else Path(out) / s) for p, s in zip(paths, stems)]
 
 
-def check_input(ortho: Path, predictor: Predictor) -> OrthoInput:
+def check_input(ortho: str | Path, predictor: Predictor) -> OrthoInput:
     """Open ``ortho`` for ``predictor``: georeferencing and bands checked against the checkpoint (errors
     name the file and the fix); returns the input, to be used from then on.
 
@@ -171,7 +172,7 @@ class JobResult:
     """What this process did: results of the inputs it committed, the inputs skipped, the mosaics."""
 
     results: list[PredictResult] = field(default_factory=list)
-    skipped: list[Path] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
     mosaics: dict[str, Path] = field(default_factory=dict)
     ranks: Ranks = field(default_factory=Ranks)
 

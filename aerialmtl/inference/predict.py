@@ -101,7 +101,7 @@ class PredictResult:
     plan_overlap_factor: float
     megapixels_per_s: float
     timings: dict[str, float] = field(default_factory=dict)
-    ortho: Path | None = None
+    ortho: str | Path | None = None
 
 
 @dataclass
@@ -416,7 +416,7 @@ class Predictor:
         out_px = grid.width * grid.height
         return PredictResult(Path(out), files, grid, self.mc, plan.num_windows, computed,
                              self.overlap_factor(plan, computed), plan.overlap_factor,
-                             out_px / 1e6 / max(timings["total"], 1e-9), timings, Path(str(src.path)))
+                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path)
 
     def run(self, ortho: str | Path | OrthoInput, out: str | Path, *, aoi: str | Path | None = None,
             overwrite: bool = False, progress: bool = True, check_outputs: bool = True,

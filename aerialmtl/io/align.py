@@ -35,6 +35,7 @@ from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
 from aerialmtl.formats.tiles import HEIGHT_NODATA as HEIGHT_NODATA  # re-exported: height rasters aerialmtl writes
+from aerialmtl.io.paths import configure_remote, gdal_path, is_local, is_remote
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 
 LayerKind = Literal["image", "height", "labels"]
@@ -101,17 +102,34 @@ class Grid:
 
 
 def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetReader:
-    """Open ``path`` with a message that names the role and the fix when it cannot be read."""
-    p = Path(path)
-    if not p.exists():
-        raise InputError(f"{role} '{p}' does not exist; check the path")
+    """Open ``path`` (a file, a URL or a ``/vsi...`` path: :mod:`aerialmtl.io.paths`) with a message that
+    names the role and the fix when it cannot be read.
+
+    Raises:
+        InputError: a local file is missing or unreadable, or a remote one cannot be reached (the
+            message names the URL, what the server or GDAL said, and what to check).
+    """
+    gpath = gdal_path(path)
+    if is_local(gpath) and not Path(gpath).exists():
+        raise InputError(f"{role} '{gpath}' does not exist; check the path")
+    remote = is_remote(gpath)
+    if remote:
+        configure_remote()
     try:
         with warnings.catch_warnings():  # a missing CRS/geotransform gets our own message (_check_georeferenced)
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
-            return rasterio.open(p)
+            return rasterio.open(gpath)
     except RasterioIOError as exc:
+        if remote:
+            fix = ("give AWS credentials (AWS_ACCESS_KEY_ID/AWS_SECRET_ACCESS_KEY or ~/.aws), or "
+                   "AWS_NO_SIGN_REQUEST=YES "
+                   "for a public bucket" if "/vsis3/" in gpath else
+                   "a server that needs a login takes GDAL_HTTP_AUTH/GDAL_HTTP_USERPWD or GDAL_HTTP_HEADERS")
+            raise InputError(
+                f"{role} '{gpath}' cannot be opened ({_gdal_message(exc)}); check the URL and the network; {fix}"
+            ) from exc
         raise InputError(
-            f"{role} '{p}' cannot be read as a raster ({' '.join(str(exc).split())}); "
+            f"{role} '{gpath}' cannot be read as a raster ({' '.join(str(exc).split())}); "
             "is it a complete GeoTIFF? re-download or re-export it"
         ) from exc
 
@@ -250,7 +268,7 @@ class AlignedRaster:
         bands_from: str = "the requested bands",
         z_unit: str | None = None,
     ) -> None:
-        self.path = Path(path)
+        self.path = gdal_path(path)
         self.grid = grid
         self.kind = kind
         self.role = role or kind

@@ -51,6 +51,7 @@ from aerialmtl.formats.tiles import (
 )
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.outputs import make_output_dir
+from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
 from aerialmtl.tiling.grid import count_windows, tile_windows
@@ -408,7 +409,7 @@ def _describe(
         counts=dict(result.counts),
         min_valid=float(min_valid),
         provenance={
-            **{k: str(Path(v).resolve()) if v else None for k, v in paths.items()},
+            **{k: recorded_path(v) if v else None for k, v in paths.items()},
             "class_field": sources.class_field,
             "aerialmtl_version": __version__,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),

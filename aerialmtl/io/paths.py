@@ -1,0 +1,117 @@
+"""Input rasters are GDAL paths: local files, VRTs, URLs and ``/vsi...`` virtual paths.
+
+Every command that reads rasters (predict, tile, evaluate) takes its inputs as strings and hands them to
+GDAL unchanged but for URL schemes, which become GDAL's virtual file systems:
+
+==================================  ==========================================
+given                               opened as
+==================================  ==========================================
+``ortho.tif``, ``mosaic.vrt``       itself (a local file)
+``https://host/o.tif`` (``http``)   ``/vsicurl/https://host/o.tif``
+``s3://bucket/key.tif``             ``/vsis3/bucket/key.tif`` (AWS credentials or ``AWS_NO_SIGN_REQUEST=YES``)
+``gs://bucket/key.tif``             ``/vsigs/bucket/key.tif``
+``az://container/key.tif``          ``/vsiaz/container/key.tif``
+``/vsicurl/...``, ``/vsizip/...``   itself
+==================================  ==========================================
+
+``pathlib.Path`` is never used on such strings: it folds ``s3://b/x`` into ``s3:/b/x`` and
+``/vsicurl/https://h`` into ``/vsicurl/https:/h``. The GDAL settings that keep remote reads fast and
+quiet are set once here (:func:`configure_remote`); a user's own environment variables win.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path, PurePosixPath
+
+#: URL scheme → GDAL virtual file system prefix (``https://h/x`` keeps its scheme under ``/vsicurl/``).
+SCHEMES: dict[str, str] = {
+    "http": "/vsicurl/", "https": "/vsicurl/", "ftp": "/vsicurl/",
+    "s3": "/vsis3/", "gs": "/vsigs/", "az": "/vsiaz/",
+}
+#: GDAL virtual file systems that read over the network.
+NETWORK_VSI = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsioss", "/vsiswift", "/vsiwebhdfs",
+               "/vsihdfs")
+
+#: GDAL settings for remote inputs (applied unless the environment already sets them):
+#: no directory listing when a file is opened (one request instead of a listing of the whole prefix and
+#: probes for sidecar files), the downloaded blocks cached, neighbouring ranges merged into one request,
+#: and a few retries on the temporary HTTP errors (429, 502-504) object stores answer under load.
+REMOTE_GDAL_OPTIONS: dict[str, str] = {
+    "GDAL_DISABLE_READDIR_ON_OPEN": "EMPTY_DIR",
+    "VSI_CACHE": "TRUE",
+    "GDAL_HTTP_MERGE_CONSECUTIVE_RANGES": "YES",
+    "GDAL_HTTP_MULTIPLEX": "YES",
+    "GDAL_HTTP_MAX_RETRY": "3",
+    "GDAL_HTTP_RETRY_DELAY": "1",
+    "GDAL_HTTP_TIMEOUT": "60",
+    "CPL_VSIL_CURL_CHUNK_SIZE": "1048576",
+}
+
+_SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)://(.*)$", re.S)
+
+
+def gdal_path(path: str | os.PathLike[str]) -> str:
+    """The path GDAL opens for ``path`` (see the module table); local paths are returned as given."""
+    text = os.fspath(path)
+    match = _SCHEME.match(text)
+    if match is None:
+        return text
+    scheme = match.group(1).lower()
+    prefix = SCHEMES.get(scheme)
+    if prefix is None:
+        return text  # GDAL decides (and says what it cannot open)
+    return prefix + (text if prefix == "/vsicurl/" else match.group(2))
+
+
+def is_remote(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is read over the network (a URL, ``/vsicurl/``, ``/vsis3/``, ... at any depth)."""
+    text = gdal_path(path)
+    return any(f"{vsi}/" in text for vsi in NETWORK_VSI)
+
+
+def is_local(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a plain file of this machine's file system (which can be ``stat``-ed).
+
+    URLs and every ``/vsi...`` path (also ``/vsizip/`` over a local archive) are not: callers that
+    fingerprint or check files by their size and time must treat them otherwise.
+    """
+    text = gdal_path(path)
+    return not text.startswith("/vsi")
+
+
+def raster_name(path: str | os.PathLike[str]) -> str:
+    """The file name of ``path`` (``o.tif`` for ``https://h/a/o.tif?sig=...`` or ``/vsizip/a.zip/o.tif``)."""
+    text = gdal_path(path)
+    if is_local(text):
+        return Path(text).name
+    text = text.split("?", 1)[0].rstrip("/")
+    return PurePosixPath(text).name
+
+
+def raster_stem(path: str | os.PathLike[str]) -> str:
+    """:func:`raster_name` without its extension (``o`` for ``.../o.tif``)."""
+    name = raster_name(path)
+    stem = PurePosixPath(name).stem
+    return stem or name
+
+
+def recorded_path(path: str | os.PathLike[str]) -> str:
+    """``path`` as provenance records it: a local file made absolute, anything else in GDAL's spelling."""
+    text = gdal_path(path)
+    return str(Path(text).resolve()) if is_local(text) else text
+
+
+def configure_remote() -> None:
+    """Apply :data:`REMOTE_GDAL_OPTIONS` for this process, keeping any the user set.
+
+    They go into the environment, which GDAL reads for every option no ``rasterio.Env`` sets, so they
+    hold in every thread (the window readers run in background threads).
+    """
+    for key, value in REMOTE_GDAL_OPTIONS.items():
+        os.environ.setdefault(key, value)
+
+
+__all__ = ["NETWORK_VSI", "REMOTE_GDAL_OPTIONS", "SCHEMES", "configure_remote", "gdal_path", "is_local",
+           "is_remote", "raster_name", "raster_stem", "recorded_path"]
