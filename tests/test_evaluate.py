@@ -238,8 +238,9 @@ def test_cli_prints_headline_and_writes_report(tmp_path: Path) -> None:
 )
 def test_cli_bad_options(tmp_path: Path, extra: list[str], message: str) -> None:
     (tmp_path / "pred").mkdir()
+    (tmp_path / "X").touch()  # raster inputs are checked to exist first (a missing one is its own usage error)
     res = CliRunner().invoke(cli, ["evaluate", "--pred", str(tmp_path / "pred"), "--out",
-                                   str(tmp_path / "r.json"), *extra])
+                                   str(tmp_path / "r.json"), *[str(tmp_path / e) if e == "X" else e for e in extra]])
     assert res.exit_code == 2
     assert message in res.output
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from aerialmtl.cli.options import overwrite_option, quiet_option, raster_option
 from aerialmtl.errors import InputError
 
 
@@ -14,8 +15,8 @@ from aerialmtl.errors import InputError
 @click.option("--out", "outputs", multiple=True, required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Output file, repeatable; the format follows the name: .gpkg (GeoPackage), .geojson (GeoJSON), "
                    ".city.json (CityJSON LoD1 solids).")
-@click.option("--dtm", type=click.Path(dir_okay=False, path_type=Path),
-              help="Terrain model (metres, any CRS/GSD): ground elevation per building; CityJSON solids stand on it "
+@raster_option("--dtm",
+               help="Terrain model (metres, any CRS/GSD): ground elevation per building; CityJSON solids stand on it "
                    "instead of z = 0.")
 @click.option("--building-class", "building_classes", multiple=True, metavar="NAME|INDEX",
               help="Class that is a building, repeatable [default: the classes named 'building(s)' in the scheme "
@@ -33,9 +34,9 @@ from aerialmtl.errors import InputError
               help="Percentile of the pixel heights reported as height_m (50 = median).")
 @click.option("--block-size", type=click.IntRange(min=64), default=1024, show_default=True,
               help="Side of the blocks read at once (pixels); memory grows with its square.")
-@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
-def buildings(pred_dir: Path, outputs: tuple[Path, ...], dtm: Path | None, building_classes: tuple[str, ...],
+@overwrite_option()
+@quiet_option()
+def buildings(pred_dir: Path, outputs: tuple[Path, ...], dtm: str | None, building_classes: tuple[str, ...],
               min_area: float, max_hole: float, simplify: float | None, no_orthogonal: bool,
               height_step: float | None, height_percentile: float, block_size: int, overwrite: bool,
               quiet: bool) -> None:

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from aerialmtl.cli.options import overwrite_option
+
 
 @click.command(name="demo")
 @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
@@ -16,7 +18,7 @@ import click
 @click.option("--test-size", type=click.IntRange(min=128), default=768, show_default=True,
               help="Side of the synthetic test town in pixels.")
 @click.option("--mc", type=click.IntRange(min=1), default=16, show_default=True, help="MC-dropout samples.")
-@click.option("--overwrite", is_flag=True, help="Reuse a non-empty OUT folder.")
+@overwrite_option(help="Reuse a non-empty OUT folder.")
 def demo(out: Path, train_seconds: float, train_size: int, test_size: int, mc: int, overwrite: bool) -> None:
     """Synthesize a training and a test town, tile, train the small D3-Net, predict with MC dropout,
     evaluate, and write GeoTIFFs, a report and PNG previews into OUT."""

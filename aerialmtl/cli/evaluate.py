@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from aerialmtl.cli.options import option, overwrite_option, quiet_option, raster_option
 from aerialmtl.errors import OutputError
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
@@ -38,17 +39,16 @@ def _check_writable(folder: Path) -> None:
 
 
 @click.command(name="evaluate")
-@click.option("--pred", "pred", required=True, type=click.Path(file_okay=False, path_type=Path),
+@option("--pred", "pred", required=True, library="pred_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Prediction folder written by `aerialmtl predict`.")
-@click.option("--height", "height_ref", type=click.Path(dir_okay=False, path_type=Path),
-              help="Reference nDSM (heights above ground); any CRS/GSD, reprojected onto the prediction grid.")
-@click.option("--dsm", "dsm_ref", type=click.Path(dir_okay=False, path_type=Path),
-              help="Reference DSM, with --dtm, instead of --height: the reference is DSM − DTM (negatives → 0).")
-@click.option("--dtm", "dtm_ref", type=click.Path(dir_okay=False, path_type=Path), help="Reference DTM (with --dsm).")
+@raster_option("--height", "height_ref",
+               help="Reference nDSM (heights above ground); any CRS/GSD, reprojected onto the prediction grid.")
+@raster_option("--dsm", "dsm_ref",
+               help="Reference DSM, with --dtm, instead of --height: the reference is DSM − DTM (negatives → 0).")
+@raster_option("--dtm", "dtm_ref", help="Reference DTM (with --dsm).")
 @click.option("--z-unit", type=click.Choice(["m", "ft", "us-ft"]), default=None,
               help="Unit of the reference heights when a file does not state it [default: m].")
-@click.option("--labels", "labels_ref", type=click.Path(dir_okay=False, path_type=Path),
-              help="Reference label raster (raw class codes); any CRS/GSD.")
+@raster_option("--labels", "labels_ref", help="Reference label raster (raw class codes); any CRS/GSD.")
 @click.option("--buildings", "buildings_ref", type=click.Path(dir_okay=False, path_type=Path),
               help="Reference building footprints with a height_m field (e.g. buildings.geojson of `aerialmtl synth`).")
 @click.option("--pred-buildings", type=click.Path(dir_okay=False, path_type=Path),
@@ -67,10 +67,10 @@ def _check_writable(folder: Path) -> None:
 @click.option("--no-plots", is_flag=True, help="Do not write PNG plots.")
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Report JSON path; report.md and PNG plots are written beside it.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing report.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
-def evaluate(pred: Path, height_ref: Path | None, dsm_ref: Path | None, dtm_ref: Path | None, z_unit: str | None,
-             labels_ref: Path | None, buildings_ref: Path | None, pred_buildings: Path | None, classes: str | None,
+@overwrite_option(help="Replace an existing report.")
+@quiet_option()
+def evaluate(pred: Path, height_ref: str | None, dsm_ref: str | None, dtm_ref: str | None, z_unit: str | None,
+             labels_ref: str | None, buildings_ref: Path | None, pred_buildings: Path | None, classes: str | None,
              height_threshold: float, height_bins: tuple[float, ...], ignore_unknown_codes: bool,
              sample_size: int, seed: int, no_plots: bool, out: Path, overwrite: bool, quiet: bool) -> None:
     """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.

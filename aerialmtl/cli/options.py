@@ -1,79 +1,196 @@
-"""How the command line spells the library's parameters: the one table, and the error translation.
+"""Options shared by the commands, defined once, and how the command line spells the library's parameters.
 
-Library errors name parameters with marks (``‹tile›``, ``‹overwrite=True›``; see :mod:`aerialmtl.errors`).
-The CLI shows them as its options (``--tile``, ``--overwrite``) through :data:`FLAGS` and the per-command
-differences in :data:`COMMAND_FLAGS`. An error about one option's value (:attr:`AerialMTLError.param`)
-becomes click's usage error for that option (exit code 2, usage line, ``Invalid value for --tile: ...``),
-so the CLI does not validate again what the library already checks.
+**Shared options.** Options that several commands take (``--overwrite``, ``--quiet``, ``--device``,
+``--precision``, ``--compile``, raster inputs that may be URLs) are decorators defined here and used by
+every command (as rasterio's ``rio/options.py`` does), so they mean and read the same everywhere.
+Raster inputs are GDAL paths (:mod:`aerialmtl.io.paths`): local files, VRTs, ``https://``, ``s3://``,
+``/vsicurl/``, ``/vsizip/``; they reach the library as strings, never as ``pathlib.Path`` (which folds
+``s3://b/x`` into ``s3:/b/x``).
+
+**Parameter → option table.** Library errors name parameters with marks (``‹tile›``, ``‹overwrite=True›``;
+see :mod:`aerialmtl.errors`). The CLI shows them as its options (``--tile``, ``--overwrite``) through a table
+derived from the commands themselves (:func:`flags_for`): each option stands for the parameter of its own
+name, plus the library parameters it lists in ``library=`` when the CLI spells them otherwise (``--model``
+is the library's ``checkpoint``). An error about one option's value (:attr:`AerialMTLError.param`) becomes
+click's usage error for that option (exit code 2, usage line, ``Invalid value for --tile: ...``), so the
+CLI does not validate again what the library already checks.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 import click
 
 from aerialmtl.errors import PARAM_MARK, AerialMTLError, ConfigError, InputError
-
-#: Library parameter → option, for every command (the same name means the same thing everywhere).
-FLAGS: dict[str, str] = {
-    "aoi": "--aoi",
-    "bands": "--bands",
-    "batch_size": "--batch-size",
-    "class_field": "--class-field",
-    "crs": "--crs",
-    "classes": "--classes",
-    "device": "--device",
-    "dsm": "--dsm",
-    "dtm": "--dtm",
-    "gsd": "--gsd",
-    "height_threshold": "--height-threshold",
-    "ignore_unknown_codes": "--ignore-unknown-codes",
-    "labels": "--labels",
-    "labels_vector": "--labels-vector",
-    "max_height": "--max-height",
-    "max_steps": "--max-steps",
-    "max_time_s": "--max-time",
-    "mc": "--mc",
-    "min_valid": "--min-valid",
-    "ndsm": "--ndsm",
-    "out": "--out",
-    "out_dir": "--out",
-    "overlap": "--overlap",
-    "overwrite": "--overwrite",
-    "precision": "--precision",
-    "probabilities": "--probabilities",
-    "resume": "--resume",
-    "sample_size": "--sample-size",
-    "skip_existing": "--skip-existing",
-    "size": "--size",
-    "split_block": "--split-block",
-    "split_ratios": "--split-ratios",
-    "stride": "--stride",
-    "tile": "--tile",
-    "z_unit": "--z-unit",
-}
-
-#: Per command: parameters spelled differently from :data:`FLAGS` (or only there).
-COMMAND_FLAGS: dict[str, dict[str, str]] = {
-    "tile": {"ortho": "--ortho", "block_size": "--split-block", "ratios": "--split-ratios", "aoi": "--split-aoi"},
-    "train": {"data_dir": "--data", "config": "--config"},
-    "predict": {"checkpoint": "--model", "ortho": "ORTHOS"},
-    "evaluate": {"pred_dir": "--pred", "height_ref": "--height", "labels_ref": "--labels", "dsm_ref": "--dsm",
-                 "dtm_ref": "--dtm"},
-    "synth": {"out_dir": "OUT"},
-    "buildings": {"pred_dir": "PRED_DIR", "outputs": "--out", "building_classes": "--building-class"},
-}
-
-
-def flags_for(command: str | None) -> dict[str, str]:
-    """The parameter → option table of ``command`` (:data:`FLAGS` when unknown)."""
-    return {**FLAGS, **COMMAND_FLAGS.get(command or "", {})}
-
+from aerialmtl.io.paths import gdal_path, is_local
 
 F = TypeVar("F", bound=Callable[..., Any])
+Decorator = Callable[[F], F]
+
+
+# ---- parameters that name the library parameters they stand for ------------------------------------
+def _names(library: str | Sequence[str]) -> tuple[str, ...]:
+    return (library,) if isinstance(library, str) else tuple(library)
+
+
+class LibraryOption(click.Option):
+    """A click option that also stands for library parameters of other names (``library=``)."""
+
+    def __init__(self, *args: Any, library: str | Sequence[str] = (), **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.library = _names(library)
+
+
+class LibraryArgument(click.Argument):
+    """A click argument that also stands for library parameters of other names (``library=``)."""
+
+    def __init__(self, *args: Any, library: str | Sequence[str] = (), **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.library = _names(library)
+
+
+def option(*decls: str, library: str | Sequence[str] = (), **kwargs: Any) -> Decorator[Any]:
+    """``click.option`` whose option also stands for the library parameters ``library``."""
+    return click.option(*decls, cls=LibraryOption, library=library, **kwargs)
+
+
+def argument(*decls: str, library: str | Sequence[str] = (), **kwargs: Any) -> Decorator[Any]:
+    """``click.argument`` whose argument also stands for the library parameters ``library``."""
+    return click.argument(*decls, cls=LibraryArgument, library=library, **kwargs)
+
+
+# ---- raster inputs ---------------------------------------------------------------------------------
+class RasterPath(click.ParamType):
+    """A raster GDAL can open: a local file (checked to exist), a URL or a ``/vsi...`` path (a string)."""
+
+    name = "raster"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        path = gdal_path(value)
+        if is_local(path):
+            p = Path(path)
+            if not p.exists():
+                self.fail(f"'{value}' does not exist; give a raster file, a URL (https://..., s3://...) or a GDAL "
+                          "/vsi... path", param, ctx)
+            if p.is_dir():
+                self.fail(f"'{value}' is a folder; give a raster file (GeoTIFF, VRT, ...)", param, ctx)
+        return path
+
+
+#: The type of every raster input (see :class:`RasterPath`).
+RASTER = RasterPath()
+_RASTER_HELP = " A file, VRT, URL (https://, s3://) or GDAL /vsi... path."
+
+
+def raster_option(*decls: str, help: str = "", library: str | Sequence[str] = (), **kwargs: Any) -> Decorator[Any]:
+    """An option naming an input raster that may live anywhere GDAL reads (see :class:`RasterPath`)."""
+    return option(*decls, type=RASTER, help=help + _RASTER_HELP, library=library, **kwargs)
+
+
+def raster_argument(name: str, library: str | Sequence[str] = (), **kwargs: Any) -> Decorator[Any]:
+    """An argument naming input rasters that may live anywhere GDAL reads (see :class:`RasterPath`)."""
+    return argument(name, type=RASTER, library=library, **kwargs)
+
+
+# ---- options shared by several commands --------------------------------------------------------------
+def overwrite_option(help: str = "Replace existing outputs.") -> Decorator[Any]:
+    """``--overwrite``: replace what the command wrote before (each command says what in ``help``)."""
+    return option("--overwrite", is_flag=True, help=help)
+
+
+def quiet_option() -> Decorator[Any]:
+    """``--quiet``: no progress bar."""
+    return option("--quiet", is_flag=True, help="No progress bar.")
+
+
+DEVICES = ("auto", "cpu", "cuda")
+PRECISIONS = ("auto", "bf16", "fp32")
+
+
+def device_option(default: str | None = "auto",
+                  help: str = "auto = the GPU when there is one; under torchrun, each process uses GPU LOCAL_RANK."
+                  ) -> Decorator[Any]:
+    """``--device auto|cpu|cuda`` (``default=None``: the command's config decides)."""
+    return option("--device", type=click.Choice(DEVICES), default=default, show_default=default is not None,
+                  help=help)
+
+
+def precision_option(default: str | None = "auto",
+                     help: str = "auto = bf16 autocast on CUDA, fp32 on CPU (CPUs without bf16 units run bf16 "
+                                 "far slower).") -> Decorator[Any]:
+    """``--precision auto|bf16|fp32`` (``default=None``: the command's config decides)."""
+    return option("--precision", type=click.Choice(PRECISIONS), default=default, show_default=default is not None,
+                  help=help)
+
+
+def compile_option(dest: str = "compile_") -> Decorator[Any]:
+    """``--compile``: torch.compile the model, falling back to the plain model with a warning."""
+    return option("--compile", dest, is_flag=True, library="compile",
+                  help="torch.compile the model (a warning and the plain model where compiling is unavailable).")
+
+
+# ---- the parameter → option table, derived from the commands -------------------------------------------
+def _spelling(param: click.Parameter) -> str:
+    """How the command line shows ``param``: its long option (``--tile``) or its metavar (``ORTHOS``)."""
+    if isinstance(param, click.Option):
+        longs = [o for o in param.opts if o.startswith("--")]
+        return longs[0] if longs else param.opts[0]
+    return param.human_readable_name
+
+
+def command_flags(command: click.Command) -> dict[str, str]:
+    """Parameter name → option of ``command``: each parameter's own name and its ``library`` names."""
+    table: dict[str, str] = {}
+    for param in command.params:
+        if param.name is None or param.name == "help":
+            continue
+        spelled = _spelling(param)
+        for name in (param.name, *getattr(param, "library", ())):
+            table.setdefault(name, spelled)
+    return table
+
+
+def _commands() -> dict[str, click.Command]:
+    from aerialmtl.cli import cli  # the group registers every command
+
+    return dict(cli.commands)
+
+
+def common_flags() -> dict[str, str]:
+    """The table outside a command: each parameter as the commands that have it spell it.
+
+    Where commands differ (``aoi`` is ``--aoi`` in predict, ``--split-aoi`` in tile), the option named after
+    the parameter wins, else the spelling most commands use.
+    """
+    seen: dict[str, list[str]] = {}
+    for command in _commands().values():
+        for name, flag in command_flags(command).items():
+            seen.setdefault(name, []).append(flag)
+    table = {}
+    for name, flags in sorted(seen.items()):
+        own = "--" + name.replace("_", "-")
+        table[name] = own if own in flags else max(sorted(set(flags)), key=flags.count)
+    return table
+
+
+def flags_for(command: str | click.Command | None) -> dict[str, str]:
+    """The parameter → option table of ``command`` (:func:`common_flags` for what it lacks, or when unknown)."""
+    if isinstance(command, str):
+        command = _commands().get(command)
+    table = common_flags()
+    if command is not None:
+        table.update(command_flags(command))
+    return table
+
+
+def __getattr__(name: str) -> dict[str, str]:
+    if name == "FLAGS":  # the table outside any command, derived on use (the commands import this module)
+        return common_flags()
+    raise AttributeError(name)
 
 
 def usage_errors(command: str, callback: F) -> F:
@@ -82,13 +199,13 @@ def usage_errors(command: str, callback: F) -> F:
     The message is spelled with the command's options; a leading mark of the option itself is dropped
     (click already says ``Invalid value for --tile:``).
     """
-    flags = flags_for(command)
 
     @functools.wraps(callback)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return callback(*args, **kwargs)
         except (InputError, ConfigError) as exc:
+            flags = flags_for(command)
             option = flags.get(exc.param or "")
             if option is None or not option.startswith("-"):
                 raise
@@ -101,4 +218,8 @@ def usage_errors(command: str, callback: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-__all__ = ["COMMAND_FLAGS", "FLAGS", "flags_for", "usage_errors"]
+__all__ = [
+    "DEVICES", "PRECISIONS", "RASTER", "LibraryArgument", "LibraryOption", "RasterPath", "argument", "command_flags",
+    "common_flags", "compile_option", "device_option", "flags_for", "option", "overwrite_option",
+    "precision_option", "quiet_option", "raster_argument", "raster_option", "usage_errors",
+]

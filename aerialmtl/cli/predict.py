@@ -6,9 +6,46 @@ A thin command over :func:`aerialmtl.inference.jobs.predict_many` (one process, 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
+
+from aerialmtl.cli.options import (
+    compile_option,
+    device_option,
+    option,
+    overwrite_option,
+    precision_option,
+    quiet_option,
+    raster_argument,
+)
+from aerialmtl.errors import InputError
+from aerialmtl.io.paths import is_local, raster_name, raster_stem
+
+#: Environment variable naming the default checkpoint of `aerialmtl predict`.
+MODEL_ENV = "AERIALMTL_MODEL"
+#: Folder name suffix of the default prediction folder of one input (``ortho_aerialmtl/``).
+OUT_SUFFIX = "_aerialmtl"
+#: Default parent folder of several inputs' prediction folders.
+MANY_OUT = "aerialmtl_predictions"
+
+
+def default_out(orthos: tuple[str, ...]) -> Path:
+    """The prediction folder when --out is not given.
+
+    One input: ``<stem>_aerialmtl/`` beside a local file, in the current folder for a remote one. Several:
+    ``aerialmtl_predictions/`` in the folder that holds them all (the current folder when one is remote),
+    laid out as with --out (a sub-folder per input, the mosaics beside them).
+    """
+    if len(orthos) == 1:
+        ortho = orthos[0]
+        parent = Path(ortho).parent if is_local(ortho) else Path()
+        return parent / f"{raster_stem(ortho)}{OUT_SUFFIX}"
+    if all(is_local(o) for o in orthos):
+        return Path(os.path.commonpath([Path(o).resolve().parent for o in orthos])) / MANY_OUT
+    return Path(MANY_OUT)
+
 
 
 def _batch_size(value: str) -> int | str:
@@ -20,48 +57,59 @@ def _batch_size(value: str) -> int | str:
 
 
 @click.command(name="predict")
-@click.argument("orthos", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--model", "model", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Checkpoint (best.pt / last.pt) written by `aerialmtl train`.")
-@click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Prediction folder; with several orthophotos, one sub-folder per input (file stem) and "
-                   "a <layer>.mosaic.vrt per layer over all of them.")
-@click.option("--mc", type=int, default=None,
-              help="MC-dropout samples T (1 = single pass, no uncertainty maps). Default: 30 if the model has dropout.")
-@click.option("--tile", type=int, default=1024, show_default=True,
-              help="Largest window side (pixels, multiple of 32); smaller tiles use less memory but recompute more "
-                   "overlap.")
-@click.option("--overlap", type=int, default=64, show_default=True,
-              help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
-@click.option("--batch-size", "batch_size", default="auto", show_default=True,
-              help="Windows per model call, or 'auto' (from the free GPU memory; 2 on a CPU).")
-@click.option("--precision", type=click.Choice(["auto", "bf16", "fp32"]), default="auto", show_default=True,
-              help="auto = bf16 autocast on CUDA, fp32 on CPU (CPUs without bf16 units run bf16 far slower).")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
-              help="Under torchrun, each process uses GPU LOCAL_RANK.")
-@click.option("--compile", "compile_", is_flag=True,
-              help="torch.compile the model (a warning and the plain model where compiling is unavailable).")
-@click.option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="GeoJSON polygons: compute only there, nodata elsewhere.")
-@click.option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
-@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
-@click.option("--skip-existing", is_flag=True, help="Skip inputs whose prediction folder is complete (resume a job).")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@raster_argument("orthos", library="ortho", nargs=-1, required=True)
+@option("--model", "model", envvar=MODEL_ENV, show_envvar=True, library="checkpoint",
+        type=click.Path(dir_okay=False, path_type=Path),
+        help="Checkpoint (best.pt / last.pt) written by `aerialmtl train` [default: the AERIALMTL_MODEL "
+             "environment variable].")
+@option("--out", "out", type=click.Path(file_okay=False, path_type=Path), library="out_dir",
+        help="Prediction folder [default: <stem>_aerialmtl/ beside a local ORTHO, in the current folder for a "
+             "remote one]; with several orthophotos, one sub-folder per input (file stem) and a "
+             "<layer>.mosaic.vrt per layer over all of them [default: aerialmtl_predictions/ in their common "
+             "folder, or the current folder if one is remote].")
+@option("--mc", type=int, default=None,
+        help="MC-dropout samples T (1 = single pass, no uncertainty maps). Default: 30 if the model has dropout.")
+@option("--tile", type=int, default=1024, show_default=True,
+        help="Largest window side (pixels, multiple of 32); smaller tiles use less memory but recompute more "
+             "overlap.")
+@option("--overlap", type=int, default=64, show_default=True,
+        help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
+@option("--batch-size", "batch_size", default="auto", show_default=True,
+        help="Windows per model call, or 'auto' (from the free GPU memory; 2 on a CPU).")
+@precision_option()
+@device_option()
+@compile_option()
+@option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
+        help="GeoJSON polygons: compute only there, nodata elsewhere.")
+@option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
+@overwrite_option()
+@option("--skip-existing", is_flag=True, help="Skip inputs whose prediction folder is complete (resume a job).")
+@quiet_option()
 def predict(
-    orthos: tuple[Path, ...], model: Path, out: Path, mc: int | None, tile: int, overlap: int, batch_size: str,
-    precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool, overwrite: bool,
-    skip_existing: bool, quiet: bool,
+    orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
+    batch_size: str, precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool,
+    overwrite: bool, skip_existing: bool, quiet: bool,
 ) -> None:
-    """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties)."""
+    """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
+
+    ORTHO is a GeoTIFF, a VRT, a URL (https://, s3://) or a GDAL /vsi... path. With AERIALMTL_MODEL set,
+    `aerialmtl predict ortho.tif` writes ortho_aerialmtl/ beside ortho.tif.
+    """
     from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.predict import PredictResult
 
+    if model is None:
+        raise InputError(f"no model given: pass --model RUN/best.pt, or set {MODEL_ENV}=RUN/best.pt once for every "
+                         "`aerialmtl predict`")
+    default = out is None
+    if out is None:
+        out = default_out(orthos)
     batch = _batch_size(batch_size)
 
     def report(res: PredictResult) -> None:
         t = res.timings
         click.echo(
-            f"{Path(str(res.ortho)).name} → {res.out_dir}: "
+            f"{raster_name(str(res.ortho))} → {res.out_dir}: "
             f"{res.grid.width}×{res.grid.height} px at {res.grid.gsd:.3g} m, T={res.mc}, "
             f"{res.windows_computed}/{res.windows_total} windows, overlap factor {res.overlap_factor:.2f}, "
             f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); "
@@ -74,6 +122,8 @@ def predict(
         device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
     )
     for path in job.skipped:
-        click.echo(f"{path.name}: skipped, its prediction folder is complete")
+        click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete")
     if job.mosaics:
         click.echo(f"mosaics: {', '.join(str(p) for p in job.mosaics.values())}")
+    if default and job.ranks.rank == 0:
+        click.echo(f"outputs in {out} (the default without --out)")

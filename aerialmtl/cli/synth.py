@@ -6,9 +6,11 @@ from pathlib import Path
 
 import click
 
+from aerialmtl.cli.options import argument, overwrite_option
+
 
 @click.command(name="synth")
-@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@argument("out", type=click.Path(file_okay=False, path_type=Path), library="out_dir")
 @click.option("--size", type=click.IntRange(min=32), default=1024, show_default=True,
               help="Width and height of the scene in pixels.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed → same rasters).")
@@ -18,7 +20,7 @@ import click
               help="Projected CRS of the outputs (metres or feet; --gsd stays in metres).")
 @click.option("--origin", type=(float, float), default=(500000.0, 5000000.0), show_default=True,
               metavar="X Y", help="Map coordinates of the upper-left corner.")
-@click.option("--overwrite", is_flag=True, help="Replace existing outputs in OUT.")
+@overwrite_option(help="Replace existing outputs in OUT.")
 def synth(out: Path, size: int, seed: int, gsd: float, crs: str, origin: tuple[float, float],
           overwrite: bool) -> None:
     """Generate a synthetic town in OUT: ortho.tif (RGB), dsm/dtm/ndsm.tif (metres), labels.tif, classes.yaml,

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from aerialmtl.cli.options import option, overwrite_option, quiet_option, raster_option
 from aerialmtl.io.align import NdsmOptions
 
 _FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
@@ -55,14 +56,14 @@ def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) ->
 
 
 @click.command(name="tile")
-@click.option("--ortho", required=True, type=_FILE, help="Orthophoto GeoTIFF; defines the reference grid.")
-@click.option("--dsm", type=_FILE, help="Digital surface model; needs --dtm.")
-@click.option("--dtm", type=_FILE, help="Digital terrain model; needs --dsm.")
-@click.option("--ndsm", type=_FILE, help="Ready heights above ground (nDSM/CHM) instead of --dsm/--dtm.")
+@raster_option("--ortho", required=True, help="Orthophoto; defines the reference grid.")
+@raster_option("--dsm", help="Digital surface model; needs --dtm.")
+@raster_option("--dtm", help="Digital terrain model; needs --dsm.")
+@raster_option("--ndsm", help="Ready heights above ground (nDSM/CHM) instead of --dsm/--dtm.")
 @click.option("--z-unit", type=click.Choice(["m", "ft", "us-ft"]), default=None,
               help="Unit of the DSM/DTM/nDSM values when a file does not state it (its vertical CRS or band unit) "
                    "[default: m]. Heights are always written in metres.")
-@click.option("--labels", type=_FILE, help="Label raster of raw class codes.")
+@raster_option("--labels", help="Label raster of raw class codes.")
 @click.option("--labels-vector", type=_FILE, help="GeoJSON label polygons (EPSG:4326 unless it has a 'crs').")
 @click.option("--class-field", help="Attribute of --labels-vector holding class codes or names.")
 @click.option("--classes", "classes", help="Class scheme YAML, or a built-in name: dfc2018, isprs, synthetic.")
@@ -71,22 +72,23 @@ def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) ->
 @click.option("--gsd", type=float, help="Resample every layer to this pixel size in metres (also for feet CRSs).")
 @click.option("--min-valid", default=0.9, show_default=True, type=click.FloatRange(0, 1),
               help="Keep patches with at least this fraction of valid image pixels.")
-@click.option("--split-block", default=100.0, show_default=True, type=float,
+@option("--split-block", default=100.0, show_default=True, type=float, library="block_size",
               help="Split block side in metres, snapped to a whole number of patch strides.")
-@click.option("--split-ratios", default="0.7,0.15,0.15", show_default=True, callback=_ratios,
+@option("--split-ratios", default="0.7,0.15,0.15", show_default=True, callback=_ratios, library="ratios",
               help="Fractions of blocks for train,val,test.")
 @click.option("--split-seed", default=0, show_default=True, type=int, help="Seed of the block shuffle.")
-@click.option("--split-aoi", multiple=True, callback=_aoi,
+@option("--split-aoi", multiple=True, callback=_aoi, library="aoi",
               help="AOI polygons instead of blocks: one GeoJSON with a 'split' property, or SPLIT=FILE (repeat).")
 @click.option("--bands", callback=_int_list, help="1-based ortho bands to keep, e.g. 1,2,3 [default: all but alpha].")
 @click.option("--clip-negative/--no-clip-negative", default=True, show_default=True,
               help="Set negative heights above ground to 0.")
 @click.option("--max-height", type=float, help="Treat heights above this (metres) as invalid.")
 @click.option("--ignore-unknown-codes", is_flag=True, help="Label codes outside the scheme become 'no label'.")
-@click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing tile dataset in --out.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
-def tile(ortho: Path, dsm: Path | None, dtm: Path | None, ndsm: Path | None, z_unit: str | None, labels: Path | None,
+@option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path), library="out_dir",
+        help="Output folder.")
+@overwrite_option(help="Replace an existing tile dataset in --out.")
+@quiet_option()
+def tile(ortho: str, dsm: str | None, dtm: str | None, ndsm: str | None, z_unit: str | None, labels: str | None,
          labels_vector: Path | None, class_field: str | None, classes: str | None, size: int, stride: int | None,
          gsd: float | None, min_valid: float, split_block: float, split_ratios: tuple[float, float, float],
          split_seed: int, split_aoi: str | dict[str, str] | None, bands: list[int] | None, clip_negative: bool,

@@ -11,6 +11,14 @@ from pathlib import Path
 
 import click
 
+from aerialmtl.cli.options import (
+    compile_option,
+    device_option,
+    option,
+    overwrite_option,
+    precision_option,
+    quiet_option,
+)
 from aerialmtl.errors import OutputExistsError
 from aerialmtl.io.outputs import make_output_dir
 
@@ -41,25 +49,23 @@ def _prepare_run_folder(out_dir: Path, clear: bool) -> None:
 
 
 @click.command(name="train")
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
+@option("--config", "config_path", library="config", type=click.Path(dir_okay=False, path_type=Path),
               help="Training YAML (e.g. configs/d3net_small_synth.yaml). With --resume, defaults to RUN/config.yaml.")
 @click.option("--data", "data_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Tile folder written by `aerialmtl tile` (overrides data.dir of the config).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("runs/train"),
               show_default=True, help="Run folder for last.pt, best.pt, log.csv and config.yaml.")
 @click.option("--max-steps", type=int, help="Stop after this many optimisation steps in total.")
-@click.option("--max-time", "max_time", type=float, help="Wall-clock budget of this call in seconds.")
+@option("--max-time", "max_time", type=float, library="max_time_s", help="Wall-clock budget of this call in seconds.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last.pt (any number of processes).")
 @click.option("--init", "init_ckpt", type=click.Path(dir_okay=False, path_type=Path),
               help="Start from the weights of this aerialmtl checkpoint (fine-tuning); task heads of other "
                    "classes or tasks start afresh.")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), help="Overrides the config's device.")
-@click.option("--precision", type=click.Choice(["auto", "fp32", "bf16"]),
-              help="Overrides the config's precision (auto: bf16 autocast on a GPU, fp32 on a CPU).")
-@click.option("--compile", "compile_model", is_flag=True,
-              help="torch.compile the model (training continues without it, with a warning, if it fails).")
-@click.option("--overwrite", is_flag=True, help="Delete the contents of a non-empty --out first.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@device_option(default=None, help="Overrides the config's device.")
+@precision_option(default=None, help="Overrides the config's precision (auto: bf16 autocast on a GPU, fp32 on a CPU).")
+@compile_option("compile_model")
+@overwrite_option(help="Delete the contents of a non-empty --out first.")
+@quiet_option()
 def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_steps: int | None,
           max_time: float | None, resume: bool, init_ckpt: Path | None, device: str | None, precision: str | None,
           compile_model: bool, overwrite: bool, quiet: bool) -> None:
