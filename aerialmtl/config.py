@@ -12,13 +12,15 @@ Usage::
 Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal[...]``, ``Optional[T]`` /
 ``T | None``, ``list[T]``, ``tuple[T, ...]``, ``tuple[A, B]``, ``dict[str, T]``, nested dataclasses
 and ``Any``. Unknown keys, wrong types and bad enum values raise :class:`ConfigError` naming the
-key path (``train.optim.lr``) and the valid keys or choices.
+key path (``train.optim.lr``) and the valid keys or choices. Floats must be finite (YAML's ``.nan`` and
+``.inf`` are refused with the key path); ranges are checked by each dataclass's ``__post_init__``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import types
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -101,6 +103,8 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):  # YAML's .nan / .inf: no setting of this package means them
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

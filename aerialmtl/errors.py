@@ -91,6 +91,11 @@ class CheckpointError(AerialMTLError, ValueError):
     """A checkpoint is missing, corrupt, unsafe or incompatible with the input."""
 
 
+class NonFiniteError(AerialMTLError, FloatingPointError):
+    """Numbers that can only be garbage: a diverged training (NaN/inf loss or score), a checkpoint with
+    NaN/inf weights, or a model that gives NaN/inf for valid inputs."""
+
+
 class OutputExistsError(AerialMTLError, FileExistsError):
     """An output already exists and ``overwrite`` was not given."""
 
@@ -101,5 +106,5 @@ class OutputError(AerialMTLError, OSError):
 
 __all__ = [
     "PARAM_MARK", "AerialMTLError", "AlignmentError", "CheckpointError", "ConfigError", "InputError", "LabelError",
-    "OutputError", "OutputExistsError", "render",
+    "NonFiniteError", "OutputError", "OutputExistsError", "render",
 ]

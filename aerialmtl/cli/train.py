@@ -58,7 +58,7 @@ def _prepare_run_folder(out_dir: Path, clear: bool) -> None:
 @click.option("--max-steps", type=int, help="Stop after this many optimisation steps in total.")
 @option("--max-time", "max_time", type=float, library="max_time_s", help="Wall-clock budget of this call in seconds.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last.pt (any number of processes).")
-@click.option("--init", "init_ckpt", type=click.Path(dir_okay=False, path_type=Path),
+@option("--init", "init_ckpt", type=click.Path(dir_okay=False, path_type=Path), library="init",
               help="Start from the weights of this aerialmtl checkpoint (fine-tuning); task heads of other "
                    "classes or tasks start afresh.")
 @device_option(default=None, help="Overrides the config's device.")

@@ -33,7 +33,8 @@ import torch
 from aerialmtl import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
-from aerialmtl.errors import CheckpointError, ConfigError
+from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError
+from aerialmtl.io.oserrors import output_error
 from aerialmtl.models.config import ModelConfig
 
 FORMAT = "aerialmtl-checkpoint"
@@ -78,26 +79,76 @@ class ModelMeta:
         return from_dict(cls, data)
 
 
+def first_nonfinite(tensors: Any) -> str | None:
+    """The name of the first floating-point tensor of mapping ``tensors`` holding NaN or ±inf, else ``None``.
+
+    Nested mappings and lists (an optimizer's state) are searched too; names are joined with dots.
+    """
+    if isinstance(tensors, torch.Tensor):
+        bad = tensors.is_floating_point() and tensors.numel() > 0 and not bool(torch.isfinite(tensors).all())
+        return "" if bad else None
+    items: Any = tensors.items() if isinstance(tensors, dict) else enumerate(tensors) \
+        if isinstance(tensors, (list, tuple)) else ()
+    for key, value in items:
+        found = first_nonfinite(value)
+        if found is not None:
+            return f"{key}.{found}" if found else str(key)
+    return None
+
+
+def _os_error(exc: BaseException) -> OSError | None:
+    """The ``OSError`` behind ``exc`` (torch.save reports a full disk as a RuntimeError raised while
+    handling the file object's OSError)."""
+    seen: BaseException | None = exc
+    for _ in range(8):
+        if seen is None:
+            return None
+        if isinstance(seen, OSError):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
 def save_checkpoint(
     path: str | Path,
     model: torch.nn.Module,
     meta: ModelMeta,
     train_state: dict[str, Any] | None = None,
 ) -> None:
-    """Write a checkpoint atomically (temporary file in the same folder, then rename)."""
+    """Write a checkpoint atomically (temporary file in the same folder, then rename).
+
+    Raises:
+        NonFiniteError: a weight holds NaN or ±inf (a diverged model is never written; the file at
+            ``path``, if any, is unchanged).
+        OutputError: the disk is full, or the folder is not writable (names ``path``; nothing is left
+            at ``path`` or beside it).
+    """
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    state_dict = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    bad = first_nonfinite(state_dict)
+    if bad is not None:
+        raise NonFiniteError(
+            f"refusing to write checkpoint '{path}': weight '{bad}' holds NaN or inf (the model diverged); "
+            "the previous checkpoint there, if any, is unchanged"
+        )
     payload = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "aerialmtl_version": __version__,
         "meta": meta.to_dict(),
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "state_dict": state_dict,
         "train_state": train_state,
     }
     try:
-        torch.save(payload, tmp)
+        with tmp.open("wb") as fh:  # a file object: a full disk surfaces as an OSError with its errno
+            torch.save(payload, fh)
         os.replace(tmp, path)
+    except (OSError, RuntimeError) as exc:
+        cause = _os_error(exc)
+        if cause is None:
+            raise
+        raise output_error(cause, path, "the checkpoint", "‹out_dir›") from exc
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -152,8 +203,20 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         )
     try:
         meta = ModelMeta.from_dict(payload["meta"])
-    except (ConfigError, KeyError, TypeError) as exc:
+    except (ConfigError, KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"checkpoint '{path}' has invalid metadata: {exc}") from exc
+    state = payload.get("state_dict")
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise CheckpointError(
+            f"checkpoint '{path}' holds no valid state_dict (a mapping of weight tensors); use the best.pt or "
+            "last.pt of one `aerialmtl train` run"
+        )
+    bad = first_nonfinite(state)
+    if bad is not None:
+        raise CheckpointError(
+            f"checkpoint '{path}' holds NaN or inf weights ('{bad}'): the run that wrote it had diverged and its "
+            "results would be garbage; use an earlier checkpoint, or retrain with a lower optim.lr"
+        )
     return payload, meta
 
 

@@ -42,11 +42,12 @@ class Aoi:
     """AOI polygons on the grid; ``mask(window)`` → (h, w) bool inside (thread-safe: read-only)."""
 
     def __init__(self, path: str | Path, grid: Grid) -> None:
-        from aerialmtl.io.vector import load_geometries
+        from aerialmtl.io.vector import check_aoi_overlaps, load_geometries
 
         self.geoms: list[BaseGeometry] = [g for g, _ in load_geometries(path, grid.crs, role="AOI (‹aoi›)")]
         if not self.geoms:
             raise InputError(f"AOI (‹aoi›) '{path}' holds no polygon; pass a GeoJSON with polygons", param="aoi")
+        check_aoi_overlaps(path, self.geoms, grid)
         self.tree = STRtree(self.geoms)
         self.grid = grid
 

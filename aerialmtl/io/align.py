@@ -434,9 +434,56 @@ class HeightSource:
             else:
                 self.layers.append(AlignedRaster(dsm, grid, "height", bands=[1], role="DSM", z_unit=z))  # type: ignore[arg-type]
                 self.layers.append(AlignedRaster(dtm, grid, "height", bands=[1], role="DTM", z_unit=z))  # type: ignore[arg-type]
+                self.check_dsm_above_dtm()
         except Exception:
             self.close()
             raise
+
+    #: a DSM below its DTM by more than this (metres) counts as "below" in :meth:`check_dsm_above_dtm`
+    SWAP_TOLERANCE_M = 0.5
+    #: fraction of the sampled pixels where DSM and DTM differ that must lie below for the swap error
+    SWAP_FRACTION = 0.75
+
+    def sample_windows(self, n: int = 4, side: int = 64) -> list[Window]:
+        """An ``n`` × ``n`` spread of windows of ``side`` pixels over the grid (fewer on a small grid)."""
+        grid = self.layers[0].grid
+        w, h = min(side, grid.width), min(side, grid.height)
+        cols = sorted({int(round(k * (grid.width - w) / max(1, n - 1))) for k in range(n)})
+        rows = sorted({int(round(k * (grid.height - h) / max(1, n - 1))) for k in range(n)})
+        return [Window(c, r, w, h) for r in rows for c in cols]
+
+    def check_dsm_above_dtm(self) -> None:
+        """Refuse a DSM that lies below its DTM on most pixels where the two differ (they are swapped,
+        or on different vertical datums): every height would be clipped to 0 or negative.
+
+        Reads a spread of 16 windows of 64 × 64 pixels (not the whole rasters). Pixels where
+        |DSM − DTM| ≤ :attr:`SWAP_TOLERANCE_M` (bare ground, noise) are not counted.
+
+        Raises:
+            InputError: naming both files, the fraction below and the fix (``param="dsm"``).
+        """
+        dsm_layer, dtm_layer = self.layers
+        below = above = 0
+        diffs: list[np.ndarray] = []
+        for win in self.sample_windows():
+            dsm, v1 = dsm_layer.read(win)
+            dtm, v2 = dtm_layer.read(win)
+            d = (dsm[0] - dtm[0])[v1 & v2]
+            below += int((d < -self.SWAP_TOLERANCE_M).sum())
+            above += int((d > self.SWAP_TOLERANCE_M).sum())
+            diffs.append(d)
+        differ = below + above
+        if differ < 10 or below < self.SWAP_FRACTION * differ:
+            return
+        median = float(np.median(np.concatenate(diffs)))
+        raise InputError(
+            f"the DSM '{dsm_layer.path}' lies below the DTM '{dtm_layer.path}' on {100 * below / differ:.0f} % of the "
+            f"sampled pixels where they differ (median DSM − DTM {median:.3g} m), so every height would be 0 or "
+            "negative: the two are probably swapped: pass the surface model (with buildings and trees) as ‹dsm› and "
+            "the bare-earth terrain model as ‹dtm› (or, if they are right, bring them to one vertical datum and unit, "
+            "see ‹z_unit›)",
+            param="dsm",
+        )
 
     def read(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
         """Returns ``(height, valid)``: (h, w) float32 metres (NaN where invalid) and a (h, w) bool mask."""

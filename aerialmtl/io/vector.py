@@ -1,9 +1,11 @@
 """Polygon layers (GeoJSON): land-cover labels burnt window by window onto the reference grid, and AOIs.
 
-A GeoJSON file is in EPSG:4326 (longitude, latitude) unless it carries a (legacy) ``crs`` member such as
-``{"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32631"}}``. Geometries are reprojected
-to the grid CRS with :func:`rasterio.warp.transform_geom`, repaired with shapely's ``make_valid`` and
-indexed once in an ``STRtree`` so that each window rasterizes only the polygons that intersect it.
+A GeoJSON file is in EPSG:4326 (longitude, latitude; RFC 7946) unless it carries a (legacy) ``crs`` member
+such as ``{"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32631"}}``. A file without one whose
+coordinates cannot be degrees (a common export in a projected CRS) is refused, naming the CRS to declare.
+Geometries are reprojected to the grid CRS with :func:`rasterio.warp.transform_geom`, repaired with
+shapely's ``make_valid`` and indexed once in an ``STRtree`` so that each window rasterizes only the polygons
+that intersect it.
 
 Label polygons carry a class attribute (``class_field``) holding either a raw code (integer, mapped through
 the :class:`~aerialmtl.classes.ClassScheme` like raster codes) or a class name (string, matched to the
@@ -83,20 +85,85 @@ def load_geometries(
     Features without geometry, and non-areal geometries (points, lines), are skipped.
     """
     features, src_crs = read_geojson(path, role)
-    out = []
-    for feat in features:
-        geom = (feat or {}).get("geometry")
+    parsed = []
+    for n, feat in enumerate(features):
+        geom = feat.get("geometry") if isinstance(feat, dict) else None
         if not geom:
             continue
+        try:
+            g = shape(geom)
+        except Exception as exc:  # shapely's errors for wrong nesting, missing coordinates, unknown types
+            raise InputError(
+                f"{role} '{path}': feature {n} has an invalid geometry ({' '.join(str(exc).split())[:120]}); fix or "
+                "drop it, e.g. `ogr2ogr -makevalid out.geojson in.geojson`"
+            ) from exc
+        parsed.append((g, geom, feat))
+    if src_crs is GEOJSON_DEFAULT_CRS and parsed:  # no 'crs' member: RFC 7946 says WGS 84 lon/lat
+        _check_lonlat(path, role, [g for g, _, _ in parsed], dst_crs)
+    out = []
+    for g, geom, feat in parsed:
         if src_crs != dst_crs:
-            geom = transform_geom(src_crs, dst_crs, geom)
-        g = shape(geom)
+            try:
+                g = shape(transform_geom(src_crs, dst_crs, geom))
+            except Exception as exc:
+                raise InputError(
+                    f"{role} '{path}': its polygons cannot be reprojected from {_crs_name(src_crs)} to "
+                    f"{_crs_name(dst_crs)} ({' '.join(str(exc).split())[:120]}); check its CRS"
+                ) from exc
         if not g.is_valid:
             g = shapely.make_valid(g)
         if g.is_empty or g.area <= 0:
             continue
         out.append((g, dict(feat.get("properties") or {})))
     return out
+
+
+def _crs_name(crs: CRS) -> str:
+    """``EPSG:32631`` when the CRS has an EPSG code, else its short name."""
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else crs.to_string()[:80]
+
+
+def _check_lonlat(path: str | Path, role: str, geoms: list[shapely.Geometry], dst_crs: CRS) -> None:
+    """Refuse coordinates that cannot be WGS 84 degrees in a GeoJSON without a ``crs`` member.
+
+    Raises:
+        InputError: naming the file, the coordinates' extent and the CRS to declare (the orthophoto's,
+            the usual case: a GIS export in the project's CRS without the legacy ``crs`` member).
+    """
+    x0, y0, x1, y1 = (float(v) for v in shapely.total_bounds(np.array(geoms, dtype=object)))
+    if -180.0 <= x0 and x1 <= 180.0 and -90.0 <= y0 and y1 <= 90.0:
+        return
+    name = _crs_name(dst_crs)
+    raise InputError(
+        f"{role} '{path}' has no 'crs' member, so it is read as WGS 84 longitude/latitude (RFC 7946), but its "
+        f"coordinates span x {x0:.6g}..{x1:.6g}, y {y0:.6g}..{y1:.6g}, which are not degrees; if they are in the "
+        f"orthophoto's CRS ({name}), declare it in the file: \"crs\": {{\"type\": \"name\", \"properties\": "
+        f"{{\"name\": \"{name}\"}}}}, or reproject the file to WGS 84: `ogr2ogr -t_srs EPSG:4326 out.geojson "
+        f"{Path(path).name}`"
+    )
+
+
+def check_aoi_overlaps(path: str | Path | object, geoms: list[shapely.Geometry], grid: Any,
+                       role: str = "AOI (‹aoi›)", param: str | None = "aoi") -> None:
+    """Refuse AOI polygons ``geoms`` (in ``grid``'s CRS) that miss the orthophoto grid entirely.
+
+    Raises:
+        InputError: naming the file, the AOI's extent and the grid's extent (both in the grid's CRS).
+    """
+    gb = grid.bounds
+    grid_box = box(*gb)
+    if any(g.intersects(grid_box) for g in geoms):
+        return
+    ab = shapely.total_bounds(np.array(geoms, dtype=object)) if geoms else None
+    shown = "(no polygons)" if ab is None else "(" + ", ".join(f"{v:.6g}" for v in ab) + ")"
+    raise InputError(
+        f"{role} {path if isinstance(path, dict) else repr(str(path))} does not overlap the orthophoto: its polygons "
+        f"cover {shown}, the orthophoto covers ({', '.join(f'{v:.6g}' for v in gb)}), both in "
+        f"{_crs_name(grid.crs)} (left, bottom, right, top); pass an AOI over the orthophoto, or check the AOI's "
+        "CRS (WGS 84 unless the GeoJSON has a 'crs' member)",
+        param=param,
+    )
 
 
 def _class_index(value: Any, scheme: ClassScheme) -> int | None | Literal["unknown"]:
@@ -226,4 +293,4 @@ class VectorLabels:
         self.close()
 
 
-__all__ = ["GEOJSON_DEFAULT_CRS", "VectorLabels", "load_geometries", "read_geojson"]
+__all__ = ["GEOJSON_DEFAULT_CRS", "VectorLabels", "check_aoi_overlaps", "load_geometries", "read_geojson"]

@@ -73,10 +73,18 @@ class Architecture:
                 "packages); for densenet121 give the path of a local torchvision DenseNet-121 state dict (README, "
                 "'Start from ImageNet weights') or set model.encoder to efficientnet_lite0"
             )
+        for name in ("growth_rate", "num_init_features", "bn_size"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"model.{name}: must be ≥ 1, got {getattr(self, name)}; the paper uses "
+                                  f"{getattr(Architecture, name)}")
+        if not 0.0 < self.compression <= 1.0:
+            raise ConfigError(f"model.compression: must be in (0, 1], got {self.compression}; the paper uses 0.5")
         if not 0.0 <= self.dropout < 1.0:
             raise ConfigError(f"model.dropout: must be in [0, 1), got {self.dropout}")
         if len(self.block_config) != 4:
             raise ConfigError(f"model.block_config: expected 4 dense blocks, got {list(self.block_config)}")
+        if any(n < 1 for n in self.block_config):
+            raise ConfigError(f"model.block_config: every dense block needs ≥ 1 layer, got {list(self.block_config)}")
         if not 1 <= self.task_blocks <= 4:
             raise ConfigError(f"model.task_blocks: must be in 1..4, got {self.task_blocks}")
         if not 0 <= self.dropout_blocks <= 5 - self.task_blocks:

@@ -30,7 +30,7 @@ from rasterio.windows import Window
 from shapely.geometry import box
 
 from aerialmtl.errors import InputError
-from aerialmtl.io.vector import load_geometries
+from aerialmtl.io.vector import check_aoi_overlaps, load_geometries
 
 SPLITS = ("train", "val", "test")
 
@@ -210,12 +210,7 @@ class SplitAssigner:
         self.aoi = {s: shapely.union_all(gs) for s, gs in per_split.items() if gs}
         for g in self.aoi.values():
             shapely.prepare(g)
-        if not any(g.intersects(box(*self.grid.bounds)) for g in self.aoi.values()):
-            raise InputError(
-                f"split AOI {aoi}: no polygon overlaps the orthophoto grid "
-                f"({', '.join(f'{v:.6g}' for v in self.grid.bounds)} in {self.grid.crs.to_string()}); "
-                "check the AOI's CRS (EPSG:4326 unless the GeoJSON has a 'crs' member)"
-            )
+        check_aoi_overlaps(aoi, list(self.aoi.values()), self.grid, role="split AOI (‹aoi›)", param="aoi")
 
     # ---- common -------------------------------------------------------------------------------
     def split_of(self, window: Window) -> str | None:

@@ -77,6 +77,7 @@ class TileResult:
             for AOI splits.
         block_patches: patch strides per block side (``None`` for AOI splits).
         mean, std: per-band statistics of the train split (raw units), ``None`` without train patches.
+        max_valid_fraction: the largest fraction of valid orthophoto pixels of a window in a split.
     """
 
     out_dir: Path
@@ -91,6 +92,7 @@ class TileResult:
     tasks: list[str] = field(default_factory=list)
     block_size_m: float | None = None
     block_patches: int | None = None
+    max_valid_fraction: float = 0.0
 
 
 class _BandStats:
@@ -239,6 +241,7 @@ def tile_dataset(
     Raises:
         InputError / AlignmentError / LabelError: unusable inputs (messages name the file and the fix).
         OutputExistsError: ``out_dir`` is not empty and ``overwrite`` is false.
+        InputError: also when no patch at all would be kept (:func:`check_not_empty`); nothing is left.
     """
     out_dir = Path(out_dir)
     stride = size if stride is None else stride
@@ -255,6 +258,7 @@ def tile_dataset(
         created = _prepare_out_dir(out_dir, overwrite)
         try:
             result = _tile_loop(sources, assigner, grid, out_dir, size, stride, min_valid, progress)
+            check_not_empty(result, grid, size, min_valid)
         except BaseException:  # a failed or interrupted run leaves no half dataset behind
             with contextlib.suppress(OSError):
                 _clear(out_dir)
@@ -425,6 +429,7 @@ def _tile_loop(
     counts = {s: 0 for s in SPLITS}
     stats = _BandStats(len(sources.image.bands))
     dropped_invalid = dropped_split = 0
+    max_valid = 0.0
     total = count_windows(grid.width, grid.height, size, stride)
     windows = tile_windows(grid.width, grid.height, size, stride)
     with ManifestWriter(out_dir) as writer:  # streamed row by row, renamed once every patch is written
@@ -434,6 +439,7 @@ def _tile_loop(
                 dropped_split += 1
                 continue
             data, valid = sources.image.read(win)
+            max_valid = max(max_valid, float(valid.mean()))
             if float(valid.mean()) < min_valid or not valid.any():
                 dropped_invalid += 1
                 continue
@@ -445,7 +451,35 @@ def _tile_loop(
     return TileResult(
         out_dir=out_dir, manifest=writer.path, dataset_yaml=out_dir / DATASET_YAML, counts=counts,
         windows=total, dropped_invalid=dropped_invalid, dropped_split=dropped_split,
-        mean=ms[0] if ms else None, std=ms[1] if ms else None,
+        mean=ms[0] if ms else None, std=ms[1] if ms else None, max_valid_fraction=max_valid,
+    )
+
+
+def check_not_empty(result: TileResult, grid: Grid, size: int, min_valid: float) -> None:
+    """Refuse a tile run that kept no patch at all, saying why with the numbers and what to change.
+
+    Raises:
+        InputError: the orthophoto is smaller than one patch and too little of it is valid, or every
+            window was dropped (too few valid pixels, or outside every split block / AOI).
+    """
+    if sum(result.counts.values()) > 0:
+        return
+    w, h = grid.width, grid.height
+    pct = f"{100 * result.max_valid_fraction:.0f} %"
+    if w < size or h < size:
+        fit = (min(w, h) // 32) * 32
+        smaller = f"pass ‹size={fit}› (≤ the orthophoto's side, a multiple of 32) or " if fit >= 32 else ""
+        raise InputError(
+            f"the tile set would be empty: the orthophoto is {w} × {h} pixels (at {grid.gsd:.3g} m), smaller than one "
+            f"{size}-pixel patch, and its padded patch is {pct} valid, below ‹min_valid={min_valid:g}›; "
+            f"{smaller}lower ‹min_valid› (e.g. {max(0.0, result.max_valid_fraction - 0.01):.2f}), or tile a larger "
+            "orthophoto"
+        )
+    raise InputError(
+        f"the tile set would be empty: of {result.windows} windows of {size} pixels, {result.dropped_invalid} have "
+        f"fewer valid orthophoto pixels than ‹min_valid={min_valid:g}› (the best has {pct}) and "
+        f"{result.dropped_split} straddle split blocks or lie outside every split AOI; lower ‹min_valid›, use a "
+        "smaller ‹size› or ‹split_block›, or check the orthophoto's nodata value and alpha band"
     )
 
 

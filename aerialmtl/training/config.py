@@ -24,6 +24,7 @@ Relative ``data.dir`` paths are resolved against the current working directory. 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -139,6 +140,15 @@ class LossSection:
     classes: Literal["ce"] = "ce"
     class_weights: Literal["none", "balanced"] | tuple[float, ...] = "none"
 
+    def __post_init__(self) -> None:
+        if isinstance(self.class_weights, tuple):
+            bad = [w for w in self.class_weights if not (math.isfinite(w) and w >= 0)]
+            if bad or not any(w > 0 for w in self.class_weights):
+                raise ConfigError(
+                    f"loss.class_weights: must be finite weights ≥ 0 with at least one > 0, got "
+                    f"{list(self.class_weights)}; or use 'none' or 'balanced'"
+                )
+
 
 @dataclass(frozen=True)
 class WeightingSection:
@@ -154,6 +164,9 @@ class WeightingSection:
         bad = [k for k in self.task_weights if k not in ("height", "classes")]
         if bad:
             raise ConfigError(f"weighting.task_weights: unknown task {bad[0]!r}; valid tasks are height, classes")
+        for task, w in self.task_weights.items():
+            if not (math.isfinite(w) and w >= 0):
+                raise ConfigError(f"weighting.task_weights.{task}: must be a finite weight ≥ 0, got {w}")
 
 
 @dataclass(frozen=True)
@@ -170,10 +183,14 @@ class OptimSection:
     weight_decay: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.lr <= 0:
-            raise ConfigError(f"optim.lr: must be > 0, got {self.lr}")
-        if self.weight_decay < 0:
-            raise ConfigError(f"optim.weight_decay: must be ≥ 0, got {self.weight_decay}")
+        # written as `not (in range)` so that NaN (given from Python, YAML's .nan is refused earlier) fails too
+        if not 0.0 < self.lr <= 1.0:
+            raise ConfigError(f"optim.lr: must be a learning rate in (0, 1], got {self.lr}; the paper uses 2.0e-4")
+        if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
+            raise ConfigError(f"optim.betas: must be two decay rates in [0, 1), got {list(self.betas)}; "
+                              "the paper uses [0.5, 0.999]")
+        if not 0.0 <= self.weight_decay < 1.0:
+            raise ConfigError(f"optim.weight_decay: must be ≥ 0 and < 1, got {self.weight_decay}; e.g. 1.0e-4, or 0")
 
 
 @dataclass(frozen=True)
@@ -203,7 +220,7 @@ class ScheduleSection:
                 raise ConfigError(f"schedule.{name}: must be ≥ 1, got {getattr(self, name)}")
         if self.max_steps is not None and self.max_steps < 1:
             raise ConfigError(f"schedule.max_steps: must be ≥ 1, got {self.max_steps}")
-        if self.max_time_s is not None and self.max_time_s <= 0:
+        if self.max_time_s is not None and not self.max_time_s > 0:
             raise ConfigError(f"schedule.max_time_s: must be > 0, got {self.max_time_s}")
         if self.patience is not None and self.patience < 1:
             raise ConfigError(f"schedule.patience: must be ≥ 1 validations, got {self.patience}")
@@ -235,6 +252,10 @@ class TrainConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     compile: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.seed < 2**63:
+            raise ConfigError(f"seed: must be an integer in 0..2**63-1, got {self.seed}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain mapping (YAML / checkpoint safe)."""

@@ -89,12 +89,16 @@ class TrainState:
     @classmethod
     def from_dict(cls, ts: dict[str, Any], global_batch: int) -> TrainState:
         """Read a checkpoint's ``train_state`` (also one written before ``position`` existed, whose
-        ``batch_in_epoch`` counted batches of ``global_batch``)."""
+        ``batch_in_epoch`` counted batches of ``global_batch``). A non-finite ``best_score`` (older versions
+        let a diverged NaN validation become the best) reads as ``inf``: the next finite score is better."""
         position = ts.get("position")
         if position is None:
             position = int(ts.get("batch_in_epoch", 0)) * global_batch
+        best = float(ts["best_score"])
+        if not math.isfinite(best):  # written by a version that let a diverged validation (NaN) be "best"
+            best = math.inf
         return cls(step=int(ts["step"]), epoch=int(ts["epoch"]), position=int(position),
-                   best_score=float(ts["best_score"]), ref_losses=ts.get("ref_losses"),
+                   best_score=best, ref_losses=ts.get("ref_losses"),
                    since_best=int(ts.get("since_best", 0)))
 
 

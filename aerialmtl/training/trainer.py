@@ -46,8 +46,14 @@ from aerialmtl.config import to_dict
 from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
-from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, OutputError
-from aerialmtl.formats.checkpoint import ModelMeta, check_same_data, load_checkpoint, save_checkpoint
+from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, NonFiniteError, OutputError
+from aerialmtl.formats.checkpoint import (
+    ModelMeta,
+    check_same_data,
+    first_nonfinite,
+    load_checkpoint,
+    save_checkpoint,
+)
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.training import distributed
@@ -140,11 +146,13 @@ class LossWindow:
     """Per-step losses kept on the device, read (one synchronisation, reduced over processes) only when
     logged or before a validation — not after every step, which would stall a GPU.
 
-    ``flush`` checks every pending step for a non-finite loss and raises naming the first one.
+    ``flush`` checks every pending step for a non-finite loss and raises naming the first one (with
+    ``hint()``, what to do, appended).
     """
 
-    def __init__(self, tasks: tuple[str, ...], ctx: DistContext) -> None:
+    def __init__(self, tasks: tuple[str, ...], ctx: DistContext, hint: Any = None) -> None:
         self.tasks, self.ctx = tasks, ctx
+        self.hint = hint if hint is not None else (lambda: "")
         self.pending: list[torch.Tensor] = []
         self.first_step = 0
         self.window: dict[str, list[float]] = {"loss": [], **{t: [] for t in tasks}}
@@ -164,10 +172,10 @@ class LossWindow:
         self.pending = []
         for i, row in enumerate(rows):
             if not math.isfinite(row[0]):
-                raise AerialMTLError(
-                    f"training diverged at step {first + i} (loss {row[0]}); lower optim.lr, "
-                    "use precision fp32, or check the references in the tile folder"
-                )
+                tasks = [t for t, v in zip(self.tasks, row[1:]) if not math.isfinite(v)]
+                which = f" ({', '.join(tasks)})" if tasks else ""
+                raise NonFiniteError(f"training diverged at step {first + i}: the loss is {row[0]}{which}; "
+                                     f"{self.hint()}")
             self.window["loss"].append(row[0])
             self.since_val.append(row[0])
             for t, v in zip(self.tasks, row[1:]):
@@ -279,6 +287,8 @@ class Trainer:
         self.objective = Objective(cfg, self.tasks, class_weights(cfg, self.info, self.k or 2)
                                    if "classes" in self.tasks else None)
         self.state = TrainState()
+        #: step of the last checkpoint written whole (``last.pt``), or of the one resumed from
+        self.saved_step: int | None = None
         self.prepare_caches()
         self.build_model()
         saved_rng: dict[str, Any] | None = None
@@ -298,7 +308,7 @@ class Trainer:
             self.write_config(data_dir if data_dir is not None else cfg.data.dir)
         self.build_data()
         self.csv_log = CsvLog(self.paths["log.csv"], append=resume) if self.ctx.is_main else None
-        self.losses = LossWindow(self.tasks, self.ctx)
+        self.losses = LossWindow(self.tasks, self.ctx, self.recovery_hint)
         self.metrics: dict[str, float] = {}
 
     # ---- data ---------------------------------------------------------------------------------------
@@ -419,7 +429,8 @@ class Trainer:
         one process evaluating all of them.
 
         Returns:
-            ``val_loss_<task>``, and ``height_mae``/``height_rmse`` (metres) and/or ``oa``/``miou``.
+            ``val_loss_<task>``, and ``height_mae``/``height_rmse`` (metres) and/or ``oa``/``miou``. A task
+            whose loss was NaN or inf on any batch has a non-finite ``val_loss_<task>`` (never a flattering 0).
         """
         assert self.val_loader is not None
         was_training = self.model.training
@@ -432,8 +443,7 @@ class Trainer:
                 out = self.model(batch["image"])
             losses = self.objective(out, batch)
             for i, t in enumerate(self.tasks):
-                if torch.isfinite(losses[t]):
-                    sums[i] += float(losses[t])
+                sums[i] += float(losses[t])  # NaN/inf stays: a diverged model can never score best
             sums[-1] += 1
             if "height" in self.tasks:
                 hm.update(out["height"].float(), batch["height"], batch["height_valid"])
@@ -464,12 +474,21 @@ class Trainer:
             st.ref_losses = reference = st.ref_losses or current
             score = validation_score(current, reference, self.objective.task_weights)
             self.losses.take_since_validation()
+            measured = True
         else:
+            measured = bool(self.losses.since_val)  # False: no step since the last score (inf, as before)
             score = self.losses.take_since_validation()
         self.metrics["score"] = score
         if self.csv_log is not None:
             self.csv_log.write(kind="val", step=st.step, epoch=st.epoch, time_s=self.elapsed(), lr=self.lr,
                                **{m: self.metrics.get(m) for m in LOG_COLUMNS if m in self.metrics})
+        if measured and not math.isfinite(score):  # every process sees the same reduced score, so all stop together
+            bad = [t for t in self.tasks if not math.isfinite(self.metrics.get(f"val_loss_{t}", 0.0))]
+            raise NonFiniteError(
+                f"training diverged: the validation score at step {st.step} is {score}"
+                f"{' (' + ', '.join(bad) + ' loss)' if bad else ''}; best.pt keeps the best finite score; "
+                f"{self.recovery_hint()}"
+            )
         improved = score < st.best_score
         if improved or not self.paths["best.pt"].exists():
             st.best_score = min(st.best_score, score)
@@ -480,22 +499,51 @@ class Trainer:
         return patience is not None and st.since_best >= patience
 
     # ---- checkpoints --------------------------------------------------------------------------------
+    def recovery_hint(self) -> str:
+        """What to do after a divergence: where the last whole checkpoint is, and how to continue."""
+        last = self.paths["last.pt"]
+        lower = f"lower optim.lr (now {self.cfg.optim.lr:g}; e.g. {self.cfg.optim.lr / 10:g})"
+        if self.saved_step is not None and last.exists():
+            return (f"'{last}' (step {self.saved_step}) is the last good state, unchanged: {lower} in "
+                    f"'{self.paths['config.yaml']}' and continue with `aerialmtl train --out {self.run} --resume`, "
+                    "use precision fp32, or check the tile folder's images and references")
+        return (f"no checkpoint was written; {lower}, use precision fp32, or check the tile folder's images and "
+                "references, then start again")
+
     def checkpoint(self, target: Path) -> None:
-        """Write a checkpoint with the full training state (rank 0 writes; every process must call it)."""
+        """Write a checkpoint with the full training state (rank 0 writes; every process must call it).
+
+        Raises:
+            NonFiniteError: a weight is NaN or inf (checked on every process, so all stop together); the
+                checkpoint files stay as they were.
+        """
+        bad = first_nonfinite(self.model.state_dict())
+        if bad is not None:
+            raise NonFiniteError(f"training diverged at step {self.state.step}: weight '{bad}' holds NaN or inf; "
+                                 f"{self.recovery_hint()}")
         rngs = self.ctx.gather_objects(rng_state())
         if not self.ctx.is_main:
+            if target == self.paths["last.pt"]:
+                self.saved_step = self.state.step
             return
         state = {"optimizer": self.optimizer.state_dict(), "weighting": self.weighting.state_dict(),
                  **self.state.to_dict(self.plan.global_batch), "rng": rngs[0], "rng_ranks": rngs,
                  "world_size": self.ctx.world_size, "global_batch": self.plan.global_batch,
                  "config": self.cfg.to_dict()}
         save_checkpoint(target, self.model, self.meta, state)
+        if target == self.paths["last.pt"]:
+            self.saved_step = self.state.step
 
     def restore(self, path: Path) -> dict[str, Any]:
         """Load weights, optimizer, weighting and counters from ``path``; returns this process's RNG state.
 
+        The config's ``optim.lr`` and ``optim.betas`` replace those stored with the optimizer
+        state (its moments are kept), so a run that diverged can continue from its last good ``last.pt``
+        with a lower ``optim.lr`` written into the run's ``config.yaml``.
+
         Raises:
-            CheckpointError: no training state, other data, or another model config.
+            CheckpointError: no training state, other data, another model config, or a training state that
+                does not have the form ``aerialmtl train`` writes (e.g. edited by hand); names the file.
         """
         payload, old_meta = load_checkpoint(path, map_location=self.device)
         ts = payload.get("train_state")
@@ -507,7 +555,18 @@ class Trainer:
                 f"checkpoint '{path}' was trained with another model config; "
                 "resume with the run's config.yaml or start a new run (--overwrite)"
             )
-        self.model.load_state_dict(payload["state_dict"])
+        try:
+            self.model.load_state_dict(payload["state_dict"])
+        except (RuntimeError, KeyError, TypeError) as exc:
+            raise self._bad_state(path, "its weights do not fit the model", exc) from exc
+        if not isinstance(ts, dict):
+            raise self._bad_state(path, "its training state is not a mapping", None)
+        bad = first_nonfinite(ts.get("optimizer"))
+        if bad is not None:
+            raise CheckpointError(
+                f"checkpoint '{path}': its optimizer state holds NaN or inf ('{bad}'); it cannot be resumed: start a "
+                "new run (another --out, or --overwrite), with a lower optim.lr"
+            )
         try:
             self.optimizer.load_state_dict(ts["optimizer"])
         except ValueError as exc:
@@ -515,15 +574,48 @@ class Trainer:
                 f"checkpoint '{path}': its optimizer state does not fit this optimizer ({exc}); resume with the "
                 "run's config.yaml (same optim section) or start a new run"
             ) from exc
-        self.weighting.load_state_dict(ts["weighting"])
-        old_global = int(ts.get("global_batch") or 0)
-        self.state = TrainState.from_dict(ts, old_global or self._global_batch_guess())
+        except (KeyError, TypeError, RuntimeError, IndexError) as exc:
+            raise self._bad_state(path, "its optimizer state is incomplete", exc) from exc
+        optim = self.cfg.optim
+        for group in self.optimizer.param_groups:  # weight decay: the group structure already follows the config
+            group.update(lr=optim.lr, betas=optim.betas)
+        try:
+            self.weighting.load_state_dict(ts["weighting"])
+            old_global = int(ts.get("global_batch") or 0)
+            self.state = TrainState.from_dict(ts, old_global or self._global_batch_guess())
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise self._bad_state(path, "its counters or task weighting are incomplete", exc) from exc
+        self.saved_step = self.state.step
         ranks = ts.get("rng_ranks")
         if ranks and int(ts.get("world_size", 1)) == self.ctx.world_size:
-            return ranks[self.ctx.rank]
-        if self.ctx.rank == 0:
-            return ts["rng"]
-        return {}
+            rng = ranks[self.ctx.rank]
+        elif self.ctx.rank == 0:
+            rng = ts.get("rng")
+        else:
+            return {}
+        return self._checked_rng(path, rng)
+
+    def _checked_rng(self, path: Path, rng: Any) -> dict[str, Any]:
+        """``rng`` if it restores (tried on a copy of the current states), else a CheckpointError."""
+        if not rng:
+            raise self._bad_state(path, "its RNG state is missing", None)
+        current = rng_state()
+        try:
+            set_rng_state(rng)
+        except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as exc:
+            raise self._bad_state(path, "its RNG state is invalid", exc) from exc
+        finally:
+            set_rng_state(current)
+        return dict(rng)
+
+    @staticmethod
+    def _bad_state(path: Path, what: str, exc: BaseException | None) -> CheckpointError:
+        why = f" ({' '.join(str(exc).split())[:160] or exc.__class__.__name__})" if exc is not None else ""
+        return CheckpointError(
+            f"checkpoint '{path}' cannot be resumed: {what}{why}; it was not written by `aerialmtl train` as it is "
+            "(edited or from another version): resume from an unedited last.pt, or start a new run (another "
+            "--out, or --overwrite) with ‹init› to reuse its weights"
+        )
 
     def _global_batch_guess(self) -> int:
         """The global batch of a checkpoint written before it was recorded (one process, this batch size)."""

@@ -1,0 +1,404 @@
+"""Sanity checks that stop silent garbage, and inputs a user can type that must never be `Error: unexpected`.
+
+Covers: a diverged training (NaN validation, NaN loss) never becomes best.pt and says how to go on;
+checkpoints with NaN weights or an edited training state are refused with the file named; config values
+out of range name the key path; swapped DSM/DTM, an empty tile set and an AOI that misses the raster are
+errors with the numbers; GeoJSON without a ``crs`` member is WGS 84 and projected coordinates name the CRS
+to declare; a full disk while saving names the path and leaves no partial file.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import run_cli, tiny_d3net, write_raster
+from tilefolder import write_tile_folder
+
+from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFiniteError, OutputError
+from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
+from aerialmtl.training.config import TrainConfig
+from aerialmtl.training.loop import train
+
+CRS = "EPSG:32631"
+TINY_MODEL = {"growth_rate": 4, "block_config": [1, 1, 1, 1], "num_init_features": 8, "bn_size": 2}
+
+
+def tiny_cfg(**over: dict) -> TrainConfig:
+    base = TrainConfig.from_dict({
+        "model": TINY_MODEL, "data": {"batch_size": 4, "num_workers": 0}, "optim": {"lr": 2e-3},
+        "schedule": {"epochs": 100, "log_every": 1}, "seed": 0, "device": "cpu",
+    })
+    return base.with_overrides(**over) if over else base
+
+
+def one_error_line(result: tuple[int, str, str], *needles: str, code: int = 1) -> str:
+    """Exit ``code`` with one ``Error:`` line (never `Error: unexpected`) holding every needle."""
+    rc, out, err = result
+    assert rc == code, (rc, out, err)
+    assert "Traceback" not in err and "unexpected" not in err, err
+    line = [ln for ln in err.splitlines() if ln.startswith("Error: ")]
+    assert len(line) == 1, err
+    for needle in needles:
+        assert needle in line[0], (needle, line[0])
+    return line[0]
+
+
+@pytest.fixture(scope="module")
+def tiles(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_tile_folder(tmp_path_factory.mktemp("t") / "tiles", size=64, counts={"train": 8, "val": 2})
+
+
+def val_rows(log: Path) -> list[dict[str, str]]:
+    with log.open() as fh:
+        return [r for r in csv.DictReader(fh) if r["kind"] == "val"]
+
+
+# ---- training: NaN never best, stops with what to do ------------------------------------------------
+def test_nan_validation_stops_and_never_becomes_best(tiles: Path, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.training.trainer import Trainer
+
+    scores = iter([1.0, 0.8, math.nan])  # a validation every 2 steps; the 3rd diverges
+
+    def fake_validate(self: Trainer) -> dict[str, float]:
+        v = next(scores)
+        return {"val_loss_height": v, "val_loss_classes": v}
+
+    monkeypatch.setattr(Trainer, "validate", fake_validate)
+    run = tmp_path / "r"
+    with pytest.raises(NonFiniteError) as info:
+        train(tiny_cfg(), tiles, run, progress=False)
+    msg = str(info.value)
+    assert "validation score at step 6 is nan" in msg and f"'{run / 'last.pt'}' (step 4)" in msg
+    assert "optim.lr" in msg and "--resume" in msg
+    best = load_checkpoint(run / "best.pt")[0]["train_state"]
+    assert best["step"] == 4 and best["best_score"] == pytest.approx(1.6)
+    assert load_checkpoint(run / "last.pt")[0]["train_state"]["step"] == 4  # the last whole checkpoint stays
+    assert [r["step"] for r in val_rows(run / "log.csv")] == ["2", "4", "6"]  # the NaN row is logged
+
+
+def test_validation_keeps_nan_batches_instead_of_scoring_them_zero(tiles: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.training.trainer import Trainer
+
+    trainer = Trainer(tiny_cfg(), tiles, tmp_path / "r", progress=False)
+    try:
+        real = trainer.objective.__call__
+
+        def nan_height(out: dict, batch: dict) -> dict:
+            losses = real(out, batch)
+            return {**losses, "height": losses["height"] * math.nan}
+
+        monkeypatch.setattr(trainer, "objective", type("O", (), {"__call__": staticmethod(nan_height)})())
+        metrics = trainer.validate()
+    finally:
+        trainer.close()
+    assert math.isnan(metrics["val_loss_height"]) and math.isfinite(metrics["val_loss_classes"])
+
+
+def test_nan_loss_stops_training_then_resume_with_lower_lr(tiles: Path, tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.training.trainer import Trainer
+
+    real_step = Trainer.train_step
+
+    def poisoned(self: Trainer, batch: dict) -> tuple:
+        if self.state.step == 2:  # after the first validation (step 2) the weights blow up
+            with torch.no_grad():
+                next(self.model.parameters()).fill_(math.inf)
+        return real_step(self, batch)
+
+    monkeypatch.setattr(Trainer, "train_step", poisoned)
+    run = tmp_path / "r"
+    with pytest.raises(NonFiniteError, match=r"training diverged at step 3: the loss is nan") as info:
+        train(tiny_cfg(), tiles, run, progress=False)
+    assert f"'{run / 'last.pt'}' (step 2) is the last good state" in str(info.value)
+    payload, _ = load_checkpoint(run / "last.pt")  # finite, loads
+    assert payload["train_state"]["step"] == 2
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    res = train(tiny_cfg(optim={"lr": 2e-4}, schedule={"max_steps": 4}), tiles, run, resume=True, progress=False)
+    assert res.step == 4 and math.isfinite(res.best_score)
+    ts = load_checkpoint(run / "last.pt")[0]["train_state"]
+    assert ts["optimizer"]["param_groups"][0]["lr"] == pytest.approx(2e-4)  # the config's lr, not the stored one
+
+
+# ---- checkpoints: NaN weights, edited training state -----------------------------------------------
+def test_checkpoint_with_nan_weights_is_refused_on_save_and_load(tmp_path: Path, capsys) -> None:
+    model, meta = tiny_d3net()
+    good = tmp_path / "good.pt"
+    save_checkpoint(good, model, meta)
+    with torch.no_grad():
+        model.heads["height"].head.weight.view(-1)[0] = math.nan
+    with pytest.raises(NonFiniteError, match=r"refusing to write checkpoint .*heads\.height\.head\.weight"):
+        save_checkpoint(good, model, meta)
+    load_checkpoint(good)  # unchanged
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["good.pt"]
+    payload = torch.load(good, weights_only=True)
+    key = next(k for k, v in payload["state_dict"].items() if v.is_floating_point())
+    payload["state_dict"][key] = payload["state_dict"][key].clone().fill_(math.inf)
+    bad = tmp_path / "bad.pt"
+    torch.save(payload, bad)
+    with pytest.raises(CheckpointError, match=rf"checkpoint '{bad}' holds NaN or inf weights \('{key}'\)"):
+        load_checkpoint(bad)
+    ortho = write_raster(tmp_path / "o.tif", np.full((3, 32, 32), 100, np.uint8), CRS)
+    one_error_line(run_cli(capsys, "predict", ortho, "--model", bad, "--out", tmp_path / "p", "--quiet"),
+                   f"checkpoint '{bad}'", "NaN or inf weights", "diverged")
+    assert not (tmp_path / "p").exists() or not any((tmp_path / "p").iterdir())
+
+
+@pytest.fixture(scope="module")
+def run_dir(tiles: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = tmp_path_factory.mktemp("run") / "run"
+    train(tiny_cfg(schedule={"max_steps": 2}), tiles, run, progress=False)
+    return run
+
+
+def _edit(payload: dict, how: str) -> None:
+    ts = payload["train_state"]
+    if how == "optimizer":
+        ts["optimizer"] = {"state": {}, "param_groups": "x"}
+    elif how == "no_rng":
+        del ts["rng"], ts["rng_ranks"]
+    elif how == "rng":
+        ts["rng"]["torch"] = torch.zeros(3, dtype=torch.uint8)
+        ts["rng_ranks"] = [ts["rng"]]
+    elif how == "step":
+        ts["step"] = "twelve"
+    elif how == "weights":
+        key = next(iter(payload["state_dict"]))
+        payload["state_dict"][key] = torch.zeros(1)
+    elif how == "meta":
+        payload["meta"]["model"]["growth_rate"] = 0
+    elif how == "nan_optimizer":
+        state = next(iter(ts["optimizer"]["state"].values()))
+        state["exp_avg"].fill_(math.nan)
+
+
+@pytest.mark.parametrize("how", ["optimizer", "no_rng", "rng", "step", "weights", "meta", "nan_optimizer"])
+def test_hand_edited_checkpoint_on_resume_is_a_checkpoint_error(run_dir: Path, tmp_path: Path, capsys,
+                                                                how: str) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_bytes((run_dir / "config.yaml").read_bytes())
+    payload = torch.load(run_dir / "last.pt", weights_only=True)
+    _edit(payload, how)
+    torch.save(payload, run / "last.pt")
+    line = one_error_line(run_cli(capsys, "train", "--out", run, "--resume", "--max-steps", "4", "--quiet"),
+                          f"checkpoint '{run / 'last.pt'}'")
+    assert "model.growth_rate" in line if how == "meta" else True
+
+
+# ---- config values ---------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "text, needles",
+    [
+        ("optim:\n  lr: .nan\n", ["optim.lr", "finite number", "nan"]),
+        ("optim:\n  lr: 0\n", ["optim.lr", "(0, 1]", "2.0e-4"]),
+        ("optim:\n  betas: [2, 3]\n", ["optim.betas", "[0, 1)", "[2.0, 3.0]"]),
+        ("optim:\n  weight_decay: -.inf\n", ["optim.weight_decay", "finite"]),
+        ("model:\n  growth_rate: 0\n", ["model.growth_rate", "≥ 1", "got 0"]),
+        ("model:\n  block_config: [6, 0, 24, 16]\n", ["model.block_config", "≥ 1 layer"]),
+        ("model:\n  compression: 0\n", ["model.compression", "(0, 1]"]),
+        ("model:\n  dropout: .nan\n", ["model.dropout", "finite"]),
+        ("loss:\n  class_weights: [0, 0, 0]\n", ["loss.class_weights", "at least one > 0"]),
+        ("weighting:\n  task_weights: {height: -1}\n", ["weighting.task_weights.height", "≥ 0"]),
+        ("schedule:\n  max_time_s: .inf\n", ["schedule.max_time_s", "finite"]),
+        ("seed: -1\n", ["seed", "0..2**63-1"]),
+    ],
+)
+def test_config_values_out_of_range_name_the_key_path(tmp_path: Path, capsys, text: str,
+                                                      needles: list[str]) -> None:
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(text)
+    (tmp_path / "tiles").mkdir()
+    one_error_line(run_cli(capsys, "train", "--config", cfg, "--data", tmp_path / "tiles", "--out", tmp_path / "run"),
+                   "bad.yaml", *needles)
+    assert not (tmp_path / "run").exists()
+
+
+def test_config_ranges_hold_from_python_too() -> None:
+    from aerialmtl.models.config import ModelConfig
+    from aerialmtl.training.config import OptimSection
+
+    with pytest.raises(ConfigError, match="optim.lr"):
+        OptimSection(lr=math.nan)
+    with pytest.raises(ConfigError, match="optim.betas"):
+        OptimSection(betas=(0.9, math.nan))
+    with pytest.raises(ConfigError, match="model.growth_rate"):
+        ModelConfig(growth_rate=0)
+
+
+# ---- tile: swapped DSM/DTM, empty tile set, AOI outside -------------------------------------------
+def _ortho(tmp_path: Path, n: int = 64, **kw: object) -> Path:
+    img = np.random.default_rng(0).integers(1, 255, (3, n, n)).astype(np.uint8)
+    return write_raster(tmp_path / "ortho.tif", img, CRS, **kw)  # type: ignore[arg-type]
+
+
+def _surfaces(tmp_path: Path, n: int = 64) -> tuple[Path, Path]:
+    """(dsm, dtm): ground at 100 m with noise; buildings 8 m high on a quarter of the pixels."""
+    rng = np.random.default_rng(3)
+    dtm = (100 + rng.normal(0, 0.05, (n, n))).astype(np.float32)
+    dsm = dtm + rng.normal(0, 0.05, (n, n)).astype(np.float32)
+    dsm[8:24, 8:40] += 8.0
+    dsm[40:56, 20:52] += 6.0
+    return (write_raster(tmp_path / "dsm.tif", dsm, CRS), write_raster(tmp_path / "dtm.tif", dtm, CRS))
+
+
+def test_swapped_dsm_and_dtm_are_refused_naming_the_swap(tmp_path: Path, capsys) -> None:
+    ortho, (dsm, dtm) = _ortho(tmp_path), _surfaces(tmp_path)
+    args = ["tile", "--ortho", ortho, "--size", "32", "--split-ratios", "1,0,0", "--quiet"]
+    rc, _, err = run_cli(capsys, *args, "--dsm", dtm, "--dtm", dsm, "--out", tmp_path / "t")
+    assert rc == 2 and "Traceback" not in err and "unexpected" not in err
+    assert f"the DSM '{dtm}' lies below the DTM '{dsm}' on 100 %" in err and "probably swapped" in err
+    assert "--dsm" in err and "--dtm" in err
+    assert not (tmp_path / "t").exists()
+    assert run_cli(capsys, *args, "--dsm", dsm, "--dtm", dtm, "--out", tmp_path / "ok")[0] == 0  # the right order
+    flat = write_raster(tmp_path / "flat.tif", np.full((64, 64), 100.0, np.float32), CRS)  # bare ground: no verdict
+    assert run_cli(capsys, *args, "--dsm", flat, "--dtm", flat, "--out", tmp_path / "flat")[0] == 0
+
+
+def test_orthophoto_smaller_than_one_patch_gives_numbers_and_fix(tmp_path: Path, capsys) -> None:
+    ortho = _ortho(tmp_path, n=40)
+    ndsm = write_raster(tmp_path / "n.tif", np.ones((40, 40), np.float32), CRS)
+    args = ["tile", "--ortho", ortho, "--ndsm", ndsm, "--split-ratios", "1,0,0", "--out", tmp_path / "t", "--quiet"]
+    one_error_line(run_cli(capsys, *args, "--size", "64"), "tile set would be empty", "40 × 40 pixels",
+                   "64-pixel patch", "39 % valid", "--min-valid 0.9", "--size 32")
+    assert not (tmp_path / "t").exists()
+    assert run_cli(capsys, *args, "--size", "32")[0] == 0
+
+
+def test_no_valid_patch_is_an_error_with_the_counts(tmp_path: Path, capsys) -> None:
+    img = np.zeros((3, 64, 64), np.uint8)
+    img[:, :10, :10] = 50  # nodata everywhere but a corner
+    ortho = write_raster(tmp_path / "o.tif", img, CRS, nodata=0)
+    ndsm = write_raster(tmp_path / "n.tif", np.ones((64, 64), np.float32), CRS)
+    one_error_line(run_cli(capsys, "tile", "--ortho", ortho, "--ndsm", ndsm, "--size", "32", "--split-ratios", "1,0,0",
+                           "--out", tmp_path / "t", "--quiet"),
+                   "of 4 windows of 32 pixels, 4 have fewer valid", "the best has 10 %", "--min-valid")
+    assert not (tmp_path / "t").exists()
+
+
+def geojson(path: Path, rings: list[list[tuple[float, float]]], crs: str | None = None, **props: object) -> Path:
+    data: dict = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": dict(props), "geometry": {"type": "Polygon", "coordinates": [ring]}}
+        for ring in rings]}
+    if crs is not None:
+        data["crs"] = {"type": "name", "properties": {"name": crs}}
+    path.write_text(json.dumps(data))
+    return path
+
+
+def _square(x0: float, y0: float, side: float) -> list[tuple[float, float]]:
+    return [(x0, y0), (x0 + side, y0), (x0 + side, y0 + side), (x0, y0 + side), (x0, y0)]
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    model, meta = tiny_d3net()
+    path = tmp_path_factory.mktemp("ckpt") / "model.pt"
+    save_checkpoint(path, model, meta)
+    return path
+
+
+PREDICT = ("--mc", "2", "--tile", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
+
+
+def test_aoi_outside_the_orthophoto_names_both_extents(tmp_path: Path, capsys, ckpt: Path) -> None:
+    ortho = _ortho(tmp_path)  # (500000, 4999968, 500032, 5000000) in EPSG:32631
+    aoi = geojson(tmp_path / "aoi.geojson", [_square(600000, 4000000, 50)], crs="EPSG:32631")
+    rc, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--aoi", aoi, "--out", tmp_path / "p", *PREDICT)
+    assert rc == 2 and "--aoi" in err and "Traceback" not in err
+    assert "does not overlap the orthophoto" in err and "(600000, 4e+06, 600050, 4e+06)" in err.replace("4.00005e+06",
+                                                                                                       "4e+06")
+    assert "(500000, 5e+06, 500032, 5e+06)" in err.replace("4.99997e+06", "5e+06")
+    assert not (tmp_path / "p" / "height.tif").exists()
+    split = geojson(tmp_path / "split.geojson", [_square(600000, 4000000, 50)], crs="EPSG:32631", split="train")
+    ndsm = write_raster(tmp_path / "n.tif", np.ones((64, 64), np.float32), CRS)
+    rc, _, err = run_cli(capsys, "tile", "--ortho", ortho, "--ndsm", ndsm, "--split-aoi", split, "--size", "32",
+                         "--out", tmp_path / "t", "--quiet")
+    assert rc == 2 and "--split-aoi" in err and "does not overlap the orthophoto" in err and "600050" in err
+
+
+def test_geojson_without_crs_is_wgs84_and_projected_coordinates_name_the_crs(tmp_path: Path, capsys,
+                                                                             ckpt: Path) -> None:
+    ortho = _ortho(tmp_path)
+    from rasterio.warp import transform_bounds
+
+    lon0, lat0, lon1, lat1 = transform_bounds(CRS, "EPSG:4326", 500000, 4999968, 500032, 5000000)
+    wgs = geojson(tmp_path / "wgs.geojson", [[(lon0, lat0), (lon1, lat0), (lon1, lat1), (lon0, lat1), (lon0, lat0)]])
+    assert run_cli(capsys, "predict", ortho, "--model", ckpt, "--aoi", wgs, "--out", tmp_path / "ok", *PREDICT)[0] == 0
+    utm = geojson(tmp_path / "utm.geojson", [_square(500000, 4999968, 32)])  # an export without its crs member
+    one_error_line(run_cli(capsys, "predict", ortho, "--model", ckpt, "--aoi", utm, "--out", tmp_path / "p", *PREDICT),
+                   f"AOI (--aoi) '{utm}' has no 'crs' member", "WGS 84", "x 500000..500032", '"name": "EPSG:32631"',
+                   "ogr2ogr -t_srs EPSG:4326")
+    labels = geojson(tmp_path / "labels.geojson", [_square(500000, 4999968, 32)], cls=1)
+    one_error_line(run_cli(capsys, "tile", "--ortho", ortho, "--labels-vector", labels, "--class-field", "cls",
+                           "--classes", "synthetic", "--size", "32", "--out", tmp_path / "t", "--quiet"),
+                   f"labels vector '{labels}' has no 'crs' member", "EPSG:32631")
+    broken = tmp_path / "broken.geojson"
+    broken.write_text(json.dumps({"type": "Polygon", "coordinates": [[1, 2]]}))
+    rc, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--aoi", broken, "--out", tmp_path / "b", *PREDICT)
+    assert rc in (1, 2) and "invalid geometry" in err and "unexpected" not in err
+
+
+# ---- disk full -------------------------------------------------------------------------------------
+@pytest.fixture
+def small_fs(tmp_path: Path):
+    """A 2 MiB tmpfs mounted in tmp_path (root on Linux only; skipped where mounting is not permitted)."""
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    try:
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True,
+                              text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        pytest.skip(f"cannot mount a small tmpfs here ({exc})")
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here (needs root: {done.stderr.strip()[:100]})")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=30)
+
+
+def test_full_disk_while_saving_a_checkpoint_names_the_path(small_fs: Path) -> None:
+    model, meta = tiny_d3net()
+    (small_fs / "filler").write_bytes(b"\0" * (2 * 1024 * 1024 - 64 * 1024))  # leave 64 KiB
+    target = small_fs / "last.pt"
+    with pytest.raises(OutputError) as info:
+        save_checkpoint(target, model, meta, {"big": torch.zeros(200_000)})
+    msg = str(info.value)
+    assert f"no space left on the device holding '{target}'" in msg and "free space" in msg
+    assert sorted(p.name for p in small_fs.iterdir()) == ["filler"]  # no partial file, no temporary file
+
+
+def test_full_disk_keeps_the_previous_checkpoint(small_fs: Path) -> None:
+    model, meta = tiny_d3net()
+    target = small_fs / "last.pt"
+    save_checkpoint(target, model, meta)
+    before = target.read_bytes()
+    (small_fs / "filler").write_bytes(b"\0" * (2 * 1024 * 1024 - len(before) - 96 * 1024))
+    with pytest.raises(OutputError, match="no space left"):
+        save_checkpoint(target, model, meta, {"big": torch.zeros(200_000)})
+    assert target.read_bytes() == before and load_checkpoint(target)
+
+
+def test_os_errors_become_output_errors_naming_the_path(tmp_path: Path) -> None:
+    import errno
+
+    from aerialmtl.io.oserrors import writing
+
+    for code, needle in ((errno.ENOSPC, "no space left"), (errno.EACCES, "not allowed"), (errno.EIO, "could not")):
+        with pytest.raises(OutputError, match=needle) as info, writing(tmp_path / "x.gpkg", "buildings.gpkg"):
+            raise OSError(code, "boom")
+        assert str(tmp_path / "x.gpkg") in str(info.value)
+    with pytest.raises(InputError), writing(tmp_path / "x", "x"):  # aerialmtl's own errors pass through
+        raise InputError("mine")
+    with pytest.raises(OutputError, match="no space left"), writing(tmp_path / "x", "x"):
+        raise RuntimeError("sqlite3_exec() failed: database or disk is full; No space left on device")
