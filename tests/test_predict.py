@@ -38,7 +38,8 @@ def test_mc_outputs_georeferencing_and_cog_layout(ortho: Path, tmp_path: Path) -
     res = predict_raster(ortho, (model, meta), tmp_path / "pred", mc=4, tile=64, overlap=16, probabilities=True,
                          progress=False)
     names = sorted(p.name for p in (tmp_path / "pred").iterdir())
-    assert names == sorted(["height.tif", "classes.tif", "class_probabilities.tif", "prediction.json", *UNCERTAINTY])
+    tifs = ["height.tif", "classes.tif", "class_probabilities.tif", *UNCERTAINTY]
+    assert names == sorted([*tifs, *(t.replace(".tif", ".qml") for t in tifs), "item.json", "prediction.json"])
     with rasterio.open(ortho) as src:
         crs, transform, shape = src.crs, src.transform, src.shape
         valid = src.read(1) != 0
@@ -141,7 +142,8 @@ def test_existing_outputs_are_refused_then_overwritten_without_stale_files(ortho
     predict_raster(ortho, (model, meta), out, mc=1, tile=64, overlap=16, overwrite=True, progress=False)
     assert not any((out / f).exists() for f in UNCERTAINTY)  # stale T>1 maps removed
     assert json.loads((out / "prediction.json").read_text())["mc_samples"] == 1
-    assert sorted(p.name for p in out.iterdir()) == ["classes.tif", "height.tif", "prediction.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["classes.qml", "classes.tif", "height.qml", "height.tif",
+                                                     "item.json", "prediction.json"]
 
 
 def test_cli_several_inputs_one_folder_each(ortho: Path, tmp_path: Path) -> None:

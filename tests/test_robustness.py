@@ -515,7 +515,8 @@ def _rerun(capsys, args: list[str]) -> None:
 
 
 def _assert_complete_prediction(out: Path) -> None:
-    assert sorted(p.name for p in out.iterdir()) == sorted(MAIN_OUTPUTS)  # no leftover hidden files
+    styles = [n.replace(".tif", ".qml") for n in MAIN_OUTPUTS[:-1]]
+    assert sorted(p.name for p in out.iterdir()) == sorted([*MAIN_OUTPUTS, *styles, "item.json"])  # nothing hidden
     for name in MAIN_OUTPUTS[:-1]:
         assert cog_problems(out / name) == []
         with rasterio.open(out / name) as ds:

@@ -11,6 +11,9 @@ model's GSD)::
     class_entropy.tif        float32, predictive entropy (nats)                       (T > 1)
     class_mutual_info.tif    float32, mutual information (nats), the epistemic part   (T > 1)
     class_probabilities.tif  K × float32, MC mean class probabilities                 (optional)
+    <layer>.qml              QGIS style of each layer (:func:`style_filename`; QGIS applies a .qml
+                             named like the raster when it opens it; :mod:`aerialmtl.formats.qgis_style`)
+    item.json                STAC 1.1 Item describing the folder (:mod:`aerialmtl.formats.stac`)
     prediction.json          run information (checkpoint, T, tile, overlap, grid, timings)
 
 Layers exist only for the tasks the model has. This module owns the names, tags and nodata values
@@ -18,8 +21,9 @@ and the output schema (:func:`prediction_layers`: one :class:`LayerSpec` per lay
 stitcher fills and the writer writes); every reader and writer imports them from here.
 
 A run over several orthophotos writes one such folder per input (named after the file stem) and one
-GDAL VRT mosaic per layer beside them, ``<layer>.mosaic.vrt`` (:func:`mosaic_filename`), so that a GIS
-opens one layer over all inputs.
+GDAL VRT mosaic per layer beside them, ``<layer>.mosaic.vrt`` (:func:`mosaic_filename`) with its QGIS
+style ``<layer>.mosaic.qml``, so that a GIS opens one layer over all inputs, and a STAC Collection
+``collection.json`` (:data:`COLLECTION_FILE`) linking the items of the inputs and the mosaics.
 
 A folder is complete (:meth:`PredictionFolder.is_complete`) when ``prediction.json`` exists and every
 file it lists exists: the writer renames ``prediction.json`` into place last, so a run that stopped
@@ -48,6 +52,10 @@ LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_P
 
 #: The run-information file.
 INFO_FILE = "prediction.json"
+#: The STAC Item of a prediction folder.
+ITEM_FILE = "item.json"
+#: The STAC Collection a run over several inputs writes beside their folders and the mosaics.
+COLLECTION_FILE = "collection.json"
 
 #: nodata of every float layer.
 FLOAT_NODATA = -9999.0
@@ -62,13 +70,27 @@ def layer_filename(name: str) -> str:
     return f"{name}.tif"
 
 
-#: Every file name a prediction folder can hold.
-ALL_FILES = tuple(layer_filename(n) for n in LAYERS) + (INFO_FILE,)
+def style_filename(name: str) -> str:
+    """File name of the QGIS style of layer ``name`` (``"height"`` → ``"height.qml"``).
+
+    QGIS applies ``<raster name without its extension>.qml`` when it opens a raster.
+    """
+    return f"{name}.qml"
+
+
+#: Every file name a prediction folder can hold (``prediction.json`` last).
+ALL_FILES = (tuple(layer_filename(n) for n in LAYERS) + tuple(style_filename(n) for n in LAYERS)
+             + (ITEM_FILE, INFO_FILE))
 
 
 def mosaic_filename(name: str) -> str:
     """File name of the VRT mosaic of layer ``name`` over all inputs of a run (``"height.mosaic.vrt"``)."""
     return f"{name}.mosaic.vrt"
+
+
+def mosaic_style_filename(name: str) -> str:
+    """File name of the QGIS style of the mosaic of layer ``name`` (``"height.mosaic.qml"``)."""
+    return f"{name}.mosaic.qml"
 
 
 # ---- the output schema -------------------------------------------------------------------------
@@ -206,6 +228,7 @@ class PredictionFolder:
 
 __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
-    "CLASS_SCHEME_TAG", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "LAYERS", "LayerSpec",
-    "PredictionFolder", "layer_filename", "mosaic_filename", "prediction_layers", "read_class_scheme_tag",
+    "CLASS_SCHEME_TAG", "COLLECTION_FILE", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "ITEM_FILE", "LAYERS",
+    "LayerSpec", "PredictionFolder", "layer_filename", "mosaic_filename", "mosaic_style_filename",
+    "prediction_layers", "read_class_scheme_tag", "style_filename",
 ]

@@ -49,6 +49,7 @@ from aerialmtl import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.prediction import LayerSpec, prediction_layers
+from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.ortho import GSD_TOLERANCE, OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
 from aerialmtl.inference.runner import (
@@ -456,6 +457,7 @@ class Predictor:
             "aerialmtl_version": __version__,
             "orthophoto": str(src.path),
             "checkpoint": self.checkpoint_name,
+            "model": model_summary(self.meta),
             "mc_samples": self.mc,
             "seed": self.seed,
             "tile": self.tile,

@@ -7,9 +7,11 @@ GeoTIFFs: the stitcher's finished blocks are written as they come, in any shape,
 thread while the model runs, and GDAL rewrites a partly written tile in place, so nothing is buffered
 (memory does not grow with the raster) and no compression is paid twice. :meth:`PredictionWriter.commit`
 converts every layer into a COG (``.height.tif.partial``; the layers in parallel, each compressed on
-several threads; strips of several processes are first joined by a VRT), writes ``prediction.json``
-and only then renames everything to the final names, ``prediction.json`` last: an interrupted run
-leaves no file at a final path, and a folder with ``prediction.json`` is complete.
+several threads; strips of several processes are first joined by a VRT), writes each layer's QGIS
+style (:mod:`aerialmtl.formats.qgis_style`, its range from the COG's overviews), the STAC
+``item.json`` (:mod:`aerialmtl.formats.stac`) and ``prediction.json``, and only then renames
+everything to the final names, ``prediction.json`` last: an interrupted run leaves
+no file at a final path, and a folder with ``prediction.json`` is complete.
 :meth:`PredictionWriter.abort` removes the hidden files (and the folder, if this run created it and it
 is empty); hidden files that a killed run could not remove are deleted when the next run into the same
 folder starts, so a plain re-run completes.
@@ -22,6 +24,7 @@ import os
 import threading
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -30,11 +33,12 @@ from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from aerialmtl.errors import OutputError, OutputExistsError
-from aerialmtl.formats.prediction import ALL_FILES, INFO_FILE, LayerSpec
+from aerialmtl.formats.prediction import ALL_FILES, INFO_FILE, ITEM_FILE, LayerSpec, style_filename
 from aerialmtl.inference.stitch import Block
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
 from aerialmtl.io.outputs import make_output_dir
+from aerialmtl.io.stats import BandStats, band_stats
 
 #: Every file name a prediction folder can hold (removed on --overwrite when this run does not write it).
 ALL_OUTPUTS = ALL_FILES
@@ -236,6 +240,7 @@ class PredictionWriter:
         from aerialmtl.io.vrt import mosaic_vrt
 
         partials: dict[str, tuple[Path, Path]] = {}
+        extras: dict[str, tuple[Path, Path]] = {}
         merged: list[Path] = []
         try:
             self.finish()
@@ -253,10 +258,14 @@ class PredictionWriter:
                     sources[name] = vrt
             threads = cog_threads()
 
+            stats: dict[str, BandStats | None] = {}
+
             def convert(name: str) -> tuple[str, Path]:
                 spec = self.specs[name]
                 partial = hidden(self.out_dir, spec.filename, "partial")
                 to_cog(sources[name], partial, categorical=spec.categorical, level=COG_LEVEL, num_threads=threads)
+                # from the COG's overviews: the display range of the style, the statistics of the STAC item
+                stats[name] = None if spec.categorical else band_stats(partial)
                 return name, partial
 
             with ThreadPoolExecutor(max_workers=max(1, len(self.specs)), thread_name_prefix="aerialmtl-cog") as pool:
@@ -269,6 +278,9 @@ class PredictionWriter:
                     path.unlink(missing_ok=True)
             for vrt in merged:
                 vrt.unlink(missing_ok=True)
+            info = dict(info, created=datetime.now(timezone.utc).replace(microsecond=0).isoformat())
+            extras = self._write_metadata(info, stats)
+            partials.update(extras)
             info = dict(info, files={n: p.name for n, (_, p) in partials.items()})
             js = hidden(self.out_dir, INFO_FILE, "partial")
             js.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
@@ -289,7 +301,25 @@ class PredictionWriter:
                     (self.out_dir / f).unlink(missing_ok=True)
         for tmp, final in partials.values():  # prediction.json last: its presence marks a complete folder
             os.replace(tmp, final)
-        return {n: final for n, (_, final) in partials.items()}
+        return {n: final for n, (_, final) in partials.items() if n not in extras}
+
+    def _write_metadata(self, info: dict[str, Any], stats: dict[str, BandStats | None]) -> dict[str, tuple[Path, Path]]:
+        """The QGIS style of every layer and the STAC item, as hidden partial files.
+
+        Returns:
+            key → (partial path, final path): ``<layer>_style`` and ``item``.
+        """
+        from aerialmtl.formats.qgis_style import layer_style, write_style
+        from aerialmtl.formats.stac import build_item, write_json
+
+        out: dict[str, tuple[Path, Path]] = {}
+        for name, spec in self.specs.items():
+            qml = hidden(self.out_dir, style_filename(name), "partial")
+            out[f"{name}_style"] = (write_style(qml, layer_style(spec, stats.get(name))),
+                                    self.out_dir / style_filename(name))
+        item = build_item(self.out_dir, self.grid, list(self.specs.values()), info, stats)
+        out["item"] = (write_json(hidden(self.out_dir, ITEM_FILE, "partial"), item), self.out_dir / ITEM_FILE)
+        return out
 
     def abort(self) -> None:
         """Close and delete the hidden files of this run (final paths are never touched)."""

@@ -1,0 +1,265 @@
+"""STAC metadata of predictions: ``item.json`` per prediction folder, ``collection.json`` per run.
+
+A STAC catalogue, a data cube or a STAC browser indexes aerialmtl outputs through these files
+(STAC 1.1, written with :mod:`pystac`):
+
+* **Item** (:func:`build_item`, ``<folder>/item.json``): id = the folder name; geometry and bbox =
+  the prediction grid's footprint in WGS 84 (edges densified before reprojection); the projection
+  extension (``proj:code`` or ``proj:wkt2``, ``proj:shape``, ``proj:transform``, ``proj:bbox``); one
+  asset per layer (role ``data``, plus ``uncertainty`` for the MC-dropout spread layers) with
+  ``raster:bands`` (data type, nodata, unit ``m``/``nats``, pixel size in metres, approximate
+  statistics); the classification extension on ``classes.tif`` (class index, name, colour hint, and
+  the nodata value as a nodata class); the QGIS styles (role ``style``) and ``prediction.json`` (role
+  ``metadata``) as assets too. The model is described in plain properties under ``aerialmtl:``
+  (architecture, tasks, input bands and normalisation, class names, GSD, MC samples, checkpoint):
+  the machine-learning-model extension describes a model *asset*, which a prediction folder does not
+  hold. ``datetime`` is when the prediction was made (aerialmtl does not know the orthophoto's
+  acquisition time; edit it in if you do), also given as ``created``.
+* **Collection** (:func:`build_collection`, ``<out>/collection.json``, runs over several inputs):
+  links to every input's item (``./<stem>/item.json``), the spatial and temporal extent of all of
+  them, and the VRT mosaics and their styles as collection assets.
+
+Every href is relative, so a folder can be moved or uploaded as a whole; files are written without a
+``self`` link for the same reason.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pystac
+from pystac.extensions.classification import Classification, ClassificationExtension
+from pystac.extensions.projection import ProjectionExtension
+from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Statistics
+from rasterio.warp import transform as warp_transform
+
+from aerialmtl.errors import InputError, OutputError
+from aerialmtl.formats.prediction import (
+    CLASS_ENTROPY,
+    CLASS_MUTUAL_INFO,
+    CLASSES,
+    HEIGHT_STD,
+    INFO_FILE,
+    ITEM_FILE,
+    LayerSpec,
+    style_filename,
+)
+from aerialmtl.formats.qgis_style import class_scheme_of
+from aerialmtl.io.align import Grid
+from aerialmtl.io.stats import BandStats
+
+#: Media types of the assets.
+COG_TYPE = pystac.MediaType.COG
+VRT_TYPE = "application/xml"
+QML_TYPE = "text/xml"
+JSON_TYPE = pystac.MediaType.JSON
+#: Layers holding MC-dropout uncertainty (role ``uncertainty`` besides ``data``).
+UNCERTAINTY_LAYERS = (HEIGHT_STD, CLASS_ENTROPY, CLASS_MUTUAL_INFO)
+#: Points per footprint edge reprojected to WGS 84 (a reprojected straight edge is curved).
+EDGE_POINTS = 21
+#: Prefix of the plain properties describing the model and the run.
+PREFIX = "aerialmtl:"
+
+
+def model_summary(meta: Any) -> dict[str, Any]:
+    """What a catalogue needs to know about the model (a :class:`~aerialmtl.formats.checkpoint.ModelMeta`).
+
+    Returns a JSON-able dict: architecture, encoder, tasks, input bands and normalisation, GSD (m),
+    class names, MC-dropout rate.
+    """
+    cfg = meta.model
+    classes = meta.classes if "classes" in cfg.tasks else None
+    return {
+        "architecture": "D3-Net",
+        "encoder": str(getattr(cfg, "encoder", "densenet121")),
+        "tasks": list(cfg.tasks),
+        "in_channels": int(cfg.in_channels),
+        "bands": list(meta.bands),
+        "band_names": list(meta.band_names),
+        "mean": [float(v) for v in meta.mean],
+        "std": [float(v) for v in meta.std],
+        "gsd_m": float(meta.gsd),
+        "dropout": float(cfg.dropout),
+        "class_names": list(classes.names) if classes is not None else [],
+    }
+
+
+def footprint_wgs84(grid: Grid) -> dict[str, Any]:
+    """The grid's outline as a GeoJSON Polygon in WGS 84 (each edge densified to :data:`EDGE_POINTS`)."""
+    left, bottom, right, top = grid.bounds
+    t = np.linspace(0.0, 1.0, EDGE_POINTS)[:-1]
+    xs = np.concatenate([left + (right - left) * t, np.full_like(t, right), right - (right - left) * t,
+                         np.full_like(t, left)])
+    ys = np.concatenate([np.full_like(t, top), top - (top - bottom) * t, np.full_like(t, bottom),
+                         bottom + (top - bottom) * t])
+    lon, lat = warp_transform(grid.crs, "EPSG:4326", xs.tolist(), ys.tolist())
+    ring = [[round(x, 9), round(y, 9)] for x, y in zip(lon, lat, strict=True)]
+    ring.append(ring[0])
+    return {"type": "Polygon", "coordinates": [ring]}
+
+
+def _bbox(geometry: Mapping[str, Any]) -> list[float]:
+    ring = np.asarray(geometry["coordinates"][0], dtype=float)
+    return [float(ring[:, 0].min()), float(ring[:, 1].min()), float(ring[:, 0].max()), float(ring[:, 1].max())]
+
+
+def _created(info: Mapping[str, Any]) -> datetime:
+    text = info.get("created")
+    if isinstance(text, str):
+        try:
+            return datetime.fromisoformat(text)
+        except ValueError:
+            pass
+    return datetime.now(timezone.utc).replace(microsecond=0)
+
+
+def _raster_band(spec: LayerSpec, band: int, gsd: float, stats: BandStats | None) -> RasterBand:
+    unit = spec.units[band - 1] if len(spec.units) >= band else ""
+    statistics = None
+    if stats is not None and band == 1 and not spec.categorical:
+        statistics = Statistics.create(minimum=stats.minimum, maximum=stats.maximum, mean=stats.mean,
+                                       stddev=stats.stddev, valid_percent=stats.valid_percent)
+    return RasterBand.create(nodata=spec.nodata, data_type=DataType(spec.dtype), spatial_resolution=gsd,
+                             unit=unit or None, statistics=statistics,
+                             sampling="area")
+
+
+def build_item(folder: str | Path, grid: Grid, specs: Sequence[LayerSpec], info: Mapping[str, Any],
+               stats: Mapping[str, BandStats | None] | None = None, styles: bool = True) -> pystac.Item:
+    """The STAC Item of a prediction folder (see the module docstring).
+
+    Args:
+        folder: the prediction folder (its name is the item id).
+        grid: the prediction grid.
+        specs: the layers written (``classes`` carries its class scheme in its tags).
+        info: the ``prediction.json`` content (``model``, ``mc_samples``, ``checkpoint``, ...).
+        stats: band-1 statistics per layer name (``raster:bands`` statistics); missing = none.
+        styles: list the layers' ``.qml`` styles as assets.
+    """
+    folder = Path(folder)
+    stats = stats or {}
+    geometry = footprint_wgs84(grid)
+    created = _created(info)
+    props: dict[str, Any] = {"created": created.isoformat().replace("+00:00", "Z")}
+    model = info.get("model")
+    if model:
+        props[PREFIX + "model"] = model
+    for key in ("checkpoint", "mc_samples", "orthophoto", "tile", "overlap", "aerialmtl_version"):
+        if info.get(key) is not None:
+            props[PREFIX + key] = info[key]
+    item = pystac.Item(id=folder.name, geometry=geometry, bbox=_bbox(geometry), datetime=created,
+                       properties=props)
+    item.common_metadata.gsd = grid.gsd
+
+    proj = ProjectionExtension.ext(item, add_if_missing=True)
+    epsg = grid.crs.to_epsg()
+    if epsg is not None:
+        proj.code = f"EPSG:{epsg}"
+    else:
+        proj.code = None
+        proj.wkt2 = grid.crs.to_wkt()
+    proj.shape = [grid.height, grid.width]
+    proj.transform = [float(v) for v in list(grid.transform)[:6]]
+    proj.bbox = [float(v) for v in grid.bounds]
+
+    RasterExtension.add_to(item)
+    for spec in specs:
+        roles = ["data", "uncertainty"] if spec.name in UNCERTAINTY_LAYERS else ["data"]
+        title = spec.descriptions[0] if spec.count == 1 else f"{spec.name} ({spec.count} bands)"
+        asset = pystac.Asset(href=f"./{spec.filename}", title=title, media_type=COG_TYPE, roles=roles)
+        item.add_asset(spec.name, asset)
+        RasterExtension.ext(asset).apply(
+            [_raster_band(spec, b, grid.gsd, stats.get(spec.name)) for b in range(1, spec.count + 1)])
+        if spec.name == CLASSES:
+            scheme = class_scheme_of(spec)
+            if scheme is not None:
+                classes = [Classification.create(value=i, name=n, description=n,
+                                                 color_hint=f"{r:02X}{g:02X}{b:02X}")
+                           for i, (n, (r, g, b)) in enumerate(zip(scheme.names, scheme.colors, strict=True))]
+                classes.append(Classification.create(value=int(spec.nodata), name="nodata", nodata=True))
+                ClassificationExtension.ext(asset, add_if_missing=True).apply(classes=classes)
+        if styles:
+            item.add_asset(f"{spec.name}_style", pystac.Asset(
+                href=f"./{style_filename(spec.name)}", title=f"QGIS style of {spec.filename}",
+                media_type=QML_TYPE, roles=["style", "metadata"]))
+    item.add_asset("prediction", pystac.Asset(href=f"./{INFO_FILE}", title="aerialmtl run information",
+                                              media_type=JSON_TYPE, roles=["metadata"]))
+    return item
+
+
+def item_dict(item: pystac.Item | pystac.Collection) -> dict[str, Any]:
+    """The JSON content of an item or collection as written (relative hrefs, no ``self`` link)."""
+    return item.to_dict(include_self_link=False, transform_hrefs=False)
+
+
+def write_json(path: str | Path, obj: pystac.Item | pystac.Collection) -> Path:
+    """Write ``obj`` at ``path`` (replaced atomically)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(item_dict(obj), indent=2), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"cannot write STAC file '{path}' ({exc}); choose a writable output folder") from exc
+    return path
+
+
+def read_item(path: str | Path) -> pystac.Item:
+    """Read an ``item.json``."""
+    try:
+        return pystac.Item.from_file(str(path))
+    except (OSError, ValueError, KeyError, pystac.STACError) as exc:
+        raise InputError(f"'{path}' is not a readable STAC item ({exc}); re-run predict to rewrite it") from exc
+
+
+def build_collection(out: str | Path, items: Sequence[str | Path], mosaics: Mapping[str, Path],
+                     mosaic_styles: Mapping[str, Path] | None = None, description: str | None = None
+                     ) -> pystac.Collection:
+    """The STAC Collection of a run over several inputs (see the module docstring).
+
+    Args:
+        out: the run's output folder (its name is the collection id; hrefs are relative to it).
+        items: the ``item.json`` files of the inputs' prediction folders.
+        mosaics: layer name → VRT mosaic.
+        mosaic_styles: layer name → the mosaic's QGIS style.
+        description: the collection's description.
+    """
+    out = Path(out)
+    loaded = [(Path(p), read_item(p)) for p in items]
+    if not loaded:
+        raise InputError(f"collection '{out}': no item to link; predict at least one input first")
+    boxes = np.asarray([it.bbox for _, it in loaded], dtype=float)
+    bbox = [float(boxes[:, 0].min()), float(boxes[:, 1].min()), float(boxes[:, 2].max()), float(boxes[:, 3].max())]
+    times = [it.datetime for _, it in loaded if it.datetime is not None]
+    extent = pystac.Extent(pystac.SpatialExtent([bbox]),
+                           pystac.TemporalExtent([[min(times), max(times)]] if times else [[None, None]]))
+    collection = pystac.Collection(
+        id=out.resolve().name, extent=extent, license="other",
+        title=f"aerialmtl predictions: {out.resolve().name}",
+        description=description or (f"Height above ground (m), land cover and their MC-dropout uncertainty "
+                                    f"predicted by aerialmtl over {len(loaded)} orthophotos, with VRT mosaics."),
+    )
+    for path, it in loaded:
+        href = "./" + os.path.relpath(path.resolve(), out.resolve()).replace(os.sep, "/")
+        collection.add_link(pystac.Link(pystac.RelType.ITEM, href, media_type=pystac.MediaType.GEOJSON,
+                                        title=it.id))
+    for name, path in mosaics.items():
+        collection.add_asset(f"{name}_mosaic", pystac.Asset(
+            href=f"./{path.name}", title=f"VRT mosaic of {name} over all inputs", media_type=VRT_TYPE,
+            roles=["data", "mosaic"]))
+    for name, path in (mosaic_styles or {}).items():
+        collection.add_asset(f"{name}_mosaic_style", pystac.Asset(
+            href=f"./{path.name}", title=f"QGIS style of the {name} mosaic", media_type=QML_TYPE,
+            roles=["style", "metadata"]))
+    return collection
+
+
+__all__ = ["EDGE_POINTS", "ITEM_FILE", "UNCERTAINTY_LAYERS", "build_collection", "build_item", "footprint_wgs84",
+           "item_dict", "model_summary", "read_item", "write_json"]
