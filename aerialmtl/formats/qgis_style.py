@@ -38,7 +38,7 @@ from aerialmtl.formats.prediction import (
     HEIGHT_STD,
     LayerSpec,
 )
-from aerialmtl.io.stats import BandStats
+from aerialmtl.io.stats import BandStats, band_stats
 
 #: The QGIS version written in the style (the oldest long-term release the styles are made for).
 QGIS_VERSION = "3.22.0"
@@ -123,9 +123,9 @@ def pseudocolor_style(vmin: float, vmax: float, ramp: Ramp, nodata: float | int 
     })
     cramp = ET.SubElement(shader, "colorramp", {"type": "gradient", "name": "[source]"})
     stops = ":".join(f"{k / (len(ramp.colors) - 1):.4f};{_rgba(c)}" for k, c in enumerate(ramp.colors[1:-1], 1))
-    for k, v in (("color1", _rgba(ramp.colors[0])), ("color2", _rgba(ramp.colors[-1])), ("discrete", "0"),
-                 ("rampType", "gradient"), ("stops", stops)):
-        ET.SubElement(cramp, "prop", {"k": k, "v": v})
+    for key, v in (("color1", _rgba(ramp.colors[0])), ("color2", _rgba(ramp.colors[-1])), ("discrete", "0"),
+                   ("rampType", "gradient"), ("stops", stops)):
+        ET.SubElement(cramp, "prop", {"k": key, "v": v})
     n = len(ramp.colors) - 1
     suffix = f" {unit}" if unit else ""
     for k, color in enumerate(ramp.colors):
@@ -189,8 +189,9 @@ def write_style(path: str | Path, tree: ET.ElementTree) -> Path:
     """Write a style as QGIS does (its DOCTYPE line, UTF-8); ``path`` is replaced atomically."""
     path = Path(path)
     ET.indent(tree, space="  ")
-    text = "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + ET.tostring(
-        tree.getroot(), encoding="unicode") + "\n"
+    root = tree.getroot()
+    assert root is not None
+    text = "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + ET.tostring(root, encoding="unicode") + "\n"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         tmp.write_text(text, encoding="utf-8")
@@ -201,5 +202,19 @@ def write_style(path: str | Path, tree: ET.ElementTree) -> Path:
     return path
 
 
+def style_path(raster: str | Path) -> Path:
+    """Where QGIS looks for the style of ``raster``: its path with ``.qml`` for its last extension."""
+    return Path(raster).with_suffix(".qml")
+
+
+def write_raster_style(raster: str | Path, spec: LayerSpec) -> Path:
+    """Write the style of layer ``spec`` beside ``raster`` (a layer or a VRT mosaic of it).
+
+    The ramp's range comes from the raster's overviews (:func:`aerialmtl.io.stats.band_stats`).
+    """
+    stats = None if spec.categorical else band_stats(raster)
+    return write_style(style_path(raster), layer_style(spec, stats))
+
+
 __all__ = ["BLUES", "MAGMA", "QGIS_VERSION", "RAMPS", "VIRIDIS", "YLORRD", "Ramp", "class_scheme_of",
-           "layer_style", "paletted_style", "pseudocolor_style", "write_style"]
+           "layer_style", "paletted_style", "pseudocolor_style", "style_path", "write_raster_style", "write_style"]

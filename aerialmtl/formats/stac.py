@@ -36,7 +36,7 @@ import numpy as np
 import pystac
 from pystac.extensions.classification import Classification, ClassificationExtension
 from pystac.extensions.projection import ProjectionExtension
-from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Statistics
+from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Sampling, Statistics
 from rasterio.warp import transform as warp_transform
 
 from aerialmtl.errors import InputError, OutputError
@@ -44,6 +44,7 @@ from aerialmtl.formats.prediction import (
     CLASS_ENTROPY,
     CLASS_MUTUAL_INFO,
     CLASSES,
+    COLLECTION_FILE,
     HEIGHT_STD,
     INFO_FILE,
     ITEM_FILE,
@@ -127,7 +128,7 @@ def _raster_band(spec: LayerSpec, band: int, gsd: float, stats: BandStats | None
                                        stddev=stats.stddev, valid_percent=stats.valid_percent)
     return RasterBand.create(nodata=spec.nodata, data_type=DataType(spec.dtype), spatial_resolution=gsd,
                              unit=unit or None, statistics=statistics,
-                             sampling="area")
+                             sampling=Sampling.AREA)
 
 
 def build_item(folder: str | Path, grid: Grid, specs: Sequence[LayerSpec], info: Mapping[str, Any],
@@ -238,8 +239,8 @@ def build_collection(out: str | Path, items: Sequence[str | Path], mosaics: Mapp
     boxes = np.asarray([it.bbox for _, it in loaded], dtype=float)
     bbox = [float(boxes[:, 0].min()), float(boxes[:, 1].min()), float(boxes[:, 2].max()), float(boxes[:, 3].max())]
     times = [it.datetime for _, it in loaded if it.datetime is not None]
-    extent = pystac.Extent(pystac.SpatialExtent([bbox]),
-                           pystac.TemporalExtent([[min(times), max(times)]] if times else [[None, None]]))
+    interval: list[datetime | None] = [min(times), max(times)] if times else [None, None]
+    extent = pystac.Extent(pystac.SpatialExtent([bbox]), pystac.TemporalExtent([interval]))
     collection = pystac.Collection(
         id=out.resolve().name, extent=extent, license="other",
         title=f"aerialmtl predictions: {out.resolve().name}",
@@ -261,5 +262,17 @@ def build_collection(out: str | Path, items: Sequence[str | Path], mosaics: Mapp
     return collection
 
 
+def write_collection(out: str | Path, folders: Sequence[str | Path], mosaics: Mapping[str, Path],
+                     mosaic_styles: Mapping[str, Path] | None = None) -> Path | None:
+    """Write ``<out>/collection.json`` over the items of ``folders`` (those that have one); returns its path.
+
+    ``None`` (nothing written) when no folder holds an ``item.json``.
+    """
+    items = [Path(f) / ITEM_FILE for f in folders if (Path(f) / ITEM_FILE).is_file()]
+    if not items:
+        return None
+    return write_json(Path(out) / COLLECTION_FILE, build_collection(out, items, mosaics, mosaic_styles))
+
+
 __all__ = ["EDGE_POINTS", "ITEM_FILE", "UNCERTAINTY_LAYERS", "build_collection", "build_item", "footprint_wgs84",
-           "item_dict", "model_summary", "read_item", "write_json"]
+           "item_dict", "model_summary", "read_item", "write_collection", "write_json"]

@@ -37,6 +37,8 @@ import torch
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError
 from aerialmtl.formats.prediction import INFO_FILE, PredictionFolder, mosaic_filename
+from aerialmtl.formats.qgis_style import write_raster_style
+from aerialmtl.formats.stac import write_collection
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
@@ -329,12 +331,15 @@ def _one_line(exc: BaseException) -> str:
 
 
 def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) -> dict[str, Path]:
-    """One VRT per layer over every input's folder (:func:`~aerialmtl.formats.prediction.mosaic_filename`)."""
-    mosaics = {}
+    """One VRT per layer over every input's folder (:func:`~aerialmtl.formats.prediction.mosaic_filename`),
+    each with its QGIS style, and the STAC ``collection.json`` linking the inputs' items and the mosaics."""
+    mosaics, styles = {}, {}
     for spec in predictor.layers:
         sources = [t.out / spec.filename for t in targets if (t.out / spec.filename).is_file()]
         if sources:
             mosaics[spec.name] = mosaic_vrt(out / mosaic_filename(spec.name), sources, categorical=spec.categorical)
+            styles[spec.name] = write_raster_style(mosaics[spec.name], spec)
+    write_collection(out, [t.out for t in targets], mosaics, styles)
     return mosaics
 
 

@@ -253,7 +253,7 @@ class PredictionWriter:
                     sources[name] = stagings[name][0]
                 else:
                     vrt = hidden(self.out_dir, spec.filename, "merge.vrt")
-                    mosaic_vrt(vrt, stagings[name], categorical=spec.categorical)
+                    mosaic_vrt(vrt, stagings[name], categorical=spec.categorical, overviews=False)
                     merged.append(vrt)
                     sources[name] = vrt
             threads = cog_threads()

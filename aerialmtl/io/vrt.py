@@ -10,7 +10,11 @@
   (``ComplexSource`` with ``NODATA``), so where sources overlap the later one is shown where it has data;
 * a source in another CRS is reprojected on the fly through a warped VRT written beside the mosaic
   (``<mosaic stem>.warped/<k>.vrt``);
-* band metadata (descriptions, units, colour table, nodata) and dataset tags come from the first source.
+* band metadata (descriptions, units, colour table, nodata) and dataset tags come from the first source;
+* overviews: an ``OverviewList`` (GDAL ≥ 3.2) declares virtual overviews at factors 2, 4, 8, ...
+  (:func:`overview_factors`), which GDAL reads from the sources' own overviews (a COG's internal
+  ones), so a GIS zoomed out reads overview tiles instead of every full-resolution tile, and no pixel
+  is copied into an ``.ovr`` file.
 
 Source paths are written relative to the mosaic when they are below its folder, so the folder can be
 moved as a whole.
@@ -34,6 +38,9 @@ from rasterio.enums import Resampling
 from rasterio.vrt import WarpedVRT
 
 from aerialmtl.errors import InputError, OutputError
+
+#: The smallest overview of a mosaic has at least this many pixels on its long side (as a COG's).
+MIN_OVERVIEW_SIZE = 256
 
 _GDAL_TYPES = {"uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16", "uint32": "UInt32",
                "int32": "Int32", "float32": "Float32", "float64": "Float64"}
@@ -69,13 +76,26 @@ def _source_ref(path: Path, folder: Path) -> tuple[str, str]:
     return rel, "1"
 
 
-def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool = False) -> Path:
+def overview_factors(width: int, height: int, smallest: int = MIN_OVERVIEW_SIZE) -> list[int]:
+    """Overview factors 2, 4, 8, ... of a ``width`` × ``height`` raster, down to ``smallest`` px on its long side."""
+    factors: list[int] = []
+    f = 2
+    while math.ceil(max(width, height) / f) >= smallest:
+        factors.append(f)
+        f *= 2
+    return factors
+
+
+def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool = False,
+               overviews: bool = True) -> Path:
     """Write a VRT mosaic of ``sources`` at ``dst`` (see the module docstring).
 
     Args:
         dst: the ``.vrt`` file to write (replaced if it exists).
         sources: rasters with the same band count and dtype; the first defines CRS and metadata.
         categorical: class rasters (``nearest`` resampling of coarser sources) rather than continuous.
+        overviews: declare virtual overviews (off for a VRT that is only converted into a COG, which
+            builds its own overviews from the full-resolution pixels).
 
     Returns:
         ``dst``.
@@ -132,6 +152,10 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
     root = ET.Element("VRTDataset", rasterXSize=str(width), rasterYSize=str(height))
     ET.SubElement(root, "SRS").text = crs.to_wkt()
     ET.SubElement(root, "GeoTransform").text = ", ".join(repr(float(v)) for v in (left, xres, 0.0, top, 0.0, -yres))
+    factors = overview_factors(width, height) if overviews else []
+    if factors:
+        ET.SubElement(root, "OverviewList", resampling="nearest" if categorical else "average").text = " ".join(
+            str(f) for f in factors)
     for b in range(1, count + 1):
         band = ET.SubElement(root, "VRTRasterBand", dataType=_GDAL_TYPES.get(dtype, "Float32"), band=str(b))
         if nodata is not None:
@@ -171,4 +195,4 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
     return dst
 
 
-__all__ = ["mosaic_vrt"]
+__all__ = ["MIN_OVERVIEW_SIZE", "mosaic_vrt", "overview_factors"]
