@@ -83,6 +83,7 @@ def model_summary(meta: Any) -> dict[str, Any]:
         "in_channels": int(cfg.in_channels),
         "bands": list(meta.bands),
         "band_names": list(meta.band_names),
+        "normalization": str(getattr(meta, "normalization", "dataset")),
         "mean": [float(v) for v in meta.mean],
         "std": [float(v) for v in meta.std],
         "gsd_m": float(meta.gsd),
