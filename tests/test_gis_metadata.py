@@ -174,3 +174,41 @@ def test_single_input_writes_item_but_no_collection(tmp_path: Path) -> None:
     info = json.loads(res.files["prediction"].read_text())
     assert info["files"]["item"] == "item.json" and info["files"]["height_style"] == "height.qml"
     assert (tmp_path / "p" / "item.json").is_file() and not (tmp_path / "p" / "collection.json").exists()
+
+
+# ---- building footprints -----------------------------------------------------------------------
+def _edge_buildings(folder: Path) -> Path:
+    """Buildings rotated 12-40° and cut by the right edge of a 64 × 64 px (32 m) raster."""
+    from conftest import write_prediction_layers
+    from rasterio.features import rasterize
+    from shapely import affinity
+    from shapely.geometry import box
+
+    polys = [affinity.rotate(box(50, 4, 74, 22), 12), affinity.rotate(box(52, 36, 76, 56), 40)]
+    mask = rasterize(polys, out_shape=(64, 64)).astype(bool)
+    cls = np.where(mask, 2, 0).astype(np.uint8)  # 2 = building in the synthetic scheme
+    height = np.where(mask, 8.0, 0.1).astype(np.float32)
+    return write_prediction_layers(folder, cls, height)
+
+
+def test_footprints_stay_inside_the_raster_and_geopackage_is_version_1_2(tmp_path: Path) -> None:
+    import sqlite3
+
+    from shapely.geometry import box
+
+    from aerialmtl.buildings import iter_buildings, write_buildings
+    from aerialmtl.formats.buildings import read_footprints
+
+    pred = _edge_buildings(tmp_path / "pred")
+    raster = box(500000.0, 5000000.0 - 32.0, 500000.0 + 32.0, 5000000.0)
+    buildings = list(iter_buildings(pred))
+    assert len(buildings) == 2
+    for b in buildings:  # regularised walls used to meet up to 1.4 m beyond the edge here
+        assert raster.covers(b.geometry) and b.geometry.bounds[2] == pytest.approx(500032.0)
+    out = tmp_path / "b.gpkg"
+    write_buildings(pred, [out])
+    geoms, _, _ = read_footprints(out)
+    assert all(raster.covers(g) for g in geoms)
+    with sqlite3.connect(out) as db:  # GDAL 3.6 (QGIS LTR) reads 1.2 without a version warning
+        assert db.execute("PRAGMA application_id").fetchone()[0] == 0x47504B47  # 'GPKG'
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 10200

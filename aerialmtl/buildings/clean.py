@@ -242,8 +242,9 @@ def clean_footprint(
     tolerance: float,
     orthogonal: bool = True,
     angle_tolerance_deg: float = DEFAULT_ANGLE_TOLERANCE_DEG,
+    clip: Polygon | None = None,
 ) -> Polygon | None:
-    """Fill holes smaller than ``max_hole_area``, simplify with ``tolerance`` and optionally regularise.
+    """Fill holes smaller than ``max_hole_area``, simplify with ``tolerance``, optionally regularise, then clip.
 
     Args:
         poly: the raster footprint in map coordinates (CRS units).
@@ -251,6 +252,8 @@ def clean_footprint(
         tolerance: Douglas–Peucker tolerance (CRS units); 0 keeps the staircase.
         orthogonal: regularise orthogonally (see :func:`regularize`).
         angle_tolerance_deg: snapping tolerance of the regularisation, degrees.
+        clip: the raster's footprint: the result is cut to it. Regularised walls meet at new corners,
+            which for a building cut by the raster edge can lie beyond it (metres, for a slanted wall).
 
     Returns:
         the cleaned polygon, exterior counter-clockwise, or ``None`` when nothing valid is left.
@@ -267,6 +270,11 @@ def clean_footprint(
         if fixed is None:
             return None
         out = fixed
+    if clip is not None and not clip.covers(out):
+        inside = largest_polygon(out.intersection(clip))
+        if inside is None:
+            return None
+        out = inside
     return orient(out, 1.0)
 
 

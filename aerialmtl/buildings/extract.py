@@ -375,6 +375,7 @@ def extract_buildings(
     matrix = [t.a, t.b, t.d, t.e, t.c, t.f]
     tolerance = options.simplify_m / unit if options.simplify_m is not None else 1.5 * layers.grid.gsd
     max_hole = options.max_hole_m2 / unit**2
+    footprint = shapely.box(*layers.grid.bounds)  # outlines stay inside the raster
     next_id = 1
     for pix in iter_pixel_buildings(layers, indices, options.block_size, options.height_step_m, stats, progress):
         if pix.n_pixels * pixel_area_m2 < options.min_area_m2:
@@ -386,7 +387,7 @@ def extract_buildings(
         # the same outline whatever the blocks: no seam vertices, canonical start vertex
         poly = shapely.normalize(poly.simplify(0))
         cleaned = clean_footprint(affine_transform(poly, matrix), max_hole, tolerance, options.orthogonal,
-                                  options.angle_tolerance_deg)
+                                  options.angle_tolerance_deg, clip=footprint)
         area_m2 = cleaned.area * unit**2 if cleaned is not None else 0.0
         if cleaned is None or area_m2 < options.min_area_m2:
             stats.too_small += 1

@@ -64,6 +64,12 @@ REFERENCE_FIELDS: dict[str, str] = {ID_FIELD: "int64", "height_m": "float64", "h
 
 #: OGR driver per file suffix.
 DRIVERS = {".gpkg": "GPKG", ".geojson": "GeoJSON", ".json": "GeoJSON"}
+#: GeoPackage version written (GDAL creation option ``VERSION``): GDAL ≥ 3.7.1 writes 1.4 by default, which
+#: the GDAL 3.6 of QGIS long-term releases opens with a warning; 1.2 opens without one in every GDAL ≥ 2.2
+#: and needs nothing 1.3/1.4 added.
+GPKG_VERSION = "1.2"
+#: Dataset creation options per driver.
+DATASET_OPTIONS: dict[str, dict[str, str]] = {"GPKG": {"VERSION": GPKG_VERSION}}
 
 
 def driver_for(path: str | Path) -> str:
@@ -108,8 +114,10 @@ class FootprintWriter:
                 else np.array([], dtype=object)
             data = [np.asarray(records[name], dtype=dtype) if len(geometries) else np.array([], dtype=dtype)
                     for name, dtype in self.fields.items()]
+            options = {} if self._created else DATASET_OPTIONS.get(self.driver, {})
             pyogrio.raw.write(self.path, wkb, data, list(self.fields), layer=LAYER, driver=self.driver,
-                              geometry_type="Polygon", crs=self.crs_wkt, append=self._created)
+                              geometry_type="Polygon", crs=self.crs_wkt, append=self._created,
+                              dataset_options=options or None)
             self._created = True
             self.count += len(geometries)
 
@@ -150,6 +158,7 @@ def read_footprints(path: str | Path, role: str = "building footprints") -> tupl
 
 
 __all__ = [
-    "DRIVERS", "GROUND_Z_FIELD", "ID_FIELD", "LAYER", "PREDICTED_FIELDS", "REFERENCE_FIELDS", "REFERENCE_FILE",
+    "DATASET_OPTIONS", "DRIVERS", "GPKG_VERSION",
+    "GROUND_Z_FIELD", "ID_FIELD", "LAYER", "PREDICTED_FIELDS", "REFERENCE_FIELDS", "REFERENCE_FILE",
     "FootprintWriter", "driver_for", "read_footprints",
 ]
