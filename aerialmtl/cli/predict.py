@@ -82,13 +82,15 @@ def _batch_size(value: str) -> int | str:
 @option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
         help="GeoJSON polygons: compute only there, nodata elsewhere.")
 @option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
+@option("--no-calibration", "no_calibration", is_flag=True,
+        help="Do not apply the checkpoint's calibration (height map and spread factor fitted on validation).")
 @overwrite_option()
 @option("--skip-existing", is_flag=True, help="Skip inputs whose prediction folder is complete (resume a job).")
 @quiet_option()
 def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
     batch_size: str, precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool,
-    overwrite: bool, skip_existing: bool, quiet: bool,
+    overwrite: bool, skip_existing: bool, quiet: bool, no_calibration: bool = False,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
 
@@ -120,6 +122,7 @@ def predict(
         orthos, model, out, aoi=aoi, overwrite=overwrite, skip_existing=skip_existing, progress=not quiet,
         on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
         device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
+        calibration=not no_calibration,
     )
     for path in job.skipped:
         click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete")

@@ -246,6 +246,12 @@ def evaluate_prediction(
     }
     if heights is not None:
         heights.report_into(report, steps)
+        try:  # whether predict applied the checkpoint's calibration (height map, spread factor)
+            pinfo = PredictionFolder(pred_dir).info()
+        except (OSError, ValueError):
+            pinfo = {}
+        report["calibration"] = {k: v for k, v in dict(pinfo.get("calibration") or {"applied": False}).items()
+                                 if k != "height_knots_m"}
     if classes_eval is not None:
         classes_eval.report_into(report, names, steps)
     if buildings_ref is not None:
@@ -360,6 +366,7 @@ class HeightEvaluation:
         self.sample = Subsample(sample_size, seed + 1) if std is not None else None
         self.min_std = min_std
         self.nll_sum, self.nll_n = 0.0, 0
+        self.within = np.zeros(2, dtype=np.int64)  # |error| ≤ 1 σ, ≤ 2 σ
         #: the unit each reference layer was read in (see :meth:`HeightSource.units`)
         self.units = reference.units()
 
@@ -374,6 +381,8 @@ class HeightEvaluation:
             self.sample.add(abs_error=np.abs(hp[sel] - ref[sel]), std=sd[sel])
             self.nll_sum += float(gaussian_nll_terms(hp[sel], sd[sel], ref[sel], self.min_std).sum())
             self.nll_n += int(sel.sum())
+            err, s = np.abs(hp[sel] - ref[sel]), sd[sel]
+            self.within += (int(np.count_nonzero(err <= s)), int(np.count_nonzero(err <= 2 * s)))
 
     def report_into(self, report: dict[str, Any], steps: int) -> None:
         """Fill ``report["height"]``, ``report["uncertainty"]["height_std"]``, sampling counts and notes."""
@@ -394,6 +403,9 @@ class HeightEvaluation:
             "n_pixels": self.nll_n,
             "n_sampled": len(self.sample),
             "sparsification": sparsification(ae, sd, steps),
+            # calibrated Gaussian spreads: 0.683 and 0.954
+            "coverage_1sigma": float(self.within[0] / self.nll_n) if self.nll_n else math.nan,
+            "coverage_2sigma": float(self.within[1] / self.nll_n) if self.nll_n else math.nan,
         }
 
 

@@ -13,6 +13,8 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
         "mean": [...], "std": [...], # per band, raw image units (normalisation)
         "gsd": 0.25,                 # metres per pixel the model was trained at
         "crs": "EPSG:...",           # CRS of the training data (information only)
+        "normalization": "dataset",  # or "encoder": mean/std are the pretrained encoder's input scaling
+        "calibration": {...} | None, # height knots + std scale fitted on validation (models.calibration)
       },
       "state_dict": {...},           # model weights
       "train_state": {...} | None,   # optimizer, step, epoch, RNG... (for --resume)
@@ -35,6 +37,7 @@ from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError
 from aerialmtl.io.oserrors import output_error
+from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
 
 FORMAT = "aerialmtl-checkpoint"
@@ -56,6 +59,9 @@ class ModelMeta:
     #: where ``mean``/``std`` come from: ``dataset`` (the tile folder's train statistics) or ``encoder`` (the
     #: scaling the pretrained encoder weights were trained with, e.g. (x − 127) / 128 for EfficientNet-Lite).
     normalization: str = "dataset"
+    #: height map and spread factor fitted on the validation split after training (applied by predict),
+    #: ``None`` for checkpoints without one (see :mod:`aerialmtl.models.calibration`).
+    calibration: Calibration | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels

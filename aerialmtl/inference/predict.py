@@ -188,6 +188,9 @@ class Predictor:
             whatever the batch size, device chunking or number of processes.
         checkpoint_name: name recorded in ``prediction.json`` when ``checkpoint`` is a loaded model.
         reader_threads: background threads reading windows.
+        calibration: apply the checkpoint's calibration (height map and spread factor fitted on the
+            validation split, :mod:`aerialmtl.models.calibration`) when it has one; ``prediction.json``
+            records whether it was applied.
     """
 
     def __init__(
@@ -206,6 +209,7 @@ class Predictor:
         seed: int = 0,
         checkpoint_name: str | None = None,
         reader_threads: int = 2,
+        calibration: bool = True,
     ) -> None:
         check_tiling(tile, overlap)
         if mc is not None and (not isinstance(mc, int) or mc < 1):
@@ -226,6 +230,8 @@ class Predictor:
         self.seed = seed
         self.compile = compile
         self.reader_threads = reader_threads
+        self.calibration = self.meta.calibration if calibration else None
+        self.calibration_available = self.meta.calibration is not None
         self.runner = ModelRunner(model, self.meta, self.device, self.precision, self.mc, seed, max_decode_pixels,
                                   compile)
         tasks = tuple(self.meta.model.tasks)
@@ -295,7 +301,8 @@ class Predictor:
         """
         path = ortho.path if isinstance(ortho, OrthoInput) else ortho
         start, stop = window_rows or (0, len(plan.window_rows))
-        stitcher = Stitcher(plan, self.layers, self.num_classes, self.device, start, stop)
+        stitcher = Stitcher(plan, self.layers, self.num_classes, self.device, start, stop,
+                            calibration=self.calibration)
         batch_size = self.resolved_batch_size(plan)
         aoi_mask = Aoi(aoi, grid) if aoi is not None else None
         rows = range(stitcher.first_row, stop)
@@ -477,7 +484,20 @@ class Predictor:
             "overlap_factor": self.overlap_factor(plan, computed),
             "plan_overlap_factor": plan.overlap_factor,
             "timings_s": dict(timings),
+            "calibration": self.calibration_info(),
         }
+
+    def calibration_info(self) -> dict[str, Any]:
+        """``prediction.json``'s ``calibration``: whether the checkpoint's calibration was applied, and which."""
+        cal = self.meta.calibration
+        if cal is None:
+            return {"applied": False, "reason": "the checkpoint has no calibration"}
+        info: dict[str, Any] = {"applied": self.calibration is not None, "method": cal.method,
+                                "std_scale": cal.std_scale, "n_pixels": cal.n_pixels, "source": cal.source,
+                                "height_knots_m": [list(cal.height_x), list(cal.height_y)]}
+        if self.calibration is None:
+            info["reason"] = "switched off (--no-calibration)"
+        return info
 
 
 # ---- the tool ----------------------------------------------------------------------------------
@@ -500,6 +520,7 @@ def predict_raster(
     max_decode_pixels: int | None = None,
     compile: bool = False,
     seed: int = 0,
+    calibration: bool = True,
 ) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
@@ -515,7 +536,7 @@ def predict_raster(
     """
     predictor = Predictor(checkpoint, mc=mc, tile=tile, overlap=overlap, batch_size=batch_size, precision=precision,
                           device=device, probabilities=probabilities, max_decode_pixels=max_decode_pixels,
-                          compile=compile, seed=seed, checkpoint_name=checkpoint_name)
+                          compile=compile, seed=seed, checkpoint_name=checkpoint_name, calibration=calibration)
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 

@@ -19,6 +19,8 @@ with the raster height. The carry (~(K + 2) · 4 B per carried row and column) i
 Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each window):
 
 * ``height_mean`` → ``height``; ``height_std`` → ``height_std`` (weighted mean of the window stds);
+  with a ``calibration`` (:class:`~aerialmtl.models.calibration.Calibration`, from the checkpoint) the
+  finished values go through its height map and spread factor;
 * ``probs`` (K, channels last) → ``classes`` (argmax), ``class_entropy`` (entropy of the blended
   probabilities), ``class_probabilities``;
 * ``mean_entropy`` (mean per-sample entropy) → ``class_mutual_info = clip(entropy − blended mean
@@ -48,6 +50,7 @@ from aerialmtl.formats.prediction import (
     LayerSpec,
 )
 from aerialmtl.inference.windows import Plan
+from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.mc_dropout import McStatistics
 
 #: Elements per temporary on CPU (~4 MiB of float32): the blending loops stay in the caches.
@@ -109,8 +112,10 @@ class Stitcher:
         device: torch.device | str = "cpu",
         start: int = 0,
         stop: int | None = None,
+        calibration: Calibration | None = None,
     ) -> None:
         self.plan = plan
+        self.calibration = calibration
         self.specs = {s.name: s for s in layers}
         self.quantities = _quantities(set(self.specs))
         self.k = int(num_classes)
@@ -321,6 +326,11 @@ class Stitcher:
             values[HEIGHT] = acc["height_mean"][rs, cs] / safe
         if HEIGHT_STD in specs:
             values[HEIGHT_STD] = (acc["height_std"][rs, cs] / safe).clamp_min_(0.0)
+        if self.calibration is not None:  # the one place the checkpoint's calibration is applied
+            if HEIGHT in values:
+                values[HEIGHT] = self.calibration.height_torch(values[HEIGHT])
+            if HEIGHT_STD in values:
+                values[HEIGHT_STD] = values[HEIGHT_STD] * self.calibration.std_scale
         if "probs" not in acc:
             return values
         probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)

@@ -17,6 +17,7 @@ the key path (``optim.lr``) and the valid keys/choices::
     device: auto          # auto | cpu | cuda
     precision: auto       # auto (bf16 autocast on a CUDA GPU that has bf16, fp32 otherwise) | fp32 | bf16
     compile: false        # torch.compile the model (falls back to eager with a warning if it fails)
+    calibration: {enabled: true, method: isotonic, mc_samples: 16}   # fitted on val after training
 
 Relative ``data.dir`` paths are resolved against the current working directory. With several processes
 (``torchrun``), ``data.batch_size`` is per process: a step uses ``batch_size × processes`` patches.
@@ -238,6 +239,27 @@ class PredictSection:
 
 
 @dataclass(frozen=True)
+class CalibrationSection:
+    """Calibration fitted on the validation split at the end of training (:mod:`aerialmtl.training.calibrate`).
+
+    Attributes:
+        enabled: fit a height map and a spread factor on the val patches and store them in ``best.pt``
+            and ``last.pt`` (``predict`` applies them unless ``--no-calibration``).
+        method: ``isotonic`` (validation mean of the reference among pixels predicted alike) or
+            ``quantile`` (predicted height quantiles mapped to reference quantiles).
+        mc_samples: MC-dropout samples per validation patch.
+    """
+
+    enabled: bool = True
+    method: Literal["isotonic", "quantile"] = "isotonic"
+    mc_samples: int = 16
+
+    def __post_init__(self) -> None:
+        if self.mc_samples < 1:
+            raise ConfigError(f"calibration.mc_samples: must be ≥ 1, got {self.mc_samples}")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """The whole training configuration (see the module docstring for the YAML layout)."""
 
@@ -252,6 +274,7 @@ class TrainConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     compile: bool = False
+    calibration: CalibrationSection = field(default_factory=CalibrationSection)
 
     def __post_init__(self) -> None:
         if not 0 <= self.seed < 2**63:

@@ -696,11 +696,26 @@ class Trainer:
             del it
         if validated_at != st.step or not self.paths["last.pt"].exists():
             self.after_epoch_validation()
+        self.calibrate()
         return TrainResult(run_dir=self.run, last_checkpoint=self.paths["last.pt"],
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
                            config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
                            elapsed_s=time.perf_counter() - self.t0, metrics=self.metrics, best_score=st.best_score,
                            model=self.model)
+
+    def calibrate(self) -> None:
+        """Fit the calibration on the val split and store it in best.pt and last.pt (rank 0; see
+        :mod:`aerialmtl.training.calibrate`); skipped without a val split or a height task."""
+        cal = self.cfg.calibration
+        if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
+            return
+        from aerialmtl.training.calibrate import calibrate_checkpoint
+
+        for name in ("best.pt", "last.pt"):
+            if self.paths[name].exists():
+                c = calibrate_checkpoint(self.paths[name], self.info.root, mc=cal.mc_samples, method=cal.method,
+                                         cache_folder=self.cache_folder, device=self.device)
+                log.info("%s: %s", name, c.summary())
 
     def done_before_start(self) -> str | None:
         """Stop reason of a resumed run that has nothing left to do (no time check: it has not started)."""

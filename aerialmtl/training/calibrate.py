@@ -1,0 +1,102 @@
+"""Fit a checkpoint's calibration on the validation split of its tile folder and store it in the checkpoint.
+
+After training, :func:`calibrate_checkpoint` predicts every validation patch with MC dropout (T samples,
+the model's own input normalisation), fits :func:`aerialmtl.models.calibration.fit_calibration` on the
+valid pixels (predicted mean height, reference height, MC spread) and rewrites the checkpoint with
+``meta.calibration`` set (weights and training state unchanged). ``predict`` then applies it.
+Validation patches only: the test data never enters the fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from aerialmtl.data.batches import CachedBatches, eval_batches, prepare_batch
+from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+from aerialmtl.data.transforms import build_eval_transform
+from aerialmtl.errors import ConfigError
+from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
+from aerialmtl.formats.tiles import TileFolderInfo, cache_dir, read_manifest
+from aerialmtl.models.calibration import Calibration, CalibrationMethod, fit_calibration
+from aerialmtl.models.mc_dropout import mc_predict
+
+log = logging.getLogger(__name__)
+
+#: MC-dropout samples per validation patch when fitting.
+DEFAULT_CALIBRATION_SAMPLES = 16
+#: Pixels kept for the fit (a seeded subsample beyond this).
+MAX_PIXELS = 2_000_000
+
+
+def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path,
+                      mc: int = DEFAULT_CALIBRATION_SAMPLES, batch_size: int = 4,
+                      cache_folder: str | Path | None = None,
+                      device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MC-dropout predictions of the validation patches: ``(pred, ref, std)`` over valid pixels (metres, 1-D).
+
+    Raises:
+        ConfigError: the tile folder has no validation patches or no heights.
+    """
+    info = TileFolderInfo.read(data_dir)
+    if "height" not in info.tasks or not read_manifest(info.root, "val"):
+        raise ConfigError(f"calibration: the tile folder '{info.root}' has no validation patches with heights; "
+                          "tile with a val split (the default split draws one) or skip calibration",
+                          param="data_dir")
+    folder = Path(cache_folder) if cache_folder else cache_dir(info.root)
+    index = ensure_patch_cache(info, "val", folder)
+    dev = torch.device(device)
+    mean = torch.tensor(meta.mean, dtype=torch.float32, device=dev)
+    std = torch.tensor(meta.std, dtype=torch.float32, device=dev)
+    transform = build_eval_transform(None)
+    data = CachedBatches(PatchCache(folder, index), transform, ("height",), None)
+    preds, refs, stds = [], [], []
+    model = model.to(dev).eval()
+    for k, spec in enumerate(eval_batches(index.count, batch_size)):
+        batch = prepare_batch(data[spec], transform, mean, std, dev)
+        with torch.no_grad():
+            out = mc_predict(model, batch["image"], mc, seed=k)["height"]
+        valid = batch["height_valid"]
+        preds.append(out["mean"][valid].cpu().numpy())
+        stds.append(out["std"][valid].cpu().numpy())
+        refs.append(batch["height"][valid].cpu().numpy())
+    pred, ref, sd = (np.concatenate(a) if a else np.zeros(0, np.float32) for a in (preds, refs, stds))
+    if pred.size > MAX_PIXELS:
+        keep = np.random.default_rng(0).choice(pred.size, MAX_PIXELS, replace=False)
+        pred, ref, sd = pred[keep], ref[keep], sd[keep]
+    return pred, ref, sd
+
+
+def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DEFAULT_CALIBRATION_SAMPLES,
+                         method: CalibrationMethod = "isotonic", cache_folder: str | Path | None = None,
+                         out: str | Path | None = None, device: str | torch.device = "cpu") -> Calibration:
+    """Fit the calibration of checkpoint ``path`` on ``data_dir``'s validation split and store it.
+
+    Args:
+        path: the checkpoint (rewritten in place unless ``out`` is given).
+        data_dir: the tile folder the model was trained on.
+        mc: MC-dropout samples (the spread factor is fitted for this T; predict with a similar T).
+        method: ``isotonic`` or ``quantile`` (:mod:`aerialmtl.models.calibration`).
+        out: write the calibrated checkpoint here instead.
+
+    Returns:
+        The fitted :class:`Calibration` (also logged).
+    """
+    payload, meta = load_checkpoint(path)
+    model, _ = load_model(path)
+    pred, ref, sd = validation_pixels(model, meta, data_dir, mc, cache_folder=cache_folder, device=device)
+    if pred.size == 0:
+        raise ConfigError(f"calibration: no valid validation pixel in '{data_dir}'", param="data_dir")
+    cal = fit_calibration(pred, ref, sd if mc > 1 else None, method,
+                          source=f"val split of {Path(data_dir).name}, T={mc}")
+    new_meta = dataclasses.replace(meta, calibration=cal)
+    save_checkpoint(out or path, model, new_meta, payload.get("train_state"))
+    log.info("calibration of '%s': %s", path, cal.summary())
+    return cal
+
+
+__all__ = ["DEFAULT_CALIBRATION_SAMPLES", "calibrate_checkpoint", "validation_pixels"]

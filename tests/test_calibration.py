@@ -1,0 +1,105 @@
+"""Calibration fitted on validation: a known compression is undone; checkpoints carry it; predict applies it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+import torch
+from conftest import write_raster
+from tilefolder import toy_patch, write_tile_folder
+
+from aerialmtl.formats.checkpoint import load_checkpoint, load_model, save_checkpoint
+from aerialmtl.inference.predict import predict_raster
+from aerialmtl.models.calibration import Calibration, fit_calibration, interval_coverage
+from aerialmtl.training.config import TrainConfig
+from aerialmtl.training.loop import train
+
+
+def _compressed(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reference heights (many low, a tail of tall) and predictions squeezed to 40 % of them, with noise."""
+    ref = np.where(rng.random(n) < 0.7, rng.random(n) * 1.0, 2.0 + rng.gamma(2.0, 4.0, n))
+    noise = rng.normal(0.0, 0.5, n)
+    pred = np.maximum(0.4 * ref + noise, 0.0)
+    std = np.full(n, 0.05)  # over-confident MC spread
+    return pred, ref, std
+
+
+@pytest.mark.parametrize("method", ["isotonic", "quantile"])
+def test_known_compression_is_undone_on_new_pixels(method: str) -> None:
+    rng = np.random.default_rng(0)
+    cal = fit_calibration(*_compressed(rng, 40_000), method=method)  # type: ignore[arg-type]
+    pred, ref, std = _compressed(rng, 40_000)
+    tall = ref >= 2.0
+    assert (pred - ref)[tall].mean() < -5.0  # the compression: tall pixels ~6 m too low
+    h = cal.height(pred)
+    assert abs(float((h - ref)[tall].mean())) < 1.0
+    assert np.abs(h - ref).mean() < 0.6 * np.abs(pred - ref).mean()
+    assert np.all(np.diff(cal.height_y) >= 0) and h.min() >= 0.0
+    # spread: ±1 σ covers 68 % of the new pixels (±2 σ less than a Gaussian's 95 %: the errors are heavy-tailed)
+    cov = interval_coverage(np.abs(h - ref), cal.std(std))
+    assert 0.62 < cov["within_1sigma"] < 0.74 and cov["within_2sigma"] > 0.8
+    # the device path (predict's stitcher) gives the same heights
+    np.testing.assert_allclose(cal.height_torch(torch.from_numpy(pred)).numpy(), h, rtol=1e-6, atol=1e-6)
+
+
+def test_map_continues_beyond_the_knots() -> None:
+    cal = Calibration((0.0, 1.0, 4.0), (0.5, 2.0, 10.0), std_scale=2.0)
+    np.testing.assert_allclose(cal.height(np.array([-1.0, 0.5, 4.0, 6.0])), [0.5, 1.25, 10.0, 12.0])
+    np.testing.assert_allclose(cal.std(np.array([1.5])), [3.0])
+    with pytest.raises(ValueError):
+        Calibration((0.0, 0.0), (1.0, 2.0))
+
+
+# ---- end to end ---------------------------------------------------------------------------------
+def _cfg(encoder: str) -> TrainConfig:
+    model = ({"growth_rate": 4, "block_config": [1, 1, 1, 1], "num_init_features": 8, "bn_size": 2}
+             if encoder == "densenet121" else {"encoder": encoder})
+    return TrainConfig.from_dict({"model": model, "data": {"batch_size": 4, "num_workers": 0},
+                                  "schedule": {"epochs": 100, "log_every": 1}, "seed": 0, "device": "cpu",
+                                  "calibration": {"mc_samples": 4}})
+
+
+@pytest.fixture(scope="module")
+def tiles(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_tile_folder(tmp_path_factory.mktemp("cal") / "tiles", size=64, counts={"train": 4, "val": 2},
+                             tasks=("height",))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("encoder", ["densenet121", "efficientnet_lite0"])
+def test_checkpoints_of_both_encoders_round_trip_through_predict(encoder: str, tiles: Path, tmp_path: Path) -> None:
+    res = train(_cfg(encoder), tiles, tmp_path / "run", max_steps=2, progress=False)
+    _, meta = load_checkpoint(res.best_checkpoint)
+    assert meta.model.encoder == encoder and meta.calibration is not None and meta.calibration.n_pixels > 0
+    image, _, _ = toy_patch(np.random.default_rng(5), 64)
+    ortho = write_raster(tmp_path / "o.tif", image.astype(np.uint8))
+    on = predict_raster(ortho, res.best_checkpoint, tmp_path / "on", mc=4, progress=False)
+    off = predict_raster(ortho, res.best_checkpoint, tmp_path / "off", mc=4, progress=False, calibration=False)
+    info_on = json.loads((on.out_dir / "prediction.json").read_text())["calibration"]
+    info_off = json.loads((off.out_dir / "prediction.json").read_text())["calibration"]
+    assert info_on["applied"] is True and info_off["applied"] is False
+    with rasterio.open(on.out_dir / "height.tif") as a, rasterio.open(off.out_dir / "height.tif") as b:
+        raw, cal = b.read(1), a.read(1)
+    np.testing.assert_allclose(cal, meta.calibration.height(raw), rtol=1e-5, atol=1e-4)
+
+
+def test_an_old_checkpoint_without_calibration_predicts_uncalibrated(tmp_path: Path) -> None:
+    from conftest import tiny_d3net
+
+    model, meta = tiny_d3net()
+    path = tmp_path / "old.pt"
+    save_checkpoint(path, model, meta)
+    payload = torch.load(path, weights_only=True)
+    for key in ("calibration", "normalization"):  # what checkpoints written before these fields hold
+        payload["meta"].pop(key)
+    torch.save(payload, path)
+    _, loaded = load_model(path)
+    assert loaded.calibration is None and loaded.normalization == "dataset" and loaded.model.encoder == "densenet121"
+    cal = Calibration((0.0, 10.0), (0.0, 20.0), 1.5, n_pixels=1)
+    save_checkpoint(path, model, dataclasses.replace(meta, calibration=cal))
+    assert load_checkpoint(path)[1].calibration == cal
