@@ -82,7 +82,7 @@ def _batch_size(value: str) -> int | str:
 @option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
         help="GeoJSON polygons: compute only there, nodata elsewhere.")
 @option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
-@option("--no-calibration", "no_calibration", is_flag=True,
+@option("--no-calibration", "no_calibration", is_flag=True, library="calibration",
         help="Do not apply the checkpoint's calibration (height map and spread factor fitted on validation).")
 @overwrite_option()
 @option("--skip-existing", is_flag=True, help="Skip inputs whose prediction folder is complete (resume a job).")
