@@ -154,8 +154,24 @@ def run_demo(
 
 def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path | None,
                    labels_ref: Path | None) -> Path | None:
-    """Draw ``overview.png``: ortho, reference/predicted height, height std, reference/predicted classes
-    and class entropy side by side. Returns the PNG path, or ``None`` without matplotlib."""
+    """Draw ``overview.png`` (:func:`preview_figure`) in ``folder``. Returns its path, or ``None`` without
+    matplotlib."""
+    fig = preview_figure(ortho, pred_dir, height_ref, labels_ref)
+    if fig is None:
+        return None
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "overview.png"
+    fig.savefig(path, dpi=80, bbox_inches="tight")  # the class legends sit outside their panels
+    plt.close(fig)
+    return path
+
+
+def preview_figure(ortho: Path, pred_dir: Path, height_ref: Path | None, labels_ref: Path | None) -> Any | None:
+    """Ortho, reference/predicted height, height std, reference/predicted classes, class entropy and mutual
+    information side by side: float layers with a colour bar in their unit (the colour maps of their QGIS
+    styles), class maps with a legend of the class names. ``None`` without matplotlib."""
     try:
         import matplotlib
 
@@ -168,12 +184,14 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
     import rasterio
 
     from aerialmtl.classes import IGNORE_INDEX
+    from aerialmtl.evaluation.maps import add_class_legend, add_colorbar, layer_cmap
     from aerialmtl.formats.prediction import (
         CLASS_ENTROPY,
         CLASS_MUTUAL_INFO,
         CLASSES,
         HEIGHT,
         HEIGHT_STD,
+        LAYER_UNITS,
         PredictionFolder,
     )
 
@@ -185,20 +203,20 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
         with rasterio.open(path) as src:
             return src.read(1, masked=masked)
 
-    folder.mkdir(parents=True, exist_ok=True)
     with rasterio.open(ortho) as src:
         rgb = np.moveaxis(src.read([1, 2, 3]), 0, -1)
     scheme = pred.class_scheme()
-    panels: list[tuple[str, Any, dict[str, Any]]] = [("orthophoto", rgb, {})]
+    # (title, image, imshow options, layer name: its colour bar's unit, or "classes": a legend of the names)
+    panels: list[tuple[str, Any, dict[str, Any], str]] = [("orthophoto", rgb, {}, "")]
     h_ref, h = read(height_ref), read(pred.layer_path(HEIGHT))
     vmax = float(np.nanpercentile(np.ma.filled(h_ref.astype(float), np.nan), 99.5)) if h_ref is not None else None
     if h_ref is not None:
-        panels.append(("reference height (m)", h_ref, dict(cmap="viridis", vmin=0, vmax=vmax)))
+        panels.append(("reference height", h_ref, dict(cmap=layer_cmap(HEIGHT), vmin=0, vmax=vmax), HEIGHT))
     if h is not None:
-        panels.append(("predicted height (m)", h, dict(cmap="viridis", vmin=0, vmax=vmax)))
+        panels.append(("predicted height", h, dict(cmap=layer_cmap(HEIGHT), vmin=0, vmax=vmax), HEIGHT))
     std = read(pred.layer_path(HEIGHT_STD))
     if std is not None:
-        panels.append(("height std (m)", std, dict(cmap="magma")))
+        panels.append(("height std (MC dropout)", std, dict(cmap=layer_cmap(HEIGHT_STD), vmin=0), HEIGHT_STD))
     if scheme is not None:
         cmap = ListedColormap(np.array(scheme.colors) / 255.0)
         kw = dict(cmap=cmap, vmin=-0.5, vmax=scheme.num_classes - 0.5, interpolation="nearest")
@@ -206,28 +224,25 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
             lab = read(labels_ref, masked=False)
             if lab is not None:
                 idx = scheme.remap(lab, on_unknown="ignore")
-                panels.append(("reference classes", np.ma.masked_equal(idx, IGNORE_INDEX), kw))
+                panels.append(("reference classes", np.ma.masked_equal(idx, IGNORE_INDEX), kw, CLASSES))
         cls = read(pred.layer_path(CLASSES))
         if cls is not None:
-            panels.append(("predicted classes", cls, kw))
-    ent = read(pred.layer_path(CLASS_ENTROPY))
-    if ent is not None:
-        panels.append(("class entropy (nats)", ent, dict(cmap="magma")))
-    mi = read(pred.layer_path(CLASS_MUTUAL_INFO))
-    if mi is not None:
-        panels.append(("mutual information (nats)", mi, dict(cmap="magma")))
+            panels.append(("predicted classes", cls, kw, CLASSES))
+    for name, title in ((CLASS_ENTROPY, "class entropy"), (CLASS_MUTUAL_INFO, "mutual information")):
+        img = read(pred.layer_path(name))
+        if img is not None:
+            panels.append((title, img, dict(cmap=layer_cmap(name), vmin=0), name))
     cols = 3
     rows = -(-len(panels) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 5 * rows), sharex=True, sharey=True)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.6 * cols, 5 * rows), sharex=True, sharey=True)
     for ax in np.ravel(axes):
         ax.set_axis_off()
-    for ax, (title, img, kw) in zip(np.ravel(axes), panels):
+    for ax, (title, img, kw, layer) in zip(np.ravel(axes), panels):
         im = ax.imshow(img, **kw)
         ax.set_title(title)
-        if img.ndim == 2:
-            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
+        if layer == CLASSES and scheme is not None:
+            add_class_legend(ax, scheme, fontsize=8)
+        elif layer:
+            add_colorbar(ax, im, layer, label=f"{title} ({LAYER_UNITS[layer]})")
     fig.tight_layout()
-    path = folder / "overview.png"
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
+    return fig

@@ -212,3 +212,37 @@ def test_footprints_stay_inside_the_raster_and_geopackage_is_version_1_2(tmp_pat
     with sqlite3.connect(out) as db:  # GDAL 3.6 (QGIS LTR) reads 1.2 without a version warning
         assert db.execute("PRAGMA application_id").fetchone()[0] == 0x47504B47  # 'GPKG'
         assert db.execute("PRAGMA user_version").fetchone()[0] == 10200
+
+
+# ---- PNG previews --------------------------------------------------------------------------------
+def test_demo_preview_has_class_names_and_colour_bars_with_units(run: Path, tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from aerialmtl.demo import preview_figure, write_previews
+
+    ortho = run.parent / "a.tif"
+    fig = preview_figure(ortho, run / "a", None, None)
+    try:
+        legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+        assert len(legends) == 1  # the predicted classes
+        assert [t.get_text() for t in legends[0].get_texts()] == ["band 1", "band 2", "band 3"]
+        bar_labels = {ax.get_ylabel() for ax in fig.axes if ax.get_ylabel()}
+        assert {"predicted height (m)", "height std (MC dropout) (m)", "class entropy (nats)",
+                "mutual information (nats)"} <= bar_labels
+        assert not any("class" in label and "(" not in label for label in bar_labels)  # no index colour bar
+    finally:
+        plt.close(fig)
+    png = write_previews(tmp_path / "prev", ortho, run / "a", None, None)
+    assert png is not None and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_notebook_maps_use_the_qgis_ramps_and_label_units(run: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from aerialmtl.evaluation.maps import load_prediction_maps, plot_maps
+
+    fig, axes = plot_maps(load_prediction_maps(run / "a"))
+    labels = {ax.get_ylabel() for ax in fig.axes}
+    assert "predicted height (m)" in labels and "class entropy (nats)" in labels
+    cmaps = {ax.get_title(): ax.images[0].get_cmap().name for ax in axes if ax.images}
+    assert cmaps["predicted height (m)"] == "viridis" and cmaps["height std (m)"] == "YlOrRd"

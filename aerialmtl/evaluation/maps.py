@@ -28,7 +28,8 @@ from rasterio.windows import Window
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError
 from aerialmtl.evaluation.evaluate import PREDICTION_FILES
-from aerialmtl.formats.prediction import read_class_scheme_tag
+from aerialmtl.formats.prediction import LAYER_UNITS, read_class_scheme_tag
+from aerialmtl.formats.qgis_style import RAMPS
 from aerialmtl.io.align import AlignedRaster, Grid, grid_of, open_raster
 
 #: Float layers of a prediction folder that can be displayed, in panel order, with their titles.
@@ -245,10 +246,40 @@ def _vrange(data: np.ndarray, hi: float = 99.5) -> tuple[float, float]:
     return 0.0, vmax if vmax > 0 else 1.0
 
 
+def layer_cmap(name: str) -> str:
+    """The matplotlib colour map of float layer ``name``: the ramp of its QGIS style, so PNGs and QGIS agree."""
+    ramp = RAMPS.get(name)
+    return ramp.name if ramp is not None else "viridis"
+
+
+def add_colorbar(ax: Any, image: Any, name: str, label: str | None = None) -> Any:
+    """A colour bar beside ``ax`` for ``image`` of float layer ``name``, labelled with its unit.
+
+    Args:
+        label: the bar's label; default: the layer's title (e.g. ``"height std (m)"``) or its unit.
+    """
+    unit = LAYER_UNITS.get(name, "")
+    if label is None:
+        label = FLOAT_LAYERS.get(name, f"{name} ({unit})" if unit else name)
+    bar = ax.figure.colorbar(image, ax=ax, fraction=0.046, pad=0.02)
+    bar.set_label(label, fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    return bar
+
+
+def add_class_legend(ax: Any, scheme: ClassScheme, fontsize: int = 7) -> Any:
+    """A legend of the class **names** with their colours, outside ``ax`` on its right."""
+    from matplotlib.patches import Patch
+
+    handles = [Patch(facecolor=(c[0] / 255, c[1] / 255, c[2] / 255), edgecolor="k", label=n)
+               for c, n in zip(scheme.colors, scheme.names, strict=True)]
+    return ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=fontsize,
+                     frameon=False, title="classes", title_fontsize=fontsize + 1)
+
+
 def _draw(ax: Any, maps: PredictionMaps, key: str, extent: Sequence[float], crop: tuple[slice, slice] | None = None,
           colorbar: bool = True, legend: bool = True) -> None:
     from matplotlib.colors import ListedColormap
-    from matplotlib.patches import Patch
 
     sl = crop or (slice(None), slice(None))
     common = dict(extent=extent, interpolation="nearest")
@@ -264,15 +295,13 @@ def _draw(ax: Any, maps: PredictionMaps, key: str, extent: Sequence[float], crop
         data = np.ma.masked_equal(maps.classes[sl], IGNORE_INDEX)
         ax.imshow(data, cmap=cmap, vmin=-0.5, vmax=k - 0.5, **common)
         if legend and maps.scheme is not None:
-            handles = [Patch(facecolor=c, edgecolor="k", label=n) for c, n in zip(colors, maps.scheme.names)]  # type: ignore[arg-type]
-            ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
+            add_class_legend(ax, maps.scheme)
         return
     full = maps.layers[key]
     vmin, vmax = _vrange(full)
-    im = ax.imshow(np.ma.masked_invalid(full[sl]), cmap="viridis" if key == "height" else "magma",
-                   vmin=vmin, vmax=vmax, **common)
+    im = ax.imshow(np.ma.masked_invalid(full[sl]), cmap=layer_cmap(key), vmin=vmin, vmax=vmax, **common)
     if colorbar:
-        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+        add_colorbar(ax, im, key)
 
 
 def plot_maps(maps: PredictionMaps, fig: Any = None, cols: int = 3, panel_size: float = 4.0) -> tuple[Any, np.ndarray]:
@@ -408,5 +437,6 @@ def plot_sparsification(report: dict[str, Any], fig: Any = None, panel_size: flo
 
 
 __all__ = ["FLOAT_LAYERS", "UNCERTAINTY_LAYERS", "PredictionMaps", "display_grid", "format_areas",
+           "add_class_legend", "add_colorbar", "layer_cmap",
            "load_prediction_maps", "most_uncertain_areas", "plot_areas", "plot_maps", "plot_sparsification",
            "uncertainty_summary", "zoom_to"]

@@ -50,6 +50,9 @@ CLASS_MUTUAL_INFO = "class_mutual_info"
 CLASS_PROBABILITIES = "class_probabilities"
 LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES)
 
+#: Unit of each float layer (``class_probabilities``: none).
+LAYER_UNITS = {HEIGHT: "m", HEIGHT_STD: "m", CLASS_ENTROPY: "nats", CLASS_MUTUAL_INFO: "nats"}
+
 #: The run-information file.
 INFO_FILE = "prediction.json"
 #: The STAC Item of a prediction folder.
@@ -138,10 +141,11 @@ def prediction_layers(
     specs: list[LayerSpec] = []
     unc = mc > 1
     if HEIGHT in tasks:
-        specs.append(LayerSpec(HEIGHT, 1, "float32", FLOAT_NODATA, ("height above ground (MC mean)",), ("m",)))
+        specs.append(LayerSpec(HEIGHT, 1, "float32", FLOAT_NODATA, ("height above ground (MC mean)",),
+                               (LAYER_UNITS[HEIGHT],)))
         if unc:
             specs.append(LayerSpec(HEIGHT_STD, 1, "float32", FLOAT_NODATA,
-                                   ("height standard deviation (MC dropout)",), ("m",)))
+                                   ("height standard deviation (MC dropout)",), (LAYER_UNITS[HEIGHT_STD],)))
     if CLASSES in tasks:
         if classes is None:
             raise InputError("the classes task needs a class scheme; pass the checkpoint's ModelMeta.classes")
@@ -153,9 +157,11 @@ def prediction_layers(
         ))
         if unc:
             specs.append(LayerSpec(CLASS_ENTROPY, 1, "float32", FLOAT_NODATA,
-                                   ("predictive entropy of the class probabilities",), ("nats",)))
+                                   ("predictive entropy of the class probabilities",),
+                                   (LAYER_UNITS[CLASS_ENTROPY],)))
             specs.append(LayerSpec(CLASS_MUTUAL_INFO, 1, "float32", FLOAT_NODATA,
-                                   ("mutual information (epistemic part of the entropy)",), ("nats",)))
+                                   ("mutual information (epistemic part of the entropy)",),
+                                   (LAYER_UNITS[CLASS_MUTUAL_INFO],)))
         if probabilities:
             specs.append(LayerSpec(CLASS_PROBABILITIES, classes.num_classes, "float32", FLOAT_NODATA,
                                    tuple(f"P({n})" for n in classes.names), ("",) * classes.num_classes))
@@ -229,6 +235,7 @@ class PredictionFolder:
 __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
     "CLASS_SCHEME_TAG", "COLLECTION_FILE", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "ITEM_FILE", "LAYERS",
+    "LAYER_UNITS",
     "LayerSpec", "PredictionFolder", "layer_filename", "mosaic_filename", "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
 ]
