@@ -402,3 +402,96 @@ def test_os_errors_become_output_errors_naming_the_path(tmp_path: Path) -> None:
         raise InputError("mine")
     with pytest.raises(OutputError, match="no space left"), writing(tmp_path / "x", "x"):
         raise RuntimeError("sqlite3_exec() failed: database or disk is full; No space left on device")
+
+
+# ---- predict: input type/range against the checkpoint, non-finite outputs ----------------------------------
+@pytest.fixture(scope="module")
+def ckpt8(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny checkpoint recording 8-bit training images (mean 120/110/100, std 40)."""
+    import dataclasses
+
+    from aerialmtl.formats.checkpoint import value_envelope
+
+    model, meta = tiny_d3net()
+    meta = dataclasses.replace(meta, input_dtype="uint8", input_range=value_envelope(meta.mean, meta.std, "uint8"))
+    path = tmp_path_factory.mktemp("ckpt8") / "model.pt"
+    save_checkpoint(path, model, meta)
+    return path
+
+
+def _image(tmp_path: Path, name: str, data: np.ndarray, **kw: object) -> Path:
+    return write_raster(tmp_path / name, data, CRS, **kw)  # type: ignore[arg-type]
+
+
+def test_training_records_the_input_type_and_range(run_dir: Path) -> None:
+    _, meta = load_checkpoint(run_dir / "last.pt")
+    assert meta.input_dtype == "uint8"
+    lo, hi = meta.input_range
+    assert 0.0 <= lo < hi <= 255.0
+
+
+@pytest.mark.parametrize("kind", ["uint16", "float01"])
+def test_orthophoto_unlike_the_training_data_is_refused(tmp_path: Path, capsys, ckpt8: Path, kind: str) -> None:
+    rng = np.random.default_rng(4)
+    data = (rng.integers(100, 4000, (3, 64, 64)).astype(np.uint16) if kind == "uint16"
+            else rng.uniform(0, 1, (3, 64, 64)).astype(np.float32))
+    ortho = _image(tmp_path, f"{kind}.tif", data)
+    out = tmp_path / "p"
+    dtype = "uint16" if kind == "uint16" else "float32"
+    one_error_line(run_cli(capsys, "predict", ortho, "--model", ckpt8, "--out", out, *PREDICT),
+                   f"orthophoto '{ortho}' holds {dtype} values about", "trained on uint8 values about 0..240",
+                   "times the training range", "--rescale-input")
+    assert not (out / "height.tif").exists()
+    rc, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt8, "--out", out, "--rescale-input", *PREDICT)
+    assert rc == 0 and "rescaling its values linearly" in err, err
+    info = json.loads((out / "prediction.json").read_text())
+    a, b = info["input_rescale"]
+    assert a > 0 and math.isfinite(b)
+    import rasterio
+
+    with rasterio.open(out / "height.tif") as ds:
+        assert np.isfinite(ds.read(1)).all()
+
+
+def test_matching_or_same_range_inputs_predict_as_before(tmp_path: Path, capsys, ckpt8: Path, ckpt: Path) -> None:
+    rng = np.random.default_rng(5)
+    img = rng.integers(1, 255, (3, 64, 64)).astype(np.uint8)
+    ok = _image(tmp_path, "u8.tif", img)
+    rc, _, err = run_cli(capsys, "predict", ok, "--model", ckpt8, "--out", tmp_path / "a", *PREDICT)
+    assert rc == 0 and not err.strip(), err
+    as_float = _image(tmp_path, "f32.tif", img.astype(np.float32))  # 8-bit values stored as float32
+    rc, _, err = run_cli(capsys, "predict", as_float, "--model", ckpt8, "--out", tmp_path / "b", *PREDICT)
+    assert rc == 0 and "holds float32 values but the model was trained on uint8" in err
+    wide = _image(tmp_path, "u16.tif", rng.integers(100, 4000, (3, 64, 64)).astype(np.uint16))
+    assert run_cli(capsys, "predict", wide, "--model", ckpt, "--out", tmp_path / "c", *PREDICT)[0] == 0  # old ckpt
+
+
+def test_non_finite_model_outputs_fail_the_run(tmp_path: Path, capsys) -> None:
+    model, meta = tiny_d3net()
+    bn = next(m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d))
+    bn.running_var.fill_(-1.0)  # finite weights, NaN activations (sqrt of a negative variance)
+    broken = tmp_path / "broken.pt"
+    save_checkpoint(broken, model, meta)
+    ortho = _image(tmp_path, "o.tif", np.random.default_rng(6).integers(1, 255, (3, 64, 64)).astype(np.uint8))
+    out = tmp_path / "p"
+    one_error_line(run_cli(capsys, "predict", ortho, "--model", broken, "--out", out, *PREDICT),
+                   f"checkpoint '{broken}' gives NaN or inf", "no prediction was written")
+    assert not out.exists() or not any(p.suffix in (".tif", ".json") for p in out.iterdir())
+
+
+def test_full_disk_while_writing_a_geopackage_or_tiles(small_fs: Path, tmp_path: Path, capsys) -> None:
+    from conftest import write_prediction_layers
+
+    pytest.importorskip("pyogrio")
+    cls = np.zeros((64, 64), np.uint8)
+    cls[5:25, 5:25] = cls[35:60, 10:60] = 2  # two buildings of the synthetic scheme
+    height = np.where(cls == 2, 8.0, 0.1).astype(np.float32)
+    pred = write_prediction_layers(tmp_path / "pred", cls, height)
+    ortho, ndsm = _ortho(tmp_path), write_raster(tmp_path / "n.tif", np.ones((64, 64), np.float32), CRS)
+    (small_fs / "filler").write_bytes(b"\0" * (2 * 1024 * 1024 - 16 * 1024))  # leave 16 KiB
+    gpkg = small_fs / "b.gpkg"
+    one_error_line(run_cli(capsys, "buildings", pred, "--out", gpkg, "--quiet"),
+                   f"no space left on the device holding '{gpkg}'", "--out")
+    one_error_line(run_cli(capsys, "tile", "--ortho", ortho, "--ndsm", ndsm, "--size", "32", "--out", small_fs / "t",
+                           "--quiet"), f"no space left on the device holding '{small_fs / 't'}'", "--out")
+    assert sorted(p.name for p in small_fs.iterdir()) == ["filler"]  # nothing partial, nothing hidden

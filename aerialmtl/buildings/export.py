@@ -20,9 +20,10 @@ from typing import Any
 
 from aerialmtl.buildings.extract import BuildingOptions, ExtractionStats, extract_buildings
 from aerialmtl.buildings.layers import BuildingLayers
-from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.errors import AerialMTLError, InputError, OutputExistsError
 from aerialmtl.formats.buildings import GROUND_Z_FIELD, ID_FIELD, PREDICTED_FIELDS, FootprintWriter, driver_for
 from aerialmtl.formats.cityjson import CityJSONWriter
+from aerialmtl.io.oserrors import kind_of, output_error, writing
 from aerialmtl.io.outputs import make_output_dir
 
 #: Name endings of CityJSON outputs.
@@ -161,13 +162,18 @@ def write_buildings(
                 cj.discard_parts()
             for p in paths:
                 _hidden(p).unlink(missing_ok=True)
-            if isinstance(exc, OSError) and not isinstance(exc, (OutputError, InputError)):
-                raise OutputError(f"cannot write the building outputs ({' '.join(str(exc).split())[:160]}); "
-                                  "choose a writable ‹outputs› with free space") from exc
+            if isinstance(exc, AerialMTLError):
+                raise
+            # pyogrio reports a full disk as its own error, sometimes without saying so
+            kinds = [kind_of(exc, p) for p in paths]
+            if isinstance(exc, OSError) or any(kinds):
+                bad = [p for p, k in zip(paths, kinds) if k] or paths
+                raise output_error(exc, ", ".join(str(p) for p in bad), "the building outputs", "‹outputs›") from exc
             raise
         crs = grid.crs.to_string()
     for p in paths:
-        os.replace(_hidden(p), p)
+        with writing(p, "the building outputs", "‹outputs›"):
+            os.replace(_hidden(p), p)
     return BuildingsResult({p: formats[p] for p in paths}, count, stats, crs, time.perf_counter() - start)
 
 

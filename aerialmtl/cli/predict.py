@@ -84,13 +84,16 @@ def _batch_size(value: str) -> int | str:
 @option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
 @option("--no-calibration", "no_calibration", is_flag=True, library="calibration",
         help="Do not apply the checkpoint's calibration (height map and spread factor fitted on validation).")
+@option("--rescale-input", is_flag=True,
+        help="When an orthophoto's values do not look like the training images' (e.g. 16-bit on an 8-bit model), "
+             "map them linearly onto the training range (mean ± 3 std of a sample) instead of refusing it.")
 @overwrite_option()
 @option("--skip-existing", is_flag=True, help="Skip inputs whose prediction folder is complete (resume a job).")
 @quiet_option()
 def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
     batch_size: str, precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool,
-    overwrite: bool, skip_existing: bool, quiet: bool, no_calibration: bool = False,
+    rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool, no_calibration: bool = False,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
 
@@ -123,6 +126,7 @@ def predict(
         on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
         device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
         calibration=not no_calibration,
+        rescale_input=rescale_input,
     )
     for path in job.skipped:
         click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete")

@@ -15,6 +15,8 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
         "crs": "EPSG:...",           # CRS of the training data (information only)
         "normalization": "dataset",  # or "encoder": mean/std are the pretrained encoder's input scaling
         "calibration": {...} | None, # height knots + std scale fitted on validation (models.calibration)
+        "input_dtype": "uint8",      # data type of the training images (None: not recorded)
+        "input_range": [lo, hi],     # their value range (value_envelope of the train statistics)
       },
       "state_dict": {...},           # model weights
       "train_state": {...} | None,   # optimizer, step, epoch, RNG... (for --resume)
@@ -26,10 +28,12 @@ from __future__ import annotations
 import os
 import pickle
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from aerialmtl import __version__
@@ -62,6 +66,13 @@ class ModelMeta:
     #: height map and spread factor fitted on the validation split after training (applied by predict),
     #: ``None`` for checkpoints without one (see :mod:`aerialmtl.models.calibration`).
     calibration: Calibration | None = None
+    #: numpy data type of the training images (``uint8``, ``uint16``, ``float32``...); ``None`` in checkpoints
+    #: written before it was recorded (predict then checks nothing about the input's values).
+    input_dtype: str | None = None
+    #: the training images' value range: :func:`value_envelope` of the tile folder's train statistics
+    #: (raw units, all bands); ``None`` when not recorded. Predict compares the orthophoto's with it
+    #: (:mod:`aerialmtl.inference.sanity`).
+    input_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels
@@ -83,6 +94,17 @@ class ModelMeta:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelMeta:
         return from_dict(cls, data)
+
+
+def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:
+    """``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an
+    integer ``dtype``: where nearly all values of images with these per-band statistics lie."""
+    lo = min(m - 3.0 * s for m, s in zip(mean, std))
+    hi = max(m + 3.0 * s for m, s in zip(mean, std))
+    if dtype is not None and np.dtype(dtype).kind in "ui":
+        limits = np.iinfo(np.dtype(dtype))
+        lo, hi = max(lo, float(limits.min)), min(hi, float(limits.max))
+    return float(lo), float(hi)
 
 
 def first_nonfinite(tensors: Any) -> str | None:

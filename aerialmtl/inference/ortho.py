@@ -43,6 +43,8 @@ class OrthoInput:
         count: its number of spectral bands.
         unused_bands: its 1-based bands the model does not read (an alpha band excepted).
         plan: the window plan over ``grid``.
+        rescale: ``(a, b)``: the model sees ``a·x + b`` for raw values x (``rescale_input``, see
+            :mod:`aerialmtl.inference.sanity`); ``None``: the raw values.
     """
 
     path: str | Path
@@ -52,6 +54,7 @@ class OrthoInput:
     count: int
     unused_bands: tuple[int, ...]
     plan: Plan
+    rescale: tuple[float, float] | None = None
 
     @classmethod
     def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int, grid: Grid | None = None) -> OrthoInput:

@@ -34,6 +34,7 @@ one process or many (torchrun).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -61,6 +62,7 @@ from aerialmtl.inference.runner import (
     resolve_device,
     resolve_precision,
 )
+from aerialmtl.inference.sanity import check_finite_outputs, check_input_values, rescaled
 from aerialmtl.inference.stitch import Stitcher
 from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
 from aerialmtl.inference.writer import PredictionWriter
@@ -191,6 +193,8 @@ class Predictor:
         calibration: apply the checkpoint's calibration (height map and spread factor fitted on the
             validation split, :mod:`aerialmtl.models.calibration`) when it has one; ``prediction.json``
             records whether it was applied.
+        rescale_input: map an orthophoto whose values do not match the training data's onto the training
+            range instead of refusing it (:mod:`aerialmtl.inference.sanity`).
     """
 
     def __init__(
@@ -210,6 +214,7 @@ class Predictor:
         checkpoint_name: str | None = None,
         reader_threads: int = 2,
         calibration: bool = True,
+        rescale_input: bool = False,
     ) -> None:
         check_tiling(tile, overlap)
         if mc is not None and (not isinstance(mc, int) or mc < 1):
@@ -232,6 +237,7 @@ class Predictor:
         self.reader_threads = reader_threads
         self.calibration = self.meta.calibration if calibration else None
         self.calibration_available = self.meta.calibration is not None
+        self.rescale_input = rescale_input
         self.runner = ModelRunner(model, self.meta, self.device, self.precision, self.mc, seed, max_decode_pixels,
                                   compile)
         tasks = tuple(self.meta.model.tasks)
@@ -255,11 +261,15 @@ class Predictor:
             grid: the prediction grid when the caller knows it already.
 
         Raises:
-            AlignmentError / InputError: unusable georeferencing or bands (messages name the fix).
+            AlignmentError / InputError: unusable georeferencing or bands, or values unlike the training
+                data's (:func:`~aerialmtl.inference.sanity.check_input_values`; messages name the fix).
         """
         if isinstance(ortho, OrthoInput):
             return ortho
         src = OrthoInput.open(ortho, self.meta, self.tile, self.overlap, grid=grid)
+        rescale = check_input_values(src.path, self.meta, self.rescale_input)
+        if rescale is not None:
+            src = dataclasses.replace(src, rescale=rescale)
         if warn:
             src.warn_resampled(self.meta, stacklevel=4)
             src.warn_unused_bands(self.meta, stacklevel=4)
@@ -300,6 +310,7 @@ class Predictor:
         the output rows a whole-raster run gives.
         """
         path = ortho.path if isinstance(ortho, OrthoInput) else ortho
+        rescale = ortho.rescale if isinstance(ortho, OrthoInput) else None
         start, stop = window_rows or (0, len(plan.window_rows))
         stitcher = Stitcher(plan, self.layers, self.num_classes, self.device, start, stop,
                             calibration=self.calibration)
@@ -345,8 +356,9 @@ class Predictor:
                         continue
                     t0 = time.perf_counter()
                     raw, valid = self.runner.to_device([w.data for w in todo], [w.valid for w in todo])
-                    x = self.runner.normalise(raw, valid)
+                    x = self.runner.normalise(rescaled(raw, rescale), valid)
                     stats = self.runner(x, [w.i * n_cols + w.j for w in todo])
+                    check_finite_outputs(stats, valid, self.checkpoint_name)
                     timings["model"] += time.perf_counter() - t0
                     computed += len(todo)
                     flush(stats, valid)
@@ -479,6 +491,7 @@ class Predictor:
             "grid": {"crs": grid.crs.to_string(), "transform": list(grid.transform)[:6],
                      "width": grid.width, "height": grid.height, "gsd": grid.gsd},
             "resampled_from_gsd": src.resampled_from,
+            "input_rescale": None if src.rescale is None else list(src.rescale),
             "windows_total": plan.num_windows,
             "windows_computed": computed,
             "overlap_factor": self.overlap_factor(plan, computed),
@@ -521,6 +534,7 @@ def predict_raster(
     compile: bool = False,
     seed: int = 0,
     calibration: bool = True,
+    rescale_input: bool = False,
 ) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
@@ -536,7 +550,8 @@ def predict_raster(
     """
     predictor = Predictor(checkpoint, mc=mc, tile=tile, overlap=overlap, batch_size=batch_size, precision=precision,
                           device=device, probabilities=probabilities, max_decode_pixels=max_decode_pixels,
-                          compile=compile, seed=seed, checkpoint_name=checkpoint_name, calibration=calibration)
+                          compile=compile, seed=seed, checkpoint_name=checkpoint_name, calibration=calibration,
+                          rescale_input=rescale_input)
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 

@@ -13,6 +13,7 @@ errors), or :func:`output_error` in an ``except`` clause that already exists.
 from __future__ import annotations
 
 import errno
+import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -25,12 +26,34 @@ NO_SPACE = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
 NO_PERMISSION = {errno.EACCES, errno.EPERM, errno.EROFS}
 
 #: substrings of GDAL/OGR messages (which carry no errno) that mean a full device.
-_NO_SPACE_TEXT = ("no space left", "disk full", "not enough space", "file too large", "quota exceeded")
+_NO_SPACE_TEXT = ("no space left", "disk full", "disk is full", "not enough space", "file too large",
+                  "quota exceeded")
 _NO_PERMISSION_TEXT = ("permission denied", "read-only file system")
 
 
-def _kind(exc: BaseException) -> str | None:
-    """``"space"``, ``"permission"`` or ``None`` for another error."""
+#: a device with less free space than this (bytes) counts as full when an unexplained write error occurs
+NEARLY_FULL = 1024 * 1024
+
+
+def _device_full(path: str | Path) -> bool:
+    """Whether the device holding ``path`` (or its nearest existing parent) has almost no space left."""
+    p = Path(path)
+    for candidate in (p, *p.parents):
+        if candidate.exists():
+            try:
+                return shutil.disk_usage(candidate).free < NEARLY_FULL
+            except OSError:
+                return False
+    return False
+
+
+def kind_of(exc: BaseException, path: str | Path | None = None) -> str | None:
+    """``"space"``, ``"permission"`` or ``None`` for another error.
+
+    Libraries that write through SQLite or GDAL do not always say that the disk is full (SQLite may report
+    a missing table it could not create); with ``path``, an error they cannot explain counts as a full
+    disk when the device holding ``path`` has less than :data:`NEARLY_FULL` bytes free.
+    """
     code = getattr(exc, "errno", None)
     if code in NO_SPACE:
         return "space"
@@ -41,6 +64,8 @@ def _kind(exc: BaseException) -> str | None:
         return "space"
     if any(t in text for t in _NO_PERMISSION_TEXT):
         return "permission"
+    if path is not None and _device_full(path):
+        return "space"
     return None
 
 
@@ -53,7 +78,7 @@ def output_error(exc: BaseException, path: str | Path, what: str, option: str = 
         what: what it is, for the message (``"the checkpoint"``, ``"buildings.gpkg"``).
         option: the parameter that chooses the location, as a mark (see :mod:`aerialmtl.errors`).
     """
-    kind = _kind(exc)
+    kind = kind_of(exc, path)
     if kind == "space":
         return OutputError(
             f"no space left on the device holding '{path}' while writing {what}; free space there or write to "
@@ -80,9 +105,9 @@ def writing(path: str | Path, what: str, option: str = "‹out_dir›") -> Itera
     except OSError as exc:
         raise output_error(exc, path, what, option) from exc
     except Exception as exc:  # rasterio/pyogrio errors are not OSErrors; only the conditions named above
-        if _kind(exc) is None:
+        if kind_of(exc, path) is None:
             raise
         raise output_error(exc, path, what, option) from exc
 
 
-__all__ = ["NO_PERMISSION", "NO_SPACE", "output_error", "writing"]
+__all__ = ["NEARLY_FULL", "NO_PERMISSION", "NO_SPACE", "kind_of", "output_error", "writing"]

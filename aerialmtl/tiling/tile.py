@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
-from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
 from aerialmtl.formats.tiles import (
     CACHE_DIR,
     DATASET_YAML,
@@ -50,6 +50,7 @@ from aerialmtl.formats.tiles import (
     read_manifest,
 )
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.io.oserrors import kind_of, output_error
 from aerialmtl.io.outputs import make_output_dir
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
@@ -259,11 +260,13 @@ def tile_dataset(
         try:
             result = _tile_loop(sources, assigner, grid, out_dir, size, stride, min_valid, progress)
             check_not_empty(result, grid, size, min_valid)
-        except BaseException:  # a failed or interrupted run leaves no half dataset behind
+        except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
             with contextlib.suppress(OSError):
                 _clear(out_dir)
                 if created:
                     out_dir.rmdir()
+            if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError) or kind_of(exc, out_dir) is not None):
+                raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
             raise
     result.tasks = list(sources.tasks)
     if assigner.block_size_m is not None:

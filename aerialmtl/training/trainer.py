@@ -53,6 +53,7 @@ from aerialmtl.formats.checkpoint import (
     first_nonfinite,
     load_checkpoint,
     save_checkpoint,
+    value_envelope,
 )
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.models.config import ModelConfig
@@ -281,7 +282,10 @@ class Trainer:
         norm_mean, norm_std, normalization = input_normalization(self.model_cfg, self.info)
         self.meta = ModelMeta(model=self.model_cfg, classes=self.info.classes if "classes" in self.tasks else None,
                               bands=self.info.bands, mean=norm_mean, std=norm_std, gsd=self.info.gsd,
-                              band_names=self.info.band_names, crs=self.info.crs, normalization=normalization)
+                              band_names=self.info.band_names, crs=self.info.crs, normalization=normalization,
+                              input_dtype=self.info.dtype,
+                              input_range=value_envelope(self.info.mean, self.info.std, self.info.dtype)
+                              if self.info.mean and self.info.dtype else None)
         if self.ctx.is_main:
             self.run.mkdir(parents=True, exist_ok=True)
         self.objective = Objective(cfg, self.tasks, class_weights(cfg, self.info, self.k or 2)
