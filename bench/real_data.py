@@ -470,6 +470,116 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
     return record
 
 
+# ---- learning curves and calibration --------------------------------------------------------------
+CAL_METHODS = ("isotonic", "quantile")
+
+
+def _val_cv(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray) -> dict[str, dict[str, float]]:
+    """Two-fold check of each calibration method on validation pixels only (first/second half of the val
+    patches in manifest order): fit on one half, score on the other; ``none`` = uncalibrated."""
+    from aerialmtl.models.calibration import fit_calibration, interval_coverage
+
+    half = pred.size // 2
+    folds = [(slice(0, half), slice(half, None)), (slice(half, None), slice(0, half))]
+    out: dict[str, dict[str, float]] = {}
+    for method in ("none", *CAL_METHODS):
+        rows = []
+        for fit, test in folds:
+            if method == "none":
+                h, s = pred[test], sd[test]
+            else:
+                cal = fit_calibration(pred[fit], ref[fit], sd[fit], method)  # type: ignore[arg-type]
+                h, s = cal.height(pred[test]), cal.std(sd[test])
+            r = ref[test]
+            tall = r >= TALL_M
+            err = h - r
+            rows.append({"mae": float(np.abs(err).mean()), "mae_tall": float(np.abs(err[tall]).mean()),
+                         "bias_tall": float(err[tall].mean()),
+                         **interval_coverage(np.abs(err), s)})
+        out[method] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+    return out
+
+
+def _calibrated_copy(pred_dir: Path, cal: Any, out_dir: Path) -> Path:
+    """``pred_dir``'s height (and height_std) with ``cal`` applied, as predict applies it (same functions)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for layer, fn in ((HEIGHT, cal.height), ("height_std", cal.std)):
+        src_path = pred_dir / layer_filename(layer)
+        if not src_path.is_file():
+            continue
+        with rasterio.open(src_path) as src:
+            profile = src.profile.copy()
+            data = src.read(1)
+        profile.update(driver="GTiff", compress="deflate", predictor=3, tiled=True, blockxsize=512, blockysize=512)
+        out = np.where(data == FLOAT_NODATA, FLOAT_NODATA, fn(data)).astype(np.float32)
+        with rasterio.open(out_dir / layer_filename(layer), "w", **profile) as dst:
+            dst.write(out, 1)
+    return out_dir
+
+
+def evaluate_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Evaluate every ``snap_<step>.pt``/``best_<step>.pt`` (or best.pt/last.pt) of run ``name`` on the test
+    block, uncalibrated and with each calibration fitted on the val split; writes ``curve.json``."""
+    from aerialmtl.formats.checkpoint import load_model
+    from aerialmtl.models.calibration import fit_calibration
+    from aerialmtl.training.calibrate import validation_pixels
+
+    rdir = args.out / "runs" / name
+    import yaml
+
+    # while the run trains there is no result.json yet: its config.yaml names the tile folder
+    rec = json.loads((rdir / "result.json").read_text()) if (rdir / "result.json").is_file() else {
+        "split": args.split, "tiles": yaml.safe_load((rdir / "config.yaml").read_text())["data"]["dir"]}
+    split_dir = args.out / ("split" if rec["split"] == "south-val" else f"split_{rec['split']}")
+    split = {k: split_dir / f"{k}.geojson" for k in ("train", "val", "test")}
+    tdir = Path(rec["tiles"])
+    torch.set_num_threads(args.threads)
+    ckpts = sorted(rdir.glob("snap_*.pt"), key=lambda p: int(p.stem.split("_")[1]))
+    ckpts += sorted(rdir.glob("best_*.pt"), key=lambda p: int(p.stem.split("_")[1]))
+    if not ckpts:
+        ckpts = [p for p in (rdir / "best.pt", rdir / "last.pt") if p.is_file()]
+    curve_file = rdir / "curve.json"
+    curve: dict[str, Any] = json.loads(curve_file.read_text()) if curve_file.is_file() else {}
+    for ckpt in ckpts:
+        if ckpt.stem in curve and not args.force:
+            continue
+        t0, load0 = time.perf_counter(), os.getloadavg()
+        model, meta = load_model(ckpt)
+        pred, ref, sd = validation_pixels(model, meta, tdir, mc=args.mc)
+        cals = {m: fit_calibration(pred, ref, sd, m) for m in CAL_METHODS}  # type: ignore[arg-type]
+        entry: dict[str, Any] = {"step": torch.load(ckpt, weights_only=True)["train_state"]["step"],
+                                 "val_cv": _val_cv(pred, ref, sd), "val_pixels": int(pred.size),
+                                 "calibration": {m: {"std_scale": c.std_scale, "knots": [c.height_x, c.height_y]}
+                                                 for m, c in cals.items()}}
+        pdir = rdir / f"pred_{ckpt.stem}"
+        predict_raster(args.data / ORTHO, (model, meta), pdir, mc=args.mc, aoi=split["test"], overwrite=True,
+                       progress=False, checkpoint_name=str(ckpt), calibration=False)
+        entry["test"] = {"none": evaluate_dir(pdir, args.data, rdir / f"report_{ckpt.stem}.json")}
+        for m, c in cals.items():
+            cdir = _calibrated_copy(pdir, c, rdir / f"pred_{ckpt.stem}_{m}")
+            entry["test"][m] = evaluate_dir(cdir, args.data, rdir / f"report_{ckpt.stem}_{m}.json")
+        for m in ("none", *CAL_METHODS):
+            rep = json.loads((rdir / f"report_{ckpt.stem}{'' if m == 'none' else '_' + m}.json").read_text())
+            hs = rep.get("uncertainty", {}).get("height_std") or {}
+            entry["test"][m].update({"coverage_1sigma": hs.get("coverage_1sigma"),
+                                     "coverage_2sigma": hs.get("coverage_2sigma"),
+                                     "per_bin": [{k: b[k] for k in ("range_m", "n_pixels", "mae", "bias")}
+                                                 for b in rep["height"]["per_bin"]]})
+        if "baselines" not in curve:
+            mean = train_mean(pdir / layer_filename(HEIGHT), args.data, split["train"])
+            bdir = constant_prediction(pdir, mean, rdir / "baseline_train_mean")
+            curve["baselines"] = {"train_mean_value_m": mean,
+                                  "train_mean": evaluate_dir(bdir, args.data, rdir / "report_baseline_train_mean.json")}
+        entry["eval_s"], entry["load"] = time.perf_counter() - t0, [load0, os.getloadavg()]
+        curve[ckpt.stem] = entry
+        curve_file.write_text(json.dumps(curve, indent=1, default=float))
+        t = entry["test"]
+        print(f"{name} {ckpt.stem} step {entry['step']}: " + "; ".join(
+            f"{m}: MAE {t[m]['mae']:.2f} MAE>=2 {t[m]['mae_tall']:.2f} bias>=2 {t[m]['bias_tall']:+.2f} "
+            f"cov1 {t[m]['coverage_1sigma'] or math.nan:.2f}" for m in t), flush=True)
+    return curve
+
+
 # ---- tables --------------------------------------------------------------------------------------
 HEADER = ("| run | GSD (m) | patch | steps | train s | height MAE (m) | RMSE (m) | MAE ≥ 2 m (m) | "
           "Spearman(std, \\|err\\|) | train-mean MAE / RMSE / MAE ≥ 2 m | MAE / train-mean | "
@@ -523,6 +633,9 @@ def main() -> None:
     ap.add_argument("--snapshots", help="comma-separated steps at which to keep snap_<step>.pt (last) and "
                     "best_<step>.pt (best so far) for learning curves")
     ap.add_argument("--no-eval", action="store_true", help="train only (evaluate later with --evaluate)")
+    ap.add_argument("--evaluate", metavar="RUN", help="evaluate the snapshots of run RUN (test block, with and "
+                    "without calibration fitted on val) into OUT/runs/RUN/curve.json")
+    ap.add_argument("--force", action="store_true", help="with --evaluate: redo checkpoints already in curve.json")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--list", action="store_true", help="list the recipes")
     ap.add_argument("--table", action="store_true", help="print every result in OUT as a Markdown table")
@@ -533,6 +646,9 @@ def main() -> None:
         return
     if args.table:
         print(table(args.out))
+        return
+    if args.evaluate:
+        evaluate_run(args.evaluate, args)
         return
     recipe = RECIPES[args.recipe]
     changes = {k: getattr(args, k) for k in ("gsd", "size", "stride") if getattr(args, k) is not None}

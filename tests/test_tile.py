@@ -261,6 +261,7 @@ def test_cli_tile(scene: dict[str, Path], tmp_path: Path) -> None:
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert "manifest.csv" in result.output and "train" in result.output
+    assert "heights: train mean" in result.output and "% of pixels ≥ 2 m" in result.output
     meta = yaml.safe_load((out / "dataset.yaml").read_text())
     assert meta["height"]["max_height"] == 18.0 and meta["splits"]["block_size"] == 16.0
     assert sum(meta["counts"].values()) == len(read_manifest(out / "manifest.csv"))

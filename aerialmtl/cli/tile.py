@@ -116,6 +116,10 @@ def tile(ortho: str, dsm: str | None, dtm: str | None, ndsm: str | None, z_unit:
                f"of {result.windows} windows; dropped {result.dropped_invalid} with < {min_valid:g} valid pixels, "
                f"{result.dropped_split} straddling splits")
     click.echo(f"tasks: {', '.join(result.tasks)}")
+    if result.height_summary:  # does validation look like training? (README: "Training on a small area")
+        click.echo("heights: " + "; ".join(
+            f"{k} mean {v['mean_m']:.2f} m, {100 * v['tall_share']:.0f} % of pixels ≥ 2 m"
+            for k, v in result.height_summary.items()))
     click.echo(f"manifest: {result.manifest}")
     click.echo(f"dataset:  {result.dataset_yaml}")
     if total == 0:

@@ -94,6 +94,31 @@ class TileResult:
     block_size_m: float | None = None
     block_patches: int | None = None
     max_valid_fraction: float = 0.0
+    #: per split with heights: ``mean_m`` (mean reference height of its valid pixels, metres) and
+    #: ``tall_share`` (share of them ≥ :data:`TALL_M`), as the summary prints them
+    height_summary: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+#: Height (metres) above which a pixel counts as "tall" in the tile summary.
+TALL_M = 2.0
+
+
+class _HeightSummary:
+    """Per-split sum, count and tall count of the reference heights written (overlapping patches counted
+    as often as they are written)."""
+
+    def __init__(self) -> None:
+        self.acc: dict[str, list[float]] = {}
+
+    def update(self, split: str, heights: np.ndarray) -> None:
+        a = self.acc.setdefault(split, [0.0, 0.0, 0.0])
+        a[0] += float(heights.astype(np.float64).sum())
+        a[1] += heights.size
+        a[2] += float(np.count_nonzero(heights >= TALL_M))
+
+    def result(self) -> dict[str, dict[str, float]]:
+        return {s: {"mean_m": a[0] / a[1], "tall_share": a[2] / a[1]}
+                for s, a in sorted(self.acc.items(), key=lambda kv: SPLITS.index(kv[0])) if a[1]}
 
 
 class _BandStats:
@@ -433,6 +458,7 @@ def _tile_loop(
     stats = _BandStats(len(sources.image.bands))
     dropped_invalid = dropped_split = 0
     max_valid = 0.0
+    heights = _HeightSummary()
     total = count_windows(grid.width, grid.height, size, stride)
     windows = tile_windows(grid.width, grid.height, size, stride)
     with ManifestWriter(out_dir) as writer:  # streamed row by row, renamed once every patch is written
@@ -446,7 +472,7 @@ def _tile_loop(
             if float(valid.mean()) < min_valid or not valid.any():
                 dropped_invalid += 1
                 continue
-            writer.writerow(_write_patches(sources, grid, win, split, data, valid, out_dir))
+            writer.writerow(_write_patches(sources, grid, win, split, data, valid, out_dir, heights))
             if split == "train":
                 stats.update(data, valid)
             counts[split] += 1
@@ -455,6 +481,7 @@ def _tile_loop(
         out_dir=out_dir, manifest=writer.path, dataset_yaml=out_dir / DATASET_YAML, counts=counts,
         windows=total, dropped_invalid=dropped_invalid, dropped_split=dropped_split,
         mean=ms[0] if ms else None, std=ms[1] if ms else None, max_valid_fraction=max_valid,
+        height_summary=heights.result(),
     )
 
 
@@ -488,6 +515,7 @@ def check_not_empty(result: TileResult, grid: Grid, size: int, min_valid: float)
 
 def _write_patches(
     sources: TileSources, grid: Grid, win: Window, split: str, data: np.ndarray, valid: np.ndarray, out_dir: Path,
+    summary: _HeightSummary | None = None,
 ) -> dict[str, Any]:
     """Write the image, height and class patches of ``win``; returns its manifest row.
 
@@ -511,6 +539,8 @@ def _write_patches(
         row["height_path"] = rel = patch_path(split, "height", pid)
         _write(out_dir / rel, patch_profile(grid, win, 1, "float32", HEIGHT_NODATA),
                np.where(hvalid, h, HEIGHT_NODATA).astype(np.float32)[None])
+        if summary is not None:
+            summary.update(split, hv)
         if hv.size:
             row.update(height_min=_fmt(float(hv.min())), height_mean=_fmt(float(hv.astype(np.float64).mean())),
                        height_max=_fmt(float(hv.max())))
