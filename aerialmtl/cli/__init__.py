@@ -27,6 +27,7 @@ from aerialmtl import __version__
 from aerialmtl.cli.buildings import buildings
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
+from aerialmtl.cli.export import export
 from aerialmtl.cli.options import flags_for, usage_errors
 from aerialmtl.cli.predict import predict
 from aerialmtl.cli.synth import synth
@@ -45,7 +46,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     ctx.obj["debug"] = debug
 
 
-for _command in (synth, tile, train, predict, evaluate, buildings, demo):
+for _command in (synth, tile, train, predict, evaluate, buildings, export, demo):
     assert _command.name is not None and _command.callback is not None
     _command.callback = usage_errors(_command.name, _command.callback)
     cli.add_command(_command)
