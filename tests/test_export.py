@@ -11,7 +11,7 @@ import torch
 from conftest import run_cli, tiny_d3net
 
 from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.inference.export import read_metadata
+from aerialmtl.formats.exported_model import read_metadata
 
 pytestmark = pytest.mark.slow  # one torch → ONNX export (~15 s on 2 cores)
 
