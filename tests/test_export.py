@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,10 +13,14 @@ from conftest import run_cli, tiny_d3net
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.formats.exported_model import read_metadata
+from aerialmtl.inference.export import ExportHead
+from aerialmtl.models.calibration import Calibration
 
 pytestmark = pytest.mark.slow  # one torch → ONNX export (~15 s on 2 cores)
 
 TILE = 64
+#: A height calibration as training stores it (predict applies it; so does the exported graph).
+CALIBRATION = Calibration((0.0, 0.5, 2.0, 8.0), (0.2, 0.4, 3.0, 10.0), std_scale=1.4, method="isotonic")
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +30,7 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
     root = tmp_path_factory.mktemp("export")
     model, meta = tiny_d3net()
-    save_checkpoint(root / "best.pt", model, meta)
+    save_checkpoint(root / "best.pt", model, replace(meta, calibration=CALIBRATION))
     files = {"ckpt": root / "best.pt"}
     res = export_model(root / "best.pt", root / "model.onnx", tile=TILE, overlap=16)
     files["all"] = res.files[0]
@@ -33,12 +38,21 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def _torch(ckpt: Path, x: np.ndarray) -> dict[str, np.ndarray]:
+    """What `aerialmtl predict --mc 1` computes per tile: heights through the checkpoint's calibration."""
     from aerialmtl.formats.checkpoint import load_model
 
-    model, _ = load_model(ckpt)
+    model, meta = load_model(ckpt)
+    assert meta.calibration == CALIBRATION
     with torch.no_grad():
         out = model(torch.from_numpy(x))
-    return {"height": out["height"].numpy(), "classes": torch.softmax(out["classes"], 1).numpy()}
+    return {"height": CALIBRATION.height(out["height"].numpy()),
+            "classes": torch.softmax(out["classes"], 1).numpy()}
+
+
+def test_the_calibration_in_the_graph_is_the_checkpoint_s() -> None:
+    head = ExportHead(torch.nn.Identity(), ("height",), CALIBRATION)
+    h = torch.linspace(-5.0, 40.0, 2001).reshape(1, 1, 1, -1)
+    np.testing.assert_allclose(head.calibrate(h).numpy(), CALIBRATION.height(h.numpy()), atol=1e-5)
 
 
 def _image(n: int = 3, seed: int = 0) -> np.ndarray:
@@ -64,6 +78,7 @@ def test_onnx_reproduces_torch_and_carries_the_metadata(exported: dict[str, Path
     assert md["resolution"] == pytest.approx(50.0) and md["tile_size"] == TILE and md["tiles_overlap"] == 25
     assert md["standardization_mean"] == pytest.approx([m / 255 for m in meta.mean])
     assert md["aerialmtl"]["mean"] == list(meta.mean) and md["aerialmtl"]["outputs"]["height"]["unit"] == "m"
+    assert md["aerialmtl"]["height_calibration"].startswith("isotonic height map")
     assert [c["name"] for c in md["aerialmtl"]["classes"]] == [c.name for c in meta.classes.classes]  # type: ignore[union-attr]
 
     # Deepness's own preprocessing (8-bit values / 255, then its standardisation) gives the same input

@@ -25,9 +25,11 @@ from aerialmtl.cli.options import argument, option, overwrite_option
              "[default: --tile / 8, 64 px for 512].")
 @option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
         help="Output file: model.onnx, or model.xml for OpenVINO (its weights go to model.bin beside it).")
+@option("--no-calibration", "no_calibration", is_flag=True, library="calibration",
+        help="Leave out the checkpoint's height calibration (applied in the graph by default, as predict does).")
 @overwrite_option()
 def export(checkpoint: Path, format_: str, task: str, tile: int, overlap: int | None, out: Path,
-           overwrite: bool) -> None:
+           no_calibration: bool, overwrite: bool) -> None:
     """Export the model of CHECKPOINT (best.pt) for use without aerialmtl, e.g. in QGIS.
 
     The input is the orthophoto's bands standardised per band ((raw - mean) / std, stored in the file's
@@ -41,7 +43,8 @@ def export(checkpoint: Path, format_: str, task: str, tile: int, overlap: int | 
     from aerialmtl.inference.export import export_model
 
     result = export_model(checkpoint, out, format=format_, task=task, tile=tile,  # type: ignore[arg-type]
-                          overlap=tile // 8 if overlap is None else overlap, overwrite=overwrite)
+                          overlap=tile // 8 if overlap is None else overlap, calibration=not no_calibration,
+                          overwrite=overwrite)
     kind = {"height": "Deepness Regressor", "classes": "Deepness Segmentor"}.get(result.task, "all tasks in one file")
     bands = len(json.loads(result.metadata["standardization_mean"]))
     click.echo(f"{result.format} model, {kind}: input N×{bands}×{tile}×{tile}, outputs {', '.join(result.outputs)}; "

@@ -3,7 +3,8 @@
 Written by :func:`aerialmtl.inference.export.export_model`; read by QGIS's Deepness plugin, ONNX runtimes,
 OpenVINO and :func:`read_metadata`. The graph has one input ``image`` (float32 ``N×C×S×S``, the
 checkpoint's bands standardised ``(raw − mean) / std``) and, by task, the outputs ``height``
-(``N×1×S×S``, metres) and ``classes`` (``N×K×S×S``, softmax probabilities).
+(``N×1×S×S``, metres, calibrated as ``predict`` does when the checkpoint has a calibration) and
+``classes`` (``N×K×S×S``, softmax probabilities).
 
 **Metadata** (ONNX ``metadata_props``; in an OpenVINO IR, ``rt_info`` under ``model_info``), every value
 JSON-encoded, the keys of Deepness's documentation plus one ``aerialmtl`` object:
@@ -50,8 +51,9 @@ def model_tasks(meta: ModelMeta) -> tuple[str, ...]:
     return tuple(t for t in ("height", "classes") if t in meta.model.tasks)
 
 
-def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int) -> dict[str, str]:
-    """The metadata of an export (see the module table), every value JSON-encoded."""
+def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibrated: bool = False) -> dict[str, str]:
+    """The metadata of an export (see the module table), every value JSON-encoded; ``calibrated``: the graph
+    applies the checkpoint's height calibration."""
     outputs = model_tasks(meta) if task == "all" else (task,)
     k = meta.classes.num_classes if meta.classes is not None else 0
     shapes = {"height": {"shape": ["N", 1, tile, tile], "unit": "m", "meaning": "height above ground"},
@@ -87,6 +89,8 @@ def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int) -> dict
         "crs": meta.crs,
         "classes": ([{"index": i, "code": c.code, "name": c.name, "color": list(c.color)}
                      for i, c in enumerate(meta.classes.classes)] if meta.classes is not None else None),
+        "height_calibration": (meta.calibration.summary() if calibrated and meta.calibration is not None
+                               else "not applied"),
         "mc_dropout": "not exported: the model is deterministic (dropout off); `aerialmtl predict` gives uncertainty",
     }
     return {key: json.dumps(value) for key, value in values.items()}

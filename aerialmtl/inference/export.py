@@ -43,26 +43,54 @@ from aerialmtl import __version__
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.exported_model import INPUT, OPENVINO_SECTION, OPSET, export_metadata, model_tasks
+from aerialmtl.models.calibration import Calibration
 
 Format = Literal["onnx", "openvino"]
 Task = Literal["all", "height", "classes"]
 FORMATS: tuple[str, ...] = ("onnx", "openvino")
 TASKS: tuple[str, ...] = ("all", "height", "classes")
 class ExportHead(nn.Module):
-    """The exported computation: the model's deterministic forward, class logits turned into probabilities.
+    """The exported computation: the model's deterministic forward, class logits turned into probabilities,
+    heights through the checkpoint's calibration (when given) as ``aerialmtl predict`` applies it.
 
     ``forward(image)``: ``N×C×S×S`` standardised image → a tuple in the order of ``tasks``:
     height ``N×1×S×S`` (metres) and/or class probabilities ``N×K×S×S``.
     """
 
-    def __init__(self, model: nn.Module, tasks: tuple[str, ...]) -> None:
+    lo: torch.Tensor
+    hi: torch.Tensor
+    slope: torch.Tensor
+    start: torch.Tensor
+
+    def __init__(self, model: nn.Module, tasks: tuple[str, ...], calibration: Calibration | None = None) -> None:
         super().__init__()
         self.model = model
         self.tasks = tasks
+        self.calibrated = calibration is not None
+        if calibration is not None:  # the piecewise-linear map as segments, 1×(K−1)×1×1 each
+            x = torch.tensor(calibration.height_x, dtype=torch.float32)
+            y = torch.tensor(calibration.height_y, dtype=torch.float32)
+            self.register_buffer("lo", x[:-1].reshape(1, -1, 1, 1))
+            self.register_buffer("hi", x[1:].reshape(1, -1, 1, 1))
+            self.register_buffer("slope", ((y[1:] - y[:-1]) / (x[1:] - x[:-1])).reshape(1, -1, 1, 1))
+            self.register_buffer("start", y[:1].reshape(1, 1, 1, 1))
+
+    def calibrate(self, h: torch.Tensor) -> torch.Tensor:
+        """:meth:`~aerialmtl.models.calibration.Calibration.height` with ops every ONNX runtime has (a sum of
+        clamped segments instead of a search): ``y_0`` below the first knot, slope 1 beyond the last, ≥ 0."""
+        segments = (torch.minimum(torch.maximum(h, self.lo), self.hi) - self.lo) * self.slope
+        beyond = torch.relu(h - self.hi[:, -1:])
+        return torch.relu(self.start + segments.sum(dim=1, keepdim=True) + beyond)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
         out = self.model(image)
-        return tuple(torch.softmax(out[t], dim=1) if t == "classes" else out[t] for t in self.tasks)
+        results = []
+        for t in self.tasks:
+            if t == "classes":
+                results.append(torch.softmax(out[t], dim=1))
+            else:
+                results.append(self.calibrate(out[t]) if self.calibrated else out[t])
+        return tuple(results)
 
 
 @dataclass(frozen=True)
@@ -94,7 +122,7 @@ def _quiet_exporter() -> Iterator[None]:
             lg.setLevel(level)
 
 
-def _onnx_graph(model: nn.Module, meta: ModelMeta, tile: int, path: Path) -> tuple[str, ...]:
+def _onnx_graph(model: nn.Module, meta: ModelMeta, tile: int, path: Path, calibration: bool) -> tuple[str, ...]:
     """Export the deterministic model of every task to ``path`` (one file, weights inside); returns the outputs."""
     try:
         import onnx  # noqa: F401
@@ -103,7 +131,7 @@ def _onnx_graph(model: nn.Module, meta: ModelMeta, tile: int, path: Path) -> tup
         raise InputError(f"exporting to ONNX needs the onnx and onnxscript packages ({exc.name} is missing): "
                          "pip install 'aerialmtl[onnx]'") from None
     tasks = model_tasks(meta)
-    head = ExportHead(model.eval(), tasks).eval()
+    head = ExportHead(model.eval(), tasks, meta.calibration if calibration else None).eval()
     example = torch.zeros(2, len(meta.bands), tile, tile)
     with _quiet_exporter(), torch.no_grad():
         torch.onnx.export(head, (example,), str(path), input_names=[INPUT], output_names=list(tasks),
@@ -152,6 +180,7 @@ def export_model(
     task: Task = "all",
     tile: int = 512,
     overlap: int = 64,
+    calibration: bool = True,
     overwrite: bool = False,
 ) -> ExportResult:
     """Write the inference model of ``checkpoint`` as ONNX or OpenVINO IR (see the module docstring).
@@ -163,6 +192,8 @@ def export_model(
         task: ``all`` (every output of the model), ``height`` (a Deepness Regressor) or ``classes`` (a Segmentor).
         tile: input side ``S`` in pixels (a multiple of 32): the tile size QGIS plugins cut the map into.
         overlap: overlap between tiles in pixels, recorded as Deepness's ``tiles_overlap`` percentage.
+        calibration: apply the checkpoint's height calibration (:mod:`aerialmtl.models.calibration`) in the
+            graph, as ``aerialmtl predict`` does, when it has one.
         overwrite: replace existing files.
 
     Raises:
@@ -201,11 +232,11 @@ def export_model(
     if not out.parent.is_dir():
         out.parent.mkdir(parents=True, exist_ok=True)
 
-    metadata = export_metadata(meta, task, tile, overlap)
+    metadata = export_metadata(meta, task, tile, overlap, calibrated=calibration and meta.calibration is not None)
     try:
         with tempfile.TemporaryDirectory(prefix=".aerialmtl-export-", dir=out.parent) as tmp:
             graph = Path(tmp) / "all.onnx"
-            outputs = _onnx_graph(model, meta, tile, graph)
+            outputs = _onnx_graph(model, meta, tile, graph, calibration)
             if task != "all" and len(outputs) > 1:
                 _keep_output(graph, Path(tmp) / "task.onnx", task)
                 graph, outputs = Path(tmp) / "task.onnx", (task,)
