@@ -21,6 +21,7 @@ inside ``pipe``; ``colorrampshader`` items; ``colorPalette``/``paletteEntry``) a
 from __future__ import annotations
 
 import json
+import math
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -104,6 +105,13 @@ def _num(v: float | int) -> str:
     return str(int(f)) if f.is_integer() else repr(f)
 
 
+def label_digits(span: float) -> int:
+    """Decimals of the legend labels of a ramp over ``span``: 2, more for a small span (0.0004 m → 5)."""
+    if not span > 0 or not math.isfinite(span):
+        return 2
+    return max(2, min(8, 2 - math.floor(math.log10(span / 4))))
+
+
 def pseudocolor_style(vmin: float, vmax: float, ramp: Ramp, nodata: float | int | None, unit: str = "",
                       band: int = 1) -> ET.ElementTree:
     """A ``singlebandpseudocolor`` style: ``ramp`` interpolated from ``vmin`` to ``vmax`` (in ``unit``)."""
@@ -117,9 +125,10 @@ def pseudocolor_style(vmin: float, vmax: float, ramp: Ramp, nodata: float | int 
     })
     _transparency(renderer, nodata)
     _min_max_origin(renderer)
+    digits = label_digits(vmax - vmin)
     shader = ET.SubElement(ET.SubElement(renderer, "rastershader"), "colorrampshader", {
         "colorRampType": "INTERPOLATED", "classificationMode": "1", "clip": "0",
-        "minimumValue": _num(vmin), "maximumValue": _num(vmax), "labelPrecision": "2",
+        "minimumValue": _num(vmin), "maximumValue": _num(vmax), "labelPrecision": str(digits),
     })
     cramp = ET.SubElement(shader, "colorramp", {"type": "gradient", "name": "[source]"})
     stops = ":".join(f"{k / (len(ramp.colors) - 1):.4f};{_rgba(c)}" for k, c in enumerate(ramp.colors[1:-1], 1))
@@ -131,7 +140,7 @@ def pseudocolor_style(vmin: float, vmax: float, ramp: Ramp, nodata: float | int 
     for k, color in enumerate(ramp.colors):
         value = vmin + (vmax - vmin) * k / n
         ET.SubElement(shader, "item", {"alpha": "255", "value": repr(float(value)),
-                                       "label": f"{value:.2f}{suffix}", "color": color})
+                                       "label": f"{value:.{digits}f}{suffix}", "color": color})
     _pipe_tail(pipe, categorical=False)
     ET.SubElement(root, "blendMode").text = "0"
     return ET.ElementTree(root)
