@@ -36,10 +36,16 @@ NETWORK_VSI = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsioss", 
 
 #: GDAL settings for remote inputs (applied unless the environment already sets them):
 #: no directory listing when a file is opened (one request instead of a listing of the whole prefix and
-#: probes for sidecar files), the downloaded blocks cached, neighbouring ranges merged into one request,
-#: and a few retries on the temporary HTTP errors (429, 502-504) object stores answer under load.
+#: probes for sidecar files); the tiles a window needs fetched one range after the other through GDAL's
+#: download cache (``GDAL_HTTP_MULTIRANGE=SERIAL``; GDAL's default parallel multi-range reads bypass that
+#: cache, so the COG tiles two overlapping window rows share were downloaded twice: 28 MiB instead of
+#: 16 MiB for a 15 MiB COG, bench/RESULTS.md, remote inputs), in 1 MiB chunks, with a 128 MiB cache shared
+#: by the reader threads; neighbouring ranges merged into one request; and a few retries on the temporary
+#: HTTP errors (429, 502-504) object stores answer under load.
 REMOTE_GDAL_OPTIONS: dict[str, str] = {
     "GDAL_DISABLE_READDIR_ON_OPEN": "EMPTY_DIR",
+    "GDAL_HTTP_MULTIRANGE": "SERIAL",
+    "CPL_VSIL_CURL_CACHE_SIZE": str(128 * 2**20),
     "VSI_CACHE": "TRUE",
     "GDAL_HTTP_MERGE_CONSECUTIVE_RANGES": "YES",
     "GDAL_HTTP_MULTIPLEX": "YES",
