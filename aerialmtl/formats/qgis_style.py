@@ -194,14 +194,15 @@ def layer_style(spec: LayerSpec, stats: BandStats | None) -> ET.ElementTree:
     return pseudocolor_style(0.0, max(vmax, 0.0), RAMPS.get(spec.name, VIRIDIS), spec.nodata, unit)
 
 
-def write_style(path: str | Path, tree: ET.ElementTree) -> Path:
-    """Write a style as QGIS does (its DOCTYPE line, UTF-8); ``path`` is replaced atomically."""
+def write_style(path: str | Path, tree: ET.ElementTree, atomic: bool = True) -> Path:
+    """Write a style as QGIS does (its DOCTYPE line, UTF-8); ``path`` is replaced atomically unless
+    ``atomic`` is false (``path`` is then itself a staging file that the caller renames)."""
     path = Path(path)
     ET.indent(tree, space="  ")
     root = tree.getroot()
     assert root is not None
     text = "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + ET.tostring(root, encoding="unicode") + "\n"
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}") if atomic else path
     try:
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, path)

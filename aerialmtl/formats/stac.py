@@ -200,10 +200,11 @@ def item_dict(item: pystac.Item | pystac.Collection) -> dict[str, Any]:
     return item.to_dict(include_self_link=False, transform_hrefs=False)
 
 
-def write_json(path: str | Path, obj: pystac.Item | pystac.Collection) -> Path:
-    """Write ``obj`` at ``path`` (replaced atomically)."""
+def write_json(path: str | Path, obj: pystac.Item | pystac.Collection, atomic: bool = True) -> Path:
+    """Write ``obj`` at ``path`` (replaced atomically unless ``atomic`` is false: ``path`` is then itself a
+    staging file that the caller renames)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}") if atomic else path
     try:
         tmp.write_text(json.dumps(item_dict(obj), indent=2), encoding="utf-8")
         os.replace(tmp, path)

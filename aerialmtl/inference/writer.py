@@ -315,10 +315,11 @@ class PredictionWriter:
         out: dict[str, tuple[Path, Path]] = {}
         for name, spec in self.specs.items():
             qml = hidden(self.out_dir, style_filename(name), "partial")
-            out[f"{name}_style"] = (write_style(qml, layer_style(spec, stats.get(name))),
+            out[f"{name}_style"] = (write_style(qml, layer_style(spec, stats.get(name)), atomic=False),
                                     self.out_dir / style_filename(name))
         item = build_item(self.out_dir, self.grid, list(self.specs.values()), info, stats)
-        out["item"] = (write_json(hidden(self.out_dir, ITEM_FILE, "partial"), item), self.out_dir / ITEM_FILE)
+        out["item"] = (write_json(hidden(self.out_dir, ITEM_FILE, "partial"), item, atomic=False),
+                       self.out_dir / ITEM_FILE)
         return out
 
     def abort(self) -> None:
