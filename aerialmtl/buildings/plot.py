@@ -16,6 +16,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from aerialmtl.formats.buildings import ID_FIELD
+from aerialmtl.formats.prediction import HEIGHT, HEIGHT_STD
 
 
 def _path(poly: Polygon) -> Any:
@@ -70,6 +71,8 @@ def plot_buildings(geoms: Sequence[shapely.Geometry], fields: dict[str, np.ndarr
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import PathPatch
 
+    from aerialmtl.evaluation.maps import add_colorbar, layer_cmap
+
     if fig is None:
         from matplotlib.figure import Figure
 
@@ -78,8 +81,9 @@ def plot_buildings(geoms: Sequence[shapely.Geometry], fields: dict[str, np.ndarr
         fig.set_size_inches(2.3 * panel_size, panel_size)
     axes = np.atleast_1d(fig.subplots(1, 2, sharex=True, sharey=True, squeeze=False)).ravel()
     polys = [g for g in geoms if isinstance(g, Polygon) and not g.is_empty]
-    for ax, (key, title, cmap) in zip(axes, (("height_m", "building height (m)", "viridis"),
-                                             ("height_std_m", "height std (m)", "magma"))):
+    for ax, (key, title, layer) in zip(axes, (("height_m", "building height (m)", HEIGHT),
+                                              ("height_std_m", "height std (m)", HEIGHT_STD))):
+        cmap = layer_cmap(layer)  # the colour map of the layer's QGIS style
         if maps is not None:
             if maps.rgb is not None:
                 ax.imshow(np.nan_to_num(maps.rgb.mean(axis=-1), nan=1.0), cmap="gray", extent=maps.extent,
@@ -97,7 +101,7 @@ def plot_buildings(geoms: Sequence[shapely.Geometry], fields: dict[str, np.ndarr
             if finite.size:
                 coll.set_clim(0.0, max(float(finite.max()), 1e-6))
             ax.add_collection(coll)
-            fig.colorbar(coll, ax=ax, fraction=0.046, pad=0.02)
+            add_colorbar(ax, coll, layer, label=title)
             if maps is None:
                 ax.autoscale_view()
         ax.set_title(f"{title}, {len(polys)} buildings", fontsize=9)
