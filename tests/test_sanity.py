@@ -495,3 +495,32 @@ def test_full_disk_while_writing_a_geopackage_or_tiles(small_fs: Path, tmp_path:
     one_error_line(run_cli(capsys, "tile", "--ortho", ortho, "--ndsm", ndsm, "--size", "32", "--out", small_fs / "t",
                            "--quiet"), f"no space left on the device holding '{small_fs / 't'}'", "--out")
     assert sorted(p.name for p in small_fs.iterdir()) == ["filler"]  # nothing partial, nothing hidden
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["tile", "--split-block", "inf"], "--split-block"),
+    (["tile", "--split-seed", "-1"], "--split-seed"),
+    (["evaluate", "--seed", "-1"], "--seed"),
+])
+def test_typed_option_values_are_usage_errors(tmp_path: Path, capsys, args: list[str], needle: str) -> None:
+    ortho = _ortho(tmp_path)
+    ndsm = write_raster(tmp_path / "n.tif", np.ones((64, 64), np.float32), CRS)
+    if args[0] == "tile":
+        full = [*args, "--ortho", ortho, "--ndsm", ndsm, "--out", tmp_path / "t", "--quiet"]
+    else:
+        from conftest import write_prediction_layers
+
+        pred = write_prediction_layers(tmp_path / "pred", np.zeros((64, 64), np.uint8), np.ones((64, 64), np.float32))
+        full = [*args, "--pred", pred, "--height", ndsm, "--out", tmp_path / "e.json", "--quiet"]
+    rc, _, err = run_cli(capsys, *full)
+    assert rc == 2 and needle in err and "unexpected" not in err, err
+
+
+def test_geojson_properties_that_are_not_an_object(tmp_path: Path, capsys, ckpt: Path) -> None:
+    aoi = tmp_path / "aoi.geojson"
+    ring = _square(500000, 4999968, 32)
+    aoi.write_text(json.dumps({"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": CRS}},
+                               "features": [{"type": "Feature", "properties": [1],
+                                             "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    assert run_cli(capsys, "predict", _ortho(tmp_path), "--model", ckpt, "--aoi", aoi, "--out", tmp_path / "p",
+                   *PREDICT)[0] == 0

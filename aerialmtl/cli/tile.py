@@ -76,7 +76,7 @@ def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) ->
               help="Split block side in metres, snapped to a whole number of patch strides.")
 @option("--split-ratios", default="0.7,0.15,0.15", show_default=True, callback=_ratios, library="ratios",
               help="Fractions of blocks for train,val,test.")
-@click.option("--split-seed", default=0, show_default=True, type=int, help="Seed of the block shuffle.")
+@option("--split-seed", default=0, show_default=True, type=int, library="seed", help="Seed of the block shuffle.")
 @option("--split-aoi", multiple=True, callback=_aoi, library="aoi",
               help="AOI polygons instead of blocks: one GeoJSON with a 'split' property, or SPLIT=FILE (repeat).")
 @click.option("--bands", callback=_int_list, help="1-based ortho bands to keep, e.g. 1,2,3 [default: all but alpha].")

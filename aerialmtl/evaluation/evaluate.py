@@ -163,6 +163,8 @@ def evaluate_prediction(
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
     """
     pred_dir = Path(pred_dir)
+    if not 0 <= seed < 2**32:
+        raise InputError(f"‹seed› must be an integer in 0..2**32-1, got {seed}", param="seed")
     files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, buildings_ref, height_threshold,
                              sample_size, out, overwrite)
     height_given = height_ref if height_ref is not None else dsm_ref

@@ -114,7 +114,8 @@ def load_geometries(
             g = shapely.make_valid(g)
         if g.is_empty or g.area <= 0:
             continue
-        out.append((g, dict(feat.get("properties") or {})))
+        props = feat.get("properties")
+        out.append((g, dict(props) if isinstance(props, dict) else {}))  # RFC 7946: an object or null
     return out
 
 

@@ -61,9 +61,11 @@ class SplitSpec:
         if self.method not in ("blocks", "aoi"):
             raise InputError(f"split method must be 'blocks' or 'aoi', got {self.method!r}")
         if self.method == "blocks":
-            if not self.block_size > 0:
+            if not 0 < self.block_size < math.inf:
                 raise InputError(f"‹block_size› must be a positive size in metres, got {self.block_size}",
                                  param="block_size")
+            if not 0 <= self.seed < 2**32:
+                raise InputError(f"‹seed› must be an integer in 0..2**32-1, got {self.seed}", param="seed")
             r = tuple(float(x) for x in self.ratios)
             if len(r) != 3 or any(x < 0 or not math.isfinite(x) for x in r) or sum(r) <= 0:
                 raise InputError(
