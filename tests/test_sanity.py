@@ -524,3 +524,25 @@ def test_geojson_properties_that_are_not_an_object(tmp_path: Path, capsys, ckpt:
                                              "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
     assert run_cli(capsys, "predict", _ortho(tmp_path), "--model", ckpt, "--aoi", aoi, "--out", tmp_path / "p",
                    *PREDICT)[0] == 0
+
+
+@pytest.mark.parametrize("key, value, needle", [
+    ("std", [-1.0, -1.0, -1.0], "std [-1.0, -1.0, -1.0] finite and > 0"),
+    ("gsd", 0.0, "gsd must be a positive pixel size"),
+    ("input_range", [5.0, 1.0], "input_range must be [low, high]"),
+    ("input_dtype", "foo", "input_dtype 'foo' is not a data type"),
+])
+def test_edited_checkpoint_metadata_is_refused_on_load(tmp_path: Path, ckpt: Path, key: str, value: object,
+                                                       needle: str) -> None:
+    payload = torch.load(ckpt, weights_only=True)
+    payload["meta"][key] = value
+    bad = tmp_path / "bad.pt"
+    torch.save(payload, bad)
+    with pytest.raises(CheckpointError, match=rf"checkpoint '{bad}' has invalid metadata") as info:
+        load_checkpoint(bad)
+    assert needle in str(info.value)
+    payload = torch.load(ckpt, weights_only=True)
+    payload["format_version"] = "x"
+    torch.save(payload, bad)
+    with pytest.raises(CheckpointError, match="invalid format_version 'x'"):
+        load_checkpoint(bad)

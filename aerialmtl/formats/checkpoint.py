@@ -25,6 +25,7 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
 
 from __future__ import annotations
 
+import math
 import os
 import pickle
 import warnings
@@ -87,6 +88,23 @@ class ModelMeta:
                 "checkpoint meta is inconsistent: the classes task needs a class scheme with "
                 f"{self.model.num_classes} classes"
             )
+        # `not (... > 0)` so that NaN fails too: a negative or zero std would silently scramble every input
+        if not all(math.isfinite(m) for m in self.mean) or not all(0 < s < math.inf for s in self.std):
+            raise CheckpointError(f"checkpoint meta is invalid: normalisation mean {list(self.mean)} must be finite "
+                                  f"and std {list(self.std)} finite and > 0")
+        if not 0 < self.gsd < math.inf:
+            raise CheckpointError(f"checkpoint meta is invalid: gsd must be a positive pixel size in metres, got "
+                                  f"{self.gsd}")
+        if self.input_dtype is not None:
+            try:
+                np.dtype(self.input_dtype)
+            except TypeError as exc:
+                raise CheckpointError(f"checkpoint meta is invalid: input_dtype {self.input_dtype!r} is not a data "
+                                      "type") from exc
+        if self.input_range is not None and not (len(self.input_range) == 2
+                                                 and -math.inf < self.input_range[0] < self.input_range[1] < math.inf):
+            raise CheckpointError(f"checkpoint meta is invalid: input_range must be [low, high] with low < high, got "
+                                  f"{list(self.input_range)}")
 
     def to_dict(self) -> dict[str, Any]:
         return to_dict(self)
@@ -224,7 +242,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             f"checkpoint '{path}' is not an aerialmtl checkpoint (no '{FORMAT}' marker); "
             "use a checkpoint written by `aerialmtl train`"
         )
-    if payload.get("format_version", 0) > FORMAT_VERSION:
+    version = payload.get("format_version", 0)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise CheckpointError(f"checkpoint '{path}' has an invalid format_version {version!r}; use a checkpoint "
+                              "written by `aerialmtl train`")
+    if version > FORMAT_VERSION:
         raise CheckpointError(
             f"checkpoint '{path}' has format version {payload['format_version']}, newer than this aerialmtl "
             f"({__version__}) reads; upgrade aerialmtl"
