@@ -546,3 +546,36 @@ def test_edited_checkpoint_metadata_is_refused_on_load(tmp_path: Path, ckpt: Pat
     torch.save(payload, bad)
     with pytest.raises(CheckpointError, match="invalid format_version 'x'"):
         load_checkpoint(bad)
+
+
+def test_full_disk_during_training_names_the_checkpoint_and_keeps_nothing_partial(small_fs: Path, tiles: Path) -> None:
+    (small_fs / "filler").write_bytes(b"\0" * (2 * 1024 * 1024 - 160 * 1024))  # config + log fit, a checkpoint not
+    run = small_fs / "run"
+    with pytest.raises(OutputError, match=r"no space left on the device holding '.*run/(best|last)\.pt' while writing "
+                                          r"the checkpoint"):
+        train(tiny_cfg(schedule={"max_steps": 2}), tiles, run, progress=False)
+    assert sorted(p.name for p in run.iterdir()) == ["config.yaml", "log.csv"]  # no partial or hidden checkpoint
+
+
+@pytest.fixture
+def ro_fs(tmp_path: Path):
+    """A read-only tmpfs (EROFS even for root); skipped where mounting is not permitted."""
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    try:
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(mnt)], capture_output=True,
+                              text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        pytest.skip(f"cannot mount a tmpfs here ({exc})")
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root: {done.stderr.strip()[:100]})")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=30)
+
+
+def test_read_only_folder_while_saving_a_checkpoint_names_the_path(ro_fs: Path) -> None:
+    model, meta = tiny_d3net()
+    with pytest.raises(OutputError, match=rf"not allowed to write '{ro_fs / 'last.pt'}' \(the checkpoint\)"):
+        save_checkpoint(ro_fs / "last.pt", model, meta)

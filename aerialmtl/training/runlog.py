@@ -7,6 +7,8 @@ import csv
 from pathlib import Path
 from typing import Any
 
+from aerialmtl.io.oserrors import writing
+
 LOG_COLUMNS = (
     "kind", "step", "epoch", "time_s", "lr", "loss", "loss_height", "loss_classes",
     "val_loss_height", "val_loss_classes", "height_mae", "height_rmse", "oa", "miou", "score",
@@ -19,11 +21,12 @@ class CsvLog:
     def __init__(self, path: Path, append: bool) -> None:
         self.path = path
         if not (append and path.is_file()):
-            with path.open("w", newline="") as fh:
+            with writing(path, "the training log"), path.open("w", newline="") as fh:
                 csv.writer(fh).writerow(LOG_COLUMNS)
 
     def write(self, **row: Any) -> None:
-        with self.path.open("a", newline="") as fh:
+        """Append one row (a full disk or a lost permission: an OutputError naming the file)."""
+        with writing(self.path, "the training log"), self.path.open("a", newline="") as fh:
             csv.writer(fh).writerow(["" if row.get(c) is None else row.get(c) for c in LOG_COLUMNS])
 
 

@@ -56,6 +56,7 @@ from aerialmtl.formats.checkpoint import (
     value_envelope,
 )
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
+from aerialmtl.io.oserrors import writing
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
@@ -631,7 +632,7 @@ class Trainer:
         resolved = self.cfg.to_dict()
         resolved["model"] = {**to_dict(self.model_cfg), "sync_bn": self.cfg.model.sync_bn}
         resolved["data"]["dir"] = str(Path(data).resolve()) if data is not None else None
-        with self.paths["config.yaml"].open("w") as fh:
+        with writing(self.paths["config.yaml"], "the run's config"), self.paths["config.yaml"].open("w") as fh:
             yaml.safe_dump(resolved, fh, sort_keys=False)
 
     # ---- the loop -----------------------------------------------------------------------------------
