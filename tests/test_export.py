@@ -12,7 +12,7 @@ import torch
 from conftest import run_cli, tiny_d3net
 
 from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.formats.exported_model import read_metadata
+from aerialmtl.formats.exported_model import deepness_input_problem, export_metadata, read_metadata
 from aerialmtl.inference.export import ExportHead
 from aerialmtl.models.calibration import Calibration
 
@@ -47,6 +47,16 @@ def _torch(ckpt: Path, x: np.ndarray) -> dict[str, np.ndarray]:
         out = model(torch.from_numpy(x))
     return {"height": CALIBRATION.height(out["height"].numpy()),
             "classes": torch.softmax(out["classes"], 1).numpy()}
+
+
+def test_models_of_other_than_8_bit_images_are_flagged_for_deepness() -> None:
+    _, meta = tiny_d3net()
+    assert deepness_input_problem(replace(meta, input_dtype="uint8")) is None
+    assert deepness_input_problem(meta) is None  # not recorded (older checkpoints): nothing to say
+    problem = deepness_input_problem(replace(meta, input_dtype="uint16"))
+    assert problem is not None and "uint16" in problem and "8-bit" in problem
+    md = json.loads(export_metadata(replace(meta, input_dtype="uint16"), "height", 512, 64)["aerialmtl"])
+    assert md["input_dtype"] == "uint16"
 
 
 def test_the_calibration_in_the_graph_is_the_checkpoint_s() -> None:

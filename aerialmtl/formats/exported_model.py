@@ -85,6 +85,7 @@ def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibra
         "band_names": list(meta.band_names),
         "mean": list(meta.mean),
         "std": list(meta.std),
+        "input_dtype": meta.input_dtype,
         "gsd_m": meta.gsd,
         "crs": meta.crs,
         "classes": ([{"index": i, "code": c.code, "name": c.name, "color": list(c.color)}
@@ -94,6 +95,16 @@ def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibra
         "mc_dropout": "not exported: the model is deterministic (dropout off); `aerialmtl predict` gives uncertainty",
     }
     return {key: json.dumps(value) for key, value in values.items()}
+
+
+def deepness_input_problem(meta: ModelMeta) -> str | None:
+    """Why Deepness would feed this model wrong values, or ``None``: it reads 8-bit images only (0-255,
+    scaled to 0-1 before its standardisation), so a model trained on other data types gets other values."""
+    if meta.input_dtype is None or meta.input_dtype == "uint8":
+        return None
+    return (f"the model was trained on {meta.input_dtype} images but QGIS's Deepness plugin feeds 8-bit values "
+            "(0-255): in QGIS use it only on 8-bit orthophotos of the same scaling, or predict with "
+            "`aerialmtl predict`")
 
 
 def read_metadata(path: str | Path) -> dict[str, Any]:
@@ -111,5 +122,5 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     return {p.key: json.loads(p.value) for p in proto.metadata_props}
 
 
-__all__ = ["INPUT", "METADATA_VERSION", "MODEL_TYPES", "OPENVINO_SECTION", "OPSET", "export_metadata", "model_tasks",
-           "read_metadata"]
+__all__ = ["INPUT", "METADATA_VERSION", "MODEL_TYPES", "OPENVINO_SECTION", "OPSET", "deepness_input_problem",
+           "export_metadata", "model_tasks", "read_metadata"]

@@ -42,7 +42,14 @@ from torch import nn
 from aerialmtl import __version__
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.formats.exported_model import INPUT, OPENVINO_SECTION, OPSET, export_metadata, model_tasks
+from aerialmtl.formats.exported_model import (
+    INPUT,
+    OPENVINO_SECTION,
+    OPSET,
+    deepness_input_problem,
+    export_metadata,
+    model_tasks,
+)
 from aerialmtl.models.calibration import Calibration
 
 Format = Literal["onnx", "openvino"]
@@ -225,6 +232,9 @@ def export_model(
     if task != "all" and task not in model_tasks(meta):
         raise InputError(f"the model has no {task} task (its tasks: {', '.join(model_tasks(meta))}); pass "
                          f"‹task=all› or one of its tasks", param="task")
+    problem = deepness_input_problem(meta) if task in ("height", "classes") else None
+    if problem is not None:
+        warnings.warn(problem, stacklevel=2)
     files = (out,) if format == "onnx" else (out, out.with_suffix(".bin"))
     existing = [f for f in files if f.exists()]
     if existing and not overwrite:
