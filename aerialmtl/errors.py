@@ -104,7 +104,11 @@ class OutputError(AerialMTLError, OSError):
     """An output location cannot be written."""
 
 
+class OutputInUseError(OutputError):
+    """Another process is writing the same output folder (it holds the folder's lock)."""
+
+
 __all__ = [
     "PARAM_MARK", "AerialMTLError", "AlignmentError", "CheckpointError", "ConfigError", "InputError", "LabelError",
-    "NonFiniteError", "OutputError", "OutputExistsError", "render",
+    "NonFiniteError", "OutputError", "OutputExistsError", "OutputInUseError", "render",
 ]

@@ -34,6 +34,7 @@ from aerialmtl.cli.synth import synth
 from aerialmtl.cli.tile import tile
 from aerialmtl.cli.train import train
 from aerialmtl.errors import AerialMTLError
+from aerialmtl.signals import stop_signal, stop_signals
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -71,13 +72,14 @@ def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: run the group, mapping expected errors to exit code 1.
 
     Exit codes: 0 success; 1 an error with a one-line message on stderr (naming the file or option,
-    the value and the fix); 2 a usage error (click's message); 130 interrupted (Ctrl-C). Warnings
+    the value and the fix); 2 a usage error (click's message); 130 interrupted (Ctrl-C), 143 stopped by
+    SIGTERM, 129 by SIGHUP (both handled like Ctrl-C, :mod:`aerialmtl.signals`). Warnings
     (documented fallbacks) are printed as one ``warning:`` line each. ``--debug`` shows tracebacks
     and Python's own warning format instead.
     """
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), stop_signals():
         if not debug:
             warnings.showwarning = _show_warning
             # libraries' deprecation notices are for developers; a user can act on neither
@@ -91,9 +93,13 @@ def _command_name(args: list[str]) -> str | None:
     return next((a for a in args if a in cli.commands), None)
 
 
-def _interrupted(args: list[str]) -> None:
-    """Say what an interrupted command left behind and how to finish; exit 130."""
+def _interrupted(args: list[str], exc: BaseException | None = None) -> None:
+    """Say what an interrupted command left behind and how to finish; exit 128 + the signal (130 for Ctrl-C).
+
+    SIGTERM and SIGHUP (:mod:`aerialmtl.signals`) get the same message as Ctrl-C.
+    """
     command = _command_name(args)
+    code = 128 + stop_signal(exc)
     if command == "train":
         click.echo("Error: interrupted; checkpoints are only ever replaced whole: continue from the run's last.pt "
                    "with `aerialmtl train --out RUN --resume`, or start again with --overwrite", err=True)
@@ -102,7 +108,7 @@ def _interrupted(args: list[str]) -> None:
     else:
         click.echo("Error: interrupted; files are only ever written whole: re-run the command (with --overwrite "
                    "if it reports outputs that exist)", err=True)
-    sys.exit(130)
+    sys.exit(code)
 
 
 def _run(args: list[str], debug: bool) -> None:
@@ -114,16 +120,16 @@ def _run(args: list[str], debug: bool) -> None:
         if debug:
             raise
         if isinstance(exc.__context__, KeyboardInterrupt):
-            _interrupted(args)
+            _interrupted(args, exc.__context__)
         click.echo("Aborted.", err=True)
         sys.exit(130)
     except click.ClickException as exc:  # usage errors → exit 2 (click's own formatting)
         exc.show()
         sys.exit(exc.exit_code)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         if debug:
             raise
-        _interrupted(args)
+        _interrupted(args, exc)
     except (AerialMTLError, RasterioError, OSError) as exc:
         if debug:
             raise

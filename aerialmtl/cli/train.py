@@ -6,7 +6,7 @@ writes before they agree), then rank 0 alone prepares the folder and later write
 
 from __future__ import annotations
 
-import shutil
+import contextlib
 from pathlib import Path
 
 import click
@@ -20,32 +20,35 @@ from aerialmtl.cli.options import (
     quiet_option,
 )
 from aerialmtl.errors import OutputExistsError
-from aerialmtl.io.outputs import make_output_dir
+from aerialmtl.formats.run import RUN_FILES, RunFolder
+from aerialmtl.io.outputs import OutputFolder
 
 
 def _check_run_folder(out_dir: Path, resume: bool, overwrite: bool, config_path: Path | None) -> Path | None:
     """Validate --out against --resume/--overwrite (read-only); returns the config path to use."""
     if out_dir.exists() and not out_dir.is_dir():
         raise click.BadParameter(f"'{out_dir}' is a file; pass a folder", param_hint="--out")
-    non_empty = out_dir.is_dir() and any(out_dir.iterdir())
+    run = RunFolder(out_dir)
     if resume:
-        if not (out_dir / "last.pt").is_file():
-            raise click.BadParameter(f"'{out_dir / 'last.pt'}' does not exist; there is no run to resume there",
+        if not run.can_resume():
+            raise click.BadParameter(f"'{run.last}' does not exist; there is no run to resume there",
                                      param_hint="--resume")
-        return config_path or out_dir / "config.yaml"
-    if non_empty and not overwrite:
+        return config_path or run.config
+    existing = [n for n in RUN_FILES if (out_dir / n).exists()]
+    if existing and not overwrite:
         raise OutputExistsError(
-            f"run folder '{out_dir}' is not empty; pass --resume to continue it, --overwrite to replace it, "
-            "or another --out"
+            f"run folder '{out_dir}' already holds {', '.join(existing)}; pass --resume to continue it, --overwrite "
+            "to replace the run, or another --out"
         )
     return config_path
 
 
-def _prepare_run_folder(out_dir: Path, clear: bool) -> None:
-    if clear and out_dir.is_dir():
-        for child in out_dir.iterdir():
-            shutil.rmtree(child) if child.is_dir() else child.unlink()
-    make_output_dir(out_dir, "run folder")
+def _prepare_run_folder(folder: OutputFolder, stack: contextlib.ExitStack, clear: bool) -> None:
+    """Take the run folder (lock) and, for a new run, clear the previous run's own files (never others)."""
+    stack.enter_context(folder)
+    folder.remove_leftovers(RUN_FILES)  # staging files of a killed run
+    if clear:
+        folder.remove_owned(RUN_FILES)
 
 
 @click.command(name="train")
@@ -64,7 +67,7 @@ def _prepare_run_folder(out_dir: Path, clear: bool) -> None:
 @device_option(default=None, help="Overrides the config's device.")
 @precision_option(default=None, help="Overrides the config's precision (auto: bf16 autocast on a GPU, fp32 on a CPU).")
 @compile_option("compile_model")
-@overwrite_option(help="Delete the contents of a non-empty --out first.")
+@overwrite_option(help="Replace the run in --out (its last.pt, best.pt, log.csv, config.yaml; other files are kept).")
 @quiet_option()
 def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_steps: int | None,
           max_time: float | None, resume: bool, init_ckpt: Path | None, device: str | None, precision: str | None,
@@ -103,14 +106,17 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
         overrides["compile"] = True
     if overrides:
         cfg = cfg.with_overrides(**overrides)
+    data = data_dir if data_dir is not None else cfg.data.dir
+    folder = OutputFolder(out_dir, "train", inputs={"data_dir": data, "init": init_ckpt}, what="run folder")
     ctx = DistContext.from_env(cfg.device)
     try:
-        if ctx.distributed:
-            install_stop_handler()
-        ctx.barrier()  # every process has checked the folder before rank 0 changes it
-        ctx.main_first(lambda: _prepare_run_folder(out_dir, overwrite and not resume))
-        result = train_loop(cfg, data_dir=data_dir, out_dir=out_dir, max_steps=max_steps, max_time_s=max_time,
-                            resume=resume, progress=not quiet, init=init_ckpt, ctx=ctx)
+        with contextlib.ExitStack() as stack:  # the run folder's lock, held until training ends
+            if ctx.distributed:
+                install_stop_handler()
+            ctx.barrier()  # every process has checked the folder before rank 0 changes it
+            ctx.main_first(lambda: _prepare_run_folder(folder, stack, overwrite and not resume))
+            result = train_loop(cfg, data_dir=data_dir, out_dir=out_dir, max_steps=max_steps, max_time_s=max_time,
+                                resume=resume, progress=not quiet, init=init_ckpt, ctx=ctx)
     finally:
         ctx.close()
     if not ctx.is_main:

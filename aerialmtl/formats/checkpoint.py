@@ -26,7 +26,6 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
 from __future__ import annotations
 
 import math
-import os
 import pickle
 import warnings
 from collections.abc import Sequence
@@ -42,6 +41,7 @@ from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError
 from aerialmtl.io.oserrors import output_error
+from aerialmtl.io.outputs import atomic_write
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
 
@@ -161,7 +161,8 @@ def save_checkpoint(
     meta: ModelMeta,
     train_state: dict[str, Any] | None = None,
 ) -> None:
-    """Write a checkpoint atomically (temporary file in the same folder, then rename).
+    """Write a checkpoint atomically (staging file ``.NAME.partial`` in the same folder, then rename;
+    :mod:`aerialmtl.io.outputs`).
 
     Raises:
         NonFiniteError: a weight holds NaN or ±inf (a diverged model is never written; the file at
@@ -170,7 +171,6 @@ def save_checkpoint(
             at ``path`` or beside it).
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     state_dict = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     bad = first_nonfinite(state_dict)
     if bad is not None:
@@ -187,17 +187,13 @@ def save_checkpoint(
         "train_state": train_state,
     }
     try:
-        with tmp.open("wb") as fh:  # a file object: a full disk surfaces as an OSError with its errno
+        with atomic_write(path) as tmp, tmp.open("wb") as fh:  # a file object: a full disk is an OSError
             torch.save(payload, fh)
-        os.replace(tmp, path)
     except (OSError, RuntimeError) as exc:
         cause = _os_error(exc)
         if cause is None:
             raise
         raise output_error(cause, path, "the checkpoint", "‹out_dir›") from exc
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> tuple[dict[str, Any], ModelMeta]:

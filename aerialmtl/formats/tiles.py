@@ -9,8 +9,12 @@
     OUT/{train,val,test}/classes/<patch_id>.tif   uint8 class indices 0..K-1, nodata 255
     OUT/cache/<split>.*                           CACHE_DIR: the decoded patch cache (PatchCacheIndex)
 
-``dataset.yaml`` and ``manifest.csv`` are written last (through ``*.part`` files renamed into place), so
-their absence marks an unfinished tile run. The patch cache is derived data: training writes it on first
+A tile run writes its patches and ``manifest.csv`` into a hidden staging folder ``OUT/.patches.partial``
+(:data:`STAGING_DIR`), moves them into place when every patch is written and writes ``dataset.yaml`` last
+(files go through ``.NAME.partial`` and a rename, :mod:`aerialmtl.io.outputs`), so ``dataset.yaml`` marks
+a finished tile folder. Together with ``manifest.csv`` it is also the proof of what the tile run owns
+(:func:`owned_files`): ``--overwrite`` removes exactly those files (and the patch cache), never another
+file in the folder. The patch cache is derived data: training writes it on first
 use (see :mod:`aerialmtl.data.cache`), its index records a fingerprint of the manifest rows, of
 ``dataset.yaml`` and of every patch file's size and modification time, and a cache whose fingerprint no
 longer matches is rebuilt, never used.
@@ -35,6 +39,7 @@ import yaml
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import read_yaml
 from aerialmtl.errors import ConfigError, InputError
+from aerialmtl.io.outputs import staging_path, write_text_atomic
 
 #: The ``format`` tag of ``dataset.yaml`` and its version.
 FORMAT = "aerialmtl-tiles"
@@ -48,6 +53,10 @@ MANIFEST_CSV = "manifest.csv"
 PART_SUFFIX = ".part"
 #: Folder (inside the tile folder) of the decoded patch cache.
 CACHE_DIR = "cache"
+#: The hidden folder a tile run writes its patches and manifest into before moving them into place.
+STAGING_DIR = ".patches.partial"
+#: The name :data:`STAGING_DIR` is the staging folder of (see :func:`aerialmtl.io.outputs.is_staging_of`).
+STAGING_NAME = "patches"
 
 SPLITS = ("train", "val", "test")
 #: Tasks a tile folder can hold references for (its layers besides ``image``).
@@ -81,9 +90,7 @@ def _not_a_tile_folder(root: Path, what: str) -> InputError:
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + PART_SUFFIX)
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
+    write_text_atomic(path, text)
 
 
 @dataclass(frozen=True)
@@ -172,7 +179,7 @@ class TileFolderInfo:
         }
 
     def write(self) -> Path:
-        """Write ``root/dataset.yaml`` (atomically, through ``dataset.yaml.part``); returns its path."""
+        """Write ``root/dataset.yaml`` (atomically, through ``.dataset.yaml.partial``); returns its path."""
         _write_atomic(self.path, yaml.safe_dump(self.to_dict(), sort_keys=False, allow_unicode=True))
         return self.path
 
@@ -257,7 +264,7 @@ def read_manifest(path: str | Path, split: str | None = None) -> list[dict[str, 
 
 
 class ManifestWriter:
-    """Stream manifest rows into ``root/manifest.csv.part``; renamed to ``manifest.csv`` on a clean exit.
+    """Stream manifest rows into ``root/.manifest.csv.partial``; renamed to ``manifest.csv`` on a clean exit.
 
     Usage::
 
@@ -269,7 +276,7 @@ class ManifestWriter:
 
     def __init__(self, root: str | Path) -> None:
         self.path = Path(root) / MANIFEST_CSV
-        self.part = self.path.with_name(MANIFEST_CSV + PART_SUFFIX)
+        self.part = staging_path(self.path)
         self._fh = self.part.open("w", newline="", encoding="utf-8")
         self._writer = csv.DictWriter(self._fh, fieldnames=list(MANIFEST_COLUMNS), restval="")
         self._writer.writeheader()
@@ -285,6 +292,36 @@ class ManifestWriter:
         self._fh.close()
         if exc_type is None:
             self.part.replace(self.path)
+        else:
+            self.part.unlink(missing_ok=True)
+
+
+def owned_files(root: str | Path) -> list[str] | None:
+    """Files (relative to ``root``) that a finished tile run there wrote, as its own index files prove.
+
+    Returns ``dataset.yaml``, ``manifest.csv``, every patch the manifest lists (inside the split folders
+    only) and the patch cache's files (:func:`cache_file`, :func:`cache_index_file`, the ``<split>.lock``
+    files of :mod:`aerialmtl.data.cache`); ``None`` when ``root`` holds no tile dataset (no readable
+    ``dataset.yaml`` of this format, or no ``manifest.csv``).
+    """
+    root = Path(root)
+    try:
+        TileFolderInfo.read(root)
+        rows = read_manifest(root)
+    except (InputError, ConfigError, OSError, ValueError):
+        return None
+    files = [DATASET_YAML, MANIFEST_CSV]
+    for row in rows:
+        for key in ("image_path", "height_path", "classes_path"):
+            rel = row.get(key) or ""
+            parts = Path(rel).parts
+            if len(parts) == 3 and parts[0] in SPLITS and ".." not in parts:
+                files.append(rel)
+    cache = Path(CACHE_DIR)
+    for split in SPLITS:
+        files += [str(cache_file(cache, split, a)) for a in CACHE_ARRAYS]
+        files += [str(cache_index_file(cache, split)), str(cache / f"{split}.lock")]
+    return files
 
 
 # ---- the patch cache ----------------------------------------------------------------------------
@@ -386,6 +423,7 @@ class PatchCacheIndex:
 
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "DATASET_YAML", "MANIFEST_CSV", "PART_SUFFIX", "CACHE_DIR", "SPLITS",
+           "STAGING_DIR", "STAGING_NAME", "owned_files",
            "TASKS", "LAYERS", "MANIFEST_COLUMNS", "LAYER_COLUMNS", "patch_path", "TileFolderInfo", "read_tile_info",
            "read_manifest", "ManifestWriter", "CACHE_FORMAT", "CACHE_VERSION", "CACHE_ARRAYS", "cache_dir",
            "cache_file", "cache_index_file", "split_fingerprint", "PatchCacheIndex"]

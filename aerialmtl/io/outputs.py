@@ -1,12 +1,281 @@
-"""Output folders: created on demand, with an error that names the option and the fix."""
+"""Output folders: one staging convention, one overwrite policy, one writer at a time.
+
+Every command writes through this module (:class:`OutputFolder`), so the rules are the same everywhere:
+
+* **Staging.** A file is written under a hidden name beside its final path, ``.NAME.partial``
+  (:func:`staging_path`; other stages of the same file use other tags, ``.NAME.staging``), and renamed
+  into place when it is whole (:func:`atomic_write`, :func:`write_text_atomic`). A rename inside one
+  folder is atomic, so a final path holds either the old file or the new one, never half of one; a
+  rename also replaces a symlink instead of writing through it.
+* **Ownership.** A command deletes only files it can prove it wrote. The proof is the format's own index
+  file, written by the command last (``prediction.json`` lists its layers, ``dataset.yaml`` +
+  ``manifest.csv`` list the patches, ``report.json`` its Markdown and plots): no extra file clutters a
+  folder a GIS opens. Hidden ``.NAME.<tag>`` files of the command's own output names are its staging
+  files (:meth:`OutputFolder.remove_leftovers`, done only under the folder's lock, so never those of a
+  live run). ``overwrite`` lets a command replace the files at its own output names; it never removes
+  other files or folders.
+* **Inputs.** An output folder that equals or contains an input is refused (:func:`check_not_input`):
+  replacing or cleaning it could destroy the input.
+* **One writer at a time.** :class:`FolderLock`: an advisory lock file ``.aerialmtl.lock`` in the folder
+  (``fcntl.flock``, held from the start to the end of the run and released by the kernel if the process
+  dies), holding the holder's PID, host, command and torchrun job. A second process gets
+  :class:`~aerialmtl.errors.OutputInUseError` naming the holder's PID. A lock file left by a process
+  that died is taken over with a warning. Under ``torchrun`` the job's rank 0 takes the lock for the
+  whole job; the other ranks write only after a barrier that rank 0 passes once it holds it. Where
+  ``fcntl`` is missing (Windows) the lock is the exclusive creation of the lock file; one left by a
+  killed process there must be deleted by hand (the message names it).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import datetime as _dt
+import json
+import os
+import socket
+import warnings
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
+from types import TracebackType
+from typing import Any
 
-from aerialmtl.errors import OutputError
+from aerialmtl.errors import InputError, OutputError, OutputExistsError, OutputInUseError
+
+#: The lock file of an output folder (removed when the run ends).
+LOCK_FILE = ".aerialmtl.lock"
+#: Tag of the staging file of a final file: ``.NAME.partial``.
+PARTIAL = "partial"
+#: Tags of hidden files a command may leave beside ``NAME`` while writing it (``.NAME.<tag>...``).
+STAGING_TAGS = (PARTIAL, "staging", "merge.vrt")
+
+try:  # POSIX
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None  # type: ignore[assignment]
 
 
+# ---- staging and atomic writes -------------------------------------------------------------------
+def staging_path(final: str | Path, tag: str = PARTIAL) -> Path:
+    """The hidden staging file of ``final``: ``.NAME.<tag>`` in the same folder (so a rename is atomic)."""
+    final = Path(final)
+    return final.with_name(f".{final.name}.{tag}")
+
+
+def is_staging_of(path: Path, name: str) -> bool:
+    """Whether ``path`` is a staging file of output ``name`` (``.NAME.<tag>`` with a tag of :data:`STAGING_TAGS`)."""
+    return any(path.name.startswith(f".{name}.{tag}") for tag in STAGING_TAGS)
+
+
+@contextlib.contextmanager
+def atomic_write(final: str | Path, tag: str = PARTIAL) -> Iterator[Path]:
+    """Yield the staging path of ``final``; rename it to ``final`` when the block ends without error.
+
+    On an error (or Ctrl-C, SIGTERM) the staging file is removed and ``final`` is left as it was.
+    """
+    final = Path(final)
+    tmp = staging_path(final, tag)
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()
+    try:
+        yield tmp
+        os.replace(tmp, final)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` through its staging file; returns ``path``."""
+    path = Path(path)
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return path
+
+
+# ---- inputs vs outputs ---------------------------------------------------------------------------
+def is_local_path(path: str | Path) -> bool:
+    """Whether ``path`` names a local file (not a URL or a GDAL virtual path; :func:`aerialmtl.io.paths.is_local`)."""
+    from aerialmtl.io.paths import is_local
+
+    return is_local(path)
+
+
+def check_not_input(out: str | Path, inputs: Mapping[str, str | Path | None], option: str = "out_dir") -> None:
+    """Refuse an output folder that equals or contains an input.
+
+    Args:
+        out: the output folder.
+        inputs: parameter name → input path (``None`` and remote paths are skipped).
+        option: the parameter naming ``out``.
+
+    Raises:
+        InputError: ``out`` is an input, or an input lies inside it (``param=option``).
+    """
+    resolved = Path(out).resolve()
+    for param, path in inputs.items():
+        if path is None or not is_local_path(path):
+            continue
+        p = Path(path).resolve()
+        if p == resolved or resolved in p.parents:
+            how = "is" if p == resolved else "contains"
+            raise InputError(
+                f"‹{option}› '{out}' {how} the input ‹{param}› '{path}': writing or cleaning it there could replace or "
+                f"delete that input; choose another ‹{option}›", param=option)
+
+
+# ---- locks ---------------------------------------------------------------------------------------
+def job_id() -> str | None:
+    """The torchrun job this process belongs to (``None`` outside torchrun)."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return None
+    return (f"{os.environ.get('TORCHELASTIC_RUN_ID', '')}@{os.environ.get('MASTER_ADDR', '')}:"
+            f"{os.environ.get('MASTER_PORT', '')}")
+
+
+def is_job_leader() -> bool:
+    """Whether this process takes locks for its job: a plain process, or rank 0 of a torchrun job."""
+    return int(os.environ.get("WORLD_SIZE", "1")) <= 1 or os.environ.get("RANK", "0") == "0"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+#: Locks this process holds: resolved lock path → [count, fd]. Nested locks of one folder (the demo
+#: running predict into its own folder) share one.
+_HELD: dict[Path, list[int]] = {}
+
+
+class FolderLock:
+    """The advisory lock of one output folder; see the module docstring.
+
+    Args:
+        folder: the folder (must exist).
+        command: the command holding it (recorded for the message another process gets).
+        option: the parameter naming the folder (for messages).
+    """
+
+    def __init__(self, folder: str | Path, command: str, option: str = "out_dir") -> None:
+        self.folder = Path(folder)
+        self.path = self.folder / LOCK_FILE
+        self.command = command
+        self.option = option
+        self._key = self.path.resolve()
+
+    def holder(self) -> dict[str, Any]:
+        """What the lock file says about its holder (empty when unreadable)."""
+        try:
+            data = json.loads(self.path.read_text(encoding="utf-8") or "{}")
+        except (OSError, ValueError):
+            return {}
+        return data if isinstance(data, dict) else {}
+
+    def _busy(self, holder: Mapping[str, Any]) -> OutputInUseError:
+        who = f"aerialmtl {holder.get('command', '?')} (PID {holder.get('pid', '?')} on {holder.get('host', '?')}, " \
+              f"started {holder.get('started', '?')})"
+        return OutputInUseError(
+            f"output folder '{self.folder}' is in use by {who}; wait for it to finish, stop it, or choose another "
+            f"‹{self.option}›. If that process is gone, delete '{self.path}'")
+
+    def _info(self) -> dict[str, Any]:
+        return {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
+                "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "job": job_id()}
+
+    def _warn_stale(self, old: Mapping[str, Any]) -> None:
+        if old.get("pid") is not None and old.get("pid") != os.getpid():
+            warnings.warn(f"output folder '{self.folder}' was left locked by aerialmtl {old.get('command', '?')} "
+                          f"(PID {old.get('pid')}), which stopped without releasing it; taking the lock over and "
+                          "removing that run's unfinished files", stacklevel=4)
+
+    def acquire(self) -> FolderLock:
+        """Take the lock (or join this process's own hold on it).
+
+        Raises:
+            OutputInUseError: another process holds it.
+            OutputError: the lock file cannot be created.
+        """
+        held = _HELD.get(self._key)
+        if held is not None:
+            held[0] += 1
+            return self
+        try:
+            fd = self._acquire_flock() if fcntl is not None else self._acquire_exclusive()
+        except OSError as exc:
+            if isinstance(exc, OutputInUseError):
+                raise
+            raise OutputError(f"cannot create the lock file '{self.path}' ({exc.strerror or exc}); choose a "
+                              f"writable ‹{self.option}›") from exc
+        _HELD[self._key] = [1, fd]
+        return self
+
+    def _acquire_flock(self) -> int:
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise self._busy(self.holder()) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            try:  # the holder before us may have removed the file between our open and our lock: retry
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        old = self.holder()
+        self._warn_stale(old)
+        os.ftruncate(fd, 0)
+        os.write(fd, json.dumps(self._info()).encode())
+        return fd
+
+    def _acquire_exclusive(self) -> int:  # pragma: no cover - Windows
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            old = self.holder()
+            pid = old.get("pid")
+            if isinstance(pid, int) and old.get("host") == socket.gethostname() and not _alive(pid):
+                self._warn_stale(old)
+                with contextlib.suppress(OSError):
+                    self.path.unlink()
+                return self._acquire_exclusive()
+            raise self._busy(old) from None
+        os.write(fd, json.dumps(self._info()).encode())
+        return fd
+
+    def release(self) -> None:
+        """Release the lock (the last of nested holds removes the lock file)."""
+        held = _HELD.get(self._key)
+        if held is None:
+            return
+        held[0] -= 1
+        if held[0] > 0:
+            return
+        del _HELD[self._key]
+        with contextlib.suppress(OSError):
+            self.path.unlink()  # before unlocking, so nobody takes a lock on a file about to vanish
+        with contextlib.suppress(OSError):
+            os.close(held[1])
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+# ---- the output folder ---------------------------------------------------------------------------
 def make_output_dir(path: str | Path, what: str = "output folder", option: str = "‹out_dir›") -> bool:
     """Create ``path`` (and its parents) if missing.
 
@@ -30,4 +299,116 @@ def make_output_dir(path: str | Path, what: str = "output folder", option: str =
     return created
 
 
-__all__ = ["make_output_dir"]
+class OutputFolder:
+    """A folder one command writes into, for the whole run (a context manager).
+
+    Entering it refuses a folder that is an input or contains one, creates the folder if missing and
+    takes its lock (:class:`FolderLock`; under torchrun only on rank 0, see :func:`is_job_leader`).
+    Leaving it releases the lock and, when the run failed and the folder was created by it and holds
+    nothing else, removes the folder again.
+
+    Args:
+        path: the folder.
+        command: the command writing it (``"tile"``, ``"predict"``, ...).
+        inputs: parameter name → input path that must not lie inside ``path``.
+        option: the parameter naming the folder, for messages.
+        what: how messages call the folder.
+        lock: take the lock (off for a folder inside one this process already holds).
+    """
+
+    def __init__(self, path: str | Path, command: str, *, inputs: Mapping[str, str | Path | None] | None = None,
+                 option: str = "out_dir", what: str = "output folder", lock: bool = True) -> None:
+        self.path = Path(path)
+        self.command = command
+        self.option = option
+        self.what = what
+        self.inputs = dict(inputs or {})
+        self.created = False
+        self._lock = FolderLock(self.path, command, option) if lock and is_job_leader() else None
+
+    def __enter__(self) -> OutputFolder:
+        check_not_input(self.path, self.inputs, self.option)
+        if self.path.exists() and not self.path.is_dir():
+            raise OutputError(f"‹{self.option}› '{self.path}' is a file; pass a folder path")
+        self.created = make_output_dir(self.path, self.what, f"‹{self.option}›")
+        if self._lock is not None:
+            try:
+                self._lock.acquire()
+            except BaseException:
+                self._remove_if_created()
+                raise
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if self._lock is not None:
+            self._lock.release()
+        if exc_type is not None:
+            self._remove_if_created()
+
+    def _remove_if_created(self) -> None:
+        if self.created:
+            with contextlib.suppress(OSError):
+                self.path.rmdir()  # only when empty
+
+    # ---- the files ---------------------------------------------------------------------------------
+    def file(self, name: str) -> Path:
+        return self.path / name
+
+    def existing(self, names: Iterable[str]) -> list[str]:
+        """The ``names`` that exist in the folder (files, folders or links)."""
+        return [n for n in names if os.path.lexists(self.path / n)]
+
+    def claim(self, names: Iterable[str], overwrite: bool, *, fix: str = "") -> list[str]:
+        """Check that the command may write ``names``; returns those that exist (to be replaced).
+
+        Raises:
+            OutputExistsError: some exist and ``overwrite`` is false.
+            OutputError: one of them is a folder (``overwrite`` replaces files only).
+        """
+        existing = self.existing(names)
+        folders = [n for n in existing if (self.path / n).is_dir() and not (self.path / n).is_symlink()]
+        if folders:
+            raise OutputError(f"{self.what} '{self.path}' holds a folder '{folders[0]}' where {self.command} writes a "
+                              f"file; move it away or choose another ‹{self.option}›")
+        if existing and not overwrite:
+            raise OutputExistsError(
+                f"{self.what} '{self.path}' already holds {', '.join(existing)}; pass ‹overwrite=True› to replace "
+                f"{'it' if len(existing) == 1 else 'them'}{fix} or choose another ‹{self.option}›")
+        return existing
+
+    def remove_owned(self, names: Iterable[str]) -> None:
+        """Remove files the caller proved this command wrote (listed in the format's index file)."""
+        for name in names:
+            path = self.path / name
+            if path.is_file() or path.is_symlink():
+                path.unlink()
+
+    def remove_leftovers(self, names: Iterable[str]) -> list[Path]:
+        """Remove hidden staging files of ``names`` (``.NAME.<tag>``) a killed run left; returns them.
+
+        Called under the lock, so no live run of this folder owns them.
+        """
+        names = list(names)
+        removed = []
+        with contextlib.suppress(FileNotFoundError):
+            for path in self.path.iterdir():
+                if path.name.startswith(".") and any(is_staging_of(path, n) for n in names):
+                    if path.is_dir() and not path.is_symlink():
+                        _remove_tree(path)
+                    else:
+                        path.unlink(missing_ok=True)
+                    removed.append(path)
+        return removed
+
+
+def _remove_tree(path: Path) -> None:
+    """Remove a staging folder of this package (a hidden ``.NAME.partial`` folder and what is in it)."""
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)
+
+
+__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write", "check_not_input",
+           "is_job_leader", "is_local_path", "is_staging_of", "job_id", "make_output_dir", "staging_path",
+           "write_text_atomic"]

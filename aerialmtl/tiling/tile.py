@@ -10,9 +10,14 @@ and writes the folder described in ``docs/CONTRACTS.md``::
     OUT/{train,val,test}/classes/<id>.tif   uint8 class indices, nodata 255
     OUT/manifest.csv, OUT/dataset.yaml      written last: their absence marks an unfinished run
 
-A run that fails (bad label codes, unreadable file) or is interrupted removes what it wrote; a folder that a
-killed run left unfinished (no ``dataset.yaml``, only tile outputs) is replaced by the next run without
-``overwrite``.
+The patches and the manifest are written into a hidden staging folder (``OUT/.patches.partial``) and
+moved into place when every patch is written; ``dataset.yaml`` comes last. A run that fails (bad label
+codes, unreadable file) or is interrupted (Ctrl-C, SIGTERM, SIGHUP) removes its staging folder and leaves
+an earlier tile dataset in ``OUT`` as it was; the staging folder of a killed run is removed by the next
+run. ``overwrite`` replaces the tile dataset an earlier run wrote (the files its ``dataset.yaml`` and
+``manifest.csv`` list, :func:`aerialmtl.formats.tiles.owned_files`), never another file or folder; a
+``train``/``val``/``test`` folder that no tile dataset lists is refused. The run holds the folder's lock
+(:class:`aerialmtl.io.outputs.OutputFolder`) and refuses an ``OUT`` that is or contains an input.
 
 Every patch's transform is ``rasterio.windows.transform(window, grid.transform)``. Per-band mean/std are
 accumulated over valid pixels of the train split only (float64, merged patch by patch).
@@ -38,20 +43,21 @@ from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
 from aerialmtl.formats.tiles import (
-    CACHE_DIR,
     DATASET_YAML,
     HEIGHT_NODATA,
     MANIFEST_COLUMNS,
     MANIFEST_CSV,
-    PART_SUFFIX,
+    STAGING_DIR,
+    STAGING_NAME,
     ManifestWriter,
     TileFolderInfo,
+    owned_files,
     patch_path,
     read_manifest,
 )
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import make_output_dir
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
@@ -149,43 +155,62 @@ class _BandStats:
         return self.mean.tolist(), np.sqrt(self.m2 / self.n).tolist()
 
 
-#: What a tile run writes into its folder; a folder holding only these but no dataset.yaml is unfinished.
-_OWN_ENTRIES = (*SPLITS, MANIFEST_CSV, MANIFEST_CSV + PART_SUFFIX, DATASET_YAML + PART_SUFFIX, CACHE_DIR)
+def _claim(folder: OutputFolder, overwrite: bool) -> list[str] | None:
+    """Check that a tile dataset may be written into ``folder``; returns the earlier run's own files.
+
+    Raises:
+        OutputExistsError: a tile dataset (or part of one) is there and ``overwrite`` is false.
+        OutputError: a split folder, ``manifest.csv`` or ``dataset.yaml`` is there that no tile dataset lists.
+    """
+    names = (*SPLITS, MANIFEST_CSV, DATASET_YAML)
+    existing = folder.existing(names)
+    if not existing:
+        return []
+    owned = owned_files(folder.path)
+    if owned is None:
+        raise OutputError(
+            f"tile folder '{folder.path}' holds {', '.join(existing)} but no tile dataset (dataset.yaml with its "
+            "manifest.csv) that lists them, so they were not written by `aerialmtl tile` (or by an unfinished run "
+            "of an older version); move them away or choose another ‹out_dir›")
+    if not overwrite:
+        raise OutputExistsError(
+            f"output folder '{folder.path}' already holds a tile dataset ({', '.join(existing)}); choose another "
+            "‹out_dir› or pass ‹overwrite=True› to replace it")
+    return owned
 
 
-def _unfinished(out_dir: Path) -> bool:
-    """True when ``out_dir`` holds only what an interrupted or failed tile run leaves (no dataset.yaml)."""
-    names = {p.name for p in out_dir.iterdir()}
-    return DATASET_YAML not in names and names <= set(_OWN_ENTRIES)
-
-
-def _clear(out_dir: Path) -> None:
-    """Remove the tile dataset in ``out_dir`` (only the entries a tile run writes)."""
+def _remove_dataset(out_dir: Path, owned: Sequence[str]) -> None:
+    """Remove the files of an earlier tile run (``owned``), dataset.yaml first, then emptied folders."""
     for name in (DATASET_YAML, MANIFEST_CSV):  # first, so a half-replaced folder reads as unfinished
         (out_dir / name).unlink(missing_ok=True)
-    for name in _OWN_ENTRIES:
-        path = out_dir / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        else:
-            path.unlink(missing_ok=True)
+    parents: set[Path] = set()
+    for rel in owned:
+        path = out_dir / rel
+        path.unlink(missing_ok=True)
+        parents.update(p for p in path.parents if p != out_dir and out_dir in p.parents)
+    for folder in sorted(parents, key=lambda p: len(p.parts), reverse=True):
+        with contextlib.suppress(OSError):
+            folder.rmdir()  # only when empty: a user's file inside keeps it
 
 
-def _prepare_out_dir(out_dir: Path, overwrite: bool) -> bool:
-    """Make ``out_dir`` ready for a new tile dataset; returns whether the folder was created here.
+def _move_into(src: Path, dst: Path) -> None:
+    """Move ``src`` (a file or folder) to ``dst``, merging into a folder that is already there."""
+    if not dst.exists():
+        os.replace(src, dst)
+        return
+    for child in src.iterdir():
+        _move_into(child, dst / child.name)
+    src.rmdir()
 
-    A folder left unfinished by an interrupted or failed run is replaced without ``overwrite``.
-    """
-    if out_dir.exists() and not out_dir.is_dir():
-        raise OutputError(f"‹out_dir› '{out_dir}' is a file; pass a folder path")
-    if out_dir.is_dir() and any(out_dir.iterdir()):
-        if not overwrite and not _unfinished(out_dir):
-            raise OutputExistsError(
-                f"output folder '{out_dir}' is not empty; choose another ‹out_dir› or pass ‹overwrite=True› to replace "
-                "the tile dataset in it"
-            )
-        _clear(out_dir)
-    return make_output_dir(out_dir, "‹out_dir› folder")
+
+def _commit(stage: Path, out_dir: Path, owned: Sequence[str]) -> None:
+    """Replace the earlier tile dataset by the staged one (dataset.yaml is written after this)."""
+    _remove_dataset(out_dir, owned)
+    for split in SPLITS:
+        if (stage / split).exists():
+            _move_into(stage / split, out_dir / split)
+    os.replace(stage / MANIFEST_CSV, out_dir / MANIFEST_CSV)
+    shutil.rmtree(stage)
 
 
 def _band_names(src: rasterio.io.DatasetReader, bands: Sequence[int]) -> list[str]:
@@ -241,7 +266,8 @@ def tile_dataset(
 
     Args:
         ortho: orthophoto GeoTIFF; defines the reference grid (CRS, origin, pixel size).
-        out_dir: output folder (created; must be empty unless ``overwrite``).
+        out_dir: output folder (created; must not hold a tile dataset unless ``overwrite``; never an input's
+            folder).
         dsm, dtm: surface and terrain models; height = DSM − DTM in metres (values in the unit the file
             states, else ``ndsm_options.z_unit``, else metres). Mutually exclusive with ``ndsm``.
         ndsm: ready heights above ground (nDSM / CHM; units as for ``dsm``).
@@ -258,7 +284,7 @@ def tile_dataset(
         ndsm_options: negative clipping / maximum height / the heights' unit when a file states none.
         ignore_unknown_codes: map label codes (or vector values) outside the scheme to no-label instead of
             raising :class:`~aerialmtl.errors.LabelError`.
-        overwrite: replace an existing tile dataset in ``out_dir``.
+        overwrite: replace the tile dataset an earlier run wrote in ``out_dir`` (only its own files).
         progress: show a tqdm progress bar.
 
     Returns:
@@ -266,7 +292,9 @@ def tile_dataset(
 
     Raises:
         InputError / AlignmentError / LabelError: unusable inputs (messages name the file and the fix).
-        OutputExistsError: ``out_dir`` is not empty and ``overwrite`` is false.
+        OutputExistsError: ``out_dir`` holds a tile dataset and ``overwrite`` is false.
+        OutputError: ``out_dir`` holds split folders no tile dataset lists.
+        OutputInUseError: another process is writing ``out_dir``.
         InputError: also when no patch at all would be kept (:func:`check_not_empty`); nothing is left.
     """
     out_dir = Path(out_dir)
@@ -281,23 +309,29 @@ def tile_dataset(
         labels_vector=labels_vector, class_field=class_field, scheme=scheme, ignore_unknown_codes=ignore_unknown_codes,
     ) as sources:
         assigner = SplitAssigner(splits, grid, stride=stride, size=size)
-        created = _prepare_out_dir(out_dir, overwrite)
-        try:
-            result = _tile_loop(sources, assigner, grid, out_dir, size, stride, min_valid, progress)
-            check_not_empty(result, grid, size, min_valid)
-        except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
-            with contextlib.suppress(OSError):
-                _clear(out_dir)
-                if created:
-                    out_dir.rmdir()
-            if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError) or kind_of(exc, out_dir) is not None):
-                raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
-            raise
-    result.tasks = list(sources.tasks)
-    if assigner.block_size_m is not None:
-        result.block_size_m = assigner.block_size_m
-        result.block_patches = int(round(assigner.block_px[0] / stride))
-    _describe(sources, grid, size, stride, min_valid, splits, assigner, result, ndsm_options).write()
+        inputs = {k: v for k, v in sources.paths.items()}
+        with OutputFolder(out_dir, "tile", inputs=inputs, what="tile folder") as folder:
+            folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
+            owned = _claim(folder, overwrite)
+            stage = out_dir / STAGING_DIR
+            stage.mkdir()
+            try:
+                result = _tile_loop(sources, assigner, grid, stage, size, stride, min_valid, progress)
+                check_not_empty(result, grid, size, min_valid)
+                _commit(stage, out_dir, owned or [])
+            except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
+                shutil.rmtree(stage, ignore_errors=True)
+                if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError)
+                                                            or kind_of(exc, out_dir) is not None):
+                    raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
+                raise
+            result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
+            result.dataset_yaml = out_dir / DATASET_YAML
+            result.tasks = list(sources.tasks)
+            if assigner.block_size_m is not None:
+                result.block_size_m = assigner.block_size_m
+                result.block_patches = int(round(assigner.block_px[0] / stride))
+            _describe(sources, grid, size, stride, min_valid, splits, assigner, result, ndsm_options).write()
     return result
 
 

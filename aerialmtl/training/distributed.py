@@ -26,10 +26,8 @@ Checkpoints are written atomically by rank 0, so the last one stays whole.
 
 from __future__ import annotations
 
-import signal
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import FrameType
 from typing import Any, TypeVar
 
 import torch
@@ -191,16 +189,16 @@ def _collective(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
 
 
 def install_stop_handler() -> None:
-    """Turn SIGTERM (what torchrun sends the survivors when a process dies) into an exception.
+    """Turn SIGTERM (what torchrun sends the survivors when a process dies) into :class:`PeerFailure`.
 
     The process then unwinds normally: temporary checkpoint files are removed and the rank says why it
-    stopped, instead of vanishing mid-write.
+    stopped, instead of vanishing mid-write. SIGHUP stays Ctrl-C-like (:mod:`aerialmtl.signals`, the one
+    place stop signals are handled).
     """
+    from aerialmtl.signals import install_stop_signals
 
-    def _stop(signum: int, frame: FrameType | None) -> None:
-        raise PeerFailure(peer_failure_message(RuntimeError("torchrun sent SIGTERM")))
-
-    signal.signal(signal.SIGTERM, _stop)
+    install_stop_signals(distributed=True,
+                         on_peer_stop=lambda: PeerFailure(peer_failure_message(RuntimeError("torchrun sent SIGTERM"))))
 
 
 # ---- models -------------------------------------------------------------------------------------

@@ -28,12 +28,14 @@ nccl, or per CPU process with gloo); ``data.batch_size`` is per process. See
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from aerialmtl.errors import InputError
+from aerialmtl.formats.run import LOG_COLUMNS
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.distributed import DistContext, resolve_device
-from aerialmtl.training.runlog import LOG_COLUMNS
 from aerialmtl.training.state import seed_everything
 from aerialmtl.training.trainer import Trainer, TrainResult
 
@@ -66,7 +68,8 @@ def train(
     Args:
         cfg: the training configuration.
         data_dir: tile folder (overrides ``cfg.data.dir``).
-        out_dir: run folder (created; the caller decides whether an existing one may be reused).
+        out_dir: run folder (created; the caller decides whether an existing one may be reused). The run holds
+            its lock (:class:`~aerialmtl.io.outputs.OutputFolder`) until it ends.
         max_steps: total optimisation steps (overrides ``cfg.schedule.max_steps``).
         max_time_s: wall-clock budget of this call in seconds (overrides ``cfg.schedule.max_time_s``).
         resume: continue from ``out_dir/last.pt``.
@@ -84,14 +87,20 @@ def train(
         CheckpointError: ``resume`` without a usable ``last.pt`` or with a different model config; ``init``
             with other bands or another architecture.
         OutputError: the patch cache cannot be written (set ``data.cache_dir``).
+        OutputInUseError: another process is writing ``out_dir``.
     """
     check_budget(max_steps, max_time_s)
-    trainer = Trainer(cfg, data_dir, out_dir, max_steps=max_steps, max_time_s=max_time_s, resume=resume, init=init,
-                      progress=progress, ctx=ctx)
-    try:
-        return trainer.fit()
-    finally:
-        trainer.close()
+    data = data_dir if data_dir is not None else cfg.data.dir
+    with contextlib.ExitStack() as stack:
+        if ctx is None or ctx.is_main:  # rank 0 holds the lock for the job
+            stack.enter_context(OutputFolder(out_dir, "train", inputs={"data_dir": data, "init": init},
+                                             what="run folder"))
+        trainer = Trainer(cfg, data_dir, out_dir, max_steps=max_steps, max_time_s=max_time_s, resume=resume,
+                          init=init, progress=progress, ctx=ctx)
+        try:
+            return trainer.fit()
+        finally:
+            trainer.close()
 
 
 __all__ = ["check_budget", "train", "TrainResult", "resolve_device", "seed_everything", "LOG_COLUMNS"]

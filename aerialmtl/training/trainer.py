@@ -37,7 +37,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
 from torch import nn
 from tqdm.auto import tqdm
 
@@ -55,6 +54,7 @@ from aerialmtl.formats.checkpoint import (
     save_checkpoint,
     value_envelope,
 )
+from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.config import ModelConfig
@@ -63,12 +63,9 @@ from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.distributed import DistContext
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import Objective, class_weights, validation_score
-from aerialmtl.training.runlog import LOG_COLUMNS, CsvLog
 from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_everything, set_rng_state
 
 log = logging.getLogger(__name__)
-
-RUN_FILES = ("last.pt", "best.pt", "log.csv", "config.yaml")
 
 
 def user_cache_dir(root: Path) -> Path:
@@ -632,8 +629,8 @@ class Trainer:
         resolved = self.cfg.to_dict()
         resolved["model"] = {**to_dict(self.model_cfg), "sync_bn": self.cfg.model.sync_bn}
         resolved["data"]["dir"] = str(Path(data).resolve()) if data is not None else None
-        with writing(self.paths["config.yaml"], "the run's config"), self.paths["config.yaml"].open("w") as fh:
-            yaml.safe_dump(resolved, fh, sort_keys=False)
+        with writing(self.paths["config.yaml"], "the run's config"):
+            RunFolder(self.run).write_config(resolved)
 
     # ---- the loop -----------------------------------------------------------------------------------
     @property
