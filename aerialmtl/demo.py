@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from aerialmtl.errors import OutputExistsError
+from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 
 #: Built-in configuration used by the demo.
 DEMO_CONFIG = "d3net_small_synth"
@@ -79,7 +80,18 @@ def run_demo(
 
     Raises:
         OutputExistsError: ``out_dir`` is not empty and ``overwrite`` is False.
+        OutputInUseError: another process is writing ``out_dir``.
     """
+    out = Path(out_dir)
+    if out.exists() and out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise OutputExistsError(f"demo folder '{out}' is not empty; choose a new folder or pass ‹overwrite=True›")
+    with OutputFolder(out, "demo", what="demo folder"):  # each step also holds its own folder
+        return _run_demo(out, settings, overwrite, log, progress)
+
+
+def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[[str], None],
+              progress: bool) -> DemoResult:
+    """:func:`run_demo` once the demo folder is held."""
     from aerialmtl.data.synth import synthesize
     from aerialmtl.evaluation.evaluate import evaluate_prediction
     from aerialmtl.inference.predict import predict_raster
@@ -88,10 +100,6 @@ def run_demo(
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.loop import train
 
-    out = Path(out_dir)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise OutputExistsError(f"demo folder '{out}' is not empty; choose a new folder or pass ‹overwrite=True›")
-    out.mkdir(parents=True, exist_ok=True)
     res = DemoResult(out)
     s = settings
     t0 = time.perf_counter()
@@ -146,7 +154,7 @@ def run_demo(
     }
     if previews is not None:
         res.paths["previews"] = previews
-    (out / "demo.json").write_text(json.dumps(
+    write_text_atomic(out / "demo.json", json.dumps(
         {"settings": s.__dict__, "timings": res.timings, "paths": {k: str(v) for k, v in res.paths.items()}},
         indent=2))
     return res

@@ -11,6 +11,7 @@ interrupted run leaves no file at a final path.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Sequence
@@ -20,11 +21,12 @@ from typing import Any
 
 from aerialmtl.buildings.extract import BuildingOptions, ExtractionStats, extract_buildings
 from aerialmtl.buildings.layers import BuildingLayers
-from aerialmtl.errors import AerialMTLError, InputError, OutputExistsError
+from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
 from aerialmtl.formats.buildings import GROUND_Z_FIELD, ID_FIELD, PREDICTED_FIELDS, FootprintWriter, driver_for
 from aerialmtl.formats.cityjson import CityJSONWriter
+from aerialmtl.formats.prediction import PredictionFolder
 from aerialmtl.io.oserrors import kind_of, output_error, writing
-from aerialmtl.io.outputs import make_output_dir
+from aerialmtl.io.outputs import OutputFolder, check_files_not_input, make_output_dir, staging_path
 
 #: Name endings of CityJSON outputs.
 CITYJSON_SUFFIXES = (".city.json", ".cityjson")
@@ -68,7 +70,7 @@ class BuildingsResult:
 
 
 def _hidden(path: Path) -> Path:
-    return path.with_name(f".partial-{path.name}")
+    return staging_path(path, keep_suffix=True)
 
 
 def write_buildings(
@@ -110,11 +112,28 @@ def write_buildings(
     dup = sorted({str(p) for p in paths if paths.count(p) > 1})
     if dup:
         raise InputError(f"outputs: {', '.join(dup)} given more than once")
-    existing = [str(p) for p in paths if p.exists()]
+    existing = [str(p) for p in paths if os.path.lexists(p)]
     if existing and not overwrite:
         raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass ‹overwrite=True› to "
                                 "replace them or choose other output names")
+    folders = [p for p in existing if Path(p).is_dir()]
+    if folders:
+        raise OutputError(f"'{folders[0]}' is a folder where a building file would be written; choose other "
+                          "‹outputs›")
+    pred = PredictionFolder(pred_dir)
+    check_files_not_input(paths, [("dtm", dtm), *(("pred_dir", p) for p in pred.layers().values()),
+                                  ("pred_dir", pred.info_path)], option="outputs")
     stats = ExtractionStats()
+    with contextlib.ExitStack() as held:
+        for parent in dict.fromkeys(p.parent for p in paths):  # each output folder is this run's until it ends
+            held.enter_context(OutputFolder(parent, "buildings", option="outputs", what="output folder"))
+        return _write(pred_dir, paths, formats, options, dtm, building_classes, batch_size, progress, stats, start)
+
+
+def _write(pred_dir: str | Path, paths: list[Path], formats: dict[Path, str], options: BuildingOptions | None,
+           dtm: str | Path | None, building_classes: Sequence[str | int] | None, batch_size: int, progress: bool,
+           stats: ExtractionStats, start: float) -> BuildingsResult:
+    """:func:`write_buildings` once the output folders are held."""
     with BuildingLayers(pred_dir, dtm=dtm) as layers:
         for p in paths:
             make_output_dir(p.parent)

@@ -21,7 +21,7 @@ from aerialmtl.cli.options import (
 )
 from aerialmtl.errors import OutputExistsError
 from aerialmtl.formats.run import RUN_FILES, RunFolder
-from aerialmtl.io.outputs import OutputFolder
+from aerialmtl.io.outputs import FolderLock, OutputFolder, is_job_leader
 
 
 def _check_run_folder(out_dir: Path, resume: bool, overwrite: bool, config_path: Path | None) -> Path | None:
@@ -29,6 +29,8 @@ def _check_run_folder(out_dir: Path, resume: bool, overwrite: bool, config_path:
     if out_dir.exists() and not out_dir.is_dir():
         raise click.BadParameter(f"'{out_dir}' is a file; pass a folder", param_hint="--out")
     run = RunFolder(out_dir)
+    if out_dir.is_dir() and is_job_leader():  # another run writing there: say so before judging its files
+        FolderLock(out_dir, "train").check_free()
     if resume:
         if not run.can_resume():
             raise click.BadParameter(f"'{run.last}' does not exist; there is no run to resume there",

@@ -41,6 +41,7 @@ from aerialmtl.formats.tiles import (
     read_manifest,
     split_fingerprint,
 )
+from aerialmtl.io.outputs import staging_path
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +114,7 @@ def _build(info: TileFolderInfo, split: str, rows: list[dict[str, str]], folder:
     specs: dict[str, tuple[tuple[int, ...], Any]] = {
         "image": ((n, c, h, w), first.image.dtype), "image_valid": ((n, h, w), np.uint8),
         "height": ((n, 1, h, w), np.float32), "classes": ((n, h, w), np.uint8)}
-    tmp = {name: cache_file(folder, split, name).with_suffix(f".npy.part-{os.getpid()}") for name in layers}
+    tmp = {name: staging_path(cache_file(folder, split, name), f"partial-{os.getpid()}") for name in layers}
     arrays: dict[str, Any] = {}
     try:
         for name in layers:

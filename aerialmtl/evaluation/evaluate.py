@@ -11,7 +11,9 @@ there are fewer), which the report states.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 from collections.abc import Sequence
 from datetime import datetime, timezone
 from pathlib import Path
@@ -24,7 +26,7 @@ from tqdm import tqdm
 
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
-from aerialmtl.errors import InputError, OutputExistsError
+from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.evaluation.metrics import (
     DEFAULT_HEIGHT_BINS,
     HeightStats,
@@ -56,7 +58,9 @@ from aerialmtl.formats.prediction import (
     layer_filename,
     read_class_scheme_tag,
 )
+from aerialmtl.formats.report import report_files
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, grid_of, open_raster
+from aerialmtl.io.outputs import OutputFolder, check_files_not_input
 
 #: Layer name → file name of a prediction folder (see :mod:`aerialmtl.formats.prediction`).
 PREDICTION_FILES = {name: layer_filename(name) for name in LAYERS}
@@ -160,13 +164,33 @@ def evaluate_prediction(
         InputError: missing prediction folder/files, grids that differ inside the folder, no reference
             that matches a predicted layer, predicted class indices outside the scheme.
         LabelError: reference label codes not in the scheme (unless ``ignore_unknown_codes``).
-        OutputExistsError: ``out`` exists and ``overwrite`` is False.
+        OutputExistsError: the report's files exist and ``overwrite`` is False.
+        OutputInUseError: another process is writing into the report's folder.
     """
-    pred_dir = Path(pred_dir)
     if not 0 <= seed < 2**32:
         raise InputError(f"‹seed› must be an integer in 0..2**32-1, got {seed}", param="seed")
+    with contextlib.ExitStack() as stack:
+        if out is not None:  # the report's folder is this run's until the report is written
+            report_files(out, plots)  # a .json path
+            stack.enter_context(OutputFolder(Path(out).parent, "evaluate", option="out", what="report folder"))
+        return _evaluate(
+            Path(pred_dir), height_ref, labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, z_unit=z_unit, classes=classes,
+            out=out, height_threshold=height_threshold, height_bins=height_bins,
+            ignore_unknown_codes=ignore_unknown_codes, overwrite=overwrite, sample_size=sample_size, seed=seed,
+            steps=steps, ece_bins=ece_bins, min_std=min_std, block_pixels=block_pixels, plots=plots,
+            progress=progress, buildings_ref=buildings_ref, pred_buildings=pred_buildings)
+
+
+def _evaluate(
+    pred_dir: Path, height_ref: str | Path | None, labels_ref: str | Path | None, *, dsm_ref: str | Path | None,
+    dtm_ref: str | Path | None, z_unit: str | None, classes: str | Path | ClassScheme | None, out: str | Path | None,
+    height_threshold: float, height_bins: Sequence[float], ignore_unknown_codes: bool, overwrite: bool,
+    sample_size: int, seed: int, steps: int, ece_bins: int, min_std: float, block_pixels: int, plots: bool,
+    progress: bool, buildings_ref: str | Path | None, pred_buildings: str | Path | None,
+) -> dict[str, Any]:
+    """:func:`evaluate_prediction` once the report's folder is held."""
     files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, buildings_ref, height_threshold,
-                             sample_size, out, overwrite)
+                             sample_size, out, overwrite, plots)
     height_given = height_ref if height_ref is not None else dsm_ref
     notes: list[str] = []
     do_height = height_given is not None and "height" in files
@@ -269,7 +293,7 @@ def evaluate_prediction(
 def _check_arguments(
     pred_dir: Path, height_ref: str | Path | None, dsm_ref: str | Path | None, dtm_ref: str | Path | None,
     labels_ref: str | Path | None, buildings_ref: str | Path | None, height_threshold: float, sample_size: int,
-    out: str | Path | None, overwrite: bool,
+    out: str | Path | None, overwrite: bool, plots: bool = True,
 ) -> dict[str, Path]:
     """Validate the arguments of :func:`evaluate_prediction`; returns the predicted layers present."""
     if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
@@ -297,10 +321,21 @@ def _check_arguments(
             f"prediction folder '{pred_dir}' holds neither height.tif nor classes.tif; "
             "pass the --out folder of `aerialmtl predict`"
         )
-    if out is not None and Path(out).exists() and not overwrite:
-        raise OutputExistsError(
-            f"report '{out}' already exists; pass ‹overwrite=True› to replace it or choose another ‹out›"
-        )
+    if out is not None:
+        outputs = report_files(out, plots)
+        inputs = [("height_ref", height_ref), ("labels_ref", labels_ref), ("dsm_ref", dsm_ref), ("dtm_ref", dtm_ref),
+                  ("buildings_ref", buildings_ref), *(("pred_dir", p) for p in files.values())]
+        check_files_not_input(outputs, inputs, option="out")
+        existing = [str(p) for p in outputs if os.path.lexists(p)]
+        if existing and not overwrite:
+            raise OutputExistsError(
+                f"report '{out}': {', '.join(existing)} already exist(s); pass ‹overwrite=True› to replace the "
+                "report or choose another ‹out›"
+            )
+        folders = [p for p in existing if Path(p).is_dir()]
+        if folders:
+            raise OutputError(f"report '{out}': '{folders[0]}' is a folder where the report writes a file; choose "
+                              "another ‹out›")
     return files
 
 

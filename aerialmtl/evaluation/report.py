@@ -2,21 +2,22 @@
 
 ``write_report(report, "out/report.json")`` writes ``out/report.json``, ``out/report.md`` and, when
 matplotlib is installed (the optional ``plot`` extra), ``out/report_sparsification.png``,
-``out/report_confusion.png`` and ``out/report_reliability.png``. In the JSON, undefined values
-(``nan``) and open-ended bin edges (``inf``) are written as ``null``.
+``out/report_confusion.png`` and ``out/report_reliability.png`` (the format: :mod:`aerialmtl.formats.report`).
+In the JSON, undefined values (``nan``) and open-ended bin edges (``inf``) are written as ``null``.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from aerialmtl.errors import OutputError
+from aerialmtl.formats.report import owned_plots, plot_path
+from aerialmtl.io.outputs import atomic_write, write_text_atomic
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -117,7 +118,8 @@ def _save(fig: Any, path: Path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
 
 
 def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
@@ -143,7 +145,7 @@ def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
             ax.set_ylabel("mean error / full-set mean error" if sp["normalised"] else "mean error")
             ax.set_title(key.replace("_", " "))
             ax.legend(fontsize=7)
-        path = stem.with_name(stem.name + "_sparsification.png")
+        path = plot_path(stem, "sparsification")
         _save(fig, path)
         written.append(path)
     c = report.get("classes")
@@ -161,7 +163,7 @@ def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
         ax.set_ylabel("reference")
         ax.set_title(f"confusion (row-normalised), OA {_fmt(c['overall_accuracy'], pct=True)}")
         fig.colorbar(im, ax=ax, fraction=0.046)
-        path = stem.with_name(stem.name + "_confusion.png")
+        path = plot_path(stem, "confusion")
         _save(fig, path)
         written.append(path)
     cal = u.get("calibration")
@@ -177,7 +179,7 @@ def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
         ax.set_ylabel("accuracy")
         ax.set_title(f"reliability, ECE {_fmt(cal['ece'])}")
         ax.legend(fontsize=7)
-        path = stem.with_name(stem.name + "_reliability.png")
+        path = plot_path(stem, "reliability")
         _save(fig, path)
         written.append(path)
     return written
@@ -186,8 +188,9 @@ def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
 def write_report(report: dict[str, Any], out: str | Path, plots: bool = True) -> Path:
     """Write ``report`` as JSON to ``out``, a Markdown summary beside it and (optionally) PNG plots.
 
-    Adds ``report["plots"]`` (file names written) and a note when matplotlib is missing. The JSON is
-    written to a temporary file first and moved into place, so a failed run leaves no partial report.
+    Adds ``report["plots"]`` (file names written) and a note when matplotlib is missing. Every file goes
+    through a staging file renamed into place, the JSON last, so a failed run leaves no partial report;
+    plots an earlier report at ``out`` listed and this one does not draw are removed.
 
     Raises:
         OutputError: the folder cannot be created or written.
@@ -198,17 +201,19 @@ def write_report(report: dict[str, Any], out: str | Path, plots: bool = True) ->
     except OSError as exc:
         raise OutputError(f"cannot create the folder of ‹out› '{out}' ({exc}); choose a writable location") from exc
     stem = out.with_suffix("")
+    old_plots = owned_plots(out)
     report["plots"] = []
-    if plots:
-        try:
-            report["plots"] = [p.name for p in write_plots(report, stem)]
-        except ImportError:
-            report["notes"].append("matplotlib is not installed: plots skipped (pip install 'aerialmtl[plot]')")
-    tmp = out.with_name(out.name + ".tmp")
     try:
-        tmp.write_text(json.dumps(to_jsonable(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        os.replace(tmp, out)
-        out.with_suffix(".md").write_text(markdown_summary(report), encoding="utf-8")
+        if plots:
+            try:
+                report["plots"] = [p.name for p in write_plots(report, stem)]
+            except ImportError:
+                report["notes"].append("matplotlib is not installed: plots skipped (pip install 'aerialmtl[plot]')")
+        write_text_atomic(out.with_suffix(".md"), markdown_summary(report))
+        write_text_atomic(out, json.dumps(to_jsonable(report), indent=2, allow_nan=False) + "\n")
+        for path in old_plots:
+            if path.name not in report["plots"]:
+                path.unlink(missing_ok=True)
     except OSError as exc:
         raise OutputError(f"cannot write the report '{out}' ({exc}); choose a writable ‹out›") from exc
     return out

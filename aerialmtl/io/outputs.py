@@ -55,10 +55,14 @@ except ImportError:  # pragma: no cover - Windows
 
 
 # ---- staging and atomic writes -------------------------------------------------------------------
-def staging_path(final: str | Path, tag: str = PARTIAL) -> Path:
-    """The hidden staging file of ``final``: ``.NAME.<tag>`` in the same folder (so a rename is atomic)."""
+def staging_path(final: str | Path, tag: str = PARTIAL, keep_suffix: bool = False) -> Path:
+    """The hidden staging file of ``final``: ``.NAME.<tag>`` in the same folder (so a rename is atomic).
+
+    ``keep_suffix`` appends the final suffix again (``.b.gpkg.partial.gpkg``) for writers that choose the
+    format, or check it, by the file name's suffix.
+    """
     final = Path(final)
-    return final.with_name(f".{final.name}.{tag}")
+    return final.with_name(f".{final.name}.{tag}" + (final.suffix if keep_suffix else ""))
 
 
 def is_staging_of(path: Path, name: str) -> bool:
@@ -67,13 +71,13 @@ def is_staging_of(path: Path, name: str) -> bool:
 
 
 @contextlib.contextmanager
-def atomic_write(final: str | Path, tag: str = PARTIAL) -> Iterator[Path]:
+def atomic_write(final: str | Path, tag: str = PARTIAL, keep_suffix: bool = False) -> Iterator[Path]:
     """Yield the staging path of ``final``; rename it to ``final`` when the block ends without error.
 
     On an error (or Ctrl-C, SIGTERM) the staging file is removed and ``final`` is left as it was.
     """
     final = Path(final)
-    tmp = staging_path(final, tag)
+    tmp = staging_path(final, tag, keep_suffix)
     with contextlib.suppress(FileNotFoundError):
         tmp.unlink()
     try:
@@ -122,6 +126,28 @@ def check_not_input(out: str | Path, inputs: Mapping[str, str | Path | None], op
             raise InputError(
                 f"‹{option}› '{out}' {how} the input ‹{param}› '{path}': writing or cleaning it there could replace or "
                 f"delete that input; choose another ‹{option}›", param=option)
+
+
+def check_files_not_input(outputs: Iterable[str | Path],
+                          inputs: Mapping[str, str | Path | None] | Iterable[tuple[str, str | Path | None]],
+                          option: str = "out") -> None:
+    """Refuse output files that are input files (writing them would replace the input).
+
+    Args:
+        outputs: the files a command will write.
+        inputs: parameter name → input path (or such pairs; ``None`` and remote paths are skipped).
+        option: the parameter naming the outputs.
+
+    Raises:
+        InputError: an output is one of ``inputs`` (``param=option``).
+    """
+    pairs = inputs.items() if isinstance(inputs, Mapping) else inputs
+    given = {Path(p).resolve(): name for name, p in pairs if p is not None and is_local_path(p)}
+    for out in outputs:
+        name = given.get(Path(out).resolve())
+        if name is not None:
+            raise InputError(f"‹{option}›: '{out}' would be written, but it is the input ‹{name}›; choose another "
+                             f"‹{option}›", param=option)
 
 
 # ---- locks ---------------------------------------------------------------------------------------
@@ -214,6 +240,24 @@ class FolderLock:
                               f"writable ‹{self.option}›") from exc
         _HELD[self._key] = [1, fd]
         return self
+
+    def check_free(self) -> None:
+        """Raise :class:`OutputInUseError` when another process holds the lock now (takes nothing).
+
+        Lets a command name the process using the folder before it checks the folder's contents.
+        """
+        if _HELD.get(self._key) is not None or fcntl is None or not self.path.is_file():
+            return
+        try:
+            fd = os.open(self.path, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise self._busy(self.holder()) from None
+        finally:
+            os.close(fd)  # also releases the shared lock
 
     def _acquire_flock(self) -> int:
         while True:
@@ -409,6 +453,6 @@ def _remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write", "check_not_input",
-           "is_job_leader", "is_local_path", "is_staging_of", "job_id", "make_output_dir", "staging_path",
-           "write_text_atomic"]
+__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write",
+           "check_files_not_input", "check_not_input", "is_job_leader", "is_local_path", "is_staging_of", "job_id",
+           "make_output_dir", "staging_path", "write_text_atomic"]

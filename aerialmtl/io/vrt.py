@@ -38,6 +38,7 @@ from rasterio.enums import Resampling
 from rasterio.vrt import WarpedVRT
 
 from aerialmtl.errors import InputError, OutputError
+from aerialmtl.io.outputs import staging_path
 
 #: The smallest overview of a mosaic has at least this many pixels on its long side (as a COG's).
 MIN_OVERVIEW_SIZE = 256
@@ -172,7 +173,7 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
                           ySize=repr(_snap(s.height * abs(s.transform.e) / yres)))
             if nodata is not None:
                 ET.SubElement(src_el, "NODATA").text = repr(float(nodata))
-    tmp = dst.with_name(f".{dst.name}.partial")
+    tmp = staging_path(dst)
     try:
         ET.ElementTree(root).write(tmp, encoding="unicode")
         with rasterio.open(tmp, "r+") as vrt:  # metadata through GDAL, as in the sources

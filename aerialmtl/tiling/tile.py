@@ -160,23 +160,24 @@ def _claim(folder: OutputFolder, overwrite: bool) -> list[str] | None:
 
     Raises:
         OutputExistsError: a tile dataset (or part of one) is there and ``overwrite`` is false.
-        OutputError: a split folder, ``manifest.csv`` or ``dataset.yaml`` is there that no tile dataset lists.
+        OutputError: a split folder is there that no tile dataset lists (never replaced).
     """
     names = (*SPLITS, MANIFEST_CSV, DATASET_YAML)
     existing = folder.existing(names)
     if not existing:
         return []
     owned = owned_files(folder.path)
-    if owned is None:
+    foreign = [n for n in existing if n in SPLITS] if owned is None else []
+    if foreign:
         raise OutputError(
-            f"tile folder '{folder.path}' holds {', '.join(existing)} but no tile dataset (dataset.yaml with its "
-            "manifest.csv) that lists them, so they were not written by `aerialmtl tile` (or by an unfinished run "
-            "of an older version); move them away or choose another ‹out_dir›")
+            f"tile folder '{folder.path}' holds {', '.join(foreign)} but no tile dataset (dataset.yaml with its "
+            "manifest.csv) lists them, so they were not written by `aerialmtl tile` (or by an unfinished run of an "
+            "older version) and are not replaced; move them away or choose another ‹out_dir›")
     if not overwrite:
         raise OutputExistsError(
-            f"output folder '{folder.path}' already holds a tile dataset ({', '.join(existing)}); choose another "
-            "‹out_dir› or pass ‹overwrite=True› to replace it")
-    return owned
+            f"output folder '{folder.path}' already holds {', '.join(existing)}; choose another ‹out_dir› or pass "
+            "‹overwrite=True› to replace the tile dataset")
+    return owned or []
 
 
 def _remove_dataset(out_dir: Path, owned: Sequence[str]) -> None:

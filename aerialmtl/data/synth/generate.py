@@ -20,9 +20,10 @@ from shapely.geometry.polygon import orient
 from aerialmtl.classes import BUILTIN_DIR, ClassScheme
 from aerialmtl.data.synth.render import render_ortho
 from aerialmtl.data.synth.scene import Scene, build_scene
-from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
 from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.io.outputs import OutputFolder, atomic_write
 
 #: Version of the generator; bump it whenever the same seed would produce different rasters.
 SYNTH_VERSION = "1"
@@ -114,16 +115,21 @@ def synthesize(
         raise InputError(f"‹crs› {crs!r} is not projected; synthetic scenes need a projected CRS, e.g. a UTM zone "
                          "'EPSG:32631'", param="crs")
     out = Path(out_dir)
-    existing = [name for name in _OUTPUTS if (out / name).exists()]
+    existing = [name for name in _OUTPUTS if os.path.lexists(out / name)]
     if existing and not overwrite:
         raise OutputExistsError(
             f"{out}: {', '.join(existing)} already exist; pass ‹overwrite=True› to replace them "
             "or choose another output folder"
         )
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot create output folder '{out}' ({exc}); check the path and permissions") from exc
+    with OutputFolder(out, "synth", what="output folder") as folder:
+        folder.claim(_OUTPUTS, overwrite)
+        folder.remove_leftovers(_OUTPUTS)
+        return _write_scene(out, size, seed, gsd, crs_obj, origin, start)
+
+
+def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, origin: tuple[float, float],
+                 start: float) -> SynthResult:
+    """Render and write the town (see :func:`synthesize`) into the held folder ``out``."""
 
     rng = np.random.default_rng(seed)
     scene = build_scene(int(size), float(gsd), rng)
@@ -148,8 +154,7 @@ def synthesize(
               units: str | None = None, colormap: dict | None = None) -> None:
         count = data.shape[0] if data.ndim == 3 else 1
         profile = _profile(size, count, data.dtype.name, crs_obj, transform, nodata)
-        tmp = paths[name].with_name(f".{name}.part")
-        with rasterio.open(tmp, "w", **profile) as dst:
+        with atomic_write(paths[name]) as tmp, rasterio.open(tmp, "w", **profile) as dst:
             dst.write(data if data.ndim == 3 else data[None])
             dst.update_tags(**tags)
             for i, desc in enumerate(descriptions, start=1):
@@ -160,7 +165,6 @@ def synthesize(
                 dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue]
             if colormap:
                 dst.write_colormap(1, colormap)
-        os.replace(tmp, paths[name])
 
     write("ortho.tif", ortho, None, ("red", "green", "blue"))
     write("dsm.tif", dsm, HEIGHT_NODATA, ("DSM",), "metre")
@@ -169,7 +173,8 @@ def synthesize(
     cmap = {c.code: (*c.color, 255) for c in scheme.classes}
     cmap.update({code: (0, 0, 0, 0) for code in scheme.ignore_codes})
     write("labels.tif", scene.labels, 0, ("land cover (raw code)",), colormap=cmap)
-    shutil.copyfile(BUILTIN_DIR / "synthetic.yaml", paths["classes.yaml"])
+    with atomic_write(paths["classes.yaml"]) as tmp:
+        shutil.copyfile(BUILTIN_DIR / "synthetic.yaml", tmp)
     _write_reference_buildings(scene, paths[REFERENCE_FILE], crs_obj, origin)
     return SynthResult(out, paths["ortho.tif"], paths["dsm.tif"], paths["dtm.tif"], paths["ndsm.tif"],
                        paths["labels.tif"], paths["classes.yaml"], scene.sun_azimuth, scene.sun_elevation,
@@ -178,8 +183,11 @@ def synthesize(
 
 def _write_reference_buildings(scene: Scene, path: Path, crs: CRS, origin: tuple[float, float]) -> None:
     """The scene's true building footprints (map coordinates) and heights as GeoJSON."""
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.unlink(missing_ok=True)
+    with atomic_write(path, keep_suffix=True) as tmp:
+        _write_footprints(scene, tmp, crs, origin)
+
+
+def _write_footprints(scene: Scene, tmp: Path, crs: CRS, origin: tuple[float, float]) -> None:
     writer = FootprintWriter(tmp, crs, REFERENCE_FIELDS, driver="GeoJSON")
     # scene metres (x east, y south of the upper-left corner) → map coordinates
     to_map = [1.0, 0.0, 0.0, -1.0, origin[0], origin[1]]
@@ -188,4 +196,3 @@ def _write_reference_buildings(scene: Scene, path: Path, crs: CRS, origin: tuple
                          "height_m": [b.height_m for b in scene.buildings],
                          "height_max_m": [b.height_max_m for b in scene.buildings]})
     writer.close()
-    os.replace(tmp, path)
