@@ -129,7 +129,11 @@ def predict(
         rescale_input=rescale_input,
     )
     for path in job.skipped:
-        click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete")
+        click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete (same model, settings, input)")
+    if job.ranks.rank == 0:
+        for path, why in job.recomputed.items():
+            click.echo(f"{raster_name(path)}: recomputed, its earlier prediction folder was not complete for this "
+                       f"run: {why}")
     if job.mosaics:
         click.echo(f"mosaics: {', '.join(str(p) for p in job.mosaics.values())}")
     if default and job.ranks.rank == 0:

@@ -155,6 +155,23 @@ def _os_error(exc: BaseException) -> OSError | None:
     return None
 
 
+def model_fingerprint(model: torch.nn.Module, meta: ModelMeta) -> str:
+    """``sha256:<hex>`` of a model in memory: its metadata and every weight (names, shapes, dtypes, bytes).
+
+    The fingerprint of a checkpoint file is that of its bytes
+    (:func:`aerialmtl.formats.prediction.checkpoint_fingerprint`); this one is for models never saved.
+    """
+    import hashlib
+    import json
+
+    digest = hashlib.sha256(json.dumps(meta.to_dict(), sort_keys=True, default=str).encode())
+    for name, t in model.state_dict().items():
+        t = t.detach().cpu().contiguous()
+        digest.update(f"{name}:{tuple(t.shape)}:{t.dtype}".encode())
+        digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return f"sha256:{digest.hexdigest()}"
+
+
 def save_checkpoint(
     path: str | Path,
     model: torch.nn.Module,

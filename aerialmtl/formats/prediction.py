@@ -25,15 +25,32 @@ GDAL VRT mosaic per layer beside them, ``<layer>.mosaic.vrt`` (:func:`mosaic_fil
 style ``<layer>.mosaic.qml``, so that a GIS opens one layer over all inputs, and a STAC Collection
 ``collection.json`` (:data:`COLLECTION_FILE`) linking the items of the inputs and the mosaics.
 
-A folder is complete (:meth:`PredictionFolder.is_complete`) when ``prediction.json`` exists and every
-file it lists exists: the writer renames ``prediction.json`` into place last, so a run that stopped
-earlier leaves no complete-looking folder.
+A folder is complete for a run (:meth:`PredictionFolder.check`, :meth:`PredictionFolder.is_complete`) when
+``prediction.json`` exists (the writer renames it into place last, so a run that stopped earlier leaves
+no complete-looking folder), every file it lists exists with the size it records (``file_sizes``) and
+opens as a raster of the recorded grid, and its ``provenance`` matches the run at hand:
+
+    provenance.checkpoint   :func:`checkpoint_fingerprint`: SHA-256 of the checkpoint file (of the weights
+                            and metadata for a model given in memory)
+    provenance.settings     what changes the maps: MC samples T, seed, precision, engine, the class
+                            probabilities layer, the AOI (:func:`file_fingerprint` of the GeoJSON),
+                            whether the checkpoint's calibration was applied
+    provenance.input        :func:`input_fingerprint` of the orthophoto: resolved path, size and mtime
+                            (ns) of a local file; the GDAL path, size, transform and CRS of a remote or
+                            virtual one (no ``stat`` there)
+
+Window size, overlap, batch size and device are not part of it: they change speed and memory, and the
+maps only within the blending of window seams. ``prediction.json`` is also the proof of what a run owns:
+``overwrite`` removes a stale layer of an earlier run only when that run's ``prediction.json`` lists it
+(:meth:`PredictionFolder.owned_files`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
-from collections.abc import Sequence
+import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -221,15 +238,123 @@ class PredictionFolder:
         path = self.layer_path(CLASSES)
         return read_class_scheme_tag(path) if path.is_file() else None
 
-    def is_complete(self) -> bool:
-        """Whether a run finished here: ``prediction.json`` parses and every file it lists exists."""
+    def owned_files(self) -> list[str]:
+        """Files an earlier run here wrote, as its ``prediction.json`` lists them (with itself); [] without one."""
         try:
             files = self.info().get("files")
+        except (OSError, ValueError, AttributeError):
+            return []
+        if not isinstance(files, dict):
+            return []
+        names = [str(n) for n in files.values() if str(n) in ALL_FILES]
+        return [*names, INFO_FILE] if names else []
+
+    def check(self, expected: Mapping[str, Any] | None = None) -> str | None:
+        """Why this folder is not a finished prediction of the run ``expected`` describes (``None``: it is).
+
+        Args:
+            expected: the ``provenance`` of the run at hand (:meth:`Predictor.provenance
+                <aerialmtl.inference.predict.Predictor.provenance>`); ``None`` checks only that a run finished
+                here and its files are whole.
+
+        Returns:
+            ``None`` when complete, else a short reason for a summary (``"height.tif is truncated ..."``,
+            ``"made with another model"``, ...).
+        """
+        try:
+            info = self.info()
         except (OSError, ValueError):
-            return False
+            return f"its {INFO_FILE} is unreadable"
+        files = info.get("files")
+        if not info:
+            return f"it has no {INFO_FILE} (no run finished there)"
         if not isinstance(files, dict) or not files:
-            return False
-        return all((self.path / str(name)).is_file() for name in files.values())
+            return f"its {INFO_FILE} lists no layer"
+        sizes = info.get("file_sizes") or {}
+        grid = info.get("grid") or {}
+        for key, name in files.items():
+            path = self.path / str(name)
+            if not path.is_file():
+                return f"{name} is missing"
+            size = sizes.get(str(name))
+            if size is not None and path.stat().st_size != size:
+                return f"{name} is truncated or was changed ({path.stat().st_size} bytes, {INFO_FILE} says {size})"
+            problem = _layer_problem(path, grid) if key in LAYERS else None  # layers, not styles or STAC
+            if problem:
+                return problem
+        if expected is None:
+            return None
+        recorded = info.get(PROVENANCE_KEY)
+        if not isinstance(recorded, dict):
+            return f"its {INFO_FILE} records no provenance (made by an older version)"
+        for key, what in (("checkpoint", "another model"), ("input", "another or a changed orthophoto")):
+            if recorded.get(key) != expected.get(key):
+                return f"it was made with {what}"
+        old, new = recorded.get("settings") or {}, expected.get("settings") or {}
+        changed = [f"{k} {old.get(k)!r} → {new.get(k)!r}" for k in sorted(set(old) | set(new))
+                   if old.get(k) != new.get(k)]
+        if changed:
+            return f"it was made with other settings ({', '.join(changed)})"
+        return None
+
+    def is_complete(self, expected: Mapping[str, Any] | None = None) -> bool:
+        """Whether a finished prediction of the run ``expected`` describes is here (see :meth:`check`)."""
+        return self.check(expected) is None
+
+
+def _layer_problem(path: Path, grid: Mapping[str, Any]) -> str | None:
+    """Why layer ``path`` does not open as a raster of ``grid`` (``None`` when it does)."""
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    try:
+        with rasterio.open(path) as src:
+            shape = (src.width, src.height)
+    except (RasterioError, OSError) as exc:
+        return f"{path.name} does not open ({' '.join(str(exc).split())[:120]})"
+    want = (grid.get("width"), grid.get("height"))
+    if None not in want and shape != want:
+        return f"{path.name} is {shape[0]}×{shape[1]} px, {INFO_FILE} says {want[0]}×{want[1]}"
+    return None
+
+
+# ---- provenance ---------------------------------------------------------------------------------
+#: The ``prediction.json`` key of a run's provenance (see the module docstring).
+PROVENANCE_KEY = "provenance"
+
+
+def checkpoint_fingerprint(path: str | Path) -> str:
+    """``sha256:<hex>`` of a checkpoint file's bytes (streamed)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return f"sha256:{digest.hexdigest()}"
+
+
+def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
+    """Resolved path, size and mtime (ns) of a local file (``None`` for ``None``); the path alone otherwise."""
+    if path is None:
+        return None
+    from aerialmtl.io.paths import gdal_path, is_local
+
+    if not is_local(path):
+        return {"path": gdal_path(path)}
+    st = os.stat(path)
+    return {"path": str(Path(path).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def input_fingerprint(path: str | Path, width: int, height: int, transform: Sequence[float],
+                      crs: str) -> dict[str, Any]:
+    """The fingerprint of an orthophoto: :func:`file_fingerprint` of a local file; for a remote or virtual
+    path (no ``stat``) the GDAL path with the raster's size, geotransform and CRS."""
+    from aerialmtl.io.paths import is_local
+
+    fp = file_fingerprint(path)
+    assert fp is not None
+    if not is_local(path):
+        fp.update(width=int(width), height=int(height), transform=[float(v) for v in transform][:6], crs=str(crs))
+    return fp
 
 
 __all__ = [
@@ -238,4 +363,5 @@ __all__ = [
     "LAYER_UNITS",
     "LayerSpec", "PredictionFolder", "layer_filename", "mosaic_filename", "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
+    "PROVENANCE_KEY", "checkpoint_fingerprint", "file_fingerprint", "input_fingerprint",
 ]

@@ -18,14 +18,20 @@ to skip, what to split) is taken before any rank writes. Each input's header is 
 (:class:`~aerialmtl.inference.ortho.OrthoInput`) and travels with it; the process group, device and GDAL
 settings come from :mod:`aerialmtl.runtime`, as for training.
 
-``skip_existing`` skips inputs whose folder is complete (``prediction.json`` and every file it lists),
-so a large job resumes where it stopped. In one process the first failing input stops the run with its
-own message; with several ranks the others finish their shares and the run then fails with a message
-naming the input and the rank. Either way no half-written file is ever at a final path.
+``skip_existing`` skips inputs whose folder is complete for this run (``prediction.json`` of the same
+model, settings and input, every layer whole: :meth:`~aerialmtl.formats.prediction.PredictionFolder.check`),
+so a large job resumes where it stopped; an earlier run's outputs that are not (another model, ``--mc``,
+a changed input, a truncated layer) are recomputed and :attr:`JobResult.recomputed` says why. The job
+holds its output folders' locks (rank 0, for the whole job), so two jobs never write one folder.
+
+In one process the first failing input stops the run with its own message; with several ranks the
+others finish their shares and the run then fails with a message naming the input and the rank. Either
+way no half-written file is ever at a final path.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -44,6 +50,7 @@ from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import check_outputs_free, remove_leftovers
 from aerialmtl.io.align import Grid
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
 
@@ -175,6 +182,8 @@ class JobResult:
 
     results: list[PredictResult] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
+    #: inputs whose earlier outputs ``skip_existing`` recomputed → why they were not complete for this run
+    recomputed: dict[str, str] = field(default_factory=dict)
     mosaics: dict[str, Path] = field(default_factory=dict)
     ranks: Ranks = field(default_factory=Ranks)
 
@@ -220,9 +229,30 @@ def predict_many(
             t.src = check_input(t.ortho, predictor)
     ranks.start(predictor.device)
     try:
-        return _run(predictor, targets, Path(out), ranks, aoi, overwrite, skip_existing, progress, on_result)
+        with contextlib.ExitStack() as held:
+            _hold_folders(held, targets, Path(out), ranks, aoi)
+            return _run(predictor, targets, Path(out), ranks, aoi, overwrite, skip_existing, progress, on_result)
     finally:
         ranks.stop()
+
+
+def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: Ranks,
+                  aoi: str | Path | None) -> None:
+    """Take the job's output folders (:class:`~aerialmtl.io.outputs.OutputFolder`: every input's prediction
+    folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error."""
+    error: BaseException | None = None
+    if ranks.rank == 0:
+        inputs = {"aoi": aoi, **{f"orthos[{k}]": t.ortho for k, t in enumerate(targets)}}
+        try:
+            folders = [out] if len(targets) > 1 else []
+            for folder in [*folders, *(t.out for t in targets)]:
+                held.enter_context(OutputFolder(folder, "predict", inputs=inputs, option="out",
+                                                what="prediction folder"))
+        except (AerialMTLError, OSError) as exc:
+            error = exc
+    errors = ranks.gather(error)  # also the barrier: no rank writes before rank 0 holds the folders
+    if errors[0] is not None:
+        raise errors[0]
 
 
 def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, aoi: str | Path | None,
@@ -230,15 +260,26 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
          on_result: Callable[[PredictResult], None] | None) -> JobResult:
     job = JobResult(ranks=ranks)
     todo = []
+    replace: set[int] = set()  # inputs whose earlier, outdated outputs --skip-existing recomputes
+    files = [s.filename for s in predictor.layers] + [INFO_FILE]
     for k, t in enumerate(targets):
-        if skip_existing and PredictionFolder(t.out).is_complete():
-            job.skipped.append(t.ortho)
-            continue
+        if skip_existing:
+            assert t.src is not None
+            folder = PredictionFolder(t.out)
+            reason = folder.check(predictor.provenance(t.src, aoi))
+            if reason is None:
+                job.skipped.append(t.ortho)
+                continue
+            owned = set(folder.owned_files())
+            if owned:  # an earlier run's outputs (its prediction.json lists them): recomputed, and said so
+                job.recomputed[t.ortho] = reason
+                if all(f in owned for f in files if (t.out / f).exists()):
+                    replace.add(k)
         todo.append(k)
     if not overwrite:  # once per input, before any work
-        files = [s.filename for s in predictor.layers] + [INFO_FILE]
         for k in todo:
-            check_outputs_free(targets[k].out, files, overwrite=False)
+            if k not in replace:
+                check_outputs_free(targets[k].out, files, overwrite=False)
     if ranks.rank == 0:
         for k in todo:
             src = targets[k].src
@@ -268,7 +309,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
             started = time.perf_counter()
             try:
                 strip = predictor.strip(t.src, t.out, aoi=aoi, window_rows=None if whole else (share.start, share.stop),
-                                        overwrite=overwrite, check_outputs=False,
+                                        overwrite=overwrite or share.target in replace, check_outputs=False,
                                         progress=progress and ranks.rank == 0)
                 if whole:  # the one-strip case: commit at once
                     res = predictor.commit(t.src, t.out, [strip], aoi=aoi, started=started)

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -48,8 +47,15 @@ from tqdm.auto import tqdm
 
 from aerialmtl import __version__
 from aerialmtl.errors import InputError
-from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.formats.prediction import LayerSpec, prediction_layers
+from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
+from aerialmtl.formats.prediction import (
+    PROVENANCE_KEY,
+    LayerSpec,
+    checkpoint_fingerprint,
+    file_fingerprint,
+    input_fingerprint,
+    prediction_layers,
+)
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.ortho import GSD_TOLERANCE, OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
@@ -67,6 +73,7 @@ from aerialmtl.inference.stitch import Stitcher
 from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
 from aerialmtl.inference.writer import PredictionWriter
 from aerialmtl.io.align import Grid
+from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.runtime import GDAL_CACHE_MB, gdal_env
 
@@ -154,9 +161,7 @@ def _record_timings(path: Path, timings: dict[str, float]) -> None:
     """Add the final timings to ``prediction.json`` (atomic replace)."""
     info = json.loads(path.read_text(encoding="utf-8"))
     info["timings_s"] = dict(timings)
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(info, indent=2, default=str))
 
 
 def _stats_window(stats: McStatistics, n: int) -> McStatistics:
@@ -228,6 +233,8 @@ class Predictor:
         self.precision = resolve_precision(precision, self.device)
         model, self.meta, name = _load(checkpoint)
         self.checkpoint_name = checkpoint_name or name
+        self._checkpoint = checkpoint
+        self._fingerprint: str | None = None
         self.mc = mc if mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
         self.tile, self.overlap = tile, overlap
         self.batch_size = batch_size
@@ -458,12 +465,36 @@ class Predictor:
             InputError / AlignmentError: unusable inputs (messages name the fix).
         """
         started = time.perf_counter()
-        with gdal_env():
+        given = ortho.path if isinstance(ortho, OrthoInput) else ortho
+        with gdal_env(), OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
+                                      what="prediction folder"):
             src = self.open(ortho, grid=grid, warn=grid is None)
             strip = self.strip(src, out, aoi=aoi, overwrite=overwrite, check_outputs=check_outputs, progress=progress)
             return self.commit(src, out, [strip], aoi=aoi, started=started)
 
     # ---- run information --------------------------------------------------------------------------
+    @property
+    def fingerprint(self) -> str:
+        """The model's fingerprint (:func:`~aerialmtl.formats.prediction.checkpoint_fingerprint`; computed once)."""
+        if self._fingerprint is None:
+            self._fingerprint = (model_fingerprint(*self._checkpoint) if isinstance(self._checkpoint, tuple)
+                                 else checkpoint_fingerprint(self._checkpoint))
+        return self._fingerprint
+
+    def provenance(self, src: OrthoInput, aoi: str | Path | None) -> dict[str, Any]:
+        """What makes the maps of ``src`` (``provenance`` in prediction.json, :mod:`aerialmtl.formats.prediction`)."""
+        native = src.native
+        engine = getattr(self, "engine", None)
+        return {
+            "checkpoint": self.fingerprint,
+            "settings": {"mc_samples": self.mc, "seed": self.seed, "precision": self.precision,
+                         "engine": str(getattr(engine, "name", engine) or "torch"),
+                         "probabilities": bool(self.probabilities), "aoi": file_fingerprint(aoi),
+                         "calibration": self.calibration is not None},
+            "input": input_fingerprint(src.path, native.width, native.height, list(native.transform),
+                                       native.crs.to_string()),
+        }
+
     @staticmethod
     def overlap_factor(plan: Plan, computed: int) -> float:
         return computed * plan.rows.size * plan.cols.size / float(plan.rows.length * plan.cols.length)
@@ -498,6 +529,7 @@ class Predictor:
             "plan_overlap_factor": plan.overlap_factor,
             "timings_s": dict(timings),
             "calibration": self.calibration_info(),
+            PROVENANCE_KEY: self.provenance(src, aoi),
         }
 
     def calibration_info(self) -> dict[str, Any]:

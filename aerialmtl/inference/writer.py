@@ -33,8 +33,9 @@ from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from aerialmtl.errors import OutputError, OutputExistsError
-from aerialmtl.formats.prediction import ALL_FILES, INFO_FILE, ITEM_FILE, LayerSpec, style_filename
+from aerialmtl.formats.prediction import ALL_FILES, INFO_FILE, ITEM_FILE, LayerSpec, PredictionFolder, style_filename
 from aerialmtl.inference.stitch import Block
+from aerialmtl.io import outputs
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
 from aerialmtl.io.outputs import make_output_dir
@@ -58,7 +59,8 @@ def cog_threads() -> int:
 
 
 def hidden(out_dir: Path, filename: str, suffix: str) -> Path:
-    return out_dir / f".{filename}.{suffix}"
+    """``.FILENAME.<suffix>``: a staging file of ``filename`` (:func:`aerialmtl.io.outputs.staging_path`)."""
+    return outputs.staging_path(out_dir / filename, suffix)
 
 
 def staging_path(out_dir: Path, filename: str, row_start: int | None = None) -> Path:
@@ -123,7 +125,8 @@ class PredictionWriter:
         out_dir: the prediction folder (created if missing).
         grid: the reference grid (CRS, transform, size of every output).
         specs: the layers to write.
-        overwrite: replace existing outputs (and remove outputs of earlier runs this run does not write).
+        overwrite: replace existing outputs (and remove layers of an earlier run that this run does not write,
+            when that run's prediction.json lists them).
         rows: write only grid rows ``[start, stop)`` (one strip of a distributed run): the staging files
             are then named after ``start``, and only the process that calls :meth:`commit` with every
             strip converts them. Default: the whole grid.
@@ -281,7 +284,8 @@ class PredictionWriter:
             info = dict(info, created=datetime.now(timezone.utc).replace(microsecond=0).isoformat())
             extras = self._write_metadata(info, stats)
             partials.update(extras)
-            info = dict(info, files={n: p.name for n, (_, p) in partials.items()})
+            info = dict(info, files={n: p.name for n, (_, p) in partials.items()},
+                        file_sizes={p.name: tmp.stat().st_size for tmp, p in partials.values()})
             js = hidden(self.out_dir, INFO_FILE, "partial")
             js.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
             partials["prediction"] = (js, self.out_dir / INFO_FILE)
@@ -294,9 +298,11 @@ class PredictionWriter:
             if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
                 raise _writable_error(self.out_dir, exc) from exc
             raise
-        if self.overwrite:  # outputs of an earlier run that this run does not produce would be stale
-            produced = {p.name for _, p in partials.values()}
-            for f in ALL_OUTPUTS:
+        if self.overwrite:  # layers of an earlier run this run does not produce would be stale: those its
+            produced = {p.name for _, p in partials.values()}  # prediction.json lists (it proves they are its own)
+            owned = PredictionFolder(self.out_dir).owned_files()
+            (self.out_dir / INFO_FILE).unlink(missing_ok=True)  # first: never a complete-looking mix
+            for f in owned:
                 if f not in produced:
                     (self.out_dir / f).unlink(missing_ok=True)
         for tmp, final in partials.values():  # prediction.json last: its presence marks a complete folder

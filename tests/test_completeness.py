@@ -1,0 +1,147 @@
+"""Complete means verified: ``--skip-existing`` skips a prediction folder only when its ``prediction.json``
+records the same model, settings and input and every layer is whole; anything else is recomputed and the
+summary says why. Two predict processes on one ``--out``: the second is refused (issue 18, parts 2, 3, 5)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import run_cli, tiny_d3net
+from test_outputs import ONE_THREAD, _wait_for
+from test_robustness import PREDICT, assert_error, assert_ok, no_final_outputs, rgb
+
+from aerialmtl.formats.checkpoint import save_checkpoint
+from aerialmtl.formats.prediction import PredictionFolder, input_fingerprint
+from aerialmtl.io.outputs import LOCK_FILE
+
+run = run_cli
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """Two tiny checkpoints with different weights."""
+    folder = tmp_path_factory.mktemp("ckpts")
+    paths = []
+    for seed in (0, 1):
+        import torch
+
+        torch.manual_seed(seed)
+        model, meta = tiny_d3net()
+        paths.append(folder / f"m{seed}.pt")
+        save_checkpoint(paths[-1], model, meta)
+    return paths[0], paths[1]
+
+
+def _predict(capsys, ortho: Path, ckpt: Path, out: Path, *extra: object) -> list[str]:
+    args = ["predict", ortho, "--model", ckpt, "--out", out, *PREDICT, "--skip-existing", *extra]
+    rc, stdout, err = run(capsys, *args)
+    assert rc == 0, (stdout, err)
+    return stdout.strip().splitlines()
+
+
+def test_skip_existing_skips_only_a_verified_folder(tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
+    ortho, out = rgb(tmp_path, size=(64, 64)), tmp_path / "pred"
+    _predict(capsys, ortho, ckpts[0], out)
+    info = json.loads((out / "prediction.json").read_text())
+    prov = info["provenance"]
+    assert prov["checkpoint"].startswith("sha256:") and prov["settings"]["mc_samples"] == 2
+    assert prov["input"]["path"] == str(ortho.resolve()) and prov["input"]["size"] == ortho.stat().st_size
+    assert set(info["file_sizes"]) == set(info["files"].values())
+
+    assert _predict(capsys, ortho, ckpts[0], out)[-1].endswith("skipped, its prediction folder is complete "
+                                                                "(same model, settings, input)")
+    # another --mc: recomputed (its own outputs replaced without --overwrite), and the summary says why
+    lines = _predict(capsys, ortho, ckpts[0], out, "--mc", "3")
+    assert "recomputed" in lines[-1] and "mc_samples 2 → 3" in lines[-1], lines
+    assert json.loads((out / "prediction.json").read_text())["mc_samples"] == 3
+    # another model
+    lines = _predict(capsys, ortho, ckpts[1], out, "--mc", "3")
+    assert lines[-1].endswith("it was made with another model"), lines
+    # a truncated layer
+    data = (out / "height.tif").read_bytes()
+    (out / "height.tif").write_bytes(data[: len(data) // 2])
+    lines = _predict(capsys, ortho, ckpts[1], out, "--mc", "3")
+    assert "height.tif is truncated or was changed" in lines[-1], lines
+    # the orthophoto changed since (its mtime)
+    st = ortho.stat()
+    os.utime(ortho, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    lines = _predict(capsys, ortho, ckpts[1], out, "--mc", "3")
+    assert lines[-1].endswith("it was made with another or a changed orthophoto"), lines
+    assert PredictionFolder(out).is_complete() and sorted(p.name for p in out.iterdir() if p.name[0] == ".") == []
+
+
+def test_skip_existing_never_replaces_files_no_run_wrote(tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
+    out = tmp_path / "pred"
+    out.mkdir()
+    (out / "height.tif").write_text("precious")
+    res = run(capsys, "predict", rgb(tmp_path), "--model", ckpts[0], "--out", out, *PREDICT, "--skip-existing")
+    assert_error(res, "already holds height.tif", "--overwrite")
+    assert (out / "height.tif").read_text() == "precious"
+
+
+def test_a_layer_that_does_not_open_is_not_complete(tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
+    out = tmp_path / "pred"
+    _predict(capsys, rgb(tmp_path), ckpts[0], out)
+    info = json.loads((out / "prediction.json").read_text())
+    del info["file_sizes"]  # as an older version wrote it: the layers are opened instead
+    (out / "prediction.json").write_text(json.dumps(info))
+    assert PredictionFolder(out).check() is None
+    (out / "classes.tif").write_bytes(b"not a tiff")
+    assert PredictionFolder(out).check().startswith("classes.tif does not open")
+
+
+def test_remote_input_fingerprint_needs_no_stat() -> None:
+    fp = input_fingerprint("https://example.org/o.tif", 10, 20, [0.5, 0, 1, 0, -0.5, 2], "EPSG:32631")
+    assert fp == {"path": "/vsicurl/https://example.org/o.tif", "width": 10, "height": 20,
+                  "transform": [0.5, 0.0, 1.0, 0.0, -0.5, 2.0], "crs": "EPSG:32631"}
+
+
+@pytest.mark.slow
+def test_two_predict_processes_on_one_out_then_sigterm(tmp_path: Path, ckpts: tuple[Path, Path]) -> None:
+    """The second predict on a busy --out fails naming the first's PID and touches nothing; SIGTERM then
+    stops the first like Ctrl-C: exit 143, its message, no output and no folder left."""
+    ortho = rgb(tmp_path, size=(1024, 1024), seed=3)  # a minute of work or more: stopped long before its end
+    out = tmp_path / "pred"
+    cmd = [sys.executable, "-m", "aerialmtl", "predict", str(ortho), "--model", str(ckpts[0]), "--out", str(out),
+           "--mc", "16", "--tile", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
+    first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD)
+    try:
+        _wait_for(lambda: out.is_dir() and any(p.name.endswith(".staging") for p in out.iterdir()), first,
+                  "the first staging file")
+        second = subprocess.run(cmd + ["--overwrite"], capture_output=True, text=True, env=ONE_THREAD, timeout=300)
+        assert second.returncode == 1, second
+        lines = second.stderr.strip().splitlines()
+        assert len(lines) == 1 and f"is in use by aerialmtl predict (PID {first.pid} " in lines[0], lines
+        assert first.poll() is None, "the first run ended before the signal; use a larger raster"
+        first.send_signal(signal.SIGTERM)
+        _, stderr = first.communicate(timeout=120)
+    finally:
+        if first.poll() is None:  # pragma: no cover - only when an assertion above failed
+            first.kill()
+            first.communicate()
+    assert first.returncode == 143, stderr
+    assert stderr.strip().splitlines() == [
+        "Error: interrupted; no output was left at a final path. Re-run the command to finish."]
+    assert no_final_outputs(out) and not out.exists()
+
+
+def test_a_held_folder_is_refused_before_any_work(tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
+    from test_outputs import _hold_lock
+
+    out = tmp_path / "pred"
+    out.mkdir()
+    holder = _hold_lock(out, "evaluate")
+    try:
+        res = run(capsys, "predict", rgb(tmp_path), "--model", ckpts[0], "--out", out, *PREDICT)
+        assert_error(res, f"in use by aerialmtl evaluate (PID {holder.pid} ")
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_FILE]
+    finally:
+        holder.kill()
+        holder.wait()
+    assert_ok(run(capsys, "predict", rgb(tmp_path), "--model", ckpts[0], "--out", out, *PREDICT))
