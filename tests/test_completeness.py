@@ -145,3 +145,35 @@ def test_a_held_folder_is_refused_before_any_work(tmp_path: Path, capsys, ckpts:
         holder.kill()
         holder.wait()
     assert_ok(run(capsys, "predict", rgb(tmp_path), "--model", ckpts[0], "--out", out, *PREDICT))
+
+
+@pytest.mark.slow
+def test_torchrun_job_shares_the_lock_and_a_busy_folder_stops_every_rank(tmp_path: Path,
+                                                                         ckpts: tuple[Path, Path]) -> None:
+    """Rank 0 holds the folder for the job (the ranks of one job never refuse each other: see
+    test_predict_distributed); when another process holds it, every rank stops with the holder's PID."""
+    from test_outputs import _hold_lock
+
+    out = tmp_path / "pred"
+    out.mkdir()
+    holder = _hold_lock(out, "predict")
+    try:
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m",
+               "aerialmtl", "predict", str(rgb(tmp_path, size=(96, 96))), "--model", str(ckpts[0]), "--out",
+               str(out), *PREDICT]
+        res = subprocess.run(cmd, capture_output=True, text=True, env=ONE_THREAD, timeout=600)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert res.returncode != 0
+    errors = [line for line in res.stderr.splitlines() if line.startswith("Error: ")]
+    assert sorted(e.split("]")[0] for e in errors) == ["Error: [rank 0", "Error: [rank 1"], res.stderr
+    assert all(f"in use by aerialmtl predict (PID {holder.pid} " in e for e in errors), errors
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_FILE]
+
+
+def test_predict_into_the_folder_of_its_input_is_refused(tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
+    ortho = rgb(tmp_path)
+    res = run(capsys, "predict", ortho, "--model", ckpts[0], "--out", tmp_path, *PREDICT)
+    assert_error(res, "--out", f"contains the input ORTHOS '{ortho}'", code=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ortho.tif"]

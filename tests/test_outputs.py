@@ -23,7 +23,8 @@ from aerialmtl.formats.checkpoint import load_checkpoint
 from aerialmtl.io.outputs import LOCK_FILE, FolderLock, OutputFolder, atomic_write, staging_path
 
 run = run_cli
-ONE_THREAD = {**os.environ, "OMP_NUM_THREADS": "1"}
+ROOT = Path(__file__).resolve().parents[1]
+ONE_THREAD = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
 
 
 def _tile_args(tmp: Path, out: Path, side: int = 64, size: int = 32) -> list[object]:

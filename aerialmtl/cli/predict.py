@@ -88,7 +88,9 @@ def _batch_size(value: str) -> int | str:
         help="When an orthophoto's values do not look like the training images' (e.g. 16-bit on an 8-bit model), "
              "map them linearly onto the training range (mean ± 3 std of a sample) instead of refusing it.")
 @overwrite_option()
-@option("--skip-existing", is_flag=True, help="Skip inputs whose prediction folder is complete (resume a job).")
+@option("--skip-existing", is_flag=True,
+        help="Skip inputs whose prediction folder is complete for this run (same model, settings and input, "
+             "every layer whole); recompute the others, saying why (resume a job).")
 @quiet_option()
 def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,

@@ -109,7 +109,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     if overrides:
         cfg = cfg.with_overrides(**overrides)
     data = data_dir if data_dir is not None else cfg.data.dir
-    folder = OutputFolder(out_dir, "train", inputs={"data_dir": data, "init": init_ckpt}, what="run folder")
+    folder = OutputFolder(out_dir, "train", inputs={"data_dir": data, "init_ckpt": init_ckpt}, what="run folder")
     ctx = DistContext.from_env(cfg.device)
     try:
         with contextlib.ExitStack() as stack:  # the run folder's lock, held until training ends

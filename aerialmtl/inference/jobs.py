@@ -50,7 +50,7 @@ from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import check_outputs_free, remove_leftovers
 from aerialmtl.io.align import Grid
-from aerialmtl.io.outputs import OutputFolder
+from aerialmtl.io.outputs import OutputFolder, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
 
@@ -242,12 +242,12 @@ def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Pa
     folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error."""
     error: BaseException | None = None
     if ranks.rank == 0:
-        inputs = {"aoi": aoi, **{f"orthos[{k}]": t.ortho for k, t in enumerate(targets)}}
         try:
+            for t in targets:  # an --out holding an input: refused (naming that input)
+                check_not_input(out, {"ortho": t.ortho, "aoi": aoi}, option="out")
             folders = [out] if len(targets) > 1 else []
             for folder in [*folders, *(t.out for t in targets)]:
-                held.enter_context(OutputFolder(folder, "predict", inputs=inputs, option="out",
-                                                what="prediction folder"))
+                held.enter_context(OutputFolder(folder, "predict", option="out", what="prediction folder"))
         except (AerialMTLError, OSError) as exc:
             error = exc
     errors = ranks.gather(error)  # also the barrier: no rank writes before rank 0 holds the folders
