@@ -27,13 +27,14 @@ run = run_cli
 def ckpts(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """Two tiny checkpoints with different weights."""
     folder = tmp_path_factory.mktemp("ckpts")
-    paths = []
-    for seed in (0, 1):
-        import torch
+    import torch
 
-        torch.manual_seed(seed)
+    paths = []
+    for k in (0, 1):
         model, meta = tiny_d3net()
-        paths.append(folder / f"m{seed}.pt")
+        with torch.no_grad():
+            next(model.parameters()).add_(0.01 * k)  # the second model's weights differ
+        paths.append(folder / f"m{k}.pt")
         save_checkpoint(paths[-1], model, meta)
     return paths[0], paths[1]
 
