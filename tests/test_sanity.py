@@ -579,3 +579,21 @@ def test_read_only_folder_while_saving_a_checkpoint_names_the_path(ro_fs: Path) 
     model, meta = tiny_d3net()
     with pytest.raises(OutputError, match=rf"not allowed to write '{ro_fs / 'last.pt'}' \(the checkpoint\)"):
         save_checkpoint(ro_fs / "last.pt", model, meta)
+
+
+def test_output_check_looks_only_at_valid_pixels() -> None:
+    from aerialmtl.inference.sanity import check_finite_outputs
+    from aerialmtl.models.mc_dropout import McStatistics
+
+    valid = torch.ones(2, 8, 8, dtype=torch.bool)
+    valid[1, :4] = False
+    ok = McStatistics(height_mean=torch.rand(2, 8, 8), probs=torch.rand(2, 8, 8, 3))
+    check_finite_outputs(ok, valid, "m.pt")
+    ok.height_mean[1, 0, 0] = math.nan  # outside the valid pixels: not the model's fault
+    ok.probs[1, 1, 1, 2] = math.nan
+    check_finite_outputs(ok, valid, "m.pt")
+    for field, index in (("height_mean", (0, 3, 3)), ("probs", (1, 6, 6, 0))):
+        stats = McStatistics(height_mean=torch.rand(2, 8, 8), probs=torch.rand(2, 8, 8, 3))
+        getattr(stats, field)[index] = -math.inf if field == "height_mean" else math.nan
+        with pytest.raises(NonFiniteError, match="checkpoint 'm.pt' gives NaN or inf"):
+            check_finite_outputs(stats, valid, "m.pt")
