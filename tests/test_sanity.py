@@ -597,3 +597,14 @@ def test_output_check_looks_only_at_valid_pixels() -> None:
         getattr(stats, field)[index] = -math.inf if field == "height_mean" else math.nan
         with pytest.raises(NonFiniteError, match="checkpoint 'm.pt' gives NaN or inf"):
             check_finite_outputs(stats, valid, "m.pt")
+
+
+def test_input_rescale_is_part_of_the_provenance(tmp_path: Path, capsys, ckpt8: Path) -> None:
+    wide = _image(tmp_path, "u16.tif", np.random.default_rng(8).integers(100, 4000, (3, 64, 64)).astype(np.uint16))
+    out = tmp_path / "p"
+    assert run_cli(capsys, "predict", wide, "--model", ckpt8, "--out", out, "--rescale-input", *PREDICT)[0] == 0
+    settings = json.loads((out / "prediction.json").read_text())["provenance"]["settings"]
+    assert len(settings["input_rescale"]) == 2
+    rc, stdout, _ = run_cli(capsys, "predict", wide, "--model", ckpt8, "--out", out, "--rescale-input",
+                            "--skip-existing", *PREDICT)
+    assert rc == 0 and "skipped" in stdout

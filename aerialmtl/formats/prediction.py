@@ -34,7 +34,8 @@ opens as a raster of the recorded grid, and its ``provenance`` matches the run a
                             and metadata for a model given in memory)
     provenance.settings     what changes the maps: MC samples T, seed, precision, engine, the class
                             probabilities layer, the AOI (:func:`file_fingerprint` of the GeoJSON),
-                            whether the checkpoint's calibration was applied
+                            whether the checkpoint's calibration was applied, the linear map of
+                            ``rescale_input`` (``input_rescale``, :mod:`aerialmtl.inference.sanity`)
     provenance.input        :func:`input_fingerprint` of the orthophoto: resolved path, size and mtime
                             (ns) of a local file; the GDAL path, size, transform and CRS of a remote or
                             virtual one (no ``stat`` there)

@@ -490,7 +490,8 @@ class Predictor:
             "settings": {"mc_samples": self.mc, "seed": self.seed, "precision": self.precision,
                          "engine": str(getattr(engine, "name", engine) or "torch"),
                          "probabilities": bool(self.probabilities), "aoi": file_fingerprint(aoi),
-                         "calibration": self.calibration is not None},
+                         "calibration": self.calibration is not None,
+                         "input_rescale": None if src.rescale is None else list(src.rescale)},
             "input": input_fingerprint(src.path, native.width, native.height, list(native.transform),
                                        native.crs.to_string()),
         }
