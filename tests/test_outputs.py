@@ -232,3 +232,20 @@ def test_tile_stopped_by_a_signal_cleans_up_like_ctrl_c(tmp_path: Path, sig: int
     assert stderr.strip().splitlines() == [
         "Error: interrupted; no output was left at a final path. Re-run the command to finish."]
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # staging folder and lock gone
+
+
+def test_export_refuses_a_folder_another_process_writes(tmp_path: Path) -> None:
+    from conftest import tiny_d3net
+
+    from aerialmtl.inference.export import export_model
+
+    out = tmp_path / "m"
+    out.mkdir()
+    holder = _hold_lock(out, "export")
+    try:
+        with pytest.raises(OutputInUseError, match=rf"PID {holder.pid} "):
+            export_model(tiny_d3net(), out / "m.onnx", tile=64, overlap=16)
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_FILE]
+    finally:
+        holder.kill()
+        holder.wait()

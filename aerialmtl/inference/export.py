@@ -29,7 +29,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import tempfile
+import shutil
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -50,6 +50,7 @@ from aerialmtl.formats.exported_model import (
     export_metadata,
     model_tasks,
 )
+from aerialmtl.io.outputs import OutputFolder, check_files_not_input, staging_path
 from aerialmtl.models.calibration import Calibration
 
 Format = Literal["onnx", "openvino"]
@@ -239,12 +240,13 @@ def export_model(
     existing = [f for f in files if f.exists()]
     if existing and not overwrite:
         raise OutputExistsError(f"'{existing[0]}' exists; pass ‹overwrite=True› to replace it, or another ‹out›")
-    if not out.parent.is_dir():
-        out.parent.mkdir(parents=True, exist_ok=True)
+    if not isinstance(checkpoint, tuple):
+        check_files_not_input(files, {"checkpoint": checkpoint}, option="out")
 
     metadata = export_metadata(meta, task, tile, overlap, calibrated=calibration and meta.calibration is not None)
     try:
-        with tempfile.TemporaryDirectory(prefix=".aerialmtl-export-", dir=out.parent) as tmp:
+        # the folder held for the run (aerialmtl.io.outputs); the files staged in .NAME.partial/ beside them
+        with OutputFolder(out.parent, "export", option="out") as folder, _staging_dir(folder, out) as tmp:
             graph = Path(tmp) / "all.onnx"
             outputs = _onnx_graph(model, meta, tile, graph, calibration)
             if task != "all" and len(outputs) > 1:
@@ -259,8 +261,22 @@ def export_model(
             for src, dst in zip(written, files):  # whole files only at the final paths
                 os.replace(src, dst)
     except OSError as exc:
+        if isinstance(exc, OutputError):  # the folder in use by another process, or not creatable
+            raise
         raise OutputError(f"cannot write '{out}': {exc.strerror or exc}; choose a writable ‹out›") from exc
     return ExportResult(files, format, task, outputs, tile, metadata)
+
+
+@contextlib.contextmanager
+def _staging_dir(folder: OutputFolder, out: Path) -> Iterator[Path]:
+    """``.NAME.partial/`` beside ``out``, removed afterwards (one a killed export left is removed first)."""
+    folder.remove_leftovers([out.name])
+    stage = staging_path(out)
+    stage.mkdir()
+    try:
+        yield stage
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 __all__ = ["FORMATS", "TASKS", "ExportHead", "ExportResult", "export_model"]
