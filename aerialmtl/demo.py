@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from aerialmtl.errors import OutputExistsError
-from aerialmtl.io.outputs import OutputFolder, write_text_atomic
+from aerialmtl.io.outputs import OutputFolder, atomic_write, write_text_atomic
 
 #: Built-in configuration used by the demo.
 DEMO_CONFIG = "d3net_small_synth"
@@ -171,7 +171,8 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
 
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "overview.png"
-    fig.savefig(path, dpi=80, bbox_inches="tight")  # the class legends sit outside their panels
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, dpi=80, bbox_inches="tight", format="png")  # the class legends sit outside their panels
     plt.close(fig)
     return path
 
