@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +38,7 @@ from aerialmtl.formats.prediction import (
     HEIGHT_STD,
     LayerSpec,
 )
+from aerialmtl.io.outputs import write_text_atomic
 from aerialmtl.io.stats import BandStats, band_stats
 
 #: The QGIS version written in the style (the oldest long-term release the styles are made for).
@@ -202,12 +202,12 @@ def write_style(path: str | Path, tree: ET.ElementTree, atomic: bool = True) -> 
     root = tree.getroot()
     assert root is not None
     text = "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + ET.tostring(root, encoding="unicode") + "\n"
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}") if atomic else path
     try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
+        if atomic:  # through its staging file, .NAME.partial (aerialmtl.io.outputs)
+            write_text_atomic(path, text)
+        else:
+            path.write_text(text, encoding="utf-8")
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise OutputError(f"cannot write QGIS style '{path}' ({exc}); choose a writable output folder") from exc
     return path
 

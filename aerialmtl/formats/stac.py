@@ -53,6 +53,7 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.formats.qgis_style import class_scheme_of
 from aerialmtl.io.align import Grid
+from aerialmtl.io.outputs import write_text_atomic
 from aerialmtl.io.stats import BandStats
 
 #: Media types of the assets.
@@ -204,12 +205,13 @@ def write_json(path: str | Path, obj: pystac.Item | pystac.Collection, atomic: b
     """Write ``obj`` at ``path`` (replaced atomically unless ``atomic`` is false: ``path`` is then itself a
     staging file that the caller renames)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}") if atomic else path
+    text = json.dumps(item_dict(obj), indent=2)
     try:
-        tmp.write_text(json.dumps(item_dict(obj), indent=2), encoding="utf-8")
-        os.replace(tmp, path)
+        if atomic:  # through its staging file, .NAME.partial (aerialmtl.io.outputs)
+            write_text_atomic(path, text)
+        else:
+            path.write_text(text, encoding="utf-8")
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise OutputError(f"cannot write STAC file '{path}' ({exc}); choose a writable output folder") from exc
     return path
 
