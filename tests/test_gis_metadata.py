@@ -274,3 +274,20 @@ def test_band_stats_of_a_large_raster_come_from_its_overviews(tmp_path: Path) ->
     exact = band_stats(tmp_path / "h.tif")  # small enough to be read whole
     assert exact is not None and not exact.approximate
     assert exact.p98 == pytest.approx(np.percentile(valid, 98), rel=1e-6)
+
+
+def test_edited_styles_and_item_keep_a_folder_complete_for_skip_existing(tmp_path: Path) -> None:
+    meta = identity_meta()
+    model = IdentityModel(meta.mean, meta.std)
+    a, b = _ortho(tmp_path / "a.tif", 1), _ortho(tmp_path / "b.tif", 2)
+    args = dict(mc=1, tile=32, overlap=0, progress=False)
+    predict_many([a, b], (model, meta), tmp_path / "out", **args)
+    qml = tmp_path / "out" / "a" / "height.qml"
+    qml.write_text(qml.read_text().replace('opacity="1"', 'opacity="0.5"'))  # QGIS "Save as default"
+    item = tmp_path / "out" / "a" / "item.json"
+    data = json.loads(item.read_text())
+    data["properties"]["datetime"] = "2024-05-01T10:00:00Z"  # the flight date, set by the user
+    item.write_text(json.dumps(data))
+    job = predict_many([a, b], (model, meta), tmp_path / "out", skip_existing=True, **args)
+    assert sorted(Path(s).name for s in job.skipped) == ["a.tif", "b.tif"] and not job.recomputed
+    assert 'opacity="0.5"' in qml.read_text()

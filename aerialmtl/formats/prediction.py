@@ -27,8 +27,9 @@ style ``<layer>.mosaic.qml``, so that a GIS opens one layer over all inputs, and
 
 A folder is complete for a run (:meth:`PredictionFolder.check`, :meth:`PredictionFolder.is_complete`) when
 ``prediction.json`` exists (the writer renames it into place last, so a run that stopped earlier leaves
-no complete-looking folder), every file it lists exists with the size it records (``file_sizes``) and
-opens as a raster of the recorded grid, and its ``provenance`` matches the run at hand:
+no complete-looking folder), every file it lists exists, each layer with the size it records
+(``file_sizes``; the styles and ``item.json`` may be edited) and as a raster of the recorded grid, and its
+``provenance`` matches the run at hand:
 
     provenance.checkpoint   :func:`checkpoint_fingerprint`: SHA-256 of the checkpoint file (of the weights
                             and metadata for a model given in memory)

@@ -285,7 +285,10 @@ class PredictionWriter:
             extras = self._write_metadata(info, stats)
             partials.update(extras)
             info = dict(info, files={n: p.name for n, (_, p) in partials.items()},
-                        file_sizes={p.name: tmp.stat().st_size for tmp, p in partials.values()})
+                        # the layers' sizes; the styles and item.json are the user's to edit (QGIS "Save as
+                        # default", a STAC datetime) without making the folder look incomplete
+                        file_sizes={p.name: tmp.stat().st_size for k, (tmp, p) in partials.items()
+                                    if k not in extras})
             js = hidden(self.out_dir, INFO_FILE, "partial")
             js.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
             partials["prediction"] = (js, self.out_dir / INFO_FILE)
