@@ -31,6 +31,7 @@ import math
 import os
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -149,7 +150,7 @@ class LossWindow:
     ``hint()``, what to do, appended).
     """
 
-    def __init__(self, tasks: tuple[str, ...], ctx: DistContext, hint: Any = None) -> None:
+    def __init__(self, tasks: tuple[str, ...], ctx: DistContext, hint: Callable[[], str] | None = None) -> None:
         self.tasks, self.ctx = tasks, ctx
         self.hint = hint if hint is not None else (lambda: "")
         self.pending: list[torch.Tensor] = []
