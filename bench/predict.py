@@ -22,8 +22,17 @@ Parts (select with flags; each can run alone):
   raster for each of ``--pipeline-cases`` (``SIZE:T``), wall time including process start, plus the
   child's peak RSS and the stage timings of ``prediction.json``. ``--pipeline-args`` adds CLI flags.
 
+* ``--engines``: the full D3-Net (DenseNet-121, 20 classes, untrained weights) saved as a checkpoint,
+  then ``python -m aerialmtl predict`` in a subprocess on a synthetic ``--size``² raster for each T of
+  ``--engine-mc`` (default 1,8), back to back: ``--engine torch --precision fp32`` (the former CPU path)
+  against the default (``--engine auto --precision auto``), the latter twice: with an empty OpenVINO
+  cache (conversion and compilation paid) and with the cache of the first run. Also, in this process:
+  the model alone on one 1024² window on each engine/precision (best of 2, GFLOP/s from torch's flop
+  counter), the CPU's name, its native-bf16 flags and its fp32/bf16 GEMM ceilings measured in the same run.
+
 Usage::
 
+    python bench/predict.py --engines --size 2048 --engine-mc 1,8
     python bench/predict.py --speed --components --baseline --rss
     python bench/predict.py --pipeline --pipeline-cases 8192:1,4096:30
 """
@@ -300,6 +309,80 @@ def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, ca
             "cpu": cpu_name(), "runs": runs}
 
 
+def bench_model_alone(size: int = 1024, reps: int = 2) -> list[dict]:
+    """The full model alone on one ``size``² window per engine and precision: seconds, Mpx/s, GFLOP/s."""
+    from aerialmtl import runtime
+    from aerialmtl.inference.runner import ModelRunner
+
+    model, meta = make_model("full")
+    flops = model_flops_per_px(model, 256)
+    x = torch.randn(1, 3, size, size).contiguous(memory_format=torch.channels_last)
+    cases = [("torch", "fp32"), ("openvino", "fp32")]
+    if runtime.native_bf16(torch.device("cpu")):
+        cases.append(("openvino", "bf16"))
+    out = []
+    for engine, precision in cases:
+        runner = ModelRunner(model, meta, torch.device("cpu"), precision, 1, engine=engine)  # type: ignore[arg-type]
+        runner(x, [0])  # conversion, compilation, warm-up
+        best = float("inf")
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            runner(x, [0])
+            best = min(best, time.perf_counter() - t0)
+        out.append({"engine": engine, "precision": precision, "window": size, "s": round(best, 3),
+                    "mpx_per_s": size * size / 1e6 / best, "gflops": flops * size * size / best / 1e9,
+                    "load_avg": load_avg()})
+        print(json.dumps(out[-1]), flush=True)
+    return out
+
+
+def bench_engines(size: int, mcs: list[int], tmp: Path, cache: Path) -> dict:
+    """See the module docstring (``--engines``)."""
+    from aerialmtl import runtime
+    from aerialmtl.formats.checkpoint import save_checkpoint
+
+    model, meta = make_model("full")
+    ckpt = tmp / "full.pt"
+    save_checkpoint(ckpt, model, meta)
+    src = cache / f"engines_{size}.tif"
+    if not src.exists():
+        synthetic_raster(src, size, size)
+    ov_cache = tmp / "openvino-cache"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]),
+           "AERIALMTL_OPENVINO_CACHE": str(ov_cache)}
+    result: dict = {"part": "engines", "model": "full D3-Net (DenseNet-121, 20 classes, untrained)", "size": size,
+                    "cpu": cpu_name(), "bf16_flags": list(runtime.cpu_bf16_flags()),
+                    "mflop_per_px": model_flops_per_px(model, 256) / 1e6,
+                    "gemm_gflops": {"fp32": gemm_ceiling(torch.float32), "bf16": gemm_ceiling(torch.bfloat16)}}
+    print(json.dumps(result), flush=True)
+    runs = []
+    for samples in mcs:
+        for label, extra in (("torch fp32", ["--engine", "torch", "--precision", "fp32"]),
+                             ("auto, cold cache", []), ("auto, warm cache", [])):
+            if label == "auto, cold cache" and ov_cache.exists():
+                import shutil
+
+                shutil.rmtree(ov_cache)
+            out = tmp / "engines_out"
+            cmd = [sys.executable, "-m", "aerialmtl", "predict", str(src), "--model", str(ckpt), "--out", str(out),
+                   "--mc", str(samples), "--quiet", "--overwrite", *extra]
+            load_before = load_avg()
+            t0 = time.perf_counter()
+            proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+            wall = time.perf_counter() - t0
+            if proc.returncode != 0:
+                raise RuntimeError(f"predict failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
+            info = json.loads((out / "prediction.json").read_text())
+            runs.append({"T": samples, "run": label, "engine": info.get("engine"), "precision": info["precision"],
+                         "wall_s": round(wall, 1), "mpx_per_s": size * size / 1e6 / wall,
+                         "timings_s": info.get("timings_s"), "overlap_factor": info["overlap_factor"],
+                         "load_avg_before": load_before, "load_avg_after": load_avg()})
+            print(json.dumps(runs[-1]), flush=True)
+    result["runs"] = runs
+    result["model_alone"] = bench_model_alone()
+    return result
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--speed", action="store_true")
@@ -318,6 +401,8 @@ def main() -> None:
     ap.add_argument("--pipeline", action="store_true")
     ap.add_argument("--pipeline-cases", default="8192:1,4096:30", help="comma list of SIZE:T")
     ap.add_argument("--pipeline-args", default="", help="extra predict CLI flags, space separated")
+    ap.add_argument("--engines", action="store_true")
+    ap.add_argument("--engine-mc", default="1,8", help="comma list of T (engines part)")
     ap.add_argument("--tmp", default=None)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -328,6 +413,10 @@ def main() -> None:
             w, h = (int(v) for v in args.rss_child.split("x"))
             rss_child(w, h, tmp, args.rss_model, args.rss_batch)
             return
+        if args.engines:
+            cache = Path(args.tmp) if args.tmp else tmp
+            mcs = [int(v) for v in args.engine_mc.split(",")]
+            print(json.dumps(bench_engines(args.size, mcs, tmp, cache)), flush=True)
         if args.speed:
             print(json.dumps(bench_speed(args.size, args.precisions.split(","), tmp)), flush=True)
         if args.components:

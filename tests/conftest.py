@@ -30,6 +30,13 @@ NEON_DIR = SHARED_DATA / "neon_bart"
 torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _openvino_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The OpenVINO engine's converted models go to a temporary folder, not the user's cache (subprocesses
+    inherit it)."""
+    os.environ["AERIALMTL_OPENVINO_CACHE"] = str(tmp_path_factory.mktemp("openvino-cache"))
+
+
 def write_raster(
     path: Path,
     data: np.ndarray,

@@ -259,7 +259,7 @@ def test_outputs_equal_a_whole_raster_reference(tmp_path: Path, rng: np.random.G
                        "crs": {"type": "name", "properties": {"name": "EPSG:32631"}}}))
     model, meta = tiny_d3net()
     res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=mc, tile=tile, overlap=overlap, batch_size=2,
-                         aoi=aoi, probabilities=True, progress=False, seed=3)
+                         aoi=aoi, probabilities=True, progress=False, seed=3, engine="torch")
     ref = reference_predict(ortho, model, meta, mc=mc, tile=tile, overlap=overlap, batch_size=2, aoi=aoi, seed=3)
     got = _read_layers(tmp_path / "p")
     assert set(got) == set(ref) == {n for n in res.files if n != "prediction"}
@@ -282,12 +282,13 @@ def test_outputs_equal_a_whole_raster_reference(tmp_path: Path, rng: np.random.G
         assert (got["classes"][0][~valid] == 255).all()
 
 
-def test_results_do_not_depend_on_batch_size_or_sample_chunks(ortho: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("engine", ["torch", "openvino"])
+def test_results_do_not_depend_on_batch_size_or_sample_chunks(ortho: Path, tmp_path: Path, engine: str) -> None:
     model, meta = tiny_d3net()
     outs = []
     for k, (batch, budget) in enumerate(((1, None), (3, 2 * 64 * 64))):
         predict_raster(ortho, (model, meta), tmp_path / f"p{k}", mc=4, tile=64, overlap=16, batch_size=batch,
-                       max_decode_pixels=budget, progress=False)
+                       max_decode_pixels=budget, progress=False, engine=engine)
         outs.append(_read_layers(tmp_path / f"p{k}"))
     for name in outs[0]:  # the same per-window dropout masks: only float rounding differs
         np.testing.assert_allclose(outs[0][name], outs[1][name], rtol=0, atol=1e-5, err_msg=name)
@@ -305,11 +306,11 @@ def test_batch_size_auto_and_compile_fallback(ortho: Path, tmp_path: Path, monke
     model, meta = tiny_d3net()
     with pytest.warns(UserWarning, match="torch.compile is not available here .*no C\\+\\+ compiler"):
         res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=1, tile=64, overlap=16, batch_size="auto",
-                             compile=True, progress=False)
+                             compile=True, progress=False, engine="torch")
     info = json.loads((tmp_path / "p" / "prediction.json").read_text())
     assert info["batch_size"] == CPU_BATCH and info["compile"] is True and res.windows_computed > 0
     plain = predict_raster(ortho, (model, meta), tmp_path / "q", mc=1, tile=64, overlap=16, batch_size=CPU_BATCH,
-                           progress=False)
+                           progress=False, engine="torch")
     for name in ("height", "classes"):
         with rasterio.open(res.files[name]) as a, rasterio.open(plain.files[name]) as b:
             np.testing.assert_array_equal(a.read(), b.read())

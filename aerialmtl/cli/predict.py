@@ -76,7 +76,11 @@ def _batch_size(value: str) -> int | str:
         help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
 @option("--batch-size", "batch_size", default="auto", show_default=True,
         help="Windows per model call, or 'auto' (from the free GPU memory; 2 on a CPU).")
-@precision_option()
+@option("--engine", type=click.Choice(["auto", "torch", "openvino"]), default="auto", show_default=True,
+        help="What runs the model: auto = OpenVINO on a CPU when installed (several times faster), torch "
+             "otherwise (and on CUDA).")
+@precision_option(help="auto = bf16 where the hardware has it natively (CUDA; CPUs with AVX-512-BF16 or AMX on "
+                       "OpenVINO, with AMX on torch), fp32 elsewhere (CPUs without bf16 units run bf16 far slower).")
 @device_option()
 @compile_option()
 @option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -94,7 +98,7 @@ def _batch_size(value: str) -> int | str:
 @quiet_option()
 def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
-    batch_size: str, precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool,
+    batch_size: str, engine: str, precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool,
     rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool, no_calibration: bool = False,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
@@ -128,7 +132,7 @@ def predict(
         on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
         device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
         calibration=not no_calibration,
-        rescale_input=rescale_input,
+        rescale_input=rescale_input, engine=engine,
     )
     for path in job.skipped:
         click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete (same model, settings, input)")

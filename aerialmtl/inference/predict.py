@@ -37,6 +37,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,7 +46,7 @@ from typing import Any, Literal
 import torch
 from tqdm.auto import tqdm
 
-from aerialmtl import __version__
+from aerialmtl import __version__, runtime
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import (
@@ -57,6 +58,7 @@ from aerialmtl.formats.prediction import (
     prediction_layers,
 )
 from aerialmtl.formats.stac import model_summary
+from aerialmtl.inference.engines import resolve_engine
 from aerialmtl.inference.ortho import GSD_TOLERANCE, OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
 from aerialmtl.inference.runner import (
@@ -184,8 +186,12 @@ class Predictor:
             :mod:`aerialmtl.inference.windows`).
         batch_size: windows per model call, or ``"auto"`` (:func:`~aerialmtl.inference.runner.auto_batch_size`:
             from the free memory on CUDA, :data:`~aerialmtl.inference.runner.CPU_BATCH` on a CPU).
-        precision: ``"auto"`` (bf16 on CUDA, fp32 on CPU; see :func:`resolve_precision`), ``"bf16"``
-            (autocast) or ``"fp32"``.
+        precision: ``"auto"``, ``"bf16"`` or ``"fp32"``. ``auto`` is bf16 where the hardware computes it
+            natively and the engine gains from it: CUDA GPUs with bf16; CPUs with AVX-512-BF16 or AMX on
+            the OpenVINO engine; CPUs with AMX on the torch engine (:func:`resolve_precision`); fp32
+            elsewhere. bf16 is autocast on torch and the inference precision on OpenVINO.
+        engine: ``"auto"``, ``"torch"`` or ``"openvino"`` (:mod:`aerialmtl.inference.engines`): ``auto``
+            is OpenVINO on a CPU when it is installed (and the model a D3-Net), torch otherwise.
         device: ``"auto"``, ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
         probabilities: also write ``class_probabilities.tif`` (K float32 bands).
         max_decode_pixels: bound on the pixels decoded per model call with MC dropout (windows ×
@@ -220,6 +226,7 @@ class Predictor:
         reader_threads: int = 2,
         calibration: bool = True,
         rescale_input: bool = False,
+        engine: str = "auto",
     ) -> None:
         check_tiling(tile, overlap)
         if mc is not None and (not isinstance(mc, int) or mc < 1):
@@ -230,8 +237,15 @@ class Predictor:
             raise InputError(f"‹batch_size› must be ≥ 1 or 'auto', got {batch_size!r}; pass e.g. ‹batch_size=4›",
                              param="batch_size")
         self.device = resolve_device(device)
-        self.precision = resolve_precision(precision, self.device)
+        resolve_precision(precision, self.device)  # a bad value fails before the checkpoint is read
         model, self.meta, name = _load(checkpoint)
+        #: The engine that runs the model: ``"torch"`` or ``"openvino"``.
+        self.engine = resolve_engine(engine, self.device, model)
+        self.precision = resolve_precision(precision, self.device,
+                                           cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
+        if compile and self.engine != "torch":
+            warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
+                          UserWarning, stacklevel=2)
         self.checkpoint_name = checkpoint_name or name
         self._checkpoint = checkpoint
         self._fingerprint: str | None = None
@@ -246,7 +260,7 @@ class Predictor:
         self.calibration_available = self.meta.calibration is not None
         self.rescale_input = rescale_input
         self.runner = ModelRunner(model, self.meta, self.device, self.precision, self.mc, seed, max_decode_pixels,
-                                  compile)
+                                  compile, self.engine)
         tasks = tuple(self.meta.model.tasks)
         self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
@@ -516,6 +530,7 @@ class Predictor:
             "window_size": [plan.rows.size, plan.cols.size],
             "batch_size": self.resolved_batch_size(plan),
             "precision": self.precision,
+            "engine": self.engine,
             "device": str(self.device),
             "compile": self.compile,
             "processes": processes,
@@ -568,6 +583,7 @@ def predict_raster(
     seed: int = 0,
     calibration: bool = True,
     rescale_input: bool = False,
+    engine: str = "auto",
 ) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
@@ -584,7 +600,7 @@ def predict_raster(
     predictor = Predictor(checkpoint, mc=mc, tile=tile, overlap=overlap, batch_size=batch_size, precision=precision,
                           device=device, probabilities=probabilities, max_decode_pixels=max_decode_pixels,
                           compile=compile, seed=seed, checkpoint_name=checkpoint_name, calibration=calibration,
-                          rescale_input=rescale_input)
+                          rescale_input=rescale_input, engine=engine)
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 

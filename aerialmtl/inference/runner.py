@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Sequence
-from typing import Literal, cast
+from typing import TYPE_CHECKING, Literal, cast
 
 import numpy as np
 import torch
@@ -30,6 +30,9 @@ from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.models.d3net import fold_batchnorm
 from aerialmtl.models.mc_dropout import McStatistics, class_probabilities, mc_statistics
+
+if TYPE_CHECKING:
+    from aerialmtl.inference.engines import OpenVINOEngine
 
 Precision = runtime.Precision
 
@@ -133,32 +136,73 @@ def compile_model(model: nn.Module) -> nn.Module:
     return _Compiled(model)
 
 
+class TorchEngine:
+    """The model in PyTorch (eager, or ``torch.compile``), on any device: today's path and CUDA's only one.
+
+    Args:
+        net: the prepared model, or its compiled wrapper (:func:`compile_model`).
+        model: the prepared model itself (its modes are switched for MC dropout).
+        device, precision: where and how it runs (bf16 = autocast).
+        tasks: the model's tasks.
+    """
+
+    name = "torch"
+
+    def __init__(self, net: nn.Module, model: nn.Module, device: torch.device, precision: str,
+                 tasks: Sequence[str]) -> None:
+        self.net, self.model, self.device, self.precision, self.tasks = net, model, device, precision, tuple(tasks)
+
+    def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
+                   sample_batch: int) -> McStatistics:
+        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
+        with torch.inference_mode(), _autocast(self.device, self.precision):
+            if samples == 1:
+                self.model.eval()
+                raw = self.net(x)
+                stats = McStatistics()
+                if "height" in self.tasks:
+                    stats.height_mean = raw["height"][:, 0].float()
+                if "classes" in self.tasks:
+                    stats.probs = class_probabilities(raw["classes"])
+                return stats
+            return mc_statistics(self.net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys)
+
+
 class ModelRunner:
-    """Run the model on batches of raw windows.
+    """Run the model on batches of raw windows, on the engine of :func:`~aerialmtl.inference.engines.resolve_engine`.
 
     Args:
         model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy.
         meta: its checkpoint metadata (bands' mean/std for normalisation).
         device: the device to run on.
-        precision: ``"bf16"`` (autocast) or ``"fp32"``.
+        precision: ``"bf16"`` (autocast on torch, the inference precision on OpenVINO) or ``"fp32"``.
         mc: MC-dropout samples T.
         seed: base seed of the per-window dropout masks (T > 1).
         max_decode_pixels: see :data:`DECODE_PIXELS`.
-        compile: apply ``torch.compile`` (:func:`compile_model`).
+        compile: apply ``torch.compile`` (:func:`compile_model`; torch engine only).
+        engine: ``"torch"`` or ``"openvino"`` (already resolved).
     """
 
     def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
-                 mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False) -> None:
+                 mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
+                 engine: Literal["torch", "openvino"] = "torch") -> None:
         self.device = device
         self.precision = precision
         self.mc = mc
         self.seed = seed
         self.max_decode_pixels = max_decode_pixels
         self.model = inference_model(model, device)
-        self.net: nn.Module = compile_model(self.model) if compile else self.model
+        self.net: nn.Module = compile_model(self.model) if compile and engine == "torch" else self.model
         self.tasks = tuple(meta.model.tasks)
         self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
         self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
+        self.engine: TorchEngine | OpenVINOEngine
+        if engine == "openvino":
+            from aerialmtl.inference.engines import OpenVINOEngine
+
+            self.engine = OpenVINOEngine(self.model, meta.model.in_channels, self.tasks, precision)
+        else:
+            self.engine = TorchEngine(self.net, self.model, device, precision, self.tasks)
 
     def to_device(self, data: Sequence[np.ndarray | torch.Tensor], valid: Sequence[np.ndarray]) -> tuple[
             torch.Tensor, torch.Tensor]:
@@ -180,20 +224,10 @@ class ModelRunner:
 
     def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
-        with torch.inference_mode(), _autocast(self.device, self.precision):
-            if self.mc == 1:
-                self.model.eval()
-                raw = self.net(x)
-                stats = McStatistics()
-                if "height" in self.tasks:
-                    stats.height_mean = raw["height"][:, 0].float()
-                if "classes" in self.tasks:
-                    stats.probs = class_probabilities(raw["classes"])
-                return stats
-            b, _, h, w = x.shape
-            chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
-            return mc_statistics(self.net, x, self.mc, sample_batch=chunk, seed=self.seed, keys=keys)
+        b, _, h, w = x.shape
+        chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
+        return self.engine.statistics(x, keys, self.mc, self.seed, chunk)
 
 
-__all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "Precision", "auto_batch_size", "batch_from_memory",
-           "compile_model", "mc_sample_batch", "resolve_device", "resolve_precision"]
+__all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "Precision", "TorchEngine", "auto_batch_size",
+           "batch_from_memory", "compile_model", "mc_sample_batch", "resolve_device", "resolve_precision"]

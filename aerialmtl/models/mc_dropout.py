@@ -231,48 +231,69 @@ def mc_statistics(
         mode = mc_dropout_mode(model)
         devices = [x.device] if x.device.type == "cuda" else []
         rng = torch.random.fork_rng(devices=devices) if seed is not None else contextlib.nullcontext()
-    stats = McStatistics()
     with mode, rng:
         if masks is None and seed is not None:
             torch.manual_seed(seed)
         encode = cast(Callable[[torch.Tensor], list[torch.Tensor]], model.encode)
         decode = cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)
         feats = encode(x)
-        h_mean: torch.Tensor | None = None
-        h_m2: torch.Tensor | None = None
-        p_sum: torch.Tensor | None = None
-        ent_sum: torch.Tensor | None = None
-        done = 0
-        while done < samples:
-            s = min(chunk, samples - done)
+
+        def decode_chunk(done: int, s: int) -> dict[str, torch.Tensor]:
             if masks is not None:
                 assert keys is not None
-                gens = []
-                for t in range(done, done + s):
-                    for key in keys:
-                        gen = torch.Generator(device=x.device)
-                        gen.manual_seed(sample_seed(seed or 0, key, t))
-                        gens.append(gen)
-                masks.generators = gens
-            rep = [f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats]
-            out = decode(rep)
-            if "height" in out:
-                hs = out["height"].float().unflatten(0, (s, b))[:, :, 0]  # s×B×H×W
-                c_mean = hs.mean(0)
-                c_m2 = ((hs - c_mean) ** 2).sum(0)
-                if h_mean is None:
-                    h_mean, h_m2 = c_mean, c_m2
-                else:  # Chan et al. parallel update
-                    assert h_m2 is not None
-                    delta = c_mean - h_mean
-                    n = done + s
-                    h_mean = h_mean + delta * (s / n)
-                    h_m2 = h_m2 + c_m2 + delta**2 * (done * s / n)
-            if "classes" in out:
-                c_p, c_e = _class_sums(out["classes"], s, b)
-                p_sum = c_p if p_sum is None else p_sum.add_(c_p)
-                ent_sum = c_e if ent_sum is None else ent_sum.add_(c_e)
-            done += s
+                masks.generators = [sample_generator(seed or 0, key, t, x.device)
+                                    for t in range(done, done + s) for key in keys]
+            return decode([f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats])
+
+        return accumulate_samples(decode_chunk, samples, chunk, b)
+
+
+def sample_generator(seed: int, key: int, sample: int, device: torch.device | str = "cpu") -> torch.Generator:
+    """The generator of the dropout masks of image ``key`` in MC sample ``sample`` (:func:`sample_seed`)."""
+    gen = torch.Generator(device=device)
+    gen.manual_seed(sample_seed(seed, key, sample))
+    return gen
+
+
+def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor]], samples: int, chunk: int,
+                       b: int) -> McStatistics:
+    """The MC statistics of ``samples`` decoder samples of ``b`` images, decoded ``chunk`` samples at a time.
+
+    The one accumulation of every engine (torch here, OpenVINO in :mod:`aerialmtl.inference.engines`).
+
+    Args:
+        decode_chunk: ``(done, s)`` → the decoder outputs of samples ``done … done + s − 1`` of the ``b``
+            images, sample-major along the batch (``(s·b)×C×H×W``; index ``t·b + n``).
+        samples: T.
+        chunk: samples per call.
+        b: images.
+    """
+    stats = McStatistics()
+    h_mean: torch.Tensor | None = None
+    h_m2: torch.Tensor | None = None
+    p_sum: torch.Tensor | None = None
+    ent_sum: torch.Tensor | None = None
+    done = 0
+    while done < samples:
+        s = min(chunk, samples - done)
+        out = decode_chunk(done, s)
+        if "height" in out:
+            hs = out["height"].float().unflatten(0, (s, b))[:, :, 0]  # s×B×H×W
+            c_mean = hs.mean(0)
+            c_m2 = ((hs - c_mean) ** 2).sum(0)
+            if h_mean is None:
+                h_mean, h_m2 = c_mean, c_m2
+            else:  # Chan et al. parallel update
+                assert h_m2 is not None
+                delta = c_mean - h_mean
+                n = done + s
+                h_mean = h_mean + delta * (s / n)
+                h_m2 = h_m2 + c_m2 + delta**2 * (done * s / n)
+        if "classes" in out:
+            c_p, c_e = _class_sums(out["classes"], s, b)
+            p_sum = c_p if p_sum is None else p_sum.add_(c_p)
+            ent_sum = c_e if ent_sum is None else ent_sum.add_(c_e)
+        done += s
     if h_mean is not None and h_m2 is not None:
         stats.height_mean = h_mean
         stats.height_std = (h_m2 / samples).clamp_min(0).sqrt()
@@ -280,6 +301,80 @@ def mc_statistics(
         stats.probs = p_sum.div_(samples).permute(1, 2, 3, 0).contiguous()  # planes → channels last, once
         stats.mean_entropy = ent_sum.div_(samples)
     return stats
+
+
+@dataclass(frozen=True)
+class DropoutSite:
+    """One seedable dropout layer of a decoder, in the order the decoder calls it.
+
+    Attributes:
+        p: its dropout probability.
+        channels: channels of its input.
+        stride: its resolution relative to the image (its input is ``channels × H/stride × W/stride``).
+        channelwise: one draw per channel (``Dropout1d/2d/3d``) instead of one per element.
+    """
+
+    p: float
+    channels: int
+    stride: int
+    channelwise: bool = False
+
+    def shape(self, height: int, width: int) -> tuple[int, ...]:
+        """The mask shape of one image of ``height × width`` pixels."""
+        if self.channelwise:
+            return (self.channels, 1, 1)
+        return (self.channels, height // self.stride, width // self.stride)
+
+
+@torch.no_grad()
+def dropout_sites(model: nn.Module, in_channels: int, probe: int = 64) -> list[DropoutSite]:
+    """The seedable dropout layers (``p > 0``) of ``model.decode``, in call order, found by one small
+    probe pass (``probe × probe`` zeros)."""
+    sites: list[DropoutSite] = []
+    handles = []
+
+    def hook(module: nn.Module, inputs: tuple[torch.Tensor, ...], output: torch.Tensor) -> None:
+        p = float(module.p)  # type: ignore[arg-type]
+        if p > 0:
+            x = inputs[0]
+            sites.append(DropoutSite(p, int(x.shape[1]), probe // int(x.shape[-1]), not isinstance(module, nn.Dropout)))
+
+    for m in model.modules():
+        if isinstance(m, _SEEDABLE):
+            handles.append(m.register_forward_hook(hook))
+    modes = {m: m.training for m in model.modules()}
+    try:
+        model.eval()
+        param = next(model.parameters(), None)
+        device = param.device if param is not None else torch.device("cpu")
+        x = torch.zeros((1, in_channels, probe, probe), device=device)
+        encode = cast(Callable[[torch.Tensor], list[torch.Tensor]], model.encode)
+        decode = cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)
+        decode(encode(x))
+    finally:
+        for h in handles:
+            h.remove()
+        for m, mode in modes.items():
+            m.training = mode
+    return sites
+
+
+def dropout_masks(sites: Sequence[DropoutSite], height: int, width: int, seed: int, key: int,
+                  sample: int) -> list[torch.Tensor]:
+    """The dropout masks of image ``key`` in MC sample ``sample``, one per site: 1×C×h×w float32, values
+    0 or 1/(1 − p).
+
+    Drawn from the same generator, in the same order, with the same calls as the seeded hooks of
+    :func:`mc_statistics`, so an engine that multiplies its dropout inputs by them gives the samples of
+    the torch path.
+    """
+    gen = sample_generator(seed, key, sample)
+    out = []
+    for site in sites:
+        keep = 1.0 - site.p
+        mask = torch.empty(site.shape(height, width), dtype=torch.float32).bernoulli_(keep, generator=gen)
+        out.append(mask.div_(keep).unsqueeze(0))
+    return out
 
 
 @torch.no_grad()
@@ -319,4 +414,5 @@ def mc_predict(
     return result
 
 
-__all__ = ["McStatistics", "class_probabilities", "mc_dropout_mode", "mc_predict", "mc_statistics", "sample_seed"]
+__all__ = ["DropoutSite", "McStatistics", "accumulate_samples", "class_probabilities", "dropout_masks", "dropout_sites",
+           "mc_dropout_mode", "mc_predict", "mc_statistics", "sample_generator", "sample_seed"]

@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# One GPU check, at most ~8 minutes, one results file (default bench/gpu-results.txt, or $1).
+#
+# Measures on the first CUDA GPU what issues 11-19 asked for:
+#   1. predict, full D3-Net (DenseNet-121, 20 classes, untrained), 8192² synthetic orthophoto, through the CLI,
+#      T = 1 and T = 30, end to end (wall time, prediction.json stage timings) against the model alone
+#      (bench/predict.py --speed on 2048², its model-only Mpx/s);
+#   2. training samples/s of the model step (bench/train.py: forward + backward + Adam, fp32 and bf16),
+#      eager and torch.compile;
+#   3. the GPU, driver, torch version and the load of the machine next to every number.
+# Each step has its own time limit so that the whole script ends within ~8 minutes; a step that runs out
+# of time is recorded as such. Run from the repository root: `bash bench/gpu.sh`.
+set -u
+cd "$(dirname "$0")/.."
+OUT="${1:-bench/gpu-results.txt}"
+TMP="$(mktemp -d)"
+trap 'rm -rf "$TMP"' EXIT
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+PY="${PYTHON:-python}"
+
+step() {  # step LIMIT_S TITLE COMMAND...
+  local limit="$1" title="$2"; shift 2
+  {
+    echo "## $title"
+    echo "command: $*"
+    echo "load before: $(cut -d' ' -f1-3 /proc/loadavg)"
+  } >>"$OUT"
+  local t0=$SECONDS
+  timeout "$limit" bash -c '"$@"' bash "$@" >>"$OUT" 2>"$TMP/err"
+  local rc=$?
+  if [ $rc -eq 124 ]; then echo "TIMED OUT after ${limit}s" >>"$OUT"; fi
+  if [ $rc -ne 0 ] && [ $rc -ne 124 ]; then echo "FAILED (exit $rc): $(tail -c 1500 "$TMP/err")" >>"$OUT"; fi
+  echo "wall: $((SECONDS - t0)) s; load after: $(cut -d' ' -f1-3 /proc/loadavg)" >>"$OUT"
+  echo >>"$OUT"
+}
+
+{
+  echo "# aerialmtl GPU check, $(date -u '+%Y-%m-%d %H:%M UTC'), git $(git rev-parse --short HEAD 2>/dev/null)"
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null || echo "nvidia-smi: none"
+  "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'gpu', torch.cuda.is_available() and torch.cuda.get_device_name(0))"
+  echo "CPU: $(lscpu | sed -n 's/^Model name: *//p' | head -1), $(nproc) cores"
+  echo
+} >"$OUT"
+
+# A full-model checkpoint and an 8192² orthophoto (written block by block).
+"$PY" - "$TMP" <<'EOF'
+import sys
+from pathlib import Path
+sys.path.insert(0, "bench")
+from predict import make_model, synthetic_raster
+from aerialmtl.formats.checkpoint import save_checkpoint
+tmp = Path(sys.argv[1])
+model, meta = make_model("full")
+save_checkpoint(tmp / "full.pt", model, meta)
+synthetic_raster(tmp / "ortho8192.tif", 8192, 8192)
+EOF
+
+predict_case() {  # T
+  "$PY" -m aerialmtl predict "$TMP/ortho8192.tif" --model "$TMP/full.pt" --out "$TMP/pred$1" --mc "$1" \
+    --device cuda --quiet --overwrite && "$PY" -c "import json,sys; i=json.load(open(sys.argv[1])); \
+print(json.dumps({k: i.get(k) for k in ('engine','precision','batch_size','window_size','overlap_factor','timings_s')}))" \
+    "$TMP/pred$1/prediction.json"
+}
+
+export -f predict_case
+export TMP PY
+step 60 "model alone: full D3-Net, 2048², T=1 (bench/predict.py --speed, precision auto)" \
+  "$PY" bench/predict.py --speed --size 2048 --precisions auto --tmp "$TMP"
+step 60 "predict 8192², T=1, end to end (CLI, --device cuda, defaults)" predict_case 1
+step 150 "predict 8192², T=30, end to end (CLI, --device cuda, defaults)" predict_case 30
+step 60 "train model step, eager: samples/s (bench/train.py, fp32 and bf16)" \
+  "$PY" bench/train.py --device cuda --steps 10 --full-steps 10
+step 90 "train model step, torch.compile: samples/s (bench/train.py --compile)" \
+  "$PY" bench/train.py --device cuda --steps 10 --full-steps 10 --compile
+echo "results: $OUT"

@@ -1,0 +1,146 @@
+"""The prediction engines: OpenVINO gives the torch engine's maps (fp32 to float rounding, bf16 close on a trained
+model), MC dropout included; ``auto`` picks as documented; a missing OpenVINO is a one-line error."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+import torch
+from conftest import run_cli, tiny_d3net, write_raster
+from tilefolder import toy_patch
+
+from aerialmtl import runtime
+from aerialmtl.errors import InputError
+from aerialmtl.formats.checkpoint import save_checkpoint
+from aerialmtl.inference.engines import OPENVINO_INSTALL, resolve_engine
+from aerialmtl.inference.predict import Predictor, predict_raster
+
+pytest.importorskip("openvino")
+
+
+def _layers(folder: Path) -> dict[str, np.ndarray]:
+    info = json.loads((folder / "prediction.json").read_text())
+    out = {}
+    for name, file in info["files"].items():
+        with rasterio.open(folder / file) as src:
+            out[name] = src.read()
+    return out
+
+
+def _aoi(tmp_path: Path) -> Path:
+    ring = [[500004.0, 4999998.0], [500060.0, 4999998.0], [500016.0, 4999960.0], [500004.0, 4999998.0]]
+    path = tmp_path / "aoi.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {},
+                    "geometry": {"type": "Polygon", "coordinates": [ring]}}],
+                    "crs": {"type": "name", "properties": {"name": "EPSG:32631"}}}))
+    return path
+
+
+@pytest.mark.parametrize("mc", [1, 3])
+def test_openvino_fp32_equals_torch(tmp_path: Path, rng: np.random.Generator, mc: int) -> None:
+    """Edge windows of other shapes (two rasters, plans of different window sizes), nodata and an AOI."""
+    model, meta = tiny_d3net()
+    for k, (shape, use_aoi) in enumerate((((100, 70), False), ((90, 130), True))):
+        img = rng.integers(1, 256, size=(3, *shape)).astype(np.uint8)
+        img[:, shape[0] // 2:, : shape[1] // 3] = 0  # a nodata corner
+        ortho = write_raster(tmp_path / f"o{k}.tif", img, nodata=0)
+        aoi = _aoi(tmp_path) if use_aoi else None
+        maps = {}
+        for engine in ("torch", "openvino"):
+            out = tmp_path / f"{engine}{k}"
+            predict_raster(ortho, (model, meta), out, mc=mc, tile=64, overlap=16, batch_size=2, aoi=aoi,
+                           precision="fp32", engine=engine, progress=False, seed=5)
+            maps[engine] = _layers(out)
+            assert json.loads((out / "prediction.json").read_text())["engine"] == engine
+        a, b = maps["torch"], maps["openvino"]
+        assert set(a) == set(b)
+        np.testing.assert_allclose(b["height"], a["height"], rtol=0, atol=1e-4)
+        for name in set(a) - {"height", "classes"}:
+            np.testing.assert_allclose(b[name], a[name], rtol=0, atol=1e-4, err_msg=name)
+        np.testing.assert_array_equal(b["classes"], a["classes"])
+        assert (a["classes"] == 255).any() and (a["classes"] != 255).any()
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A tiny D3-Net trained a little on the toy scene (heights 0/4/8 m, buildings and trees), its
+    checkpoint, and a toy orthophoto it has not seen."""
+    model, meta = tiny_d3net(k=3)
+    root = tmp_path_factory.mktemp("engines")
+    rng = np.random.default_rng(0)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    mean = torch.tensor(meta.mean)[:, None, None]
+    std = torch.tensor(meta.std)[:, None, None]
+    model.train()
+    for _ in range(150):
+        batch = [toy_patch(rng, 64) for _ in range(4)]
+        x = (torch.from_numpy(np.stack([b[0] for b in batch])).float() - mean) / std
+        h = torch.from_numpy(np.stack([b[1] for b in batch]))
+        c = torch.from_numpy(np.stack([b[2] for b in batch])).long()
+        out = model(x)
+        loss = (out["height"][:, 0] - h).abs().mean() + torch.nn.functional.cross_entropy(out["classes"], c)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    ckpt = root / "model.pt"
+    save_checkpoint(ckpt, model, meta)
+    image = np.concatenate([np.concatenate([toy_patch(rng, 64)[0] for _ in range(3)], axis=2) for _ in range(2)],
+                           axis=1)
+    return ckpt, write_raster(root / "scene.tif", image)
+
+
+@pytest.mark.parametrize("mc", [1, 4])
+def test_openvino_bf16_close_to_torch_fp32_on_a_trained_model(trained: tuple[Path, Path], tmp_path: Path,
+                                                               mc: int) -> None:
+    ckpt, ortho = trained
+    maps = {}
+    for engine, precision in (("torch", "fp32"), ("openvino", "bf16")):
+        out = tmp_path / engine
+        predict_raster(ortho, ckpt, out, mc=mc, tile=64, overlap=16, precision=precision, engine=engine,
+                       progress=False)
+        maps[engine] = _layers(out)
+        info = json.loads((out / "prediction.json").read_text())
+        assert (info["engine"], info["precision"]) == (engine, precision)
+    a, b = maps["torch"], maps["openvino"]
+    assert np.abs(a["height"] - b["height"]).mean() <= 0.05
+    assert (a["classes"] == b["classes"]).mean() >= 0.995
+    assert a["height"].max() > 2.0  # it did learn something
+
+
+def test_auto_picks_openvino_on_cpu_for_d3net_else_torch(monkeypatch: pytest.MonkeyPatch) -> None:
+    from conftest import IdentityModel
+
+    model, meta = tiny_d3net()
+    cpu = torch.device("cpu")
+    assert resolve_engine("auto", cpu, model) == "openvino"
+    assert resolve_engine("auto", torch.device("cuda"), model) == "torch"
+    assert resolve_engine("auto", cpu, IdentityModel((1.0,), (1.0,))) == "torch"  # not convertible
+    pred = Predictor((model, meta), mc=1, tile=64, overlap=16, precision="auto")
+    assert pred.engine == "openvino"
+    assert pred.precision == ("bf16" if runtime.native_bf16(cpu) else "fp32")
+    assert Predictor((model, meta), mc=1, engine="torch").precision == ("bf16" if runtime.cpu_has_amx() else "fp32")
+    monkeypatch.setitem(sys.modules, "openvino", None)  # import openvino now fails
+    assert resolve_engine("auto", cpu, model) == "torch"
+
+
+def test_missing_openvino_is_a_one_line_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                              rng: np.random.Generator, capsys: pytest.CaptureFixture) -> None:
+    model, meta = tiny_d3net()
+    ckpt = tmp_path / "m.pt"
+    save_checkpoint(ckpt, model, meta)
+    ortho = write_raster(tmp_path / "o.tif", rng.integers(1, 256, size=(3, 40, 40)).astype(np.uint8))
+    monkeypatch.setitem(sys.modules, "openvino", None)
+    with pytest.raises(InputError, match="engine=openvino.*not installed"):
+        resolve_engine("openvino", torch.device("cpu"), model)
+    code, out, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "p", "--engine",
+                             "openvino", "--quiet")
+    message = err.strip()
+    assert code != 0 and OPENVINO_INSTALL in message and "--engine" in message
+    assert len(message.splitlines()) == 1, message
+    assert not (tmp_path / "p").exists()
