@@ -277,8 +277,10 @@ class OpenVINOEngine:
                     shapes.update({len(feats) + k: [1, *site.shape(h, w)] for k, site in enumerate(self.sites)})
                 model.reshape(shapes)
                 hint = "bf16" if self.precision == "bf16" else "f32"
-                compiled = self.core.compile_model(model, "CPU", {"INFERENCE_PRECISION_HINT": hint,
-                                                                  "PERFORMANCE_HINT": "LATENCY"})
+                # as many threads as torch uses (torchrun's OMP_NUM_THREADS, torch.set_num_threads)
+                config = {"INFERENCE_PRECISION_HINT": hint, "PERFORMANCE_HINT": "LATENCY",
+                          "INFERENCE_NUM_THREADS": torch.get_num_threads()}
+                compiled = self.core.compile_model(model, "CPU", config)
                 self._compiled[key] = compiled.create_infer_request()
             return self._compiled[key]
 
