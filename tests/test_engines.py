@@ -27,6 +27,8 @@ def _layers(folder: Path) -> dict[str, np.ndarray]:
     info = json.loads((folder / "prediction.json").read_text())
     out = {}
     for name, file in info["files"].items():
+        if not str(file).endswith(".tif"):  # styles, previews, STAC items
+            continue
         with rasterio.open(folder / file) as src:
             out[name] = src.read()
     return out

@@ -474,7 +474,8 @@ def test_non_finite_model_outputs_fail_the_run(tmp_path: Path, capsys) -> None:
     save_checkpoint(broken, model, meta)
     ortho = _image(tmp_path, "o.tif", np.random.default_rng(6).integers(1, 255, (3, 64, 64)).astype(np.uint8))
     out = tmp_path / "p"
-    one_error_line(run_cli(capsys, "predict", ortho, "--model", broken, "--out", out, *PREDICT),
+    # torch propagates the NaN of sqrt(negative variance); OpenVINO's folded BatchNorm does not produce one
+    one_error_line(run_cli(capsys, "predict", ortho, "--model", broken, "--out", out, *PREDICT, "--engine", "torch"),
                    f"checkpoint '{broken}' gives NaN or inf", "no prediction was written")
     assert not out.exists() or not any(p.suffix in (".tif", ".json") for p in out.iterdir())
 
