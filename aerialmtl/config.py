@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import types
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -169,6 +170,18 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader reading floats as YAML 1.2 does: ``1e-4`` and ``1e3`` are numbers (YAML 1.1, which
+    PyYAML follows, wants a dot and a signed exponent, so ``lr: 1e-4`` would be the string ``'1e-4'``)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"""),
+    list("-+0123456789"),
+)
+
+
 def read_yaml(path: str | Path) -> Any:
     """Parse a YAML file with a message naming the file on failure."""
     p = Path(path)
@@ -176,7 +189,7 @@ def read_yaml(path: str | Path) -> Any:
         raise ConfigError(f"config file '{p}' does not exist; pass the path of a YAML file")
     try:
         with p.open("r", encoding="utf-8") as fh:
-            return yaml.safe_load(fh)
+            return yaml.load(fh, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
         raise ConfigError(f"config file '{p}' is not valid YAML: {exc}") from exc
 

@@ -87,6 +87,22 @@ def test_skip_existing_never_replaces_files_no_run_wrote(tmp_path: Path, capsys,
     assert (out / "height.tif").read_text() == "precious"
 
 
+def test_a_users_style_or_stac_item_in_out_is_never_replaced_without_overwrite(
+        tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
+    """height.qml (QGIS's 'save as default' style) and item.json are outputs too: a user's own are refused
+    like a user's height.tif, with and without --skip-existing (they were replaced silently, exit 0)."""
+    out = tmp_path / "pred"
+    out.mkdir()
+    (out / "height.qml").write_text("<qgis mine='1'/>")
+    (out / "item.json").write_text('{"mine": 1}')
+    for extra in ((), ("--skip-existing",)):
+        res = run(capsys, "predict", rgb(tmp_path), "--model", ckpts[0], "--out", out, *PREDICT, *extra)
+        assert_error(res, "already holds height.qml, item.json", "--overwrite")
+        assert (out / "height.qml").read_text() == "<qgis mine='1'/>"
+        assert (out / "item.json").read_text() == '{"mine": 1}'
+    assert not (out / "height.tif").exists()
+
+
 def test_a_layer_that_does_not_open_is_not_complete(tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
     out = tmp_path / "pred"
     _predict(capsys, rgb(tmp_path), ckpts[0], out)

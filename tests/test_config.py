@@ -54,3 +54,14 @@ def test_unknown_key_lists_valid_keys_and_enum_lists_choices(tmp_path) -> None:
     p.write_text("name: x\noptim:\n  kind: adamw\n")
     with pytest.raises(ConfigError, match=r"c\.yaml: optim\.kind: got 'adamw'; valid choices are 'adam', 'sgd'"):
         load_yaml_config(p, Root)
+
+
+def test_yaml_exponents_without_a_dot_are_numbers(tmp_path) -> None:
+    """`lr: 1e-4` is a number in YAML 1.2 (PyYAML's YAML 1.1 would read the string '1e-4')."""
+    p = tmp_path / "c.yaml"
+    p.write_text("name: x\noptim:\n  lr: 1e-4\n  betas: [5e-1, 1E0]\n")
+    cfg = load_yaml_config(p, Root)
+    assert cfg.optim.lr == pytest.approx(1e-4) and cfg.optim.betas == (0.5, 1.0)
+    p.write_text("name: 1e3x\noptim:\n  lr: '1e-4'\n")  # quoted stays a string, and is refused as one
+    with pytest.raises(ConfigError, match=r"optim\.lr: expected a number, got '1e-4'"):
+        load_yaml_config(p, Root)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import rasterio
 from click.testing import CliRunner
-from conftest import write_prediction_layers
+from conftest import run_cli, write_prediction_layers
 from shapely import affinity
 from shapely.geometry import box
 
@@ -104,3 +104,22 @@ def test_cli_scores_a_buildings_file_against_a_reference_in_another_crs(tmp_path
     assert b["predicted"] == str(tmp_path / "b.gpkg")
     res = CliRunner().invoke(cli, ["evaluate", "--pred", str(pred), "--out", str(tmp_path / "r2.json")])
     assert res.exit_code != 0 and "--buildings" in res.output
+
+
+def test_reference_geojson_in_projected_coordinates_without_crs_names_the_crs_to_declare(tmp_path: Path,
+                                                                                         capsys) -> None:
+    """A GeoJSON export in the project's CRS without a 'crs' member is read as WGS 84 (RFC 7946): one line
+    naming the CRS to declare, not 'Error: unexpected' from PROJ."""
+    cls = np.zeros((40, 40), np.uint8)
+    cls[5:20, 5:20] = 2
+    pred = write_prediction_layers(tmp_path / "pred", cls, np.where(cls == 2, 6.0, 0.0).astype(np.float32))
+    ref = tmp_path / "ref.geojson"
+    ring = [[500002.0, 4999990.0], [500008.0, 4999990.0], [500008.0, 4999996.0], [500002.0, 4999996.0],
+            [500002.0, 4999990.0]]
+    ref.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"height_m": 6.0}, "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    rc, _, err = run_cli(capsys, "evaluate", "--pred", pred, "--buildings", ref, "--out", tmp_path / "r.json",
+                         "--quiet", "--no-plots")
+    assert rc == 1 and "unexpected" not in err, err
+    assert "--buildings" in err and "no 'crs' member" in err and "EPSG:32631" in err
+    assert not (tmp_path / "r.json").exists()

@@ -33,6 +33,7 @@ from aerialmtl.errors import InputError
 from aerialmtl.evaluation.uncertainty import spearman
 from aerialmtl.formats.buildings import read_footprints
 from aerialmtl.io.units import metres_per_unit
+from aerialmtl.io.vector import GEOJSON_DEFAULT_CRS, check_lonlat
 
 #: Minimum IoU of a match.
 DEFAULT_IOU_THRESHOLD = 0.5
@@ -120,10 +121,24 @@ def score_buildings(
     return out
 
 
-def _to_crs(geoms: Iterable[shapely.Geometry], src: CRS | None, dst: CRS) -> list[shapely.Geometry]:
+def _to_crs(geoms: Iterable[shapely.Geometry], src: CRS | None, dst: CRS, path: str | Path,
+            role: str) -> list[shapely.Geometry]:
+    """``geoms`` of file ``path`` reprojected from ``src`` to ``dst``.
+
+    Raises:
+        InputError: a GeoJSON without a ``crs`` member (read as WGS 84, RFC 7946) whose coordinates are not
+            degrees (naming the CRS to declare), or coordinates that cannot be reprojected.
+    """
+    geoms = list(geoms)
     if src is None or src == dst:
-        return list(geoms)
-    return [shape(transform_geom(src, dst, mapping(g))) for g in geoms]
+        return geoms
+    if geoms and src == GEOJSON_DEFAULT_CRS and Path(path).suffix.lower() in (".geojson", ".json"):
+        check_lonlat(path, role, geoms, dst)
+    try:
+        return [shape(transform_geom(src, dst, mapping(g))) for g in geoms]
+    except Exception as exc:  # PROJ errors (CPLE_AppDefinedError) for coordinates outside the source CRS
+        raise InputError(f"{role} '{path}': its polygons cannot be reprojected to the prediction's CRS "
+                         f"({' '.join(str(exc).split())[:120]}); check the file's CRS") from exc
 
 
 def evaluate_buildings(
@@ -167,7 +182,8 @@ def evaluate_buildings(
     if ref_crs is None:
         notes.append(f"building reference '{reference}' has no CRS: taken to be the prediction's")
     keep_idx = [i for i, g in enumerate(ref_geoms_all) if g is not None and not g.is_empty]
-    ref_geoms = _to_crs([ref_geoms_all[i] for i in keep_idx], ref_crs, grid.crs)
+    ref_geoms = _to_crs([ref_geoms_all[i] for i in keep_idx], ref_crs, grid.crs, reference,
+                       "building reference (‹buildings_ref›)")
     area = box(*grid.bounds)
     clipped = [shapely.make_valid(g).intersection(area) for g in ref_geoms]
     inside = [k for k, g in enumerate(clipped) if g.area >= max(min_area, 1e-12)]
@@ -184,7 +200,7 @@ def evaluate_buildings(
         if missing:
             raise InputError(f"predicted buildings '{pred_buildings}' have no field(s) {', '.join(missing)}; pass "
                              "a file written by `aerialmtl buildings`")
-        pred_geoms = _to_crs(geoms, crs, grid.crs)
+        pred_geoms = _to_crs(geoms, crs, grid.crs, pred_buildings, "predicted buildings (‹pred_buildings›)")
         ph, ps = np.asarray(fields["height_m"], np.float64), np.asarray(fields["height_std_m"], np.float64)
         source = str(pred_buildings)
     else:

@@ -52,7 +52,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -103,6 +103,14 @@ def style_filename(name: str) -> str:
 #: Every file name a prediction folder can hold (``prediction.json`` last).
 ALL_FILES = (tuple(layer_filename(n) for n in LAYERS) + tuple(style_filename(n) for n in LAYERS)
              + (ITEM_FILE, INFO_FILE))
+
+
+def folder_files(names: Iterable[str]) -> list[str]:
+    """Every file a prediction folder with layers ``names`` holds: the layers, their QGIS styles, the STAC
+    item and ``prediction.json`` (last). A run claims all of them before writing, so that a user's own
+    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``."""
+    names = list(names)
+    return ([layer_filename(n) for n in names] + [style_filename(n) for n in names] + [ITEM_FILE, INFO_FILE])
 
 
 def mosaic_filename(name: str) -> str:
@@ -363,7 +371,7 @@ __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
     "CLASS_SCHEME_TAG", "COLLECTION_FILE", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "ITEM_FILE", "LAYERS",
     "LAYER_UNITS",
-    "LayerSpec", "PredictionFolder", "layer_filename", "mosaic_filename", "mosaic_style_filename",
+    "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_filename", "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
     "PROVENANCE_KEY", "checkpoint_fingerprint", "file_fingerprint", "input_fingerprint",
 ]

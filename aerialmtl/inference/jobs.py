@@ -42,7 +42,7 @@ import torch
 
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError
-from aerialmtl.formats.prediction import INFO_FILE, PredictionFolder, mosaic_filename
+from aerialmtl.formats.prediction import PredictionFolder, folder_files, mosaic_filename
 from aerialmtl.formats.qgis_style import write_raster_style
 from aerialmtl.formats.stac import write_collection
 from aerialmtl.inference.ortho import OrthoInput
@@ -261,7 +261,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
     job = JobResult(ranks=ranks)
     todo = []
     replace: set[int] = set()  # inputs whose earlier, outdated outputs --skip-existing recomputes
-    files = [s.filename for s in predictor.layers] + [INFO_FILE]
+    files = folder_files(s.name for s in predictor.layers)  # layers, styles, item.json, prediction.json
     for k, t in enumerate(targets):
         if skip_existing:
             assert t.src is not None

@@ -33,7 +33,15 @@ from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from aerialmtl.errors import OutputError, OutputExistsError
-from aerialmtl.formats.prediction import ALL_FILES, INFO_FILE, ITEM_FILE, LayerSpec, PredictionFolder, style_filename
+from aerialmtl.formats.prediction import (
+    ALL_FILES,
+    INFO_FILE,
+    ITEM_FILE,
+    LayerSpec,
+    PredictionFolder,
+    folder_files,
+    style_filename,
+)
 from aerialmtl.inference.stitch import Block
 from aerialmtl.io import outputs
 from aerialmtl.io.align import Grid
@@ -148,7 +156,7 @@ class PredictionWriter:
         self.rows = rows or (0, grid.height)
         self._strip_start = None if rows is None else rows[0]
         if check:
-            check_outputs_free(self.out_dir, [s.filename for s in specs] + [INFO_FILE], overwrite)
+            check_outputs_free(self.out_dir, folder_files(s.name for s in specs), overwrite)
         self._created_dir = make_output_dir(self.out_dir)
         self._datasets: dict[str, Any] = {}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aerialmtl-writer")

@@ -99,7 +99,7 @@ def load_geometries(
             ) from exc
         parsed.append((g, geom, feat))
     if src_crs is GEOJSON_DEFAULT_CRS and parsed:  # no 'crs' member: RFC 7946 says WGS 84 lon/lat
-        _check_lonlat(path, role, [g for g, _, _ in parsed], dst_crs)
+        check_lonlat(path, role, [g for g, _, _ in parsed], dst_crs)
     out = []
     for g, geom, feat in parsed:
         if src_crs != dst_crs:
@@ -125,7 +125,7 @@ def _crs_name(crs: CRS) -> str:
     return f"EPSG:{epsg}" if epsg else crs.to_string()[:80]
 
 
-def _check_lonlat(path: str | Path, role: str, geoms: list[shapely.Geometry], dst_crs: CRS) -> None:
+def check_lonlat(path: str | Path, role: str, geoms: list[shapely.Geometry], dst_crs: CRS) -> None:
     """Refuse coordinates that cannot be WGS 84 degrees in a GeoJSON without a ``crs`` member.
 
     Raises:
@@ -294,4 +294,5 @@ class VectorLabels:
         self.close()
 
 
-__all__ = ["GEOJSON_DEFAULT_CRS", "VectorLabels", "check_aoi_overlaps", "load_geometries", "read_geojson"]
+__all__ = ["GEOJSON_DEFAULT_CRS", "VectorLabels", "check_aoi_overlaps", "check_lonlat", "load_geometries",
+           "read_geojson"]
