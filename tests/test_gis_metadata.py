@@ -15,6 +15,7 @@ from shapely.geometry import Point, shape
 from stac_pydantic import Collection as PydanticCollection
 from stac_pydantic import Item as PydanticItem
 
+from aerialmtl.errors import OutputExistsError
 from aerialmtl.formats.qgis_style import layer_style, write_style
 from aerialmtl.formats.stac import read_item
 from aerialmtl.inference.jobs import predict_many
@@ -291,3 +292,24 @@ def test_edited_styles_and_item_keep_a_folder_complete_for_skip_existing(tmp_pat
     job = predict_many([a, b], (model, meta), tmp_path / "out", skip_existing=True, **args)
     assert sorted(Path(s).name for s in job.skipped) == ["a.tif", "b.tif"] and not job.recomputed
     assert 'opacity="0.5"' in qml.read_text()
+
+
+def test_a_users_collection_or_mosaic_in_out_is_never_replaced_without_overwrite(tmp_path: Path) -> None:
+    """A multi-input run claims its mosaics, their styles and collection.json like the layers: a user's own
+    are refused before any work (they were replaced silently, exit 0); the run's own are replaced by
+    --skip-existing (its collection.json lists them)."""
+    meta = identity_meta()
+    model = IdentityModel(meta.mean, meta.std, dropout=0.5)
+    a, b = _ortho(tmp_path / "a.tif", 1), _ortho(tmp_path / "b.tif", 2, Affine(0.5, 0, 500032.0, 0, -0.5, 5000000.0))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "collection.json").write_text('{"mine": 1}')
+    (out / "height.mosaic.qml").write_text("<mine/>")
+    with pytest.raises(OutputExistsError, match=r"height\.mosaic\.qml, collection\.json"):
+        predict_many([a, b], (model, meta), out, mc=2, tile=32, overlap=0, progress=False)
+    assert (out / "collection.json").read_text() == '{"mine": 1}' and not (out / "a").exists()
+    (out / "collection.json").unlink()
+    (out / "height.mosaic.qml").unlink()
+    predict_many([a, b], (model, meta), out, mc=2, tile=32, overlap=0, progress=False)
+    predict_many([a, b], (model, meta), out, mc=2, tile=32, overlap=0, progress=False, skip_existing=True)
+    assert json.loads((out / "collection.json").read_text())["type"] == "Collection"

@@ -123,6 +123,13 @@ def mosaic_style_filename(name: str) -> str:
     return f"{name}.mosaic.qml"
 
 
+def mosaic_files(names: Iterable[str]) -> list[str]:
+    """Every file a run over several inputs writes beside their folders for layers ``names``: each layer's VRT
+    mosaic and its QGIS style, and the STAC ``collection.json``."""
+    names = list(names)
+    return [mosaic_filename(n) for n in names] + [mosaic_style_filename(n) for n in names] + [COLLECTION_FILE]
+
+
 # ---- the output schema -------------------------------------------------------------------------
 @dataclass(frozen=True)
 class LayerSpec:
@@ -371,7 +378,8 @@ __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
     "CLASS_SCHEME_TAG", "COLLECTION_FILE", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "ITEM_FILE", "LAYERS",
     "LAYER_UNITS",
-    "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_filename", "mosaic_style_filename",
+    "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
+    "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
     "PROVENANCE_KEY", "checkpoint_fingerprint", "file_fingerprint", "input_fingerprint",
 ]

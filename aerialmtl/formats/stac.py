@@ -278,5 +278,30 @@ def write_collection(out: str | Path, folders: Sequence[str | Path], mosaics: Ma
     return write_json(Path(out) / COLLECTION_FILE, build_collection(out, items, mosaics, mosaic_styles))
 
 
-__all__ = ["EDGE_POINTS", "ITEM_FILE", "UNCERTAINTY_LAYERS", "build_collection", "build_item", "footprint_wgs84",
-           "item_dict", "model_summary", "read_item", "write_collection", "write_json"]
+
+def collection_files(out: str | Path) -> list[str]:
+    """The files of ``out`` that an earlier multi-input run wrote, as its ``collection.json`` proves:
+    ``collection.json`` itself (an aerialmtl STAC Collection) and the mosaics and styles it lists.
+
+    Empty when there is no such collection (a user's ``collection.json``, or none): then every mosaic file
+    in ``out`` is the user's and is replaced only with ``--overwrite``.
+    """
+    path = Path(out) / COLLECTION_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return []
+    if not (isinstance(data, dict) and data.get("type") == "Collection"
+            and str(data.get("title", "")).startswith("aerialmtl predictions:")
+            and isinstance(data.get("assets"), dict)):
+        return []
+    names = [COLLECTION_FILE]
+    for asset in data["assets"].values():
+        href = asset.get("href") if isinstance(asset, dict) else None
+        if isinstance(href, str) and href.startswith("./") and "/" not in href[2:]:
+            names.append(href[2:])
+    return names
+
+
+__all__ = ["EDGE_POINTS", "ITEM_FILE", "UNCERTAINTY_LAYERS", "build_collection", "build_item", "collection_files",
+           "footprint_wgs84", "item_dict", "model_summary", "read_item", "write_collection", "write_json"]

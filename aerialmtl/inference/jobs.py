@@ -42,9 +42,9 @@ import torch
 
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError
-from aerialmtl.formats.prediction import PredictionFolder, folder_files, mosaic_filename
+from aerialmtl.formats.prediction import PredictionFolder, folder_files, mosaic_filename, mosaic_files
 from aerialmtl.formats.qgis_style import write_raster_style
-from aerialmtl.formats.stac import write_collection
+from aerialmtl.formats.stac import collection_files, write_collection
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
@@ -280,6 +280,10 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
         for k in todo:
             if k not in replace:
                 check_outputs_free(targets[k].out, files, overwrite=False)
+        if len(targets) > 1:  # the mosaics and collection.json: a user's own are never replaced silently
+            owned = set(collection_files(out))
+            check_outputs_free(out, [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned],
+                               overwrite=False)
     if ranks.rank == 0:
         for k in todo:
             src = targets[k].src
