@@ -49,18 +49,22 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-import rasterio
-import torch
-from affine import Affine
-from rasterio.windows import Window
+# As the CLI does (aerialmtl/cli): OpenMP threads sleep instead of spinning, or in-process timings of torch on
+# a shared CPU come out several times too slow (bench/RESULTS.md, CPU engines).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from aerialmtl.classes import ClassDef, ClassScheme
-from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.inference.predict import predict_raster
-from aerialmtl.models.config import ModelConfig
-from aerialmtl.models.d3net import D3Net
-from aerialmtl.models.mc_dropout import mc_dropout_mode
+import numpy as np  # noqa: E402
+import rasterio  # noqa: E402
+import torch  # noqa: E402
+from affine import Affine  # noqa: E402
+from rasterio.windows import Window  # noqa: E402
+
+from aerialmtl.classes import ClassDef, ClassScheme  # noqa: E402
+from aerialmtl.formats.checkpoint import ModelMeta  # noqa: E402
+from aerialmtl.inference.predict import predict_raster  # noqa: E402
+from aerialmtl.models.config import ModelConfig  # noqa: E402
+from aerialmtl.models.d3net import D3Net  # noqa: E402
+from aerialmtl.models.mc_dropout import mc_dropout_mode  # noqa: E402
 
 SMALL = dict(growth_rate=12, block_config=(2, 4, 8, 6), num_init_features=32)
 

@@ -77,7 +77,7 @@ def _batch_size(value: str) -> int | str:
 @option("--batch-size", "batch_size", default="auto", show_default=True,
         help="Windows per model call, or 'auto' (from the free GPU memory; 2 on a CPU).")
 @option("--engine", type=click.Choice(["auto", "torch", "openvino"]), default="auto", show_default=True,
-        help="What runs the model: auto = OpenVINO on a CPU when installed (several times faster), torch "
+        help="What runs the model: auto = OpenVINO on a CPU when installed (faster, most with bf16), torch "
              "otherwise (and on CUDA).")
 @precision_option(help="auto = bf16 where the hardware has it natively (CUDA; CPUs with AVX-512-BF16 or AMX on "
                        "OpenVINO, with AMX on torch), fp32 elsewhere (CPUs without bf16 units run bf16 far slower).")

@@ -4,7 +4,8 @@
 * ``openvino`` — the same (loaded, BatchNorm-folded) model converted with ``openvino.convert_model``
   and compiled for the CPU, once per window shape. OpenVINO fuses DenseNet's many small concatenations
   and kernels that torch's eager mode runs one by one, and runs bf16 at the CPU's native speed
-  (AVX-512-BF16 or AMX): several times torch's speed on the same CPU (bench/RESULTS.md, predict).
+  (AVX-512-BF16 or AMX): on a Zen 4 CPU (AVX-512-BF16, no AMX) 1.6× torch fp32 for the model alone and
+  2× end to end at T = 8 (bench/RESULTS.md, CPU engines); more on CPUs with AMX.
 
 ``auto`` (:func:`resolve_engine`) is ``openvino`` on a CPU when OpenVINO is installed and the model is a
 D3-Net (``encode``/``decode``), ``torch`` otherwise.
