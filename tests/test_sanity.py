@@ -153,6 +153,25 @@ def test_checkpoint_with_nan_weights_is_refused_on_save_and_load(tmp_path: Path,
     assert not (tmp_path / "p").exists() or not any((tmp_path / "p").iterdir())
 
 
+def test_checkpoint_with_a_negative_batchnorm_variance_is_refused(tmp_path: Path, capsys) -> None:
+    """An edited running_var < 0 gave NaN with the torch engine but finite garbage with OpenVINO (exit 0)."""
+    model, meta = tiny_d3net()
+    good = tmp_path / "good.pt"
+    save_checkpoint(good, model, meta)
+    payload = torch.load(good, weights_only=True)
+    key = next(k for k in payload["state_dict"] if k.endswith("running_var"))
+    payload["state_dict"][key] = payload["state_dict"][key].clone().fill_(-1.0)
+    bad = tmp_path / "bad.pt"
+    torch.save(payload, bad)
+    with pytest.raises(CheckpointError, match=rf"'{bad}' holds a negative BatchNorm variance \('{key}'\)"):
+        load_checkpoint(bad)
+    ortho = write_raster(tmp_path / "o.tif", np.full((3, 32, 32), 100, np.uint8), CRS)
+    for engine in ("torch", "openvino"):
+        one_error_line(run_cli(capsys, "predict", ortho, "--model", bad, "--out", tmp_path / "p", "--quiet",
+                               "--engine", engine), f"checkpoint '{bad}'", "negative BatchNorm variance")
+    assert not (tmp_path / "p").exists()
+
+
 @pytest.fixture(scope="module")
 def run_dir(tiles: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     run = tmp_path_factory.mktemp("run") / "run"

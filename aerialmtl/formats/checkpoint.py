@@ -280,6 +280,14 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             f"checkpoint '{path}' holds NaN or inf weights ('{bad}'): the run that wrote it had diverged and its "
             "results would be garbage; use an earlier checkpoint, or retrain with a lower optim.lr"
         )
+    negative = next((k for k, v in state.items() if k.endswith("running_var") and v.is_floating_point()
+                     and v.numel() > 0 and bool((v < 0).any())), None)
+    if negative is not None:  # no training writes one; engines disagree on it (NaN in torch, finite in OpenVINO)
+        raise CheckpointError(
+            f"checkpoint '{path}' holds a negative BatchNorm variance ('{negative}'), which no training writes: the "
+            "file was edited or damaged and its results would be garbage; use another checkpoint (an earlier "
+            "best.pt / last.pt)"
+        )
     return payload, meta
 
 
