@@ -172,6 +172,16 @@ def test_checkpoint_with_a_negative_batchnorm_variance_is_refused(tmp_path: Path
     assert not (tmp_path / "p").exists()
 
 
+def test_an_orthophoto_without_a_valid_pixel_is_predicted_with_a_warning(tmp_path: Path, capsys) -> None:
+    """All nodata: a complete folder of nodata maps (a tile of a batch may be blank), but never silently."""
+    model, meta = tiny_d3net()
+    ckpt = tmp_path / "m.pt"
+    save_checkpoint(ckpt, model, meta)
+    ortho = write_raster(tmp_path / "o.tif", np.zeros((3, 32, 32), np.uint8), CRS, nodata=0)
+    rc, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "p", "--mc", "1", "--quiet")
+    assert rc == 0 and "has no valid pixel" in err and "every layer in" in err, err
+
+
 @pytest.fixture(scope="module")
 def run_dir(tiles: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     run = tmp_path_factory.mktemp("run") / "run"

@@ -455,6 +455,10 @@ class Predictor:
         _record_timings(files["prediction"], timings)
         grid, plan = src.grid, src.plan
         out_px = grid.width * grid.height
+        if computed == 0 and plan.num_windows > 0:  # complete, but a map of nodata only: say so
+            where = f" inside the AOI '{aoi}'" if aoi is not None else ""
+            warnings.warn(f"orthophoto '{src.path}' has no valid pixel{where} (all nodata or masked): every layer in "
+                          f"'{out}' is nodata; check the orthophoto's nodata value and mask", stacklevel=2)
         return PredictResult(Path(out), files, grid, self.mc, plan.num_windows, computed,
                              self.overlap_factor(plan, computed), plan.overlap_factor,
                              out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path)
