@@ -119,6 +119,22 @@ def test_evaluate_report_companions_are_checked_and_symlinks_replaced(tmp_path: 
     assert json.loads((tmp_path / "r.json").read_text())["plots"] == []
 
 
+def test_evaluate_never_writes_its_report_over_the_prediction_folders_files(tmp_path: Path, capsys) -> None:
+    """--out PRED/prediction.json --overwrite replaced the prediction's index with the report (exit 0)."""
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    write_raster(pred / "height.tif", np.ones((32, 32), np.float32), CRS, T05, nodata=-9999.0)
+    (pred / "prediction.json").write_text('{"files": {}}')
+    ref = write_raster(tmp_path / "n.tif", np.ones((32, 32), np.float32), CRS, T05)
+    base = ["evaluate", "--pred", pred, "--height", ref, "--no-plots", "--quiet", "--overwrite"]
+    for name in ("prediction.json", "item.json"):
+        rc, _, err = run(capsys, *base, "--out", pred / name)
+        assert rc == 2 and "--out:" in err and "would be written, but it is the input --pred" in err, err
+        assert ": :" not in err
+    assert (pred / "prediction.json").read_text() == '{"files": {}}' and not (pred / "item.json").exists()
+    assert_ok(run(capsys, *base, "--out", pred / "report.json"))
+
+
 def test_atomic_write_leaves_the_old_file_on_error(tmp_path: Path) -> None:
     path = tmp_path / "a.txt"
     path.write_text("old")

@@ -498,12 +498,15 @@ def test_matching_or_same_range_inputs_predict_as_before(tmp_path: Path, capsys,
 def test_non_finite_model_outputs_fail_the_run(tmp_path: Path, capsys) -> None:
     model, meta = tiny_d3net()
     bn = next(m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d))
-    bn.running_var.fill_(-1.0)  # finite weights, NaN activations (sqrt of a negative variance)
+    with torch.no_grad():  # finite weights, NaN activations: (x - 3e38) / sqrt(1e-5) overflows to -inf, the
+        bn.running_mean.fill_(3e38)  # negative gamma makes it +inf past the ReLU, and the next convolution
+        bn.running_var.fill_(1e-30)  # sums +inf and -inf into NaN
+        bn.weight.fill_(-1.0)
     broken = tmp_path / "broken.pt"
     save_checkpoint(broken, model, meta)
     ortho = _image(tmp_path, "o.tif", np.random.default_rng(6).integers(1, 255, (3, 64, 64)).astype(np.uint8))
     out = tmp_path / "p"
-    # torch propagates the NaN of sqrt(negative variance); OpenVINO's folded BatchNorm does not produce one
+    # torch propagates the NaN; OpenVINO's folded BatchNorm gives finite values here
     one_error_line(run_cli(capsys, "predict", ortho, "--model", broken, "--out", out, *PREDICT, "--engine", "torch"),
                    f"checkpoint '{broken}' gives NaN or inf", "no prediction was written")
     assert not out.exists() or not any(p.suffix in (".tif", ".json") for p in out.iterdir())

@@ -45,6 +45,7 @@ from aerialmtl.evaluation.uncertainty import (
     spearman,
 )
 from aerialmtl.formats.prediction import (
+    ALL_FILES,
     CLASS_ENTROPY,
     CLASS_MUTUAL_INFO,
     CLASS_PROBABILITIES,
@@ -324,7 +325,8 @@ def _check_arguments(
     if out is not None:
         outputs = report_files(out, plots)
         inputs = [("height_ref", height_ref), ("labels_ref", labels_ref), ("dsm_ref", dsm_ref), ("dtm_ref", dtm_ref),
-                  ("buildings_ref", buildings_ref), *(("pred_dir", p) for p in files.values())]
+                  ("buildings_ref", buildings_ref),
+                  *(("pred_dir", pred_dir / name) for name in ALL_FILES)]  # prediction.json, item.json too
         check_files_not_input(outputs, inputs, option="out")
         existing = [str(p) for p in outputs if os.path.lexists(p)]
         if existing and not overwrite:

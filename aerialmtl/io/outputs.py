@@ -146,7 +146,7 @@ def check_files_not_input(outputs: Iterable[str | Path],
     for out in outputs:
         name = given.get(Path(out).resolve())
         if name is not None:
-            raise InputError(f"‹{option}›: '{out}' would be written, but it is the input ‹{name}›; choose another "
+            raise InputError(f"‹{option}› '{out}' would be written, but it is the input ‹{name}›; choose another "
                              f"‹{option}›", param=option)
 
 
