@@ -580,6 +580,45 @@ def evaluate_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     return curve
 
 
+def curve_table(out: Path, runs: list[str] | None = None) -> str:
+    """Markdown: one row per evaluated checkpoint of each run's ``curve.json`` (test block), uncalibrated and
+    calibrated, with the seconds per step and load of the training segment that reached it."""
+    lines = ["| run | checkpoint | step | s/step (load) | calibration | MAE (m) | RMSE (m) | MAE ≥ 2 m (m) | "
+             "bias ≥ 2 m (m) | ±1σ / ±2σ coverage | val-CV MAE / MAE ≥ 2 m |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    base = None
+    for cfile in sorted((out / "runs").glob("*/curve.json")):
+        name = cfile.parent.name
+        if runs and name not in runs:
+            continue
+        curve = json.loads(cfile.read_text())
+        base = base or curve.get("baselines")
+        seg_file = cfile.parent / "segments.json"
+        segs = json.loads(seg_file.read_text()) if seg_file.is_file() else []
+        prev, rate = 0, {}
+        for sgm in segs:
+            rate[sgm["step"]] = (sgm["seconds"] / max(1, sgm["step"] - prev), sgm["load_start"][0], sgm["load_end"][0])
+            prev = sgm["step"]
+        keys = sorted((k for k in curve if k != "baselines"), key=lambda k: (k.split("_")[0], int(k.split("_")[1])))
+        for k in keys:
+            e = curve[k]
+            snap = int(k.split("_")[1])
+            r = rate.get(snap)
+            rs = f"{r[0]:.1f} ({r[1]:.0f}→{r[2]:.0f})" if r else "?"
+            for m, t in e["test"].items():
+                cv = e["val_cv"][m]
+                c1, c2 = (math.nan if t.get(c) is None else t[c] for c in ("coverage_1sigma", "coverage_2sigma"))
+                lines.append(f"| {name} | {k} | {e['step']} | {rs} | {m} | {t['mae']:.2f} | {t['rmse']:.2f} | "
+                             f"{t['mae_tall']:.2f} | {t['bias_tall']:+.2f} | "
+                             f"{c1:.2f} / {c2:.2f} | "
+                             f"{cv['mae']:.2f} / {cv['mae_tall']:.2f} |")
+    if base:
+        b = base["train_mean"]
+        lines.append(f"\nTrain-mean baseline ({base['train_mean_value_m']:.2f} m): MAE {b['mae']:.2f}, RMSE "
+                     f"{b['rmse']:.2f}, MAE ≥ 2 m {b['mae_tall']:.2f}, bias ≥ 2 m {b['bias_tall']:+.2f}.")
+    return "\n".join(lines)
+
+
 # ---- tables --------------------------------------------------------------------------------------
 HEADER = ("| run | GSD (m) | patch | steps | train s | height MAE (m) | RMSE (m) | MAE ≥ 2 m (m) | "
           "Spearman(std, \\|err\\|) | train-mean MAE / RMSE / MAE ≥ 2 m | MAE / train-mean | "
@@ -635,6 +674,7 @@ def main() -> None:
     ap.add_argument("--no-eval", action="store_true", help="train only (evaluate later with --evaluate)")
     ap.add_argument("--evaluate", metavar="RUN", help="evaluate the snapshots of run RUN (test block, with and "
                     "without calibration fitted on val) into OUT/runs/RUN/curve.json")
+    ap.add_argument("--curves", action="store_true", help="print the learning curves (every curve.json) as Markdown")
     ap.add_argument("--force", action="store_true", help="with --evaluate: redo checkpoints already in curve.json")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--list", action="store_true", help="list the recipes")
@@ -649,6 +689,9 @@ def main() -> None:
         return
     if args.evaluate:
         evaluate_run(args.evaluate, args)
+        return
+    if args.curves:
+        print(curve_table(args.out))
         return
     recipe = RECIPES[args.recipe]
     changes = {k: getattr(args, k) for k in ("gsd", "size", "stride") if getattr(args, k) is not None}

@@ -42,12 +42,14 @@ def tiles(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 # ---- configs ------------------------------------------------------------------------------------
-@pytest.mark.parametrize("name,k", [("d3net_dfc2018", 20), ("d3net_isprs", 6), ("d3net_small_synth", None)])
+@pytest.mark.parametrize("name,k", [("d3net_dfc2018", 20), ("d3net_isprs", 6), ("d3net_small_synth", None),
+                                    ("small_area", None)])
 def test_shipped_configs_load(name: str, k: int | None) -> None:
     cfg = load_train_config(CONFIGS / f"{name}.yaml")
     assert cfg.model.num_classes == k
     assert cfg.predict.mc_samples == 30
-    if name != "d3net_small_synth":  # the paper's settings
+    if name in ("d3net_dfc2018", "d3net_isprs"):  # the paper's settings
+        assert cfg.model.encoder == "densenet121"
         assert cfg.model.block_config == (6, 12, 24, 16) and cfg.model.dropout == 0.5
         assert cfg.optim.lr == 2e-4 and cfg.optim.betas == (0.5, 0.999)
         assert cfg.loss.height == "l1" and cfg.weighting.method == "equal"
