@@ -471,7 +471,7 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
 
 
 # ---- learning curves and calibration --------------------------------------------------------------
-CAL_METHODS = ("isotonic", "quantile")
+CAL_METHODS = ("isotonic", "median", "quantile")
 
 
 def _val_cv(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray) -> dict[str, dict[str, float]]:
@@ -536,12 +536,15 @@ def evaluate_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     torch.set_num_threads(args.threads)
     ckpts = sorted(rdir.glob("snap_*.pt"), key=lambda p: int(p.stem.split("_")[1]))
     ckpts += sorted(rdir.glob("best_*.pt"), key=lambda p: int(p.stem.split("_")[1]))
+    if args.only:
+        ckpts = [p for p in ckpts if p.stem.startswith(args.only)]
     if not ckpts:
         ckpts = [p for p in (rdir / "best.pt", rdir / "last.pt") if p.is_file()]
     curve_file = rdir / "curve.json"
     curve: dict[str, Any] = json.loads(curve_file.read_text()) if curve_file.is_file() else {}
     for ckpt in ckpts:
-        if ckpt.stem in curve and not args.force:
+        old = curve.get(ckpt.stem) if not args.force else None
+        if old is not None and all(m in old["test"] for m in CAL_METHODS):
             continue
         t0, load0 = time.perf_counter(), os.getloadavg()
         model, meta = load_model(ckpt)
@@ -552,10 +555,15 @@ def evaluate_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
                                  "calibration": {m: {"std_scale": c.std_scale, "knots": [c.height_x, c.height_y]}
                                                  for m, c in cals.items()}}
         pdir = rdir / f"pred_{ckpt.stem}"
-        predict_raster(args.data / ORTHO, (model, meta), pdir, mc=args.mc, aoi=split["test"], overwrite=True,
-                       progress=False, checkpoint_name=str(ckpt), calibration=False)
-        entry["test"] = {"none": evaluate_dir(pdir, args.data, rdir / f"report_{ckpt.stem}.json")}
+        if old is not None:  # the raw test prediction is there: only the calibrations it lacks
+            entry["test"] = old["test"]
+        else:
+            predict_raster(args.data / ORTHO, (model, meta), pdir, mc=args.mc, aoi=split["test"], overwrite=True,
+                           progress=False, checkpoint_name=str(ckpt), calibration=False)
+            entry["test"] = {"none": evaluate_dir(pdir, args.data, rdir / f"report_{ckpt.stem}.json")}
         for m, c in cals.items():
+            if m in entry["test"]:
+                continue
             cdir = _calibrated_copy(pdir, c, rdir / f"pred_{ckpt.stem}_{m}")
             entry["test"][m] = evaluate_dir(cdir, args.data, rdir / f"report_{ckpt.stem}_{m}.json")
         for m in ("none", *CAL_METHODS):
@@ -674,6 +682,7 @@ def main() -> None:
     ap.add_argument("--no-eval", action="store_true", help="train only (evaluate later with --evaluate)")
     ap.add_argument("--evaluate", metavar="RUN", help="evaluate the snapshots of run RUN (test block, with and "
                     "without calibration fitted on val) into OUT/runs/RUN/curve.json")
+    ap.add_argument("--only", help="with --evaluate: only checkpoints whose name starts with this (e.g. best_)")
     ap.add_argument("--curves", action="store_true", help="print the learning curves (every curve.json) as Markdown")
     ap.add_argument("--force", action="store_true", help="with --evaluate: redo checkpoints already in curve.json")
     ap.add_argument("--quiet", action="store_true")

@@ -29,7 +29,7 @@ def _compressed(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarra
     return pred, ref, std
 
 
-@pytest.mark.parametrize("method", ["isotonic", "quantile"])
+@pytest.mark.parametrize("method", ["isotonic", "median", "quantile"])
 def test_known_compression_is_undone_on_new_pixels(method: str) -> None:
     rng = np.random.default_rng(0)
     cal = fit_calibration(*_compressed(rng, 40_000), method=method)  # type: ignore[arg-type]

@@ -12,6 +12,9 @@ correct both after training, fitted on validation pixels only:
   - ``isotonic``: the isotonic regression of the reference height on the predicted height over pixels
     binned by predicted height (equal-count bins, each a mean): the calibrated value is the validation
     mean of the reference among pixels predicted alike (least squares under monotonicity).
+  - ``median``: the same with each bin's median reference height (an L1 fit, like the height loss): it
+    leaves a mostly-ground bin at the ground instead of lifting it to the bin's mean, so it trades less
+    overall MAE for less correction of tall pixels.
   - ``quantile``: quantile mapping: the k-th quantile of the predictions maps to the k-th quantile of
     the reference, so the calibrated heights have the validation's height distribution (it undoes a
     compression fully, at the price of more spread for pixels whose prediction is uncertain).
@@ -29,7 +32,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-CalibrationMethod = Literal["isotonic", "quantile"]
+CalibrationMethod = Literal["isotonic", "median", "quantile"]
 #: Fraction of a Gaussian within ±1 σ.
 ONE_SIGMA = 0.6826894921370859
 DEFAULT_KNOTS = 64
@@ -43,7 +46,7 @@ class Calibration:
         height_x: knots on the predicted height (metres, strictly increasing).
         height_y: calibrated heights at the knots (metres, non-decreasing).
         std_scale: factor applied to ``height_std`` (1 = unchanged).
-        method: ``isotonic`` or ``quantile``.
+        method: ``isotonic``, ``median`` or ``quantile``.
         n_pixels: validation pixels the maps were fitted on.
         source: what they were fitted on (e.g. ``val split of TILES, T=16``).
     """
@@ -139,7 +142,7 @@ def fit_height_map(pred: np.ndarray, ref: np.ndarray, method: CalibrationMethod 
     if method == "quantile":
         x = np.quantile(pred, qs)
         y = np.maximum.accumulate(np.quantile(ref, qs))
-    elif method == "isotonic":
+    elif method in ("isotonic", "median"):
         order = np.argsort(pred, kind="stable")
         ps, rs = pred[order], ref[order]
         edges = np.unique(np.round(qs * ps.size).astype(int))
@@ -147,11 +150,11 @@ def fit_height_map(pred: np.ndarray, ref: np.ndarray, method: CalibrationMethod 
         for a, b in zip(edges[:-1], edges[1:], strict=True):
             if b > a:
                 xs.append(ps[a:b].mean())
-                ys.append(rs[a:b].mean())
+                ys.append(rs[a:b].mean() if method == "isotonic" else np.median(rs[a:b]))
                 ws.append(b - a)
         x, y = np.asarray(xs), _pava(np.asarray(ys), np.asarray(ws, dtype=np.float64))
     else:
-        raise ValueError(f"fit_height_map: method must be 'isotonic' or 'quantile', got {method!r}")
+        raise ValueError(f"fit_height_map: method must be 'isotonic', 'median' or 'quantile', got {method!r}")
     x, y = _strictly_increasing(x, y)
     if x.size < 2:  # every prediction alike: a constant offset
         x = np.array([float(pred.min()), float(pred.min()) + 1.0])

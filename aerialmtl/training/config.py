@@ -246,12 +246,13 @@ class CalibrationSection:
         enabled: fit a height map and a spread factor on the val patches and store them in ``best.pt``
             and ``last.pt`` (``predict`` applies them unless ``--no-calibration``).
         method: ``isotonic`` (validation mean of the reference among pixels predicted alike) or
-            ``quantile`` (predicted height quantiles mapped to reference quantiles).
+            ``median`` (the same with medians: an L1 fit) or ``quantile`` (predicted height quantiles mapped to
+            reference quantiles).
         mc_samples: MC-dropout samples per validation patch.
     """
 
     enabled: bool = True
-    method: Literal["isotonic", "quantile"] = "isotonic"
+    method: Literal["isotonic", "median", "quantile"] = "isotonic"
     mc_samples: int = 16
 
     def __post_init__(self) -> None:
