@@ -47,6 +47,18 @@ def test_known_compression_is_undone_on_new_pixels(method: str) -> None:
     np.testing.assert_allclose(cal.height_torch(torch.from_numpy(pred)).numpy(), h, rtol=1e-6, atol=1e-6)
 
 
+def test_spread_of_confident_ground_gets_a_floor() -> None:
+    rng = np.random.default_rng(1)
+    n = 20_000
+    err = np.abs(rng.normal(0.0, 1.0, n))
+    std = np.where(rng.random(n) < 0.5, 1e-8, 0.02)  # half the pixels: every MC sample alike
+    cal = fit_calibration(np.zeros(n), np.zeros(n), None)
+    scale, floor = __import__("aerialmtl.models.calibration", fromlist=["fit_spread"]).fit_spread(err, std)
+    cal = dataclasses.replace(cal, std_scale=scale, std_floor=floor)
+    cov = interval_coverage(err, cal.std(std))
+    assert floor > 0.1 and abs(cov["within_1sigma"] - 0.683) < 0.02 and cov["within_2sigma"] > 0.85
+
+
 def test_map_continues_beyond_the_knots() -> None:
     cal = Calibration((0.0, 1.0, 4.0), (0.5, 2.0, 10.0), std_scale=2.0)
     np.testing.assert_allclose(cal.height(np.array([-1.0, 0.5, 4.0, 6.0])), [0.5, 1.25, 10.0, 12.0])

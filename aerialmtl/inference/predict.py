@@ -558,7 +558,8 @@ class Predictor:
         if cal is None:
             return {"applied": False, "reason": "the checkpoint has no calibration"}
         info: dict[str, Any] = {"applied": self.calibration is not None, "method": cal.method,
-                                "std_scale": cal.std_scale, "n_pixels": cal.n_pixels, "source": cal.source,
+                                "std_scale": cal.std_scale, "std_floor_m": cal.std_floor, "n_pixels": cal.n_pixels,
+                                "source": cal.source,
                                 "height_knots_m": [list(cal.height_x), list(cal.height_y)]}
         if self.calibration is None:
             info["reason"] = "switched off (--no-calibration)"

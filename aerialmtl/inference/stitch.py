@@ -330,7 +330,7 @@ class Stitcher:
             if HEIGHT in values:
                 values[HEIGHT] = self.calibration.height_torch(values[HEIGHT])
             if HEIGHT_STD in values:
-                values[HEIGHT_STD] = values[HEIGHT_STD] * self.calibration.std_scale
+                values[HEIGHT_STD] = self.calibration.std_torch(values[HEIGHT_STD])
         if "probs" not in acc:
             return values
         probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)

@@ -19,8 +19,11 @@ correct both after training, fitted on validation pixels only:
     the reference, so the calibrated heights have the validation's height distribution (it undoes a
     compression fully, at the price of more spread for pixels whose prediction is uncertain).
 
-* **spread**: one factor ``std_scale`` multiplying ``height_std`` such that ±1 σ covers 68.3 % of the
-  validation pixels' calibrated errors (the 68.3 % quantile of ``|error| / std``), as a Gaussian would.
+* **spread**: ``σ = sqrt((std_scale · height_std)² + std_floor²)`` with the factor and the floor fitted so
+  that ±1 σ covers 68.3 % and ±2 σ as close to 95.4 % as the pair allows of the validation pixels'
+  calibrated errors, as a Gaussian would. The floor matters: where the decoder's features are all zero
+  (confident ground), every MC sample gives the same height and the MC spread is ~0, which no factor
+  can turn into an interval.
 """
 
 from __future__ import annotations
@@ -33,8 +36,9 @@ import numpy as np
 import torch
 
 CalibrationMethod = Literal["isotonic", "median", "quantile"]
-#: Fraction of a Gaussian within ±1 σ.
+#: Fraction of a Gaussian within ±1 σ and ±2 σ.
 ONE_SIGMA = 0.6826894921370859
+TWO_SIGMA = 0.9544997361036416
 DEFAULT_KNOTS = 64
 
 
@@ -46,6 +50,7 @@ class Calibration:
         height_x: knots on the predicted height (metres, strictly increasing).
         height_y: calibrated heights at the knots (metres, non-decreasing).
         std_scale: factor applied to ``height_std`` (1 = unchanged).
+        std_floor: metres added in quadrature to the scaled spread (0 = none; older calibrations).
         method: ``isotonic``, ``median`` or ``quantile``.
         n_pixels: validation pixels the maps were fitted on.
         source: what they were fitted on (e.g. ``val split of TILES, T=16``).
@@ -57,6 +62,7 @@ class Calibration:
     method: str = "isotonic"
     n_pixels: int = 0
     source: str = ""
+    std_floor: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.height_x) != len(self.height_y) or len(self.height_x) < 2:
@@ -64,8 +70,10 @@ class Calibration:
                              f"{len(self.height_y)}")
         if any(b <= a for a, b in zip(self.height_x, self.height_x[1:], strict=False)):
             raise ValueError("Calibration: height_x must be strictly increasing")
-        if not (math.isfinite(self.std_scale) and self.std_scale > 0):
-            raise ValueError(f"Calibration: std_scale must be finite and > 0, got {self.std_scale}")
+        if not (math.isfinite(self.std_scale) and self.std_scale >= 0):
+            raise ValueError(f"Calibration: std_scale must be finite and ≥ 0, got {self.std_scale}")
+        if not (math.isfinite(self.std_floor) and self.std_floor >= 0):
+            raise ValueError(f"Calibration: std_floor must be finite and ≥ 0, got {self.std_floor}")
 
     def height(self, h: np.ndarray) -> np.ndarray:
         """Calibrated heights (metres) of predicted heights ``h`` (any shape; NaN stays NaN)."""
@@ -76,8 +84,13 @@ class Calibration:
         return np.maximum(out, 0.0).astype(np.asarray(h).dtype, copy=False)
 
     def std(self, s: np.ndarray) -> np.ndarray:
-        """Calibrated spreads (metres)."""
-        return (s * self.std_scale).astype(np.asarray(s).dtype, copy=False)
+        """Calibrated spreads (metres): ``sqrt((std_scale · s)² + std_floor²)``."""
+        out = np.hypot(np.asarray(s, dtype=np.float64) * self.std_scale, self.std_floor)
+        return out.astype(np.asarray(s).dtype, copy=False)
+
+    def std_torch(self, s: torch.Tensor) -> torch.Tensor:
+        """:meth:`std` on a tensor."""
+        return torch.hypot(s * self.std_scale, torch.full_like(s, self.std_floor))
 
     def height_torch(self, h: torch.Tensor) -> torch.Tensor:
         """:meth:`height` on a tensor (any device, float dtype kept)."""
@@ -89,7 +102,8 @@ class Calibration:
         pts = ", ".join(f"{a:.1f}→{b:.1f}" for a, b in zip(self.height_x[::max(1, len(self.height_x) // 6)],
                                                         self.height_y[::max(1, len(self.height_y) // 6)],
                                                         strict=False))
-        return f"{self.method} height map ({pts} m), std × {self.std_scale:.2f}, {self.n_pixels} px"
+        return (f"{self.method} height map ({pts} m), std × {self.std_scale:.3g} ⊕ {self.std_floor:.2f} m, "
+                f"{self.n_pixels} px")
 
 
 def interp_torch(h: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -162,6 +176,38 @@ def fit_height_map(pred: np.ndarray, ref: np.ndarray, method: CalibrationMethod 
     return x, y
 
 
+def fit_spread(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 200_000) -> tuple[float, float]:
+    """``(std_scale, std_floor)`` such that ``sqrt((scale·std)² + floor²)`` covers :data:`ONE_SIGMA` of the
+    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error)."""
+    err = np.asarray(abs_error, dtype=np.float64).ravel()
+    sd = np.asarray(std, dtype=np.float64).ravel()
+    if err.size > max_pixels:
+        keep = np.random.default_rng(0).choice(err.size, max_pixels, replace=False)
+        err, sd = err[keep], sd[keep]
+    if err.size == 0:
+        return 1.0, 0.0
+
+    def cover(scale: float, floor: float, k: float) -> float:
+        return float(np.count_nonzero(err <= k * np.hypot(scale * sd, floor)) / err.size)
+
+    best: tuple[float, float, float] | None = None
+    for floor in [0.0, *np.quantile(err, np.linspace(0.02, 0.66, 33)).tolist()]:
+        if cover(0.0, floor, 1.0) >= ONE_SIGMA:
+            break
+        lo, hi = 0.0, 1.0
+        while cover(hi, floor, 1.0) < ONE_SIGMA and hi < 1e12:
+            hi *= 4.0
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if cover(mid, floor, 1.0) < ONE_SIGMA else (lo, mid)
+        miss = abs(cover(hi, floor, 2.0) - TWO_SIGMA)
+        if best is None or miss < best[0]:
+            best = (miss, hi, float(floor))
+    if best is None:  # the smallest floor alone covers 68 %: a floor only
+        return 0.0, float(np.quantile(err, ONE_SIGMA))
+    return best[1], best[2]
+
+
 def fit_std_scale(abs_error: np.ndarray, std: np.ndarray, coverage: float = ONE_SIGMA) -> float:
     """The factor ``s`` such that ``|error| ≤ s · std`` holds for ``coverage`` of the pixels."""
     std = np.asarray(std, dtype=np.float64).ravel()
@@ -181,7 +227,8 @@ def fit_calibration(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None = 
     cal = Calibration(tuple(float(v) for v in x), tuple(float(v) for v in y), 1.0, method, int(np.size(pred)), source)
     if std is not None:
         err = np.abs(cal.height(np.asarray(pred, dtype=np.float64)) - np.asarray(ref, dtype=np.float64))
-        cal = Calibration(cal.height_x, cal.height_y, fit_std_scale(err, std), method, cal.n_pixels, source)
+        scale, floor = fit_spread(err, std)
+        cal = Calibration(cal.height_x, cal.height_y, scale, method, cal.n_pixels, source, floor)
     return cal
 
 
@@ -192,5 +239,5 @@ def interval_coverage(abs_error: np.ndarray, std: np.ndarray) -> dict[str, float
             "within_2sigma": float(np.count_nonzero(abs_error <= 2 * std) / n)}
 
 
-__all__ = ["Calibration", "CalibrationMethod", "fit_calibration", "fit_height_map", "fit_std_scale",
+__all__ = ["Calibration", "CalibrationMethod", "fit_calibration", "fit_height_map", "fit_spread", "fit_std_scale",
            "interp_torch", "interval_coverage", "ONE_SIGMA"]
