@@ -202,6 +202,18 @@ def test_scheme_from_option_when_tag_missing(tmp_path: Path) -> None:
     assert rep["classes"]["overall_accuracy"] == pytest.approx(s["oa"])
 
 
+def test_a_scheme_other_than_the_predictions_is_refused(tmp_path: Path) -> None:
+    """--classes with other class names than classes.tif's scheme scored class k as another class (exit 0)."""
+    s = make_scene(tmp_path)
+    other = ClassScheme.from_dict({"name": "other", "ignore_codes": [0], "classes": [
+        {"code": 1, "name": "water"}, {"code": 2, "name": "building"}, {"code": 3, "name": "tree"}]})
+    with pytest.raises(InputError, match=r"not the one the prediction was made with \(ground, building, tree"):
+        evaluate_prediction(s["pred"], labels_ref=s["labels"], classes=other, out=None)
+    recoded = ClassScheme.from_dict({"name": "toy", "ignore_codes": [0], "classes": [  # same classes, other codes
+        {"code": 1, "name": "ground"}, {"code": 2, "name": "building"}, {"code": 3, "name": "tree"}]})
+    assert evaluate_prediction(s["pred"], labels_ref=s["labels"], classes=recoded, out=None)["classes"]
+
+
 def test_refuses_to_overwrite_and_rejects_bad_inputs(tmp_path: Path) -> None:
     s = make_scene(tmp_path)
     out = tmp_path / "report.json"

@@ -91,10 +91,17 @@ def _row_bands(grid: Grid, block_pixels: int) -> list[Window]:
 def _resolve_scheme(
     classes: str | Path | ClassScheme | None, classes_tif: Path | None
 ) -> tuple[ClassScheme | None, str]:
-    if isinstance(classes, ClassScheme):
-        return classes, "argument"
     if classes is not None:
-        return ClassScheme.load(classes), str(classes)
+        given, source = (classes, "argument") if isinstance(classes, ClassScheme) else \
+            (ClassScheme.load(classes), str(classes))
+        stored = read_class_scheme_tag(classes_tif) if classes_tif is not None else None
+        if stored is not None and given.names != stored.names:  # class index k would mean another class
+            raise InputError(
+                f"class scheme ‹classes› '{source}' ({', '.join(given.names)}) is not the one the prediction was made "
+                f"with ({', '.join(stored.names)}, stored in '{classes_tif}'), so predicted class k would be scored "
+                "as another class; drop ‹classes› to use the stored scheme, or pass one with the same classes in the "
+                "same order (its codes may differ)", param="classes")
+        return given, source
     if classes_tif is not None:
         scheme = read_class_scheme_tag(classes_tif)
         if scheme is not None:

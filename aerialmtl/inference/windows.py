@@ -64,7 +64,8 @@ def check_tiling(tile: int, overlap: int) -> None:
             param="tile")
     if not isinstance(overlap, int) or not 0 <= overlap <= tile // 2:
         raise InputError(
-            f"‹overlap› must be between 0 and ‹tile›/2 = {tile // 2} pixels, got {overlap!r}; pass e.g. ‹overlap=64›",
+            f"‹overlap› must be between 0 and ‹tile›/2 = {tile // 2} pixels, got {overlap!r}; pass e.g. "
+            f"‹overlap={min(64, tile // 4)}›",
             param="overlap")
 
 
