@@ -87,6 +87,40 @@ def stop_signals() -> Iterator[None]:
                 signal.signal(signum, handler)
 
 
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Hold Ctrl-C, SIGTERM and SIGHUP for the block and deliver one that arrived right after it.
+
+    For writes done by C++ code (``torch.save`` into a file object): an exception raised inside them by a
+    signal handler comes out as a ``RuntimeError`` ("unexpected pos ..."), which would end the run as an
+    unexpected error (exit 1) instead of an interruption (130/143/129). Only the main thread sets handlers;
+    elsewhere the block runs unchanged.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[int] = []
+    signums = tuple(dict.fromkeys((int(signal.SIGINT), *STOP_SIGNALS)))
+    previous: dict[int, Any] = {s: signal.getsignal(s) for s in signums}
+
+    def hold(signum: int, frame: FrameType | None) -> None:
+        got.append(signum)
+
+    for signum in signums:
+        signal.signal(signum, hold)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if got:  # replay the first one with the handler it was meant for
+        handler = previous[got[0]]
+        if callable(handler):
+            handler(got[0], None)
+        elif handler == signal.SIG_DFL:
+            signal.raise_signal(got[0])
+
+
 def stop_signal(exc: BaseException | None) -> int:
     """The signal behind an interruption: ``exc``'s when it is (or wraps) :class:`Stopped`, else SIGINT."""
     seen = 0
@@ -98,4 +132,4 @@ def stop_signal(exc: BaseException | None) -> int:
     return int(signal.SIGINT)
 
 
-__all__ = ["STOP_SIGNALS", "Stopped", "install_stop_signals", "stop_signal", "stop_signals"]
+__all__ = ["STOP_SIGNALS", "Stopped", "deferred", "install_stop_signals", "stop_signal", "stop_signals"]

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -265,3 +266,46 @@ def test_export_refuses_a_folder_another_process_writes(tmp_path: Path) -> None:
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_a_stop_signal_while_torch_save_writes_is_an_interruption(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM inside torch.save's C++ writer came out as 'Error: unexpected RuntimeError ... unexpected pos'
+    (exit 1); now the signal is held for the write and raised after it, the checkpoint whole or absent."""
+    import torch
+    from conftest import tiny_d3net
+
+    from aerialmtl.formats.checkpoint import save_checkpoint
+    from aerialmtl.signals import Stopped, stop_signals
+
+    real_save = torch.save
+
+    class Signalled:  # the file object torch.save's C++ writer calls: SIGTERM arrives during its first write
+        def __init__(self, f: Any) -> None:
+            self.f, self.sent = f, False
+
+        def write(self, b: bytes) -> int:
+            writes.append(len(b))
+            if not self.sent:
+                self.sent = True
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+            return self.f.write(b)
+
+        def flush(self) -> None:
+            self.f.flush()
+
+    writes: list[int] = []
+
+    def save_then_signalled(obj: object, f: Any) -> None:
+        real_save(obj, Signalled(f))
+
+    monkeypatch.setattr(torch, "save", save_then_signalled)
+    model, meta = tiny_d3net()
+    with stop_signals(), pytest.raises(Stopped) as info:
+        save_checkpoint(tmp_path / "last.pt", model, meta)
+    assert info.value.signum == signal.SIGTERM
+    assert len(writes) > 1  # the archive was written to its end before the signal was raised
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    if (tmp_path / "last.pt").exists():
+        load_checkpoint(tmp_path / "last.pt")

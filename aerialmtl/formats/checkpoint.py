@@ -44,6 +44,7 @@ from aerialmtl.io.oserrors import output_error
 from aerialmtl.io.outputs import atomic_write
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
+from aerialmtl.signals import deferred
 
 FORMAT = "aerialmtl-checkpoint"
 FORMAT_VERSION = 1
@@ -205,7 +206,8 @@ def save_checkpoint(
     }
     try:
         with atomic_write(path) as tmp, tmp.open("wb") as fh:  # a file object: a full disk is an OSError
-            torch.save(payload, fh)
+            with deferred():  # a stop signal inside torch.save's C++ writer would come out as a RuntimeError
+                torch.save(payload, fh)
     except (OSError, RuntimeError) as exc:
         cause = _os_error(exc)
         if cause is None:
