@@ -38,7 +38,7 @@ from aerialmtl.formats.prediction import (
     HEIGHT_STD,
     LayerSpec,
 )
-from aerialmtl.io.outputs import write_text_atomic
+from aerialmtl.io.outputs import write_text
 from aerialmtl.io.stats import BandStats, band_stats
 
 #: The QGIS version written in the style (the oldest long-term release the styles are made for).
@@ -202,14 +202,7 @@ def write_style(path: str | Path, tree: ET.ElementTree, atomic: bool = True) -> 
     root = tree.getroot()
     assert root is not None
     text = "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + ET.tostring(root, encoding="unicode") + "\n"
-    try:
-        if atomic:  # through its staging file, .NAME.partial (aerialmtl.io.outputs)
-            write_text_atomic(path, text)
-        else:
-            path.write_text(text, encoding="utf-8")
-    except OSError as exc:
-        raise OutputError(f"cannot write QGIS style '{path}' ({exc}); choose a writable output folder") from exc
-    return path
+    return write_text(path, text, "a QGIS style", atomic)
 
 
 def style_path(raster: str | Path) -> Path:

@@ -39,7 +39,7 @@ from pystac.extensions.projection import ProjectionExtension
 from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Sampling, Statistics
 from rasterio.warp import transform as warp_transform
 
-from aerialmtl.errors import InputError, OutputError
+from aerialmtl.errors import InputError
 from aerialmtl.formats.prediction import (
     CLASS_ENTROPY,
     CLASS_MUTUAL_INFO,
@@ -53,7 +53,7 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.formats.qgis_style import class_scheme_of
 from aerialmtl.io.align import Grid
-from aerialmtl.io.outputs import write_text_atomic
+from aerialmtl.io.outputs import write_text
 from aerialmtl.io.stats import BandStats
 
 #: Media types of the assets.
@@ -204,16 +204,7 @@ def item_dict(item: pystac.Item | pystac.Collection) -> dict[str, Any]:
 def write_json(path: str | Path, obj: pystac.Item | pystac.Collection, atomic: bool = True) -> Path:
     """Write ``obj`` at ``path`` (replaced atomically unless ``atomic`` is false: ``path`` is then itself a
     staging file that the caller renames)."""
-    path = Path(path)
-    text = json.dumps(item_dict(obj), indent=2)
-    try:
-        if atomic:  # through its staging file, .NAME.partial (aerialmtl.io.outputs)
-            write_text_atomic(path, text)
-        else:
-            path.write_text(text, encoding="utf-8")
-    except OSError as exc:
-        raise OutputError(f"cannot write STAC file '{path}' ({exc}); choose a writable output folder") from exc
-    return path
+    return write_text(path, json.dumps(item_dict(obj), indent=2), "a STAC file", atomic)
 
 
 def read_item(path: str | Path) -> pystac.Item:

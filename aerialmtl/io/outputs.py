@@ -97,6 +97,29 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
     return path
 
 
+def write_text(path: str | Path, text: str, what: str, atomic: bool = True) -> Path:
+    """Write ``text`` (UTF-8) to ``path``, a write error becoming an :class:`OutputError` naming it.
+
+    Args:
+        path: the file.
+        text: its content.
+        what: what it is, for the message (``"the QGIS style"``).
+        atomic: replace ``path`` through its staging file; false when ``path`` is itself a staging file that
+            the caller renames into place with the rest of its outputs.
+
+    Returns:
+        ``path``.
+    """
+    from aerialmtl.io.oserrors import writing
+
+    path = Path(path)
+    with writing(path, what):
+        if atomic:
+            return write_text_atomic(path, text)
+        path.write_text(text, encoding="utf-8")
+    return path
+
+
 # ---- inputs vs outputs ---------------------------------------------------------------------------
 def is_local_path(path: str | Path) -> bool:
     """Whether ``path`` names a local file (not a URL or a GDAL virtual path; :func:`aerialmtl.io.paths.is_local`)."""
@@ -455,4 +478,4 @@ def _remove_tree(path: Path) -> None:
 
 __all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write",
            "check_files_not_input", "check_not_input", "is_job_leader", "is_local_path", "is_staging_of", "job_id",
-           "make_output_dir", "staging_path", "write_text_atomic"]
+           "make_output_dir", "staging_path", "write_text", "write_text_atomic"]
