@@ -187,11 +187,7 @@ def load_torchvision_densenet(
                 report.loaded.append(k)
     used = set(new_state) | ({k for k in source if k.startswith("features.conv0.") or k.startswith("features.norm0.")})
     report.unexpected = [k for k in source if k not in used]
-    with torch.no_grad():
-        for key, value in new_state.items():
-            target[key].copy_(value)
-    log.info("encoder weights '%s': %s", path, report.summary())
-    return report
+    return _copy_into(target, new_state, path, report)
 
 
 # ---- EfficientNet-Lite ---------------------------------------------------------------------------
@@ -282,6 +278,12 @@ def load_efficientnet_lite(encoder: torch.nn.Module, weights: str | Path) -> Loa
         raise CheckpointError(f"encoder weights '{path}' lack {len(report.missing)} tensors of the {variant} encoder "
                               f"(e.g. '{report.missing[0]}'); set model.encoder to the file's EfficientNet size")
     report.unexpected = [k for k in source if k not in target]
+    return _copy_into(target, new_state, path, report)
+
+
+def _copy_into(target: dict[str, torch.Tensor], new_state: dict[str, torch.Tensor], path: str | Path,
+               report: LoadReport) -> LoadReport:
+    """Copy the matched tensors of a weights file (``path``) into the model's ``target`` state; log ``report``."""
     with torch.no_grad():
         for key, value in new_state.items():
             target[key].copy_(value)
