@@ -378,22 +378,27 @@ def test_geojson_without_crs_is_wgs84_and_projected_coordinates_name_the_crs(tmp
 
 
 # ---- disk full -------------------------------------------------------------------------------------
-@pytest.fixture
-def small_fs(tmp_path: Path):
-    """A 2 MiB tmpfs mounted in tmp_path (root on Linux only; skipped where mounting is not permitted)."""
-    mnt = tmp_path / "small"
-    mnt.mkdir()
+def _tmpfs(folder: Path, options: str):
+    """Mount a tmpfs with ``options`` at ``folder`` for a fixture (root on Linux only; skipped where mounting
+    is not permitted), unmounted after it."""
+    folder.mkdir()
     try:
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True,
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True,
                               text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired) as exc:
-        pytest.skip(f"cannot mount a small tmpfs here ({exc})")
+        pytest.skip(f"cannot mount a tmpfs here ({exc})")
     if done.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs here (needs root: {done.stderr.strip()[:100]})")
+        pytest.skip(f"cannot mount a tmpfs here (needs root: {done.stderr.strip()[:100]})")
     try:
-        yield mnt
+        yield folder
     finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=30)
+        subprocess.run(["umount", "-l", str(folder)], capture_output=True, timeout=30)
+
+
+@pytest.fixture
+def small_fs(tmp_path: Path):
+    """A 2 MiB tmpfs mounted in tmp_path."""
+    yield from _tmpfs(tmp_path / "small", "size=2m")
 
 
 def test_full_disk_while_saving_a_checkpoint_names_the_path(small_fs: Path) -> None:
@@ -592,20 +597,8 @@ def test_full_disk_during_training_names_the_checkpoint_and_keeps_nothing_partia
 
 @pytest.fixture
 def ro_fs(tmp_path: Path):
-    """A read-only tmpfs (EROFS even for root); skipped where mounting is not permitted."""
-    mnt = tmp_path / "ro"
-    mnt.mkdir()
-    try:
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(mnt)], capture_output=True,
-                              text=True, timeout=30)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        pytest.skip(f"cannot mount a tmpfs here ({exc})")
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here (needs root: {done.stderr.strip()[:100]})")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=30)
+    """A read-only tmpfs (EROFS even for root)."""
+    yield from _tmpfs(tmp_path / "ro", "ro,size=1m")
 
 
 def test_read_only_folder_while_saving_a_checkpoint_names_the_path(ro_fs: Path) -> None:
