@@ -101,12 +101,24 @@ class SameConv2d(nn.Conv2d):
         k, s = self.kernel_size[0], self.stride[0]
         if s == 1:  # odd kernel, stride 1: SAME is symmetric
             return F.conv2d(x, self.weight, None, 1, k // 2, self.dilation, self.groups)
-        ih, iw = x.shape[-2:]
-        ph = max((math.ceil(ih / s) - 1) * s + k - ih, 0)
-        pw = max((math.ceil(iw / s) - 1) * s + k - iw, 0)
+        ih, iw = int(x.shape[-2]), int(x.shape[-1])
+        ph, pw = same_padding(ih, k, s), same_padding(iw, k, s)
         if ph or pw:
             x = F.pad(x, (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2))
         return F.conv2d(x, self.weight, None, self.stride, 0, self.dilation, self.groups)
+
+
+def same_padding(side: int, kernel: int, stride: int) -> int:
+    """Total padding (pixels) of TensorFlow's ``SAME`` along one side of ``side`` pixels.
+
+    On a side that is a multiple of the stride it is ``max(kernel − stride, 0)`` whatever the side: D3-Net's
+    inputs are multiples of 32, so every stride-2 convolution sees an even side and the padding is a
+    constant. That keeps a traced graph (the OpenVINO engine, ONNX export) valid for every window shape it
+    is reshaped to; a padding computed from the traced example's side would be frozen at that side.
+    """
+    if side % stride == 0:
+        return max(kernel - stride, 0)
+    return max((math.ceil(side / stride) - 1) * stride + kernel - side, 0)
 
 
 def _bn(channels: int) -> nn.BatchNorm2d:
