@@ -52,6 +52,8 @@ SHARE_TIMEOUT = _dt.timedelta(days=7)
 GDAL_CACHE_MB = 32
 #: CPU flags (``/proc/cpuinfo``) of native bf16 matrix arithmetic.
 BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
+#: Environment variable that replaces the CPU probe of :func:`cpu_bf16_flags` (read on first use).
+CPU_FLAGS_ENV = "AERIALMTL_CPU_BF16_FLAGS"
 
 
 # ---- device -------------------------------------------------------------------------------------
@@ -80,8 +82,14 @@ def cpu_bf16_flags() -> tuple[str, ...]:
     """The native-bf16 CPU flags of this machine (:data:`BF16_CPU_FLAGS` found in ``/proc/cpuinfo``).
 
     Where there is no ``/proc/cpuinfo`` (macOS, Windows), OpenVINO's view of the CPU answers instead
-    (``BF16`` in its optimisation capabilities), when it is installed.
+    (``BF16`` in its optimisation capabilities), when it is installed. The environment variable
+    :data:`CPU_FLAGS_ENV` replaces the probe (a comma- or space-separated list; empty = no native bf16):
+    the test suite runs every CPU kind's path through it (``pytest --cpu-kind amx|avx512bf16|none``), and
+    a user can keep ``auto`` off bf16 with ``AERIALMTL_CPU_BF16_FLAGS=``.
     """
+    forced = os.environ.get(CPU_FLAGS_ENV)
+    if forced is not None:
+        return tuple(f for f in BF16_CPU_FLAGS if f in forced.replace(",", " ").split())
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
         flags: set[str] = set()
@@ -245,5 +253,5 @@ def gdal_env() -> rasterio.Env:
 
 
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CompileFallback", "GDAL_CACHE_MB", "Precision", "Resolved",
-           "SHARE_TIMEOUT", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "native_bf16",
+           "SHARE_TIMEOUT", "CPU_FLAGS_ENV", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "native_bf16",
            "resolve_device", "resolve_precision", "warn_compile_failed"]

@@ -29,6 +29,31 @@ NEON_DIR = SHARED_DATA / "neon_bart"
 
 torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
 
+#: ``pytest --cpu-kind K``: the CPU capability probe answers as on that kind of CPU (the bf16 choices of
+#: ``precision: auto`` follow), in this process and in the subprocesses tests start.
+CPU_KINDS = {"amx": "amx_bf16,avx512_bf16", "avx512bf16": "avx512_bf16", "none": ""}
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--cpu-kind", choices=sorted(CPU_KINDS), default=None,
+                     help="run as on a CPU with AMX-BF16 (amx), AVX-512-BF16 only (avx512bf16) or neither (none); "
+                          "default: this machine's CPU")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    from aerialmtl import runtime
+
+    kind = config.getoption("--cpu-kind")
+    if kind is not None:
+        os.environ[runtime.CPU_FLAGS_ENV] = CPU_KINDS[kind]
+    runtime.cpu_bf16_flags.cache_clear()
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    from aerialmtl import runtime
+
+    return f"aerialmtl CPU probe: native bf16 flags {runtime.cpu_bf16_flags() or 'none'}"
+
 
 @pytest.fixture(autouse=True, scope="session")
 def _openvino_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
