@@ -3,6 +3,7 @@ processes), and SIGTERM/SIGHUP handled like Ctrl-C in real processes (issue 18, 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -181,6 +182,49 @@ def test_nested_holds_of_one_process_share_the_lock(tmp_path: Path) -> None:
             assert (outer.path / LOCK_FILE).is_file()
         assert (outer.path / LOCK_FILE).is_file()
     assert not (tmp_path / "a" / LOCK_FILE).exists()
+
+
+def test_a_symlink_as_lock_file_is_refused_and_its_target_untouched(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "d"
+    out.mkdir()
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    (out / LOCK_FILE).symlink_to(target)
+    line = assert_error(run(capsys, *_tile_args(tmp_path, out)), f"the lock file '{out / LOCK_FILE}' is a symbolic "
+                        "link", "delete the link")
+    assert "unexpected" not in line
+    assert target.read_text() == "keep me" and (out / LOCK_FILE).is_symlink()
+
+
+def test_the_lock_ends_with_its_holder_not_with_its_forked_workers(tmp_path: Path) -> None:
+    """A DataLoader worker (forked) does not keep the lock of a holder killed with SIGKILL."""
+    out = tmp_path / "d"
+    out.mkdir()
+    code = "\n".join([
+        "import sys, time, torch",
+        "from torch.utils.data import DataLoader, Dataset",
+        "from aerialmtl.io.outputs import FolderLock",
+        "class Slow(Dataset):",
+        "    def __len__(self): return 10**6",
+        "    def __getitem__(self, i): time.sleep(0.5); return i",
+        "FolderLock(sys.argv[1], 'train').acquire()",
+        "it = iter(DataLoader(Slow(), num_workers=2, multiprocessing_context='fork')); next(it)",
+        "print('workers', flush=True); time.sleep(300)"])
+    proc = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True,
+                            env=ONE_THREAD, start_new_session=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "workers"
+        with pytest.raises(OutputInUseError):
+            FolderLock(out, "tile").acquire()
+        os.kill(proc.pid, signal.SIGKILL)  # the workers live on for a while (they notice a dead parent late)
+        proc.wait()
+        with pytest.warns(UserWarning, match=rf"left locked by aerialmtl train \(PID {proc.pid}\)"):
+            lock = FolderLock(out, "tile").acquire()  # at once, not when the last worker has gone
+        lock.release()
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # the orphaned workers
+        proc.wait()
 
 
 def _wait_for(cond, proc: subprocess.Popen, what: str, timeout: float = 240.0) -> None:
