@@ -295,6 +295,60 @@ def test_tile_stopped_by_a_signal_cleans_up_like_ctrl_c(tmp_path: Path, sig: int
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # staging folder and lock gone
 
 
+def _tile_swapping_slowly(args: list[str]) -> subprocess.Popen:
+    """`aerialmtl tile ARGS` in a real process whose swap of the tile dataset is slowed down (each move
+    sleeps 0.3 s) and announced on stdout, so a test can signal it mid-swap."""
+    code = "\n".join([
+        "import sys, time",
+        "import aerialmtl.tiling.tile as t",
+        "move = t._move_into",
+        "def slow(src, dst):",
+        "    print('swapping', flush=True); time.sleep(0.3); move(src, dst)",
+        "t._move_into = slow",
+        "from aerialmtl.cli import main",
+        "main(sys.argv[1:])"])
+    return subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=ONE_THREAD)
+
+
+def _check_whole_dataset(out: Path, patches: int) -> None:
+    from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
+
+    TileFolderInfo.read(out)
+    rows = read_manifest(out)
+    listed = {r["image_path"] for r in rows} | {r["height_path"] for r in rows}
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*.tif")}
+    assert len(rows) == patches and listed == on_disk  # the new set, nothing of the old one
+    assert not _hidden(out)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_tile_overwrite_stopped_mid_swap_leaves_a_whole_dataset_and_the_rerun_works(tmp_path: Path, capsys,
+                                                                                   sig: int) -> None:
+    out = tmp_path / "d"
+    assert_ok(run(capsys, *_tile_args(tmp_path, out, side=64, size=16)))  # the old set: 16 patches
+    _check_whole_dataset(out, 16)
+    args = [str(a) for a in _tile_args(tmp_path, out, side=64, size=32)] + ["--overwrite"]  # the new: 4 patches
+    proc = _tile_swapping_slowly(args)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "swapping"
+        proc.send_signal(sig)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # pragma: no cover
+            proc.kill()
+            proc.communicate()
+    if sig == signal.SIGTERM:  # the run finishes its swap before it stops
+        assert proc.returncode == 143, stderr
+        assert stderr.strip().splitlines()[-1].startswith("Error: interrupted")
+        _check_whole_dataset(out, 4)
+    else:  # killed: the journal is left; the re-run finishes the swap first, with a warning
+        assert (out / ".patches.partial" / "swap.json").is_file()
+    warnings = assert_ok(run(capsys, *args))  # the same command again
+    assert sig == signal.SIGTERM or any("stopped while it replaced the tile dataset" in w for w in warnings)
+    _check_whole_dataset(out, 4)
+
+
 def test_export_refuses_a_folder_another_process_writes(tmp_path: Path) -> None:
     from conftest import tiny_d3net
 
