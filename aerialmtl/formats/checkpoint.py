@@ -76,6 +76,10 @@ class ModelMeta:
     #: (raw units, all bands); ``None`` when not recorded. Predict compares the orthophoto's with it
     #: (:mod:`aerialmtl.inference.sanity`).
     input_range: tuple[float, float] | None = None
+    #: the reference heights of the train split, ``(min, max)`` in metres above ground (valid pixels);
+    #: ``None`` when not recorded. Training calls a validation error far beyond them a divergence, predict a
+    #: map far outside them garbage (:func:`plausible_heights`).
+    height_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels
@@ -107,6 +111,10 @@ class ModelMeta:
                                                  and -math.inf < self.input_range[0] < self.input_range[1] < math.inf):
             raise CheckpointError(f"checkpoint meta is invalid: input_range must be [low, high] with low < high, got "
                                   f"{list(self.input_range)}")
+        if self.height_range is not None and not (len(self.height_range) == 2 and -math.inf < self.height_range[0]
+                                                  <= self.height_range[1] < math.inf):
+            raise CheckpointError(f"checkpoint meta is invalid: height_range must be [low, high] metres with low ≤ "
+                                  f"high, got {list(self.height_range)}")
 
     def to_dict(self) -> dict[str, Any]:
         return to_dict(self)
@@ -114,6 +122,31 @@ class ModelMeta:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelMeta:
         return from_dict(cls, data)
+
+
+#: Heights above ground (m) no surface has: below the deepest pits, above the tallest buildings.
+SURFACE_HEIGHTS_M = (-100.0, 1000.0)
+#: How far beyond the trained height range (factor × its span + margin, metres) a validation error or a
+#: predicted height may go before it is garbage rather than a model's mistake.
+DIVERGED_SPAN_FACTOR = 10.0
+DIVERGED_MARGIN_M = 100.0
+
+
+def height_slack(height_range: tuple[float, float] | None) -> float:
+    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches: the largest
+    plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``)."""
+    if height_range is None:
+        return SURFACE_HEIGHTS_M[1] - SURFACE_HEIGHTS_M[0]
+    return DIVERGED_SPAN_FACTOR * (height_range[1] - height_range[0]) + DIVERGED_MARGIN_M
+
+
+def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, float]:
+    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict (:func:`height_slack` beyond
+    it); :data:`SURFACE_HEIGHTS_M` when the range was not recorded."""
+    if height_range is None:
+        return SURFACE_HEIGHTS_M
+    slack = height_slack(height_range)
+    return height_range[0] - slack, height_range[1] + slack
 
 
 def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:

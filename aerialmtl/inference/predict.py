@@ -69,7 +69,7 @@ from aerialmtl.inference.runner import (
     resolve_device,
     resolve_precision,
 )
-from aerialmtl.inference.sanity import check_finite_outputs, check_input_values, rescaled
+from aerialmtl.inference.sanity import check_finite_outputs, check_height_range, check_input_values, rescaled
 from aerialmtl.inference.stitch import Stitcher
 from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
 from aerialmtl.inference.writer import PredictionWriter
@@ -382,6 +382,7 @@ class Predictor:
                     x = self.runner.normalise(rescaled(raw, rescale), valid)
                     stats = self.runner(x, [w.i * n_cols + w.j for w in todo])
                     check_finite_outputs(stats, valid, self.checkpoint_name)
+                    check_height_range(stats, valid, self.checkpoint_name, self.meta)
                     timings["model"] += time.perf_counter() - t0
                     computed += len(todo)
                     flush(stats, valid)

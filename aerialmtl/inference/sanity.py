@@ -35,7 +35,7 @@ import torch
 from rasterio.windows import Window
 
 from aerialmtl.errors import InputError, NonFiniteError
-from aerialmtl.formats.checkpoint import ModelMeta, value_envelope
+from aerialmtl.formats.checkpoint import ModelMeta, plausible_heights, value_envelope
 from aerialmtl.io.align import open_raster
 from aerialmtl.models.mc_dropout import McStatistics
 
@@ -212,6 +212,39 @@ def check_finite_outputs(stats: McStatistics, valid: torch.Tensor, checkpoint: s
         )
 
 
+def check_height_range(stats: McStatistics, valid: torch.Tensor, checkpoint: str, meta: ModelMeta) -> None:
+    """Refuse heights far outside what the checkpoint was trained on (:func:`~aerialmtl.formats.checkpoint.
+    plausible_heights` of :attr:`~aerialmtl.formats.checkpoint.ModelMeta.height_range`) at valid pixels: a
+    diverged-but-finite model's maps (heights of 1e15 m) are never written.
+
+    Args:
+        stats: the model's statistics of a batch of windows (B×H×W heights, metres, before calibration).
+        valid: B×H×W bool, the valid input pixels.
+        checkpoint: the checkpoint's name, for the message.
+        meta: its metadata.
+
+    Raises:
+        NonFiniteError: naming the checkpoint, the heights found and allowed, and what to do.
+    """
+    h = stats.height_mean
+    if h is None:
+        return
+    low, high = plausible_heights(meta.height_range)
+    inside = valid.to(h.device)
+    if not bool(inside.any()):
+        return
+    values = h[inside]
+    lo, hi = float(values.min()), float(values.max())
+    if low <= lo and hi <= high:
+        return
+    trained = (f"the {meta.height_range[0]:.4g}..{meta.height_range[1]:.4g} m it was trained on"
+               if meta.height_range is not None else "the heights any surface has")
+    raise NonFiniteError(
+        f"the model of checkpoint '{checkpoint}' gives heights of {lo:.3g}..{hi:.3g} m, far outside {trained} "
+        f"(allowed {low:.4g}..{high:.4g} m), so no prediction was written: the training that wrote it diverged; use "
+        "another checkpoint (an earlier best.pt / last.pt) or retrain with a lower optim.lr")
+
+
 def rescaled(raw: torch.Tensor, rescale: tuple[float, float] | None) -> torch.Tensor:
     """``raw`` (B, C, h, w) as ``a·raw + b`` in float32 when ``rescale`` is ``(a, b)``, else unchanged."""
     if rescale is None:
@@ -220,5 +253,5 @@ def rescaled(raw: torch.Tensor, rescale: tuple[float, float] | None) -> torch.Te
     return raw.float() * a + b if math.isfinite(a) and math.isfinite(b) else raw
 
 
-__all__ = ["InputSample", "SAMPLE_GRID", "SAMPLE_SIDE", "SPREAD_LIMIT", "check_finite_outputs", "check_input_values",
-           "input_mismatch", "rescaled", "sample_input", "value_envelope"]
+__all__ = ["InputSample", "SAMPLE_GRID", "SAMPLE_SIDE", "SPREAD_LIMIT", "check_finite_outputs", "check_height_range",
+           "check_input_values", "input_mismatch", "rescaled", "sample_input", "value_envelope"]

@@ -32,6 +32,7 @@ import contextlib
 import dataclasses
 import datetime as _dt
 import json
+import math
 import os
 import shutil
 import warnings
@@ -48,6 +49,7 @@ from tqdm import tqdm
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
+from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M
 from aerialmtl.formats.tiles import (
     DATASET_YAML,
     HEIGHT_NODATA,
@@ -121,8 +123,14 @@ class _HeightSummary:
 
     def __init__(self) -> None:
         self.acc: dict[str, list[float]] = {}
+        self.low, self.high = math.inf, -math.inf
+        self.implausible = 0  # pixels outside SURFACE_HEIGHTS_M
 
     def update(self, split: str, heights: np.ndarray) -> None:
+        if heights.size:
+            self.low, self.high = min(self.low, float(heights.min())), max(self.high, float(heights.max()))
+            lo, hi = SURFACE_HEIGHTS_M
+            self.implausible += int(np.count_nonzero((heights < lo) | (heights > hi)))
         a = self.acc.setdefault(split, [0.0, 0.0, 0.0])
         a[0] += float(heights.astype(np.float64).sum())
         a[1] += heights.size
@@ -557,6 +565,15 @@ def _tile_loop(
                 stats.update(data, valid)
             counts[split] += 1
     ms = stats.result()
+    if heights.implausible:
+        lo, hi = SURFACE_HEIGHTS_M
+        layers = "nDSM" if sources.paths.get("ndsm") else "DSM − DTM"
+        warnings.warn(
+            f"the reference heights ({layers}) reach {heights.low:.3g}..{heights.high:.3g} m above ground, beyond "
+            f"{lo:g}..{hi:g} m on {heights.implausible} written pixels, which no surface has: probably an undeclared "
+            "nodata value (e.g. 3.4e38 or -32768) or a wrong --z-unit; declare it (`gdal_edit.py -a_nodata VALUE "
+            "FILE`), pass --max-height, or check the unit; training on these heights would diverge",
+            UserWarning, stacklevel=2)
     return TileResult(
         out_dir=out_dir, manifest=writer.path, dataset_yaml=out_dir / DATASET_YAML, counts=counts,
         windows=total, dropped_invalid=dropped_invalid, dropped_split=dropped_split,
