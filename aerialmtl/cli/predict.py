@@ -15,6 +15,7 @@ from aerialmtl.cli.options import (
     compile_option,
     device_option,
     option,
+    output_path,
     overwrite_option,
     precision_option,
     quiet_option,
@@ -62,7 +63,7 @@ def _batch_size(value: str) -> int | str:
         type=click.Path(dir_okay=False, path_type=Path),
         help="Checkpoint (best.pt / last.pt) written by `aerialmtl train` [default: the AERIALMTL_MODEL "
              "environment variable].")
-@option("--out", "out", type=click.Path(file_okay=False, path_type=Path), library="out_dir",
+@option("--out", "out", type=output_path(file_okay=False), library="out_dir",
         help="Prediction folder [default: <stem>_aerialmtl/ beside a local ORTHO, in the current folder for a "
              "remote one]; with several orthophotos, one sub-folder per input (file stem) and a "
              "<layer>.mosaic.vrt per layer over all of them [default: aerialmtl_predictions/ in their common "

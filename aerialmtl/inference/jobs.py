@@ -57,7 +57,7 @@ from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import check_outputs_free, remove_leftovers
 from aerialmtl.io.align import Grid
-from aerialmtl.io.outputs import OutputFolder, check_not_input
+from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
 
@@ -132,6 +132,7 @@ def targets_for(orthos: Sequence[str | Path], out: str | Path) -> list[Target]:
     Raises:
         InputError: several inputs share a file stem (their folders would clash).
     """
+    check_local_output(out, "out")
     paths = [gdal_path(p) for p in orthos]
     if not paths:
         raise InputError("no orthophoto given; pass one or more GeoTIFFs")

@@ -35,7 +35,7 @@ from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
 from aerialmtl.formats.tiles import HEIGHT_NODATA as HEIGHT_NODATA  # re-exported: height rasters aerialmtl writes
-from aerialmtl.io.paths import configure_remote, gdal_path, is_local, is_remote
+from aerialmtl.io.paths import configure_remote, gdal_path, is_local, is_remote, probe_url
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 
 LayerKind = Literal["image", "height", "labels"]
@@ -125,8 +125,11 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
                    "AWS_NO_SIGN_REQUEST=YES "
                    "for a public bucket" if "/vsis3/" in gpath else
                    "a server that needs a login takes GDAL_HTTP_AUTH/GDAL_HTTP_USERPWD or GDAL_HTTP_HEADERS")
+            why = _gdal_message(exc)
+            if "not recognized" in why:  # what GDAL says after its retries, whatever the server did: ask it
+                why = probe_url(gpath) or why
             raise InputError(
-                f"{role} '{gpath}' cannot be opened ({_gdal_message(exc)}); check the URL and the network; {fix}"
+                f"{role} '{gpath}' cannot be opened ({why}); check the URL and the network; {fix}"
             ) from exc
         raise InputError(
             f"{role} '{gpath}' cannot be read as a raster ({' '.join(str(exc).split())}); "
@@ -206,6 +209,12 @@ def reference_grid(ortho: str | Path, gsd: float | None = None) -> Grid:
 def ortho_grid(src: rasterio.io.DatasetReader) -> Grid:
     """The grid of an open orthophoto, checked as :func:`reference_grid` checks it (projected, north-up)."""
     _check_georeferenced(src, "orthophoto")
+    t = src.transform
+    if t.e > 0 or t.a < 0:  # south-up or east-to-west rows: every window, stitch and output assumes north-up
+        which = "south-up (its pixel height is positive)" if t.e > 0 else "mirrored (its pixel width is negative)"
+        raise AlignmentError(
+            f"orthophoto '{src.name}' is {which}, not north-up; warp it north-up first "
+            f"(`gdalwarp {src.name} north_up.tif`)")
     if not src.crs.is_projected:
         lon, lat = transform_bounds(src.crs, "EPSG:4326", *src.bounds)[:2]
         require_projected(src.crs, "orthophoto", src.name, (lon, lat))
@@ -357,6 +366,12 @@ class AlignedRaster:
                 if self.vrt is None and self.alpha_band is not None:
                     inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0
             except RasterioError as exc:
+                if is_remote(gdal_path(self.path)):  # the server, not the file: a connection cut or timed out
+                    raise InputError(
+                        f"{self.role} '{self.path}' could not be read: the server stopped sending it or timed out "
+                        f"after the file was opened ({_gdal_message(exc)}); check the network and the server, then "
+                        "re-run (GDAL_HTTP_TIMEOUT and GDAL_HTTP_MAX_RETRY set how long and how often it retries)"
+                    ) from exc
                 raise InputError(
                     f"{self.role} '{self.path}' could not be read ({_gdal_message(exc)}); the file is probably "
                     f"truncated or corrupt: check it with `gdalinfo -checksum {self.path}`, then re-download or "

@@ -176,6 +176,19 @@ def check_files_not_input(outputs: Iterable[str | Path],
                              f"‹{option}›", param=option)
 
 
+def check_local_output(path: str | Path, option: str = "out_dir") -> None:
+    """Refuse an output location that is a URL or a GDAL ``/vsi...`` path (outputs are written locally).
+
+    Call it on the value as given: ``Path('s3://b/x')`` is already the local folder ``s3:/b/x``.
+
+    Raises:
+        OutputError: naming the parameter, the value and the fix.
+    """
+    if isinstance(path, str) and not is_local_path(path):
+        raise OutputError(f"outputs must be local, but ‹{option}› '{path}' is a URL or GDAL virtual path; write to a "
+                          "local folder and copy it up afterwards (e.g. `aws s3 sync FOLDER s3://bucket/prefix`)")
+
+
 # ---- locks ---------------------------------------------------------------------------------------
 def job_id() -> str | None:
     """The torchrun job this process belongs to (``None`` outside torchrun)."""
@@ -408,6 +421,7 @@ class OutputFolder:
 
     def __init__(self, path: str | Path, command: str, *, inputs: Mapping[str, str | Path | None] | None = None,
                  option: str = "out_dir", what: str = "output folder", lock: bool = True) -> None:
+        check_local_output(path, option)
         self.path = Path(path)
         self.command = command
         self.option = option
@@ -499,6 +513,6 @@ def _remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write",
+__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write", "check_local_output",
            "check_files_not_input", "check_not_input", "is_job_leader", "is_local_path", "is_staging_of", "job_id",
            "make_output_dir", "staging_path", "write_text", "write_text_atomic"]
