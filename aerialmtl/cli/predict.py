@@ -21,7 +21,7 @@ from aerialmtl.cli.options import (
     quiet_option,
     raster_argument,
 )
-from aerialmtl.errors import InputError
+from aerialmtl.errors import CheckpointError, InputError
 from aerialmtl.io.paths import is_local, raster_name, raster_stem
 
 #: Environment variable naming the default checkpoint of `aerialmtl predict`.
@@ -128,13 +128,20 @@ def predict(
             f"files: {', '.join(p.name for p in res.files.values())}"
         )
 
-    job = predict_many(
-        orthos, model, out, aoi=aoi, overwrite=overwrite, skip_existing=skip_existing, progress=not quiet,
-        on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
-        device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
-        calibration=not no_calibration,
-        rescale_input=rescale_input, engine=engine,
-    )
+    try:
+        job = predict_many(
+            orthos, model, out, aoi=aoi, overwrite=overwrite, skip_existing=skip_existing, progress=not quiet,
+            on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
+            device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
+            calibration=not no_calibration,
+            rescale_input=rescale_input, engine=engine,
+        )
+    except CheckpointError as exc:  # a model the user did not type here: say where it came from
+        source = click.get_current_context().get_parameter_source("model")
+        if source is not click.core.ParameterSource.ENVIRONMENT:
+            raise
+        raise CheckpointError(f"{exc} (this checkpoint comes from the {MODEL_ENV} environment variable: set it "
+                              f"to another model, e.g. `export {MODEL_ENV}=RUN/best.pt`, or pass --model)") from exc
     for path in job.skipped:
         click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete (same model, settings, input)")
     if job.ranks.rank == 0:

@@ -69,7 +69,13 @@ from aerialmtl.inference.runner import (
     resolve_device,
     resolve_precision,
 )
-from aerialmtl.inference.sanity import check_finite_outputs, check_height_range, check_input_values, rescaled
+from aerialmtl.inference.sanity import (
+    check_calibration,
+    check_finite_outputs,
+    check_height_range,
+    check_input_values,
+    rescaled,
+)
 from aerialmtl.inference.stitch import Stitcher
 from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
 from aerialmtl.inference.writer import PredictionWriter
@@ -258,6 +264,8 @@ class Predictor:
         self.seed = seed
         self.compile = compile
         self.reader_threads = reader_threads
+        if calibration:
+            check_calibration(self.meta, self.checkpoint_name)
         self.calibration = self.meta.calibration if calibration else None
         self.calibration_available = self.meta.calibration is not None
         self.rescale_input = rescale_input
