@@ -76,7 +76,7 @@ def _batch_size(value: str) -> int | str:
 @option("--overlap", type=int, default=64, show_default=True,
         help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
 @option("--batch-size", "batch_size", default="auto", show_default=True,
-        help="Windows per model call, or 'auto' (from the free GPU memory; 2 on a CPU).")
+        help="Windows per model call, or 'auto' (from the free GPU memory; 1 on a CPU).")
 @option("--engine", type=click.Choice(["auto", "torch", "openvino"]), default="auto", show_default=True,
         help="What runs the model: auto = OpenVINO on a CPU when installed (faster, most with bf16), torch "
              "otherwise (and on CUDA).")
