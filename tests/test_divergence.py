@@ -103,3 +103,19 @@ def test_tile_warns_on_heights_no_surface_has(tmp_path: Path, capsys) -> None:
     warnings = assert_ok(run(capsys, "tile", "--ortho", ortho, "--dsm", dtm_path, "--dtm", dtm_path, "--size", "32",
                              "--min-valid", "0", "--out", tmp_path / "t2", "--quiet"))
     assert not [w for w in warnings if "no surface has" in w]
+
+
+def test_train_on_heights_no_surface_has_names_the_heights_not_the_learning_rate(tmp_path: Path, capsys) -> None:
+    """A DSM with an undeclared nodata of 3e38: tile warns, and train's divergence message points at the heights."""
+    ortho = rgb(tmp_path, size=(128, 128))
+    dsm = np.full((128, 128), 110.0, np.float32)
+    dsm[:40, :40] = 3e38
+    dsm_path = write_raster(tmp_path / "dsm.tif", dsm, CRS, T05)
+    dtm_path = write_raster(tmp_path / "dtm.tif", np.full((128, 128), 100.0, np.float32), CRS, T05)
+    tiles = tmp_path / "t"
+    assert_ok(run(capsys, "tile", "--ortho", ortho, "--dsm", dsm_path, "--dtm", dtm_path, "--size", "32",
+                  "--split-block", "16", "--min-valid", "0", "--out", tiles, "--quiet"))
+    line = one_error_line(run(capsys, "train", "--config", tiny_train_yaml(tmp_path / "c.yaml"), "--data", tiles,
+                              "--out", tmp_path / "run", "--max-steps", "3", "--quiet"), "training diverged",
+                          "reference heights reach 10..3e+38 m, which no surface has", "gdal_edit.py -a_nodata")
+    assert "lower optim.lr" not in line

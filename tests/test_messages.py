@@ -192,3 +192,14 @@ def test_an_edited_calibration_is_refused_unless_switched_off(tmp_path: Path, ca
     one_error_line(run(capsys, "predict", ortho, "--model", path, "--out", tmp_path / "p", *PREDICT),
                    f"checkpoint '{path}' has an invalid calibration: {needle}", "--no-calibration")
     assert_ok(run(capsys, "predict", ortho, "--model", path, "--out", tmp_path / "p", *PREDICT, "--no-calibration"))
+
+
+def test_a_vrt_with_a_missing_source_names_it(tmp_path: Path, capsys, ckpt: Path) -> None:
+    vrt = tmp_path / "o.vrt"
+    vrt.write_text(f"""<VRTDataset rasterXSize="32" rasterYSize="32"><SRS>{CRS}</SRS>
+<GeoTransform>500000, 0.5, 0, 5000000, 0, -0.5</GeoTransform>""" + "".join(
+        f"""<VRTRasterBand dataType="Byte" band="{b}"><SimpleSource><SourceFilename relativeToVRT="1">gone.tif
+</SourceFilename><SourceBand>{b}</SourceBand></SimpleSource></VRTRasterBand>""".replace("\n", "") for b in (1, 2, 3))
+        + "</VRTDataset>")
+    one_error_line(run(capsys, "predict", vrt, "--model", ckpt, "--out", tmp_path / "p", *PREDICT),
+                   f"orthophoto '{vrt}' could not be read: a source file it lists is missing", "gdalbuildvrt")

@@ -372,8 +372,14 @@ class AlignedRaster:
                         f"after the file was opened ({_gdal_message(exc)}); check the network and the server, then "
                         "re-run (GDAL_HTTP_TIMEOUT and GDAL_HTTP_MAX_RETRY set how long and how often it retries)"
                     ) from exc
+                why = _gdal_message(exc)
+                if str(self.path).lower().endswith(".vrt") and "No such file" in why:
+                    raise InputError(
+                        f"{self.role} '{self.path}' could not be read: a source file it lists is missing ({why}); "
+                        "restore it, or rebuild the VRT over the files you have (`gdalbuildvrt`)"
+                    ) from exc
                 raise InputError(
-                    f"{self.role} '{self.path}' could not be read ({_gdal_message(exc)}); the file is probably "
+                    f"{self.role} '{self.path}' could not be read ({why}); the file is probably "
                     f"truncated or corrupt: check it with `gdalinfo -checksum {self.path}`, then re-download or "
                     "re-export it"
                 ) from exc

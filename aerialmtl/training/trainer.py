@@ -49,6 +49,7 @@ from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
 from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, NonFiniteError, OutputError
 from aerialmtl.formats.checkpoint import (
+    SURFACE_HEIGHTS_M,
     ModelMeta,
     check_same_data,
     first_nonfinite,
@@ -571,7 +572,13 @@ class Trainer:
 
     # ---- checkpoints --------------------------------------------------------------------------------
     def recovery_hint(self) -> str:
-        """What to do after a divergence: where the last whole checkpoint is, and how to continue."""
+        """What to do after a divergence: where the last whole checkpoint is, and how to continue (first, when
+        the tile folder's reference heights are ones no surface has, that: no learning rate fixes them)."""
+        hr = self.meta.height_range
+        if hr is not None and (hr[0] < SURFACE_HEIGHTS_M[0] or hr[1] > SURFACE_HEIGHTS_M[1]):
+            return (f"the tile folder's reference heights reach {hr[0]:.3g}..{hr[1]:.3g} m, which no surface has "
+                    "(an undeclared nodata value or a wrong unit in the DSM/DTM/nDSM): fix the height files "
+                    "(`gdal_edit.py -a_nodata VALUE FILE`, --z-unit) and run `aerialmtl tile ... --overwrite` again")
         last = self.paths["last.pt"]
         lower = f"lower optim.lr (now {self.cfg.optim.lr:g}; e.g. {self.cfg.optim.lr / 10:g})"
         if self.saved_step is not None and last.exists():
