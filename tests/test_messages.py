@@ -203,3 +203,14 @@ def test_a_vrt_with_a_missing_source_names_it(tmp_path: Path, capsys, ckpt: Path
         + "</VRTDataset>")
     one_error_line(run(capsys, "predict", vrt, "--model", ckpt, "--out", tmp_path / "p", *PREDICT),
                    f"orthophoto '{vrt}' could not be read: a source file it lists is missing", "gdalbuildvrt")
+
+
+def test_a_zip_path_with_a_missing_archive_or_member_names_which(tmp_path: Path, capsys, ckpt: Path) -> None:
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "a.zip", "w") as z:
+        z.write(rgb(tmp_path), "o.tif")
+    one_error_line(run(capsys, "predict", f"/vsizip/{tmp_path}/gone.zip/o.tif", "--model", ckpt, "--out",
+                       tmp_path / "p", *PREDICT), "no archive file was found along this path")
+    one_error_line(run(capsys, "predict", f"/vsizip/{tmp_path}/a.zip/x.tif", "--model", ckpt, "--out",
+                       tmp_path / "p", *PREDICT), f"the archive '{tmp_path}/a.zip' holds no raster 'x.tif'", "unzip -l")

@@ -422,8 +422,6 @@ def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
 
 #: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
 VRT_DEPTH = 4
-#: GDAL's archive file systems whose archive can be a local file (``/vsizip/a.zip/x.tif``).
-ARCHIVE_VSI = ("/vsizip/", "/vsitar/", "/vsigzip/", "/vsi7z/", "/vsirar/")
 #: Seconds :func:`http_validators` waits for a server's answer.
 HEAD_TIMEOUT = 20.0
 
@@ -455,24 +453,6 @@ def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]
         if fp is not None:
             out.append(fp)
     return out
-
-
-def _archive(gdal: str) -> str | None:
-    """The local archive file of a ``/vsizip/``-like path (``/vsizip//d/a.zip/o.tif`` → ``/d/a.zip``), if any."""
-    prefix = next((p for p in ARCHIVE_VSI if gdal.startswith(p)), None)
-    if prefix is None:
-        return None
-    rest = gdal[len(prefix):]
-    if rest.startswith("{") and "}" in rest:
-        rest = rest[1:rest.index("}")]
-    if rest.startswith("/vsi"):
-        return None  # an archive on a remote file system: its own headers say nothing here
-    parts = rest.split("/")
-    for k in range(len(parts), 0, -1):
-        candidate = "/".join(parts[:k])
-        if candidate and os.path.isfile(candidate):
-            return candidate
-    return None
 
 
 def http_validators(url: str) -> dict[str, Any] | None:
@@ -512,7 +492,7 @@ def input_fingerprint(path: str | Path, width: int | None = None, height: int | 
         otherwise the GDAL path, the raster's size and georeferencing, and ``server`` (the HTTP validators)
         or ``archive`` (the local archive's :func:`file_fingerprint`).
     """
-    from aerialmtl.io.paths import gdal_path, is_local
+    from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
 
     fp = file_fingerprint(path)
     assert fp is not None
@@ -523,7 +503,7 @@ def input_fingerprint(path: str | Path, width: int | None = None, height: int | 
     if width is not None and height is not None and transform is not None:
         fp.update(width=int(width), height=int(height), transform=[float(v) for v in transform][:6], crs=str(crs))
     text = gdal_path(path)
-    archive = _archive(text)
+    archive = local_archive(text)
     if archive is not None:
         fp["archive"] = file_fingerprint(archive)
     elif not text.startswith(ARCHIVE_VSI):

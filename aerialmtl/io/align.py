@@ -35,7 +35,15 @@ from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
 from aerialmtl.formats.tiles import HEIGHT_NODATA as HEIGHT_NODATA  # re-exported: height rasters aerialmtl writes
-from aerialmtl.io.paths import configure_remote, gdal_path, is_local, is_remote, probe_url
+from aerialmtl.io.paths import (
+    ARCHIVE_VSI,
+    archive_parts,
+    configure_remote,
+    gdal_path,
+    is_local,
+    is_remote,
+    probe_url,
+)
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 
 LayerKind = Literal["image", "height", "labels"]
@@ -131,6 +139,14 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
             raise InputError(
                 f"{role} '{gpath}' cannot be opened ({why}); check the URL and the network; {fix}"
             ) from exc
+        if gpath.startswith(ARCHIVE_VSI):  # the archive or the file inside it is missing, before any pixel
+            parts = archive_parts(gpath)
+            if parts is None:
+                raise InputError(f"{role} '{gpath}': no archive file was found along this path; check the archive's "
+                                 "path (e.g. /vsizip//data/area.zip/ortho.tif)") from exc
+            raise InputError(f"{role} '{gpath}': the archive '{parts[0]}' holds no raster '{parts[1]}' (GDAL: "
+                             f"{_gdal_message(exc)}); list its files (`unzip -l {parts[0]}`) and give one of them"
+                             ) from exc
         raise InputError(
             f"{role} '{gpath}' cannot be read as a raster ({' '.join(str(exc).split())}); "
             "is it a complete GeoTIFF? re-download or re-export it"
