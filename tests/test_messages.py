@@ -180,7 +180,7 @@ def test_a_truncated_training_patch_is_named(tmp_path: Path, capsys) -> None:
 
 @pytest.mark.parametrize(("x", "y", "needle"), [
     ((0.0, 5.0, 10.0), (0.0, 8.0, 3.0), "its height map decreases"),
-    ((0.0, 10.0), (-5.0, -1.0), "its height map sends every height to -1 m or below"),
+    ((0.0, 10.0), (-5.0, -1.0), "its height map sends every height below 0 m (to -1 m at most"),
     ((0.0, 10.0), (0.0, 1e6), "its height map reaches 0..1e+06 m, far outside"),
 ])
 def test_an_edited_calibration_is_refused_unless_switched_off(tmp_path: Path, capsys, x: tuple, y: tuple,
@@ -214,3 +214,12 @@ def test_a_zip_path_with_a_missing_archive_or_member_names_which(tmp_path: Path,
                        tmp_path / "p", *PREDICT), "no archive file was found along this path")
     one_error_line(run(capsys, "predict", f"/vsizip/{tmp_path}/a.zip/x.tif", "--model", ckpt, "--out",
                        tmp_path / "p", *PREDICT), f"the archive '{tmp_path}/a.zip' holds no raster 'x.tif'", "unzip -l")
+
+
+def test_the_calibration_of_a_flat_area_is_not_refused(tmp_path: Path, capsys) -> None:
+    """A run on a flat area (every reference height 0 m) fits a map to 0 m: a real fit, predicted as it is."""
+    model, meta = tiny_d3net()
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, model, dataclasses.replace(meta, height_range=(0.0, 0.0),
+                                                     calibration=Calibration((0.0, 3.0), (0.0, 0.0))))
+    assert_ok(run(capsys, "predict", rgb(tmp_path), "--model", path, "--out", tmp_path / "p", *PREDICT))
