@@ -255,7 +255,7 @@ def check_calibration(meta: ModelMeta, checkpoint: str) -> None:
         CheckpointError: naming the checkpoint, what is wrong, and the fix (``--no-calibration``).
     """
     cal = meta.calibration
-    if cal is None:
+    if cal is None or not cal.height_applied:  # a height map that is not applied changes no height
         return
     x, y = np.asarray(cal.height_x, np.float64), np.asarray(cal.height_y, np.float64)
     problem = None
