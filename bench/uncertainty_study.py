@@ -164,7 +164,7 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     }
     res["calibration"] = {k: c.summary() for k, c in cals.items()}
     for key, c in cals.items():
-        if key not in variants or args.force:
+        if key not in variants or args.force or key in args.redo:
             cdir = transformed_copy(pdir, rdir / f"study_{key}", c.height, c.std)
             variants[key] = evaluate(cdir, args.data, rdir / f"study_report_{key}.json")
     if "height_only" not in variants or args.force:
@@ -251,6 +251,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--force", action="store_true")
     ap.add_argument("--tta", action="store_true", help="also the tta variant (8 views × T samples)")
+    ap.add_argument("--redo", nargs="*", default=[], help="variants to compute again (e.g. cal legacy)")
     ap.add_argument("--table", action="store_true")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
