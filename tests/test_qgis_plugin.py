@@ -236,7 +236,8 @@ def test_headless_qgis(inputs: dict[str, Path], tmp_path: Path, capsys: pytest.C
         capture_output=True, text=True, timeout=600, env={**_env(), "QT_QPA_PLATFORM": "offscreen"})
     assert done.returncode == 0, done.stderr[-3000:]
     report: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
-    print(json.dumps({k: report[k] for k in ("qgis", "gdal", "python")}))
+    print(json.dumps({**{k: report[k] for k in ("qgis", "gdal", "python")},
+                      **{f"{k}_s": round(report[k]["seconds"], 1) for k in ("predict", "buildings", "cancel")}}))
     assert report["algorithms"] == sorted(f"aerialmtl:{a}" for a in ALGORITHMS)
 
     predict, buildings, cancel = report["predict"], report["buildings"], report["cancel"]
