@@ -153,7 +153,7 @@ def test_cancel_stops_the_command_and_leaves_nothing(inputs: dict[str, Path], tm
     result = run_command(argv, seen.append, is_canceled=lambda: any(p.done > 0 for p in seen), env=_env())
     assert result.canceled and result.returncode == 143  # SIGTERM, handled like Ctrl-C
     assert 0 < seen[-1].done < seen[-1].total  # type: ignore[operator]  # stopped mid-run
-    assert "interrupted" in result.error and result.message().startswith("canceled")
+    assert result.message().startswith("canceled: interrupted; no output was left at a final path")
     assert not (tmp_path / "p").exists() or not any((tmp_path / "p").iterdir())
 
 
@@ -265,6 +265,6 @@ def test_headless_qgis(inputs: dict[str, Path], tmp_path: Path, capsys: pytest.C
     assert footprints["valid"] and footprints["features"] >= 1 and footprints["group"] == ""
     assert footprints["renderer"] == {"type": "graduatedSymbol", "field": "height_m", "ranges": 5}
 
-    assert cancel["error"].startswith("canceled") and 0 < cancel["canceled_at"] < 100
+    assert cancel["error"].startswith("canceled: interrupted; no output was left") and 0 < cancel["canceled_at"] < 100
     assert cancel["left"] in (None, [])  # nothing behind: no folder, or an empty one
     assert not [layer for layer in report["layers"] if "canceled" in layer["source"]]

@@ -84,8 +84,8 @@ class RunResult:
 
     def message(self) -> str:
         """What to tell the user when the command did not succeed."""
-        if self.canceled:
-            return "canceled: aerialmtl stopped and removed the outputs it had started"
+        if self.canceled:  # the command says what it left (predict/tile: nothing; train: whole checkpoints)
+            return f"canceled: {self.error}" if self.error else "canceled"
         if self.error:
             return self.error
         return f"aerialmtl ended with exit status {self.returncode}"
