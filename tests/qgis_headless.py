@@ -5,10 +5,12 @@
 Installs the plugin from its zip into a fresh plugin folder, registers the provider as QGIS does, then runs
 through ``processing.run`` and loads the results as the toolbox does (``handleAlgorithmResults``):
 
-1. ``aerialmtl:predict`` with T = 4 on ORTHO, 2. ``aerialmtl:buildings`` on that prediction, 3. predict on
-BIG_ORTHO, canceled at the first progress step. Prints one JSON object (versions, progress seen, the layers
-in the project with their validity, name, group and renderer, what the canceled run left) on stdout; the
-pytest side asserts on it. Needs no aerialmtl in this Python: the plugin runs the AERIALMTL program.
+1. ``aerialmtl:predict`` with T = 4 on ORTHO, 2. ``aerialmtl:buildings`` on that prediction, 3.
+``aerialmtl:evaluate`` of it against ``ndsm.tif`` beside ORTHO, 4. ``aerialmtl:export`` of the model's height
+task to ONNX, 5. predict on BIG_ORTHO, canceled at the first progress step. Prints one JSON object
+(versions, progress seen, the layers in the project with their validity, name, group and renderer, what
+the canceled run left) on stdout; the pytest side asserts on it. Needs no aerialmtl in this Python: the
+plugin runs the AERIALMTL program.
 """
 
 from __future__ import annotations
@@ -139,6 +141,11 @@ def main(plugin_zip: str, program: str, model: str, ortho: str, big_ortho: str, 
         "INPUT": ortho, "MODEL": model, "MC": 4, "TILE": 64, "OVERLAP": 16, "OUTPUT": str(pred)}, Recorder())
     report["buildings"] = _run("aerialmtl:buildings", {
         "INPUT": str(pred), "MIN_AREA": 1.0, "OUTPUT": str(work_dir / "buildings.gpkg")}, Recorder())
+    report["evaluate"] = _run("aerialmtl:evaluate", {
+        "PRED": str(pred), "HEIGHT": str(Path(ortho).with_name("ndsm.tif")), "NO_PLOTS": True,
+        "OUTPUT": str(work_dir / "report.json")}, Recorder())
+    report["export"] = _run("aerialmtl:export", {
+        "INPUT": model, "TASK": 1, "OUTPUT": str(work_dir / "height.onnx")}, Recorder())  # enum index 1: height
     canceled = work_dir / "canceled"
     feedback = Recorder(cancel_at_first_step=True)
     report["cancel"] = _run("aerialmtl:predict", {

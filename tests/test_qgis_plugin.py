@@ -124,6 +124,7 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     rng = np.random.default_rng(0)
     small = write_raster(folder / "ortho.tif", rng.integers(0, 255, (3, 128, 128)).astype(np.uint8))
     big = write_raster(folder / "big.tif", rng.integers(0, 255, (3, 640, 640)).astype(np.uint8))
+    write_raster(folder / "ndsm.tif", rng.uniform(0, 10, (128, 128)).astype(np.float32))  # a reference for evaluate
     return {"model": folder / "m.pt", "ortho": small, "big": big}
 
 
@@ -237,7 +238,8 @@ def test_headless_qgis(inputs: dict[str, Path], tmp_path: Path, capsys: pytest.C
     assert done.returncode == 0, done.stderr[-3000:]
     report: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
     print(json.dumps({**{k: report[k] for k in ("qgis", "gdal", "python")},
-                      **{f"{k}_s": round(report[k]["seconds"], 1) for k in ("predict", "buildings", "cancel")}}))
+                      **{f"{k}_s": round(report[k]["seconds"], 1)
+                         for k in ("predict", "buildings", "evaluate", "export", "cancel")}}))
     assert report["algorithms"] == sorted(f"aerialmtl:{a}" for a in ALGORITHMS)
 
     predict, buildings, cancel = report["predict"], report["buildings"], report["cancel"]
@@ -264,6 +266,13 @@ def test_headless_qgis(inputs: dict[str, Path], tmp_path: Path, capsys: pytest.C
     footprints = layers["buildings (buildings)"]
     assert footprints["valid"] and footprints["features"] >= 1 and footprints["group"] == ""
     assert footprints["renderer"] == {"type": "graduatedSymbol", "field": "height_m", "ranges": 5}
+
+    evaluation, export = report["evaluate"], report["export"]
+    assert "error" not in evaluation, evaluation
+    assert json.loads((tmp_path / "work" / "report.json").read_text())["height"]["mae"] > 0
+    assert "error" not in export, export
+    assert (tmp_path / "work" / "height.onnx").stat().st_size > 0
+    assert len(report["layers"]) == len(expected) + 1  # evaluate and export add no layer
 
     assert cancel["error"].startswith("canceled: interrupted; no output was left") and 0 < cancel["canceled_at"] < 100
     assert cancel["left"] in (None, [])  # nothing behind: no folder, or an empty one
