@@ -252,6 +252,6 @@ def gdal_env() -> rasterio.Env:
     return rasterio.Env() if "GDAL_CACHEMAX" in os.environ else rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
 
 
-__all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CompileFallback", "GDAL_CACHE_MB", "Precision", "Resolved",
-           "SHARE_TIMEOUT", "CPU_FLAGS_ENV", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "native_bf16",
-           "resolve_device", "resolve_precision", "warn_compile_failed"]
+__all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "CompileFallback", "GDAL_CACHE_MB", "Precision",
+           "Resolved", "SHARE_TIMEOUT", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env",
+           "native_bf16", "resolve_device", "resolve_precision", "warn_compile_failed"]

@@ -169,7 +169,7 @@ def _record_timings(path: Path, timings: dict[str, float]) -> None:
 def _stats_window(stats: McStatistics, n: int) -> McStatistics:
     """The statistics of window ``n`` of a batch (views)."""
     return McStatistics(*(None if t is None else t[n] for t in (stats.height_mean, stats.height_std, stats.probs,
-                                                                 stats.mean_entropy)))
+                                                                 stats.mean_entropy, stats.height_aleatoric)))
 
 
 # ---- the predictor -----------------------------------------------------------------------------
@@ -264,7 +264,8 @@ class Predictor:
         tasks = tuple(self.meta.model.tasks)
         self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
-        self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, probabilities)
+        self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, probabilities,
+                                                                 aleatoric=self.meta.model.aleatoric)
         self._batch: dict[tuple[int, int], int] = {}
 
     @property

@@ -29,7 +29,7 @@ from torch import nn
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.models.d3net import fold_batchnorm
-from aerialmtl.models.mc_dropout import McStatistics, class_probabilities, mc_statistics
+from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
 if TYPE_CHECKING:
     from aerialmtl.inference.engines import OpenVINOEngine
@@ -158,13 +158,7 @@ class TorchEngine:
         with torch.inference_mode(), _autocast(self.device, self.precision):
             if samples == 1:
                 self.model.eval()
-                raw = self.net(x)
-                stats = McStatistics()
-                if "height" in self.tasks:
-                    stats.height_mean = raw["height"][:, 0].float()
-                if "classes" in self.tasks:
-                    stats.probs = class_probabilities(raw["classes"])
-                return stats
+                return single_pass_statistics(self.net(x))
             return mc_statistics(self.net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys)
 
 
