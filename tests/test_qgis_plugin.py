@@ -85,7 +85,7 @@ def test_every_parameter_is_an_option_of_the_command(name: str) -> None:
         assert isinstance(option, click.Option)
         assert (p.kind == "bool") == option.is_flag, p.flag
         if p.kind == "enum":
-            assert isinstance(option.type, click.Choice) and set(p.choices) <= set(option.type.choices), p.flag
+            assert isinstance(option.type, click.Choice) and p.choices == tuple(option.type.choices), p.flag
         if p.kind == "int":
             assert isinstance(option.type, (click.types.IntParamType, click.IntRange)), p.flag
         if p.kind == "float":

@@ -220,7 +220,7 @@ EXPORT = Algorithm(
     (
         Param("INPUT", None, "file", "Model checkpoint (best.pt)", extension="pt"),
         Param("FORMAT", "--format", "enum", "Format", default="onnx", choices=("onnx", "openvino")),
-        Param("TASK", "--task", "enum", "Task", default="all", choices=("all", "height", "classes")),
+        Param("TASK", "--task", "enum", "Task", default="all", choices=("all", "height", "height_std", "classes")),
         Param("TILE", "--tile", "int", "Tile size (pixels)", default=512, advanced=True, minimum=32),
         Param("NO_CALIBRATION", "--no-calibration", "bool", "Leave out the height calibration", default=False,
               advanced=True),
