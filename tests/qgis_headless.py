@@ -7,10 +7,10 @@ through ``processing.run`` and loads the results as the toolbox does (``handleAl
 
 1. ``aerialmtl:predict`` with T = 4 on ORTHO, 2. ``aerialmtl:buildings`` on that prediction, 3.
 ``aerialmtl:evaluate`` of it against ``ndsm.tif`` beside ORTHO, 4. ``aerialmtl:export`` of the model's height
-task to ONNX, 5. predict on BIG_ORTHO, canceled at the first progress step. Prints one JSON object
-(versions, progress seen, the layers in the project with their validity, name, group and renderer, what
-the canceled run left) on stdout; the pytest side asserts on it. Needs no aerialmtl in this Python: the
-plugin runs the AERIALMTL program.
+task to ONNX, 5. predict with a missing model (an error), 6. predict on BIG_ORTHO, canceled at the first
+progress step. Prints one JSON object (versions, progress seen, the layers in the project with their
+validity, name, group and renderer, what the canceled run left) on stdout; the pytest side asserts on it.
+Needs no aerialmtl in this Python: the plugin runs the AERIALMTL program.
 """
 
 from __future__ import annotations
@@ -146,6 +146,8 @@ def main(plugin_zip: str, program: str, model: str, ortho: str, big_ortho: str, 
         "OUTPUT": str(work_dir / "report.json")}, Recorder())
     report["export"] = _run("aerialmtl:export", {
         "INPUT": model, "TASK": 1, "OUTPUT": str(work_dir / "height.onnx")}, Recorder())  # enum index 1: height
+    report["failing"] = _run("aerialmtl:predict", {  # an error: the command's one line
+        "INPUT": ortho, "MODEL": str(work_dir / "missing.pt"), "OUTPUT": str(work_dir / "failed")}, Recorder())
     canceled = work_dir / "canceled"
     feedback = Recorder(cancel_at_first_step=True)
     report["cancel"] = _run("aerialmtl:predict", {

@@ -274,6 +274,10 @@ def test_headless_qgis(inputs: dict[str, Path], tmp_path: Path, capsys: pytest.C
     assert (tmp_path / "work" / "height.onnx").stat().st_size > 0
     assert len(report["layers"]) == len(expected) + 1  # evaluate and export add no layer
 
+    failing = report["failing"]  # the command's own one-line message, as the error and in the log
+    assert "missing.pt" in failing["error"] and "\n" not in failing["error"] and "Traceback" not in failing["error"]
+    assert failing["errors"] == [failing["error"]]
+
     assert cancel["error"].startswith("canceled: interrupted; no output was left") and 0 < cancel["canceled_at"] < 100
     assert cancel["left"] in (None, [])  # nothing behind: no folder, or an empty one
     assert not [layer for layer in report["layers"] if "canceled" in layer["source"]]
