@@ -5,12 +5,14 @@
 Installs the plugin from its zip into a fresh plugin folder, registers the provider as QGIS does, then runs
 through ``processing.run`` and loads the results as the toolbox does (``handleAlgorithmResults``):
 
-1. ``aerialmtl:predict`` with T = 4 on ORTHO, 2. ``aerialmtl:buildings`` on that prediction, 3.
-``aerialmtl:evaluate`` of it against ``ndsm.tif`` beside ORTHO, 4. ``aerialmtl:export`` of the model's height
-task to ONNX, 5. predict with a missing model (an error), 6. predict on BIG_ORTHO, canceled at the first
-progress step. Prints one JSON object (versions, progress seen, the layers in the project with their
-validity, name, group and renderer, what the canceled run left) on stdout; the pytest side asserts on it.
-Needs no aerialmtl in this Python: the plugin runs the AERIALMTL program.
+1. ``aerialmtl:predict`` with T = 4 on ORTHO within a memory-layer AOI (its left half), 2.
+``aerialmtl:buildings`` on that prediction, 3. ``aerialmtl:evaluate`` of it against ``ndsm.tif`` beside
+ORTHO, 4. ``aerialmtl:export`` of the model's height task to ONNX, 5. predict with a missing model (an
+error), 6. predict on BIG_ORTHO, canceled at the first progress step.
+
+Prints one JSON object (versions, progress seen, the layers in the project with their validity, name,
+group and renderer, what the canceled run left) on stdout; the pytest side asserts on it. Needs no
+aerialmtl in this Python: the plugin runs the AERIALMTL program.
 """
 
 from __future__ import annotations
@@ -108,6 +110,21 @@ def _run(algorithm: str, params: dict[str, Any], feedback: Recorder) -> dict[str
             "seconds": time.perf_counter() - start, "progress": progress, "errors": feedback.errors}
 
 
+def _left_half(raster: str) -> Any:
+    """A memory polygon layer over the left half of ``raster`` (QGIS converts it to GeoJSON for the CLI)."""
+    from qgis.core import QgsFeature, QgsGeometry, QgsRasterLayer, QgsRectangle, QgsVectorLayer
+
+    source = QgsRasterLayer(raster, "ortho", "gdal")
+    extent = source.extent()
+    half = QgsRectangle(extent.xMinimum(), extent.yMinimum(), extent.center().x(), extent.yMaximum())
+    layer = QgsVectorLayer(f"Polygon?crs={source.crs().authid()}", "aoi", "memory")
+    feature = QgsFeature()
+    feature.setGeometry(QgsGeometry.fromRect(half))
+    layer.dataProvider().addFeatures([feature])
+    layer.updateExtents()
+    return layer
+
+
 def main(plugin_zip: str, program: str, model: str, ortho: str, big_ortho: str, work: str) -> dict[str, Any]:
     from osgeo import gdal
 
@@ -138,7 +155,8 @@ def main(plugin_zip: str, program: str, model: str, ortho: str, big_ortho: str, 
     work_dir = Path(work)
     pred = work_dir / "pred"
     report["predict"] = _run("aerialmtl:predict", {
-        "INPUT": ortho, "MODEL": model, "MC": 4, "TILE": 64, "OVERLAP": 16, "OUTPUT": str(pred)}, Recorder())
+        "INPUT": ortho, "MODEL": model, "MC": 4, "TILE": 64, "OVERLAP": 16, "AOI": _left_half(ortho),
+        "OUTPUT": str(pred)}, Recorder())
     report["buildings"] = _run("aerialmtl:buildings", {
         "INPUT": str(pred), "MIN_AREA": 1.0, "OUTPUT": str(work_dir / "buildings.gpkg")}, Recorder())
     report["evaluate"] = _run("aerialmtl:evaluate", {

@@ -20,6 +20,7 @@ from typing import Any
 import click
 import numpy as np
 import pytest
+import rasterio
 import torch
 from conftest import run_cli, tiny_d3net, write_raster
 
@@ -263,6 +264,9 @@ def test_headless_qgis(inputs: dict[str, Path], tmp_path: Path, capsys: pytest.C
         else:
             assert layer["renderer"]["type"] == "singlebandpseudocolor" and layer["renderer"]["colors"] == 5
             assert layer["renderer"]["max"] == pytest.approx(_qml_max(pred / filename.replace(".tif", ".qml")))
+    with rasterio.open(pred / "height.tif") as src:  # the AOI (a memory layer, converted by QGIS) was applied
+        height = src.read(1, masked=True)
+    assert not height.mask[:, : height.shape[1] // 2 - 2].any() and height.mask[:, height.shape[1] // 2 + 2:].all()
     footprints = layers["buildings (buildings)"]
     assert footprints["valid"] and footprints["features"] >= 1 and footprints["group"] == ""
     assert footprints["renderer"] == {"type": "graduatedSymbol", "field": "height_m", "ranges": 5}
