@@ -7,8 +7,9 @@ through ``processing.run`` and loads the results as the toolbox does (``handleAl
 
 1. ``aerialmtl:predict`` with T = 4 on ORTHO within a memory-layer AOI (its left half), 2.
 ``aerialmtl:buildings`` on that prediction, 3. ``aerialmtl:evaluate`` of it against ``ndsm.tif`` beside
-ORTHO, 4. ``aerialmtl:export`` of the model's height task to ONNX, 5. predict with a missing model (an
-error), 6. predict on BIG_ORTHO, canceled at the first progress step.
+ORTHO, 4. ``aerialmtl:export`` of the model's height task to ONNX, 5. ``aerialmtl:tile`` of ORTHO with
+that nDSM, 6. predict with a missing model (an error), 7. predict on BIG_ORTHO, canceled at the first
+progress step.
 
 Prints one JSON object (versions, progress seen, the layers in the project with their validity, name,
 group and renderer, what the canceled run left) on stdout; the pytest side asserts on it. Needs no
@@ -46,6 +47,7 @@ class Recorder(QgsProcessingFeedback):  # type: ignore[misc]
         super().__init__()
         self.progress: list[float] = []
         self.errors: list[str] = []
+        self.warnings: list[str] = []
         self.cancel_at_first_step = cancel_at_first_step
         self.canceled_at: float | None = None
         self.progressChanged.connect(self._progress)
@@ -55,6 +57,10 @@ class Recorder(QgsProcessingFeedback):  # type: ignore[misc]
         if self.cancel_at_first_step and 0 < value < 100 and self.canceled_at is None:
             self.canceled_at = value
             self.cancel()
+
+    def pushWarning(self, warning: str) -> None:  # noqa: N802 - QGIS's name
+        self.warnings.append(warning)
+        super().pushWarning(warning)
 
     def reportError(self, error: str, fatalError: bool = False) -> None:  # noqa: N802, N803 - QGIS's names
         self.errors.append(error)
@@ -103,11 +109,12 @@ def _run(algorithm: str, params: dict[str, Any], feedback: Recorder) -> dict[str
         results = processing.run(alg, params, feedback=feedback, context=context)
     except QgsProcessingException as exc:
         return {"error": str(exc), "seconds": time.perf_counter() - start, "progress": feedback.progress,
-                "errors": feedback.errors}
+                "errors": feedback.errors, "warnings": feedback.warnings}
     progress = list(feedback.progress)  # before loading, which sets the bar to 100 itself
     handleAlgorithmResults(alg, context, QgsProcessingFeedback(), showResults=False)
     return {"results": {k: v for k, v in results.items() if isinstance(v, (str, list))},
-            "seconds": time.perf_counter() - start, "progress": progress, "errors": feedback.errors}
+            "seconds": time.perf_counter() - start, "progress": progress, "errors": feedback.errors,
+            "warnings": feedback.warnings}
 
 
 def _left_half(raster: str) -> Any:
@@ -164,6 +171,9 @@ def main(plugin_zip: str, program: str, model: str, ortho: str, big_ortho: str, 
         "OUTPUT": str(work_dir / "report.json")}, Recorder())
     report["export"] = _run("aerialmtl:export", {
         "INPUT": model, "TASK": 1, "OUTPUT": str(work_dir / "height.onnx")}, Recorder())  # enum index 1: height
+    report["tile"] = _run("aerialmtl:tile", {
+        "ORTHO": ortho, "NDSM": str(Path(ortho).with_name("ndsm.tif")), "SIZE": 32,
+        "OUTPUT": str(work_dir / "tiles")}, Recorder())
     report["failing"] = _run("aerialmtl:predict", {  # an error: the command's one line
         "INPUT": ortho, "MODEL": str(work_dir / "missing.pt"), "OUTPUT": str(work_dir / "failed")}, Recorder())
     canceled = work_dir / "canceled"

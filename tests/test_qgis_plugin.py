@@ -278,6 +278,11 @@ def test_headless_qgis(inputs: dict[str, Path], tmp_path: Path, capsys: pytest.C
     assert (tmp_path / "work" / "height.onnx").stat().st_size > 0
     assert len(report["layers"]) == len(expected) + 1  # evaluate and export add no layer
 
+    tiles = report["tile"]  # a warning of the command reaches the log as a warning
+    assert "error" not in tiles, tiles
+    assert (tmp_path / "work" / "tiles" / "dataset.yaml").is_file() and tiles["progress"][-1] == 100.0
+    assert any("no val/test patch" in w for w in tiles["warnings"]), tiles["warnings"]
+
     failing = report["failing"]  # the command's own one-line message, as the error and in the log
     assert "missing.pt" in failing["error"] and "\n" not in failing["error"] and "Traceback" not in failing["error"]
     assert failing["errors"] == [failing["error"]]
