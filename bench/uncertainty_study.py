@@ -30,6 +30,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -49,7 +50,13 @@ from aerialmtl.evaluation.evaluate import evaluate_prediction  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, HEIGHT_STD, layer_filename  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
-from aerialmtl.models.calibration import Calibration, fit_calibration, fit_spread_crps  # noqa: E402
+from aerialmtl.models.calibration import (  # noqa: E402
+    Calibration,
+    fit_calibration,
+    fit_height_map,
+    fit_spread,
+    fit_spread_crps,
+)
 from aerialmtl.training.calibrate import validation_pixels  # noqa: E402
 
 BINS = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
@@ -112,6 +119,15 @@ def evaluate(pred_dir: Path, data: Path, out_json: Path) -> dict[str, Any]:
     return res
 
 
+def legacy_calibration(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray) -> Calibration:
+    """The calibration of the previous release: the isotonic height map always applied, one spread factor and
+    floor for all heights fitted to ±1σ / ±2σ coverage (:func:`fit_spread`)."""
+    x, y = fit_height_map(pred, ref, "isotonic")
+    cal = Calibration(tuple(float(v) for v in x), tuple(float(v) for v in y))
+    scale, floor = fit_spread(np.abs(cal.height(pred) - ref), sd)
+    return dataclasses.replace(cal, std_scale=scale, std_floor=floor)
+
+
 def height_only(pred: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
     """``(a, b)`` of σ = a·max(h, 0) ⊕ b with the lowest validation CRPS (the spread calibration's own fit, on
     the predicted height instead of the model's spread: the strongest height-only spread of that form)."""
@@ -144,7 +160,7 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     folds = np.random.default_rng(0).permutation(np.arange(int(patch.max()) + 1) % 2)[patch]
     cals: dict[str, Calibration] = {
         "cal": fit_calibration(pred, ref, sd, "isotonic", folds=folds),
-        "legacy": fit_calibration(pred, ref, sd, "isotonic", edges=()),
+        "legacy": legacy_calibration(pred, ref, sd),
     }
     res["calibration"] = {k: c.summary() for k, c in cals.items()}
     for key, c in cals.items():
@@ -157,6 +173,11 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
         cdir = transformed_copy(pdir, rdir / "study_height_only", lambda h: h,
                                 lambda s, h: np.hypot(a * np.maximum(h, 0.0), b))
         variants["height_only"] = evaluate(cdir, args.data, rdir / "study_report_height_only.json")
+    if args.tta and ("tta" not in variants or args.force):
+        tdir_out = rdir / "study_tta"
+        predict_raster(args.data / ORTHO, (model, meta), tdir_out, mc=args.mc, aoi=test_aoi, overwrite=True,
+                       progress=False, checkpoint_name=str(ckpt), calibration=False, seed=0, tta=True)
+        variants["tta"] = evaluate(tdir_out, args.data, rdir / "study_report_tta.json")
     if "baseline_train_mean" not in res:
         mean = train_mean(pdir / layer_filename(HEIGHT), args.data, split_dir / "train.geojson")
         bdir = constant_prediction(pdir, mean, rdir / "study_baseline_train_mean")
@@ -229,6 +250,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--force", action="store_true")
+    ap.add_argument("--tta", action="store_true", help="also the tta variant (8 views × T samples)")
     ap.add_argument("--table", action="store_true")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

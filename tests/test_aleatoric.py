@@ -149,3 +149,38 @@ def test_cli_predict_writes_the_predictive_spread_at_any_t(tmp_path: Path, capsy
             assert "aleatoric" in (src.descriptions[0] or "")
     assert (std[1] > 0.5).all()  # √2 · b with b ≈ 1 m at initialisation: never the 0 m of MC dropout alone
     assert (std[4] >= std[1] - 1e-3).mean() > 0.99  # the MC part adds variance (its masks differ from T = 1)
+
+
+def test_tta_views_are_undone_exactly_and_their_disagreement_enters_the_spread(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A per-pixel model (1×1 convolutions) gives the same map in every view: --tta changes nothing and adds no
+    spread; a D3-Net's views disagree, so --tta at T = 1 writes a height_std, equal on both engines."""
+    from conftest import IdentityModel, identity_meta
+
+    img = np.random.default_rng(0).integers(1, 256, (3, 70, 90)).astype(np.uint8)
+    ortho = write_raster(tmp_path / "o.tif", img)
+    ident = (IdentityModel((0.0,) * 3, (1.0,) * 3), identity_meta())
+    from aerialmtl.inference.predict import predict_raster
+
+    plain = predict_raster(ortho, ident, tmp_path / "plain", mc=1, progress=False, engine="torch", precision="fp32")
+    tta = predict_raster(ortho, ident, tmp_path / "tta", mc=1, progress=False, engine="torch", precision="fp32",
+                         tta=True)
+    with rasterio.open(plain.out_dir / "height.tif") as a, rasterio.open(tta.out_dir / "height.tif") as b:
+        np.testing.assert_allclose(b.read(1), a.read(1), rtol=1e-6)
+    with rasterio.open(tta.out_dir / "height_std.tif") as s:
+        assert float(np.abs(s.read(1)).max()) < 1e-4
+    assert json.loads((tta.out_dir / "prediction.json").read_text())["tta"] is True
+    model, meta = _aleatoric()
+    ckpt = tmp_path / "al.pt"
+    save_checkpoint(ckpt, model, meta)
+    std = {}
+    for engine in ("torch", "openvino"):
+        if engine == "openvino":
+            pytest.importorskip("openvino")
+        out = tmp_path / f"tta_{engine}"
+        code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", 1, "--tta",
+                               "--engine", engine, "--precision", "fp32")
+        assert code == 0, err
+        with rasterio.open(out / "height_std.tif") as s:
+            std[engine] = s.read(1)
+    np.testing.assert_allclose(std["openvino"], std["torch"], rtol=0, atol=1e-3)

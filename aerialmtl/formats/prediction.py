@@ -163,7 +163,8 @@ class LayerSpec:
 
 
 def prediction_layers(
-    tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False, aleatoric: bool = False
+    tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False, aleatoric: bool = False,
+    tta: bool = False,
 ) -> tuple[LayerSpec, ...]:
     """The layers a prediction writes, in :data:`LAYERS` order.
 
@@ -175,14 +176,17 @@ def prediction_layers(
         probabilities: also the K-band ``class_probabilities`` layer.
         aleatoric: the model's height head predicts a Laplace scale: ``height_std`` is the predictive
             spread (MC dropout and the aleatoric scale).
+        tta: test-time augmentation (8 views): uncertainty layers at any T.
     """
     specs: list[LayerSpec] = []
-    unc = mc > 1
+    unc = mc > 1 or tta
     if HEIGHT in tasks:
         specs.append(LayerSpec(HEIGHT, 1, "float32", FLOAT_NODATA, ("height above ground (MC mean)",),
                                (LAYER_UNITS[HEIGHT],)))
         if unc or aleatoric:
-            what = ("MC dropout and aleatoric scale" if unc else "aleatoric scale") if aleatoric else "MC dropout"
+            parts = (["MC dropout"] if mc > 1 else []) + (["test-time augmentation"] if tta else []) + (
+                ["aleatoric scale"] if aleatoric else [])
+            what = ", ".join(parts)
             specs.append(LayerSpec(HEIGHT_STD, 1, "float32", FLOAT_NODATA,
                                    (f"height standard deviation ({what})",), (LAYER_UNITS[HEIGHT_STD],)))
     if CLASSES in tasks:
