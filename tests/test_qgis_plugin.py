@@ -70,9 +70,25 @@ def test_command_line_refuses_missing_and_unknown_values() -> None:
         command_line("aerialmtl", PREDICT, {"INPUT": "o.tif", "OUTPUT": "p", "ENGINE": "onnx"})
 
 
+#: Options the toolbox does not offer: the terminal's --quiet, what Processing's batch mode replaces (several
+#: inputs, --skip-existing), tuning knobs with sound defaults; a new option of a command fails the test below
+#: until it is offered or listed here.
+LEFT_OUT = {
+    "predict": {"--quiet", "--skip-existing", "--batch-size", "--compile"},
+    "buildings": {"--quiet", "--block-size", "--simplify"},
+    "evaluate": {"--quiet", "--sample-size", "--seed", "--height-bins", "--height-threshold", "--ignore-unknown-codes",
+                 "--pred-buildings"},
+    "tile": {"--quiet", "--min-valid", "--split-block", "--split-ratios", "--split-seed", "--split-aoi",
+             "--clip-negative", "--max-height", "--ignore-unknown-codes"},
+    "train": {"--quiet", "--compile"},
+    "export": {"--overlap"},
+}
+
+
 @pytest.mark.parametrize("name", sorted(ALGORITHMS))
 def test_every_parameter_is_an_option_of_the_command(name: str) -> None:
-    """The plugin's flags, kinds, choices and defaults are those of the command line it runs."""
+    """The plugin's flags, kinds, choices and defaults are those of the command line it runs, and it offers
+    every option of the command but those in LEFT_OUT."""
     algorithm = ALGORITHMS[name]
     command = cli.commands[name]
     options = {o: p for p in command.params for o in p.opts}
@@ -95,6 +111,10 @@ def test_every_parameter_is_an_option_of_the_command(name: str) -> None:
             assert option.default == p.default, f"{name} {p.flag}: default {p.default} != {option.default}"
         if option.required:
             assert not p.optional, p.flag
+    options_of_command = {o.opts[0] for o in command.params if isinstance(o, click.Option) and o.name != "help"}
+    assert LEFT_OUT[name] <= options_of_command, name  # the list below stays current
+    missing = options_of_command - {p.flag for p in algorithm.params} - LEFT_OUT[name]
+    assert not missing, f"{name}: the plugin does not offer {sorted(missing)}"
     required = {o.opts[0] for o in command.params if isinstance(o, click.Option) and o.required}
     assert required <= {p.flag for p in algorithm.params if not p.optional}
 

@@ -117,6 +117,8 @@ PREDICT = Algorithm(
               advanced=True),
         Param("NO_CALIBRATION", "--no-calibration", "bool", "Do not apply the model's calibration", default=False,
               advanced=True),
+        Param("TTA", "--tta", "bool", "Test-time augmentation: 8 flips/rotations per window (8× the work)",
+              default=False, advanced=True),
         Param("RESCALE_INPUT", "--rescale-input", "bool",
               "Rescale an orthophoto whose values differ from the training images'", default=False, advanced=True),
         _OVERWRITE,
