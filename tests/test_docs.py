@@ -62,3 +62,16 @@ def test_the_cli_reference_shows_every_command_and_option() -> None:
     for p in cli.params:
         for opt in p.opts:
             assert opt in text, opt
+
+
+def test_the_readme_keeps_the_two_commands_and_its_links() -> None:
+    """A newcomer's two commands stay in the README (the test one is what CI runs), and its links resolve."""
+    readme = (REPO / "README.md").read_text()
+    demo = 'pip install torch==2.13.0 -e ".[plot]" && aerialmtl demo demo_out'
+    tests = 'pip install torch==2.13.0 -e ".[test]" && python -m pytest -q'
+    assert f"```bash\n{demo}\n```" in readme and f"```bash\n{tests}\n```" in readme
+    assert tests in (REPO / ".ci" / "run").read_text()
+    assert f"```bash\n{demo}\n```" in (DOCS / "getting-started.md").read_text()
+    for link in re.findall(r"\]\(([^)#]+)\)", readme):
+        if not link.startswith(("http://", "https://")):
+            assert (REPO / link).exists(), link
