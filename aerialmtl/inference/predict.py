@@ -44,7 +44,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
-from tqdm.auto import tqdm
 
 from aerialmtl import __version__, runtime
 from aerialmtl.errors import InputError
@@ -82,6 +81,7 @@ from aerialmtl.inference.writer import PredictionWriter
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.models.mc_dropout import McStatistics
+from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.runtime import GDAL_CACHE_MB, gdal_env
 
 #: MC-dropout samples when neither the caller nor the checkpoint says otherwise.
