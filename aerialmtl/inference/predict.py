@@ -582,10 +582,20 @@ class Predictor:
         cal = self.meta.calibration
         if cal is None:
             return {"applied": False, "reason": "the checkpoint has no calibration"}
-        info: dict[str, Any] = {"applied": self.calibration is not None, "method": cal.method,
-                                "std_scale": cal.std_scale, "std_floor_m": cal.std_floor, "n_pixels": cal.n_pixels,
-                                "source": cal.source,
-                                "height_knots_m": [list(cal.height_x), list(cal.height_y)]}
+        on = self.calibration is not None
+        info: dict[str, Any] = {"applied": on and (cal.height_applied or cal.spread_applied),
+                                "height_map_applied": on and cal.height_applied,
+                                "spread_map_applied": on and cal.spread_applied,
+                                "method": cal.method, "n_pixels": cal.n_pixels, "source": cal.source,
+                                "summary": cal.summary()}
+        if cal.height_applied:
+            info["height_knots_m"] = [list(cal.height_x), list(cal.height_y)]
+        if cal.spread_applied:
+            info.update({"std_scale": cal.std_scale, "std_floor_m": cal.std_floor} if not cal.std_edges else
+                        {"std_range_edges_m": list(cal.std_edges), "std_scales": list(cal.std_scales),
+                         "std_floors_m": list(cal.std_floors)})
+        if on and not (cal.height_applied or cal.spread_applied):
+            info["reason"] = f"validation kept neither part: {cal.notes}"
         if self.calibration is None:
             info["reason"] = "switched off (--no-calibration)"
         return info
