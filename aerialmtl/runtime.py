@@ -253,5 +253,5 @@ def gdal_env() -> rasterio.Env:
 
 
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CompileFallback", "GDAL_CACHE_MB", "Precision", "Resolved",
-           "SHARE_TIMEOUT", "CPU_FLAGS_ENV", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "native_bf16",
-           "resolve_device", "resolve_precision", "warn_compile_failed"]
+           "SHARE_TIMEOUT", "CPU_FLAGS_ENV", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env",
+           "native_bf16", "resolve_device", "resolve_precision", "warn_compile_failed"]

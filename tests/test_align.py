@@ -12,7 +12,8 @@ from conftest import write_raster
 from rasterio.warp import transform as warp_transform
 
 from aerialmtl.errors import AlignmentError
-from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.formats.tiles import HEIGHT_NODATA
+from aerialmtl.io.align import AlignedRaster, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import read_manifest, tile_dataset
 

@@ -14,7 +14,7 @@ from rasterio.windows import Window
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.cli import cli
-from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.formats.tiles import HEIGHT_NODATA
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import read_manifest, tile_dataset
 

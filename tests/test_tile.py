@@ -20,7 +20,7 @@ from rasterio.windows import transform as window_transform
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.cli import cli
 from aerialmtl.errors import InputError, LabelError, OutputExistsError
-from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.formats.tiles import HEIGHT_NODATA
 from aerialmtl.tiling.grid import axis_offsets, count_windows, num_offsets, tile_windows
 from aerialmtl.tiling.splits import SplitAssigner, SplitSpec, assign_blocks
 from aerialmtl.tiling.tile import read_manifest, tile_dataset

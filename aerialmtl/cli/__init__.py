@@ -23,7 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import click
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.cli.buildings import buildings
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate

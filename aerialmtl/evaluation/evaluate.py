@@ -24,7 +24,7 @@ import rasterio
 from rasterio.windows import Window
 from tqdm import tqdm
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.evaluation.metrics import (

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError

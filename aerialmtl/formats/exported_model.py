@@ -31,7 +31,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.formats.checkpoint import ModelMeta
 
 #: Name of the graph's input.

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.models.mc_dropout import (
     _SEEDABLE,

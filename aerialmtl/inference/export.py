@@ -39,7 +39,7 @@ from typing import Literal
 import torch
 from torch import nn
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.exported_model import (

@@ -46,7 +46,8 @@ from typing import Any, Literal
 import torch
 from tqdm.auto import tqdm
 
-from aerialmtl import __version__, runtime
+from aerialmtl import runtime
+from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import (

@@ -34,7 +34,6 @@ from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
-from aerialmtl.formats.tiles import HEIGHT_NODATA as HEIGHT_NODATA  # re-exported: height rasters aerialmtl writes
 from aerialmtl.io.paths import configure_remote, gdal_path, is_local, is_remote
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 

@@ -22,7 +22,7 @@ from aerialmtl.data.synth.render import render_ortho
 from aerialmtl.data.synth.scene import Scene, build_scene
 from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
-from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.formats.tiles import HEIGHT_NODATA
 from aerialmtl.io.outputs import OutputFolder, atomic_write
 
 #: Version of the generator; bump it whenever the same seed would produce different rasters.
