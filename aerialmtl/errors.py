@@ -108,7 +108,12 @@ class OutputInUseError(OutputError):
     """Another process is writing the same output folder (it holds the folder's lock)."""
 
 
+class PeerFailure(AerialMTLError, RuntimeError):
+    """Another process of a multi-process (torchrun) run failed or was stopped, or an input failed on
+    another rank; the message names the process or the input and the cause."""
+
+
 __all__ = [
     "PARAM_MARK", "AerialMTLError", "AlignmentError", "CheckpointError", "ConfigError", "InputError", "LabelError",
-    "NonFiniteError", "OutputError", "OutputExistsError", "OutputInUseError", "render",
+    "NonFiniteError", "OutputError", "OutputExistsError", "OutputInUseError", "PeerFailure", "render",
 ]

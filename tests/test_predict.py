@@ -208,7 +208,8 @@ def test_mc_samples_are_decoded_in_chunks_that_fit_the_pixel_budget(ortho: Path,
 def test_precision_auto_follows_native_bf16_and_bad_values_name_the_option(monkeypatch: pytest.MonkeyPatch) -> None:
     from aerialmtl import runtime
     from aerialmtl.errors import InputError
-    from aerialmtl.inference.predict import mc_sample_batch, resolve_precision
+    from aerialmtl.inference.runner import mc_sample_batch
+    from aerialmtl.runtime import resolve_precision
 
     monkeypatch.setattr(runtime, "native_bf16", lambda device: True)
     assert resolve_precision("auto", torch.device("cpu")) == "fp32"  # torch's CPU path: fp32 (bench/RESULTS.md)

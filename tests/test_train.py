@@ -247,7 +247,7 @@ def test_cli_train_and_refuse_reuse(tiles: Path, tmp_path: Path) -> None:
 
 # ---- precision, compile, optimizer ----------------------------------------------------------------
 def test_precision_auto_is_fp32_on_cpu_and_the_default() -> None:
-    from aerialmtl.training.trainer import resolve_precision
+    from aerialmtl.runtime import resolve_precision
 
     assert TrainConfig().precision == "auto"
     assert resolve_precision("auto", torch.device("cpu")) == "fp32"

@@ -83,8 +83,10 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     \b
         torchrun --nproc_per_node N -m aerialmtl train --config C --data D --out RUN
     """
+    from aerialmtl import runtime
+    from aerialmtl.errors import ConfigError
     from aerialmtl.training.config import load_train_config
-    from aerialmtl.training.distributed import DistContext, install_stop_handler
+    from aerialmtl.training.distributed import install_stop_handler
     from aerialmtl.training.loop import check_budget
     from aerialmtl.training.loop import train as train_loop
 
@@ -110,7 +112,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
         cfg = cfg.with_overrides(**overrides)
     data = data_dir if data_dir is not None else cfg.data.dir
     folder = OutputFolder(out_dir, "train", inputs={"data_dir": data, "init_ckpt": init_ckpt}, what="run folder")
-    ctx = DistContext.from_env(cfg.device)
+    ctx = runtime.Torchrun.start(cfg.device, runtime.COLLECTIVE_TIMEOUT, ConfigError)
     try:
         with contextlib.ExitStack() as stack:  # the run folder's lock, held until training ends
             if ctx.distributed:
@@ -120,7 +122,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
             result = train_loop(cfg, data_dir=data_dir, out_dir=out_dir, max_steps=max_steps, max_time_s=max_time,
                                 resume=resume, progress=not quiet, init=init_ckpt, ctx=ctx)
     finally:
-        ctx.close()
+        ctx.leave()
     if not ctx.is_main:
         return
     m = result.metrics

@@ -38,10 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from aerialmtl import runtime
-from aerialmtl.errors import AerialMTLError, InputError
+from aerialmtl.errors import AerialMTLError, InputError, PeerFailure
 from aerialmtl.formats.prediction import PredictionFolder, folder_files, mosaic_filename, mosaic_files
 from aerialmtl.formats.qgis_style import write_raster_style
 from aerialmtl.formats.stac import collection_files, write_collection
@@ -53,43 +51,6 @@ from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
-
-#: How long a rank waits for the others at the end of its share (:data:`aerialmtl.runtime.SHARE_TIMEOUT`).
-WAIT_FOR_OTHERS = runtime.SHARE_TIMEOUT
-
-
-class PredictionFailed(AerialMTLError, RuntimeError):
-    """An input failed in a distributed run (the message names the input, the rank and the cause)."""
-
-
-# ---- processes ---------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Ranks(runtime.Torchrun):
-    """This process's place in a torchrun job (``rank`` 0 of 1 outside torchrun), with the collectives
-    prediction needs (:class:`aerialmtl.runtime.Torchrun`)."""
-
-    @classmethod
-    def from_env(cls) -> Ranks:
-        env = runtime.Torchrun.from_env()
-        return cls(env.rank, env.world, env.local_rank)
-
-    def start(self, device: torch.device | str) -> None:
-        """Join the process group (gloo for CPUs, NCCL for GPUs), waiting up to :data:`WAIT_FOR_OTHERS`."""
-        self.join(torch.device(device), WAIT_FOR_OTHERS)
-
-    def gather(self, obj: Any) -> list[Any]:
-        """Every rank's ``obj``, in rank order (a collective: every rank must call it)."""
-        if self.world == 1:
-            return [obj]
-        import torch.distributed as dist
-
-        out: list[Any] = [None] * self.world
-        dist.all_gather_object(out, obj)
-        return out
-
-    def stop(self) -> None:
-        if self.world > 1:
-            self.leave()
 
 
 # ---- planning ----------------------------------------------------------------------------------
@@ -185,7 +146,7 @@ class JobResult:
     #: inputs whose earlier outputs ``skip_existing`` recomputed → why they were not complete for this run
     recomputed: dict[str, str] = field(default_factory=dict)
     mosaics: dict[str, Path] = field(default_factory=dict)
-    ranks: Ranks = field(default_factory=Ranks)
+    ranks: runtime.Torchrun = field(default_factory=runtime.Torchrun)
 
 
 def predict_many(
@@ -218,25 +179,25 @@ def predict_many(
 
     Raises:
         OutputExistsError: an input's outputs exist (neither ``overwrite`` nor ``skip_existing``).
-        PredictionFailed: an input failed on another rank (distributed runs).
+        PeerFailure: an input failed on another rank (distributed runs).
     """
-    ranks = Ranks.from_env()
+    ranks = runtime.Torchrun.from_env()
     targets = targets_for(orthos, out)
-    device = ranks.device(str(predictor_args.pop("device", "auto")))
+    device = ranks.resolve_device(str(predictor_args.pop("device", "auto")))
     predictor = Predictor(checkpoint, device=str(device), **predictor_args)
     with runtime.gdal_env():
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = check_input(t.ortho, predictor)
-    ranks.start(predictor.device)
+    ranks.join(predictor.device, runtime.SHARE_TIMEOUT)
     try:
         with contextlib.ExitStack() as held:
             _hold_folders(held, targets, Path(out), ranks, aoi)
             return _run(predictor, targets, Path(out), ranks, aoi, overwrite, skip_existing, progress, on_result)
     finally:
-        ranks.stop()
+        ranks.leave()
 
 
-def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: Ranks,
+def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: runtime.Torchrun,
                   aoi: str | Path | None) -> None:
     """Take the job's output folders (:class:`~aerialmtl.io.outputs.OutputFolder`: every input's prediction
     folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error."""
@@ -255,7 +216,7 @@ def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Pa
         raise errors[0]
 
 
-def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, aoi: str | Path | None,
+def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun, aoi: str | Path | None,
          overwrite: bool, skip_existing: bool, progress: bool,
          on_result: Callable[[PredictResult], None] | None) -> JobResult:
     job = JobResult(ranks=ranks)
@@ -361,7 +322,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
                     remove_leftovers(t.out)
         ortho, rank, message = all_failures[0]
         more = f" ({len(all_failures) - 1} more input(s) failed too)" if len(all_failures) > 1 else ""
-        raise PredictionFailed(
+        raise PeerFailure(
             f"rank {rank} failed on input '{ortho}': {message}{more}; the other inputs are complete: fix it and "
             "re-run with ‹skip_existing=True› to finish"
         )
@@ -388,5 +349,5 @@ def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) ->
     return mosaics
 
 
-__all__ = ["JobResult", "PredictionFailed", "Ranks", "Share", "Target", "check_input", "partition",
+__all__ = ["JobResult", "Share", "Target", "check_input", "partition",
            "predict_many", "targets_for", "write_mosaics"]

@@ -60,17 +60,9 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.engines import resolve_engine
-from aerialmtl.inference.ortho import GSD_TOLERANCE, OrthoInput
+from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
-from aerialmtl.inference.runner import (
-    DECODE_PIXELS,
-    ModelRunner,
-    Precision,
-    auto_batch_size,
-    mc_sample_batch,
-    resolve_device,
-    resolve_precision,
-)
+from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_finite_outputs, check_input_values, rescaled
 from aerialmtl.inference.stitch import Stitcher
 from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
@@ -78,7 +70,7 @@ from aerialmtl.inference.writer import PredictionWriter
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.models.mc_dropout import McStatistics
-from aerialmtl.runtime import GDAL_CACHE_MB, gdal_env
+from aerialmtl.runtime import gdal_env
 
 #: MC-dropout samples when neither the caller nor the checkpoint says otherwise.
 DEFAULT_MC_SAMPLES = 30
@@ -189,7 +181,7 @@ class Predictor:
             from the free memory on CUDA, :data:`~aerialmtl.inference.runner.CPU_BATCH` on a CPU).
         precision: ``"auto"``, ``"bf16"`` or ``"fp32"``. ``auto`` is bf16 where the hardware computes it
             natively and the engine gains from it: CUDA GPUs with bf16; CPUs with AVX-512-BF16 or AMX on
-            the OpenVINO engine; CPUs with AMX on the torch engine (:func:`resolve_precision`); fp32
+            the OpenVINO engine; CPUs with AMX on the torch engine (:func:`aerialmtl.runtime.resolve_precision`); fp32
             elsewhere. bf16 is autocast on torch and the inference precision on OpenVINO.
         engine: ``"auto"``, ``"torch"`` or ``"openvino"`` (:mod:`aerialmtl.inference.engines`): ``auto``
             is OpenVINO on a CPU when it is installed (and the model a D3-Net), torch otherwise.
@@ -217,7 +209,7 @@ class Predictor:
         tile: int = 1024,
         overlap: int = 64,
         batch_size: BatchSize = 2,
-        precision: Precision = "auto",
+        precision: runtime.Precision = "auto",
         device: str = "auto",
         probabilities: bool = False,
         max_decode_pixels: int | None = None,
@@ -237,13 +229,13 @@ class Predictor:
         if batch_size != "auto" and (not isinstance(batch_size, int) or batch_size < 1):
             raise InputError(f"‹batch_size› must be ≥ 1 or 'auto', got {batch_size!r}; pass e.g. ‹batch_size=4›",
                              param="batch_size")
-        self.device = resolve_device(device)
-        resolve_precision(precision, self.device)  # a bad value fails before the checkpoint is read
+        self.device = runtime.resolve_device(device)
+        runtime.resolve_precision(precision, self.device)  # a bad value fails before the checkpoint is read
         model, self.meta, name = _load(checkpoint)
         #: The engine that runs the model: ``"torch"`` or ``"openvino"``.
         self.engine = resolve_engine(engine, self.device, model)
-        self.precision = resolve_precision(precision, self.device,
-                                           cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
+        self.precision = runtime.resolve_precision(precision, self.device,
+                                                   cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
         if compile and self.engine != "torch":
             warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
                           UserWarning, stacklevel=2)
@@ -577,7 +569,7 @@ def predict_raster(
     tile: int = 1024,
     overlap: int = 64,
     batch_size: BatchSize = 2,
-    precision: Precision = "auto",
+    precision: runtime.Precision = "auto",
     device: str = "auto",
     aoi: str | Path | None = None,
     probabilities: bool = False,
@@ -610,6 +602,4 @@ def predict_raster(
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 
-__all__ = ["DECODE_PIXELS", "DEFAULT_MC_SAMPLES", "GDAL_CACHE_MB", "GSD_TOLERANCE", "OrthoInput", "PredictResult",
-           "Predictor", "StripResult", "gdal_env", "mc_sample_batch", "model_grid", "predict_raster",
-           "resolve_precision"]
+__all__ = ["DEFAULT_MC_SAMPLES", "PredictResult", "Predictor", "StripResult", "model_grid", "predict_raster"]

@@ -34,8 +34,8 @@ from pathlib import Path
 from aerialmtl.errors import InputError
 from aerialmtl.formats.run import LOG_COLUMNS
 from aerialmtl.io.outputs import OutputFolder
+from aerialmtl.runtime import Torchrun
 from aerialmtl.training.config import TrainConfig
-from aerialmtl.training.distributed import DistContext, resolve_device
 from aerialmtl.training.state import seed_everything
 from aerialmtl.training.trainer import Trainer, TrainResult
 
@@ -61,7 +61,7 @@ def train(
     resume: bool = False,
     progress: bool = True,
     init: str | Path | None = None,
-    ctx: DistContext | None = None,
+    ctx: Torchrun | None = None,
 ) -> TrainResult:
     """Train a D3-Net on a tile folder and write checkpoints, a CSV log and the resolved config.
 
@@ -103,4 +103,4 @@ def train(
             trainer.close()
 
 
-__all__ = ["check_budget", "train", "TrainResult", "resolve_device", "seed_everything", "LOG_COLUMNS"]
+__all__ = ["check_budget", "train", "TrainResult", "seed_everything", "LOG_COLUMNS"]

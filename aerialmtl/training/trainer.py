@@ -61,7 +61,6 @@ from aerialmtl.io.oserrors import writing
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
-from aerialmtl.training.distributed import DistContext
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import Objective, class_weights, validation_score
 from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_everything, set_rng_state
@@ -78,20 +77,6 @@ def user_cache_dir(root: Path) -> Path:
 #: Whether ``precision: auto`` trains in bf16 autocast on a CPU with native bf16 (measured: bench/RESULTS.md,
 #: "CPU training precision"; fp32 until bf16 is both faster and as good there).
 CPU_BF16_TRAINING = False
-
-
-def resolve_precision(precision: str, device: torch.device) -> str:
-    """``auto`` → ``bf16`` where the device computes it natively and training gains from it (CUDA GPUs
-    with bf16; CPUs only if :data:`CPU_BF16_TRAINING`), else ``fp32``; others unchanged
-    (:func:`aerialmtl.runtime.resolve_precision`)."""
-    if precision == "auto":
-        return runtime.resolve_precision("auto", device, cpu_bf16=CPU_BF16_TRAINING)
-    return precision
-
-
-def autocast(device: torch.device, precision: str) -> Any:
-    """bf16 autocast for ``precision == "bf16"`` (:func:`aerialmtl.runtime.autocast`)."""
-    return runtime.autocast(device, precision)
 
 
 def build_optimizer(optim: OptimSection, model: nn.Module, weighting: nn.Module) -> torch.optim.Optimizer:
@@ -136,7 +121,7 @@ class StepModule(nn.Module):
         self._net[0] = net
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        with autocast(self.device, self.precision):
+        with runtime.autocast(self.device, self.precision):
             out = self.net(batch["image"])
         losses = self.objective(out, batch)
         return self.weighting(self.objective.weighted(losses)), losses
@@ -150,7 +135,7 @@ class LossWindow:
     ``hint()``, what to do, appended).
     """
 
-    def __init__(self, tasks: tuple[str, ...], ctx: DistContext, hint: Callable[[], str] | None = None) -> None:
+    def __init__(self, tasks: tuple[str, ...], ctx: runtime.Torchrun, hint: Callable[[], str] | None = None) -> None:
         self.tasks, self.ctx = tasks, ctx
         self.hint = hint if hint is not None else (lambda: "")
         self.pending: list[torch.Tensor] = []
@@ -166,7 +151,7 @@ class LossWindow:
     def flush(self) -> None:
         if not self.pending:
             return
-        values = self.ctx.all_reduce_sum(torch.stack(self.pending)) / self.ctx.world_size
+        values = self.ctx.all_reduce_sum(torch.stack(self.pending)) / self.ctx.world
         rows = values.cpu().tolist()
         first = self.first_step
         self.pending = []
@@ -260,15 +245,17 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, data_dir: str | Path | None = None, out_dir: str | Path = "runs/train", *,
                  max_steps: int | None = None, max_time_s: float | None = None, resume: bool = False,
-                 init: str | Path | None = None, progress: bool = True, ctx: DistContext | None = None) -> None:
+                 init: str | Path | None = None, progress: bool = True, ctx: runtime.Torchrun | None = None) -> None:
         self.t0 = time.perf_counter()
         if resume and init is not None:
             raise ConfigError("init: a resumed run continues its own weights; pass init only when starting a run")
         self.cfg = cfg
         self.owns_ctx = ctx is None
-        self.ctx = ctx if ctx is not None else DistContext.from_env(cfg.device)
+        if ctx is None:
+            ctx = runtime.Torchrun.start(cfg.device, runtime.COLLECTIVE_TIMEOUT, ConfigError)
+        self.ctx = ctx
         self.device = self.ctx.device
-        self.precision = resolve_precision(cfg.precision, self.device)
+        self.precision = runtime.resolve_precision(cfg.precision, self.device, cpu_bf16=CPU_BF16_TRAINING)
         self.steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
         self.time_cap = max_time_s if max_time_s is not None else cfg.schedule.max_time_s
         self.progress = progress and self.ctx.is_main
@@ -362,7 +349,7 @@ class Trainer:
         cfg, ctx, nw = self.cfg.data, self.ctx, self.cfg.data.num_workers
         folder, train_index, val_index = self.cache_folder, self.train_index, self.val_index
         pin = self.device.type == "cuda"
-        self.plan = EpochPlan(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world_size)
+        self.plan = EpochPlan(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world)
         self.train_transform = build_train_transform(cfg.flips, cfg.rot90, cfg.jitter, cfg.crop_size)
         self.mean = torch.tensor(self.meta.mean, dtype=torch.float32, device=self.device)
         self.std = torch.tensor(self.meta.std, dtype=torch.float32, device=self.device)
@@ -378,7 +365,7 @@ class Trainer:
         if val_index is not None:
             self.val_loader = torch.utils.data.DataLoader(
                 CachedBatches(PatchCache(folder, val_index), self.eval_transform, self.tasks, in_workers),
-                sampler=eval_batches(val_index.count, cfg.batch_size, ctx.rank, ctx.world_size),
+                sampler=eval_batches(val_index.count, cfg.batch_size, ctx.rank, ctx.world),
                 batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
                 generator=torch.Generator().manual_seed(self.cfg.seed))
         elif ctx.is_main:
@@ -442,7 +429,7 @@ class Trainer:
         hm, cm = HeightMeter(), ConfusionMeter(self.k or 2)
         for raw in self.val_loader:
             batch = prepare_batch(raw, self.eval_transform, self.mean, self.std, self.device)
-            with autocast(self.device, self.precision):
+            with runtime.autocast(self.device, self.precision):
                 out = self.model(batch["image"])
             losses = self.objective(out, batch)
             for i, t in enumerate(self.tasks):
@@ -524,14 +511,14 @@ class Trainer:
         if bad is not None:
             raise NonFiniteError(f"training diverged at step {self.state.step}: weight '{bad}' holds NaN or inf; "
                                  f"{self.recovery_hint()}")
-        rngs = self.ctx.gather_objects(rng_state())
+        rngs = self.ctx.gather(rng_state())
         if not self.ctx.is_main:
             if target == self.paths["last.pt"]:
                 self.saved_step = self.state.step
             return
         state = {"optimizer": self.optimizer.state_dict(), "weighting": self.weighting.state_dict(),
                  **self.state.to_dict(self.plan.global_batch), "rng": rngs[0], "rng_ranks": rngs,
-                 "world_size": self.ctx.world_size, "global_batch": self.plan.global_batch,
+                 "world_size": self.ctx.world, "global_batch": self.plan.global_batch,
                  "config": self.cfg.to_dict()}
         save_checkpoint(target, self.model, self.meta, state)
         if target == self.paths["last.pt"]:
@@ -590,7 +577,7 @@ class Trainer:
             raise self._bad_state(path, "its counters or task weighting are incomplete", exc) from exc
         self.saved_step = self.state.step
         ranks = ts.get("rng_ranks")
-        if ranks and int(ts.get("world_size", 1)) == self.ctx.world_size:
+        if ranks and int(ts.get("world_size", 1)) == self.ctx.world:
             rng = ranks[self.ctx.rank]
         elif self.ctx.rank == 0:
             rng = ts.get("rng")
@@ -691,8 +678,8 @@ class Trainer:
                         break
                 stopped_by = self.done()
         except RuntimeError as exc:  # DDP's gradient all-reduce: a peer process is gone
-            if self.ctx.distributed and distributed.is_peer_error(exc):
-                raise distributed.PeerFailure(distributed.peer_failure_message(exc)) from exc
+            if self.ctx.distributed and runtime.is_peer_error(exc):
+                raise runtime.peer_failure(exc) from exc
             raise
         finally:
             bar.close()
@@ -732,8 +719,8 @@ class Trainer:
     def close(self) -> None:
         """Release the process group if this trainer created it."""
         if self.owns_ctx:
-            self.ctx.close()
+            self.ctx.leave()
 
 
-__all__ = ["Trainer", "TrainResult", "StepModule", "LossWindow", "build_optimizer", "resolve_precision", "autocast",
+__all__ = ["Trainer", "TrainResult", "StepModule", "LossWindow", "build_optimizer",
            "RUN_FILES"]
