@@ -179,11 +179,11 @@ class CompileFallback:
             if isinstance(exc, AerialMTLError):  # our own checks (input shapes...) are not compile failures
                 raise
             self.failed = True
-            warn_compile_failed(exc, self.what)
+            _warn_compile_failed(exc, self.what)
             return eager(*args)
 
 
-def warn_compile_failed(exc: BaseException, what: str = "the model") -> None:
+def _warn_compile_failed(exc: BaseException, what: str = "the model") -> None:
     """The one warning when ``torch.compile`` cannot be used."""
     why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
     warnings.warn(f"compile: torch.compile failed, torch.compile is not available here ({why}); running {what} "
@@ -370,5 +370,4 @@ def gdal_env() -> rasterio.Env:
 
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "CompileFallback", "GDAL_CACHE_MB", "Precision",
            "Resolved", "SHARE_TIMEOUT", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env",
-           "is_peer_error", "native_bf16", "peer_failure", "resolve_device", "resolve_precision",
-           "warn_compile_failed"]
+           "is_peer_error", "native_bf16", "peer_failure", "resolve_device", "resolve_precision"]

@@ -46,7 +46,7 @@ from aerialmtl.config import to_dict
 from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
-from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, NonFiniteError, OutputError
+from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, OutputError
 from aerialmtl.formats.checkpoint import (
     ModelMeta,
     check_same_data,
@@ -101,28 +101,21 @@ class StepModule(nn.Module):
     """Forward + losses + task weighting of a batch: ``(total, {task: loss})``.
 
     This is what DistributedDataParallel wraps, so the gradients of the learned task weighting are
-    averaged over processes like the network's. ``net`` is the callable run on the image (the model, or
-    its ``torch.compile`` wrapper sharing the same parameters).
+    averaged over processes like the network's. With ``compile`` the model's ``forward`` runs through
+    ``torch.compile`` with the package's one fallback (:class:`aerialmtl.runtime.CompileFallback`: eager
+    from the first failure on, with one warning).
     """
 
     def __init__(self, model: nn.Module, weighting: nn.Module, objective: Objective, device: torch.device,
-                 precision: str) -> None:
+                 precision: str, compile: bool = False) -> None:
         super().__init__()
         self.model, self.weighting = model, weighting
         self.objective, self.device, self.precision = objective, device, precision
-        self._net: list[Any] = [model]  # a list: not registered as a second copy of the model's parameters
-
-    @property
-    def net(self) -> Any:
-        return self._net[0]
-
-    def use(self, net: Any) -> None:
-        """Run ``net`` (the model or its compiled wrapper) on the images from now on."""
-        self._net[0] = net
+        self.compiled = runtime.CompileFallback(model, "training") if compile else None
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         with runtime.autocast(self.device, self.precision):
-            out = self.net(batch["image"])
+            out = self.model(batch["image"]) if self.compiled is None else self.compiled("forward", batch["image"])
         losses = self.objective(out, batch)
         return self.weighting(self.objective.weighted(losses)), losses
 
@@ -289,10 +282,8 @@ class Trainer:
 
             load_init_weights(self.model, init, self.meta)
         self.seed_rank_stream(saved_rng)
-        self.step_module = StepModule(self.model, self.weighting, self.objective, self.device, self.precision)
-        self.compiled_ok = False
-        if cfg.compile:
-            self.step_module.use(torch.compile(self.model))
+        self.step_module = StepModule(self.model, self.weighting, self.objective, self.device, self.precision,
+                                      compile=cfg.compile)
         self.ddp = distributed.wrap(self.step_module, self.ctx)
         if self.ctx.is_main:
             self.write_config(data_dir if data_dir is not None else cfg.data.dir)
@@ -396,15 +387,7 @@ class Trainer:
     # ---- the step -----------------------------------------------------------------------------------
     def train_step(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """One optimisation step on a prepared batch; returns the detached total and task losses."""
-        try:
-            total, losses = self.ddp(batch)
-        except Exception as exc:  # torch.compile failed at its first call: continue without it
-            if self.step_module.net is self.model or self.compiled_ok or isinstance(exc, AerialMTLError):
-                raise
-            runtime.warn_compile_failed(exc, "training")
-            self.step_module.use(self.model)
-            total, losses = self.ddp(batch)
-        self.compiled_ok = True
+        total, losses = self.ddp(batch)
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         self.optimizer.step()
