@@ -13,7 +13,7 @@
   process, joining the process group (gloo on CPUs, NCCL on GPUs) with a stated timeout
   (:data:`COLLECTIVE_TIMEOUT` for training, whose collectives are in step; :data:`SHARE_TIMEOUT` for
   prediction, whose ranks wait for each other's whole share of the work at the end).
-* **GDAL** — :func:`gdal_env`: a bounded block cache while rasters are streamed.
+* **GDAL** — :func:`gdal_env`: a bounded block cache while rasters are streamed (tile, predict, buildings).
 
 The trainer (:mod:`aerialmtl.training.trainer`, :mod:`aerialmtl.training.distributed`) and the predictor
 (:mod:`aerialmtl.inference.predict`, :mod:`aerialmtl.inference.jobs`) both use this module.
@@ -362,10 +362,17 @@ def _collective(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
 
 
 # ---- GDAL ---------------------------------------------------------------------------------------
-def gdal_env() -> rasterio.Env:
-    """GDAL settings while streaming rasters: the block cache bounded to :data:`GDAL_CACHE_MB` unless
-    the user set ``GDAL_CACHEMAX``."""
-    return rasterio.Env() if "GDAL_CACHEMAX" in os.environ else rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
+def gdal_env(cache_mb: int = GDAL_CACHE_MB, **options: Any) -> rasterio.Env:
+    """GDAL settings while a command streams rasters (the one place that sets GDAL's block cache).
+
+    Args:
+        cache_mb: GDAL's block cache in MiB (prediction: :data:`GDAL_CACHE_MB`; each command states its
+            own size and why); a ``GDAL_CACHEMAX`` environment variable wins.
+        options: other GDAL configuration options for the block (e.g. ``GDAL_TIFF_INTERNAL_MASK=True``).
+    """
+    if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
+        options["GDAL_CACHEMAX"] = cache_mb * 1024 * 1024  # bytes: unambiguous for GDAL and rasterio
+    return rasterio.Env(**options)
 
 
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "CompileFallback", "GDAL_CACHE_MB", "Precision",

@@ -70,7 +70,6 @@ from aerialmtl.inference.writer import PredictionWriter
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.models.mc_dropout import McStatistics
-from aerialmtl.runtime import gdal_env
 
 #: MC-dropout samples when neither the caller nor the checkpoint says otherwise.
 DEFAULT_MC_SAMPLES = 30
@@ -477,7 +476,7 @@ class Predictor:
         """
         started = time.perf_counter()
         given = ortho.path if isinstance(ortho, OrthoInput) else ortho
-        with gdal_env(), OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
+        with runtime.gdal_env(), OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
                                       what="prediction folder"):
             src = self.open(ortho, grid=grid, warn=grid is None)
             strip = self.strip(src, out, aoi=aoi, overwrite=overwrite, check_outputs=check_outputs, progress=progress)

@@ -61,6 +61,7 @@ from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
+from aerialmtl.runtime import gdal_env
 from aerialmtl.tiling.grid import count_windows, tile_windows
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
 
@@ -302,10 +303,7 @@ def tile_dataset(
     stride = size if stride is None else stride
     scheme = _check_arguments(size, stride, min_valid, dsm, dtm, ndsm, labels, labels_vector, class_field, classes)
     grid = reference_grid(ortho, gsd)
-    env: dict[str, Any] = {"GDAL_TIFF_INTERNAL_MASK": True}
-    if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
-        env["GDAL_CACHEMAX"] = DEFAULT_CACHE_MB * 1024 * 1024  # bytes (unambiguous for GDAL and rasterio)
-    with rasterio.Env(**env), TileSources(
+    with gdal_env(DEFAULT_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True), TileSources(
         ortho, grid, bands=bands, dsm=dsm, dtm=dtm, ndsm=ndsm, ndsm_options=ndsm_options, labels=labels,
         labels_vector=labels_vector, class_field=class_field, scheme=scheme, ignore_unknown_codes=ignore_unknown_codes,
     ) as sources:
