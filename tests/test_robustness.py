@@ -31,7 +31,7 @@ from rasterio.warp import transform_bounds
 from aerialmtl.cli import main
 from aerialmtl.errors import AlignmentError
 from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
-from aerialmtl.inference.writer import ALL_OUTPUTS
+from aerialmtl.formats.prediction import ALL_FILES
 from aerialmtl.io.cog import cog_problems
 
 CRS = "EPSG:32631"
@@ -84,7 +84,7 @@ def rgb(tmp_path: Path, name: str = "ortho.tif", size: tuple[int, int] = (64, 64
 
 
 def no_final_outputs(out: Path) -> bool:
-    return not any((out / f).exists() for f in ALL_OUTPUTS)
+    return not any((out / f).exists() for f in ALL_FILES)
 
 
 @pytest.fixture(scope="module")

@@ -40,13 +40,13 @@ from typing import Any
 
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError, PeerFailure
-from aerialmtl.formats.prediction import PredictionFolder, folder_files, mosaic_filename, mosaic_files
+from aerialmtl.formats.prediction import ALL_FILES, PredictionFolder, folder_files, mosaic_filename, mosaic_files
 from aerialmtl.formats.qgis_style import write_raster_style
 from aerialmtl.formats.stac import collection_files, write_collection
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
-from aerialmtl.inference.writer import check_outputs_free, remove_leftovers
+from aerialmtl.inference.writer import prediction_folder
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
@@ -240,11 +240,11 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
     if not overwrite:  # once per input, before any work
         for k in todo:
             if k not in replace:
-                check_outputs_free(targets[k].out, files, overwrite=False)
+                prediction_folder(targets[k].out, "out").claim(files, overwrite=False)
         if len(targets) > 1:  # the mosaics and collection.json: a user's own are never replaced silently
             owned = set(collection_files(out))
-            check_outputs_free(out, [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned],
-                               overwrite=False)
+            prediction_folder(out, "out").claim(
+                [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned], overwrite=False)
     if ranks.rank == 0:
         for k in todo:
             src = targets[k].src
@@ -260,7 +260,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
              if s.start > 0 or s.stop < len(targets[todo[s.target]].plan.window_rows)}  # type: ignore[union-attr]
     if ranks.rank == 0:  # hidden files of killed runs: removed before any rank writes
         for k in todo:
-            remove_leftovers(targets[k].out)
+            prediction_folder(targets[k].out).remove_leftovers(ALL_FILES)
     ranks.gather(None)  # barrier
 
     failures: list[tuple[str, int, str]] = []
@@ -302,7 +302,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
         others = [res for st, _ in gathered for kk, res in st.items() if kk == k and res.row_start != first.row_start]
         if str(t.ortho) in failed:
             first.writer.abort()
-            remove_leftovers(t.out)
+            prediction_folder(t.out).remove_leftovers(ALL_FILES)
             continue
         try:
             res = predictor.commit(t.src, t.out, [first, *others], aoi=aoi, processes=1 + len(others))
@@ -319,7 +319,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
         if ranks.rank == 0:  # strips of failed inputs: hidden files only, final paths untouched
             for t in targets:
                 if str(t.ortho) in {f[0] for f in all_failures} and t.out.is_dir():
-                    remove_leftovers(t.out)
+                    prediction_folder(t.out).remove_leftovers(ALL_FILES)
         ortho, rank, message = all_failures[0]
         more = f" ({len(all_failures) - 1} more input(s) failed too)" if len(all_failures) > 1 else ""
         raise PeerFailure(

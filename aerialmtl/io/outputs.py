@@ -45,8 +45,13 @@ from aerialmtl.errors import InputError, OutputError, OutputExistsError, OutputI
 LOCK_FILE = ".aerialmtl.lock"
 #: Tag of the staging file of a final file: ``.NAME.partial``.
 PARTIAL = "partial"
+#: Tag of a raster written block by block before its final form (``.NAME.staging``, ``.NAME.staging-<row>``
+#: for one process's strip of rows).
+STAGING = "staging"
+#: Tag of the VRT that joins the strips of several processes (``.NAME.merge.vrt``).
+MERGE_VRT = "merge.vrt"
 #: Tags of hidden files a command may leave beside ``NAME`` while writing it (``.NAME.<tag>...``).
-STAGING_TAGS = (PARTIAL, "staging", "merge.vrt")
+STAGING_TAGS = (PARTIAL, STAGING, MERGE_VRT)
 
 try:  # POSIX
     import fcntl
@@ -476,6 +481,6 @@ def _remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write",
+__all__ = ["LOCK_FILE", "MERGE_VRT", "PARTIAL", "STAGING", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write",
            "check_files_not_input", "check_not_input", "is_job_leader", "is_local_path", "is_staging_of", "job_id",
            "make_output_dir", "staging_path", "write_text", "write_text_atomic"]

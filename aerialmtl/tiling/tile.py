@@ -47,7 +47,6 @@ from aerialmtl.formats.tiles import (
     HEIGHT_NODATA,
     MANIFEST_COLUMNS,
     MANIFEST_CSV,
-    STAGING_DIR,
     STAGING_NAME,
     ManifestWriter,
     TileFolderInfo,
@@ -57,7 +56,7 @@ from aerialmtl.formats.tiles import (
 )
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import OutputFolder
+from aerialmtl.io.outputs import OutputFolder, staging_path
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
@@ -312,7 +311,7 @@ def tile_dataset(
         with OutputFolder(out_dir, "tile", inputs=inputs, what="tile folder") as folder:
             folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
             owned = _claim(folder, overwrite)
-            stage = out_dir / STAGING_DIR
+            stage = staging_path(out_dir / STAGING_NAME)
             stage.mkdir()
             try:
                 result = _tile_loop(sources, assigner, grid, stage, size, stride, min_valid, progress)
