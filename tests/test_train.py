@@ -224,6 +224,7 @@ def test_cli_train_and_refuse_reuse(tiles: Path, tmp_path: Path) -> None:
     from click.testing import CliRunner
 
     from aerialmtl.cli import cli
+    from aerialmtl.cli.options import flags_for
 
     cfg_path = tmp_path / "c.yaml"
     cfg_path.write_text(yaml.safe_dump(tiny_cfg().to_dict()))
@@ -234,7 +235,9 @@ def test_cli_train_and_refuse_reuse(tiles: Path, tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     assert str(run / "best.pt") in res.output and str(run / "last.pt") in res.output
     res = CliRunner().invoke(cli, args)
-    assert isinstance(res.exception, OutputExistsError) and "--resume" in str(res.exception)
+    assert isinstance(res.exception, OutputExistsError)  # the message names the options on the command line
+    assert "--resume" in res.exception.render(flags_for("train")) and "--overwrite" in res.exception.render(
+        flags_for("train"))
     res = CliRunner().invoke(cli, ["train", "--data", str(tiles), "--out", str(run), "--max-steps", "3",
                                    "--resume", "--quiet"])  # config taken from RUN/config.yaml
     assert res.exit_code == 0, res.output
