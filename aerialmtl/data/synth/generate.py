@@ -24,6 +24,7 @@ from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
 from aerialmtl.formats.tiles import HEIGHT_NODATA
 from aerialmtl.io.outputs import OutputFolder, atomic_write
+from aerialmtl.io.profiles import light_compression, raster_profile
 
 #: Version of the generator; bump it whenever the same seed would produce different rasters.
 SYNTH_VERSION = "1"
@@ -53,9 +54,9 @@ class SynthResult:
 
 def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict:
     block = 256 if size >= 256 else None
-    profile = dict(driver="GTiff", width=size, height=size, count=count, dtype=dtype, crs=crs,
-                   transform=transform, nodata=nodata, compress="zstd", zstd_level=1,
-                   predictor=3 if dtype == "float32" else 2, num_threads="ALL_CPUS", bigtiff="IF_SAFER")
+    profile = raster_profile(crs, transform, size, size, count, dtype, nodata)
+    profile.update(light_compression(), predictor=3 if dtype == "float32" else 2, num_threads="ALL_CPUS",
+                   bigtiff="IF_SAFER")
     if block:
         profile.update(tiled=True, blockxsize=block, blockysize=block)
     if count == 3:
