@@ -163,7 +163,8 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
 def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path | None,
                    labels_ref: Path | None) -> Path | None:
     """Draw ``overview.png`` (:func:`preview_figure`) in ``folder``. Returns its path, or ``None`` without
-    matplotlib."""
+    matplotlib.
+    """
     fig = preview_figure(ortho, pred_dir, height_ref, labels_ref)
     if fig is None:
         return None
@@ -180,7 +181,8 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
 def preview_figure(ortho: Path, pred_dir: Path, height_ref: Path | None, labels_ref: Path | None) -> Any | None:
     """Ortho, reference/predicted height, height std, reference/predicted classes, class entropy and mutual
     information side by side: float layers with a colour bar in their unit (the colour maps of their QGIS
-    styles), class maps with a legend of the class names. ``None`` without matplotlib."""
+    styles), class maps with a legend of the class names. ``None`` without matplotlib.
+    """
     try:
         import matplotlib
 

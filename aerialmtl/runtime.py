@@ -166,6 +166,7 @@ class CompileFallback:
         self.failed = False
 
     def __call__(self, name: str, *args: Any) -> Any:
+        """Call method ``name`` of the module, compiled where it can be."""
         eager = getattr(self.module, name)
         if self.failed:
             return eager(*args)

@@ -141,12 +141,14 @@ class PixelBuilding:
 
     @property
     def n_pixels(self) -> int:
+        """Pixels of the piece."""
         return int(self.values["class"].size)
 
 
 class _Groups:
     """Union–find over building pieces that also knows, per group, its pieces and how many block edges
-    through which it may still continue (an open edge of one of its pieces)."""
+    through which it may still continue (an open edge of one of its pieces).
+    """
 
     def __init__(self) -> None:
         self.parent: dict[int, int] = {}

@@ -21,7 +21,8 @@ from aerialmtl.cli.options import overwrite_option
 @overwrite_option(help="Reuse a non-empty OUT folder.")
 def demo(out: Path, train_seconds: float, train_size: int, test_size: int, mc: int, overwrite: bool) -> None:
     """Synthesize a training and a test town, tile, train the small D3-Net, predict with MC dropout,
-    evaluate, and write GeoTIFFs, a report and PNG previews into OUT."""
+    evaluate, and write GeoTIFFs, a report and PNG previews into OUT.
+    """
     from aerialmtl.demo import DemoSettings, run_demo
 
     settings = DemoSettings(train_size=train_size, test_size=test_size, train_seconds=train_seconds, mc=mc)

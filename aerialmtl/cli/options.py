@@ -70,6 +70,7 @@ class RasterPath(click.ParamType):
     name = "raster"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        """The GDAL path of ``value`` (URLs as ``/vsi...`` paths); a local path must be an existing file."""
         path = gdal_path(value)
         if is_local(path):
             p = Path(path)

@@ -82,9 +82,11 @@ class EpochPlan:
 
     @property
     def steps_per_epoch(self) -> int:
+        """Full global batches per epoch (the incomplete last one is dropped)."""
         return self.n // self.global_batch
 
     def permutation(self, epoch: int) -> torch.Tensor:
+        """The order of the patches in ``epoch`` (seeded by ``(seed, epoch)``: the same on every rank)."""
         return torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed * 7919 + epoch))
 
     def advance(self, epoch: int, position: int) -> tuple[int, int]:
@@ -120,7 +122,8 @@ class RankBatchSampler:
 
 def eval_batches(n: int, batch_size: int, rank: int = 0, world_size: int = 1) -> list[BatchSpec]:
     """Validation batches: consecutive patches in manifest order (the last one may be short), dealt
-    round-robin to the processes, so the union over ranks is the single-process set of batches."""
+    round-robin to the processes, so the union over ranks is the single-process set of batches.
+    """
     specs = [[(i, 0) for i in range(s, min(s + batch_size, n))] for s in range(0, n, batch_size)]
     return specs[rank::world_size]
 

@@ -392,6 +392,7 @@ class LabelReference:
         return self.scheme.remap(codes[0], valid, on_unknown=self.on_unknown, source=str(self.path))  # type: ignore[arg-type]
 
     def close(self) -> None:
+        """Close the label raster."""
         self.raster.close()
 
 

@@ -108,16 +108,19 @@ class ModelMeta:
                                   f"{list(self.input_range)}")
 
     def to_dict(self) -> dict[str, Any]:
+        """The metadata as plain types (stored in the checkpoint)."""
         return to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelMeta:
+        """Metadata from a checkpoint's plain dict (older keys read too)."""
         return from_dict(cls, data)
 
 
 def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:
     """``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an
-    integer ``dtype``: where nearly all values of images with these per-band statistics lie."""
+    integer ``dtype``: where nearly all values of images with these per-band statistics lie.
+    """
     lo = min(m - 3.0 * s for m, s in zip(mean, std))
     hi = max(m + 3.0 * s for m, s in zip(mean, std))
     if dtype is not None and np.dtype(dtype).kind in "ui":
@@ -145,7 +148,8 @@ def first_nonfinite(tensors: Any) -> str | None:
 
 def _os_error(exc: BaseException) -> OSError | None:
     """The ``OSError`` behind ``exc`` (torch.save reports a full disk as a RuntimeError raised while
-    handling the file object's OSError)."""
+    handling the file object's OSError).
+    """
     seen: BaseException | None = exc
     for _ in range(8):
         if seen is None:

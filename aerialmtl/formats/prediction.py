@@ -108,7 +108,8 @@ ALL_FILES = (tuple(layer_filename(n) for n in LAYERS) + tuple(style_filename(n) 
 def folder_files(names: Iterable[str]) -> list[str]:
     """Every file a prediction folder with layers ``names`` holds: the layers, their QGIS styles, the STAC
     item and ``prediction.json`` (last). A run claims all of them before writing, so that a user's own
-    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``."""
+    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``.
+    """
     names = list(names)
     return ([layer_filename(n) for n in names] + [style_filename(n) for n in names] + [ITEM_FILE, INFO_FILE])
 
@@ -125,7 +126,8 @@ def mosaic_style_filename(name: str) -> str:
 
 def mosaic_files(names: Iterable[str]) -> list[str]:
     """Every file a run over several inputs writes beside their folders for layers ``names``: each layer's VRT
-    mosaic and its QGIS style, and the STAC ``collection.json``."""
+    mosaic and its QGIS style, and the STAC ``collection.json``.
+    """
     names = list(names)
     return [mosaic_filename(n) for n in names] + [mosaic_style_filename(n) for n in names] + [COLLECTION_FILE]
 
@@ -158,6 +160,7 @@ class LayerSpec:
 
     @property
     def filename(self) -> str:
+        """The layer's file name in the prediction folder."""
         return layer_filename(self.name)
 
 
@@ -242,6 +245,7 @@ class PredictionFolder:
 
     @property
     def info_path(self) -> Path:
+        """The folder's ``prediction.json``."""
         return self.path / INFO_FILE
 
     def info(self) -> dict[str, Any]:
@@ -364,7 +368,8 @@ def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
 def input_fingerprint(path: str | Path, width: int, height: int, transform: Sequence[float],
                       crs: str) -> dict[str, Any]:
     """The fingerprint of an orthophoto: :func:`file_fingerprint` of a local file; for a remote or virtual
-    path (no ``stat``) the GDAL path with the raster's size, geotransform and CRS."""
+    path (no ``stat``) the GDAL path with the raster's size, geotransform and CRS.
+    """
     from aerialmtl.io.paths import is_local
 
     fp = file_fingerprint(path)

@@ -140,6 +140,7 @@ class TileFolderInfo:
 
     @property
     def num_bands(self) -> int:
+        """Number of orthophoto bands of the patches."""
         return len(self.bands)
 
     @property
@@ -280,6 +281,7 @@ class ManifestWriter:
         self._writer.writeheader()
 
     def writerow(self, row: dict[str, Any]) -> None:
+        """Append one manifest row (keys: :data:`MANIFEST_COLUMNS`)."""
         self._writer.writerow(row)
 
     def __enter__(self) -> ManifestWriter:
@@ -394,6 +396,7 @@ class PatchCacheIndex:
     shape: tuple[int, int, int]
 
     def to_dict(self) -> dict[str, Any]:
+        """The index as plain types (written as JSON)."""
         return {"format": CACHE_FORMAT, "version": CACHE_VERSION, "split": self.split,
                 "fingerprint": self.fingerprint, "count": self.count, "layers": list(self.layers),
                 "image_dtype": self.image_dtype, "shape": list(self.shape)}

@@ -64,10 +64,12 @@ class Target:
 
     @property
     def grid(self) -> Grid | None:
+        """The input's grid, once opened."""
         return None if self.src is None else self.src.grid
 
     @property
     def plan(self) -> Plan | None:
+        """The input's window plan, once opened."""
         return None if self.src is None else self.src.plan
 
 
@@ -200,7 +202,8 @@ def predict_many(
 def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: runtime.Torchrun,
                   aoi: str | Path | None) -> None:
     """Take the job's output folders (:class:`~aerialmtl.io.outputs.OutputFolder`: every input's prediction
-    folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error."""
+    folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error.
+    """
     error: BaseException | None = None
     if ranks.rank == 0:
         try:
@@ -338,7 +341,8 @@ def _one_line(exc: BaseException) -> str:
 
 def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) -> dict[str, Path]:
     """One VRT per layer over every input's folder (:func:`~aerialmtl.formats.prediction.mosaic_filename`),
-    each with its QGIS style, and the STAC ``collection.json`` linking the inputs' items and the mosaics."""
+    each with its QGIS style, and the STAC ``collection.json`` linking the inputs' items and the mosaics.
+    """
     mosaics, styles = {}, {}
     for spec in predictor.layers:
         sources = [t.out / spec.filename for t in targets if (t.out / spec.filename).is_file()]

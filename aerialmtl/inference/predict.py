@@ -261,6 +261,7 @@ class Predictor:
 
     @property
     def model(self) -> torch.nn.Module:
+        """The prepared model the runner predicts with."""
         return self.runner.model
 
     # ---- inputs -----------------------------------------------------------------------------------
@@ -296,6 +297,7 @@ class Predictor:
         return src.grid
 
     def plan(self, grid: Grid) -> Plan:
+        """The windows of this predictor's ``tile`` and ``overlap`` over ``grid``."""
         return plan_windows(grid.height, grid.width, self.tile, self.overlap)
 
     def resolved_batch_size(self, plan: Plan) -> int:
@@ -508,6 +510,7 @@ class Predictor:
 
     @staticmethod
     def overlap_factor(plan: Plan, computed: int) -> float:
+        """Pixels computed per output pixel (≥ 1: the windows' overlap) for ``computed`` windows of ``plan``."""
         return computed * plan.rows.size * plan.cols.size / float(plan.rows.length * plan.cols.length)
 
     def info(self, ortho: str | Path | OrthoInput, grid: Grid, plan: Plan, aoi: str | Path | None, computed: int,

@@ -187,6 +187,7 @@ class Plan:
 
     @property
     def num_windows(self) -> int:
+        """Number of windows of the plan."""
         return len(self.rows.starts) * len(self.cols.starts)
 
     @property

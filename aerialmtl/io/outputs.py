@@ -425,6 +425,7 @@ class OutputFolder:
 
     # ---- the files ---------------------------------------------------------------------------------
     def file(self, name: str) -> Path:
+        """The path of ``name`` in the folder."""
         return self.path / name
 
     def existing(self, names: Iterable[str]) -> list[str]:

@@ -99,6 +99,7 @@ class Calibration:
         return interp_torch(h, x, y).clamp_min_(0.0)
 
     def summary(self) -> str:
+        """One line for logs: the height map's knots (a few) and the spread factor and floor."""
         pts = ", ".join(f"{a:.1f}→{b:.1f}" for a, b in zip(self.height_x[::max(1, len(self.height_x) // 6)],
                                                         self.height_y[::max(1, len(self.height_y) // 6)],
                                                         strict=False))
@@ -178,7 +179,8 @@ def fit_height_map(pred: np.ndarray, ref: np.ndarray, method: CalibrationMethod 
 
 def fit_spread(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 200_000) -> tuple[float, float]:
     """``(std_scale, std_floor)`` such that ``sqrt((scale·std)² + floor²)`` covers :data:`ONE_SIGMA` of the
-    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error)."""
+    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error).
+    """
     err = np.asarray(abs_error, dtype=np.float64).ravel()
     sd = np.asarray(std, dtype=np.float64).ravel()
     if err.size > max_pixels:

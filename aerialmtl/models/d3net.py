@@ -60,6 +60,7 @@ class UpBlock(nn.Module):
         self.relu2 = nn.ReLU(inplace=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, in, h, w) → (B, out, 2h, 2w) (see the class docstring)."""
         x = self.relu1(self.drop1(self.norm1(self.up(x))))
         return self.relu2(self.drop2(self.norm2(self.conv(x))))
 

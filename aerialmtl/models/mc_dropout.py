@@ -329,7 +329,8 @@ class DropoutSite:
 @torch.no_grad()
 def dropout_sites(model: nn.Module, in_channels: int, probe: int = 64) -> list[DropoutSite]:
     """The seedable dropout layers (``p > 0``) of ``model.decode``, in call order, found by one small
-    probe pass (``probe × probe`` zeros)."""
+    probe pass (``probe × probe`` zeros).
+    """
     sites: list[DropoutSite] = []
     handles = []
 

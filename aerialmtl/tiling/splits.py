@@ -217,7 +217,8 @@ class SplitAssigner:
     # ---- common -------------------------------------------------------------------------------
     def split_of(self, window: Window) -> str | None:
         """The split of the patch covering ``window``, or ``None`` when it would straddle splits / lie
-        outside every AOI."""
+        outside every AOI.
+        """
         if self.spec.method == "blocks":
             bx0, bx1, by0, by1 = self.block_range(window)
             ids = np.unique(self.block_split[by0:by1 + 1, bx0:bx1 + 1])

@@ -111,7 +111,8 @@ TALL_M = 2.0
 
 class _HeightSummary:
     """Per-split sum, count and tall count of the reference heights written (overlapping patches counted
-    as often as they are written)."""
+    as often as they are written).
+    """
 
     def __init__(self) -> None:
         self.acc: dict[str, list[float]] = {}

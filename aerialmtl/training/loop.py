@@ -90,7 +90,8 @@ def check_run_folder(out_dir: str | Path, resume: bool = False, overwrite: bool 
 
 def _take_run_folder(folder: OutputFolder, stack: contextlib.ExitStack, clear: bool) -> None:
     """Take the run folder (its lock, held until the run ends) and, for a new run, remove the previous
-    run's own files (:data:`~aerialmtl.formats.run.RUN_FILES`, never others) and a killed run's staging files."""
+    run's own files (:data:`~aerialmtl.formats.run.RUN_FILES`, never others) and a killed run's staging files.
+    """
     stack.enter_context(folder)
     folder.remove_leftovers(RUN_FILES)
     if clear:

@@ -114,6 +114,7 @@ class StepModule(nn.Module):
         self.compiled = runtime.CompileFallback(model, "training") if compile else None
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted total and the per-task losses of ``batch``."""
         with runtime.autocast(self.device, self.precision):
             out = self.model(batch["image"]) if self.compiled is None else self.compiled("forward", batch["image"])
         losses = self.objective(out, batch)
@@ -137,11 +138,13 @@ class LossWindow:
         self.since_val: list[float] = []
 
     def add(self, step: int, total: torch.Tensor, losses: dict[str, torch.Tensor]) -> None:
+        """Keep the losses of ``step`` (on the device, not read yet)."""
         if not self.pending:
             self.first_step = step
         self.pending.append(torch.stack([total.float()] + [losses[t].float() for t in self.tasks]))
 
     def flush(self) -> None:
+        """Read the pending losses (one synchronisation) and raise on the first non-finite one."""
         if not self.pending:
             return
         values = self.ctx.all_reduce_sum(torch.stack(self.pending)) / self.ctx.world
@@ -166,6 +169,7 @@ class LossWindow:
         return means
 
     def take_since_validation(self) -> float:
+        """Mean total loss since the last validation (``inf`` without any); starts a new window."""
         value = float(np.mean(self.since_val)) if self.since_val else math.inf
         self.since_val = []
         return value
@@ -378,7 +382,8 @@ class Trainer:
 
     def seed_rank_stream(self, saved: dict[str, Any] | None) -> None:
         """Give this process its RNG stream: the saved one when resuming, else rank 0 keeps the seeded
-        stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks)."""
+        stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks).
+        """
         if saved:
             set_rng_state(saved)
         elif self.ctx.rank > 0:
@@ -606,9 +611,11 @@ class Trainer:
     # ---- the loop -----------------------------------------------------------------------------------
     @property
     def lr(self) -> float:
+        """The current learning rate."""
         return float(self.optimizer.param_groups[0]["lr"])
 
     def elapsed(self) -> float:
+        """Seconds since this call of ``fit`` started."""
         return round(time.perf_counter() - self.t0, 3)
 
     def log_train_row(self) -> dict[str, float]:
@@ -678,7 +685,8 @@ class Trainer:
 
     def calibrate(self) -> None:
         """Fit the calibration on the val split and store it in best.pt and last.pt (rank 0; see
-        :mod:`aerialmtl.training.calibrate`); skipped without a val split or a height task."""
+        :mod:`aerialmtl.training.calibrate`); skipped without a val split or a height task.
+        """
         cal = self.cfg.calibration
         if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
             return

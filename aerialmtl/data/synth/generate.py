@@ -131,7 +131,6 @@ def synthesize(
 def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, origin: tuple[float, float],
                  start: float) -> SynthResult:
     """Render and write the town (see :func:`synthesize`) into the held folder ``out``."""
-
     rng = np.random.default_rng(seed)
     scene = build_scene(int(size), float(gsd), rng)
     ortho, _ = render_ortho(scene, rng)

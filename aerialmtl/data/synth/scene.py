@@ -66,6 +66,7 @@ class RoofPart:
 
 @dataclass(frozen=True)
 class Building:
+    """A building of the synthetic scene: its roof parts and its colour."""
     parts: tuple[RoofPart, ...]
     color: tuple[float, float, float]
     textured: bool  # roof tiles: stripes parallel to the ridge
@@ -73,6 +74,7 @@ class Building:
 
 @dataclass(frozen=True)
 class TreeSpec:
+    """A tree of the synthetic scene (position in scene units, crown size and height)."""
     u: float
     v: float
     radius: float  # crown radius, metres
