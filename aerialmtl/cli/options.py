@@ -64,7 +64,7 @@ def argument(*decls: str, library: str | Sequence[str] = (), **kwargs: Any) -> D
 
 
 # ---- raster inputs ---------------------------------------------------------------------------------
-class RasterPath(click.ParamType):
+class RasterPath(click.ParamType):  # type: ignore[type-arg]  # generic only in click's stubs
     """A raster GDAL can open: a local file (checked to exist), a URL or a ``/vsi...`` path (a string)."""
 
     name = "raster"

@@ -128,7 +128,7 @@ def eval_batches(n: int, batch_size: int, rank: int = 0, world_size: int = 1) ->
     return specs[rank::world_size]
 
 
-class CachedBatches(torch.utils.data.Dataset):
+class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
     """Map-style dataset whose items are whole batches (use with ``batch_size=None``).
 
     ``dataset[spec]`` draws each sample's augmentation parameters from a generator seeded with its seed,

@@ -90,7 +90,7 @@ def _arrays_match(folder: Path, index: PatchCacheIndex) -> bool:
     return True
 
 
-class _RawPatches(torch.utils.data.Dataset):
+class _RawPatches(torch.utils.data.Dataset[RawPatch]):
     """Decoded patches of manifest rows, for decoding with DataLoader workers."""
 
     def __init__(self, info: TileFolderInfo, rows: list[dict[str, str]]) -> None:

@@ -255,7 +255,8 @@ class OpenVINOEngine:
             # Traced with autograd on: D3-Net's dense blocks then concatenate (which OpenVINO fuses)
             # instead of writing into one buffer in place, and a small example input traces fast.
             with torch.enable_grad(), warnings.catch_warnings():
-                warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks traced as constants
+                # shape checks traced as constants
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)  # type: ignore[attr-defined]
                 traced = torch.jit.trace(module.eval(), example, check_trace=False, strict=False)
             model = self.ov.convert_model(traced)
             if xml is not None:

@@ -136,7 +136,7 @@ class PredictionWriter:
         self._created_dir = make_output_dir(self.out_dir)
         self._datasets: dict[str, Any] = {}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aerialmtl-writer")
-        self._pending: list[Future] = []
+        self._pending: list[Future[None]] = []
         self._slots = threading.BoundedSemaphore(MAX_PENDING_BLOCKS)
         self.seconds_writing = 0.0
         if clean:

@@ -156,7 +156,8 @@ class D3Net(nn.Module):
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
-        if torch.jit.is_tracing():  # a traced graph (the OpenVINO engine) is reshaped to checked windows only
+        # a traced graph (the OpenVINO engine) is reshaped to checked windows only
+        if torch.jit.is_tracing():  # type: ignore[attr-defined,no-untyped-call]
             return
         c = self.cfg.in_channels
         if x.dim() != 4 or x.shape[1] != c:

@@ -225,8 +225,8 @@ def mc_statistics(
     chunk = samples if sample_batch is None else max(1, min(int(sample_batch), samples))
     masks = _SeededMasks(model) if keys is not None else None
     if masks is not None:
-        mode: contextlib.AbstractContextManager = _seeded_mode(model, masks)
-        rng: contextlib.AbstractContextManager = contextlib.nullcontext()
+        mode: contextlib.AbstractContextManager[object] = _seeded_mode(model, masks)
+        rng: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
     else:
         mode = mc_dropout_mode(model)
         devices = [x.device] if x.device.type == "cuda" else []

@@ -185,7 +185,10 @@ class SplitAssigner:
 
         bx0, bx1 = idx(c0, bx), idx_end(c1, bx)
         by0, by1 = idx(r0, by), idx_end(r1, by)
-        clip = lambda v, n: min(max(v, 0), n - 1)  # noqa: E731
+
+        def clip(v: int, n: int) -> int:
+            return min(max(v, 0), n - 1)
+
         return clip(bx0, self.nbx), clip(bx1, self.nbx), clip(by0, self.nby), clip(by1, self.nby)
 
     # ---- AOI ----------------------------------------------------------------------------------

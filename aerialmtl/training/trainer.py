@@ -355,7 +355,7 @@ class Trainer:
             sampler=RankBatchSampler(self.plan, ctx.rank, self.state.epoch, self.state.position),
             batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(self.cfg.seed),
         )
-        self.val_loader: torch.utils.data.DataLoader | None = None
+        self.val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None = None
         self.eval_transform = build_eval_transform(cfg.crop_size)
         if val_index is not None:
             self.val_loader = torch.utils.data.DataLoader(

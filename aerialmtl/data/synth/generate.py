@@ -7,6 +7,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -52,7 +53,7 @@ class SynthResult:
     buildings: Path
 
 
-def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict:
+def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict[str, Any]:
     block = 256 if size >= 256 else None
     profile = raster_profile(crs, transform, size, size, count, dtype, nodata)
     profile.update(light_compression(), predictor=3 if dtype == "float32" else 2, num_threads="ALL_CPUS",
@@ -151,7 +152,7 @@ def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, orig
     paths = {name: out / name for name in _OUTPUTS}
 
     def write(name: str, data: np.ndarray, nodata: float | None, descriptions: tuple[str, ...],
-              units: str | None = None, colormap: dict | None = None) -> None:
+              units: str | None = None, colormap: dict[int, tuple[int, int, int, int]] | None = None) -> None:
         count = data.shape[0] if data.ndim == 3 else 1
         profile = _profile(size, count, data.dtype.name, crs_obj, transform, nodata)
         with atomic_write(paths[name]) as tmp, rasterio.open(tmp, "w", **profile) as dst:

@@ -13,7 +13,9 @@ scene's upper-left corner; u = X·cosθ + Y·sinθ, v = −X·sinθ + Y·cosθ.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from shapely.geometry import Polygon, box
@@ -230,7 +232,9 @@ class _Planner:
                 self._house_lot(a, a + lot_w, street, sign, lot_depth, rect, uv)
                 a += lot_w
 
-    def _house_lot(self, la0: float, la1: float, street: float, sign: float, depth: float, rect, uv) -> None:
+    def _house_lot(self, la0: float, la1: float, street: float, sign: float, depth: float,
+                   rect: Callable[[float, float, float, float], tuple[float, float, float, float]],
+                   uv: Callable[[float, float], tuple[float, float]]) -> None:
         rng = self.rng
         lot_w = la1 - la0
         setback = rng.uniform(3, 6)
@@ -377,7 +381,7 @@ class _Planner:
             self._tree_row(v0, v1, u1 - verge / 2, along_u=False)
 
 
-def _Pt(u: float, v: float):  # noqa: N802 - tiny shapely point factory
+def _Pt(u: float, v: float) -> Any:  # noqa: N802 - tiny shapely point factory
     from shapely.geometry import Point
 
     return Point(u, v)
