@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from tilefolder import write_tile_folder
+from helpers.tilefolder import write_tile_folder
 
 from aerialmtl.data.batches import CachedBatches, EpochPlan, eval_batches, item_seed, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache

@@ -12,7 +12,8 @@ import pytest
 import rasterio
 import shapely
 from affine import Affine
-from conftest import run_cli, write_prediction_layers, write_raster
+from helpers.cli import run_cli
+from helpers.rasters import write_prediction_layers, write_raster
 from rasterio.crs import CRS
 from rasterio.features import rasterize
 from scipy import ndimage

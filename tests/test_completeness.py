@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import run_cli, tiny_d3net
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
 from test_outputs import ONE_THREAD, _wait_for
 from test_robustness import PREDICT, assert_error, assert_ok, no_final_outputs, rgb
 

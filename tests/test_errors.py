@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import write_raster
+from helpers.rasters import write_raster
 
 from aerialmtl.cli import cli
 from aerialmtl.cli.options import flags_for

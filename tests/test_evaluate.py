@@ -17,7 +17,7 @@ import rasterio
 import yaml
 from affine import Affine
 from click.testing import CliRunner
-from conftest import write_raster
+from helpers.rasters import write_raster
 from rasterio.warp import transform as warp_transform
 from rasterio.warp import transform_bounds
 

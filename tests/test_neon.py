@@ -9,7 +9,7 @@ import pytest
 import rasterio
 import yaml
 from click.testing import CliRunner
-from conftest import NEON_DIR
+from helpers.data import NEON_DIR
 from rasterio.windows import Window
 from rasterio.windows import transform as window_transform
 

@@ -12,8 +12,10 @@ import rasterio
 import torch
 from affine import Affine
 from click.testing import CliRunner
-from conftest import NEON_DIR, IdentityModel, identity_meta, tiny_d3net, write_raster
-from reference_predict import reference_predict
+from helpers.data import NEON_DIR
+from helpers.models import IdentityModel, identity_meta, tiny_d3net
+from helpers.rasters import write_raster
+from helpers.reference_predict import reference_predict
 
 from aerialmtl.cli import cli
 from aerialmtl.cli.options import flags_for

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from conftest import tiny_d3net, write_raster
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.formats.prediction import ALL_FILES, mosaic_filename

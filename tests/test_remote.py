@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from conftest import run_cli, tiny_d3net, write_prediction_folder, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_prediction_folder, write_raster
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.io.paths import gdal_path, is_local, is_remote, raster_name, raster_stem

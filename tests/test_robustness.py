@@ -25,7 +25,9 @@ import rasterio
 import torch
 import yaml
 from affine import Affine
-from conftest import TINY, run_cli, tiny_d3net, write_raster
+from helpers.cli import run_cli
+from helpers.models import TINY, tiny_d3net
+from helpers.rasters import write_raster
 from rasterio.warp import transform_bounds
 
 from aerialmtl.cli import main
@@ -334,7 +336,7 @@ def _command(name: str, tmp: Path, ckpt: Path, out: Path) -> list[object]:
         ndsm = write_raster(tmp / "n.tif", np.ones((32, 32), np.float32), CRS, T05)
         return ["tile", "--ortho", ortho, "--ndsm", ndsm, "--size", "32", "--out", out, "--quiet"]
     if name == "train":
-        from tilefolder import write_tile_folder
+        from helpers.tilefolder import write_tile_folder
 
         tiles = write_tile_folder(tmp / "tiles", size=32, counts={"train": 2, "val": 0})
         return ["train", "--config", tiny_train_yaml(tmp / "c.yaml"), "--data", tiles, "--out", out,

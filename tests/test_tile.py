@@ -12,7 +12,7 @@ import rasterio
 import yaml
 from affine import Affine
 from click.testing import CliRunner
-from conftest import write_raster
+from helpers.rasters import write_raster
 from rasterio.warp import transform as warp_transform
 from rasterio.windows import Window
 from rasterio.windows import transform as window_transform

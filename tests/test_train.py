@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from tilefolder import write_tile_folder
+from helpers.tilefolder import write_tile_folder
 
 from aerialmtl.errors import CheckpointError, ConfigError, OutputExistsError
 from aerialmtl.formats.checkpoint import load_checkpoint, load_model

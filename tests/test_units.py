@@ -11,7 +11,7 @@ import rasterio
 import torch
 import yaml
 from affine import Affine
-from conftest import write_raster
+from helpers.rasters import write_raster
 from rasterio.crs import CRS
 from rasterio.warp import transform_bounds
 
