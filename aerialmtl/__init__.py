@@ -26,6 +26,7 @@ _EXPORTS: dict[str, str] = {
     # data preparation
     "synthesize": "aerialmtl.data.synth",
     "tile_dataset": "aerialmtl.tiling.tile",
+    "TileOptions": "aerialmtl.tiling.tile",
     "SplitSpec": "aerialmtl.tiling.splits",
     "NdsmOptions": "aerialmtl.io.align",
     "ClassScheme": "aerialmtl.classes",
@@ -66,6 +67,7 @@ __all__ = [
     "__version__",
     "synthesize",
     "tile_dataset",
+    "TileOptions",
     "SplitSpec",
     "NdsmOptions",
     "ClassScheme",
@@ -127,7 +129,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from aerialmtl.models.d3net import D3Net
     from aerialmtl.models.mc_dropout import mc_predict
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
     from aerialmtl.training.config import TrainConfig, load_train_config
     from aerialmtl.training.loop import train
     from aerialmtl.training.trainer import TrainResult

@@ -96,7 +96,7 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     from aerialmtl.evaluation.evaluate import evaluate_prediction
     from aerialmtl.inference.predict import predict_raster
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.loop import train
 
@@ -120,9 +120,9 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     block = s.patch * s.gsd * 2  # 2×2 patches per split block
     tiles = tile_dataset(
         train_town.ortho, out / "tiles", dsm=train_town.dsm, dtm=train_town.dtm, labels=train_town.labels,
-        classes=train_town.classes, size=s.patch, stride=s.patch,
-        splits=SplitSpec(block_size=block, ratios=(0.85, 0.15, 0.0), seed=0), overwrite=overwrite,
-        progress=progress,
+        classes=train_town.classes, overwrite=overwrite, progress=progress,
+        options=TileOptions(size=s.patch, stride=s.patch,
+                            splits=SplitSpec(block_size=block, ratios=(0.85, 0.15, 0.0), seed=0)),
     )
     stage("tile", t)
 

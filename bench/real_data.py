@@ -62,7 +62,7 @@ from aerialmtl.io.align import HeightSource, reference_grid
 from aerialmtl.io.units import metres_per_unit
 from aerialmtl.io.vector import load_geometries
 from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import tile_dataset
+from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import TrainConfig, load_train_config
 from aerialmtl.training.loop import train
 
@@ -215,9 +215,11 @@ def tiles_for(recipe: Recipe, data: Path, split: dict[str, Path], out: Path,
     if tdir.exists():
         shutil.rmtree(tdir)
     t0 = time.perf_counter()
-    res = tile_dataset(data / ORTHO, tdir, dsm=data / DSM, dtm=data / DTM, size=recipe.size, stride=stride,
-                       gsd=recipe.gsd, splits=SplitSpec(method="aoi", aoi={k: str(split[k]) for k in ("train", "val")}),
-                       progress=False)
+    res = tile_dataset(
+        data / ORTHO, tdir, dsm=data / DSM, dtm=data / DTM, progress=False,
+        options=TileOptions(size=recipe.size, stride=stride, gsd=recipe.gsd,
+                            splits=SplitSpec(method="aoi", aoi={k: str(split[k]) for k in ("train", "val")})),
+    )
     info = {"counts": res.counts, "windows": res.windows, "dropped_invalid": res.dropped_invalid,
             "dropped_split": res.dropped_split, "seconds": time.perf_counter() - t0}
     info_file.write_text(json.dumps(info, indent=1))

@@ -75,15 +75,16 @@ def make_tiles(workdir: Path, town_px: int) -> Path:
     """A synthetic town of ``town_px``² at 0.25 m tiled into 320² patches (90 % train); reused if present."""
     from aerialmtl.data.synth import synthesize
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
 
     tiles = workdir / f"tiles_{town_px}"
     if (tiles / "dataset.yaml").is_file():
         return tiles
     town = synthesize(workdir / f"town_{town_px}", size=town_px, seed=3, gsd=0.25, overwrite=True)
-    tile_dataset(town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, size=320,
-                 stride=320, splits=SplitSpec(block_size=160.0, ratios=(0.9, 0.1, 0.0), seed=0), overwrite=True,
-                 progress=False)
+    tile_dataset(
+        town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, overwrite=True, progress=False,
+        options=TileOptions(size=320, stride=320, splits=SplitSpec(block_size=160.0, ratios=(0.9, 0.1, 0.0), seed=0)),
+    )
     return tiles
 
 

@@ -26,7 +26,7 @@ from aerialmtl.formats.prediction import ALL_FILES, mosaic_filename
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
-ARGS = ("--mc", "2", "--tile", "64", "--overlap", "16", "--quiet")
+ARGS = ("--mc", "2", "--window", "64", "--overlap", "16", "--quiet")
 
 pytestmark = pytest.mark.slow
 

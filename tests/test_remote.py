@@ -23,7 +23,7 @@ from helpers.rasters import write_prediction_folder, write_raster
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.io.paths import gdal_path, is_local, is_remote, raster_name, raster_stem
 
-ARGS = ("--mc", "2", "--tile", "64", "--overlap", "16", "--quiet")
+ARGS = ("--mc", "2", "--window", "64", "--overlap", "16", "--quiet")
 
 
 # ---- a static file server that honours Range requests (http.server alone ignores them) --------------

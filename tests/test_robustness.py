@@ -38,7 +38,7 @@ from aerialmtl.io.cog import cog_problems
 
 CRS = "EPSG:32631"
 T05 = Affine(0.5, 0, 500000.0, 0, -0.5, 5000000.0)  # 0.5 m pixels, the tiny checkpoint's GSD
-PREDICT = ("--mc", "2", "--tile", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
+PREDICT = ("--mc", "2", "--window", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
 MAIN_OUTPUTS = ("height.tif", "height_std.tif", "classes.tif", "class_entropy.tif", "class_mutual_info.tif",
                 "prediction.json")
 
@@ -286,7 +286,7 @@ def test_label_codes_missing_from_the_scheme(tmp_path: Path, capsys) -> None:
 def test_raster_smaller_than_one_tile_predicts(tmp_path: Path, capsys, ckpt: Path, shape: tuple[int, int]) -> None:
     ortho = rgb(tmp_path, size=shape)
     out = tmp_path / "p"
-    assert_ok(run(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--tile", "64",
+    assert_ok(run(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--window", "64",
                   "--overlap", "16", "--precision", "fp32", "--quiet"))
     for name in MAIN_OUTPUTS[:-1]:
         with rasterio.open(out / name) as ds:
@@ -487,7 +487,7 @@ def _interrupt_predict(tmp_path: Path, ckpt: Path, sig: int) -> tuple[Path, subp
     ortho = rgb(tmp_path, size=(SIDE, SIDE), seed=3)
     out = tmp_path / "pred"
     cmd = [sys.executable, "-m", "aerialmtl", "predict", str(ortho), "--model", str(ckpt), "--out", str(out),
-           "--mc", "4", "--tile", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
+           "--mc", "4", "--window", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD)
     try:
         deadline = time.monotonic() + 120

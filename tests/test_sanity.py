@@ -338,7 +338,7 @@ def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-PREDICT = ("--mc", "2", "--tile", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
+PREDICT = ("--mc", "2", "--window", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
 
 
 def test_aoi_outside_the_orthophoto_names_both_extents(tmp_path: Path, capsys, ckpt: Path) -> None:

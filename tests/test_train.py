@@ -93,12 +93,14 @@ def synth_tiles(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 256 × 256 px synthetic town at 0.5 m tiled into 64 px patches (stride 32), 3/4 train, 1/4 val."""
     from aerialmtl.data.synth import synthesize
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
 
     root = tmp_path_factory.mktemp("synth")
     town = synthesize(root / "town", size=256, seed=1, gsd=0.5)
-    tile_dataset(town.ortho, root / "tiles", ndsm=town.ndsm, labels=town.labels, classes=town.classes, size=64,
-                 stride=32, splits=SplitSpec(block_size=64.0, ratios=(0.75, 0.25, 0.0), seed=0), progress=False)
+    tile_dataset(
+        town.ortho, root / "tiles", ndsm=town.ndsm, labels=town.labels, classes=town.classes, progress=False,
+        options=TileOptions(size=64, stride=32, splits=SplitSpec(block_size=64.0, ratios=(0.75, 0.25, 0.0), seed=0)),
+    )
     return root / "tiles"
 
 

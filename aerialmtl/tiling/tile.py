@@ -68,6 +68,37 @@ from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
 DEFAULT_CACHE_MB = 128
 
 
+@dataclass(frozen=True)
+class TileOptions:
+    """How :func:`tile_dataset` cuts patches and reads the layers (sizes in pixels of the reference grid).
+
+    Attributes:
+        size: patch side (pixels).
+        stride: step between patches (pixels, ``≤ size``); ``None`` = ``size`` (no overlap).
+        gsd: resample everything to this pixel size in metres (whatever the CRS unit) instead of the ortho's.
+        min_valid: minimum fraction of valid image pixels for a patch to be kept (0..1).
+        splits: spatial split specification.
+        bands: 1-based ortho bands to keep (``None``: all but alpha).
+        heights: negative clipping / maximum height / the heights' unit when a file states none.
+        ignore_unknown_codes: map label codes (or vector values) outside the scheme to no-label instead of
+            raising :class:`~aerialmtl.errors.LabelError`.
+    """
+
+    size: int = 320
+    stride: int | None = None
+    gsd: float | None = None
+    min_valid: float = 0.9
+    splits: SplitSpec = SplitSpec()
+    bands: Sequence[int] | None = None
+    heights: NdsmOptions = NdsmOptions()
+    ignore_unknown_codes: bool = False
+
+    @property
+    def step(self) -> int:
+        """The stride in pixels (``size`` when ``stride`` is ``None``)."""
+        return self.size if self.stride is None else self.stride
+
+
 @dataclass
 class TileResult:
     """What :func:`tile_dataset` wrote.
@@ -253,39 +284,27 @@ def tile_dataset(
     labels_vector: str | Path | None = None,
     class_field: str | None = None,
     classes: ClassScheme | str | Path | None = None,
-    size: int = 320,
-    stride: int | None = None,
-    gsd: float | None = None,
-    min_valid: float = 0.9,
-    splits: SplitSpec = SplitSpec(),
-    bands: Sequence[int] | None = None,
-    ndsm_options: NdsmOptions = NdsmOptions(),
-    ignore_unknown_codes: bool = False,
+    options: TileOptions = TileOptions(),
     overwrite: bool = False,
     progress: bool = True,
 ) -> TileResult:
     """Tile an orthophoto plus aligned height and/or label layers into a training dataset folder.
+
+    Twelve parameters: every layer a user may give is a keyword of its own (as the command's options are);
+    how patches are cut is one :class:`TileOptions`.
 
     Args:
         ortho: orthophoto GeoTIFF; defines the reference grid (CRS, origin, pixel size).
         out_dir: output folder (created; must not hold a tile dataset unless ``overwrite``; never an input's
             folder).
         dsm, dtm: surface and terrain models; height = DSM − DTM in metres (values in the unit the file
-            states, else ``ndsm_options.z_unit``, else metres). Mutually exclusive with ``ndsm``.
+            states, else ``options.heights.z_unit``, else metres). Mutually exclusive with ``ndsm``.
         ndsm: ready heights above ground (nDSM / CHM; units as for ``dsm``).
         labels: label raster of raw class codes.
         labels_vector: GeoJSON polygons with a class attribute (``class_field``), instead of ``labels``.
         class_field: attribute of ``labels_vector`` with codes or class names.
         classes: :class:`ClassScheme`, a scheme YAML path, or a built-in name; required with labels.
-        size: patch side (pixels of the reference grid).
-        stride: step between patches (pixels, ``≤ size``; default ``size``).
-        gsd: resample everything to this pixel size in metres (whatever the CRS unit) instead of the ortho's.
-        min_valid: minimum fraction of valid image pixels for a patch to be kept (0..1).
-        splits: spatial split specification.
-        bands: 1-based ortho bands to keep (default: all but alpha).
-        ndsm_options: negative clipping / maximum height / the heights' unit when a file states none.
-        ignore_unknown_codes: map label codes (or vector values) outside the scheme to no-label instead of
-            raising :class:`~aerialmtl.errors.LabelError`.
+        options: patch size, stride, GSD, validity, splits, bands, how heights and labels are read.
         overwrite: replace the tile dataset an earlier run wrote in ``out_dir`` (only its own files).
         progress: show a tqdm progress bar.
 
@@ -300,14 +319,15 @@ def tile_dataset(
         InputError: also when no patch at all would be kept (:func:`check_not_empty`); nothing is left.
     """
     out_dir = Path(out_dir)
-    stride = size if stride is None else stride
-    scheme = _check_arguments(size, stride, min_valid, dsm, dtm, ndsm, labels, labels_vector, class_field, classes)
-    grid = reference_grid(ortho, gsd)
+    size, stride = options.size, options.step
+    scheme = _check_arguments(options, dsm, dtm, ndsm, labels, labels_vector, class_field, classes)
+    grid = reference_grid(ortho, options.gsd)
     with gdal_env(DEFAULT_CACHE_MB, GDAL_TIFF_INTERNAL_MASK=True), TileSources(
-        ortho, grid, bands=bands, dsm=dsm, dtm=dtm, ndsm=ndsm, ndsm_options=ndsm_options, labels=labels,
-        labels_vector=labels_vector, class_field=class_field, scheme=scheme, ignore_unknown_codes=ignore_unknown_codes,
+        ortho, grid, bands=options.bands, dsm=dsm, dtm=dtm, ndsm=ndsm, ndsm_options=options.heights, labels=labels,
+        labels_vector=labels_vector, class_field=class_field, scheme=scheme,
+        ignore_unknown_codes=options.ignore_unknown_codes,
     ) as sources:
-        assigner = SplitAssigner(splits, grid, stride=stride, size=size)
+        assigner = SplitAssigner(options.splits, grid, stride=stride, size=size)
         inputs = {k: v for k, v in sources.paths.items()}
         with OutputFolder(out_dir, "tile", inputs=inputs, what="tile folder") as folder:
             folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
@@ -315,8 +335,8 @@ def tile_dataset(
             stage = staging_path(out_dir / STAGING_NAME)
             stage.mkdir()
             try:
-                result = _tile_loop(sources, assigner, grid, stage, size, stride, min_valid, progress)
-                check_not_empty(result, grid, size, min_valid)
+                result = _tile_loop(sources, assigner, grid, stage, options, progress)
+                check_not_empty(result, grid, size, options.min_valid)
                 _commit(stage, out_dir, owned or [])
             except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
                 shutil.rmtree(stage, ignore_errors=True)
@@ -330,16 +350,17 @@ def tile_dataset(
             if assigner.block_size_m is not None:
                 result.block_size_m = assigner.block_size_m
                 result.block_patches = int(round(assigner.block_px[0] / stride))
-            _describe(sources, grid, size, stride, min_valid, splits, assigner, result, ndsm_options).write()
+            _describe(sources, grid, options, assigner, result).write()
     return result
 
 
 def _check_arguments(
-    size: int, stride: int, min_valid: float, dsm: str | Path | None, dtm: str | Path | None, ndsm: str | Path | None,
+    options: TileOptions, dsm: str | Path | None, dtm: str | Path | None, ndsm: str | Path | None,
     labels: str | Path | None, labels_vector: str | Path | None, class_field: str | None,
     classes: ClassScheme | str | Path | None,
 ) -> ClassScheme | None:
     """Validate :func:`tile_dataset`'s arguments before any file is read; returns the class scheme."""
+    min_valid = options.min_valid
     if not 0.0 <= min_valid <= 1.0:
         raise InputError(f"‹min_valid› must be a fraction in 0..1, got {min_valid}", param="min_valid")
     if labels is not None and labels_vector is not None:
@@ -365,7 +386,7 @@ def _check_arguments(
         raise InputError(
             "nothing to learn: give a height layer (‹ndsm›, or ‹dsm›/‹dtm›) and/or labels (‹labels›/‹labels_vector›)"
         )
-    count_windows(1, 1, size, stride)  # validates size/stride
+    count_windows(1, 1, options.size, options.step)  # validates size/stride
     return scheme
 
 
@@ -443,18 +464,16 @@ class TileSources:
         self.close()
 
 
-def _describe(
-    sources: TileSources, grid: Grid, size: int, stride: int, min_valid: float, splits: SplitSpec,
-    assigner: SplitAssigner, result: TileResult, ndsm_options: NdsmOptions,
-) -> TileFolderInfo:
+def _describe(sources: TileSources, grid: Grid, options: TileOptions, assigner: SplitAssigner,
+              result: TileResult) -> TileFolderInfo:
     """The ``dataset.yaml`` of a finished tile run."""
     paths = sources.paths
     return TileFolderInfo(
         root=result.out_dir,
         crs=grid.crs.to_string(),
         gsd=float(grid.gsd),
-        patch_size=int(size),
-        stride=int(stride),
+        patch_size=int(options.size),
+        stride=int(options.step),
         bands=tuple(int(b) for b in sources.image.bands),
         band_names=tuple(sources.band_names),
         dtype=sources.dtype,
@@ -464,15 +483,15 @@ def _describe(
         classes=sources.scheme if sources.labels is not None else None,
         height={
             "nodata": HEIGHT_NODATA,
-            "clip_negative": bool(ndsm_options.clip_negative),
-            "max_height": ndsm_options.max_height,
+            "clip_negative": bool(options.heights.clip_negative),
+            "max_height": options.heights.max_height,
             "source": "ndsm" if paths["ndsm"] is not None else "dsm-dtm",
             "units": sources.height_units,
         } if sources.heights is not None else None,
-        splits={**splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
+        splits={**options.splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
                                        if assigner.block_size_m is not None else {})},
         counts=dict(result.counts),
-        min_valid=float(min_valid),
+        min_valid=float(options.min_valid),
         provenance={
             **{k: recorded_path(v) if v else None for k, v in paths.items()},
             "class_field": sources.class_field,
@@ -483,10 +502,10 @@ def _describe(
 
 
 def _tile_loop(
-    sources: TileSources, assigner: SplitAssigner, grid: Grid, out_dir: Path, size: int, stride: int,
-    min_valid: float, progress: bool,
+    sources: TileSources, assigner: SplitAssigner, grid: Grid, out_dir: Path, options: TileOptions, progress: bool,
 ) -> TileResult:
     """Visit every window of the (size, stride) grid, write its patches and stream the manifest."""
+    size, stride, min_valid = options.size, options.step, options.min_valid
     counts = {s: 0 for s in SPLITS}
     stats = _BandStats(len(sources.image.bands))
     dropped_invalid = dropped_split = 0
@@ -587,4 +606,4 @@ def _write_patches(
     return row
 
 
-__all__ = ["MANIFEST_COLUMNS", "TileResult", "read_manifest", "tile_dataset"]
+__all__ = ["MANIFEST_COLUMNS", "TileOptions", "TileResult", "read_manifest", "tile_dataset"]
