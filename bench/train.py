@@ -134,7 +134,7 @@ def geotiff_loader(tiles: Path, batch: int, workers: int, device: torch.device) 
 
 def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) -> Iterator[dict]:
     """The training data path: patch cache → compact batches (workers) → device → normalise + augment there."""
-    from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, prepare_batch
+    from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, prepare_batch
     from aerialmtl.data.cache import PatchCache, ensure_patch_cache
     from aerialmtl.data.transforms import build_train_transform
     from aerialmtl.formats.tiles import TileFolderInfo, cache_dir
@@ -147,7 +147,7 @@ def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) ->
     in_workers = (mean.cpu(), std.cpu()) if device.type == "cpu" and workers > 0 else None  # as the trainer does
     loader = torch.utils.data.DataLoader(
         CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks, in_workers),
-        sampler=RankBatchSampler(EpochPlan(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
+        sampler=RankBatchSampler(EpochOrder(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
         pin_memory=device.type == "cuda", generator=torch.Generator().manual_seed(0))
     for raw in loader:
         yield prepare_batch(raw, transform, mean, std, device)

@@ -2,7 +2,7 @@
 
 The data path of ``aerialmtl train``:
 
-1. :class:`EpochPlan` fixes the run's order: every epoch is a permutation of the train split seeded by
+1. :class:`EpochOrder` fixes the run's order: every epoch is a permutation of the train split seeded by
    ``(seed, epoch)``, cut into global batches of ``batch_size × world_size`` positions (the last incomplete
    one dropped); rank r takes the r-th ``batch_size`` slice of each global batch. Each patch's augmentation
    is seeded by its position in the run (:func:`item_seed`), so neither the number of DataLoader workers
@@ -45,7 +45,7 @@ def item_seed(seed: int, epoch: int, position: int) -> int:
 
 
 @dataclass(frozen=True)
-class EpochPlan:
+class EpochOrder:
     """Which patches every optimisation step uses, for any number of processes.
 
     Attributes:
@@ -111,13 +111,13 @@ class EpochPlan:
 
 
 class RankBatchSampler:
-    """The batch sampler of one process: :meth:`EpochPlan.batches` as an iterable for a DataLoader."""
+    """The batch sampler of one process: :meth:`EpochOrder.batches` as an iterable for a DataLoader."""
 
-    def __init__(self, plan: EpochPlan, rank: int, epoch: int, position: int) -> None:
-        self.plan, self.rank, self.epoch, self.position = plan, rank, epoch, position
+    def __init__(self, order: EpochOrder, rank: int, epoch: int, position: int) -> None:
+        self.order, self.rank, self.epoch, self.position = order, rank, epoch, position
 
     def __iter__(self) -> Iterator[BatchSpec]:
-        return self.plan.batches(self.rank, self.epoch, self.position)
+        return self.order.batches(self.rank, self.epoch, self.position)
 
 
 def eval_batches(n: int, batch_size: int, rank: int = 0, world_size: int = 1) -> list[BatchSpec]:
@@ -195,5 +195,5 @@ def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, s
     return batch
 
 
-__all__ = ["item_seed", "EpochPlan", "RankBatchSampler", "eval_batches", "CachedBatches", "prepare_batch",
+__all__ = ["item_seed", "EpochOrder", "RankBatchSampler", "eval_batches", "CachedBatches", "prepare_batch",
            "BatchSpec"]

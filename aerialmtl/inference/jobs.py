@@ -14,7 +14,7 @@ path); an input cut between ranks is computed in strips of window rows
 (:meth:`~aerialmtl.inference.predict.Predictor.strip`; each strip also runs the window rows that reach into
 it, so the rows come out exactly as in a one-process run), and the rank of its first strip joins the
 strips into the final COGs (:meth:`~aerialmtl.inference.predict.Predictor.commit`). Every decision (what
-to skip, what to split) is taken before any rank writes. Each input's header is read once
+to skip, which inputs to share) is taken before any rank writes. Each input's header is read once
 (:class:`~aerialmtl.inference.ortho.OrthoInput`) and travels with it; the process group, device and GDAL
 settings come from :mod:`aerialmtl.runtime`, as for training.
 
@@ -259,7 +259,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
              for p in plans.values() if p is not None]
     shares = partition(costs, ranks.world)
     mine = [Share(todo[s.target], s.start, s.stop) for s in shares[ranks.rank]]
-    split = {todo[s.target] for r in shares for s in r
+    shared = {todo[s.target] for r in shares for s in r
              if s.start > 0 or s.stop < len(targets[todo[s.target]].plan.window_rows)}  # type: ignore[union-attr]
     if ranks.rank == 0:  # hidden files of killed runs: removed before any rank writes
         for k in todo:
@@ -268,12 +268,12 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
 
     failures: list[tuple[str, int, str]] = []
     strips: dict[int, StripResult] = {}
-    writers: dict[int, StripResult] = {}  # split inputs this rank commits: their first strip, with its writer
+    writers: dict[int, StripResult] = {}  # shared inputs this rank commits: their first strip, with its writer
     with runtime.gdal_env():
         for share in mine:
             t = targets[share.target]
             assert t.src is not None
-            whole = share.target not in split
+            whole = share.target not in shared
             started = time.perf_counter()
             try:
                 strip = predictor.strip(t.src, t.out, aoi=aoi, window_rows=None if whole else (share.start, share.stop),
@@ -295,7 +295,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
                 if share.start == 0:
                     writers[share.target] = strip  # this rank joins the strips
 
-    # every rank's strips and failures; then the first strip's rank commits each split input
+    # every rank's strips and failures; then the first strip's rank commits each shared input
     gathered = ranks.gather((strips, failures))
     all_failures = [f for _, fs in gathered for f in fs]
     failed = {f[0] for f in all_failures}

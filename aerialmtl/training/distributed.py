@@ -9,7 +9,7 @@ so the trainer has no ``if distributed`` branches.
 
 What each part does with several processes:
 
-* data: each rank gets a disjoint share of every global batch (see :class:`~aerialmtl.data.batches.EpochPlan`);
+* data: each rank gets a disjoint share of every global batch (see :class:`~aerialmtl.data.batches.EpochOrder`);
   ``data.batch_size`` is per process, the global batch is ``batch_size × world_size``;
 * gradients: :func:`wrap` puts the model (and the learned task weighting) in
   ``DistributedDataParallel``, which averages gradients over ranks;

@@ -3,7 +3,7 @@
 :class:`Trainer` is built from small parts, each readable and testable alone:
 
 * data — :meth:`Trainer.build_data`: the decoded patch cache (:mod:`aerialmtl.data.cache`), the run's batch
-  order (:class:`~aerialmtl.data.batches.EpochPlan`) and the DataLoaders; batches are augmented on the
+  order (:class:`~aerialmtl.data.batches.EpochOrder`) and the DataLoaders; batches are augmented on the
   training device (:func:`~aerialmtl.data.batches.prepare_batch`);
 * model and optimizer — :meth:`Trainer.build_model`, :func:`build_optimizer`;
 * the step — :class:`StepModule` (forward, losses, weighting; what DistributedDataParallel wraps) and
@@ -43,7 +43,7 @@ from tqdm.auto import tqdm
 
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
-from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, eval_batches, prepare_batch
+from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, OutputError
@@ -344,7 +344,7 @@ class Trainer:
         cfg, ctx, nw = self.cfg.data, self.ctx, self.cfg.data.num_workers
         folder, train_index, val_index = self.cache_folder, self.train_index, self.val_index
         pin = self.device.type == "cuda"
-        self.plan = EpochPlan(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world)
+        self.order = EpochOrder(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world)
         self.train_transform = build_train_transform(cfg.flips, cfg.rot90, cfg.jitter, cfg.crop_size)
         self.mean = torch.tensor(self.meta.mean, dtype=torch.float32, device=self.device)
         self.std = torch.tensor(self.meta.std, dtype=torch.float32, device=self.device)
@@ -352,7 +352,7 @@ class Trainer:
         in_workers = (self.mean.cpu(), self.std.cpu()) if self.device.type == "cpu" and nw > 0 else None
         self.train_loader = torch.utils.data.DataLoader(
             CachedBatches(PatchCache(folder, train_index), self.train_transform, self.tasks, in_workers),
-            sampler=RankBatchSampler(self.plan, ctx.rank, self.state.epoch, self.state.position),
+            sampler=RankBatchSampler(self.order, ctx.rank, self.state.epoch, self.state.position),
             batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(self.cfg.seed),
         )
         self.val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None = None
@@ -505,8 +505,8 @@ class Trainer:
                 self.saved_step = self.state.step
             return
         state = {"optimizer": self.optimizer.state_dict(), "weighting": self.weighting.state_dict(),
-                 **self.state.to_dict(self.plan.global_batch), "rng": rngs[0], "rng_ranks": rngs,
-                 "world_size": self.ctx.world, "global_batch": self.plan.global_batch,
+                 **self.state.to_dict(self.order.global_batch), "rng": rngs[0], "rng_ranks": rngs,
+                 "world_size": self.ctx.world, "global_batch": self.order.global_batch,
                  "config": self.cfg.to_dict()}
         save_checkpoint(target, self.model, self.meta, state)
         if target == self.paths["last.pt"]:
@@ -641,7 +641,7 @@ class Trainer:
     def fit(self) -> TrainResult:
         """Train until a stop condition (each process returns the same counters and metrics)."""
         st, sched = self.state, self.cfg.schedule
-        nb = self.plan.steps_per_epoch
+        nb = self.order.steps_per_epoch
         total = sched.epochs * nb if self.steps_cap is None else min(self.steps_cap, sched.epochs * nb)
         stopped_by = self.done_before_start()
         validated_at = -1
@@ -656,7 +656,7 @@ class Trainer:
                 total_loss, losses = self.train_step(batch)
                 st.step += 1
                 self.losses.add(st.step, total_loss, losses)
-                st.epoch, st.position = self.plan.advance(st.epoch, st.position)
+                st.epoch, st.position = self.order.advance(st.epoch, st.position)
                 bar.update(1)
                 if st.step % sched.log_every == 0:
                     means = self.log_train_row()
