@@ -55,6 +55,7 @@ _EXPORTS: dict[str, str] = {
     "write_buildings": "aerialmtl.buildings",
     # evaluation
     "evaluate_prediction": "aerialmtl.evaluation.evaluate",
+    "EvaluateOptions": "aerialmtl.evaluation.evaluate",
     # errors
     "AerialMTLError": "aerialmtl.errors",
     "InputError": "aerialmtl.errors",
@@ -92,6 +93,7 @@ __all__ = [
     "extract_buildings",
     "write_buildings",
     "evaluate_prediction",
+    "EvaluateOptions",
     "AerialMTLError",
     "InputError",
     "ConfigError",
@@ -119,7 +121,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from aerialmtl.classes import ClassScheme
     from aerialmtl.data.synth import synthesize
     from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, InputError, OutputExistsError
-    from aerialmtl.evaluation.evaluate import evaluate_prediction
+    from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
     from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
     from aerialmtl.formats.prediction import PredictionFolder
     from aerialmtl.inference.jobs import predict_many

@@ -30,7 +30,7 @@ import torch
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.data.synth import SYNTH_VERSION, synthesize
 from aerialmtl.demo import builtin_config
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.evaluation.metrics import classification_metrics, confusion_matrix
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.tiling.splits import SplitSpec
@@ -123,7 +123,9 @@ def main() -> None:
                            progress=False)
             per_town.append(evaluate_prediction(
                 pdir, height_ref=town.ndsm if "height" in tasks else None,
-                labels_ref=town.labels if "classes" in tasks else None, classes=scheme, out=None, plots=False))
+                labels_ref=town.labels if "classes" in tasks else None, classes=scheme, out=None,
+                options=EvaluateOptions(plots=False),
+            ))
         row: dict[str, float] = {"train_s": train_s, "steps": run.step}
         if "height" in tasks:
             row["height_mae"] = _mean([r["height"]["mae"] for r in per_town])

@@ -54,7 +54,7 @@ import numpy as np
 import rasterio
 import torch
 
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, layer_filename
 from aerialmtl.formats.tiles import ManifestWriter, read_manifest
 from aerialmtl.inference.predict import predict_raster
@@ -368,8 +368,10 @@ def summarise(report: dict[str, Any]) -> dict[str, float]:
 
 def evaluate_dir(pred_dir: Path, data: Path, out_json: Path) -> dict[str, float]:
     bins = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
-    report = evaluate_prediction(pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
-                                 height_bins=bins, plots=False)
+    report = evaluate_prediction(
+        pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
+        options=EvaluateOptions(height_bins=bins, plots=False),
+    )
     return summarise(report)
 
 

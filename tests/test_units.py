@@ -17,7 +17,7 @@ from rasterio.warp import transform_bounds
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.errors import AlignmentError, InputError
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.align import AlignedRaster, HeightSource, reference_grid
@@ -184,6 +184,8 @@ def test_evaluate_with_feet_dsm_dtm_reference(tmp_path: Path, rng: np.random.Gen
         predicted = src.read(1, masked=True)
     dsm = _utm_height(tmp_path, ortho, "dsm.tif", 20.0 + 3.0, scale=FT)  # feet values, unit not stated
     dtm = _utm_height(tmp_path, ortho, "dtm.tif", 20.0, scale=FT)
-    report = evaluate_prediction(pred.out_dir, dsm_ref=dsm, dtm_ref=dtm, z_unit="ft", out=None, plots=False)
+    report = evaluate_prediction(
+        pred.out_dir, dsm_ref=dsm, dtm_ref=dtm, out=None, options=EvaluateOptions(z_unit="ft", plots=False),
+    )
     assert report["height"]["mae"] == pytest.approx(float(np.abs(predicted - 3.0).mean()), rel=1e-3)
     assert report["references"]["height_units"]["DSM"]["unit"] == "ft"

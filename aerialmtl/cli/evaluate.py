@@ -10,7 +10,7 @@ import click
 
 from aerialmtl.cli.options import option, overwrite_option, quiet_option, raster_option
 from aerialmtl.errors import OutputError
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
 from aerialmtl.evaluation.report import headline
 
@@ -82,11 +82,11 @@ def evaluate(pred: Path, height_ref: str | None, dsm_ref: str | None, dtm_ref: s
                                "--labels LABELS.tif and/or --buildings FOOTPRINTS")
     _check_writable(out.parent)
     report = evaluate_prediction(
-        pred, height_ref=height_ref, labels_ref=labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, z_unit=z_unit,
-        classes=classes, out=out,
-        height_threshold=height_threshold, height_bins=height_bins, ignore_unknown_codes=ignore_unknown_codes,
-        overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=not quiet,
-        buildings_ref=buildings_ref, pred_buildings=pred_buildings,
+        pred, height_ref=height_ref, labels_ref=labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, classes=classes,
+        out=out, overwrite=overwrite, progress=not quiet, buildings_ref=buildings_ref, pred_buildings=pred_buildings,
+        options=EvaluateOptions(z_unit=z_unit, height_threshold=height_threshold, height_bins=height_bins,
+                                ignore_unknown_codes=ignore_unknown_codes, sample_size=sample_size, seed=seed,
+                                plots=not no_plots),
     )
     width = max((len(k) for k, _ in headline(report)), default=0)
     for key, value in headline(report):
