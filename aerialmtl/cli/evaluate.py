@@ -76,6 +76,9 @@ def evaluate(pred: Path, height_ref: str | None, dsm_ref: str | None, dtm_ref: s
     """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.
 
     Example: aerialmtl evaluate --pred pred/ --height ndsm.tif --labels gt.tif --out eval/report.json
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
         raise click.UsageError("give at least one reference: --height NDSM.tif (or --dsm with --dtm) and/or "

@@ -108,6 +108,9 @@ def predict(
 
     ORTHO is a GeoTIFF, a VRT, a URL (https://, s3://) or a GDAL /vsi... path. With AERIALMTL_MODEL set,
     `aerialmtl predict ortho.tif` writes ortho_aerialmtl/ beside ortho.tif.
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.predict import PredictResult

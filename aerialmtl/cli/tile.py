@@ -96,6 +96,9 @@ def tile(ortho: str, dsm: str | None, dtm: str | None, ndsm: str | None, z_unit:
     """Cut ORTHO and aligned height/label layers into patches with spatial train/val/test splits.
 
     Writes OUT/{train,val,test}/{image,height,classes}/*.tif, OUT/manifest.csv and OUT/dataset.yaml.
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     from aerialmtl.tiling.splits import SplitSpec
     from aerialmtl.tiling.tile import TileOptions, tile_dataset

@@ -52,6 +52,9 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
 
     \b
         torchrun --nproc_per_node N -m aerialmtl train --config C --data D --out RUN
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.loop import check_budget, check_run_folder

@@ -220,8 +220,7 @@ def evaluate_prediction(
 def _evaluate(pred_dir: Path, refs: _References, classes: str | Path | ClassScheme | None, out: str | Path | None,
               options: EvaluateOptions, overwrite: bool, progress: bool) -> dict[str, Any]:
     """:func:`evaluate_prediction` once the report's folder is held."""
-    files = _check_arguments(pred_dir, refs.height, refs.dsm, refs.dtm, refs.labels, refs.buildings,
-                             options.height_threshold, options.sample_size, out, overwrite, options.plots)
+    files = _check_arguments(pred_dir, refs, options, out, overwrite)
     notes: list[str] = []
     scheme, scheme_source = _resolve_scheme(classes, files.get("classes"))
     do_height, do_classes = _what_to_evaluate(pred_dir, refs, files, scheme, notes)
@@ -339,12 +338,12 @@ def _report(pred_dir: Path, refs: _References, grid: Grid, scheme: ClassScheme |
     }
 
 
-def _check_arguments(
-    pred_dir: Path, height_ref: str | Path | None, dsm_ref: str | Path | None, dtm_ref: str | Path | None,
-    labels_ref: str | Path | None, buildings_ref: str | Path | None, height_threshold: float, sample_size: int,
-    out: str | Path | None, overwrite: bool, plots: bool = True,
-) -> dict[str, Path]:
+def _check_arguments(pred_dir: Path, refs: _References, options: EvaluateOptions, out: str | Path | None,
+                     overwrite: bool) -> dict[str, Path]:
     """Validate the arguments of :func:`evaluate_prediction`; returns the predicted layers present."""
+    height_ref, dsm_ref, dtm_ref = refs.height, refs.dsm, refs.dtm
+    labels_ref, buildings_ref = refs.labels, refs.buildings
+    sample_size, height_threshold = options.sample_size, options.height_threshold
     if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
         raise InputError(
             "give either a reference nDSM (‹height_ref›) or a DSM and a DTM (‹dsm_ref›/‹dtm_ref›), not both",
@@ -371,7 +370,7 @@ def _check_arguments(
             "pass the --out folder of `aerialmtl predict`"
         )
     if out is not None:
-        outputs = report_files(out, plots)
+        outputs = report_files(out, options.plots)
         inputs = [("height_ref", height_ref), ("labels_ref", labels_ref), ("dsm_ref", dsm_ref), ("dtm_ref", dtm_ref),
                   ("buildings_ref", buildings_ref),
                   *(("pred_dir", pred_dir / name) for name in ALL_FILES)]  # prediction.json, item.json too
