@@ -211,6 +211,9 @@ def export_model(
         InputError: a bad ``format``/``task``/``tile``/``overlap``, a task the model does not have, or
             ``out`` without the format's extension.
         OutputExistsError: ``out`` exists and ``overwrite`` is false.
+
+    A little over 80 lines: the argument checks come first, each with its own message, before the
+    checkpoint is read.
     """
     out = Path(out)
     if format not in FORMATS:

@@ -222,6 +222,11 @@ def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Pa
 def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun, aoi: str | Path | None,
          overwrite: bool, skip_existing: bool, progress: bool,
          on_result: Callable[[PredictResult], None] | None) -> JobResult:
+    """:func:`predict_many` once the folders are held: plan the ranks' shares, compute, commit, mosaic.
+
+    Over 80 lines: it still owns the writers' life across ranks; the per-input job that will own it
+    (the predictor keeping only the model) is the next step of the predict/job split.
+    """
     job = JobResult(ranks=ranks)
     todo = []
     replace: set[int] = set()  # inputs whose earlier, outdated outputs --skip-existing recomputes

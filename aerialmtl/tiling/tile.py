@@ -401,6 +401,8 @@ class TileSources:
         tasks: ``("height", "classes")`` or the subset the layers allow.
         paths: the input paths by role (for the provenance in ``dataset.yaml``).
         band_names, dtype, height_units: what ``dataset.yaml`` records of the layers (kept after closing).
+
+    The constructor takes each layer :func:`tile_dataset` was given as a keyword of its own (12 parameters).
     """
 
     def __init__(
