@@ -50,9 +50,9 @@ from aerialmtl.models.mc_dropout import (
     DropoutSite,
     McStatistics,
     accumulate_samples,
-    class_probabilities,
     dropout_masks,
     dropout_sites,
+    single_pass_statistics,
 )
 
 if TYPE_CHECKING:
@@ -139,10 +139,17 @@ class _MaskMul(nn.Module):
         return x * self.mask
 
 
+def model_outputs(model: nn.Module, tasks: Sequence[str]) -> tuple[str, ...]:
+    """The keys of ``model``'s output dict in order: its ``outputs`` (a D3-Net: the tasks, plus
+    ``height_scale`` for an aleatoric head), else ``tasks``.
+    """
+    return tuple(getattr(model, "outputs", None) or tasks)
+
+
 class _Forward(nn.Module):
     def __init__(self, model: nn.Module, tasks: Sequence[str]) -> None:
         super().__init__()
-        self.model, self.tasks = model, tuple(tasks)
+        self.model, self.tasks = model, model_outputs(model, tasks)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         out = self.model(x)
@@ -166,7 +173,7 @@ class _Decoder(nn.Module):
         import copy
 
         self.model = copy.deepcopy(model).eval()
-        self.tasks, self.n_feats = tuple(tasks), n_feats
+        self.tasks, self.n_feats = model_outputs(model, tasks), n_feats
         self.sites: list[_MaskMul] = []
         for parent in list(self.model.modules()):
             for name, child in list(parent.named_children()):
@@ -206,7 +213,7 @@ class OpenVINOEngine:
         self.ov = ov
         self.model = model
         self.in_channels = in_channels
-        self.tasks = tuple(tasks)
+        self.tasks = model_outputs(model, tasks)  # output order of the converted graphs
         self.precision = precision
         self._sites: list[DropoutSite] | None = None
         self.core = ov.Core()
@@ -328,13 +335,7 @@ class OpenVINOEngine:
         """Normalised (B, C, h, w) batch → statistics of each window (as the torch path)."""
         x = x.float()
         if samples == 1:
-            raw = self.forward(x)
-            stats = McStatistics()
-            if "height" in raw:
-                stats.height_mean = raw["height"][:, 0].float()
-            if "classes" in raw:
-                stats.probs = class_probabilities(raw["classes"])
-            return stats
+            return single_pass_statistics(self.forward(x))
         b, _, h, w = x.shape
         feats = [self.encode(x[n:n + 1]) for n in range(b)]
 
