@@ -18,8 +18,9 @@ from helpers.rasters import write_raster
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
-from aerialmtl.models.config import ENCODERS, ModelConfig
+from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net, TaskDecoder
+from aerialmtl.models.encoders import ENCODERS
 
 pytest.importorskip("openvino")
 

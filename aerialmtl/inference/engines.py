@@ -37,7 +37,7 @@ import threading
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 import torch
@@ -63,6 +63,35 @@ EngineName = Literal["auto", "torch", "openvino"]
 OPENVINO_INSTALL = "pip install openvino"
 #: Side of the example input the model is converted with (any multiple of 32; small converts fast).
 CONVERT_SIZE = 64
+
+
+class Engine(Protocol):
+    """What runs the model in prediction: the one interface of the ``torch`` engine
+    (:class:`~aerialmtl.inference.runner.TorchEngine`) and the ``openvino`` engine (:class:`OpenVINOEngine`).
+
+    A new engine implements these two members; :func:`resolve_engine` and the runner
+    (:class:`~aerialmtl.inference.runner.ModelRunner`) choose and build it.
+    """
+
+    #: ``"torch"`` or ``"openvino"`` (recorded in ``prediction.json``).
+    name: str
+
+    def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
+                   sample_batch: int) -> McStatistics:
+        """Statistics of each window of a normalised batch.
+
+        Args:
+            x: (B, C, h, w) normalised windows, on the engine's device.
+            keys: one dropout-mask key per window (masks depend on the window, not on the batch).
+            samples: MC-dropout samples T (1: one deterministic pass).
+            seed: the run's seed of the dropout masks.
+            sample_batch: MC samples decoded per call (bounds memory, not results).
+
+        Returns:
+            per-window height mean/std (B, h, w, metres), class probabilities (B, h, w, K) and mean
+            per-sample entropy, as :class:`~aerialmtl.models.mc_dropout.McStatistics`.
+        """
+        ...
 
 
 def openvino_available() -> bool:
@@ -350,5 +379,5 @@ class OpenVINOEngine:
         return accumulate_samples(decode_chunk, samples, max(1, sample_batch), b)
 
 
-__all__ = ["CONVERT_SIZE", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "cache_root", "fingerprint",
+__all__ = ["CONVERT_SIZE", "Engine", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "cache_root", "fingerprint",
            "openvino_available", "resolve_engine"]

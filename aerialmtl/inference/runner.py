@@ -31,7 +31,7 @@ from aerialmtl.models.d3net import fold_batchnorm
 from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
 if TYPE_CHECKING:
-    from aerialmtl.inference.engines import OpenVINOEngine
+    from aerialmtl.inference.engines import Engine
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
 #: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
@@ -222,7 +222,7 @@ class ModelRunner:
         self.tasks = tuple(meta.model.tasks)
         self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
         self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
-        self.engine: TorchEngine | OpenVINOEngine
+        self.engine: Engine
         if engine == "openvino":
             from aerialmtl.inference.engines import OpenVINOEngine
 

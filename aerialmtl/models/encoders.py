@@ -110,6 +110,15 @@ ENCODERS: dict[str, EncoderSpec] = {
 }
 
 
+def feature_channels(encoder: nn.Module) -> tuple[int, ...]:
+    """The channel counts of ``encoder``'s stride 2, 4, 8, 16 and 32 features (its ``out_channels``)."""
+    channels = tuple(int(c) for c in getattr(encoder, "out_channels"))  # noqa: B009 - nn.Module's __getattr__
+    if len(channels) != 5:
+        raise ValueError(f"{type(encoder).__name__}.out_channels must list the 5 stride 2–32 feature widths, "
+                         f"got {channels}")
+    return channels
+
+
 def encoder_spec(name: str) -> EncoderSpec:
     """The registry entry of encoder ``name``.
 
@@ -119,4 +128,4 @@ def encoder_spec(name: str) -> EncoderSpec:
     return ENCODERS[name]
 
 
-__all__ = ["ENCODERS", "EncoderSettings", "EncoderSpec", "encoder_spec"]
+__all__ = ["ENCODERS", "EncoderSettings", "EncoderSpec", "encoder_spec", "feature_channels"]

@@ -59,6 +59,7 @@ from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
@@ -210,16 +211,16 @@ def input_normalization(model_cfg: ModelConfig,
                         info: TileFolderInfo) -> tuple[tuple[float, ...], tuple[float, ...], str]:
     """The per-band ``(mean, std)`` the model's inputs are normalised with, and where it comes from.
 
-    An EfficientNet-Lite encoder with pretrained weights gets the scaling those weights were trained with,
-    ``(x − 127) / 128`` on 8-bit bands (``"encoder"``); anything else the tile folder's train statistics
+    An encoder with pretrained weights that were trained on a fixed input scaling (its registry entry's
+    ``input_scaling``, :mod:`aerialmtl.models.encoders`; EfficientNet-Lite: ``(x − 127) / 128`` on 8-bit
+    bands) gets that scaling (``"encoder"``); anything else the tile folder's train statistics
     (``"dataset"``). Pretrained weights on other than 8-bit data fall back to the statistics, with a warning.
     """
-    from aerialmtl.models.efficientnet import IMAGENET_LITE_MEAN, IMAGENET_LITE_STD
-
     n = len(info.bands)
-    if model_cfg.encoder != "densenet121" and model_cfg.encoder_weights:
+    scaling = encoder_spec(model_cfg.encoder).input_scaling
+    if scaling is not None and model_cfg.encoder_weights:
         if str(info.dtype) == "uint8":
-            return (IMAGENET_LITE_MEAN,) * n, (IMAGENET_LITE_STD,) * n, "encoder"
+            return (scaling[0],) * n, (scaling[1],) * n, "encoder"
         warnings.warn(f"model.encoder_weights: the pretrained {model_cfg.encoder} weights expect 8-bit images scaled "
                       f"(x - 127) / 128, but the tile folder holds {info.dtype} bands; normalising with the tile "
                       "folder's statistics instead", UserWarning, stacklevel=2)
