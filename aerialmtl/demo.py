@@ -135,7 +135,7 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     cfg = load_train_config(builtin_config(DEMO_CONFIG))
     cfg = cfg.with_overrides(schedule={"max_time_s": None, "max_steps": s.train_steps}, seed=0)
     result = train(cfg, data_dir=out / "tiles", out_dir=out / "run", max_steps=s.train_steps,
-                   max_time_s=s.train_seconds, progress=progress)
+                   max_time_s=s.train_seconds, progress=progress, overwrite=overwrite)
     stage("train", t)
 
     log(f"[4/5] predicting the test town with {s.mc} MC-dropout samples ...")
