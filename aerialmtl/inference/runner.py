@@ -18,6 +18,7 @@ and the blending alike; bench/RESULTS.md).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Literal, cast
 
@@ -206,13 +207,16 @@ class ModelRunner:
         tta: test-time augmentation: every window is also run flipped and rotated by 90°, 180°, 270° (8
             views); the views are combined like MC samples (:func:`combine_tta`), so ``height_std`` also
             holds their disagreement. 8 times the model's work.
+        fallback: the engine was chosen by ``auto``: fall back to torch when OpenVINO fails on the first batch.
     """
 
     def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
                  mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
-                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False) -> None:
+                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False, fallback: bool = False) -> None:
         self.device = device
         self.tta = tta
+        self.fallback = fallback
+        self._ran = False
         self.precision = precision
         self.mc = mc
         self.seed = seed
@@ -251,7 +255,24 @@ class ModelRunner:
     def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`); with
         :attr:`tta`, those of the 8 flips and 90° rotations combined (:func:`combine_tta`).
+
+        With :attr:`fallback` (``engine: auto``), an OpenVINO engine that fails on the first batch is
+        replaced by the torch engine, with a warning, and the batch is computed again: the whole raster then
+        comes from one engine, and ``prediction.json`` names it.
         """
+        first, self._ran = not self._ran, True
+        try:
+            return self._statistics(x, keys)
+        except Exception as exc:
+            if not (first and self.fallback and self.engine.name == "openvino"):
+                raise
+            warnings.warn(f"the OpenVINO engine cannot run this model ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); predicting with the torch engine "
+                          "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
+            self.engine = TorchEngine(self.net, self.model, self.device, self.precision, self.tasks)
+            return self._statistics(x, keys)
+
+    def _statistics(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         b, _, h, w = x.shape
         chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
         if not self.tta:
