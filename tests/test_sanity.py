@@ -94,8 +94,8 @@ def test_validation_keeps_nan_batches_instead_of_scoring_them_zero(tiles: Path, 
     try:
         real = trainer.objective.__call__
 
-        def nan_height(out: dict, batch: dict) -> dict:
-            losses = real(out, batch)
+        def nan_height(out: dict, batch: dict, **kw: object) -> dict:  # kw: the trainer's scoring=True
+            losses = real(out, batch, **kw)
             return {**losses, "height": losses["height"] * math.nan}
 
         monkeypatch.setattr(trainer, "objective", type("O", (), {"__call__": staticmethod(nan_height)})())
