@@ -20,7 +20,7 @@ from test_sanity import one_error_line
 
 from aerialmtl.errors import NonFiniteError
 from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
-from aerialmtl.training.distributed import DistContext
+from aerialmtl.runtime import Torchrun
 from aerialmtl.training.trainer import LOSS_GROWTH, LossWindow
 
 run = run_cli
@@ -53,7 +53,7 @@ def test_a_diverged_but_finite_run_fails_and_writes_no_best(tiles: Path, tmp_pat
 
 
 def test_a_loss_grown_by_orders_of_magnitude_is_a_divergence() -> None:
-    window = LossWindow(("height", "classes"), DistContext.from_env("cpu"))
+    window = LossWindow(("height", "classes"), Torchrun())
     window.add(1, torch.tensor(3.0), {"height": torch.tensor(2.0), "classes": torch.tensor(1.0)})
     window.add(2, torch.tensor(3.0), {"height": torch.tensor(2.0 * LOSS_GROWTH / 10), "classes": torch.tensor(1.0)})
     window.flush()  # 1000 times: a bad stretch, not yet a divergence

@@ -41,7 +41,7 @@ def _predict(capsys: pytest.CaptureFixture, ckpt: Path, ortho: Path, out: Path, 
              monkeypatch: pytest.MonkeyPatch) -> tuple[int, str, np.ndarray]:
     """`aerialmtl predict` with default options (the OpenVINO engine on a CPU), cache at ``cache``."""
     monkeypatch.setenv("AERIALMTL_OPENVINO_CACHE", str(cache))
-    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--tile", "64",
+    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--window", "64",
                            "--overlap", "16")
     assert code == 0, err
     assert json.loads((out / "prediction.json").read_text())["engine"] == "openvino"

@@ -78,7 +78,7 @@ def test_an_orthophoto_replaced_during_the_run_is_refused(tmp_path: Path, ckpts:
     newer = rgb(tmp_path, name="newer.tif", size=(256, 256), seed=2)
     out = tmp_path / "pred"
     cmd = [sys.executable, "-m", "aerialmtl", "predict", str(ortho), "--model", str(ckpts[0]), "--out", str(out),
-           "--mc", "8", "--tile", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
+           "--mc", "8", "--window", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD)
     try:
         _wait_for(lambda: out.is_dir() and any(p.name.endswith(".staging") for p in out.iterdir()), proc,
