@@ -363,16 +363,17 @@ def _collective(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
 
 
 # ---- GDAL ---------------------------------------------------------------------------------------
-def gdal_env(cache_mb: int = GDAL_CACHE_MB, **options: Any) -> rasterio.Env:
+def gdal_env(cache: int = GDAL_CACHE_MB, **options: Any) -> rasterio.Env:
     """GDAL settings while a command streams rasters (the one place that sets GDAL's block cache).
 
     Args:
-        cache_mb: GDAL's block cache in MiB (prediction: :data:`GDAL_CACHE_MB`; each command states its
-            own size and why); a ``GDAL_CACHEMAX`` environment variable wins.
+        cache: the ``GDAL_CACHEMAX`` value, as each command has always passed it (prediction:
+            :data:`GDAL_CACHE_MB`; tile and buildings: a size in bytes); a ``GDAL_CACHEMAX`` environment
+            variable wins.
         options: other GDAL configuration options for the block (e.g. ``GDAL_TIFF_INTERNAL_MASK=True``).
     """
     if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
-        options["GDAL_CACHEMAX"] = cache_mb * 1024 * 1024  # bytes: unambiguous for GDAL and rasterio
+        options["GDAL_CACHEMAX"] = cache
     return rasterio.Env(**options)
 
 

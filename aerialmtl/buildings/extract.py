@@ -285,7 +285,8 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
     frontier_h = np.full(width, np.nan, np.float32)
     above: dict[int, list[int]] = {}  # block column → pieces of the block above that reach its bottom row
     n_blocks = -(-height // b) * -(-width // b)
-    with gdal_env(DEFAULT_CACHE_MB), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
+    cache = DEFAULT_CACHE_MB * 1024 * 1024  # bytes
+    with gdal_env(cache), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
         for r0 in range(0, height, b):
             bh = min(b, height - r0)
             last_row = r0 + bh >= height
