@@ -19,13 +19,14 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from aerialmtl._version import __version__
 
 #: Public name → the module that defines it.
 _EXPORTS: dict[str, str] = {
     # data preparation
     "synthesize": "aerialmtl.data.synth",
     "tile_dataset": "aerialmtl.tiling.tile",
+    "TileOptions": "aerialmtl.tiling.tile",
     "SplitSpec": "aerialmtl.tiling.splits",
     "NdsmOptions": "aerialmtl.io.align",
     "ClassScheme": "aerialmtl.classes",
@@ -54,6 +55,7 @@ _EXPORTS: dict[str, str] = {
     "write_buildings": "aerialmtl.buildings",
     # evaluation
     "evaluate_prediction": "aerialmtl.evaluation.evaluate",
+    "EvaluateOptions": "aerialmtl.evaluation.evaluate",
     # errors
     "AerialMTLError": "aerialmtl.errors",
     "InputError": "aerialmtl.errors",
@@ -66,6 +68,7 @@ __all__ = [
     "__version__",
     "synthesize",
     "tile_dataset",
+    "TileOptions",
     "SplitSpec",
     "NdsmOptions",
     "ClassScheme",
@@ -90,6 +93,7 @@ __all__ = [
     "extract_buildings",
     "write_buildings",
     "evaluate_prediction",
+    "EvaluateOptions",
     "AerialMTLError",
     "InputError",
     "ConfigError",
@@ -117,7 +121,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from aerialmtl.classes import ClassScheme
     from aerialmtl.data.synth import synthesize
     from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, InputError, OutputExistsError
-    from aerialmtl.evaluation.evaluate import evaluate_prediction
+    from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
     from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
     from aerialmtl.formats.prediction import PredictionFolder
     from aerialmtl.inference.jobs import predict_many
@@ -127,7 +131,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from aerialmtl.models.d3net import D3Net
     from aerialmtl.models.mc_dropout import mc_predict
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
     from aerialmtl.training.config import TrainConfig, load_train_config
     from aerialmtl.training.loop import train
     from aerialmtl.training.trainer import TrainResult

@@ -91,18 +91,22 @@ class ClassScheme:
     # ---- accessors ----------------------------------------------------------------------------
     @property
     def num_classes(self) -> int:
+        """Number of classes K (the model's class channels)."""
         return len(self.classes)
 
     @property
     def names(self) -> list[str]:
+        """Class names, in class-index order."""
         return [c.name for c in self.classes]
 
     @property
     def colors(self) -> list[tuple[int, int, int]]:
+        """RGB colours (0–255) of the classes, in class-index order."""
         return [tuple(c.color) for c in self.classes]  # type: ignore[misc]
 
     @property
     def codes(self) -> list[int]:
+        """Raw label codes of the classes, in class-index order."""
         return [c.code for c in self.classes]
 
     def colormap(self) -> dict[int, tuple[int, int, int, int]]:

@@ -172,7 +172,8 @@ def to_dict(obj: Any) -> Any:
 
 class _Loader(yaml.SafeLoader):
     """PyYAML's safe loader reading floats as YAML 1.2 does: ``1e-4`` and ``1e3`` are numbers (YAML 1.1, which
-    PyYAML follows, wants a dot and a signed exponent, so ``lr: 1e-4`` would be the string ``'1e-4'``)."""
+    PyYAML follows, wants a dot and a signed exponent, so ``lr: 1e-4`` would be the string ``'1e-4'``).
+    """
 
 
 _Loader.add_implicit_resolver(

@@ -106,7 +106,7 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     from aerialmtl.evaluation.evaluate import evaluate_prediction
     from aerialmtl.inference.predict import predict_raster
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.loop import train
 
@@ -130,9 +130,9 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     block = s.patch * s.gsd * 2  # 2×2 patches per split block
     tiles = tile_dataset(
         train_town.ortho, out / "tiles", dsm=train_town.dsm, dtm=train_town.dtm, labels=train_town.labels,
-        classes=train_town.classes, size=s.patch, stride=s.patch,
-        splits=SplitSpec(block_size=block, ratios=(0.85, 0.15, 0.0), seed=0), overwrite=overwrite,
-        progress=progress,
+        classes=train_town.classes, overwrite=overwrite, progress=progress,
+        options=TileOptions(size=s.patch, stride=s.patch,
+                            splits=SplitSpec(block_size=block, ratios=(0.85, 0.15, 0.0), seed=0)),
     )
     stage("tile", t)
 
@@ -141,7 +141,7 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     cfg = load_train_config(builtin_config(DEMO_CONFIG))
     cfg = cfg.with_overrides(schedule={"max_time_s": None, "max_steps": s.train_steps}, seed=0)
     result = train(cfg, data_dir=out / "tiles", out_dir=out / "run", max_steps=s.train_steps,
-                   max_time_s=s.train_seconds, progress=progress)
+                   max_time_s=s.train_seconds, progress=progress, overwrite=overwrite)
     stage("train", t)
 
     log(f"[4/5] predicting the test town with {s.mc} MC-dropout samples ...")
@@ -175,7 +175,8 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
 def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path | None,
                    labels_ref: Path | None) -> Path | None:
     """Draw ``overview.png`` (:func:`preview_figure`) in ``folder``. Returns its path, or ``None`` without
-    matplotlib."""
+    matplotlib.
+    """
     fig = preview_figure(ortho, pred_dir, height_ref, labels_ref)
     if fig is None:
         return None
@@ -192,7 +193,8 @@ def write_previews(folder: Path, ortho: Path, pred_dir: Path, height_ref: Path |
 def preview_figure(ortho: Path, pred_dir: Path, height_ref: Path | None, labels_ref: Path | None) -> Any | None:
     """Ortho, reference/predicted height, height std, reference/predicted classes, class entropy and mutual
     information side by side: float layers with a colour bar in their unit (the colour maps of their QGIS
-    styles), class maps with a legend of the class names. ``None`` without matplotlib."""
+    styles), class maps with a legend of the class names. ``None`` without matplotlib.
+    """
     try:
         import matplotlib
 

@@ -93,7 +93,8 @@ class CheckpointError(AerialMTLError, ValueError):
 
 class NonFiniteError(AerialMTLError, FloatingPointError):
     """Numbers that can only be garbage: a diverged training (NaN/inf loss or score), a checkpoint with
-    NaN/inf weights, or a model that gives NaN/inf for valid inputs."""
+    NaN/inf weights, or a model that gives NaN/inf for valid inputs.
+    """
 
 
 class OutputExistsError(AerialMTLError, FileExistsError):
@@ -108,7 +109,13 @@ class OutputInUseError(OutputError):
     """Another process is writing the same output folder (it holds the folder's lock)."""
 
 
+class PeerFailure(AerialMTLError, RuntimeError):
+    """Another process of a multi-process (torchrun) run failed or was stopped, or an input failed on
+    another rank; the message names the process or the input and the cause.
+    """
+
+
 __all__ = [
     "PARAM_MARK", "AerialMTLError", "AlignmentError", "CheckpointError", "ConfigError", "InputError", "LabelError",
-    "NonFiniteError", "OutputError", "OutputExistsError", "OutputInUseError", "render",
+    "NonFiniteError", "OutputError", "OutputExistsError", "OutputInUseError", "PeerFailure", "render",
 ]

@@ -13,7 +13,7 @@
   process, joining the process group (gloo on CPUs, NCCL on GPUs) with a stated timeout
   (:data:`COLLECTIVE_TIMEOUT` for training, whose collectives are in step; :data:`SHARE_TIMEOUT` for
   prediction, whose ranks wait for each other's whole share of the work at the end).
-* **GDAL** — :func:`gdal_env`: a bounded block cache while rasters are streamed.
+* **GDAL** — :func:`gdal_env`: a bounded block cache while rasters are streamed (tile, predict, buildings).
 
 The trainer (:mod:`aerialmtl.training.trainer`, :mod:`aerialmtl.training.distributed`) and the predictor
 (:mod:`aerialmtl.inference.predict`, :mod:`aerialmtl.inference.jobs`) both use this module.
@@ -27,15 +27,16 @@ import functools
 import os
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import rasterio
 import torch
+import torch.distributed as dist
 from torch import nn
 
-from aerialmtl.errors import AerialMTLError, InputError
+from aerialmtl.errors import AerialMTLError, InputError, PeerFailure
 
 Precision = Literal["auto", "bf16", "fp32"]
 Resolved = Literal["bf16", "fp32"]
@@ -165,6 +166,7 @@ class CompileFallback:
         self.failed = False
 
     def __call__(self, name: str, *args: Any) -> Any:
+        """Call method ``name`` of the module, compiled where it can be."""
         eager = getattr(self.module, name)
         if self.failed:
             return eager(*args)
@@ -178,11 +180,11 @@ class CompileFallback:
             if isinstance(exc, AerialMTLError):  # our own checks (input shapes...) are not compile failures
                 raise
             self.failed = True
-            warn_compile_failed(exc, self.what)
+            _warn_compile_failed(exc, self.what)
             return eager(*args)
 
 
-def warn_compile_failed(exc: BaseException, what: str = "the model") -> None:
+def _warn_compile_failed(exc: BaseException, what: str = "the model") -> None:
     """The one warning when ``torch.compile`` cannot be used."""
     why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
     warnings.warn(f"compile: torch.compile failed, torch.compile is not available here ({why}); running {what} "
@@ -190,13 +192,27 @@ def warn_compile_failed(exc: BaseException, what: str = "the model") -> None:
 
 
 # ---- torchrun -----------------------------------------------------------------------------------
-@dataclass(frozen=True)
+T = TypeVar("T")
+
+
+@dataclass
 class Torchrun:
-    """This process's place in a ``torchrun`` job (``rank`` 0 of 1 outside torchrun)."""
+    """This process's place in a ``torchrun`` job (``rank`` 0 of 1 outside torchrun) and the collectives
+    that training and prediction use; every collective is a no-op for one process.
+
+    Attributes:
+        rank: global rank (0 for one process).
+        world: number of processes.
+        local_rank: rank on this machine (selects the GPU).
+        device: the device of this process (set by :meth:`join`; the CPU before).
+        owns_group: whether :meth:`leave` destroys the process group (:meth:`join` created it).
+    """
 
     rank: int = 0
     world: int = 1
     local_rank: int = 0
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    owns_group: bool = False
 
     @classmethod
     def from_env(cls) -> Torchrun:
@@ -206,11 +222,30 @@ class Torchrun:
             return cls()
         return cls(int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0")))
 
+    @classmethod
+    def start(cls, device: str, timeout: _dt.timedelta, error: type[AerialMTLError] = InputError) -> Torchrun:
+        """The context of this process from torchrun's environment, its device resolved and the group joined.
+
+        Args:
+            device: ``auto``, ``cpu`` or ``cuda`` (:meth:`resolve_device`).
+            timeout: how long a collective waits for a peer (:data:`COLLECTIVE_TIMEOUT`, :data:`SHARE_TIMEOUT`).
+            error: the error type of a bad device (the trainer passes ConfigError).
+        """
+        env = cls.from_env()
+        env.join(env.resolve_device(device, error), timeout)
+        return env
+
     @property
     def distributed(self) -> bool:
+        """Whether there are several processes."""
         return self.world > 1
 
-    def device(self, device: str, error: type[AerialMTLError] = InputError) -> torch.device:
+    @property
+    def is_main(self) -> bool:
+        """Rank 0: the process that writes shared files and prints."""
+        return self.rank == 0
+
+    def resolve_device(self, device: str, error: type[AerialMTLError] = InputError) -> torch.device:
         """The device of this process (:func:`resolve_device`); on CUDA ``cuda:LOCAL_RANK``, made current.
 
         Raises:
@@ -227,31 +262,121 @@ class Torchrun:
             torch.cuda.set_device(dev)
         return dev
 
-    def join(self, device: torch.device, timeout: _dt.timedelta) -> bool:
-        """Join the process group (NCCL on CUDA, gloo otherwise); returns whether this call created it."""
-        import torch.distributed as dist
+    def join(self, device: torch.device, timeout: _dt.timedelta) -> None:
+        """Take ``device`` and join the process group (NCCL on CUDA, gloo otherwise) if there is none yet."""
+        self.device = torch.device(device)
+        if self.distributed and not dist.is_initialized():
+            dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo", timeout=timeout)
+            self.owns_group = True
 
-        if not self.distributed or dist.is_initialized():
-            return False
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timeout)
-        return True
-
-    @staticmethod
-    def leave() -> None:
-        """Destroy the process group if there is one."""
-        import torch.distributed as dist
-
-        if dist.is_initialized():
+    def leave(self) -> None:
+        """Destroy the process group if :meth:`join` created it."""
+        if self.owns_group and dist.is_initialized():
             dist.destroy_process_group()
+        self.owns_group = False
+
+    # ---- collectives (no-ops for one process) -------------------------------------------------------
+    def barrier(self) -> None:
+        """Wait until every rank is here."""
+        if self.distributed:
+            _collective(dist.barrier)
+
+    def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
+        """Sum ``tensor`` over ranks, in place (identical on every rank afterwards); returns it.
+
+        A CPU tensor in a CUDA (nccl) run travels through the GPU and comes back.
+        """
+        if self.distributed:
+            comm = self._comm_device()
+            work = tensor if tensor.device == comm else tensor.to(comm)
+            _collective(dist.all_reduce, work, op=dist.ReduceOp.SUM)
+            if work is not tensor:
+                tensor.copy_(work)
+        return tensor
+
+    def any(self, flag: bool) -> bool:
+        """True on every rank when ``flag`` is true on at least one."""
+        if not self.distributed:
+            return flag
+        t = torch.tensor([1.0 if flag else 0.0], device=self._comm_device())
+        return bool(self.all_reduce_sum(t).item() > 0)
+
+    def gather(self, obj: Any) -> list[Any]:
+        """Every rank's ``obj``, in rank order, on every rank (also a barrier)."""
+        if not self.distributed:
+            return [obj]
+        out: list[Any] = [None] * self.world
+        _collective(dist.all_gather_object, out, obj)
+        return out
+
+    def broadcast(self, obj: T) -> T:
+        """Rank 0's ``obj`` on every rank."""
+        if not self.distributed:
+            return obj
+        box = [obj]
+        _collective(dist.broadcast_object_list, box, src=0)
+        return box[0]
+
+    def main_first(self, fn: Callable[[], T]) -> T:
+        """Run ``fn`` on rank 0; if it raises, every rank raises the same error (no rank is left waiting)."""
+        result: Any = None
+        error: BaseException | None = None
+        if self.is_main:
+            try:
+                result = fn()
+            except (AerialMTLError, OSError) as exc:
+                error = exc
+        error = self.broadcast(error)
+        if error is not None:
+            raise error
+        return result
+
+    def _comm_device(self) -> torch.device:
+        return self.device if self.device.type == "cuda" else torch.device("cpu")
+
+
+def peer_failure(exc: BaseException) -> PeerFailure:
+    """The :class:`~aerialmtl.errors.PeerFailure` of a collective that failed because a peer is gone."""
+    why = " ".join(str(exc).split())[:160] or exc.__class__.__name__
+    return PeerFailure(f"another process of this multi-process run failed or was stopped ({why}); its own message "
+                       "or torchrun's summary says why. The last checkpoint in the run folder is whole: continue "
+                       "with ‹resume=True›")
+
+
+def is_peer_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a collective failing because another process is gone (gloo/nccl wording)."""
+    if isinstance(exc, (dist.DistBackendError, dist.DistNetworkError)):
+        return True
+    text = str(exc)
+    return isinstance(exc, RuntimeError) and any(
+        s in text for s in ("Connection reset", "Connection closed", "Broken pipe", "gloo", "NCCL", "by peer"))
+
+
+def _collective(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """Call a torch.distributed collective; a broken peer becomes :class:`~aerialmtl.errors.PeerFailure`."""
+    try:
+        return fn(*args, **kwargs)
+    except RuntimeError as exc:
+        if is_peer_error(exc):
+            raise peer_failure(exc) from exc
+        raise
 
 
 # ---- GDAL ---------------------------------------------------------------------------------------
-def gdal_env() -> rasterio.Env:
-    """GDAL settings while streaming rasters: the block cache bounded to :data:`GDAL_CACHE_MB` unless
-    the user set ``GDAL_CACHEMAX``."""
-    return rasterio.Env() if "GDAL_CACHEMAX" in os.environ else rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
+def gdal_env(cache: int = GDAL_CACHE_MB, **options: Any) -> rasterio.Env:
+    """GDAL settings while a command streams rasters (the one place that sets GDAL's block cache).
+
+    Args:
+        cache: the ``GDAL_CACHEMAX`` value, as each command has always passed it (prediction:
+            :data:`GDAL_CACHE_MB`; tile and buildings: a size in bytes); a ``GDAL_CACHEMAX`` environment
+            variable wins.
+        options: other GDAL configuration options for the block (e.g. ``GDAL_TIFF_INTERNAL_MASK=True``).
+    """
+    if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
+        options["GDAL_CACHEMAX"] = cache
+    return rasterio.Env(**options)
 
 
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "CompileFallback", "GDAL_CACHE_MB", "Precision",
            "Resolved", "SHARE_TIMEOUT", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env",
-           "native_bf16", "resolve_device", "resolve_precision", "warn_compile_failed"]
+           "is_peer_error", "native_bf16", "peer_failure", "resolve_device", "resolve_precision"]

@@ -12,7 +12,7 @@ going until the main thread, interrupted, shuts them down in its clean-up (as fo
 
 Under ``torchrun`` a SIGTERM usually means that torchrun stops the survivors because another process
 failed; :func:`install_stop_signals` with ``distributed=True`` raises
-:class:`~aerialmtl.training.distributed.PeerFailure` for it instead, whose message says so.
+:class:`~aerialmtl.errors.PeerFailure` for it instead, whose message says so.
 """
 
 from __future__ import annotations

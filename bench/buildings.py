@@ -227,7 +227,7 @@ def bench_quality(model: Path, seeds: list[int], size: int, mc: int, work: Path,
         if not (reuse and (pred / "prediction.json").is_file()):
             _cli("synth", town, "--size", size, "--seed", seed, "--overwrite")
             t0 = time.perf_counter()
-            _cli("predict", town / "ortho.tif", "--model", model, "--out", pred, "--mc", mc, "--tile", 512,
+            _cli("predict", town / "ortho.tif", "--model", model, "--out", pred, "--mc", mc, "--window", 512,
                  "--precision", "fp32", "--overwrite", "--quiet")
         predict_s = time.perf_counter() - t0
         for name, extra in variants.items():

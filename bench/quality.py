@@ -30,11 +30,11 @@ import torch
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.data.synth import SYNTH_VERSION, synthesize
 from aerialmtl.demo import builtin_config
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.evaluation.metrics import classification_metrics, confusion_matrix
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import tile_dataset
+from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import load_train_config
 from aerialmtl.training.loop import train
 
@@ -100,9 +100,12 @@ def main() -> None:
                             seed=args.train_seed, overwrite=True)
     tests = [synthesize(out / "towns" / f"test_{s}", size=args.test_size, seed=s, overwrite=True) for s in test_seeds]
     scheme = ClassScheme.load(train_town.classes)
-    tile_dataset(train_town.ortho, out / "tiles", dsm=train_town.dsm, dtm=train_town.dtm, labels=train_town.labels,
-                 classes=scheme, size=args.patch, stride=args.patch, overwrite=True, progress=False,
-                 splits=SplitSpec(block_size=args.patch * 0.25 * 2, ratios=(0.85, 0.15, 0.0), seed=0))
+    tile_dataset(
+        train_town.ortho, out / "tiles", dsm=train_town.dsm, dtm=train_town.dtm, labels=train_town.labels,
+        classes=scheme, overwrite=True, progress=False,
+        options=TileOptions(size=args.patch, stride=args.patch,
+                            splits=SplitSpec(block_size=args.patch * 0.25 * 2, ratios=(0.85, 0.15, 0.0), seed=0)),
+    )
 
     base_cfg = load_train_config(builtin_config("d3net_small_synth"))
     results: dict[str, dict[str, float]] = {}
@@ -120,7 +123,9 @@ def main() -> None:
                            progress=False)
             per_town.append(evaluate_prediction(
                 pdir, height_ref=town.ndsm if "height" in tasks else None,
-                labels_ref=town.labels if "classes" in tasks else None, classes=scheme, out=None, plots=False))
+                labels_ref=town.labels if "classes" in tasks else None, classes=scheme, out=None,
+                options=EvaluateOptions(plots=False),
+            ))
         row: dict[str, float] = {"train_s": train_s, "steps": run.step}
         if "height" in tasks:
             row["height_mae"] = _mean([r["height"]["mae"] for r in per_town])

@@ -54,7 +54,7 @@ import numpy as np
 import rasterio
 import torch
 
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, layer_filename
 from aerialmtl.formats.tiles import ManifestWriter, read_manifest
 from aerialmtl.inference.predict import predict_raster
@@ -62,7 +62,7 @@ from aerialmtl.io.align import HeightSource, reference_grid
 from aerialmtl.io.units import metres_per_unit
 from aerialmtl.io.vector import load_geometries
 from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import tile_dataset
+from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import TrainConfig, load_train_config
 from aerialmtl.training.loop import train
 
@@ -215,9 +215,11 @@ def tiles_for(recipe: Recipe, data: Path, split: dict[str, Path], out: Path,
     if tdir.exists():
         shutil.rmtree(tdir)
     t0 = time.perf_counter()
-    res = tile_dataset(data / ORTHO, tdir, dsm=data / DSM, dtm=data / DTM, size=recipe.size, stride=stride,
-                       gsd=recipe.gsd, splits=SplitSpec(method="aoi", aoi={k: str(split[k]) for k in ("train", "val")}),
-                       progress=False)
+    res = tile_dataset(
+        data / ORTHO, tdir, dsm=data / DSM, dtm=data / DTM, progress=False,
+        options=TileOptions(size=recipe.size, stride=stride, gsd=recipe.gsd,
+                            splits=SplitSpec(method="aoi", aoi={k: str(split[k]) for k in ("train", "val")})),
+    )
     info = {"counts": res.counts, "windows": res.windows, "dropped_invalid": res.dropped_invalid,
             "dropped_split": res.dropped_split, "seconds": time.perf_counter() - t0}
     info_file.write_text(json.dumps(info, indent=1))
@@ -366,8 +368,10 @@ def summarise(report: dict[str, Any]) -> dict[str, float]:
 
 def evaluate_dir(pred_dir: Path, data: Path, out_json: Path) -> dict[str, float]:
     bins = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
-    report = evaluate_prediction(pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
-                                 height_bins=bins, plots=False)
+    report = evaluate_prediction(
+        pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
+        options=EvaluateOptions(height_bins=bins, plots=False),
+    )
     return summarise(report)
 
 

@@ -36,7 +36,7 @@ from aerialmtl.formats.tiles import HEIGHT_NODATA, read_manifest
 from aerialmtl.io.units import metres_per_unit
 from aerialmtl.io.vrt import mosaic_vrt
 from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import tile_dataset
+from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.loop import TrainResult, train
 
@@ -299,9 +299,10 @@ def pretrain_synthetic(
     say(f"tiling into {s.patch}-px patches every {stride} px")
     split = SplitSpec(method="blocks", block_size=s.town_size * s.gsd / 4,
                       ratios=(1 - s.val_fraction, s.val_fraction, 0), seed=s.seed)
-    tiles = tile_dataset(corpus.ortho, out / "tiles", ndsm=corpus.ndsm, labels=corpus.labels,
-                         classes=corpus.classes, size=s.patch, stride=stride, splits=split, overwrite=overwrite,
-                         progress=progress)
+    tiles = tile_dataset(
+        corpus.ortho, out / "tiles", ndsm=corpus.ndsm, labels=corpus.labels, classes=corpus.classes,
+        overwrite=overwrite, progress=progress, options=TileOptions(size=s.patch, stride=stride, splits=split),
+    )
     say(f"training on {tiles.counts['train']} patches (val {tiles.counts['val']})")
     if run_dir.is_dir() and overwrite:
         for child in run_dir.iterdir():

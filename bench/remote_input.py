@@ -24,7 +24,7 @@ import rasterio
 from affine import Affine
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from conftest import tiny_d3net  # noqa: E402
+from helpers.models import tiny_d3net  # noqa: E402
 
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
 

@@ -65,12 +65,12 @@ def make_inputs(folder: Path, n: int) -> dict[str, str]:
 
 CHILD = r"""
 import json, resource, sys, time
-from aerialmtl.tiling.tile import tile_dataset
+from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.tiling.splits import SplitSpec
 p = json.loads(sys.argv[1])
 t0 = time.perf_counter()
-res = tile_dataset(p["ortho"], p["out"], ndsm=p["ndsm"], labels=p["labels"], classes="synthetic", size=320,
-                   stride=320, splits=SplitSpec(block_size=200.0), overwrite=True, progress=False)
+res = tile_dataset(p["ortho"], p["out"], ndsm=p["ndsm"], labels=p["labels"], classes="synthetic", overwrite=True,
+                   progress=False, options=TileOptions(size=320, stride=320, splits=SplitSpec(block_size=200.0)))
 wall = time.perf_counter() - t0
 print(json.dumps({"wall_s": wall, "maxrss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "patches": sum(res.counts.values()), "windows": res.windows}))

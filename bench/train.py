@@ -75,15 +75,16 @@ def make_tiles(workdir: Path, town_px: int) -> Path:
     """A synthetic town of ``town_px``² at 0.25 m tiled into 320² patches (90 % train); reused if present."""
     from aerialmtl.data.synth import synthesize
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
 
     tiles = workdir / f"tiles_{town_px}"
     if (tiles / "dataset.yaml").is_file():
         return tiles
     town = synthesize(workdir / f"town_{town_px}", size=town_px, seed=3, gsd=0.25, overwrite=True)
-    tile_dataset(town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, size=320,
-                 stride=320, splits=SplitSpec(block_size=160.0, ratios=(0.9, 0.1, 0.0), seed=0), overwrite=True,
-                 progress=False)
+    tile_dataset(
+        town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, overwrite=True, progress=False,
+        options=TileOptions(size=320, stride=320, splits=SplitSpec(block_size=160.0, ratios=(0.9, 0.1, 0.0), seed=0)),
+    )
     return tiles
 
 
@@ -133,7 +134,7 @@ def geotiff_loader(tiles: Path, batch: int, workers: int, device: torch.device) 
 
 def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) -> Iterator[dict]:
     """The training data path: patch cache → compact batches (workers) → device → normalise + augment there."""
-    from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, prepare_batch
+    from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, prepare_batch
     from aerialmtl.data.cache import PatchCache, ensure_patch_cache
     from aerialmtl.data.transforms import build_train_transform
     from aerialmtl.formats.tiles import TileFolderInfo, cache_dir
@@ -146,7 +147,7 @@ def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) ->
     in_workers = (mean.cpu(), std.cpu()) if device.type == "cpu" and workers > 0 else None  # as the trainer does
     loader = torch.utils.data.DataLoader(
         CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks, in_workers),
-        sampler=RankBatchSampler(EpochPlan(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
+        sampler=RankBatchSampler(EpochOrder(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
         pin_memory=device.type == "cuda", generator=torch.Generator().manual_seed(0))
     for raw in loader:
         yield prepare_batch(raw, transform, mean, std, device)

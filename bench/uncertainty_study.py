@@ -46,7 +46,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_data import DATA, DSM, DTM, ORTHO, TALL_M, constant_prediction, cpu_model, train_mean  # noqa: E402
 
-from aerialmtl.evaluation.evaluate import evaluate_prediction  # noqa: E402
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, HEIGHT_STD, layer_filename  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
@@ -108,7 +108,7 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
 
 def evaluate(pred_dir: Path, data: Path, out_json: Path) -> dict[str, Any]:
     report = evaluate_prediction(pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
-                                 height_bins=BINS, plots=False)
+                                 options=EvaluateOptions(height_bins=BINS, plots=False))
     res = summary(report)
     with rasterio.open(pred_dir / layer_filename(HEIGHT)) as src:
         h = src.read(1)

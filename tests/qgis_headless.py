@@ -162,7 +162,7 @@ def main(plugin_zip: str, program: str, model: str, ortho: str, big_ortho: str, 
     work_dir = Path(work)
     pred = work_dir / "pred"
     report["predict"] = _run("aerialmtl:predict", {
-        "INPUT": ortho, "MODEL": model, "MC": 4, "TILE": 64, "OVERLAP": 16, "AOI": _left_half(ortho),
+        "INPUT": ortho, "MODEL": model, "MC": 4, "WINDOW": 64, "OVERLAP": 16, "AOI": _left_half(ortho),
         "OUTPUT": str(pred)}, Recorder())
     report["buildings"] = _run("aerialmtl:buildings", {
         "INPUT": str(pred), "MIN_AREA": 1.0, "OUTPUT": str(work_dir / "buildings.gpkg")}, Recorder())
@@ -179,7 +179,7 @@ def main(plugin_zip: str, program: str, model: str, ortho: str, big_ortho: str, 
     canceled = work_dir / "canceled"
     feedback = Recorder(cancel_at_first_step=True)
     report["cancel"] = _run("aerialmtl:predict", {
-        "INPUT": big_ortho, "MODEL": model, "MC": 8, "TILE": 64, "OVERLAP": 16, "OUTPUT": str(canceled)}, feedback)
+        "INPUT": big_ortho, "MODEL": model, "MC": 8, "WINDOW": 64, "OVERLAP": 16, "OUTPUT": str(canceled)}, feedback)
     report["cancel"]["canceled_at"] = feedback.canceled_at
     report["cancel"]["left"] = sorted(p.name for p in canceled.iterdir()) if canceled.exists() else None
     report["layers"] = _layers()

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import TINY, run_cli, write_raster
+from helpers.cli import run_cli
+from helpers.models import TINY
+from helpers.rasters import write_raster
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.errors import ConfigError
@@ -155,7 +157,7 @@ def test_tta_views_are_undone_exactly_and_their_disagreement_enters_the_spread(
         tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """A per-pixel model (1×1 convolutions) gives the same map in every view: --tta changes nothing and adds no
     spread; a D3-Net's views disagree, so --tta at T = 1 writes a height_std, equal on both engines."""
-    from conftest import IdentityModel, identity_meta
+    from helpers.models import IdentityModel, identity_meta
 
     img = np.random.default_rng(0).integers(1, 256, (3, 70, 90)).astype(np.uint8)
     ortho = write_raster(tmp_path / "o.tif", img)

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from conftest import write_raster
+from helpers.rasters import write_raster
 from rasterio.warp import transform as warp_transform
 
 from aerialmtl.errors import AlignmentError
-from aerialmtl.io.align import HEIGHT_NODATA, AlignedRaster, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.formats.tiles import HEIGHT_NODATA
+from aerialmtl.io.align import AlignedRaster, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import read_manifest, tile_dataset
+from aerialmtl.tiling.tile import TileOptions, read_manifest, tile_dataset
 
 # ortho near the UTM 31/32 boundary (≈ 5.9° E, 45° N) so a zone-32 DSM is a genuinely different projection
 ORTHO_CRS = "EPSG:32631"
@@ -99,9 +100,11 @@ def test_nodata_and_options_propagate_into_ndsm_patches(tmp_path: Path, rng) -> 
     dsm[40, 8] = 200.0 + 80.0  # above --max-height
     write_raster(tmp_path / "dsm.tif", dsm, ORTHO_CRS, ORTHO_T, nodata=-9999.0)
     write_raster(tmp_path / "dtm.tif", dtm, ORTHO_CRS, ORTHO_T)
-    res = tile_dataset(ortho, tmp_path / "out", dsm=tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", size=N,
-                       min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)), ndsm_options=NdsmOptions(max_height=50.0),
-                       progress=False)
+    res = tile_dataset(
+        ortho, tmp_path / "out", dsm=tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", progress=False,
+        options=TileOptions(size=N, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)),
+                            heights=NdsmOptions(max_height=50.0)),
+    )
     (row,) = read_manifest(res.manifest)
     with rasterio.open(res.out_dir / row["height_path"]) as f:
         h = f.read(1)
@@ -116,9 +119,11 @@ def test_nodata_and_options_propagate_into_ndsm_patches(tmp_path: Path, rng) -> 
     assert float(row["height_max"]) <= 50.0 and float(row["height_min"]) == 0.0
 
     # without clipping the negative height survives; a coarser DTM spreads its hole bilinearly
-    res2 = tile_dataset(ortho, tmp_path / "out2", dsm=tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", size=N,
-                        min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)),
-                        ndsm_options=NdsmOptions(clip_negative=False), progress=False)
+    res2 = tile_dataset(
+        ortho, tmp_path / "out2", dsm=tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", progress=False,
+        options=TileOptions(size=N, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)),
+                            heights=NdsmOptions(clip_negative=False)),
+    )
     with rasterio.open(res2.out_dir / read_manifest(res2.manifest)[0]["height_path"]) as f:
         assert f.read(1)[30, 30] == pytest.approx(-5.0)
 
@@ -142,7 +147,7 @@ def test_non_overlapping_layer_names_both_bounds(tmp_path: Path, rng) -> None:
     far = write_raster(tmp_path / "ndsm.tif", np.ones((10, 10), np.float32), ORTHO_CRS,
                        Affine(1.0, 0, 600000.0, 0, -1.0, 4000000.0))
     with pytest.raises(AlignmentError) as info:
-        tile_dataset(ortho, tmp_path / "out", ndsm=far, size=16, progress=False)
+        tile_dataset(ortho, tmp_path / "out", ndsm=far, progress=False, options=TileOptions(size=16))
     msg = str(info.value)
     assert "ndsm.tif" in msg and "(700000, 4.99998e+06, 700024, 5e+06)" in msg and "(600000, 3.99999e+06" in msg
     assert not (tmp_path / "out").exists()  # nothing written

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from tilefolder import write_tile_folder
+from helpers.tilefolder import write_tile_folder
 
-from aerialmtl.data.batches import CachedBatches, EpochPlan, eval_batches, item_seed, prepare_batch
+from aerialmtl.data.batches import CachedBatches, EpochOrder, eval_batches, item_seed, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.dataset import PatchDataset
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
@@ -136,8 +136,8 @@ def test_empty_split_is_refused(tmp_path: Path) -> None:
 
 # ---- the batch order ------------------------------------------------------------------------------
 def test_ranks_split_each_global_batch_of_the_single_process_order() -> None:
-    one = EpochPlan(n=20, batch_size=8, seed=3)
-    two = EpochPlan(n=20, batch_size=4, seed=3, world_size=2)
+    one = EpochOrder(n=20, batch_size=8, seed=3)
+    two = EpochOrder(n=20, batch_size=4, seed=3, world_size=2)
     assert (one.steps_per_epoch, two.steps_per_epoch, two.global_batch) == (2, 2, 8)
     single, r0, r1 = one.batches(0, 0, 0), two.batches(0, 0, 0), two.batches(1, 0, 0)
     for _ in range(5):  # across epoch boundaries
@@ -146,12 +146,12 @@ def test_ranks_split_each_global_batch_of_the_single_process_order() -> None:
     # resuming at a position continues with the same batches
     whole = one.batches(0, 2, 0)
     next(whole)
-    assert next(EpochPlan(20, 8, 3).batches(0, 2, 8)) == next(whole)
+    assert next(EpochOrder(20, 8, 3).batches(0, 2, 8)) == next(whole)
 
 
 def test_resume_with_another_global_batch_continues_at_the_same_position() -> None:
-    two = EpochPlan(n=16, batch_size=4, seed=0, world_size=2)  # global batch 8
-    one = EpochPlan(n=16, batch_size=4, seed=0)  # global batch 4
+    two = EpochOrder(n=16, batch_size=4, seed=0, world_size=2)  # global batch 8
+    one = EpochOrder(n=16, batch_size=4, seed=0)  # global batch 4
     epoch, pos = 0, 0
     epoch, pos = two.advance(epoch, pos)
     assert (epoch, pos) == (0, 8)
@@ -163,10 +163,10 @@ def test_resume_with_another_global_batch_continues_at_the_same_position() -> No
 
 
 def test_small_splits() -> None:
-    assert EpochPlan(n=3, batch_size=8, seed=0).global_batch == 3  # one process: the whole split
-    assert EpochPlan(n=5, batch_size=8, seed=0, world_size=2).rank_batch == 2
+    assert EpochOrder(n=3, batch_size=8, seed=0).global_batch == 3  # one process: the whole split
+    assert EpochOrder(n=5, batch_size=8, seed=0, world_size=2).rank_batch == 2
     with pytest.raises(InputError, match="3 patches, fewer than the 4 processes"):
-        EpochPlan(n=3, batch_size=8, seed=0, world_size=4)
+        EpochOrder(n=3, batch_size=8, seed=0, world_size=4)
 
 
 def test_validation_batches_are_dealt_to_ranks() -> None:

@@ -12,7 +12,8 @@ import pytest
 import rasterio
 import shapely
 from affine import Affine
-from conftest import run_cli, write_prediction_layers, write_raster
+from helpers.cli import run_cli
+from helpers.rasters import write_prediction_layers, write_raster
 from rasterio.crs import CRS
 from rasterio.features import rasterize
 from scipy import ndimage
@@ -440,7 +441,7 @@ def test_no_building_warning_reaches_the_cli(tmp_path: Path, rng: np.random.Gene
 
 def test_plot_and_table_of_the_most_uncertain_buildings(tmp_path: Path, rng: np.random.Generator) -> None:
     pytest.importorskip("matplotlib")
-    from aerialmtl.buildings.plot import format_buildings, most_uncertain_buildings, plot_buildings
+    from aerialmtl.evaluation.building_maps import format_buildings, most_uncertain_buildings, plot_buildings
 
     cls, height, std, ent = _layers((80, 80), [(5, 30, 5, 30, 6.0), (40, 75, 10, 70, 15.0)], rng)
     std[40:75, 10:70] += 3.0  # the big building is the uncertain one

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import write_raster
-from tilefolder import toy_patch, write_tile_folder
+from helpers.rasters import write_raster
+from helpers.tilefolder import toy_patch, write_tile_folder
 
 from aerialmtl.formats.checkpoint import load_checkpoint, load_model, save_checkpoint
 from aerialmtl.inference.predict import predict_raster
@@ -142,7 +142,7 @@ def test_checkpoints_of_both_encoders_round_trip_through_predict(encoder: str, t
 
 
 def test_an_old_checkpoint_without_calibration_predicts_uncalibrated(tmp_path: Path) -> None:
-    from conftest import tiny_d3net
+    from helpers.models import tiny_d3net
 
     model, meta = tiny_d3net()
     path = tmp_path / "old.pt"

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from conftest import TINY
+from helpers.models import TINY
 
 from aerialmtl import load_checkpoint, load_model
 from aerialmtl.classes import ClassScheme

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import rasterio
 from affine import Affine
-from conftest import write_raster
+from helpers.rasters import write_raster
 
 from aerialmtl.io.cog import cog_problems, staging_profile, to_cog
 

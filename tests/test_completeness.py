@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import run_cli, tiny_d3net
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
 from test_outputs import ONE_THREAD, _wait_for
 from test_robustness import PREDICT, assert_error, assert_ok, no_final_outputs, rgb
 
@@ -127,7 +128,7 @@ def test_two_predict_processes_on_one_out_then_sigterm(tmp_path: Path, ckpts: tu
     ortho = rgb(tmp_path, size=(1024, 1024), seed=3)  # a minute of work or more: stopped long before its end
     out = tmp_path / "pred"
     cmd = [sys.executable, "-m", "aerialmtl", "predict", str(ortho), "--model", str(ckpts[0]), "--out", str(out),
-           "--mc", "16", "--tile", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
+           "--mc", "16", "--window", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
     first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD)
     try:
         _wait_for(lambda: out.is_dir() and any(p.name.endswith(".staging") for p in out.iterdir()), first,

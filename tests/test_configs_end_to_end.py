@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import rasterio
 import yaml
-from conftest import run_cli
+from helpers.cli import run_cli
 
 from aerialmtl.classes import ClassScheme
 

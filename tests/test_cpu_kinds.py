@@ -24,7 +24,7 @@ def test_auto_precision_per_cpu_kind(monkeypatch: pytest.MonkeyPatch, flags: str
         assert runtime.resolve_precision("auto", cpu, cpu_bf16=True) == openvino
         assert runtime.resolve_precision("auto", cpu, cpu_bf16=runtime.cpu_has_amx()) == torch_engine
         assert runtime.resolve_precision("fp32", cpu, cpu_bf16=True) == "fp32"  # an explicit choice stays
-        from conftest import tiny_d3net
+        from helpers.models import tiny_d3net
 
         from aerialmtl.inference.predict import Predictor
 

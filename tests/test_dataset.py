@@ -9,7 +9,7 @@ import pytest
 import rasterio
 import torch
 import yaml
-from tilefolder import write_tile_folder
+from helpers.tilefolder import write_tile_folder
 
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.data.dataset import PatchDataset, read_tile_info

@@ -11,14 +11,16 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import run_cli, tiny_d3net, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
+from helpers.tilefolder import write_tile_folder
 from test_robustness import CRS, PREDICT, T05, assert_ok, no_final_outputs, rgb, tiny_train_yaml
 from test_sanity import one_error_line
-from tilefolder import write_tile_folder
 
 from aerialmtl.errors import NonFiniteError
 from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
-from aerialmtl.training.distributed import DistContext
+from aerialmtl.runtime import Torchrun
 from aerialmtl.training.trainer import LOSS_GROWTH, LossWindow
 
 run = run_cli
@@ -51,7 +53,7 @@ def test_a_diverged_but_finite_run_fails_and_writes_no_best(tiles: Path, tmp_pat
 
 
 def test_a_loss_grown_by_orders_of_magnitude_is_a_divergence() -> None:
-    window = LossWindow(("height", "classes"), DistContext.from_env("cpu"))
+    window = LossWindow(("height", "classes"), Torchrun())
     window.add(1, torch.tensor(3.0), {"height": torch.tensor(2.0), "classes": torch.tensor(1.0)})
     window.add(2, torch.tensor(3.0), {"height": torch.tensor(2.0 * LOSS_GROWTH / 10), "classes": torch.tensor(1.0)})
     window.flush()  # 1000 times: a bad stretch, not yet a divergence

@@ -10,7 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from conftest import mount_tmpfs, run_cli, tiny_d3net, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
+from helpers.tmpfs import mount_tmpfs
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.inference.engine_cache import CorruptEntry, pack, unpack
@@ -38,7 +41,7 @@ def _predict(capsys: pytest.CaptureFixture, ckpt: Path, ortho: Path, out: Path, 
              monkeypatch: pytest.MonkeyPatch) -> tuple[int, str, np.ndarray]:
     """`aerialmtl predict` with default options (the OpenVINO engine on a CPU), cache at ``cache``."""
     monkeypatch.setenv("AERIALMTL_OPENVINO_CACHE", str(cache))
-    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--tile", "64",
+    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--window", "64",
                            "--overlap", "16")
     assert code == 0, err
     assert json.loads((out / "prediction.json").read_text())["engine"] == "openvino"

@@ -12,12 +12,15 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import TINY, run_cli, write_raster
+from helpers.cli import run_cli
+from helpers.models import TINY
+from helpers.rasters import write_raster
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
-from aerialmtl.models.config import ENCODERS, ModelConfig
+from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net, TaskDecoder
+from aerialmtl.models.encoders import ENCODERS
 
 pytest.importorskip("openvino")
 
@@ -70,7 +73,7 @@ def test_every_encoder_and_head_predicts_on_every_engine_precision_and_t(
             for precision in ("fp32", "bf16"):
                 out = tmp_path / f"{engine}_{precision}_{mc}"
                 code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", mc,
-                                       "--engine", engine, "--precision", precision, "--tile", 96, "--overlap", 16)
+                                       "--engine", engine, "--precision", precision, "--window", 96, "--overlap", 16)
                 assert code == 0, f"{engine}/{precision}/T={mc}: {err}"
                 info = json.loads((out / "prediction.json").read_text())
                 assert (info["engine"], info["precision"]) == (engine, precision)

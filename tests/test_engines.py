@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import run_cli, tiny_d3net, write_raster
-from tilefolder import toy_patch
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
+from helpers.tilefolder import toy_patch
 
 from aerialmtl import runtime
 from aerialmtl.errors import InputError
@@ -116,7 +118,7 @@ def test_openvino_bf16_close_to_torch_fp32_on_a_trained_model(trained: tuple[Pat
 
 
 def test_auto_picks_openvino_on_cpu_for_d3net_else_torch(monkeypatch: pytest.MonkeyPatch) -> None:
-    from conftest import IdentityModel
+    from helpers.models import IdentityModel
 
     model, meta = tiny_d3net()
     cpu = torch.device("cpu")

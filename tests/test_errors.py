@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import write_raster
+from helpers.rasters import write_raster
 
 from aerialmtl.cli import cli
 from aerialmtl.cli.options import flags_for
@@ -20,7 +20,7 @@ def test_marks_read_as_python_names_or_as_the_commands_options() -> None:
     assert render(text) == (
         "tile must be a multiple of 32, got 100; pass e.g. tile=512, or overwrite=True; see `gdalinfo`")
     assert render(text, flags_for("predict")) == (
-        "--tile must be a multiple of 32, got 100; pass e.g. --tile 512, or --overwrite; see `gdalinfo`")
+        "--window must be a multiple of 32, got 100; pass e.g. --window 512, or --overwrite; see `gdalinfo`")
     err = InputError(text, param="tile")
     assert str(err) == render(text) and err.param == "tile" and isinstance(err, ValueError)
     assert AerialMTLError("plain text").render(flags_for("tile")) == "plain text"

@@ -17,7 +17,7 @@ import rasterio
 import yaml
 from affine import Affine
 from click.testing import CliRunner
-from conftest import write_raster
+from helpers.rasters import write_raster
 from rasterio.warp import transform as warp_transform
 from rasterio.warp import transform_bounds
 
@@ -25,7 +25,7 @@ from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.cli import cli
 from aerialmtl.cli.options import flags_for
 from aerialmtl.errors import InputError, LabelError, OutputExistsError
-from aerialmtl.evaluation.evaluate import CLASS_SCHEME_TAG, evaluate_prediction
+from aerialmtl.evaluation.evaluate import CLASS_SCHEME_TAG, EvaluateOptions, evaluate_prediction
 
 NODATA = -9999.0
 W, H = 40, 32
@@ -154,8 +154,10 @@ def test_classes_from_tag_confusion_ece_and_entropy(tmp_path: Path) -> None:
 def test_streaming_in_small_bands_and_subsample_give_the_same_exact_metrics(tmp_path: Path) -> None:
     s = make_scene(tmp_path)
     full = evaluate_prediction(s["pred"], height_ref=s["ndsm"], labels_ref=s["labels"], out=None)
-    small = evaluate_prediction(s["pred"], height_ref=s["ndsm"], labels_ref=s["labels"], out=None,
-                                block_pixels=3 * W, sample_size=200, seed=5)
+    small = evaluate_prediction(
+        s["pred"], height_ref=s["ndsm"], labels_ref=s["labels"], out=None,
+        options=EvaluateOptions(block_pixels=3 * W, sample_size=200, seed=5),
+    )
     assert small["height"]["mae"] == pytest.approx(full["height"]["mae"])
     assert small["height"]["rmse"] == pytest.approx(full["height"]["rmse"])
     assert small["classes"]["confusion_matrix"] == full["classes"]["confusion_matrix"]
@@ -190,7 +192,9 @@ def test_unknown_label_codes_raise_unless_ignored(tmp_path: Path) -> None:
         dst.write(arr, 1)
     with pytest.raises(LabelError, match="9"):
         evaluate_prediction(s["pred"], labels_ref=s["labels"], out=None)
-    rep = evaluate_prediction(s["pred"], labels_ref=s["labels"], out=None, ignore_unknown_codes=True)
+    rep = evaluate_prediction(
+        s["pred"], labels_ref=s["labels"], out=None, options=EvaluateOptions(ignore_unknown_codes=True),
+    )
     assert rep["classes"]["n_pixels"] == s["n_labelled"] - (1 if s["ref_idx"][0, 0] != IGNORE_INDEX else 0) * 4
 
 
@@ -219,10 +223,12 @@ def test_a_scheme_other_than_the_predictions_is_refused(tmp_path: Path) -> None:
 def test_refuses_to_overwrite_and_rejects_bad_inputs(tmp_path: Path) -> None:
     s = make_scene(tmp_path)
     out = tmp_path / "report.json"
-    evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out, plots=False)
+    evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out, options=EvaluateOptions(plots=False))
     with pytest.raises(OutputExistsError, match="overwrite=True"):
         evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out)
-    evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out, overwrite=True, plots=False)
+    evaluate_prediction(
+        s["pred"], height_ref=s["ndsm"], out=out, overwrite=True, options=EvaluateOptions(plots=False),
+    )
     with pytest.raises(InputError, match="does not exist"):
         evaluate_prediction(tmp_path / "nope", height_ref=s["ndsm"], out=None)
     with pytest.raises(InputError, match="no reference"):

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import rasterio
 from click.testing import CliRunner
-from conftest import run_cli, write_prediction_layers
+from helpers.cli import run_cli
+from helpers.rasters import write_prediction_layers
 from shapely import affinity
 from shapely.geometry import box
 

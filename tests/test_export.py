@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli, tiny_d3net
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.formats.exported_model import deepness_input_problem, export_metadata, read_metadata

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from conftest import IdentityModel, identity_meta, write_raster
+from helpers.models import IdentityModel, identity_meta
+from helpers.rasters import write_raster
 from shapely.geometry import Point, shape
 from stac_pydantic import Collection as PydanticCollection
 from stac_pydantic import Item as PydanticItem
@@ -189,7 +190,7 @@ def test_single_input_writes_item_but_no_collection(tmp_path: Path) -> None:
 # ---- building footprints -----------------------------------------------------------------------
 def _edge_buildings(folder: Path) -> Path:
     """Buildings rotated 12-40° and cut by the right edge of a 64 × 64 px (32 m) raster."""
-    from conftest import write_prediction_layers
+    from helpers.rasters import write_prediction_layers
     from rasterio.features import rasterize
     from shapely import affinity
     from shapely.geometry import box

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from conftest import write_raster
+from helpers.rasters import write_raster
 
 from aerialmtl.errors import InputError
 from aerialmtl.inference.jobs import Share, partition, targets_for

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from affine import Affine
-from conftest import write_prediction_folder
+from helpers.rasters import write_prediction_folder
 
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.errors import InputError

@@ -18,12 +18,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from affine import Affine
-from conftest import mount_tmpfs, run_cli, tiny_d3net, write_prediction_folder, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_prediction_folder, write_raster
+from helpers.tilefolder import write_tile_folder
+from helpers.tmpfs import mount_tmpfs
 from test_outputs import ONE_THREAD
 from test_remote import RangeHandler
 from test_robustness import CRS, PREDICT, T05, assert_ok, no_final_outputs, rgb, tiny_train_yaml
 from test_sanity import one_error_line
-from tilefolder import write_tile_folder
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.formats.prediction import NotAPredictionFolder, PredictionFolder
@@ -88,7 +91,7 @@ def test_a_full_disk_while_predicting_is_one_line_without_libtiff_noise(tmp_path
     ortho = rgb(tmp_path, size=(512, 512))
     out = full_fs / "p"
     res = subprocess.run([sys.executable, "-m", "aerialmtl", "predict", str(ortho), "--model", str(ckpt), "--out",
-                          str(out), *PREDICT[:-1], "--tile", "256", "--quiet"], capture_output=True, text=True,
+                          str(out), *PREDICT[:-1], "--window", "256", "--quiet"], capture_output=True, text=True,
                          env=ONE_THREAD, timeout=300)
     assert res.returncode == 1, res
     assert res.stderr.strip().splitlines() == [
@@ -139,7 +142,7 @@ def test_a_server_dying_mid_read_is_named(tmp_path: Path, capsys, ckpt: Path, dy
     write_raster(root / "o.tif", img, CRS, T05, tiled=True, blockxsize=256, blockysize=256)
     monkeypatch.setenv("GDAL_HTTP_MAX_RETRY", "0")
     out = tmp_path / "p"
-    one_error_line(run(capsys, "predict", f"{url}/o.tif", "--model", ckpt, "--out", out, "--mc", "1", "--tile", "256",
+    one_error_line(run(capsys, "predict", f"{url}/o.tif", "--model", ckpt, "--out", out, "--mc", "1", "--window", "256",
                        "--quiet"), f"orthophoto '/vsicurl/{url}/o.tif' could not be read: the server stopped sending",
                    "check the network and the server, then re-run")
     assert no_final_outputs(out)

@@ -6,11 +6,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers.models import TINY
 
 from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net, pad_to_multiple
 from aerialmtl.models.densenet import DenseNetEncoder, count_parameters
+from aerialmtl.models.encoders import ENCODERS, feature_channels
 from aerialmtl.models.pretrained import adapt_first_conv, load_torchvision_densenet
 
 SMALL = dict(growth_rate=12, block_config=(2, 4, 8, 6), num_init_features=32)
@@ -294,3 +296,19 @@ def test_batchnorm_folding_keeps_outputs_and_leaves_the_model_alone() -> None:
         torch.testing.assert_close(b[k], a[k], rtol=1e-4, atol=1e-5)
     assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules()) < \
         sum(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
+
+
+# ---- the encoder registry ---------------------------------------------------------------------------
+@pytest.mark.parametrize("name", sorted(ENCODERS))
+def test_every_registered_encoder_feeds_the_decoder_forward_and_backward(name: str) -> None:
+    """Every registry entry builds an encoder of five stride 2–32 features that the one decoder takes."""
+    extra = TINY if name == "densenet121" else {}
+    torch.manual_seed(0)
+    model = D3Net(ModelConfig(num_classes=3, encoder=name, **extra))  # type: ignore[arg-type]
+    feats = model.encode(torch.zeros(1, 3, 64, 64))
+    assert [f.shape[1] for f in feats] == list(feature_channels(model.encoder))
+    assert [f.shape[-1] for f in feats] == [32, 16, 8, 4, 2]
+    out = model(torch.rand(1, 3, 64, 64))
+    assert out["height"].shape == (1, 1, 64, 64) and out["classes"].shape == (1, 3, 64, 64)
+    (out["height"].mean() + out["classes"].mean()).backward()
+    assert all(p.grad is not None for p in model.encoder.parameters() if p.requires_grad)

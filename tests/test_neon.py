@@ -9,14 +9,14 @@ import pytest
 import rasterio
 import yaml
 from click.testing import CliRunner
-from conftest import NEON_DIR
+from helpers.data import NEON_DIR
 from rasterio.windows import Window
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.cli import cli
-from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.formats.tiles import HEIGHT_NODATA
 from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import read_manifest, tile_dataset
+from aerialmtl.tiling.tile import TileOptions, read_manifest, tile_dataset
 
 RGB = NEON_DIR / "rgb_0p1m.tif"
 CHM = NEON_DIR / "chm_1m.tif"
@@ -59,8 +59,10 @@ def _patch_heights(out: Path, row: dict[str, str]) -> tuple[np.ndarray, np.ndarr
 @pytest.fixture(scope="module")
 def neon_tiles(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("neon") / "tiles"
-    tile_dataset(RGB, out, ndsm=CHM, size=320, stride=296, min_valid=0.9, splits=SplitSpec(ratios=(1, 0, 0)),
-                 progress=False)
+    tile_dataset(
+        RGB, out, ndsm=CHM, progress=False,
+        options=TileOptions(size=320, stride=296, min_valid=0.9, splits=SplitSpec(ratios=(1, 0, 0))),
+    )
     return out
 
 

@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from conftest import run_cli, write_raster
+from helpers.cli import run_cli
+from helpers.rasters import write_raster
+from helpers.tilefolder import write_tile_folder
 from test_robustness import CRS, T05, assert_error, assert_ok, rgb, tiny_train_yaml
-from tilefolder import write_tile_folder
 
 from aerialmtl.errors import OutputInUseError
 from aerialmtl.formats.checkpoint import load_checkpoint
@@ -350,7 +351,7 @@ def test_tile_overwrite_stopped_mid_swap_leaves_a_whole_dataset_and_the_rerun_wo
 
 
 def test_export_refuses_a_folder_another_process_writes(tmp_path: Path) -> None:
-    from conftest import tiny_d3net
+    from helpers.models import tiny_d3net
 
     from aerialmtl.inference.export import export_model
 
@@ -373,7 +374,7 @@ def test_a_stop_signal_while_torch_save_writes_is_an_interruption(tmp_path: Path
     is then absent (never half-written). The signal is sent as torch.save starts: without the hold, the
     handler raises before the write (the exact moment inside the C++ writer cannot be provoked here)."""
     import torch
-    from conftest import tiny_d3net
+    from helpers.models import tiny_d3net
 
     from aerialmtl.formats.checkpoint import save_checkpoint
     from aerialmtl.signals import Stopped, stop_signals

@@ -12,8 +12,10 @@ import rasterio
 import torch
 from affine import Affine
 from click.testing import CliRunner
-from conftest import NEON_DIR, IdentityModel, identity_meta, tiny_d3net, write_raster
-from reference_predict import reference_predict
+from helpers.data import NEON_DIR
+from helpers.models import IdentityModel, identity_meta, tiny_d3net
+from helpers.rasters import write_raster
+from helpers.reference_predict import reference_predict
 
 from aerialmtl.cli import cli
 from aerialmtl.cli.options import flags_for
@@ -153,14 +155,18 @@ def test_cli_several_inputs_one_folder_each(ortho: Path, tmp_path: Path) -> None
     other.write_bytes(ortho.read_bytes())
     runner = CliRunner()
     r = runner.invoke(cli, ["predict", str(ortho), str(other), "--model", str(tmp_path / "m.pt"), "--out",
-                            str(tmp_path / "out"), "--mc", "2", "--tile", "64", "--overlap", "16", "--quiet"])
+                            str(tmp_path / "out"), "--mc", "2", "--window", "64", "--overlap", "16", "--quiet"])
     assert r.exit_code == 0, r.output
     for stem in ("ortho", "second"):
         info = json.loads((tmp_path / "out" / stem / "prediction.json").read_text())
         assert info["checkpoint"] == str(tmp_path / "m.pt") and (tmp_path / "out" / stem / "class_entropy.tif").exists()
     r = runner.invoke(cli, ["predict", str(ortho), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "x"),
-                            "--tile", "100"])
-    assert r.exit_code == 2 and "--tile" in r.output
+                            "--window", "100"])
+    assert r.exit_code == 2 and "--window" in r.output
+    with pytest.warns(FutureWarning, match="--tile is deprecated.*--window"):  # the former name still works
+        r = runner.invoke(cli, ["predict", str(ortho), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "x"),
+                                "--tile", "100"])
+    assert r.exit_code == 2 and "--window" in r.output
 
 
 @pytest.mark.skipif(not (NEON_DIR / "rgb_0p1m.tif").is_file(), reason="NEON sample data not available")
@@ -208,7 +214,8 @@ def test_mc_samples_are_decoded_in_chunks_that_fit_the_pixel_budget(ortho: Path,
 def test_precision_auto_follows_native_bf16_and_bad_values_name_the_option(monkeypatch: pytest.MonkeyPatch) -> None:
     from aerialmtl import runtime
     from aerialmtl.errors import InputError
-    from aerialmtl.inference.predict import mc_sample_batch, resolve_precision
+    from aerialmtl.inference.runner import mc_sample_batch
+    from aerialmtl.runtime import resolve_precision
 
     monkeypatch.setattr(runtime, "native_bf16", lambda device: True)
     assert resolve_precision("auto", torch.device("cpu")) == "fp32"  # torch's CPU path: fp32 (bench/RESULTS.md)
@@ -325,7 +332,7 @@ def test_several_inputs_mosaic_and_skip_existing(tmp_path: Path, rng: np.random.
         img = rng.integers(1, 256, size=(3, 60, 70)).astype(np.uint8)
         paths.append(write_raster(tmp_path / f"t{k}.tif", img, transform=Affine(0.5, 0, x0, 0, -0.5, y0)))
     args = ["predict", *map(str, paths), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "out"),
-            "--mc", "2", "--tile", "64", "--overlap", "16", "--quiet"]
+            "--mc", "2", "--window", "64", "--overlap", "16", "--quiet"]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     out = tmp_path / "out"

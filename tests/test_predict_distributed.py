@@ -18,14 +18,15 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from conftest import tiny_d3net, write_raster
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.formats.prediction import ALL_FILES, mosaic_filename
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
-ARGS = ("--mc", "2", "--tile", "64", "--overlap", "16", "--quiet")
+ARGS = ("--mc", "2", "--window", "64", "--overlap", "16", "--quiet")
 
 pytestmark = pytest.mark.slow
 

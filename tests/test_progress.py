@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_cli, tiny_d3net, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
 
 from aerialmtl import progress
 from aerialmtl.formats.checkpoint import save_checkpoint
@@ -57,7 +59,7 @@ def test_predict_reports_every_window_as_json(model_and_ortho: tuple[Path, Path]
                                               capsys: pytest.CaptureFixture) -> None:
     model, ortho = model_and_ortho
     code, out, err = run_cli(capsys, "--progress", "json", "predict", ortho, "--model", model, "--out",
-                             tmp_path / "p", "--mc", "2", "--tile", "64", "--overlap", "16")
+                             tmp_path / "p", "--mc", "2", "--window", "64", "--overlap", "16")
     assert code == 0, err
     lines = _json_lines(err)
     assert lines[0] == {"stage": "ortho.tif", "done": 0, "total": 4, "unit": "win"}
@@ -68,10 +70,10 @@ def test_predict_reports_every_window_as_json(model_and_ortho: tuple[Path, Path]
 
     # the default draws a bar, no JSON; --quiet silences JSON too
     code, _, err = run_cli(capsys, "predict", ortho, "--model", model, "--out", tmp_path / "q", "--mc", "2",
-                           "--tile", "64", "--overlap", "16")
+                           "--window", "64", "--overlap", "16")
     assert code == 0 and not _json_lines(err) and "win" in err
     code, _, err = run_cli(capsys, "--progress", "json", "predict", ortho, "--model", model, "--out",
-                           tmp_path / "r", "--mc", "2", "--tile", "64", "--overlap", "16", "--quiet")
+                           tmp_path / "r", "--mc", "2", "--window", "64", "--overlap", "16", "--quiet")
     assert code == 0 and not _json_lines(err)
 
 
@@ -81,6 +83,6 @@ def test_progress_mode_from_the_environment(model_and_ortho: tuple[Path, Path], 
     model, ortho = model_and_ortho
     monkeypatch.setenv(progress.PROGRESS_ENV, "json")
     code, _, err = run_cli(capsys, "predict", ortho, "--model", model, "--out", tmp_path / "p", "--mc", "1",
-                           "--tile", "64", "--overlap", "16")
+                           "--window", "64", "--overlap", "16")
     assert code == 0, err
     assert _json_lines(err)[-1] == {"stage": "ortho.tif", "done": 4, "total": 4, "unit": "win"}

@@ -17,7 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli, tiny_d3net, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
 from test_outputs import ONE_THREAD, _wait_for
 from test_remote import server  # noqa: F401 - the local HTTP server fixture
 from test_robustness import CRS, PREDICT, T05, no_final_outputs, rgb
@@ -76,7 +78,7 @@ def test_an_orthophoto_replaced_during_the_run_is_refused(tmp_path: Path, ckpts:
     newer = rgb(tmp_path, name="newer.tif", size=(256, 256), seed=2)
     out = tmp_path / "pred"
     cmd = [sys.executable, "-m", "aerialmtl", "predict", str(ortho), "--model", str(ckpts[0]), "--out", str(out),
-           "--mc", "8", "--tile", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
+           "--mc", "8", "--window", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD)
     try:
         _wait_for(lambda: out.is_dir() and any(p.name.endswith(".staging") for p in out.iterdir()), proc,

@@ -22,7 +22,9 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import run_cli, tiny_d3net, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
 
 from aerialmtl import __version__
 from aerialmtl.cli import cli
@@ -49,11 +51,11 @@ QGIS_PYTHON = os.environ.get("AERIALMTL_QGIS_PYTHON", "/usr/bin/python3")
 def test_predict_command_line() -> None:
     argv = command_line("/opt/bin/aerialmtl", PREDICT, {
         "INPUT": "/data/ortho.tif", "MODEL": "/runs/a/best.pt", "MC": 8, "AOI": "", "ENGINE": "openvino",
-        "PRECISION": "auto", "DEVICE": "cpu", "TILE": 512, "OVERLAP": 64.0, "PROBABILITIES": False,
+        "PRECISION": "auto", "DEVICE": "cpu", "WINDOW": 512, "OVERLAP": 64.0, "PROBABILITIES": False,
         "NO_CALIBRATION": True, "RESCALE_INPUT": False, "OVERWRITE": True, "OUTPUT": "/maps/a"})
     assert argv == ["/opt/bin/aerialmtl", "--progress", "json", "predict", "/data/ortho.tif",
                     "--model", "/runs/a/best.pt", "--mc", "8", "--engine", "openvino", "--precision", "auto",
-                    "--device", "cpu", "--tile", "512", "--overlap", "64", "--no-calibration", "--overwrite",
+                    "--device", "cpu", "--window", "512", "--overlap", "64", "--no-calibration", "--overwrite",
                     "--out", "/maps/a"]
     # left empty: the command's own default (the model from AERIALMTL_MODEL, T from the model)
     assert command_line("aerialmtl", PREDICT, {"INPUT": "o.tif", "OUTPUT": "p"}) == [
@@ -74,7 +76,7 @@ def test_command_line_refuses_missing_and_unknown_values() -> None:
 #: inputs, --skip-existing), tuning knobs with sound defaults; a new option of a command fails the test below
 #: until it is offered or listed here.
 LEFT_OUT = {
-    "predict": {"--quiet", "--skip-existing", "--batch-size", "--compile"},
+    "predict": {"--quiet", "--skip-existing", "--batch-size", "--compile", "--tile"},  # --tile: --window's old name
     "buildings": {"--quiet", "--block-size", "--simplify"},
     "evaluate": {"--quiet", "--sample-size", "--seed", "--height-bins", "--height-threshold", "--ignore-unknown-codes",
                  "--pred-buildings"},
@@ -160,7 +162,7 @@ def test_run_reports_progress_to_100_percent(inputs: dict[str, Path], tmp_path: 
     seen: list[Progress] = []
     messages: list[tuple[str, str]] = []
     argv = command_line(PROGRAM, PREDICT, {"INPUT": str(inputs["ortho"]), "MODEL": str(inputs["model"]), "MC": 3,
-                                           "TILE": 64, "OVERLAP": 16, "OUTPUT": str(tmp_path / "p")})
+                                           "WINDOW": 64, "OVERLAP": 16, "OUTPUT": str(tmp_path / "p")})
     result = run_command(argv, seen.append, lambda kind, text: messages.append((kind, text)), env=_env())
     assert result.ok, result.message()
     assert seen[0].done == 0 and seen[-1].percent == 100.0 and seen[-1].stage == "ortho.tif"
@@ -171,7 +173,7 @@ def test_run_reports_progress_to_100_percent(inputs: dict[str, Path], tmp_path: 
 def test_cancel_stops_the_command_and_leaves_nothing(inputs: dict[str, Path], tmp_path: Path) -> None:
     seen: list[Progress] = []
     argv = command_line(PROGRAM, PREDICT, {"INPUT": str(inputs["big"]), "MODEL": str(inputs["model"]), "MC": 8,
-                                           "TILE": 64, "OVERLAP": 16, "OUTPUT": str(tmp_path / "p")})
+                                           "WINDOW": 64, "OVERLAP": 16, "OUTPUT": str(tmp_path / "p")})
     result = run_command(argv, seen.append, is_canceled=lambda: any(p.done > 0 for p in seen), env=_env())
     assert result.canceled and result.returncode == 143  # SIGTERM, handled like Ctrl-C
     assert 0 < seen[-1].done < seen[-1].total  # type: ignore[operator]  # stopped mid-run

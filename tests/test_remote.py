@@ -16,12 +16,14 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from conftest import run_cli, tiny_d3net, write_prediction_folder, write_raster
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_prediction_folder, write_raster
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.io.paths import gdal_path, is_local, is_remote, raster_name, raster_stem
 
-ARGS = ("--mc", "2", "--tile", "64", "--overlap", "16", "--quiet")
+ARGS = ("--mc", "2", "--window", "64", "--overlap", "16", "--quiet")
 
 
 # ---- a static file server that honours Range requests (http.server alone ignores them) --------------

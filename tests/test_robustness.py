@@ -25,18 +25,20 @@ import rasterio
 import torch
 import yaml
 from affine import Affine
-from conftest import TINY, run_cli, tiny_d3net, write_raster
+from helpers.cli import run_cli
+from helpers.models import TINY, tiny_d3net
+from helpers.rasters import write_raster
 from rasterio.warp import transform_bounds
 
 from aerialmtl.cli import main
 from aerialmtl.errors import AlignmentError
 from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
-from aerialmtl.inference.writer import ALL_OUTPUTS
+from aerialmtl.formats.prediction import ALL_FILES
 from aerialmtl.io.cog import cog_problems
 
 CRS = "EPSG:32631"
 T05 = Affine(0.5, 0, 500000.0, 0, -0.5, 5000000.0)  # 0.5 m pixels, the tiny checkpoint's GSD
-PREDICT = ("--mc", "2", "--tile", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
+PREDICT = ("--mc", "2", "--window", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
 MAIN_OUTPUTS = ("height.tif", "height_std.tif", "classes.tif", "class_entropy.tif", "class_mutual_info.tif",
                 "prediction.json")
 
@@ -84,7 +86,7 @@ def rgb(tmp_path: Path, name: str = "ortho.tif", size: tuple[int, int] = (64, 64
 
 
 def no_final_outputs(out: Path) -> bool:
-    return not any((out / f).exists() for f in ALL_OUTPUTS)
+    return not any((out / f).exists() for f in ALL_FILES)
 
 
 @pytest.fixture(scope="module")
@@ -284,7 +286,7 @@ def test_label_codes_missing_from_the_scheme(tmp_path: Path, capsys) -> None:
 def test_raster_smaller_than_one_tile_predicts(tmp_path: Path, capsys, ckpt: Path, shape: tuple[int, int]) -> None:
     ortho = rgb(tmp_path, size=shape)
     out = tmp_path / "p"
-    assert_ok(run(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--tile", "64",
+    assert_ok(run(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--window", "64",
                   "--overlap", "16", "--precision", "fp32", "--quiet"))
     for name in MAIN_OUTPUTS[:-1]:
         with rasterio.open(out / name) as ds:
@@ -334,7 +336,7 @@ def _command(name: str, tmp: Path, ckpt: Path, out: Path) -> list[object]:
         ndsm = write_raster(tmp / "n.tif", np.ones((32, 32), np.float32), CRS, T05)
         return ["tile", "--ortho", ortho, "--ndsm", ndsm, "--size", "32", "--out", out, "--quiet"]
     if name == "train":
-        from tilefolder import write_tile_folder
+        from helpers.tilefolder import write_tile_folder
 
         tiles = write_tile_folder(tmp / "tiles", size=32, counts={"train": 2, "val": 0})
         return ["train", "--config", tiny_train_yaml(tmp / "c.yaml"), "--data", tiles, "--out", out,
@@ -485,7 +487,7 @@ def _interrupt_predict(tmp_path: Path, ckpt: Path, sig: int) -> tuple[Path, subp
     ortho = rgb(tmp_path, size=(SIDE, SIDE), seed=3)
     out = tmp_path / "pred"
     cmd = [sys.executable, "-m", "aerialmtl", "predict", str(ortho), "--model", str(ckpt), "--out", str(out),
-           "--mc", "4", "--tile", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
+           "--mc", "4", "--window", "64", "--overlap", "16", "--batch-size", "1", "--precision", "fp32", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD)
     try:
         deadline = time.monotonic() + 120

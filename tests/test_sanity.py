@@ -17,8 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import mount_tmpfs, run_cli, tiny_d3net, write_raster
-from tilefolder import write_tile_folder
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.rasters import write_raster
+from helpers.tilefolder import write_tile_folder
+from helpers.tmpfs import mount_tmpfs
 
 from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFiniteError, OutputError
 from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
@@ -91,7 +94,7 @@ def test_validation_keeps_nan_batches_instead_of_scoring_them_zero(tiles: Path, 
     try:
         real = trainer.objective.__call__
 
-        def nan_height(out: dict, batch: dict, **kw: object) -> dict:
+        def nan_height(out: dict, batch: dict, **kw: object) -> dict:  # kw: the trainer's scoring=True
             losses = real(out, batch, **kw)
             return {**losses, "height": losses["height"] * math.nan}
 
@@ -335,7 +338,7 @@ def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-PREDICT = ("--mc", "2", "--tile", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
+PREDICT = ("--mc", "2", "--window", "32", "--overlap", "0", "--precision", "fp32", "--quiet")
 
 
 def test_aoi_outside_the_orthophoto_names_both_extents(tmp_path: Path, capsys, ckpt: Path) -> None:
@@ -500,7 +503,7 @@ def test_non_finite_model_outputs_fail_the_run(tmp_path: Path, capsys) -> None:
 
 
 def test_full_disk_while_writing_a_geopackage_or_tiles(small_fs: Path, tmp_path: Path, capsys) -> None:
-    from conftest import write_prediction_layers
+    from helpers.rasters import write_prediction_layers
 
     pytest.importorskip("pyogrio")
     cls = np.zeros((64, 64), np.uint8)
@@ -528,7 +531,7 @@ def test_typed_option_values_are_usage_errors(tmp_path: Path, capsys, args: list
     if args[0] == "tile":
         full = [*args, "--ortho", ortho, "--ndsm", ndsm, "--out", tmp_path / "t", "--quiet"]
     else:
-        from conftest import write_prediction_layers
+        from helpers.rasters import write_prediction_layers
 
         pred = write_prediction_layers(tmp_path / "pred", np.zeros((64, 64), np.uint8), np.ones((64, 64), np.float32))
         full = [*args, "--pred", pred, "--height", ndsm, "--out", tmp_path / "e.json", "--quiet"]

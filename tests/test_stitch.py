@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import IdentityModel, identity_meta, write_raster
+from helpers.models import IdentityModel, identity_meta
+from helpers.rasters import write_raster
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 

@@ -18,7 +18,7 @@ from aerialmtl.cli import cli
 from aerialmtl.cli.options import flags_for
 from aerialmtl.data.synth import SYNTH_VERSION, cast_shadows, hillshade, synthesize
 from aerialmtl.errors import InputError, OutputExistsError
-from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.formats.tiles import HEIGHT_NODATA
 
 RASTERS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "labels.tif")
 BARE, ROAD, BUILDING, TREE, LOWVEG, WATER = 1, 2, 3, 4, 5, 6

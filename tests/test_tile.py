@@ -12,7 +12,7 @@ import rasterio
 import yaml
 from affine import Affine
 from click.testing import CliRunner
-from conftest import write_raster
+from helpers.rasters import write_raster
 from rasterio.warp import transform as warp_transform
 from rasterio.windows import Window
 from rasterio.windows import transform as window_transform
@@ -20,10 +20,10 @@ from rasterio.windows import transform as window_transform
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.cli import cli
 from aerialmtl.errors import InputError, LabelError, OutputExistsError
-from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.formats.tiles import HEIGHT_NODATA
 from aerialmtl.tiling.grid import axis_offsets, count_windows, num_offsets, tile_windows
 from aerialmtl.tiling.splits import SplitAssigner, SplitSpec, assign_blocks
-from aerialmtl.tiling.tile import read_manifest, tile_dataset
+from aerialmtl.tiling.tile import TileOptions, read_manifest, tile_dataset
 
 CRS = "EPSG:32631"
 ORIGIN = (500000.0, 5000000.0)
@@ -89,8 +89,11 @@ def _footprints_overlap(a: dict[str, str], b: dict[str, str]) -> bool:
 
 
 def test_block_splits_are_leak_free_with_overlapping_strides(scene: dict[str, Path], tmp_path: Path) -> None:
-    res = tile_dataset(scene["ortho"], tmp_path / "out", ndsm=scene["ndsm"], size=16, stride=6, min_valid=0.0,
-                       splits=SplitSpec(block_size=16.0, ratios=(0.5, 0.25, 0.25), seed=3), progress=False)
+    res = tile_dataset(
+        scene["ortho"], tmp_path / "out", ndsm=scene["ndsm"], progress=False,
+        options=TileOptions(size=16, stride=6, min_valid=0.0,
+                            splits=SplitSpec(block_size=16.0, ratios=(0.5, 0.25, 0.25), seed=3)),
+    )
     rows = read_manifest(res.manifest)
     assert {r["split"] for r in rows} == {"train", "val", "test"}
     assert res.dropped_split > 0  # windows straddling blocks of different splits were dropped
@@ -132,8 +135,10 @@ def test_aoi_splits_keep_patches_inside_their_polygon(scene: dict[str, Path], tm
     ]}
     aoi = tmp_path / "aoi.geojson"
     aoi.write_text(json.dumps(fc))
-    res = tile_dataset(scene["ortho"], tmp_path / "out", ndsm=scene["ndsm"], size=16, stride=8, min_valid=0.0,
-                       splits=SplitSpec(method="aoi", aoi=str(aoi)), progress=False)
+    res = tile_dataset(
+        scene["ortho"], tmp_path / "out", ndsm=scene["ndsm"], progress=False,
+        options=TileOptions(size=16, stride=8, min_valid=0.0, splits=SplitSpec(method="aoi", aoi=str(aoi))),
+    )
     rows = read_manifest(res.manifest)
     assert res.counts["val"] == 0 and res.counts["train"] > 0 and res.counts["test"] > 0
     for r in rows:
@@ -148,8 +153,10 @@ def test_aoi_splits_keep_patches_inside_their_polygon(scene: dict[str, Path], tm
 # ---- tile folder -----------------------------------------------------------------------------
 def test_manifest_agrees_with_files(scene: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "out"
-    res = tile_dataset(scene["ortho"], out, ndsm=scene["ndsm"], labels=scene["labels"], classes="synthetic",
-                       size=32, stride=24, min_valid=0.5, splits=SplitSpec(block_size=16.0, seed=0), progress=False)
+    res = tile_dataset(
+        scene["ortho"], out, ndsm=scene["ndsm"], labels=scene["labels"], classes="synthetic", progress=False,
+        options=TileOptions(size=32, stride=24, min_valid=0.5, splits=SplitSpec(block_size=16.0, seed=0)),
+    )
     rows = read_manifest(res.manifest)
     meta = yaml.safe_load((out / "dataset.yaml").read_text())
     with rasterio.open(scene["ortho"]) as src:
@@ -203,10 +210,14 @@ def test_unknown_label_codes(scene: dict[str, Path], tmp_path: Path) -> None:
     codes[60, 60] = 42
     bad = write_raster(tmp_path / "bad_labels.tif", codes, CRS, T05)
     with pytest.raises(LabelError, match=r"9, 42.*ignore_unknown_codes=True"):
-        tile_dataset(scene["ortho"], tmp_path / "o1", labels=bad, classes=SCHEME, size=64, min_valid=0.0,
-                     splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
-    res = tile_dataset(scene["ortho"], tmp_path / "o2", labels=bad, classes=SCHEME, size=64, min_valid=0.0,
-                       splits=SplitSpec(ratios=(1, 0, 0)), ignore_unknown_codes=True, progress=False)
+        tile_dataset(
+            scene["ortho"], tmp_path / "o1", labels=bad, classes=SCHEME, progress=False,
+            options=TileOptions(size=64, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0))),
+        )
+    res = tile_dataset(
+        scene["ortho"], tmp_path / "o2", labels=bad, classes=SCHEME, progress=False,
+        options=TileOptions(size=64, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)), ignore_unknown_codes=True),
+    )
     row = next(r for r in read_manifest(res.manifest) if r["patch_id"] == "r000000_c000000")
     with rasterio.open(res.out_dir / row["classes_path"]) as cf:
         c = cf.read(1)
@@ -222,8 +233,10 @@ def test_vector_labels_land_on_the_right_pixels(scene: dict[str, Path], tmp_path
     fc = {"type": "FeatureCollection", "features": [_feature(b, kind="Building"), _feature(r, kind=2)]}
     vec = tmp_path / "labels.geojson"
     vec.write_text(json.dumps(fc))
-    res = tile_dataset(scene["ortho"], tmp_path / "out", labels_vector=vec, class_field="kind", classes=SCHEME,
-                       size=128, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
+    res = tile_dataset(
+        scene["ortho"], tmp_path / "out", labels_vector=vec, class_field="kind", classes=SCHEME, progress=False,
+        options=TileOptions(size=128, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0))),
+    )
     row = read_manifest(res.manifest)[0]
     with rasterio.open(res.out_dir / row["classes_path"]) as cf:
         c = cf.read(1)
@@ -237,18 +250,23 @@ def test_vector_labels_land_on_the_right_pixels(scene: dict[str, Path], tmp_path
     fc["features"].append(_feature(b, kind="castle"))
     vec.write_text(json.dumps(fc))
     with pytest.raises(LabelError, match="castle"):
-        tile_dataset(scene["ortho"], tmp_path / "o2", labels_vector=vec, class_field="kind", classes=SCHEME,
-                     size=128, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
+        tile_dataset(
+            scene["ortho"], tmp_path / "o2", labels_vector=vec, class_field="kind", classes=SCHEME, progress=False,
+            options=TileOptions(size=128, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0))),
+        )
 
 
 def test_refuses_non_empty_out_without_overwrite(scene: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "out"
-    kw = dict(ndsm=scene["ndsm"], size=64, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
+    kw = dict(ndsm=scene["ndsm"], options=TileOptions(size=64, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0))),
+              progress=False)
     tile_dataset(scene["ortho"], out, **kw)
     with pytest.raises(OutputExistsError, match=r"out.*overwrite=True"):
         tile_dataset(scene["ortho"], out, **kw)
-    res = tile_dataset(scene["ortho"], out, overwrite=True, size=32, ndsm=scene["ndsm"], min_valid=0.0,
-                       splits=SplitSpec(ratios=(1, 0, 0)), progress=False)
+    res = tile_dataset(
+        scene["ortho"], out, overwrite=True, ndsm=scene["ndsm"], progress=False,
+        options=TileOptions(size=32, min_valid=0.0, splits=SplitSpec(ratios=(1, 0, 0))),
+    )
     assert len(list((out / "train" / "image").glob("*.tif"))) == res.counts["train"] == 16  # old patches gone
     assert not (out / "train" / "classes").exists()
 
@@ -277,8 +295,10 @@ def test_cli_tile(scene: dict[str, Path], tmp_path: Path) -> None:
 def test_raster_smaller_than_a_patch_gives_one_padded_patch(tmp_path: Path, rng: np.random.Generator) -> None:
     ortho = write_raster(tmp_path / "o.tif", rng.integers(1, 255, (3, 48, 40), dtype=np.uint8), CRS, T05)
     ndsm = write_raster(tmp_path / "n.tif", rng.uniform(0, 9, (48, 40)).astype(np.float32), CRS, T05)
-    res = tile_dataset(ortho, tmp_path / "out", ndsm=ndsm, size=64, min_valid=0.4, splits=SplitSpec(ratios=(1, 0, 0)),
-                       progress=False)
+    res = tile_dataset(
+        ortho, tmp_path / "out", ndsm=ndsm, progress=False,
+        options=TileOptions(size=64, min_valid=0.4, splits=SplitSpec(ratios=(1, 0, 0))),
+    )
     (row,) = read_manifest(res.manifest)
     assert float(row["valid_fraction"]) == pytest.approx(48 * 40 / 64**2)
     with rasterio.open(res.out_dir / row["image_path"]) as im, rasterio.open(res.out_dir / row["height_path"]) as hf:
@@ -286,4 +306,4 @@ def test_raster_smaller_than_a_patch_gives_one_padded_patch(tmp_path: Path, rng:
     assert im.shape == (64, 64) and mask[:48, :40].all() and not mask[48:].any() and not mask[:, 40:].any()
     assert np.all(h[~mask] == HEIGHT_NODATA) and np.all(h[mask] != HEIGHT_NODATA)
     with pytest.raises(InputError, match="min_valid must be a fraction in 0..1, got 1.5"):
-        tile_dataset(ortho, tmp_path / "o2", ndsm=ndsm, min_valid=1.5, progress=False)
+        tile_dataset(ortho, tmp_path / "o2", ndsm=ndsm, progress=False, options=TileOptions(min_valid=1.5))

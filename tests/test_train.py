@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from tilefolder import write_tile_folder
+from helpers.tilefolder import write_tile_folder
 
 from aerialmtl.errors import CheckpointError, ConfigError, OutputExistsError
 from aerialmtl.formats.checkpoint import load_checkpoint, load_model
@@ -93,12 +93,14 @@ def synth_tiles(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 256 × 256 px synthetic town at 0.5 m tiled into 64 px patches (stride 32), 3/4 train, 1/4 val."""
     from aerialmtl.data.synth import synthesize
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
 
     root = tmp_path_factory.mktemp("synth")
     town = synthesize(root / "town", size=256, seed=1, gsd=0.5)
-    tile_dataset(town.ortho, root / "tiles", ndsm=town.ndsm, labels=town.labels, classes=town.classes, size=64,
-                 stride=32, splits=SplitSpec(block_size=64.0, ratios=(0.75, 0.25, 0.0), seed=0), progress=False)
+    tile_dataset(
+        town.ortho, root / "tiles", ndsm=town.ndsm, labels=town.labels, classes=town.classes, progress=False,
+        options=TileOptions(size=64, stride=32, splits=SplitSpec(block_size=64.0, ratios=(0.75, 0.25, 0.0), seed=0)),
+    )
     return root / "tiles"
 
 
@@ -224,6 +226,7 @@ def test_cli_train_and_refuse_reuse(tiles: Path, tmp_path: Path) -> None:
     from click.testing import CliRunner
 
     from aerialmtl.cli import cli
+    from aerialmtl.cli.options import flags_for
 
     cfg_path = tmp_path / "c.yaml"
     cfg_path.write_text(yaml.safe_dump(tiny_cfg().to_dict()))
@@ -234,7 +237,9 @@ def test_cli_train_and_refuse_reuse(tiles: Path, tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     assert str(run / "best.pt") in res.output and str(run / "last.pt") in res.output
     res = CliRunner().invoke(cli, args)
-    assert isinstance(res.exception, OutputExistsError) and "--resume" in str(res.exception)
+    assert isinstance(res.exception, OutputExistsError)  # the message names the options on the command line
+    assert "--resume" in res.exception.render(flags_for("train")) and "--overwrite" in res.exception.render(
+        flags_for("train"))
     res = CliRunner().invoke(cli, ["train", "--data", str(tiles), "--out", str(run), "--max-steps", "3",
                                    "--resume", "--quiet"])  # config taken from RUN/config.yaml
     assert res.exit_code == 0, res.output
@@ -247,7 +252,7 @@ def test_cli_train_and_refuse_reuse(tiles: Path, tmp_path: Path) -> None:
 
 # ---- precision, compile, optimizer ----------------------------------------------------------------
 def test_precision_auto_is_fp32_on_cpu_and_the_default() -> None:
-    from aerialmtl.training.trainer import resolve_precision
+    from aerialmtl.runtime import resolve_precision
 
     assert TrainConfig().precision == "auto"
     assert resolve_precision("auto", torch.device("cpu")) == "fp32"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from tilefolder import write_tile_folder
+from helpers.tilefolder import write_tile_folder
 
 from aerialmtl.formats.checkpoint import load_checkpoint
 from aerialmtl.training.config import TrainConfig

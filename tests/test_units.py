@@ -11,13 +11,13 @@ import rasterio
 import torch
 import yaml
 from affine import Affine
-from conftest import write_raster
+from helpers.rasters import write_raster
 from rasterio.crs import CRS
 from rasterio.warp import transform_bounds
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.errors import AlignmentError, InputError
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.align import AlignedRaster, HeightSource, reference_grid
@@ -25,7 +25,7 @@ from aerialmtl.io.units import Z_UNITS, metres_per_unit, utm_epsg, vertical_unit
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net
 from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import read_manifest, tile_dataset
+from aerialmtl.tiling.tile import TileOptions, read_manifest, tile_dataset
 
 FT = 0.3048
 US_FT = 1200 / 3937
@@ -82,8 +82,11 @@ def test_tile_feet_ortho_with_metre_utm_dsm_dtm(tmp_path: Path, rng: np.random.G
     dsm = _utm_height(tmp_path, ortho, "dsm.tif", 112.5)
     dtm = _utm_height(tmp_path, ortho, "dtm.tif", 100.0)
     # 100 m blocks vs 32-px (9.75 m) patches: blocks snap to 10 strides (97.5 m), patches never straddle
-    res = tile_dataset(ortho, tmp_path / "tiles", dsm=dsm, dtm=dtm, size=32, min_valid=0.5,
-                       splits=SplitSpec(block_size=30.0, ratios=(0.5, 0.25, 0.25), seed=1), progress=False)
+    res = tile_dataset(
+        ortho, tmp_path / "tiles", dsm=dsm, dtm=dtm, progress=False,
+        options=TileOptions(size=32, min_valid=0.5,
+                            splits=SplitSpec(block_size=30.0, ratios=(0.5, 0.25, 0.25), seed=1)),
+    )
     meta = yaml.safe_load((tmp_path / "tiles" / "dataset.yaml").read_text())
     assert meta["gsd"] == pytest.approx(FT)
     assert meta["splits"]["block_size_used_m"] == pytest.approx(3 * 32 * FT)  # 30 m → 3 patch strides
@@ -181,6 +184,8 @@ def test_evaluate_with_feet_dsm_dtm_reference(tmp_path: Path, rng: np.random.Gen
         predicted = src.read(1, masked=True)
     dsm = _utm_height(tmp_path, ortho, "dsm.tif", 20.0 + 3.0, scale=FT)  # feet values, unit not stated
     dtm = _utm_height(tmp_path, ortho, "dtm.tif", 20.0, scale=FT)
-    report = evaluate_prediction(pred.out_dir, dsm_ref=dsm, dtm_ref=dtm, z_unit="ft", out=None, plots=False)
+    report = evaluate_prediction(
+        pred.out_dir, dsm_ref=dsm, dtm_ref=dtm, out=None, options=EvaluateOptions(z_unit="ft", plots=False),
+    )
     assert report["height"]["mae"] == pytest.approx(float(np.abs(predicted - 3.0).mean()), rel=1e-3)
     assert report["references"]["height_units"]["DSM"]["unit"] == "ft"

@@ -23,7 +23,6 @@ outline (:mod:`aerialmtl.buildings.clean`) and attributes (:mod:`aerialmtl.build
 
 from __future__ import annotations
 
-import os
 import warnings
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
@@ -32,7 +31,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rasterio
 import shapely
 from affine import Affine
 from rasterio.features import shapes
@@ -50,6 +48,7 @@ from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.errors import InputError
 from aerialmtl.formats.prediction import CLASSES
 from aerialmtl.progress import tqdm_auto as tqdm
+from aerialmtl.runtime import gdal_env
 
 #: GDAL block cache while extracting (MiB) unless GDAL_CACHEMAX is set: every block is read once, so a
 #: cache larger than one block row of tiles only grows with the raster (GDAL's default is 5 % of the RAM).
@@ -142,12 +141,14 @@ class PixelBuilding:
 
     @property
     def n_pixels(self) -> int:
+        """Pixels of the piece."""
         return int(self.values["class"].size)
 
 
 class _Groups:
     """Union–find over building pieces that also knows, per group, its pieces and how many block edges
-    through which it may still continue (an open edge of one of its pieces)."""
+    through which it may still continue (an open edge of one of its pieces).
+    """
 
     def __init__(self) -> None:
         self.parent: dict[int, int] = {}
@@ -269,6 +270,9 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
     Yields:
         every 4-connected building component once, as soon as no block still to be read can touch it
         (after the block holding its last pixel in raster order, or the block below or right of it).
+
+    A little over 80 lines: the block loop keeps the open groups, the edges they may continue through and
+    the blocks' pixels in one scope; split, they would travel as six arguments.
     """
     stats = stats if stats is not None else ExtractionStats()
     height, width = layers.grid.height, layers.grid.width
@@ -281,8 +285,8 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
     frontier_h = np.full(width, np.nan, np.float32)
     above: dict[int, list[int]] = {}  # block column → pieces of the block above that reach its bottom row
     n_blocks = -(-height // b) * -(-width // b)
-    env = {} if "GDAL_CACHEMAX" in os.environ else {"GDAL_CACHEMAX": DEFAULT_CACHE_MB * 1024 * 1024}  # bytes
-    with rasterio.Env(**env), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
+    cache = DEFAULT_CACHE_MB * 1024 * 1024  # bytes
+    with gdal_env(cache), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
         for r0 in range(0, height, b):
             bh = min(b, height - r0)
             last_row = r0 + bh >= height

@@ -199,6 +199,7 @@ class BuildingLayers:
         return out
 
     def close(self) -> None:
+        """Close every raster this reader opened."""
         for layer in self._open:
             layer.close()
         self._open = []

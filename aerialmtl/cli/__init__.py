@@ -24,7 +24,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import click
 
-from aerialmtl import __version__, progress
+from aerialmtl import progress
+from aerialmtl._version import __version__
 from aerialmtl.cli.buildings import buildings
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
@@ -104,7 +105,8 @@ def quiet_libtiff() -> None:
     """Stop libtiff's global default handlers from printing raw lines on stderr (``_tiffWriteProc: No space left on
     device.`` above the one-line error). GDAL reports the same failures itself (a failed write becomes the
     error the command turns into its one line); ``--debug`` keeps libtiff's lines. Linux only (the loaded
-    libtiff is found in ``/proc/self/maps``); elsewhere nothing changes."""
+    libtiff is found in ``/proc/self/maps``); elsewhere nothing changes.
+    """
     import ctypes
 
     import rasterio  # noqa: F401 - loads GDAL and its libtiff

@@ -47,6 +47,9 @@ def buildings(pred_dir: Path, outputs: tuple[Path, ...], dtm: str | None, buildi
     heights are in metres whatever its unit.
 
     Example: aerialmtl buildings pred/ --out buildings.gpkg --out buildings.city.json
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     from aerialmtl.buildings import BuildingLayers, BuildingOptions, building_class_indices, write_buildings
     from aerialmtl.buildings.export import output_format

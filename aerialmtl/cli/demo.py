@@ -24,7 +24,8 @@ from aerialmtl.cli.options import overwrite_option
 def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: int, test_size: int, mc: int,
          overwrite: bool) -> None:
     """Synthesize a training and a test town, tile, train the small D3-Net, predict with MC dropout,
-    evaluate, and write GeoTIFFs, a report and PNG previews into OUT."""
+    evaluate, and write GeoTIFFs, a report and PNG previews into OUT.
+    """
     from aerialmtl.demo import EXPECTED, EXPECTED_BAND, DemoSettings, run_demo
 
     settings = DemoSettings(train_size=train_size, test_size=test_size, train_steps=train_steps,

@@ -10,7 +10,7 @@ import click
 
 from aerialmtl.cli.options import option, output_path, overwrite_option, quiet_option, raster_option
 from aerialmtl.errors import OutputError
-from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
 from aerialmtl.evaluation.report import headline
 
@@ -76,17 +76,20 @@ def evaluate(pred: Path, height_ref: str | None, dsm_ref: str | None, dtm_ref: s
     """Accuracy of heights and classes, and quality of their uncertainties, in a JSON + Markdown report.
 
     Example: aerialmtl evaluate --pred pred/ --height ndsm.tif --labels gt.tif --out eval/report.json
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
         raise click.UsageError("give at least one reference: --height NDSM.tif (or --dsm with --dtm) and/or "
                                "--labels LABELS.tif and/or --buildings FOOTPRINTS")
     _check_writable(out.parent)
     report = evaluate_prediction(
-        pred, height_ref=height_ref, labels_ref=labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, z_unit=z_unit,
-        classes=classes, out=out,
-        height_threshold=height_threshold, height_bins=height_bins, ignore_unknown_codes=ignore_unknown_codes,
-        overwrite=overwrite, sample_size=sample_size, seed=seed, plots=not no_plots, progress=not quiet,
-        buildings_ref=buildings_ref, pred_buildings=pred_buildings,
+        pred, height_ref=height_ref, labels_ref=labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, classes=classes,
+        out=out, overwrite=overwrite, progress=not quiet, buildings_ref=buildings_ref, pred_buildings=pred_buildings,
+        options=EvaluateOptions(z_unit=z_unit, height_threshold=height_threshold, height_bins=height_bins,
+                                ignore_unknown_codes=ignore_unknown_codes, sample_size=sample_size, seed=seed,
+                                plots=not no_plots),
     )
     width = max((len(k) for k, _ in headline(report)), default=0)
     for key, value in headline(report):

@@ -1,5 +1,6 @@
 """`aerialmtl export`: a checkpoint's inference model as ONNX (for QGIS's Deepness plugin and any ONNX
-runtime) or as an OpenVINO IR; a thin command over :func:`aerialmtl.inference.export.export_model`."""
+runtime) or as an OpenVINO IR; a thin command over :func:`aerialmtl.inference.export.export_model`.
+"""
 
 from __future__ import annotations
 

@@ -64,12 +64,13 @@ def argument(*decls: str, library: str | Sequence[str] = (), **kwargs: Any) -> D
 
 
 # ---- raster inputs ---------------------------------------------------------------------------------
-class RasterPath(click.ParamType):
+class RasterPath(click.ParamType):  # type: ignore[type-arg]  # generic only in click's stubs
     """A raster GDAL can open: a local file (checked to exist), a URL or a ``/vsi...`` path (a string)."""
 
     name = "raster"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        """The GDAL path of ``value`` (URLs as ``/vsi...`` paths); a local path must be an existing file."""
         path = gdal_path(value)
         if is_local(path):
             p = Path(path)
@@ -99,9 +100,11 @@ def raster_argument(name: str, library: str | Sequence[str] = (), **kwargs: Any)
 # ---- outputs ---------------------------------------------------------------------------------------
 class OutputPath(click.Path):
     """A local output path (``click.Path`` → ``pathlib.Path``); a URL or a GDAL ``/vsi...`` path is refused before
-    ``pathlib`` folds ``s3://b/x`` into a local folder ``s3:/b/x``."""
+    ``pathlib`` folds ``s3://b/x`` into a local folder ``s3:/b/x``.
+    """
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        """``value`` unchanged if it is a local path; a URL or a GDAL virtual path is refused."""
         if isinstance(value, str) and not is_local(value):
             self.fail(f"outputs must be local, but '{value}' is a URL or GDAL virtual path; write to a local folder "
                       "and copy it up afterwards (e.g. `aws s3 sync FOLDER s3://bucket/prefix`)", param, ctx)

@@ -7,6 +7,7 @@ A thin command over :func:`aerialmtl.inference.jobs.predict_many` (one process, 
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import click
@@ -70,9 +71,10 @@ def _batch_size(value: str) -> int | str:
              "folder, or the current folder if one is remote].")
 @option("--mc", type=int, default=None,
         help="MC-dropout samples T (1 = single pass, no uncertainty maps). Default: 30 if the model has dropout.")
-@option("--tile", type=int, default=1024, show_default=True,
-        help="Largest window side (pixels, multiple of 32); smaller tiles use less memory but recompute more "
+@option("--window", "tile", type=int, default=1024, show_default=True,
+        help="Largest window side (pixels, multiple of 32); smaller windows use less memory but recompute more "
              "overlap.")
+@option("--tile", "tile_alias", type=int, default=None, hidden=True, help="Deprecated name of --window.")
 @option("--overlap", type=int, default=64, show_default=True,
         help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
 @option("--batch-size", "batch_size", default="auto", show_default=True,
@@ -104,16 +106,23 @@ def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
     batch_size: str, engine: str, precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool,
     rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool, no_calibration: bool = False,
-    tta: bool = False,
+    tta: bool = False, tile_alias: int | None = None,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
 
     ORTHO is a GeoTIFF, a VRT, a URL (https://, s3://) or a GDAL /vsi... path. With AERIALMTL_MODEL set,
     `aerialmtl predict ortho.tif` writes ortho_aerialmtl/ beside ortho.tif.
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.predict import PredictResult
 
+    if tile_alias is not None:  # "tile" names the training patches of a tile folder only
+        warnings.warn("--tile is deprecated for predict: pass --window (the side of the prediction window)",
+                      FutureWarning, stacklevel=1)
+        tile = tile_alias
     if model is None:
         raise InputError(f"no model given: pass --model RUN/best.pt, or set {MODEL_ENV}=RUN/best.pt once for every "
                          "`aerialmtl predict`")

@@ -1,5 +1,6 @@
 """`aerialmtl qgis-plugin`: the QGIS Processing plugin as a zip to install in QGIS; a thin command over
-:func:`aerialmtl.plugin_zip.build_plugin_zip`."""
+:func:`aerialmtl.plugin_zip.build_plugin_zip`.
+"""
 
 from __future__ import annotations
 

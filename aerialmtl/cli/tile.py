@@ -96,9 +96,12 @@ def tile(ortho: str, dsm: str | None, dtm: str | None, ndsm: str | None, z_unit:
     """Cut ORTHO and aligned height/label layers into patches with spatial train/val/test splits.
 
     Writes OUT/{train,val,test}/{image,height,classes}/*.tif, OUT/manifest.csv and OUT/dataset.yaml.
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import tile_dataset
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
 
     if split_aoi is not None:
         spec = SplitSpec(method="aoi", aoi=split_aoi)
@@ -106,10 +109,11 @@ def tile(ortho: str, dsm: str | None, dtm: str | None, ndsm: str | None, z_unit:
         spec = SplitSpec(method="blocks", block_size=split_block, ratios=split_ratios, seed=split_seed)
     result = tile_dataset(
         ortho, out, dsm=dsm, dtm=dtm, ndsm=ndsm, labels=labels, labels_vector=labels_vector,
-        class_field=class_field, classes=classes, size=size, stride=stride, gsd=gsd, min_valid=min_valid,
-        splits=spec, bands=bands,
-        ndsm_options=NdsmOptions(clip_negative=clip_negative, max_height=max_height, z_unit=z_unit),
-        ignore_unknown_codes=ignore_unknown_codes, overwrite=overwrite, progress=not quiet,
+        class_field=class_field, classes=classes, overwrite=overwrite, progress=not quiet,
+        options=TileOptions(
+            size=size, stride=stride, gsd=gsd, min_valid=min_valid, splits=spec, bands=bands,
+            heights=NdsmOptions(clip_negative=clip_negative, max_height=max_height, z_unit=z_unit),
+            ignore_unknown_codes=ignore_unknown_codes),
     )
     total = sum(result.counts.values())
     click.echo(f"{total} patches ({', '.join(f'{k} {v}' for k, v in result.counts.items())}) "

@@ -1,12 +1,11 @@
 """`aerialmtl train`: train a D3-Net on a tile folder (thin wrapper over :func:`aerialmtl.training.loop.train`).
 
-Under ``torchrun`` every process runs this command: they all check the options and the run folder (nobody
-writes before they agree), then rank 0 alone prepares the folder and later writes into it.
+Under ``torchrun`` every process runs this command; the run-folder policy (``--resume``, ``--overwrite``,
+who prepares the folder) is the library's (:func:`aerialmtl.training.loop.check_run_folder`).
 """
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 
 import click
@@ -20,38 +19,9 @@ from aerialmtl.cli.options import (
     precision_option,
     quiet_option,
 )
-from aerialmtl.errors import OutputExistsError
-from aerialmtl.formats.run import RUN_FILES, RunFolder
-from aerialmtl.io.outputs import FolderLock, OutputFolder, is_job_leader
-
-
-def _check_run_folder(out_dir: Path, resume: bool, overwrite: bool, config_path: Path | None) -> Path | None:
-    """Validate --out against --resume/--overwrite (read-only); returns the config path to use."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise click.BadParameter(f"'{out_dir}' is a file; pass a folder", param_hint="--out")
-    run = RunFolder(out_dir)
-    if out_dir.is_dir() and is_job_leader():  # another run writing there: say so before judging its files
-        FolderLock(out_dir, "train").check_free()
-    if resume:
-        if not run.can_resume():
-            raise click.BadParameter(f"'{run.last}' does not exist; there is no run to resume there",
-                                     param_hint="--resume")
-        return config_path or run.config
-    existing = [n for n in RUN_FILES if (out_dir / n).exists()]
-    if existing and not overwrite:
-        raise OutputExistsError(
-            f"run folder '{out_dir}' already holds {', '.join(existing)}; pass --resume to continue it, --overwrite "
-            "to replace the run, or another --out"
-        )
-    return config_path
-
-
-def _prepare_run_folder(folder: OutputFolder, stack: contextlib.ExitStack, clear: bool) -> None:
-    """Take the run folder (lock) and, for a new run, clear the previous run's own files (never others)."""
-    stack.enter_context(folder)
-    folder.remove_leftovers(RUN_FILES)  # staging files of a killed run
-    if clear:
-        folder.remove_owned(RUN_FILES)
+from aerialmtl.formats.run import RunFolder
+from aerialmtl.runtime import Torchrun
+from aerialmtl.training.distributed import install_stop_handler
 
 
 @click.command(name="train")
@@ -83,14 +53,16 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
 
     \b
         torchrun --nproc_per_node N -m aerialmtl train --config C --data D --out RUN
+    \f
+
+    One parameter per command-line option: click passes each option to the command.
     """
     from aerialmtl.training.config import load_train_config
-    from aerialmtl.training.distributed import DistContext, install_stop_handler
-    from aerialmtl.training.loop import check_budget
+    from aerialmtl.training.loop import check_budget, check_run_folder
     from aerialmtl.training.loop import train as train_loop
 
     check_budget(max_steps, max_time)  # before the run folder is touched
-    if resume and overwrite:
+    if resume and overwrite:  # option pairs: usage errors naming both (the library refuses them too)
         raise click.BadParameter("--resume continues a run and --overwrite deletes it; pass only one",
                                  param_hint="--resume/--overwrite")
     if resume and init_ckpt is not None:
@@ -99,7 +71,9 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     if init_ckpt is not None and not init_ckpt.is_file():
         raise click.BadParameter(f"'{init_ckpt}' does not exist; pass the best.pt or last.pt of a training run",
                                  param_hint="--init")
-    config_path = _check_run_folder(out_dir, resume, overwrite, config_path)
+    check_run_folder(out_dir, resume, overwrite, init_ckpt)  # before the config is read: says what is wrong first
+    if resume and config_path is None:
+        config_path = RunFolder(out_dir).config
     if config_path is None:
         raise click.BadParameter("pass a training YAML, e.g. configs/d3net_small_synth.yaml", param_hint="--config")
 
@@ -109,20 +83,12 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
         overrides["compile"] = True
     if overrides:
         cfg = cfg.with_overrides(**overrides)
-    data = data_dir if data_dir is not None else cfg.data.dir
-    folder = OutputFolder(out_dir, "train", inputs={"data_dir": data, "init_ckpt": init_ckpt}, what="run folder")
-    ctx = DistContext.from_env(cfg.device)
-    try:
-        with contextlib.ExitStack() as stack:  # the run folder's lock, held until training ends
-            if ctx.distributed:
-                install_stop_handler()
-            ctx.barrier()  # every process has checked the folder before rank 0 changes it
-            ctx.main_first(lambda: _prepare_run_folder(folder, stack, overwrite and not resume))
-            result = train_loop(cfg, data_dir=data_dir, out_dir=out_dir, max_steps=max_steps, max_time_s=max_time,
-                                resume=resume, progress=not quiet, init=init_ckpt, ctx=ctx)
-    finally:
-        ctx.close()
-    if not ctx.is_main:
+    process = Torchrun.from_env()
+    if process.distributed:
+        install_stop_handler()
+    result = train_loop(cfg, data_dir=data_dir, out_dir=out_dir, max_steps=max_steps, max_time_s=max_time,
+                        resume=resume, progress=not quiet, init=init_ckpt, overwrite=overwrite)
+    if not process.is_main:
         return
     m = result.metrics
     parts = [f"{k}={m[k]:.4g}" for k in ("height_mae", "height_rmse", "oa", "miou") if k in m]

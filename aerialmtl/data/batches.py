@@ -2,7 +2,7 @@
 
 The data path of ``aerialmtl train``:
 
-1. :class:`EpochPlan` fixes the run's order: every epoch is a permutation of the train split seeded by
+1. :class:`EpochOrder` fixes the run's order: every epoch is a permutation of the train split seeded by
    ``(seed, epoch)``, cut into global batches of ``batch_size × world_size`` positions (the last incomplete
    one dropped); rank r takes the r-th ``batch_size`` slice of each global batch. Each patch's augmentation
    is seeded by its position in the run (:func:`item_seed`), so neither the number of DataLoader workers
@@ -45,7 +45,7 @@ def item_seed(seed: int, epoch: int, position: int) -> int:
 
 
 @dataclass(frozen=True)
-class EpochPlan:
+class EpochOrder:
     """Which patches every optimisation step uses, for any number of processes.
 
     Attributes:
@@ -82,9 +82,11 @@ class EpochPlan:
 
     @property
     def steps_per_epoch(self) -> int:
+        """Full global batches per epoch (the incomplete last one is dropped)."""
         return self.n // self.global_batch
 
     def permutation(self, epoch: int) -> torch.Tensor:
+        """The order of the patches in ``epoch`` (seeded by ``(seed, epoch)``: the same on every rank)."""
         return torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed * 7919 + epoch))
 
     def advance(self, epoch: int, position: int) -> tuple[int, int]:
@@ -109,23 +111,24 @@ class EpochPlan:
 
 
 class RankBatchSampler:
-    """The batch sampler of one process: :meth:`EpochPlan.batches` as an iterable for a DataLoader."""
+    """The batch sampler of one process: :meth:`EpochOrder.batches` as an iterable for a DataLoader."""
 
-    def __init__(self, plan: EpochPlan, rank: int, epoch: int, position: int) -> None:
-        self.plan, self.rank, self.epoch, self.position = plan, rank, epoch, position
+    def __init__(self, order: EpochOrder, rank: int, epoch: int, position: int) -> None:
+        self.order, self.rank, self.epoch, self.position = order, rank, epoch, position
 
     def __iter__(self) -> Iterator[BatchSpec]:
-        return self.plan.batches(self.rank, self.epoch, self.position)
+        return self.order.batches(self.rank, self.epoch, self.position)
 
 
 def eval_batches(n: int, batch_size: int, rank: int = 0, world_size: int = 1) -> list[BatchSpec]:
     """Validation batches: consecutive patches in manifest order (the last one may be short), dealt
-    round-robin to the processes, so the union over ranks is the single-process set of batches."""
+    round-robin to the processes, so the union over ranks is the single-process set of batches.
+    """
     specs = [[(i, 0) for i in range(s, min(s + batch_size, n))] for s in range(0, n, batch_size)]
     return specs[rank::world_size]
 
 
-class CachedBatches(torch.utils.data.Dataset):
+class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
     """Map-style dataset whose items are whole batches (use with ``batch_size=None``).
 
     ``dataset[spec]`` draws each sample's augmentation parameters from a generator seeded with its seed,
@@ -192,5 +195,5 @@ def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, s
     return batch
 
 
-__all__ = ["item_seed", "EpochPlan", "RankBatchSampler", "eval_batches", "CachedBatches", "prepare_batch",
+__all__ = ["item_seed", "EpochOrder", "RankBatchSampler", "eval_batches", "CachedBatches", "prepare_batch",
            "BatchSpec"]

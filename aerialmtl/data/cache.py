@@ -90,7 +90,7 @@ def _arrays_match(folder: Path, index: PatchCacheIndex) -> bool:
     return True
 
 
-class _RawPatches(torch.utils.data.Dataset):
+class _RawPatches(torch.utils.data.Dataset[RawPatch]):
     """Decoded patches of manifest rows, for decoding with DataLoader workers."""
 
     def __init__(self, info: TileFolderInfo, rows: list[dict[str, str]]) -> None:
@@ -208,12 +208,14 @@ class PatchCache:
 
     @property
     def layers(self) -> tuple[str, ...]:
+        """The cached layers (``image`` and the references)."""
         return self.index.layers
 
     def __getstate__(self) -> dict[str, Any]:
         return {"folder": self.folder, "index": self.index, "_arrays": None}
 
     def arrays(self) -> dict[str, np.ndarray]:
+        """Layer name → its memory-mapped array (N × ...), opened on first use in each process."""
         if self._arrays is None:
             self._arrays = {name: np.load(cache_file(self.folder, self.index.split, name), mmap_mode="r")
                             for name in self.index.layers}

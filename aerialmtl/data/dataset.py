@@ -158,7 +158,7 @@ def normalise_batch(
     return out
 
 
-class PatchDataset(torch.utils.data.Dataset):
+class PatchDataset(torch.utils.data.Dataset[Sample]):
     """Patches of one split of a tile folder, as :class:`~aerialmtl.data.types.Sample` dicts.
 
     Each item holds ``image`` float32 (C, H, W) normalised as ``(raw - mean) / std`` (0 where the image

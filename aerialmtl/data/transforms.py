@@ -85,6 +85,7 @@ class BatchTransform:
         raise NotImplementedError
 
     def __call__(self, sample: Sample, generator: torch.Generator | None = None) -> Sample:
+        """Apply the transform to one sample with parameters drawn from ``generator``."""
         shape = tuple(sample["image"].shape)
         params = stack_params([self.draw(generator, shape)])  # type: ignore[arg-type]
         batch = {k: sample[k][None] for k in SPATIAL_KEYS if k in sample}  # type: ignore[literal-required]
@@ -121,11 +122,13 @@ class RandomFlip(BatchTransform):
         self.p, self.horizontal, self.vertical = p, horizontal, vertical
 
     def draw(self, generator: torch.Generator | None, shape: tuple[int, int, int]) -> Params:
+        """Whether to flip horizontally and vertically (each with probability ``p``)."""
         h = self.horizontal and _rand(generator) < self.p
         v = self.vertical and _rand(generator) < self.p
         return {"h": torch.tensor(h), "v": torch.tensor(v)}
 
     def apply(self, batch: Batch, params: Params) -> Batch:
+        """Flip every image of the batch as its parameters say."""
         def op(h: bool, v: bool) -> Callable[[torch.Tensor], torch.Tensor] | None:
             dims = (-2,) * v + (-1,) * h
             return (lambda x: torch.flip(x, dims=dims)) if dims else None
@@ -143,12 +146,14 @@ class RandomRot90(BatchTransform):
     stage = "permute"
 
     def draw(self, generator: torch.Generator | None, shape: tuple[int, int, int]) -> Params:
+        """A number of quarter turns (any on square patches, 0 or 2 otherwise)."""
         h, w = shape[-2:]
         k = int(torch.randint(0, 4, (), generator=generator)) if h == w else 2 * int(
             torch.randint(0, 2, (), generator=generator))
         return {"k": torch.tensor(k, dtype=torch.int64)}
 
     def apply(self, batch: Batch, params: Params) -> Batch:
+        """Rotate every image of the batch by its quarter turns."""
         def op(k: int) -> Callable[[torch.Tensor], torch.Tensor] | None:
             return (lambda x: torch.rot90(x, k, dims=(-2, -1))) if k else None
 
@@ -196,6 +201,7 @@ class RandomCrop(_Crop):
         super().__init__(size)
 
     def draw(self, generator: torch.Generator | None, shape: tuple[int, int, int]) -> Params:
+        """A random top-left corner of the crop."""
         h, w = self._check(shape)
         r = c = 0
         if (h, w) != (self.size, self.size):
@@ -208,6 +214,7 @@ class CenterCrop(_Crop):
     """Cut the central ``size`` × ``size`` window (validation counterpart of :class:`RandomCrop`)."""
 
     def draw(self, generator: torch.Generator | None, shape: tuple[int, int, int]) -> Params:
+        """The top-left corner of the central crop."""
         h, w = self._check(shape)
         return {"row": torch.tensor((h - self.size) // 2, dtype=torch.int64),
                 "col": torch.tensor((w - self.size) // 2, dtype=torch.int64)}
@@ -229,6 +236,7 @@ class PhotometricJitter(BatchTransform):
         self.brightness, self.contrast, self.p = brightness, contrast, p
 
     def draw(self, generator: torch.Generator | None, shape: tuple[int, int, int]) -> Params:
+        """Whether to jitter and, if so, the per-band brightness and contrast factors."""
         n = shape[0]
         if _rand(generator) >= self.p:
             return {"on": torch.tensor(False), "contrast": torch.ones(n), "brightness": torch.zeros(n)}
@@ -237,6 +245,7 @@ class PhotometricJitter(BatchTransform):
         return {"on": torch.tensor(True), "contrast": c, "brightness": b}
 
     def apply(self, batch: Batch, params: Params) -> Batch:
+        """Scale and shift the bands of the chosen images."""
         on = params["on"].tolist()
         if not any(on):
             return batch
@@ -265,6 +274,7 @@ class Compose(BatchTransform):
                              f"{[t.stage for t in self.transforms]}")
 
     def out_shape(self, shape: tuple[int, int, int]) -> tuple[int, int, int]:
+        """(C, H, W) of a sample after every transform."""
         for t in self.transforms:
             shape = t.out_shape(shape)
         return shape
@@ -296,6 +306,7 @@ class Compose(BatchTransform):
         return batch
 
     def __call__(self, sample: Sample, generator: torch.Generator | None = None) -> Sample:
+        """Apply every transform to one sample, in order."""
         for t in self.transforms:
             sample = t(sample, generator)
         return sample

@@ -1,0 +1,1 @@
+"""Evaluation of a prediction folder against references: metrics, uncertainty checks, reports and maps."""

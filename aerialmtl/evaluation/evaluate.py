@@ -15,6 +15,7 @@ import contextlib
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ import numpy as np
 import rasterio
 from rasterio.windows import Window
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.evaluation.metrics import (
@@ -110,6 +111,55 @@ def _resolve_scheme(
     return None, ""
 
 
+@dataclass(frozen=True)
+class EvaluateOptions:
+    """How :func:`evaluate_prediction` scores a prediction (what it is scored against are its arguments).
+
+    Attributes:
+        z_unit: unit of the reference heights when a file does not state one (``"m"``, ``"ft"``,
+            ``"us-ft"``; default metres); see :mod:`aerialmtl.io.units`.
+        height_threshold: δ accuracies count reference heights above this (metres).
+        height_bins: reference-height bin edges (metres) for per-bin errors.
+        ignore_unknown_codes: label codes missing from the scheme become "no label" instead of raising.
+        sample_size: max pixels in the seeded subsample for median / sparsification / Spearman.
+        seed: seed of that subsample (0 … 2³² − 1).
+        steps: removal fractions of the sparsification curves.
+        ece_bins: bins of the expected calibration error.
+        min_std: floor of the height standard deviation in the Gaussian NLL (metres).
+        block_pixels: pixels per row of windows read at once (memory bound).
+        plots: write PNG plots beside the report when matplotlib is installed.
+    """
+
+    z_unit: str | None = None
+    height_threshold: float = 1.0
+    height_bins: Sequence[float] = DEFAULT_HEIGHT_BINS
+    ignore_unknown_codes: bool = False
+    sample_size: int = 2_000_000
+    seed: int = 0
+    steps: int = DEFAULT_STEPS
+    ece_bins: int = DEFAULT_ECE_BINS
+    min_std: float = DEFAULT_MIN_STD
+    block_pixels: int = 1 << 20
+    plots: bool = True
+
+
+@dataclass(frozen=True)
+class _References:
+    """What a prediction is compared with (see :func:`evaluate_prediction`'s arguments)."""
+
+    height: str | Path | None
+    labels: str | Path | None
+    dsm: str | Path | None
+    dtm: str | Path | None
+    buildings: str | Path | None
+    pred_buildings: str | Path | None
+
+    @property
+    def height_given(self) -> str | Path | None:
+        """The height reference, an nDSM or the DSM of a DSM/DTM pair."""
+        return self.height if self.height is not None else self.dsm
+
+
 def evaluate_prediction(
     pred_dir: str | Path,
     height_ref: str | Path | None = None,
@@ -117,25 +167,18 @@ def evaluate_prediction(
     *,
     dsm_ref: str | Path | None = None,
     dtm_ref: str | Path | None = None,
-    z_unit: str | None = None,
-    classes: str | Path | ClassScheme | None = None,
-    out: str | Path | None = "report.json",
-    height_threshold: float = 1.0,
-    height_bins: Sequence[float] = DEFAULT_HEIGHT_BINS,
-    ignore_unknown_codes: bool = False,
-    overwrite: bool = False,
-    sample_size: int = 2_000_000,
-    seed: int = 0,
-    steps: int = DEFAULT_STEPS,
-    ece_bins: int = DEFAULT_ECE_BINS,
-    min_std: float = DEFAULT_MIN_STD,
-    block_pixels: int = 1 << 20,
-    plots: bool = True,
-    progress: bool = False,
     buildings_ref: str | Path | None = None,
     pred_buildings: str | Path | None = None,
+    classes: str | Path | ClassScheme | None = None,
+    out: str | Path | None = "report.json",
+    options: EvaluateOptions = EvaluateOptions(),
+    overwrite: bool = False,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Compare a prediction folder with reference heights and/or labels and write a report.
+
+    Twelve parameters: every reference a user may give is a keyword of its own (as the command's options
+    are); how the prediction is scored is one :class:`EvaluateOptions`.
 
     Args:
         pred_dir: folder written by ``aerialmtl predict`` (``height.tif``, ``classes.tif``, ...).
@@ -143,28 +186,17 @@ def evaluate_prediction(
         labels_ref: reference label raster with the scheme's raw codes, any CRS/GSD.
         dsm_ref, dtm_ref: instead of ``height_ref``, a DSM and a DTM: the reference is DSM − DTM on the
             prediction grid, negatives clipped to 0, exactly as ``tile`` derives its training heights.
-        z_unit: unit of the reference heights when a file does not state one (``"m"``, ``"ft"``,
-            ``"us-ft"``; default metres); see :mod:`aerialmtl.io.units`.
-        classes: class scheme (YAML path, built-in name or object); default: the scheme in the
-            ``AERIALMTL_CLASS_SCHEME`` tag of ``classes.tif``.
-        out: report JSON path; ``report.md`` (same stem) and PNG plots are written beside it.
-            ``None`` writes nothing and only returns the report.
-        height_threshold: δ accuracies count reference heights above this (metres).
-        height_bins: reference-height bin edges (metres) for per-bin errors.
-        ignore_unknown_codes: label codes missing from the scheme become "no label" instead of raising.
-        overwrite: replace an existing report.
-        sample_size: max pixels in the seeded subsample for median / sparsification / Spearman.
-        seed: seed of that subsample.
-        steps: removal fractions of the sparsification curves.
-        ece_bins: bins of the expected calibration error.
-        min_std: floor of the height standard deviation in the Gaussian NLL (metres).
-        block_pixels: pixels per row band read at once (memory bound).
-        plots: write PNG plots when matplotlib is installed.
-        progress: show a tqdm progress bar.
         buildings_ref: reference building footprints with heights (e.g. ``buildings.geojson`` of
             ``aerialmtl synth``): adds the ``buildings`` section (:mod:`aerialmtl.evaluation.buildings`).
         pred_buildings: footprints written by ``aerialmtl buildings`` to score; default: extracted from
             ``pred_dir`` with the default settings.
+        classes: class scheme (YAML path, built-in name or object); default: the scheme in the
+            ``AERIALMTL_CLASS_SCHEME`` tag of ``classes.tif``.
+        out: report JSON path; ``report.md`` (same stem) and PNG plots are written beside it.
+            ``None`` writes nothing and only returns the report.
+        options: thresholds, bins, sampling, units, plots (:class:`EvaluateOptions`).
+        overwrite: replace an existing report.
+        progress: show a tqdm progress bar.
 
     Returns:
         the report dict (also written as JSON, with ``nan`` → ``null``).
@@ -176,52 +208,23 @@ def evaluate_prediction(
         OutputExistsError: the report's files exist and ``overwrite`` is False.
         OutputInUseError: another process is writing into the report's folder.
     """
-    if not 0 <= seed < 2**32:
-        raise InputError(f"‹seed› must be an integer in 0..2**32-1, got {seed}", param="seed")
+    if not 0 <= options.seed < 2**32:
+        raise InputError(f"‹seed› must be an integer in 0..2**32-1, got {options.seed}", param="seed")
+    refs = _References(height_ref, labels_ref, dsm_ref, dtm_ref, buildings_ref, pred_buildings)
     with contextlib.ExitStack() as stack:
         if out is not None:  # the report's folder is this run's until the report is written
-            report_files(out, plots)  # a .json path
+            report_files(out, options.plots)  # a .json path
             stack.enter_context(OutputFolder(Path(out).parent, "evaluate", option="out", what="report folder"))
-        return _evaluate(
-            Path(pred_dir), height_ref, labels_ref, dsm_ref=dsm_ref, dtm_ref=dtm_ref, z_unit=z_unit, classes=classes,
-            out=out, height_threshold=height_threshold, height_bins=height_bins,
-            ignore_unknown_codes=ignore_unknown_codes, overwrite=overwrite, sample_size=sample_size, seed=seed,
-            steps=steps, ece_bins=ece_bins, min_std=min_std, block_pixels=block_pixels, plots=plots,
-            progress=progress, buildings_ref=buildings_ref, pred_buildings=pred_buildings)
+        return _evaluate(Path(pred_dir), refs, classes, out, options, overwrite, progress)
 
 
-def _evaluate(
-    pred_dir: Path, height_ref: str | Path | None, labels_ref: str | Path | None, *, dsm_ref: str | Path | None,
-    dtm_ref: str | Path | None, z_unit: str | None, classes: str | Path | ClassScheme | None, out: str | Path | None,
-    height_threshold: float, height_bins: Sequence[float], ignore_unknown_codes: bool, overwrite: bool,
-    sample_size: int, seed: int, steps: int, ece_bins: int, min_std: float, block_pixels: int, plots: bool,
-    progress: bool, buildings_ref: str | Path | None, pred_buildings: str | Path | None,
-) -> dict[str, Any]:
+def _evaluate(pred_dir: Path, refs: _References, classes: str | Path | ClassScheme | None, out: str | Path | None,
+              options: EvaluateOptions, overwrite: bool, progress: bool) -> dict[str, Any]:
     """:func:`evaluate_prediction` once the report's folder is held."""
-    files = _check_arguments(pred_dir, height_ref, dsm_ref, dtm_ref, labels_ref, buildings_ref, height_threshold,
-                             sample_size, out, overwrite, plots)
-    height_given = height_ref if height_ref is not None else dsm_ref
+    files = _check_arguments(pred_dir, refs, options, out, overwrite)
     notes: list[str] = []
-    do_height = height_given is not None and "height" in files
-    if height_given is not None and "height" not in files:
-        notes.append("height reference given but the prediction has no height.tif: height metrics skipped")
     scheme, scheme_source = _resolve_scheme(classes, files.get("classes"))
-    if labels_ref is not None and scheme is None:
-        if "classes" in files:
-            raise InputError(
-                f"no class scheme for the labels '{labels_ref}': {files['classes']} has no {CLASS_SCHEME_TAG} "
-                "tag; pass ‹classes› with the scheme YAML the model was trained with"
-            )
-        notes.append("labels given without classes.tif or ‹classes›: per-class height errors skipped")
-    do_classes = labels_ref is not None and "classes" in files
-    if labels_ref is not None and "classes" not in files:
-        notes.append("labels given but the prediction has no classes.tif: class metrics skipped")
-    if not do_height and not do_classes and buildings_ref is None:
-        raise InputError(
-            f"nothing to evaluate in '{pred_dir}': the references given ({'‹height_ref›' if height_given else ''}"
-            f"{' ‹labels_ref›' if labels_ref else ''}) match no predicted layer (found: "
-            f"{', '.join(sorted(p.name for p in files.values()))})"
-        )
+    do_height, do_classes = _what_to_evaluate(pred_dir, refs, files, scheme, notes)
     k = scheme.num_classes if scheme is not None else 0
     names = scheme.names if scheme is not None else []
 
@@ -232,24 +235,25 @@ def _evaluate(
         )
         srcs, grid = _open_prediction(files, needed, opened)
         labels = None
-        if labels_ref is not None and scheme is not None:
-            labels = LabelReference(labels_ref, grid, scheme, ignore_unknown_codes)
+        if refs.labels is not None and scheme is not None:
+            labels = LabelReference(refs.labels, grid, scheme, options.ignore_unknown_codes)
             opened.append(labels)
         heights = None
         if do_height:
-            reference = HeightSource(grid, ndsm=height_ref, dsm=dsm_ref, dtm=dtm_ref,
-                                     options=NdsmOptions(clip_negative=height_ref is None, z_unit=z_unit))
+            reference = HeightSource(grid, ndsm=refs.height, dsm=refs.dsm, dtm=refs.dtm,
+                                     options=NdsmOptions(clip_negative=refs.height is None, z_unit=options.z_unit))
             opened.append(reference)
             heights = HeightEvaluation(
                 srcs[HEIGHT], srcs.get(HEIGHT_STD), reference,
-                HeightStats(height_threshold, height_bins, k if labels is not None else None, names or None,
-                            sample_cap=sample_size, seed=seed),
-                sample_size, seed, min_std,
+                HeightStats(options.height_threshold, options.height_bins, k if labels is not None else None,
+                            names or None, sample_cap=options.sample_size, seed=options.seed),
+                options.sample_size, options.seed, options.min_std,
             )
         classes_eval = None
         if do_classes:
-            classes_eval = ClassEvaluation(srcs, files[CLASSES], scheme, scheme_source, sample_size, seed, ece_bins)
-        for win in tqdm(_row_bands(grid, block_pixels), desc="evaluate", unit="band", disable=not progress):
+            classes_eval = ClassEvaluation(srcs, files[CLASSES], scheme, scheme_source, options.sample_size,
+                                           options.seed, options.ece_bins)
+        for win in tqdm(_row_bands(grid, options.block_pixels), desc="evaluate", unit="band", disable=not progress):
             labels_idx = labels.read(win) if labels is not None else None
             if heights is not None:
                 heights.update(win, labels_idx)
@@ -258,19 +262,73 @@ def _evaluate(
     finally:
         for obj in opened:
             obj.close()
+    report = _report(pred_dir, refs, grid, scheme, scheme_source, heights, options, notes)
+    if heights is not None:
+        heights.report_into(report, options.steps)
+        try:  # whether predict applied the checkpoint's calibration (height map, spread factor)
+            pinfo = PredictionFolder(pred_dir).info()
+        except (OSError, ValueError):
+            pinfo = {}
+        report["calibration"] = {k: v for k, v in dict(pinfo.get("calibration") or {"applied": False}).items()
+                                 if k != "height_knots_m"}
+    if classes_eval is not None:
+        classes_eval.report_into(report, names, options.steps)
+    if refs.buildings is not None:
+        from aerialmtl.evaluation.buildings import evaluate_buildings
 
-    report: dict[str, Any] = {
+        report["references"]["buildings"] = str(refs.buildings)
+        report["buildings"] = evaluate_buildings(pred_dir, refs.buildings, grid, refs.pred_buildings, notes=notes)
+    if out is not None:
+        write_report(report, Path(out), plots=options.plots)
+    return report
+
+
+def _what_to_evaluate(pred_dir: Path, refs: _References, files: dict[str, Path], scheme: ClassScheme | None,
+                      notes: list[str]) -> tuple[bool, bool]:
+    """Whether heights and classes are scored (a reference and its predicted layer both given); what is
+    skipped is said in ``notes``.
+
+    Raises:
+        InputError: labels without a class scheme although ``classes.tif`` exists; nothing to evaluate.
+    """
+    height_given = refs.height_given
+    do_height = height_given is not None and "height" in files
+    if height_given is not None and "height" not in files:
+        notes.append("height reference given but the prediction has no height.tif: height metrics skipped")
+    if refs.labels is not None and scheme is None:
+        if "classes" in files:
+            raise InputError(
+                f"no class scheme for the labels '{refs.labels}': {files['classes']} has no {CLASS_SCHEME_TAG} "
+                "tag; pass ‹classes› with the scheme YAML the model was trained with"
+            )
+        notes.append("labels given without classes.tif or ‹classes›: per-class height errors skipped")
+    do_classes = refs.labels is not None and "classes" in files
+    if refs.labels is not None and "classes" not in files:
+        notes.append("labels given but the prediction has no classes.tif: class metrics skipped")
+    if not do_height and not do_classes and refs.buildings is None:
+        raise InputError(
+            f"nothing to evaluate in '{pred_dir}': the references given ({'‹height_ref›' if height_given else ''}"
+            f"{' ‹labels_ref›' if refs.labels else ''}) match no predicted layer (found: "
+            f"{', '.join(sorted(p.name for p in files.values()))})"
+        )
+    return do_height, do_classes
+
+
+def _report(pred_dir: Path, refs: _References, grid: Grid, scheme: ClassScheme | None, scheme_source: str,
+            heights: HeightEvaluation | None, options: EvaluateOptions, notes: list[str]) -> dict[str, Any]:
+    """The report's header: versions, the references, the grid, the class scheme and the sampling."""
+    return {
         "aerialmtl_version": __version__,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "prediction": str(pred_dir),
-        "references": {"height": str(height_ref) if height_ref else None,
-                       "labels": str(labels_ref) if labels_ref else None,
-                       **({"dsm": str(dsm_ref), "dtm": str(dtm_ref)} if dsm_ref else {}),
+        "references": {"height": str(refs.height) if refs.height else None,
+                       "labels": str(refs.labels) if refs.labels else None,
+                       **({"dsm": str(refs.dsm), "dtm": str(refs.dtm)} if refs.dsm else {}),
                        **({"height_units": heights.units} if heights is not None and heights.units else {})},
         "grid": {"crs": grid.crs.to_string() if grid.crs else None, "gsd_m": grid.gsd,
                  "width": grid.width, "height": grid.height},
-        "class_scheme": {"name": scheme.name, "source": scheme_source, "classes": names} if scheme else None,
-        "sampling": {"max_pixels": sample_size, "seed": seed,
+        "class_scheme": {"name": scheme.name, "source": scheme_source, "classes": scheme.names} if scheme else None,
+        "sampling": {"max_pixels": options.sample_size, "seed": options.seed,
                      "note": "median absolute error, sparsification (AUSE/AURG) and Spearman use a seeded "
                              "uniform subsample when more valid pixels than max_pixels exist; all other "
                              "metrics use every valid pixel"},
@@ -279,32 +337,14 @@ def _evaluate(
         "uncertainty": {},
         "notes": notes,
     }
-    if heights is not None:
-        heights.report_into(report, steps)
-        try:  # whether predict applied the checkpoint's calibration (height map, spread factor)
-            pinfo = PredictionFolder(pred_dir).info()
-        except (OSError, ValueError):
-            pinfo = {}
-        report["calibration"] = {k: v for k, v in dict(pinfo.get("calibration") or {"applied": False}).items()
-                                 if k != "height_knots_m"}
-    if classes_eval is not None:
-        classes_eval.report_into(report, names, steps)
-    if buildings_ref is not None:
-        from aerialmtl.evaluation.buildings import evaluate_buildings
-
-        report["references"]["buildings"] = str(buildings_ref)
-        report["buildings"] = evaluate_buildings(pred_dir, buildings_ref, grid, pred_buildings, notes=notes)
-    if out is not None:
-        write_report(report, Path(out), plots=plots)
-    return report
 
 
-def _check_arguments(
-    pred_dir: Path, height_ref: str | Path | None, dsm_ref: str | Path | None, dtm_ref: str | Path | None,
-    labels_ref: str | Path | None, buildings_ref: str | Path | None, height_threshold: float, sample_size: int,
-    out: str | Path | None, overwrite: bool, plots: bool = True,
-) -> dict[str, Path]:
+def _check_arguments(pred_dir: Path, refs: _References, options: EvaluateOptions, out: str | Path | None,
+                     overwrite: bool) -> dict[str, Path]:
     """Validate the arguments of :func:`evaluate_prediction`; returns the predicted layers present."""
+    height_ref, dsm_ref, dtm_ref = refs.height, refs.dsm, refs.dtm
+    labels_ref, buildings_ref = refs.labels, refs.buildings
+    sample_size, height_threshold = options.sample_size, options.height_threshold
     if height_ref is not None and (dsm_ref is not None or dtm_ref is not None):
         raise InputError(
             "give either a reference nDSM (‹height_ref›) or a DSM and a DTM (‹dsm_ref›/‹dtm_ref›), not both",
@@ -331,7 +371,7 @@ def _check_arguments(
             "pass the --out folder of `aerialmtl predict`"
         )
     if out is not None:
-        outputs = report_files(out, plots)
+        outputs = report_files(out, options.plots)
         inputs = [("height_ref", height_ref), ("labels_ref", labels_ref), ("dsm_ref", dsm_ref), ("dtm_ref", dtm_ref),
                   ("buildings_ref", buildings_ref),
                   *(("pred_dir", pred_dir / name) for name in ALL_FILES)]  # prediction.json, item.json too
@@ -393,6 +433,7 @@ class LabelReference:
         return self.scheme.remap(codes[0], valid, on_unknown=self.on_unknown, source=str(self.path))  # type: ignore[arg-type]
 
     def close(self) -> None:
+        """Close the label raster."""
         self.raster.close()
 
 
@@ -542,5 +583,5 @@ class ClassEvaluation:
                          "(predict with probabilities saved to get them)")
 
 
-__all__ = ["CLASS_SCHEME_TAG", "PREDICTION_FILES", "ClassEvaluation", "HeightEvaluation", "LabelReference",
-           "evaluate_prediction", "read_class_scheme_tag"]
+__all__ = ["CLASS_SCHEME_TAG", "PREDICTION_FILES", "ClassEvaluation", "EvaluateOptions", "HeightEvaluation",
+           "LabelReference", "evaluate_prediction", "read_class_scheme_tag"]

@@ -253,7 +253,8 @@ class HeightStats:
     def result(self) -> dict[str, Any]:
         """The metrics: ``n_pixels, mae, rmse, bias, median_abs_error`` (m), ``delta`` and ``per_bin``
         (and ``per_class`` when labels were given); ``median_exact`` says whether the median used every
-        pixel or the seeded subsample."""
+        pixel or the seeded subsample.
+        """
         out: dict[str, Any] = {
             "n_pixels": self.n,
             "mae": _div(self.sum_abs, self.n),

@@ -230,7 +230,8 @@ def _erf(x: np.ndarray) -> np.ndarray:
 def crps_gaussian(mean: np.ndarray, std: np.ndarray, ref: np.ndarray, min_std: float = DEFAULT_MIN_STD) -> np.ndarray:
     """Per-pixel CRPS (metres) of N(``mean``, σ²), σ = max(``std``, ``min_std``), at ``ref`` (closed form,
     Gneiting & Raftery 2007): ``σ·[z(2Φ(z) − 1) + 2φ(z) − 1/√π]``, z = (ref − mean)/σ. A proper score: lower
-    is better, and it reduces to |error| for a spread of 0."""
+    is better, and it reduces to |error| for a spread of 0.
+    """
     sigma = np.maximum(np.asarray(std, np.float64), min_std)
     z = (np.asarray(ref, np.float64) - np.asarray(mean, np.float64)) / sigma
     pdf = np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
@@ -241,7 +242,8 @@ def crps_gaussian(mean: np.ndarray, std: np.ndarray, ref: np.ndarray, min_std: f
 def laplace_terms(mean: np.ndarray, std: np.ndarray, ref: np.ndarray,
                   min_std: float = DEFAULT_MIN_STD) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel NLL (nats) and CRPS (metres) of ``ref`` under the Laplace law of the same standard deviation,
-    b = σ/√2, σ = max(``std``, ``min_std``): NLL ``log 2b + |e|/b``, CRPS ``|e| + b·exp(−|e|/b) − 3b/4``."""
+    b = σ/√2, σ = max(``std``, ``min_std``): NLL ``log 2b + |e|/b``, CRPS ``|e| + b·exp(−|e|/b) − 3b/4``.
+    """
     b = np.maximum(np.asarray(std, np.float64), min_std) / _SQRT2
     e = np.abs(np.asarray(ref, np.float64) - np.asarray(mean, np.float64))
     return np.log(2 * b) + e / b, e + b * np.exp(-e / b) - 0.75 * b
@@ -291,7 +293,8 @@ class SpreadStrata:
 
     def update(self, pred: np.ndarray, std: np.ndarray, ref: np.ndarray, labels: np.ndarray | None = None) -> None:
         """Add pixels: 1-D ``pred``, ``std``, ``ref`` (metres, finite) and optional reference class indices
-        (values outside the classes are ignored for the per-class rows)."""
+        (values outside the classes are ignored for the per-class rows).
+        """
         pred, std, ref = (np.asarray(a, np.float64).ravel() for a in (pred, std, ref))
         if pred.size == 0:
             return
@@ -337,7 +340,8 @@ class SpreadStrata:
     def result(self) -> dict[str, Any]:
         """``bins`` (one dict per reference-height bin: ``range_m``, ``share``, the exact scores and the sampled
         medians, Spearman and reliability), ``classes`` (the same per class, when given),
-        ``reliability_levels`` and the overall scores."""
+        ``reliability_levels`` and the overall scores.
+        """
         nb = len(self.edges) - 1
         if self.sample.total:
             err, std = self.sample.get("abs_error"), self.sample.get("std")

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError
@@ -117,10 +117,12 @@ class ModelMeta:
                                   f"high, got {list(self.height_range)}")
 
     def to_dict(self) -> dict[str, Any]:
+        """The metadata as plain types (stored in the checkpoint)."""
         return to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelMeta:
+        """Metadata from a checkpoint's plain dict (older keys read too)."""
         return from_dict(cls, data)
 
 
@@ -134,7 +136,8 @@ DIVERGED_MARGIN_M = 100.0
 
 def height_slack(height_range: tuple[float, float] | None) -> float:
     """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches: the largest
-    plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``)."""
+    plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``).
+    """
     if height_range is None:
         return SURFACE_HEIGHTS_M[1] - SURFACE_HEIGHTS_M[0]
     return DIVERGED_SPAN_FACTOR * (height_range[1] - height_range[0]) + DIVERGED_MARGIN_M
@@ -142,7 +145,8 @@ def height_slack(height_range: tuple[float, float] | None) -> float:
 
 def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, float]:
     """``(low, high)`` metres a model trained on ``height_range`` can sanely predict (:func:`height_slack` beyond
-    it); :data:`SURFACE_HEIGHTS_M` when the range was not recorded."""
+    it); :data:`SURFACE_HEIGHTS_M` when the range was not recorded.
+    """
     if height_range is None:
         return SURFACE_HEIGHTS_M
     slack = height_slack(height_range)
@@ -151,7 +155,8 @@ def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, 
 
 def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:
     """``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an
-    integer ``dtype``: where nearly all values of images with these per-band statistics lie."""
+    integer ``dtype``: where nearly all values of images with these per-band statistics lie.
+    """
     lo = min(m - 3.0 * s for m, s in zip(mean, std))
     hi = max(m + 3.0 * s for m, s in zip(mean, std))
     if dtype is not None and np.dtype(dtype).kind in "ui":
@@ -179,7 +184,8 @@ def first_nonfinite(tensors: Any) -> str | None:
 
 def _os_error(exc: BaseException) -> OSError | None:
     """The ``OSError`` behind ``exc`` (torch.save reports a full disk as a RuntimeError raised while
-    handling the file object's OSError)."""
+    handling the file object's OSError).
+    """
     seen: BaseException | None = exc
     for _ in range(8):
         if seen is None:

@@ -31,7 +31,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.formats.checkpoint import ModelMeta
 
 #: Name of the graph's input.
@@ -50,7 +50,8 @@ MODEL_TYPES = {"height": "Regressor", HEIGHT_STD_OUTPUT: "Regressor", "classes":
 
 def model_tasks(meta: ModelMeta) -> tuple[str, ...]:
     """The checkpoint's exportable outputs in order: ``height``, ``height_std`` (a model with an aleatoric
-    height head: its one-pass spread √2·b in metres), ``classes``."""
+    height head: its one-pass spread √2·b in metres), ``classes``.
+    """
     out: list[str] = []
     for t in ("height", "classes"):
         if t in meta.model.tasks:
@@ -62,7 +63,8 @@ def model_tasks(meta: ModelMeta) -> tuple[str, ...]:
 
 def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibrated: bool = False) -> dict[str, str]:
     """The metadata of an export (see the module table), every value JSON-encoded; ``calibrated``: the graph
-    applies the checkpoint's height calibration."""
+    applies the checkpoint's height calibration.
+    """
     outputs = model_tasks(meta) if task == "all" else (task,)
     k = meta.classes.num_classes if meta.classes is not None else 0
     shapes = {"height": {"shape": ["N", 1, tile, tile], "unit": "m", "meaning": "height above ground"},
@@ -114,7 +116,8 @@ def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibra
 
 def deepness_input_problem(meta: ModelMeta) -> str | None:
     """Why Deepness would feed this model wrong values, or ``None``: it reads 8-bit images only (0-255,
-    scaled to 0-1 before its standardisation), so a model trained on other data types gets other values."""
+    scaled to 0-1 before its standardisation), so a model trained on other data types gets other values.
+    """
     if meta.input_dtype is None or meta.input_dtype == "uint8":
         return None
     return (f"the model was trained on {meta.input_dtype} images but QGIS's Deepness plugin feeds 8-bit values "

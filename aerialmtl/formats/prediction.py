@@ -117,7 +117,8 @@ ALL_FILES = (tuple(layer_filename(n) for n in LAYERS) + tuple(style_filename(n) 
 def folder_files(names: Iterable[str]) -> list[str]:
     """Every file a prediction folder with layers ``names`` holds: the layers, their QGIS styles, the STAC
     item and ``prediction.json`` (last). A run claims all of them before writing, so that a user's own
-    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``."""
+    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``.
+    """
     names = list(names)
     return ([layer_filename(n) for n in names] + [style_filename(n) for n in names] + [ITEM_FILE, INFO_FILE])
 
@@ -134,7 +135,8 @@ def mosaic_style_filename(name: str) -> str:
 
 def mosaic_files(names: Iterable[str]) -> list[str]:
     """Every file a run over several inputs writes beside their folders for layers ``names``: each layer's VRT
-    mosaic and its QGIS style, and the STAC ``collection.json``."""
+    mosaic and its QGIS style, and the STAC ``collection.json``.
+    """
     names = list(names)
     return [mosaic_filename(n) for n in names] + [mosaic_style_filename(n) for n in names] + [COLLECTION_FILE]
 
@@ -167,6 +169,7 @@ class LayerSpec:
 
     @property
     def filename(self) -> str:
+        """The layer's file name in the prediction folder."""
         return layer_filename(self.name)
 
 
@@ -312,6 +315,7 @@ class PredictionFolder:
 
     @property
     def info_path(self) -> Path:
+        """The folder's ``prediction.json``."""
         return self.path / INFO_FILE
 
     def info(self) -> dict[str, Any]:
@@ -437,7 +441,8 @@ HEAD_TIMEOUT = 20.0
 
 def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
     """:func:`file_fingerprint` of every source a local VRT lists (``SourceFilename``, relative ones resolved
-    against the VRT's folder; VRTs inside followed ``depth`` levels), in document order without repeats."""
+    against the VRT's folder; VRTs inside followed ``depth`` levels), in document order without repeats.
+    """
     import xml.etree.ElementTree as ET
 
     try:
@@ -466,7 +471,8 @@ def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]
 
 def http_validators(url: str) -> dict[str, Any] | None:
     """What an HTTP(S) server says identifies the current version of ``url`` (one HEAD request): ``etag``,
-    ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S)."""
+    ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S).
+    """
     import urllib.error
     import urllib.request
 
@@ -523,7 +529,7 @@ def input_fingerprint(path: str | Path, width: int | None = None, height: int | 
 
 
 def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
-    """What differs between two :func:`input_fingerprint`\\ s of one input (``None``: nothing), for a message."""
+    """What differs between two fingerprints (:func:`input_fingerprint`) of one input (``None``: nothing)."""
     if before == after:
         return None
     keys = [k for k in sorted(set(before) | set(after)) if before.get(k) != after.get(k)]

@@ -196,7 +196,8 @@ def layer_style(spec: LayerSpec, stats: BandStats | None) -> ET.ElementTree:
 
 def write_style(path: str | Path, tree: ET.ElementTree, atomic: bool = True) -> Path:
     """Write a style as QGIS does (its DOCTYPE line, UTF-8); ``path`` is replaced atomically unless
-    ``atomic`` is false (``path`` is then itself a staging file that the caller renames)."""
+    ``atomic`` is false (``path`` is then itself a staging file that the caller renames).
+    """
     path = Path(path)
     ET.indent(tree, space="  ")
     root = tree.getroot()

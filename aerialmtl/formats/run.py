@@ -64,18 +64,22 @@ class RunFolder:
 
     @property
     def config(self) -> Path:
+        """The run's resolved ``config.yaml``."""
         return self.path / CONFIG_YAML
 
     @property
     def last(self) -> Path:
+        """The run's ``last.pt`` (what ``resume`` continues)."""
         return self.path / LAST_PT
 
     @property
     def best(self) -> Path:
+        """The run's ``best.pt`` (what predict should use)."""
         return self.path / BEST_PT
 
     @property
     def log(self) -> Path:
+        """The run's ``log.csv``."""
         return self.path / LOG_CSV
 
     def paths(self) -> dict[str, Path]:

@@ -205,7 +205,8 @@ def item_dict(item: pystac.Item | pystac.Collection) -> dict[str, Any]:
 
 def write_json(path: str | Path, obj: pystac.Item | pystac.Collection, atomic: bool = True) -> Path:
     """Write ``obj`` at ``path`` (replaced atomically unless ``atomic`` is false: ``path`` is then itself a
-    staging file that the caller renames)."""
+    staging file that the caller renames).
+    """
     return write_text(path, json.dumps(item_dict(obj), indent=2), "a STAC file", atomic)
 
 

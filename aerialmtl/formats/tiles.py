@@ -10,7 +10,8 @@
     OUT/cache/<split>.*                           CACHE_DIR: the decoded patch cache (PatchCacheIndex)
 
 A tile run writes its patches and ``manifest.csv`` into a hidden staging folder ``OUT/.patches.partial``
-(:data:`STAGING_DIR`), moves them into place when every patch is written and writes ``dataset.yaml`` last
+(the staging folder of :data:`STAGING_NAME`), moves them into place when every patch is written and writes
+``dataset.yaml`` last
 (files go through ``.NAME.partial`` and a rename, :mod:`aerialmtl.io.outputs`), so ``dataset.yaml`` marks
 a finished tile folder. Together with ``manifest.csv`` it is also the proof of what the tile run owns
 (:func:`owned_files`): ``--overwrite`` removes exactly those files (and the patch cache), never another
@@ -49,13 +50,10 @@ DATASET_YAML = "dataset.yaml"
 #: nodata of the float32 height patches (and of the height rasters ``aerialmtl synth`` writes).
 HEIGHT_NODATA = -9999.0
 MANIFEST_CSV = "manifest.csv"
-#: Suffix of a file being written; renamed to its final name once complete.
-PART_SUFFIX = ".part"
 #: Folder (inside the tile folder) of the decoded patch cache.
 CACHE_DIR = "cache"
-#: The hidden folder a tile run writes its patches and manifest into before moving them into place.
-STAGING_DIR = ".patches.partial"
-#: The name :data:`STAGING_DIR` is the staging folder of (see :func:`aerialmtl.io.outputs.is_staging_of`).
+#: A tile run writes its patches and manifest into the staging folder of this name before moving them into
+#: place: ``.patches.partial`` (:func:`aerialmtl.io.outputs.staging_path`, :func:`~aerialmtl.io.outputs.is_staging_of`).
 STAGING_NAME = "patches"
 
 SPLITS = ("train", "val", "test")
@@ -142,6 +140,7 @@ class TileFolderInfo:
 
     @property
     def num_bands(self) -> int:
+        """Number of orthophoto bands of the patches."""
         return len(self.bands)
 
     @property
@@ -282,6 +281,7 @@ class ManifestWriter:
         self._writer.writeheader()
 
     def writerow(self, row: dict[str, Any]) -> None:
+        """Append one manifest row (keys: :data:`MANIFEST_COLUMNS`)."""
         self._writer.writerow(row)
 
     def __enter__(self) -> ManifestWriter:
@@ -396,6 +396,7 @@ class PatchCacheIndex:
     shape: tuple[int, int, int]
 
     def to_dict(self) -> dict[str, Any]:
+        """The index as plain types (written as JSON)."""
         return {"format": CACHE_FORMAT, "version": CACHE_VERSION, "split": self.split,
                 "fingerprint": self.fingerprint, "count": self.count, "layers": list(self.layers),
                 "image_dtype": self.image_dtype, "shape": list(self.shape)}
@@ -422,8 +423,8 @@ class PatchCacheIndex:
             return None
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "DATASET_YAML", "MANIFEST_CSV", "PART_SUFFIX", "CACHE_DIR", "SPLITS",
-           "STAGING_DIR", "STAGING_NAME", "owned_files",
+__all__ = ["FORMAT", "FORMAT_VERSION", "DATASET_YAML", "MANIFEST_CSV", "CACHE_DIR", "SPLITS",
+           "STAGING_NAME", "owned_files",
            "TASKS", "LAYERS", "MANIFEST_COLUMNS", "LAYER_COLUMNS", "patch_path", "TileFolderInfo", "read_tile_info",
            "read_manifest", "ManifestWriter", "CACHE_FORMAT", "CACHE_VERSION", "CACHE_ARRAYS", "cache_dir",
            "cache_file", "cache_index_file", "split_fingerprint", "PatchCacheIndex"]

@@ -91,6 +91,7 @@ class EngineCache:
 
     @property
     def enabled(self) -> bool:
+        """Whether there is a cache folder to use."""
         return self.folder is not None
 
     def _disable(self, exc: OSError, doing: str) -> None:
@@ -106,7 +107,8 @@ class EngineCache:
 
     def read(self, name: str) -> list[bytes] | None:
         """The sections of entry ``name``, or ``None`` when it is missing or was corrupt (then removed, with a
-        warning, so that it is rebuilt)."""
+        warning, so that it is rebuilt).
+        """
         if self.folder is None:
             return None
         path = self.folder / name

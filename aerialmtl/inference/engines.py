@@ -40,13 +40,13 @@ import threading
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 import torch
 from torch import nn
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.inference.engine_cache import EngineCache
 from aerialmtl.models.mc_dropout import (
@@ -67,6 +67,35 @@ EngineName = Literal["auto", "torch", "openvino"]
 OPENVINO_INSTALL = "pip install openvino"
 #: Side of the example input the model is converted with (any multiple of 32; small converts fast).
 CONVERT_SIZE = 64
+
+
+class Engine(Protocol):
+    """What runs the model in prediction: the one interface of the ``torch`` engine
+    (:class:`~aerialmtl.inference.runner.TorchEngine`) and the ``openvino`` engine (:class:`OpenVINOEngine`).
+
+    A new engine implements these two members; :func:`resolve_engine` and the runner
+    (:class:`~aerialmtl.inference.runner.ModelRunner`) choose and build it.
+    """
+
+    #: ``"torch"`` or ``"openvino"`` (recorded in ``prediction.json``).
+    name: str
+
+    def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
+                   sample_batch: int) -> McStatistics:
+        """Statistics of each window of a normalised batch.
+
+        Args:
+            x: (B, C, h, w) normalised windows, on the engine's device.
+            keys: one dropout-mask key per window (masks depend on the window, not on the batch).
+            samples: MC-dropout samples T (1: one deterministic pass).
+            seed: the run's seed of the dropout masks.
+            sample_batch: MC samples decoded per call (bounds memory, not results).
+
+        Returns:
+            per-window height mean/std (B, h, w, metres), class probabilities (B, h, w, K) and mean
+            per-sample entropy, as :class:`~aerialmtl.models.mc_dropout.McStatistics`.
+        """
+        ...
 
 
 def openvino_available() -> bool:
@@ -145,7 +174,8 @@ class _MaskMul(nn.Module):
 
 def model_outputs(model: nn.Module, tasks: Sequence[str]) -> tuple[str, ...]:
     """The keys of ``model``'s output dict in order: its ``outputs`` (a D3-Net: the tasks, plus
-    ``height_scale`` for an aleatoric head), else ``tasks``."""
+    ``height_scale`` for an aleatoric head), else ``tasks``.
+    """
     return tuple(getattr(model, "outputs", None) or tasks)
 
 
@@ -262,7 +292,8 @@ class OpenVINOEngine:
             # Traced with autograd on: D3-Net's dense blocks then concatenate (which OpenVINO fuses)
             # instead of writing into one buffer in place, and a small example input traces fast.
             with torch.enable_grad(), warnings.catch_warnings():
-                warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks traced as constants
+                # shape checks traced as constants
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)  # type: ignore[attr-defined]
                 traced = torch.jit.trace(module.eval(), example, check_trace=False, strict=False)
             model = self.ov.convert_model(traced)
             if self.cache.enabled:
@@ -300,7 +331,8 @@ class OpenVINOEngine:
 
     def _compile(self, model: openvino.Model, name: str, config: dict[str, Any]) -> Any:
         """``model`` compiled for the CPU: imported from cache entry ``name`` when it is there and whole,
-        else compiled (and stored)."""
+        else compiled (and stored).
+        """
         cached = self.cache.read(name)
         if cached is not None and len(cached) == 1:
             try:
@@ -370,5 +402,5 @@ class OpenVINOEngine:
         return accumulate_samples(decode_chunk, samples, max(1, sample_batch), b)
 
 
-__all__ = ["CONVERT_SIZE", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "cache_root", "fingerprint",
+__all__ = ["CONVERT_SIZE", "Engine", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "cache_root", "fingerprint",
            "openvino_available", "resolve_engine"]

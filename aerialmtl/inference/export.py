@@ -40,7 +40,7 @@ from typing import Literal
 import torch
 from torch import nn
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.exported_model import (
@@ -90,12 +90,14 @@ class ExportHead(nn.Module):
 
     def calibrate(self, h: torch.Tensor) -> torch.Tensor:
         """:meth:`~aerialmtl.models.calibration.Calibration.height` with ops every ONNX runtime has (a sum of
-        clamped segments instead of a search): ``y_0`` below the first knot, slope 1 beyond the last, ≥ 0."""
+        clamped segments instead of a search): ``y_0`` below the first knot, slope 1 beyond the last, ≥ 0.
+        """
         segments = (torch.minimum(torch.maximum(h, self.lo), self.hi) - self.lo) * self.slope
         beyond = torch.relu(h - self.hi[:, -1:])
         return torch.relu(self.start + segments.sum(dim=1, keepdim=True) + beyond)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """(N, C, H, W) normalised image → one output per task (height in metres, class probabilities)."""
         out = self.model(image)
         results = []
         for t in self.tasks:
@@ -111,7 +113,8 @@ class ExportHead(nn.Module):
 @dataclass(frozen=True)
 class ExportResult:
     """What :func:`export_model` wrote: ``files`` (the model file first; an IR's weights ``.bin`` after it),
-    the ``outputs`` in graph order, the tile size and the metadata."""
+    the ``outputs`` in graph order, the tile size and the metadata.
+    """
 
     files: tuple[Path, ...]
     format: str
@@ -215,6 +218,9 @@ def export_model(
         InputError: a bad ``format``/``task``/``tile``/``overlap``, a task the model does not have, or
             ``out`` without the format's extension.
         OutputExistsError: ``out`` exists and ``overwrite`` is false.
+
+    A little over 80 lines: the argument checks come first, each with its own message, before the
+    checkpoint is read.
     """
     out = Path(out)
     if format not in FORMATS:

@@ -14,7 +14,7 @@ path); an input cut between ranks is computed in strips of window rows
 (:meth:`~aerialmtl.inference.predict.Predictor.strip`; each strip also runs the window rows that reach into
 it, so the rows come out exactly as in a one-process run), and the rank of its first strip joins the
 strips into the final COGs (:meth:`~aerialmtl.inference.predict.Predictor.commit`). Every decision (what
-to skip, what to split) is taken before any rank writes. Each input's header is read once
+to skip, which inputs to share) is taken before any rank writes. Each input's header is read once
 (:class:`~aerialmtl.inference.ortho.OrthoInput`) and travels with it; the process group, device and GDAL
 settings come from :mod:`aerialmtl.runtime`, as for training.
 
@@ -38,11 +38,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from aerialmtl import runtime
-from aerialmtl.errors import AerialMTLError, InputError
+from aerialmtl.errors import AerialMTLError, InputError, PeerFailure
 from aerialmtl.formats.prediction import (
+    ALL_FILES,
     LAYERS,
     PredictionFolder,
     folder_files,
@@ -55,48 +54,11 @@ from aerialmtl.formats.stac import collection_files, write_collection
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
-from aerialmtl.inference.writer import check_outputs_free, remove_leftovers
+from aerialmtl.inference.writer import prediction_folder
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
-
-#: How long a rank waits for the others at the end of its share (:data:`aerialmtl.runtime.SHARE_TIMEOUT`).
-WAIT_FOR_OTHERS = runtime.SHARE_TIMEOUT
-
-
-class PredictionFailed(AerialMTLError, RuntimeError):
-    """An input failed in a distributed run (the message names the input, the rank and the cause)."""
-
-
-# ---- processes ---------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Ranks(runtime.Torchrun):
-    """This process's place in a torchrun job (``rank`` 0 of 1 outside torchrun), with the collectives
-    prediction needs (:class:`aerialmtl.runtime.Torchrun`)."""
-
-    @classmethod
-    def from_env(cls) -> Ranks:
-        env = runtime.Torchrun.from_env()
-        return cls(env.rank, env.world, env.local_rank)
-
-    def start(self, device: torch.device | str) -> None:
-        """Join the process group (gloo for CPUs, NCCL for GPUs), waiting up to :data:`WAIT_FOR_OTHERS`."""
-        self.join(torch.device(device), WAIT_FOR_OTHERS)
-
-    def gather(self, obj: Any) -> list[Any]:
-        """Every rank's ``obj``, in rank order (a collective: every rank must call it)."""
-        if self.world == 1:
-            return [obj]
-        import torch.distributed as dist
-
-        out: list[Any] = [None] * self.world
-        dist.all_gather_object(out, obj)
-        return out
-
-    def stop(self) -> None:
-        if self.world > 1:
-            self.leave()
 
 
 # ---- planning ----------------------------------------------------------------------------------
@@ -110,10 +72,12 @@ class Target:
 
     @property
     def grid(self) -> Grid | None:
+        """The input's grid, once opened."""
         return None if self.src is None else self.src.grid
 
     @property
     def plan(self) -> Plan | None:
+        """The input's window plan, once opened."""
         return None if self.src is None else self.src.plan
 
 
@@ -193,7 +157,7 @@ class JobResult:
     #: inputs whose earlier outputs ``skip_existing`` recomputed → why they were not complete for this run
     recomputed: dict[str, str] = field(default_factory=dict)
     mosaics: dict[str, Path] = field(default_factory=dict)
-    ranks: Ranks = field(default_factory=Ranks)
+    ranks: runtime.Torchrun = field(default_factory=runtime.Torchrun)
 
 
 def predict_many(
@@ -226,28 +190,29 @@ def predict_many(
 
     Raises:
         OutputExistsError: an input's outputs exist (neither ``overwrite`` nor ``skip_existing``).
-        PredictionFailed: an input failed on another rank (distributed runs).
+        PeerFailure: an input failed on another rank (distributed runs).
     """
-    ranks = Ranks.from_env()
+    ranks = runtime.Torchrun.from_env()
     targets = targets_for(orthos, out)
-    device = ranks.device(str(predictor_args.pop("device", "auto")))
+    device = ranks.resolve_device(str(predictor_args.pop("device", "auto")))
     predictor = Predictor(checkpoint, device=str(device), **predictor_args)
     with runtime.gdal_env():
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = check_input(t.ortho, predictor)
-    ranks.start(predictor.device)
+    ranks.join(predictor.device, runtime.SHARE_TIMEOUT)
     try:
         with contextlib.ExitStack() as held:
             _hold_folders(held, targets, Path(out), ranks, aoi)
             return _run(predictor, targets, Path(out), ranks, aoi, overwrite, skip_existing, progress, on_result)
     finally:
-        ranks.stop()
+        ranks.leave()
 
 
-def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: Ranks,
+def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: runtime.Torchrun,
                   aoi: str | Path | None) -> None:
     """Take the job's output folders (:class:`~aerialmtl.io.outputs.OutputFolder`: every input's prediction
-    folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error."""
+    folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error.
+    """
     error: BaseException | None = None
     if ranks.rank == 0:
         try:
@@ -263,9 +228,14 @@ def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Pa
         raise errors[0]
 
 
-def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, aoi: str | Path | None,
+def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun, aoi: str | Path | None,
          overwrite: bool, skip_existing: bool, progress: bool,
          on_result: Callable[[PredictResult], None] | None) -> JobResult:
+    """:func:`predict_many` once the folders are held: plan the ranks' shares, compute, commit, mosaic.
+
+    Over 80 lines: it still owns the writers' life across ranks; the per-input job that will own it
+    (the predictor keeping only the model) is the next step of the predict/job split.
+    """
     job = JobResult(ranks=ranks)
     todo = []
     replace: set[int] = set()  # inputs whose earlier, outdated outputs --skip-existing recomputes
@@ -287,11 +257,11 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
     if not overwrite:  # once per input, before any work
         for k in todo:
             if k not in replace:
-                check_outputs_free(targets[k].out, files, overwrite=False)
+                prediction_folder(targets[k].out, "out").claim(files, overwrite=False)
         if len(targets) > 1:  # the mosaics and collection.json: a user's own are never replaced silently
             owned = set(collection_files(out))
-            check_outputs_free(out, [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned],
-                               overwrite=False)
+            prediction_folder(out, "out").claim(
+                [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned], overwrite=False)
     if ranks.rank == 0:
         for k in todo:
             src = targets[k].src
@@ -303,21 +273,21 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
              for p in plans.values() if p is not None]
     shares = partition(costs, ranks.world)
     mine = [Share(todo[s.target], s.start, s.stop) for s in shares[ranks.rank]]
-    split = {todo[s.target] for r in shares for s in r
+    shared = {todo[s.target] for r in shares for s in r
              if s.start > 0 or s.stop < len(targets[todo[s.target]].plan.window_rows)}  # type: ignore[union-attr]
     if ranks.rank == 0:  # hidden files of killed runs: removed before any rank writes
         for k in todo:
-            remove_leftovers(targets[k].out)
+            prediction_folder(targets[k].out).remove_leftovers(ALL_FILES)
     ranks.gather(None)  # barrier
 
     failures: list[tuple[str, int, str]] = []
     strips: dict[int, StripResult] = {}
-    writers: dict[int, StripResult] = {}  # split inputs this rank commits: their first strip, with its writer
+    writers: dict[int, StripResult] = {}  # shared inputs this rank commits: their first strip, with its writer
     with runtime.gdal_env():
         for share in mine:
             t = targets[share.target]
             assert t.src is not None
-            whole = share.target not in split
+            whole = share.target not in shared
             started = time.perf_counter()
             try:
                 strip = predictor.strip(t.src, t.out, aoi=aoi, window_rows=None if whole else (share.start, share.stop),
@@ -339,7 +309,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
                 if share.start == 0:
                     writers[share.target] = strip  # this rank joins the strips
 
-    # every rank's strips and failures; then the first strip's rank commits each split input
+    # every rank's strips and failures; then the first strip's rank commits each shared input
     gathered = ranks.gather((strips, failures))
     all_failures = [f for _, fs in gathered for f in fs]
     failed = {f[0] for f in all_failures}
@@ -349,7 +319,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
         others = [res for st, _ in gathered for kk, res in st.items() if kk == k and res.row_start != first.row_start]
         if str(t.ortho) in failed:
             first.writer.abort()
-            remove_leftovers(t.out)
+            prediction_folder(t.out).remove_leftovers(ALL_FILES)
             continue
         try:
             res = predictor.commit(t.src, t.out, [first, *others], aoi=aoi, processes=1 + len(others))
@@ -366,10 +336,10 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: Ranks, a
         if ranks.rank == 0:  # strips of failed inputs: hidden files only, final paths untouched
             for t in targets:
                 if str(t.ortho) in {f[0] for f in all_failures} and t.out.is_dir():
-                    remove_leftovers(t.out)
+                    prediction_folder(t.out).remove_leftovers(ALL_FILES)
         ortho, rank, message = all_failures[0]
         more = f" ({len(all_failures) - 1} more input(s) failed too)" if len(all_failures) > 1 else ""
-        raise PredictionFailed(
+        raise PeerFailure(
             f"rank {rank} failed on input '{ortho}': {message}{more}; the other inputs are complete: fix it and "
             "re-run with ‹skip_existing=True› to finish"
         )
@@ -407,5 +377,5 @@ def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) ->
     return mosaics
 
 
-__all__ = ["JobResult", "PredictionFailed", "Ranks", "Share", "Target", "check_input", "partition",
+__all__ = ["JobResult", "Share", "Target", "check_input", "partition",
            "predict_many", "targets_for", "write_mosaics"]

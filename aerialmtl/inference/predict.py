@@ -45,7 +45,8 @@ from typing import Any, Literal
 
 import torch
 
-from aerialmtl import __version__, runtime
+from aerialmtl import runtime
+from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import (
@@ -57,17 +58,9 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.engines import resolve_engine
-from aerialmtl.inference.ortho import GSD_TOLERANCE, OrthoInput
+from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
-from aerialmtl.inference.runner import (
-    DECODE_PIXELS,
-    ModelRunner,
-    Precision,
-    auto_batch_size,
-    mc_sample_batch,
-    resolve_device,
-    resolve_precision,
-)
+from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import (
     check_calibration,
     check_finite_outputs,
@@ -82,7 +75,6 @@ from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.progress import tqdm_auto as tqdm
-from aerialmtl.runtime import GDAL_CACHE_MB, gdal_env
 
 #: MC-dropout samples when neither the caller nor the checkpoint says otherwise.
 DEFAULT_MC_SAMPLES = 30
@@ -157,7 +149,8 @@ def model_grid(ortho: str | Path, meta: ModelMeta) -> tuple[Grid, float | None]:
 def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta]
           ) -> tuple[torch.nn.Module, ModelMeta, str, str | None]:
     """``(model, meta, name, fingerprint)``; the fingerprint is that of the checkpoint bytes loaded (``None`` for a
-    model given in memory: computed from its weights when needed)."""
+    model given in memory: computed from its weights when needed).
+    """
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
@@ -196,7 +189,7 @@ class Predictor:
             from the free memory on CUDA, :data:`~aerialmtl.inference.runner.CPU_BATCH` on a CPU).
         precision: ``"auto"``, ``"bf16"`` or ``"fp32"``. ``auto`` is bf16 where the hardware computes it
             natively and the engine gains from it: CUDA GPUs with bf16; CPUs with AVX-512-BF16 or AMX on
-            the OpenVINO engine; CPUs with AMX on the torch engine (:func:`resolve_precision`); fp32
+            the OpenVINO engine; CPUs with AMX on the torch engine (:func:`aerialmtl.runtime.resolve_precision`); fp32
             elsewhere. bf16 is autocast on torch and the inference precision on OpenVINO.
         engine: ``"auto"``, ``"torch"`` or ``"openvino"`` (:mod:`aerialmtl.inference.engines`): ``auto``
             is OpenVINO on a CPU when it is installed (and the model a D3-Net), torch otherwise.
@@ -227,7 +220,7 @@ class Predictor:
         tile: int = 1024,
         overlap: int = 64,
         batch_size: BatchSize = 2,
-        precision: Precision = "auto",
+        precision: runtime.Precision = "auto",
         device: str = "auto",
         probabilities: bool = False,
         max_decode_pixels: int | None = None,
@@ -248,13 +241,13 @@ class Predictor:
         if batch_size != "auto" and (not isinstance(batch_size, int) or batch_size < 1):
             raise InputError(f"‹batch_size› must be ≥ 1 or 'auto', got {batch_size!r}; pass e.g. ‹batch_size=4›",
                              param="batch_size")
-        self.device = resolve_device(device)
-        resolve_precision(precision, self.device)  # a bad value fails before the checkpoint is read
+        self.device = runtime.resolve_device(device)
+        runtime.resolve_precision(precision, self.device)  # a bad value fails before the checkpoint is read
         model, self.meta, name, loaded_fingerprint = _load(checkpoint)
         #: The engine that runs the model: ``"torch"`` or ``"openvino"``.
         self.engine = resolve_engine(engine, self.device, model)
-        self.precision = resolve_precision(precision, self.device,
-                                           cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
+        self.precision = runtime.resolve_precision(precision, self.device,
+                                                   cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
         if compile and self.engine != "torch":
             warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
                           UserWarning, stacklevel=2)
@@ -286,6 +279,7 @@ class Predictor:
 
     @property
     def model(self) -> torch.nn.Module:
+        """The prepared model the runner predicts with."""
         return self.runner.model
 
     # ---- inputs -----------------------------------------------------------------------------------
@@ -321,6 +315,7 @@ class Predictor:
         return src.grid
 
     def plan(self, grid: Grid) -> Plan:
+        """The windows of this predictor's ``tile`` and ``overlap`` over ``grid``."""
         return plan_windows(grid.height, grid.width, self.tile, self.overlap)
 
     def resolved_batch_size(self, plan: Plan) -> int:
@@ -507,7 +502,7 @@ class Predictor:
         """
         started = time.perf_counter()
         given = ortho.path if isinstance(ortho, OrthoInput) else ortho
-        with gdal_env(), OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
+        with runtime.gdal_env(), OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
                                       what="prediction folder"):
             src = self.open(ortho, grid=grid, warn=grid is None)
             strip = self.strip(src, out, aoi=aoi, overwrite=overwrite, check_outputs=check_outputs, progress=progress)
@@ -517,7 +512,8 @@ class Predictor:
     @property
     def fingerprint(self) -> str:
         """The model's fingerprint: SHA-256 of the checkpoint bytes that were loaded
-        (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the weights of a model given in memory."""
+        (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the weights of a model given in memory.
+        """
         if self._fingerprint is None:
             assert isinstance(self._checkpoint, tuple)
             self._fingerprint = model_fingerprint(*self._checkpoint)
@@ -540,6 +536,7 @@ class Predictor:
 
     @staticmethod
     def overlap_factor(plan: Plan, computed: int) -> float:
+        """Pixels computed per output pixel (≥ 1: the windows' overlap) for ``computed`` windows of ``plan``."""
         return computed * plan.rows.size * plan.cols.size / float(plan.rows.length * plan.cols.length)
 
     def info(self, ortho: str | Path | OrthoInput, grid: Grid, plan: Plan, aoi: str | Path | None, computed: int,
@@ -611,7 +608,7 @@ def predict_raster(
     tile: int = 1024,
     overlap: int = 64,
     batch_size: BatchSize = 2,
-    precision: Precision = "auto",
+    precision: runtime.Precision = "auto",
     device: str = "auto",
     aoi: str | Path | None = None,
     probabilities: bool = False,
@@ -645,6 +642,4 @@ def predict_raster(
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 
-__all__ = ["DECODE_PIXELS", "DEFAULT_MC_SAMPLES", "GDAL_CACHE_MB", "GSD_TOLERANCE", "OrthoInput", "PredictResult",
-           "Predictor", "StripResult", "gdal_env", "mc_sample_batch", "model_grid", "predict_raster",
-           "resolve_precision"]
+__all__ = ["DEFAULT_MC_SAMPLES", "PredictResult", "Predictor", "StripResult", "model_grid", "predict_raster"]

@@ -52,6 +52,7 @@ class Aoi:
         self.grid = grid
 
     def mask(self, window: Window) -> np.ndarray:
+        """(h, w) bool mask of the pixels of ``window`` inside the AOI."""
         h, w = int(window.height), int(window.width)
         tr = self.grid.window_transform(window)
         x0, y0 = tr @ (0, 0)
@@ -154,6 +155,7 @@ class WindowReader:
                 fut.cancel()
 
     def close(self) -> None:
+        """Close the reader threads' datasets."""
         self._pool.shutdown(wait=True, cancel_futures=True)
         with self._lock:
             for src in self._opened:

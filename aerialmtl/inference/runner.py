@@ -18,7 +18,6 @@ and the blending alike; bench/RESULTS.md).
 
 from __future__ import annotations
 
-import contextlib
 import warnings
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Literal, cast
@@ -33,9 +32,7 @@ from aerialmtl.models.d3net import fold_batchnorm
 from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
 if TYPE_CHECKING:
-    from aerialmtl.inference.engines import OpenVINOEngine
-
-Precision = runtime.Precision
+    from aerialmtl.inference.engines import Engine
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
 #: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
@@ -47,22 +44,6 @@ DECODE_PIXELS = {"cpu": 2**21, "cuda": 2**23}
 CPU_BATCH = 1
 #: Share of the free device memory ``auto`` plans to use.
 MEMORY_SHARE = 0.6
-
-
-def resolve_device(device: str) -> torch.device:
-    """``auto`` → ``cuda`` when available, else ``cpu``; ``cuda:N`` is accepted
-    (:func:`aerialmtl.runtime.resolve_device`)."""
-    return runtime.resolve_device(device)
-
-
-def resolve_precision(precision: str, device: torch.device, cpu_bf16: bool = False) -> Literal["bf16", "fp32"]:
-    """``auto`` → bf16 on CUDA GPUs with bf16 and, with ``cpu_bf16`` (the OpenVINO engine), on CPUs with
-    native bf16; fp32 otherwise (:func:`aerialmtl.runtime.resolve_precision`).
-
-    torch's own bf16 convolutions on a CPU pay only with AMX; CPUs without native bf16 (e.g. AMD Zen 3)
-    emulate it more than 10× slower than fp32 (bench/RESULTS.md, predict).
-    """
-    return runtime.resolve_precision(precision, device, cpu_bf16=cpu_bf16)
 
 
 def mc_sample_batch(batch: int, height: int, width: int, device: torch.device, max_pixels: int | None = None) -> int:
@@ -89,17 +70,13 @@ def auto_batch_size(model: nn.Module, in_channels: int, height: int, width: int,
     torch.cuda.synchronize(device)
     torch.cuda.reset_peak_memory_stats(device)
     base = torch.cuda.memory_allocated(device)
-    with torch.inference_mode(), _autocast(device, precision):
+    with torch.inference_mode(), runtime.autocast(device, precision):
         model.eval()
         model.forward(x)
     torch.cuda.synchronize(device)
     per_window = torch.cuda.max_memory_allocated(device) - base
     free, _ = torch.cuda.mem_get_info(device)
     return batch_from_memory(int(free), int(per_window))
-
-
-def _autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
-    return runtime.autocast(device, precision)
 
 
 class _Compiled(nn.Module):
@@ -156,7 +133,7 @@ class TorchEngine:
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
-        with torch.inference_mode(), _autocast(self.device, self.precision):
+        with torch.inference_mode(), runtime.autocast(self.device, self.precision):
             if samples == 1:
                 self.model.eval()
                 return single_pass_statistics(self.net(x))
@@ -191,7 +168,8 @@ def combine_tta(parts: Sequence[McStatistics]) -> McStatistics:
     """The statistics of V views together, each a mixture component of equal weight: mean height = mean of the
     view means; ``height_std² = mean of the view variances + variance of the view means`` (the law of total
     variance, as for the MC samples); probabilities averaged; the expected entropy averaged (per view: its
-    mean per-sample entropy, or the entropy of its probabilities at T = 1)."""
+    mean per-sample entropy, or the entropy of its probabilities at T = 1).
+    """
     n = len(parts)
     out = McStatistics()
     if parts[0].height_mean is not None:
@@ -248,7 +226,7 @@ class ModelRunner:
         self.tasks = tuple(meta.model.tasks)
         self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
         self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
-        self.engine: TorchEngine | OpenVINOEngine
+        self.engine: Engine
         if engine == "openvino":
             from aerialmtl.inference.engines import OpenVINOEngine
 
@@ -307,5 +285,5 @@ class ModelRunner:
         return combine_tta(parts)
 
 
-__all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "Precision", "TorchEngine", "auto_batch_size",
-           "batch_from_memory", "compile_model", "mc_sample_batch", "resolve_device", "resolve_precision"]
+__all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "TorchEngine", "auto_batch_size", "batch_from_memory",
+           "compile_model", "mc_sample_batch"]

@@ -66,6 +66,7 @@ class InputSample:
 
     @property
     def envelope(self) -> tuple[float, float]:
+        """The (low, high) raw values the training images' bands spanned (mean ± 3 std)."""
         return value_envelope(self.mean, self.std, self.dtype)
 
 

@@ -186,12 +186,8 @@ class Plan:
     window_rows: tuple[WindowRow, ...]
 
     @property
-    def bands(self) -> tuple[WindowRow, ...]:
-        """Former name of :attr:`window_rows`."""
-        return self.window_rows
-
-    @property
     def num_windows(self) -> int:
+        """Number of windows of the plan."""
         return len(self.rows.starts) * len(self.cols.starts)
 
     @property
@@ -232,9 +228,4 @@ def plan_windows(height: int, width: int, tile: int = 512, overlap: int = 64) ->
     return Plan(rows, cols, tuple(window_rows))
 
 
-#: Former names (before "bands" meant only spectral bands).
-Band = WindowRow
-plan_bands = plan_windows
-
-__all__ = ["SIZE_MULTIPLE", "AxisPlan", "Band", "Plan", "WindowRow", "axis_plan", "check_tiling", "plan_bands",
-           "plan_windows"]
+__all__ = ["SIZE_MULTIPLE", "AxisPlan", "Plan", "WindowRow", "axis_plan", "check_tiling", "plan_windows"]

@@ -32,7 +32,7 @@ import rasterio
 from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
-from aerialmtl.errors import OutputError, OutputExistsError
+from aerialmtl.errors import OutputError
 from aerialmtl.formats.prediction import (
     ALL_FILES,
     INFO_FILE,
@@ -43,15 +43,12 @@ from aerialmtl.formats.prediction import (
     style_filename,
 )
 from aerialmtl.inference.stitch import Block
-from aerialmtl.io import outputs
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import make_output_dir
+from aerialmtl.io.outputs import MERGE_VRT, STAGING, OutputFolder, make_output_dir, staging_path
 from aerialmtl.io.stats import BandStats, band_stats
 
-#: Every file name a prediction folder can hold (removed on --overwrite when this run does not write it).
-ALL_OUTPUTS = ALL_FILES
 #: Blocks queued for the writer thread at most (the model waits beyond; memory stays bounded).
 MAX_PENDING_BLOCKS = 4
 #: DEFLATE level of the COGs: 1 writes 1.1-2x faster than GDAL's default 6 for 1-4 % larger files on float
@@ -67,40 +64,18 @@ def cog_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def hidden(out_dir: Path, filename: str, suffix: str) -> Path:
-    """``.FILENAME.<suffix>``: a staging file of ``filename`` (:func:`aerialmtl.io.outputs.staging_path`)."""
-    return outputs.staging_path(out_dir / filename, suffix)
+def prediction_folder(out_dir: str | Path, option: str = "out_dir") -> OutputFolder:
+    """``out_dir`` as :mod:`aerialmtl.io.outputs` owns it: its claim (existing outputs refused without
+    ``overwrite``), its owned removal and its leftovers (hidden ``.NAME.<tag>`` files of a killed run).
 
-
-def staging_path(out_dir: Path, filename: str, row_start: int | None = None) -> Path:
-    """Staging file of layer ``filename``: the whole raster, or the strip starting at grid row ``row_start``."""
-    return hidden(out_dir, filename, "staging" if row_start is None else f"staging-{row_start}")
-
-
-def check_outputs_free(out_dir: Path, filenames: list[str], overwrite: bool) -> None:
-    """Raise :class:`OutputExistsError` if any output already exists and ``overwrite`` is false."""
-    existing = [f for f in filenames if (out_dir / f).exists()]
-    if existing and not overwrite:
-        raise OutputExistsError(
-            f"output folder '{out_dir}' already holds {', '.join(existing)}; pass ‹overwrite=True› to replace them "
-            "or choose another ‹out_dir› folder"
-        )
-
-
-def remove_leftovers(out_dir: Path) -> None:
-    """Delete hidden staging/partial files that a killed run (SIGKILL, power loss) left in ``out_dir``.
-
-    They never sit at a final path, so they are only clutter; a new run writes its own from scratch.
+    The lock is not taken here: the job holds it (:class:`~aerialmtl.io.outputs.OutputFolder` entered).
     """
-    if not out_dir.is_dir():
-        return
-    for name in ALL_OUTPUTS:
-        for pattern in (f".{name}.staging*", f".{name}.partial", f".{name}.merge.vrt"):
-            for path in out_dir.glob(pattern):
-                try:
-                    path.unlink(missing_ok=True)
-                except OSError:  # pragma: no cover - e.g. a read-only folder; writing will say so
-                    pass
+    return OutputFolder(out_dir, "predict", option=option, what="prediction folder", lock=False)
+
+
+def _staging_tag(row_start: int | None) -> str:
+    """Tag of a layer's staging file: the whole raster, or the strip starting at grid row ``row_start``."""
+    return STAGING if row_start is None else f"{STAGING}-{row_start}"
 
 
 def _apply_metadata(dst: Any, spec: LayerSpec) -> None:
@@ -158,16 +133,17 @@ class PredictionWriter:
         self.overwrite = overwrite
         self.rows = rows or (0, grid.height)
         self._strip_start = None if rows is None else rows[0]
+        self.folder = prediction_folder(self.out_dir)
         if check:
-            check_outputs_free(self.out_dir, folder_files(s.name for s in specs), overwrite)
+            self.folder.claim(folder_files(s.name for s in specs), overwrite)
         self._created_dir = make_output_dir(self.out_dir)
         self._datasets: dict[str, Any] = {}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aerialmtl-writer")
-        self._pending: list[Future] = []
+        self._pending: list[Future[None]] = []
         self._slots = threading.BoundedSemaphore(MAX_PENDING_BLOCKS)
         self.seconds_writing = 0.0
         if clean:
-            remove_leftovers(self.out_dir)
+            self.folder.remove_leftovers(ALL_FILES)
         try:
             r0, r1 = self.rows
             transform = grid.window_transform(Window(0, r0, grid.width, r1 - r0))
@@ -186,7 +162,7 @@ class PredictionWriter:
     def staging(self, name: str, row_start: int | None = -1) -> Path:
         """Staging path of layer ``name`` (of this writer's strip by default)."""
         start = self._strip_start if row_start == -1 else row_start
-        return staging_path(self.out_dir, self.specs[name].filename, start)
+        return staging_path(self.out_dir / self.specs[name].filename, _staging_tag(start))
 
     # ---- writing ----------------------------------------------------------------------------------
     def write(self, block: Block) -> None:
@@ -266,7 +242,7 @@ class PredictionWriter:
                 if len(starts) == 1:
                     sources[name] = stagings[name][0]
                 else:
-                    vrt = hidden(self.out_dir, spec.filename, "merge.vrt")
+                    vrt = staging_path(self.out_dir / spec.filename, MERGE_VRT)
                     mosaic_vrt(vrt, stagings[name], categorical=spec.categorical, overviews=False)
                     merged.append(vrt)
                     sources[name] = vrt
@@ -276,7 +252,7 @@ class PredictionWriter:
 
             def convert(name: str) -> tuple[str, Path]:
                 spec = self.specs[name]
-                partial = hidden(self.out_dir, spec.filename, "partial")
+                partial = staging_path(self.out_dir / spec.filename)
                 to_cog(sources[name], partial, categorical=spec.categorical, level=COG_LEVEL, num_threads=threads)
                 # from the COG's overviews: the display range of the style, the statistics of the STAC item
                 stats[name] = None if spec.categorical else band_stats(partial)
@@ -300,7 +276,7 @@ class PredictionWriter:
                         # default", a STAC datetime) without making the folder look incomplete
                         file_sizes={p.name: tmp.stat().st_size for k, (tmp, p) in partials.items()
                                     if k not in extras})
-            js = hidden(self.out_dir, INFO_FILE, "partial")
+            js = staging_path(self.out_dir / INFO_FILE)
             js.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
             partials["prediction"] = (js, self.out_dir / INFO_FILE)
         except BaseException as exc:
@@ -315,10 +291,8 @@ class PredictionWriter:
         if self.overwrite:  # layers of an earlier run this run does not produce would be stale: those its
             produced = {p.name for _, p in partials.values()}  # prediction.json lists (it proves they are its own)
             owned = PredictionFolder(self.out_dir).owned_files()
-            (self.out_dir / INFO_FILE).unlink(missing_ok=True)  # first: never a complete-looking mix
-            for f in owned:
-                if f not in produced:
-                    (self.out_dir / f).unlink(missing_ok=True)
+            self.folder.remove_owned([INFO_FILE])  # first: never a complete-looking mix
+            self.folder.remove_owned(f for f in owned if f not in produced)
         for tmp, final in partials.values():  # prediction.json last: its presence marks a complete folder
             os.replace(tmp, final)
         return {n: final for n, (_, final) in partials.items() if n not in extras}
@@ -334,11 +308,11 @@ class PredictionWriter:
 
         out: dict[str, tuple[Path, Path]] = {}
         for name, spec in self.specs.items():
-            qml = hidden(self.out_dir, style_filename(name), "partial")
+            qml = staging_path(self.out_dir / style_filename(name))
             out[f"{name}_style"] = (write_style(qml, layer_style(spec, stats.get(name)), atomic=False),
                                     self.out_dir / style_filename(name))
         item = build_item(self.out_dir, self.grid, list(self.specs.values()), info, stats)
-        out["item"] = (write_json(hidden(self.out_dir, ITEM_FILE, "partial"), item, atomic=False),
+        out["item"] = (write_json(staging_path(self.out_dir / ITEM_FILE), item, atomic=False),
                        self.out_dir / ITEM_FILE)
         return out
 
@@ -355,7 +329,7 @@ class PredictionWriter:
             except Exception:  # pragma: no cover - best effort cleanup
                 pass
         if self._strip_start is None:
-            remove_leftovers(self.out_dir)
+            self.folder.remove_leftovers(ALL_FILES)
         else:  # only this strip's files: other processes may still be writing theirs
             for name in self.specs:
                 self.staging(name).unlink(missing_ok=True)
@@ -366,5 +340,4 @@ class PredictionWriter:
                 pass
 
 
-__all__ = ["ALL_OUTPUTS", "LayerSpec", "PredictionWriter", "check_outputs_free", "remove_leftovers",
-           "staging_path"]
+__all__ = ["PredictionWriter", "prediction_folder"]

@@ -34,7 +34,6 @@ from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
-from aerialmtl.formats.tiles import HEIGHT_NODATA as HEIGHT_NODATA  # re-exported: height rasters aerialmtl writes
 from aerialmtl.io.paths import (
     ARCHIVE_VSI,
     archive_parts,
@@ -90,6 +89,7 @@ class Grid:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(height, width) in pixels."""
         return (self.height, self.width)
 
     def window_transform(self, window: Window) -> Affine:
@@ -97,6 +97,7 @@ class Grid:
         return window_transform(window, self.transform)
 
     def full_window(self) -> Window:
+        """The window of the whole grid."""
         return Window(0, 0, self.width, self.height)
 
     def window_from_bounds(self, bounds: Sequence[float]) -> Window:
@@ -239,7 +240,8 @@ def ortho_grid(src: rasterio.io.DatasetReader) -> Grid:
 
 def resampled_grid(grid: Grid, gsd: float) -> Grid:
     """``grid`` with square pixels of ``gsd`` metres over its extent, from its upper-left corner
-    (see :func:`reference_grid`)."""
+    (see :func:`reference_grid`).
+    """
     if not gsd > 0:
         raise AlignmentError(f"‹gsd› must be a positive pixel size in metres, got {gsd}", param="gsd")
     size = gsd / grid.unit_m  # CRS units
@@ -412,6 +414,7 @@ class AlignedRaster:
         return data, mask
 
     def close(self) -> None:
+        """Close the source dataset (and its warped view)."""
         if self.vrt is not None:
             self.vrt.close()
         self.src.close()
@@ -428,7 +431,8 @@ class NdsmOptions:
     """How heights above ground are derived: ``clip_negative`` sets nDSM < 0 to 0; ``max_height``
     (metres) marks taller pixels as invalid (``None`` keeps all); ``z_unit`` is the unit of the height
     rasters' values when a file states none (``"m"``, ``"ft"``, ``"us-ft"``; ``None`` = metres; see
-    :mod:`aerialmtl.io.units`). Heights are always derived in metres."""
+    :mod:`aerialmtl.io.units`). Heights are always derived in metres.
+    """
 
     clip_negative: bool = True
     max_height: float | None = None
@@ -539,11 +543,13 @@ class HeightSource:
 
     def units(self) -> dict[str, dict[str, object]]:
         """Per layer (``"DSM"``, ``"DTM"`` or ``"nDSM"``): the unit its values were read in and where it
-        came from, e.g. ``{"DSM": {"unit": "us-ft", "metres_per_unit": 0.3048006, "source": "z_unit"}}``."""
+        came from, e.g. ``{"DSM": {"unit": "us-ft", "metres_per_unit": 0.3048006, "source": "z_unit"}}``.
+        """
         return {layer.role: {"unit": layer.z.name, "metres_per_unit": layer.z.factor, "source": layer.z.source}
                 for layer in self.layers if layer.z is not None}
 
     def close(self) -> None:
+        """Close every source raster."""
         for layer in self.layers:
             layer.close()
 

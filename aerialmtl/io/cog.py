@@ -15,7 +15,6 @@ reading the TIFF structure itself.
 from __future__ import annotations
 
 import struct
-import warnings
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,7 @@ from affine import Affine
 from rasterio.crs import CRS
 
 from aerialmtl.errors import OutputError
+from aerialmtl.io.profiles import light_compression, raster_profile, zstd_available
 
 #: Internal tile size of every COG aerialmtl writes.
 COG_BLOCKSIZE = 512
@@ -35,21 +35,6 @@ COG_BLOCKSIZE = 512
 @cache
 def _gdal_version() -> tuple[int, ...]:
     return tuple(int(p) for p in rasterio.__gdal_version__.split(".")[:2])
-
-
-@cache
-def _zstd_available() -> bool:
-    from rasterio.io import MemoryFile
-
-    try:
-        with warnings.catch_warnings(), MemoryFile() as mem:
-            warnings.simplefilter("ignore")
-            with mem.open(driver="GTiff", width=1, height=1, count=1, dtype="uint8", compress="zstd") as dst:
-                dst.write(np.zeros((1, 1, 1), np.uint8))
-            with mem.open() as src:
-                return src.compression is not None and src.compression.name.lower() == "zstd"
-    except Exception:  # pragma: no cover - depends on the GDAL build
-        return False
 
 
 def staging_profile(
@@ -63,18 +48,13 @@ def staging_profile(
             (fastest, and the only layout in which tiles can be rewritten in place when they are
             written in parts), at the cost of disk space while the file exists.
     """
-    profile: dict[str, Any] = dict(
-        driver="GTiff", crs=crs, transform=transform, width=int(width), height=int(height), count=int(count),
-        dtype=np.dtype(dtype).name, nodata=nodata, tiled=True, blockxsize=COG_BLOCKSIZE,
-        blockysize=COG_BLOCKSIZE, bigtiff="IF_SAFER", interleave="band",
-    )
+    profile = raster_profile(crs, transform, width, height, count, dtype, nodata)
+    profile.update(tiled=True, blockxsize=COG_BLOCKSIZE, blockysize=COG_BLOCKSIZE, bigtiff="IF_SAFER",
+                   interleave="band")
     if not compress:
         profile["bigtiff"] = "IF_NEEDED"  # the size is known exactly without compression
         return profile
-    if _zstd_available():
-        profile.update(compress="zstd", zstd_level=1)
-    else:  # pragma: no cover - depends on the GDAL build
-        profile.update(compress="deflate", zlevel=1)
+    profile.update(light_compression())
     return profile
 
 
@@ -91,7 +71,7 @@ def cog_options(
         level: compression level (GDAL's default when ``None``: 6 for DEFLATE).
         num_threads: threads GDAL compresses tiles with (an integer or ``"ALL_CPUS"``).
     """
-    compress = "zstd" if compress.lower() == "zstd" and _zstd_available() else "deflate"
+    compress = "zstd" if compress.lower() == "zstd" and zstd_available() else "deflate"
     options: dict[str, Any] = {
         "blocksize": COG_BLOCKSIZE,
         "compress": compress,

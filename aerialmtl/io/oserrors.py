@@ -97,7 +97,8 @@ def output_error(exc: BaseException, path: str | Path, what: str, option: str = 
 @contextmanager
 def writing(path: str | Path, what: str, option: str = "‹out_dir›") -> Iterator[None]:
     """Turn an ``OSError`` (or a GDAL/OGR error about space or permissions) raised inside into an
-    :class:`OutputError` naming ``path``; aerialmtl's own errors pass through unchanged."""
+    :class:`OutputError` naming ``path``; aerialmtl's own errors pass through unchanged.
+    """
     try:
         yield
     except AerialMTLError:

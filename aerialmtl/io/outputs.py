@@ -48,8 +48,13 @@ from aerialmtl.errors import InputError, OutputError, OutputExistsError, OutputI
 LOCK_FILE = ".aerialmtl.lock"
 #: Tag of the staging file of a final file: ``.NAME.partial``.
 PARTIAL = "partial"
+#: Tag of a raster written block by block before its final form (``.NAME.staging``, ``.NAME.staging-<row>``
+#: for one process's strip of rows).
+STAGING = "staging"
+#: Tag of the VRT that joins the strips of several processes (``.NAME.merge.vrt``).
+MERGE_VRT = "merge.vrt"
 #: Tags of hidden files a command may leave beside ``NAME`` while writing it (``.NAME.<tag>...``).
-STAGING_TAGS = (PARTIAL, "staging", "merge.vrt")
+STAGING_TAGS = (PARTIAL, STAGING, MERGE_VRT)
 
 try:  # POSIX
     import fcntl
@@ -220,7 +225,8 @@ _HELD: dict[Path, list[int]] = {}
 
 def _forget_locks_in_child() -> None:
     """In a forked child: close the inherited lock files (the parent keeps its locks; a ``flock`` lives as
-    long as any process holds the file open, so a worker outliving a killed parent would hold it)."""
+    long as any process holds the file open, so a worker outliving a killed parent would hold it).
+    """
     for _, fd in _HELD.values():
         with contextlib.suppress(OSError):
             os.close(fd)
@@ -457,6 +463,7 @@ class OutputFolder:
 
     # ---- the files ---------------------------------------------------------------------------------
     def file(self, name: str) -> Path:
+        """The path of ``name`` in the folder."""
         return self.path / name
 
     def existing(self, names: Iterable[str]) -> list[str]:
@@ -513,6 +520,7 @@ def _remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write", "check_local_output",
-           "check_files_not_input", "check_not_input", "is_job_leader", "is_local_path", "is_staging_of", "job_id",
-           "make_output_dir", "staging_path", "write_text", "write_text_atomic"]
+__all__ = ["LOCK_FILE", "MERGE_VRT", "PARTIAL", "STAGING", "STAGING_TAGS", "FolderLock", "OutputFolder",
+           "atomic_write", "check_local_output", "check_files_not_input", "check_not_input", "is_job_leader",
+           "is_local_path", "is_staging_of", "job_id", "make_output_dir", "staging_path", "write_text",
+           "write_text_atomic"]

@@ -116,7 +116,8 @@ ARCHIVE_VSI = ("/vsizip/", "/vsitar/", "/vsigzip/", "/vsi7z/", "/vsirar/")
 def archive_parts(path: str) -> tuple[str, str] | None:
     """``(archive, member)`` of a ``/vsizip/``-like path over a local archive (``/vsizip//d/a.zip/o.tif`` →
     ``("/d/a.zip", "o.tif")``; the archive is the longest leading part that is a file); ``None`` for other paths,
-    archives on remote file systems, or when no leading part is a file."""
+    archives on remote file systems, or when no leading part is a file.
+    """
     prefix = next((p for p in ARCHIVE_VSI if path.startswith(p)), None)
     if prefix is None:
         return None
@@ -147,7 +148,8 @@ PROBE_TIMEOUT = 15.0
 def probe_url(path: str) -> str | None:
     """Why an HTTP(S) raster (a URL or ``/vsicurl/`` path) cannot be read, in the server's terms: ``"the server at
     HOST did not answer within N s"``, ``"HTTP 403 Forbidden"``, ...; ``None`` when it answers normally or the
-    path is not HTTP(S). One ``HEAD`` request; for a message after GDAL could not open the file."""
+    path is not HTTP(S). One ``HEAD`` request; for a message after GDAL could not open the file.
+    """
     import urllib.error
     import urllib.request
 

@@ -1,7 +1,10 @@
 """GeoTIFF creation defaults: one place that decides tiling, compression, predictor and BigTIFF.
 
-Every GeoTIFF aerialmtl writes (patches, predictions, COGs) starts from :func:`creation_options`
-(or :func:`gtiff_profile` / :func:`patch_profile`, which build on it), rasterio-style::
+Every GeoTIFF aerialmtl writes (patches, predictions, COGs, synthetic scenes) starts from
+:func:`raster_profile` (driver, georeferencing, size, dtype, nodata) and :func:`creation_options` (or
+:func:`gtiff_profile` / :func:`patch_profile`, which join the two), rasterio-style; files written only
+to be read again soon (a COG's staging file, synthetic scenes) take :func:`light_compression`. Whether
+GDAL has ZSTD is probed once, here (:func:`zstd_available`)::
 
     profile = gtiff_profile(grid.crs, grid.transform, width, height, count=1, dtype="float32",
                             nodata=HEIGHT_NODATA)
@@ -45,6 +48,13 @@ def zstd_available() -> bool:
                 return src.compression is not None and src.compression.name.lower() == "zstd"
     except Exception:  # pragma: no cover - depends on the GDAL build
         return False
+
+
+def light_compression() -> dict[str, Any]:
+    """Fast, light compression: ZSTD level 1 where GDAL has it (:func:`zstd_available`), else DEFLATE level 1."""
+    if zstd_available():
+        return {"compress": "zstd", "zstd_level": 1}
+    return {"compress": "deflate", "zlevel": 1}  # pragma: no cover - depends on the GDAL build
 
 
 def block_size_for(width: int, height: int) -> int | None:
@@ -105,8 +115,16 @@ def gtiff_profile(
     nodata: float | None = None,
     compress: str = "deflate",
 ) -> dict[str, Any]:
-    """A complete rasterio write profile (driver, georeferencing, size, dtype, nodata + creation options)."""
-    profile: dict[str, Any] = {
+    """A complete rasterio write profile (:func:`raster_profile` + :func:`creation_options`)."""
+    profile = raster_profile(crs, transform, width, height, count, dtype, nodata)
+    profile.update(creation_options(dtype, width, height, compress))
+    return profile
+
+
+def raster_profile(crs: CRS | str, transform: Affine, width: int, height: int, count: int, dtype: str | np.dtype,
+                   nodata: float | None = None) -> dict[str, Any]:
+    """The GeoTIFF driver, georeferencing, size (pixels), band count, dtype and nodata of a raster to write."""
+    return {
         "driver": "GTiff",
         "crs": crs,
         "transform": transform,
@@ -116,8 +134,6 @@ def gtiff_profile(
         "dtype": np.dtype(dtype).name,
         "nodata": nodata,
     }
-    profile.update(creation_options(dtype, width, height, compress))
-    return profile
 
 
 def patch_profile(grid: Any, window: Window, count: int, dtype: str | np.dtype, nodata: float | None) -> dict[str, Any]:
@@ -130,4 +146,5 @@ def patch_profile(grid: Any, window: Window, count: int, dtype: str | np.dtype, 
                          count, dtype, nodata)
 
 
-__all__ = ["BLOCK_SIZES", "block_size_for", "creation_options", "gtiff_profile", "patch_profile", "zstd_available"]
+__all__ = ["BLOCK_SIZES", "block_size_for", "creation_options", "gtiff_profile", "light_compression", "patch_profile",
+           "raster_profile", "zstd_available"]

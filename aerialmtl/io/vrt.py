@@ -87,6 +87,57 @@ def overview_factors(width: int, height: int, smallest: int = MIN_OVERVIEW_SIZE)
     return factors
 
 
+def _place_sources(dst: Path, sources: Sequence[str | Path], crs: CRS, count: int, dtype: str,
+                   resampling: Resampling, warped_dir: Path) -> tuple[list[_Source], list[_Source]]:
+    """Every source as the mosaic places it (warped to ``crs`` through a VRT in ``warped_dir`` if needed).
+
+    Returns:
+        ``(placed, native)``: all sources, and those already in ``crs`` (they set the pixel size).
+
+    Raises:
+        InputError: a source's band count or dtype differs from the first's.
+    """
+    placed: list[_Source] = []
+    native: list[_Source] = []
+    for k, path in enumerate(Path(p) for p in sources):
+        with rasterio.open(path) as src:
+            if src.count != count or src.dtypes[0] != dtype:
+                raise InputError(
+                    f"mosaic '{dst}': '{path}' has {src.count} band(s) of {src.dtypes[0]}, the first source "
+                    f"'{sources[0]}' {count} of {dtype}; mosaic rasters of one layer only"
+                )
+            if src.crs == crs:
+                placed.append(_Source(path, src.transform, src.width, src.height))
+                native.append(placed[-1])
+                continue
+            warped_dir.mkdir(parents=True, exist_ok=True)
+            wpath = warped_dir / f"{k}.vrt"
+            with WarpedVRT(src, crs=crs, resampling=resampling) as vrt:
+                rasterio.shutil.copy(vrt, str(wpath), driver="VRT")
+                placed.append(_Source(wpath, vrt.transform, vrt.width, vrt.height))
+    return placed, native
+
+
+def _add_source(band: ET.Element, s: _Source, b: int, folder: Path, resampling: Resampling,
+                frame: tuple[float, float, float, float], nodata: float | None) -> None:
+    """Band ``b`` of source ``s`` as a ``ComplexSource`` of ``band``, placed in the mosaic's pixels.
+
+    ``frame`` is the mosaic's (left, top, x resolution, y resolution) in CRS units.
+    """
+    left, top, xres, yres = frame
+    name, relative = _source_ref(s.path, folder)
+    src_el = ET.SubElement(band, "ComplexSource", resampling=resampling.name)
+    ET.SubElement(src_el, "SourceFilename", relativeToVRT=relative).text = name
+    ET.SubElement(src_el, "SourceBand").text = str(b)
+    ET.SubElement(src_el, "SrcRect", xOff="0", yOff="0", xSize=str(s.width), ySize=str(s.height))
+    sl, _, sr, st = s.bounds
+    ET.SubElement(src_el, "DstRect", xOff=repr(_snap((sl - left) / xres)),
+                  yOff=repr(_snap((top - st) / yres)), xSize=repr(_snap((sr - sl) / xres)),
+                  ySize=repr(_snap(s.height * abs(s.transform.e) / yres)))
+    if nodata is not None:
+        ET.SubElement(src_el, "NODATA").text = repr(float(nodata))
+
+
 def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool = False,
                overviews: bool = True) -> Path:
     """Write a VRT mosaic of ``sources`` at ``dst`` (see the module docstring).
@@ -122,25 +173,8 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
             pass
         descriptions, units, tags = first.descriptions, first.units, first.tags()
         band_tags = [first.tags(b) for b in range(1, count + 1)]
-    placed: list[_Source] = []
-    native: list[_Source] = []  # sources already in the mosaic's CRS: they set the pixel size
     resampling = Resampling.nearest if categorical else Resampling.bilinear
-    for k, path in enumerate(Path(p) for p in sources):
-        with rasterio.open(path) as src:
-            if src.count != count or src.dtypes[0] != dtype:
-                raise InputError(
-                    f"mosaic '{dst}': '{path}' has {src.count} band(s) of {src.dtypes[0]}, the first source "
-                    f"'{sources[0]}' {count} of {dtype}; mosaic rasters of one layer only"
-                )
-            if src.crs == crs:
-                placed.append(_Source(path, src.transform, src.width, src.height))
-                native.append(placed[-1])
-                continue
-            warped_dir.mkdir(parents=True, exist_ok=True)
-            wpath = warped_dir / f"{k}.vrt"
-            with WarpedVRT(src, crs=crs, resampling=resampling) as vrt:
-                rasterio.shutil.copy(vrt, str(wpath), driver="VRT")
-                placed.append(_Source(wpath, vrt.transform, vrt.width, vrt.height))
+    placed, native = _place_sources(dst, sources, crs, count, dtype, resampling, warped_dir)
     xres = min(abs(s.transform.a) for s in native)
     yres = min(abs(s.transform.e) for s in native)
     left = min(s.bounds[0] for s in placed)
@@ -162,17 +196,7 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
         if nodata is not None:
             ET.SubElement(band, "NoDataValue").text = repr(float(nodata))
         for s in placed:
-            name, relative = _source_ref(s.path, folder)
-            src_el = ET.SubElement(band, "ComplexSource", resampling=resampling.name)
-            ET.SubElement(src_el, "SourceFilename", relativeToVRT=relative).text = name
-            ET.SubElement(src_el, "SourceBand").text = str(b)
-            ET.SubElement(src_el, "SrcRect", xOff="0", yOff="0", xSize=str(s.width), ySize=str(s.height))
-            sl, _, sr, st = s.bounds
-            ET.SubElement(src_el, "DstRect", xOff=repr(_snap((sl - left) / xres)),
-                          yOff=repr(_snap((top - st) / yres)), xSize=repr(_snap((sr - sl) / xres)),
-                          ySize=repr(_snap(s.height * abs(s.transform.e) / yres)))
-            if nodata is not None:
-                ET.SubElement(src_el, "NODATA").text = repr(float(nodata))
+            _add_source(band, s, b, folder, resampling, (left, top, xres, yres), nodata)
     tmp = staging_path(dst)
     try:
         ET.ElementTree(root).write(tmp, encoding="unicode")

@@ -124,7 +124,8 @@ class Calibration:
 
     def std(self, s: np.ndarray, h: np.ndarray | None = None) -> np.ndarray:
         """Calibrated spreads (metres): ``sqrt((s_k · s)² + f_k²)`` with the range ``k`` of the predicted
-        (uncalibrated) height ``h`` (same shape; needed when the spread is fitted per range)."""
+        (uncalibrated) height ``h`` (same shape; needed when the spread is fitted per range).
+        """
         s_arr = np.asarray(s)
         if not self.spread_applied:
             return s_arr
@@ -257,7 +258,8 @@ def _sampled_pairs(abs_error: np.ndarray, std: np.ndarray, max_pixels: int) -> t
 
 def fit_spread(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 200_000) -> tuple[float, float]:
     """``(std_scale, std_floor)`` such that ``sqrt((scale·std)² + floor²)`` covers :data:`ONE_SIGMA` of the
-    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error)."""
+    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error).
+    """
     err, sd = _sampled_pairs(abs_error, std, max_pixels)
     if err.size == 0:
         return 1.0, 0.0
@@ -297,7 +299,8 @@ def fit_std_scale(abs_error: np.ndarray, std: np.ndarray, coverage: float = ONE_
 def spread_ranges(pred: np.ndarray, edges: tuple[float, ...] = SPREAD_EDGES,
                   min_pixels: int = MIN_RANGE_PIXELS) -> tuple[float, ...]:
     """The inner edges of :data:`SPREAD_EDGES` kept for ``pred`` (metres): a range with fewer than
-    ``min_pixels`` predicted heights is merged into its lower neighbour."""
+    ``min_pixels`` predicted heights is merged into its lower neighbour.
+    """
     kept: list[float] = []
     pred = np.asarray(pred, np.float64)
     lo = -np.inf

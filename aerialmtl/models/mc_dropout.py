@@ -233,8 +233,8 @@ def mc_statistics(
     chunk = samples if sample_batch is None else max(1, min(int(sample_batch), samples))
     masks = _SeededMasks(model) if keys is not None else None
     if masks is not None:
-        mode: contextlib.AbstractContextManager = _seeded_mode(model, masks)
-        rng: contextlib.AbstractContextManager = contextlib.nullcontext()
+        mode: contextlib.AbstractContextManager[object] = _seeded_mode(model, masks)
+        rng: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
     else:
         mode = mc_dropout_mode(model)
         devices = [x.device] if x.device.type == "cuda" else []
@@ -329,7 +329,8 @@ def laplace_variance(scale: torch.Tensor) -> torch.Tensor:
 
 def predictive_std(epistemic_var: torch.Tensor, aleatoric_var: torch.Tensor) -> torch.Tensor:
     """The predictive standard deviation (metres) of a mixture of T Laplace samples: ``sqrt(var_t μ_t +
-    mean_t 2·b_t²)`` (the law of total variance; Kendall & Gal 2017), from its two parts (m²)."""
+    mean_t 2·b_t²)`` (the law of total variance; Kendall & Gal 2017), from its two parts (m²).
+    """
     return (epistemic_var + aleatoric_var).clamp_min(0).sqrt()
 
 
@@ -375,7 +376,8 @@ class DropoutSite:
 @torch.no_grad()
 def dropout_sites(model: nn.Module, in_channels: int, probe: int = 64) -> list[DropoutSite]:
     """The seedable dropout layers (``p > 0``) of ``model.decode``, in call order, found by one small
-    probe pass (``probe × probe`` zeros)."""
+    probe pass (``probe × probe`` zeros).
+    """
     sites: list[DropoutSite] = []
     handles = []
 

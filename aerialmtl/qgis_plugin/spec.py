@@ -109,7 +109,7 @@ PREDICT = Algorithm(
         Param("ENGINE", "--engine", "enum", "Engine", default="auto", choices=("auto", "torch", "openvino")),
         Param("PRECISION", "--precision", "enum", "Precision", default="auto", choices=_PRECISION, advanced=True),
         Param("DEVICE", "--device", "enum", "Device", default="auto", choices=_DEVICES, advanced=True),
-        Param("TILE", "--tile", "int", "Largest window side (pixels, multiple of 32)", default=1024, advanced=True,
+        Param("WINDOW", "--window", "int", "Largest window side (pixels, multiple of 32)", default=1024, advanced=True,
               minimum=32),
         Param("OVERLAP", "--overlap", "int", "Minimum overlap between windows (pixels)", default=64, advanced=True,
               minimum=0),

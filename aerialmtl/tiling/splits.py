@@ -194,7 +194,10 @@ class SplitAssigner:
 
         bx0, bx1 = idx(c0, bx), idx_end(c1, bx)
         by0, by1 = idx(r0, by), idx_end(r1, by)
-        clip = lambda v, n: min(max(v, 0), n - 1)  # noqa: E731
+
+        def clip(v: int, n: int) -> int:
+            return min(max(v, 0), n - 1)
+
         return clip(bx0, self.nbx), clip(bx1, self.nbx), clip(by0, self.nby), clip(by1, self.nby)
 
     # ---- AOI ----------------------------------------------------------------------------------
@@ -226,7 +229,8 @@ class SplitAssigner:
     # ---- common -------------------------------------------------------------------------------
     def split_of(self, window: Window) -> str | None:
         """The split of the patch covering ``window``, or ``None`` when it would straddle splits / lie
-        outside every AOI."""
+        outside every AOI.
+        """
         if self.spec.method == "blocks":
             bx0, bx1, by0, by1 = self.block_range(window)
             ids = np.unique(self.block_split[by0:by1 + 1, bx0:bx1 + 1])

@@ -45,7 +45,7 @@ import numpy as np
 import rasterio
 from rasterio.windows import Window
 
-from aerialmtl import __version__
+from aerialmtl._version import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
 from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M
@@ -54,7 +54,6 @@ from aerialmtl.formats.tiles import (
     HEIGHT_NODATA,
     MANIFEST_COLUMNS,
     MANIFEST_CSV,
-    STAGING_DIR,
     STAGING_NAME,
     ManifestWriter,
     TileFolderInfo,
@@ -64,16 +63,48 @@ from aerialmtl.formats.tiles import (
 )
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import OutputFolder, atomic_write
+from aerialmtl.io.outputs import OutputFolder, atomic_write, staging_path
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
 from aerialmtl.progress import tqdm
+from aerialmtl.runtime import gdal_env
 from aerialmtl.tiling.grid import count_windows, tile_windows
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
 
 #: GDAL block cache while tiling (MB) unless GDAL_CACHEMAX is set: keeps memory flat on huge rasters.
 DEFAULT_CACHE_MB = 128
+
+
+@dataclass(frozen=True)
+class TileOptions:
+    """How :func:`tile_dataset` cuts patches and reads the layers (sizes in pixels of the reference grid).
+
+    Attributes:
+        size: patch side (pixels).
+        stride: step between patches (pixels, ``≤ size``); ``None`` = ``size`` (no overlap).
+        gsd: resample everything to this pixel size in metres (whatever the CRS unit) instead of the ortho's.
+        min_valid: minimum fraction of valid image pixels for a patch to be kept (0..1).
+        splits: spatial split specification.
+        bands: 1-based ortho bands to keep (``None``: all but alpha).
+        heights: negative clipping / maximum height / the heights' unit when a file states none.
+        ignore_unknown_codes: map label codes (or vector values) outside the scheme to no-label instead of
+            raising :class:`~aerialmtl.errors.LabelError`.
+    """
+
+    size: int = 320
+    stride: int | None = None
+    gsd: float | None = None
+    min_valid: float = 0.9
+    splits: SplitSpec = SplitSpec()
+    bands: Sequence[int] | None = None
+    heights: NdsmOptions = NdsmOptions()
+    ignore_unknown_codes: bool = False
+
+    @property
+    def step(self) -> int:
+        """The stride in pixels (``size`` when ``stride`` is ``None``)."""
+        return self.size if self.stride is None else self.stride
 
 
 @dataclass
@@ -119,7 +150,8 @@ TALL_M = 2.0
 
 class _HeightSummary:
     """Per-split sum, count and tall count of the reference heights written (overlapping patches counted
-    as often as they are written)."""
+    as often as they are written).
+    """
 
     def __init__(self) -> None:
         self.acc: dict[str, list[float]] = {}
@@ -210,7 +242,8 @@ def _remove_dataset(out_dir: Path, owned: Sequence[str]) -> None:
 
 def _move_into(src: Path, dst: Path) -> None:
     """Move ``src`` (a file or folder) to ``dst``, merging into a folder that is already there (a file replaces
-    the file of the same name)."""
+    the file of the same name).
+    """
     if not dst.exists() or not src.is_dir():
         os.replace(src, dst)
         return
@@ -226,7 +259,8 @@ SWAP_FILE = "swap.json"
 
 def _commit(stage: Path, out_dir: Path, owned: Sequence[str], info: TileFolderInfo) -> None:
     """Swap the staged tile dataset (patches, manifest) and ``info`` (its ``dataset.yaml``) into ``out_dir``,
-    replacing the earlier dataset (``owned``): journal first, then :func:`_finish_swap`."""
+    replacing the earlier dataset (``owned``): journal first, then :func:`_finish_swap`.
+    """
     dataclasses.replace(info, root=stage).write()
     new = {p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file()}
     journal = {"remove": sorted(set(owned) - new)}
@@ -237,7 +271,8 @@ def _commit(stage: Path, out_dir: Path, owned: Sequence[str], info: TileFolderIn
 
 def _finish_swap(stage: Path, out_dir: Path) -> None:
     """Carry out (or finish) the swap journaled in ``stage`` (:data:`SWAP_FILE`); every step can be repeated,
-    so an interrupted swap is finished by calling this again."""
+    so an interrupted swap is finished by calling this again.
+    """
     plan = json.loads((stage / SWAP_FILE).read_text(encoding="utf-8"))
     if (stage / DATASET_YAML).exists():  # the earlier dataset.yaml first: a half-swapped folder reads unfinished
         (out_dir / DATASET_YAML).unlink(missing_ok=True)
@@ -253,8 +288,9 @@ def _finish_swap(stage: Path, out_dir: Path) -> None:
 
 def finish_interrupted_swap(out_dir: Path) -> bool:
     """Roll forward the swap a killed run left journaled in ``out_dir`` (call under the folder's lock);
-    returns whether there was one."""
-    stage = out_dir / STAGING_DIR
+    returns whether there was one.
+    """
+    stage = staging_path(out_dir / STAGING_NAME)
     if not (stage / SWAP_FILE).is_file():
         return False
     _finish_swap(stage, out_dir)
@@ -299,39 +335,27 @@ def tile_dataset(
     labels_vector: str | Path | None = None,
     class_field: str | None = None,
     classes: ClassScheme | str | Path | None = None,
-    size: int = 320,
-    stride: int | None = None,
-    gsd: float | None = None,
-    min_valid: float = 0.9,
-    splits: SplitSpec = SplitSpec(),
-    bands: Sequence[int] | None = None,
-    ndsm_options: NdsmOptions = NdsmOptions(),
-    ignore_unknown_codes: bool = False,
+    options: TileOptions = TileOptions(),
     overwrite: bool = False,
     progress: bool = True,
 ) -> TileResult:
     """Tile an orthophoto plus aligned height and/or label layers into a training dataset folder.
+
+    Twelve parameters: every layer a user may give is a keyword of its own (as the command's options are);
+    how patches are cut is one :class:`TileOptions`.
 
     Args:
         ortho: orthophoto GeoTIFF; defines the reference grid (CRS, origin, pixel size).
         out_dir: output folder (created; must not hold a tile dataset unless ``overwrite``; never an input's
             folder).
         dsm, dtm: surface and terrain models; height = DSM − DTM in metres (values in the unit the file
-            states, else ``ndsm_options.z_unit``, else metres). Mutually exclusive with ``ndsm``.
+            states, else ``options.heights.z_unit``, else metres). Mutually exclusive with ``ndsm``.
         ndsm: ready heights above ground (nDSM / CHM; units as for ``dsm``).
         labels: label raster of raw class codes.
         labels_vector: GeoJSON polygons with a class attribute (``class_field``), instead of ``labels``.
         class_field: attribute of ``labels_vector`` with codes or class names.
         classes: :class:`ClassScheme`, a scheme YAML path, or a built-in name; required with labels.
-        size: patch side (pixels of the reference grid).
-        stride: step between patches (pixels, ``≤ size``; default ``size``).
-        gsd: resample everything to this pixel size in metres (whatever the CRS unit) instead of the ortho's.
-        min_valid: minimum fraction of valid image pixels for a patch to be kept (0..1).
-        splits: spatial split specification.
-        bands: 1-based ortho bands to keep (default: all but alpha).
-        ndsm_options: negative clipping / maximum height / the heights' unit when a file states none.
-        ignore_unknown_codes: map label codes (or vector values) outside the scheme to no-label instead of
-            raising :class:`~aerialmtl.errors.LabelError`.
+        options: patch size, stride, GSD, validity, splits, bands, how heights and labels are read.
         overwrite: replace the tile dataset an earlier run wrote in ``out_dir`` (only its own files).
         progress: show a tqdm progress bar.
 
@@ -346,17 +370,15 @@ def tile_dataset(
         InputError: also when no patch at all would be kept (:func:`check_not_empty`); nothing is left.
     """
     out_dir = Path(out_dir)
-    stride = size if stride is None else stride
-    scheme = _check_arguments(size, stride, min_valid, dsm, dtm, ndsm, labels, labels_vector, class_field, classes)
-    grid = reference_grid(ortho, gsd)
-    env: dict[str, Any] = {"GDAL_TIFF_INTERNAL_MASK": True}
-    if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
-        env["GDAL_CACHEMAX"] = DEFAULT_CACHE_MB * 1024 * 1024  # bytes (unambiguous for GDAL and rasterio)
-    with rasterio.Env(**env), TileSources(
-        ortho, grid, bands=bands, dsm=dsm, dtm=dtm, ndsm=ndsm, ndsm_options=ndsm_options, labels=labels,
-        labels_vector=labels_vector, class_field=class_field, scheme=scheme, ignore_unknown_codes=ignore_unknown_codes,
+    size, stride = options.size, options.step
+    scheme = _check_arguments(options, dsm, dtm, ndsm, labels, labels_vector, class_field, classes)
+    grid = reference_grid(ortho, options.gsd)
+    with gdal_env(DEFAULT_CACHE_MB * 1024 * 1024, GDAL_TIFF_INTERNAL_MASK=True), TileSources(
+        ortho, grid, bands=options.bands, dsm=dsm, dtm=dtm, ndsm=ndsm, ndsm_options=options.heights, labels=labels,
+        labels_vector=labels_vector, class_field=class_field, scheme=scheme,
+        ignore_unknown_codes=options.ignore_unknown_codes,
     ) as sources:
-        assigner = SplitAssigner(splits, grid, stride=stride, size=size)
+        assigner = SplitAssigner(options.splits, grid, stride=stride, size=size)
         inputs = {k: v for k, v in sources.paths.items()}
         with OutputFolder(out_dir, "tile", inputs=inputs, what="tile folder") as folder:
             if finish_interrupted_swap(out_dir):  # a run killed while swapping: its new dataset is finished
@@ -364,18 +386,18 @@ def tile_dataset(
                               "dataset was put in place first", UserWarning, stacklevel=2)
             folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
             owned = _claim(folder, overwrite)
-            stage = out_dir / STAGING_DIR
+            stage = staging_path(out_dir / STAGING_NAME)
             stage.mkdir()
             try:
-                result = _tile_loop(sources, assigner, grid, stage, size, stride, min_valid, progress)
-                check_not_empty(result, grid, size, min_valid)
+                result = _tile_loop(sources, assigner, grid, stage, options, progress)
+                check_not_empty(result, grid, size, options.min_valid)
                 result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
                 result.dataset_yaml = out_dir / DATASET_YAML
                 result.tasks = list(sources.tasks)
                 if assigner.block_size_m is not None:
                     result.block_size_m = assigner.block_size_m
                     result.block_patches = int(round(assigner.block_px[0] / stride))
-                info = _describe(sources, grid, size, stride, min_valid, splits, assigner, result, ndsm_options)
+                info = _describe(sources, grid, options, assigner, result)
                 _commit(stage, out_dir, owned or [], info)
             except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
                 if (stage / SWAP_FILE).is_file():  # stopped inside the swap: finish it, so the new set is whole
@@ -390,11 +412,12 @@ def tile_dataset(
 
 
 def _check_arguments(
-    size: int, stride: int, min_valid: float, dsm: str | Path | None, dtm: str | Path | None, ndsm: str | Path | None,
+    options: TileOptions, dsm: str | Path | None, dtm: str | Path | None, ndsm: str | Path | None,
     labels: str | Path | None, labels_vector: str | Path | None, class_field: str | None,
     classes: ClassScheme | str | Path | None,
 ) -> ClassScheme | None:
     """Validate :func:`tile_dataset`'s arguments before any file is read; returns the class scheme."""
+    min_valid = options.min_valid
     if not 0.0 <= min_valid <= 1.0:
         raise InputError(f"‹min_valid› must be a fraction in 0..1, got {min_valid}", param="min_valid")
     if labels is not None and labels_vector is not None:
@@ -420,7 +443,7 @@ def _check_arguments(
         raise InputError(
             "nothing to learn: give a height layer (‹ndsm›, or ‹dsm›/‹dtm›) and/or labels (‹labels›/‹labels_vector›)"
         )
-    count_windows(1, 1, size, stride)  # validates size/stride
+    count_windows(1, 1, options.size, options.step)  # validates size/stride
     return scheme
 
 
@@ -435,6 +458,8 @@ class TileSources:
         tasks: ``("height", "classes")`` or the subset the layers allow.
         paths: the input paths by role (for the provenance in ``dataset.yaml``).
         band_names, dtype, height_units: what ``dataset.yaml`` records of the layers (kept after closing).
+
+    The constructor takes each layer :func:`tile_dataset` was given as a keyword of its own (12 parameters).
     """
 
     def __init__(
@@ -498,18 +523,16 @@ class TileSources:
         self.close()
 
 
-def _describe(
-    sources: TileSources, grid: Grid, size: int, stride: int, min_valid: float, splits: SplitSpec,
-    assigner: SplitAssigner, result: TileResult, ndsm_options: NdsmOptions,
-) -> TileFolderInfo:
+def _describe(sources: TileSources, grid: Grid, options: TileOptions, assigner: SplitAssigner,
+              result: TileResult) -> TileFolderInfo:
     """The ``dataset.yaml`` of a finished tile run."""
     paths = sources.paths
     return TileFolderInfo(
         root=result.out_dir,
         crs=grid.crs.to_string(),
         gsd=float(grid.gsd),
-        patch_size=int(size),
-        stride=int(stride),
+        patch_size=int(options.size),
+        stride=int(options.step),
         bands=tuple(int(b) for b in sources.image.bands),
         band_names=tuple(sources.band_names),
         dtype=sources.dtype,
@@ -519,15 +542,15 @@ def _describe(
         classes=sources.scheme if sources.labels is not None else None,
         height={
             "nodata": HEIGHT_NODATA,
-            "clip_negative": bool(ndsm_options.clip_negative),
-            "max_height": ndsm_options.max_height,
+            "clip_negative": bool(options.heights.clip_negative),
+            "max_height": options.heights.max_height,
             "source": "ndsm" if paths["ndsm"] is not None else "dsm-dtm",
             "units": sources.height_units,
         } if sources.heights is not None else None,
-        splits={**splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
+        splits={**options.splits.to_dict(), **({"block_size_used_m": assigner.block_size_m}
                                        if assigner.block_size_m is not None else {})},
         counts=dict(result.counts),
-        min_valid=float(min_valid),
+        min_valid=float(options.min_valid),
         provenance={
             **{k: recorded_path(v) if v else None for k, v in paths.items()},
             "class_field": sources.class_field,
@@ -538,10 +561,10 @@ def _describe(
 
 
 def _tile_loop(
-    sources: TileSources, assigner: SplitAssigner, grid: Grid, out_dir: Path, size: int, stride: int,
-    min_valid: float, progress: bool,
+    sources: TileSources, assigner: SplitAssigner, grid: Grid, out_dir: Path, options: TileOptions, progress: bool,
 ) -> TileResult:
     """Visit every window of the (size, stride) grid, write its patches and stream the manifest."""
+    size, stride, min_valid = options.size, options.step, options.min_valid
     counts = {s: 0 for s in SPLITS}
     stats = _BandStats(len(sources.image.bands))
     dropped_invalid = dropped_split = 0
@@ -651,4 +674,4 @@ def _write_patches(
     return row
 
 
-__all__ = ["MANIFEST_COLUMNS", "TileResult", "read_manifest", "tile_dataset"]
+__all__ = ["MANIFEST_COLUMNS", "TileOptions", "TileResult", "read_manifest", "tile_dataset"]

@@ -299,6 +299,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> TrainConfig:
+        """A config from a plain dict (a YAML's), validated."""
         return from_dict(cls, data)
 
     def with_overrides(self, **sections: Any) -> TrainConfig:

@@ -31,11 +31,11 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
-from aerialmtl.errors import InputError
-from aerialmtl.formats.run import LOG_COLUMNS
-from aerialmtl.io.outputs import OutputFolder
+from aerialmtl.errors import ConfigError, InputError, OutputExistsError
+from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, RunFolder
+from aerialmtl.io.outputs import FolderLock, OutputFolder, is_job_leader
+from aerialmtl.runtime import COLLECTIVE_TIMEOUT, Torchrun
 from aerialmtl.training.config import TrainConfig
-from aerialmtl.training.distributed import DistContext, resolve_device
 from aerialmtl.training.state import seed_everything
 from aerialmtl.training.trainer import Trainer, TrainResult
 
@@ -52,6 +52,52 @@ def check_budget(max_steps: int | None, max_time_s: float | None) -> None:
         raise InputError(f"‹max_time_s› must be > 0 seconds, got {max_time_s}", param="max_time_s")
 
 
+def check_run_folder(out_dir: str | Path, resume: bool = False, overwrite: bool = False,
+                     init: str | Path | None = None) -> None:
+    """The run-folder policy of :func:`train`, checked on every process before anything is written.
+
+    A new run refuses a folder that holds a run's files (:data:`~aerialmtl.formats.run.RUN_FILES`) unless
+    ``overwrite``; ``resume`` needs the folder's ``last.pt``; another run writing there is named first.
+
+    Raises:
+        InputError: ``out_dir`` is a file; ``resume`` without ``last.pt``; ``resume`` with ``overwrite``
+            or ``init`` (``param`` names the option).
+        OutputExistsError: a run's files exist and neither ``resume`` nor ``overwrite`` is given.
+        OutputInUseError: another process holds the folder's lock.
+    """
+    out_dir = Path(out_dir)
+    if resume and overwrite:
+        raise InputError("‹resume› continues a run and ‹overwrite› deletes it; pass only one", param="resume")
+    if resume and init is not None:
+        raise InputError("‹resume› continues the run's own weights; ‹init› starts a new run from a checkpoint; "
+                         "pass only one", param="resume")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"‹out_dir› '{out_dir}' is a file; pass a folder", param="out_dir")
+    if out_dir.is_dir() and is_job_leader():  # another run writing there: say so before judging its files
+        FolderLock(out_dir, "train").check_free()
+    run = RunFolder(out_dir)
+    if resume:
+        if not run.can_resume():
+            raise InputError(f"‹resume› '{run.last}' does not exist; there is no run to resume there",
+                             param="resume")
+        return
+    existing = [n for n in RUN_FILES if (out_dir / n).exists()]
+    if existing and not overwrite:
+        raise OutputExistsError(
+            f"run folder '{out_dir}' already holds {', '.join(existing)}; pass ‹resume=True› to continue it, "
+            "‹overwrite=True› to replace the run, or another ‹out_dir›")
+
+
+def _take_run_folder(folder: OutputFolder, stack: contextlib.ExitStack, clear: bool) -> None:
+    """Take the run folder (its lock, held until the run ends) and, for a new run, remove the previous
+    run's own files (:data:`~aerialmtl.formats.run.RUN_FILES`, never others) and a killed run's staging files.
+    """
+    stack.enter_context(folder)
+    folder.remove_leftovers(RUN_FILES)
+    if clear:
+        folder.remove_owned(RUN_FILES)
+
+
 def train(
     cfg: TrainConfig,
     data_dir: str | Path | None = None,
@@ -61,46 +107,60 @@ def train(
     resume: bool = False,
     progress: bool = True,
     init: str | Path | None = None,
-    ctx: DistContext | None = None,
+    ctx: Torchrun | None = None,
+    overwrite: bool = False,
 ) -> TrainResult:
     """Train a D3-Net on a tile folder and write checkpoints, a CSV log and the resolved config.
 
     Args:
         cfg: the training configuration.
         data_dir: tile folder (overrides ``cfg.data.dir``).
-        out_dir: run folder (created; the caller decides whether an existing one may be reused). The run holds
-            its lock (:class:`~aerialmtl.io.outputs.OutputFolder`) until it ends.
+        out_dir: run folder (created). A folder holding a run's files is refused unless ``resume`` or
+            ``overwrite`` (:func:`check_run_folder`). The run holds its lock
+            (:class:`~aerialmtl.io.outputs.OutputFolder`) until it ends.
         max_steps: total optimisation steps (overrides ``cfg.schedule.max_steps``).
         max_time_s: wall-clock budget of this call in seconds (overrides ``cfg.schedule.max_time_s``).
         resume: continue from ``out_dir/last.pt``.
         progress: show a tqdm bar with the running loss (rank 0 only).
         init: start from the weights of this aerialmtl checkpoint (fine-tuning; see
             :mod:`aerialmtl.training.finetune`).
-        ctx: process context; default: from torchrun's environment variables (one process without them).
+        ctx: process context; default: from torchrun's environment variables (one process without them),
+            left again when training ends.
+        overwrite: replace the run in ``out_dir`` (its :data:`~aerialmtl.formats.run.RUN_FILES` only).
 
     Returns:
         A :class:`TrainResult` (on every process; files are written by rank 0 only).
 
     Raises:
         ConfigError: no data folder, cuda unavailable, config/data mismatch.
-        InputError: the data folder is not a tile folder or the train split is empty.
+        InputError: the data folder is not a tile folder or the train split is empty; a run-folder
+            option conflict (:func:`check_run_folder`).
+        OutputExistsError: ``out_dir`` holds a run and neither ``resume`` nor ``overwrite`` is given.
         CheckpointError: ``resume`` without a usable ``last.pt`` or with a different model config; ``init``
             with other bands or another architecture.
         OutputError: the patch cache cannot be written (set ``data.cache_dir``).
         OutputInUseError: another process is writing ``out_dir``.
     """
     check_budget(max_steps, max_time_s)
+    check_run_folder(out_dir, resume, overwrite, init)
     data = data_dir if data_dir is not None else cfg.data.dir
-    with contextlib.ExitStack() as stack:
-        if ctx is None or ctx.is_main:  # rank 0 holds the lock for the job
-            stack.enter_context(OutputFolder(out_dir, "train", inputs={"data_dir": data, "init": init},
-                                             what="run folder"))
-        trainer = Trainer(cfg, data_dir, out_dir, max_steps=max_steps, max_time_s=max_time_s, resume=resume,
-                          init=init, progress=progress, ctx=ctx)
-        try:
-            return trainer.fit()
-        finally:
-            trainer.close()
+    folder = OutputFolder(out_dir, "train", inputs={"data_dir": data, "init": init}, what="run folder")
+    own_ctx = ctx is None
+    if ctx is None:
+        ctx = Torchrun.start(cfg.device, COLLECTIVE_TIMEOUT, ConfigError)
+    try:
+        with contextlib.ExitStack() as stack:
+            ctx.barrier()  # every process has checked the folder before rank 0 changes it
+            ctx.main_first(lambda: _take_run_folder(folder, stack, overwrite and not resume))
+            trainer = Trainer(cfg, data_dir, out_dir, max_steps=max_steps, max_time_s=max_time_s, resume=resume,
+                              init=init, progress=progress, ctx=ctx)
+            try:
+                return trainer.fit()
+            finally:
+                trainer.close()
+    finally:
+        if own_ctx:
+            ctx.leave()
 
 
-__all__ = ["check_budget", "train", "TrainResult", "resolve_device", "seed_everything", "LOG_COLUMNS"]
+__all__ = ["LOG_COLUMNS", "TrainResult", "check_budget", "check_run_folder", "seed_everything", "train"]

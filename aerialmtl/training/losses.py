@@ -37,7 +37,7 @@ def _check(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None) 
 
 
 def _masked_error(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """pred − target at valid pixels, exactly 0 (with zero gradient) elsewhere; float32."""
+    """Pred − target at valid pixels, exactly 0 (with zero gradient) elsewhere; float32."""
     t = torch.where(mask, target.float(), torch.zeros((), device=target.device))
     return torch.where(mask, pred.float() - t, torch.zeros((), device=pred.device))
 
@@ -236,6 +236,7 @@ class HeightLoss(nn.Module):
         self.kwargs = kwargs
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """The masked regression loss of ``pred`` against ``target`` (both N × 1 × H × W, metres)."""
         return self.fn(pred, target, mask, **self.kwargs)
 
 
@@ -250,6 +251,7 @@ class CrossEntropyLoss(nn.Module):
         self.ignore_index = ignore_index
 
     def forward(self, logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """The masked cross-entropy of ``logits`` (N × K × H × W) against ``target`` class indices (N × H × W)."""
         return cross_entropy(logits, target, self.weight, self.ignore_index, mask)
 
 

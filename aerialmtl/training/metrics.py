@@ -13,7 +13,7 @@ import torch
 
 from aerialmtl.classes import IGNORE_INDEX
 
-#: Sums a tensor over the processes of a run, in place (``DistContext.all_reduce_sum``).
+#: Sums a tensor over the processes of a run, in place (``aerialmtl.runtime.Torchrun.all_reduce_sum``).
 Reduce = Callable[[torch.Tensor], torch.Tensor]
 
 

@@ -90,7 +90,8 @@ class TrainState:
     def from_dict(cls, ts: dict[str, Any], global_batch: int) -> TrainState:
         """Read a checkpoint's ``train_state`` (also one written before ``position`` existed, whose
         ``batch_in_epoch`` counted batches of ``global_batch``). A non-finite ``best_score`` (older versions
-        let a diverged NaN validation become the best) reads as ``inf``: the next finite score is better."""
+        let a diverged NaN validation become the best) reads as ``inf``: the next finite score is better.
+        """
         position = ts.get("position")
         if position is None:
             position = int(ts.get("batch_in_epoch", 0)) * global_batch

@@ -3,7 +3,7 @@
 :class:`Trainer` is built from small parts, each readable and testable alone:
 
 * data — :meth:`Trainer.build_data`: the decoded patch cache (:mod:`aerialmtl.data.cache`), the run's batch
-  order (:class:`~aerialmtl.data.batches.EpochPlan`) and the DataLoaders; batches are augmented on the
+  order (:class:`~aerialmtl.data.batches.EpochOrder`) and the DataLoaders; batches are augmented on the
   training device (:func:`~aerialmtl.data.batches.prepare_batch`);
 * model and optimizer — :meth:`Trainer.build_model`, :func:`build_optimizer`;
 * the step — :class:`StepModule` (forward, losses, weighting; what DistributedDataParallel wraps) and
@@ -43,10 +43,10 @@ from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
-from aerialmtl.data.batches import CachedBatches, EpochPlan, RankBatchSampler, eval_batches, prepare_batch
+from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
-from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, NonFiniteError, OutputError
+from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, OutputError
 from aerialmtl.formats.checkpoint import (
     SURFACE_HEIGHTS_M,
     ModelMeta,
@@ -61,10 +61,10 @@ from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.formats.tiles import HEIGHT_NODATA, MANIFEST_CSV, TileFolderInfo, cache_dir, cache_file, read_manifest
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
-from aerialmtl.training.distributed import DistContext
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import Objective, class_weights, validation_score
 from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_everything, set_rng_state
@@ -81,20 +81,6 @@ def user_cache_dir(root: Path) -> Path:
 #: Whether ``precision: auto`` trains in bf16 autocast on a CPU with native bf16 (measured: bench/RESULTS.md,
 #: "CPU training precision"; fp32 until bf16 is both faster and as good there).
 CPU_BF16_TRAINING = False
-
-
-def resolve_precision(precision: str, device: torch.device) -> str:
-    """``auto`` → ``bf16`` where the device computes it natively and training gains from it (CUDA GPUs
-    with bf16; CPUs only if :data:`CPU_BF16_TRAINING`), else ``fp32``; others unchanged
-    (:func:`aerialmtl.runtime.resolve_precision`)."""
-    if precision == "auto":
-        return runtime.resolve_precision("auto", device, cpu_bf16=CPU_BF16_TRAINING)
-    return precision
-
-
-def autocast(device: torch.device, precision: str) -> Any:
-    """bf16 autocast for ``precision == "bf16"`` (:func:`aerialmtl.runtime.autocast`)."""
-    return runtime.autocast(device, precision)
 
 
 def build_optimizer(optim: OptimSection, model: nn.Module, weighting: nn.Module) -> torch.optim.Optimizer:
@@ -119,28 +105,22 @@ class StepModule(nn.Module):
     """Forward + losses + task weighting of a batch: ``(total, {task: loss})``.
 
     This is what DistributedDataParallel wraps, so the gradients of the learned task weighting are
-    averaged over processes like the network's. ``net`` is the callable run on the image (the model, or
-    its ``torch.compile`` wrapper sharing the same parameters).
+    averaged over processes like the network's. With ``compile`` the model's ``forward`` runs through
+    ``torch.compile`` with the package's one fallback (:class:`aerialmtl.runtime.CompileFallback`: eager
+    from the first failure on, with one warning).
     """
 
     def __init__(self, model: nn.Module, weighting: nn.Module, objective: Objective, device: torch.device,
-                 precision: str) -> None:
+                 precision: str, compile: bool = False) -> None:
         super().__init__()
         self.model, self.weighting = model, weighting
         self.objective, self.device, self.precision = objective, device, precision
-        self._net: list[Any] = [model]  # a list: not registered as a second copy of the model's parameters
-
-    @property
-    def net(self) -> Any:
-        return self._net[0]
-
-    def use(self, net: Any) -> None:
-        """Run ``net`` (the model or its compiled wrapper) on the images from now on."""
-        self._net[0] = net
+        self.compiled = runtime.CompileFallback(model, "training") if compile else None
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        with autocast(self.device, self.precision):
-            out = self.net(batch["image"])
+        """The weighted total and the per-task losses of ``batch``."""
+        with runtime.autocast(self.device, self.precision):
+            out = self.model(batch["image"]) if self.compiled is None else self.compiled("forward", batch["image"])
         losses = self.objective(out, batch)
         return self.weighting(self.objective.weighted(losses)), losses
 
@@ -160,7 +140,7 @@ class LossWindow:
     one (with ``hint()``, what to do, appended).
     """
 
-    def __init__(self, tasks: tuple[str, ...], ctx: DistContext, hint: Callable[[], str] | None = None) -> None:
+    def __init__(self, tasks: tuple[str, ...], ctx: runtime.Torchrun, hint: Callable[[], str] | None = None) -> None:
         self.tasks, self.ctx = tasks, ctx
         self.hint = hint if hint is not None else (lambda: "")
         self.pending: list[torch.Tensor] = []
@@ -171,14 +151,16 @@ class LossWindow:
         self.first: dict[str, float] = {}
 
     def add(self, step: int, total: torch.Tensor, losses: dict[str, torch.Tensor]) -> None:
+        """Keep the losses of ``step`` (on the device, not read yet)."""
         if not self.pending:
             self.first_step = step
         self.pending.append(torch.stack([total.float()] + [losses[t].float() for t in self.tasks]))
 
     def flush(self) -> None:
+        """Read the pending losses (one synchronisation) and raise on the first non-finite one."""
         if not self.pending:
             return
-        values = self.ctx.all_reduce_sum(torch.stack(self.pending)) / self.ctx.world_size
+        values = self.ctx.all_reduce_sum(torch.stack(self.pending)) / self.ctx.world
         rows = values.cpu().tolist()
         first = self.first_step
         self.pending = []
@@ -205,6 +187,7 @@ class LossWindow:
         return means
 
     def take_since_validation(self) -> float:
+        """Mean total loss since the last validation (``inf`` without any); starts a new window."""
         value = float(np.mean(self.since_val)) if self.since_val else math.inf
         self.since_val = []
         return value
@@ -245,16 +228,16 @@ def input_normalization(model_cfg: ModelConfig,
                         info: TileFolderInfo) -> tuple[tuple[float, ...], tuple[float, ...], str]:
     """The per-band ``(mean, std)`` the model's inputs are normalised with, and where it comes from.
 
-    An EfficientNet-Lite encoder with pretrained weights gets the scaling those weights were trained with,
-    ``(x − 127) / 128`` on 8-bit bands (``"encoder"``); anything else the tile folder's train statistics
+    An encoder with pretrained weights that were trained on a fixed input scaling (its registry entry's
+    ``input_scaling``, :mod:`aerialmtl.models.encoders`; EfficientNet-Lite: ``(x − 127) / 128`` on 8-bit
+    bands) gets that scaling (``"encoder"``); anything else the tile folder's train statistics
     (``"dataset"``). Pretrained weights on other than 8-bit data fall back to the statistics, with a warning.
     """
-    from aerialmtl.models.efficientnet import IMAGENET_LITE_MEAN, IMAGENET_LITE_STD
-
     n = len(info.bands)
-    if model_cfg.encoder != "densenet121" and model_cfg.encoder_weights:
+    scaling = encoder_spec(model_cfg.encoder).input_scaling
+    if scaling is not None and model_cfg.encoder_weights:
         if str(info.dtype) == "uint8":
-            return (IMAGENET_LITE_MEAN,) * n, (IMAGENET_LITE_STD,) * n, "encoder"
+            return (scaling[0],) * n, (scaling[1],) * n, "encoder"
         warnings.warn(f"model.encoder_weights: the pretrained {model_cfg.encoder} weights expect 8-bit images scaled "
                       f"(x - 127) / 128, but the tile folder holds {info.dtype} bands; normalising with the tile "
                       "folder's statistics instead", UserWarning, stacklevel=2)
@@ -277,15 +260,17 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, data_dir: str | Path | None = None, out_dir: str | Path = "runs/train", *,
                  max_steps: int | None = None, max_time_s: float | None = None, resume: bool = False,
-                 init: str | Path | None = None, progress: bool = True, ctx: DistContext | None = None) -> None:
+                 init: str | Path | None = None, progress: bool = True, ctx: runtime.Torchrun | None = None) -> None:
         self.t0 = time.perf_counter()
         if resume and init is not None:
             raise ConfigError("init: a resumed run continues its own weights; pass init only when starting a run")
         self.cfg = cfg
         self.owns_ctx = ctx is None
-        self.ctx = ctx if ctx is not None else DistContext.from_env(cfg.device)
+        if ctx is None:
+            ctx = runtime.Torchrun.start(cfg.device, runtime.COLLECTIVE_TIMEOUT, ConfigError)
+        self.ctx = ctx
         self.device = self.ctx.device
-        self.precision = resolve_precision(cfg.precision, self.device)
+        self.precision = runtime.resolve_precision(cfg.precision, self.device, cpu_bf16=CPU_BF16_TRAINING)
         self.steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
         self.time_cap = max_time_s if max_time_s is not None else cfg.schedule.max_time_s
         self.progress = progress and self.ctx.is_main
@@ -321,10 +306,8 @@ class Trainer:
 
             load_init_weights(self.model, init, self.meta)
         self.seed_rank_stream(saved_rng)
-        self.step_module = StepModule(self.model, self.weighting, self.objective, self.device, self.precision)
-        self.compiled_ok = False
-        if cfg.compile:
-            self.step_module.use(torch.compile(self.model))
+        self.step_module = StepModule(self.model, self.weighting, self.objective, self.device, self.precision,
+                                      compile=cfg.compile)
         self.ddp = distributed.wrap(self.step_module, self.ctx)
         if self.ctx.is_main:
             self.write_config(data_dir if data_dir is not None else cfg.data.dir)
@@ -378,7 +361,8 @@ class Trainer:
 
     def train_height_range(self) -> tuple[float, float] | None:
         """``(min, max)`` metres of the train split's valid reference heights (read from the patch cache in
-        chunks; ``None`` without a valid height), recorded in the checkpoint (:attr:`ModelMeta.height_range`)."""
+        chunks; ``None`` without a valid height), recorded in the checkpoint (:attr:`ModelMeta.height_range`).
+        """
         path = cache_file(self.cache_folder, "train", "height")
         try:
             heights = np.load(path, mmap_mode="r")
@@ -402,7 +386,7 @@ class Trainer:
         cfg, ctx, nw = self.cfg.data, self.ctx, self.cfg.data.num_workers
         folder, train_index, val_index = self.cache_folder, self.train_index, self.val_index
         pin = self.device.type == "cuda"
-        self.plan = EpochPlan(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world_size)
+        self.order = EpochOrder(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world)
         self.train_transform = build_train_transform(cfg.flips, cfg.rot90, cfg.jitter, cfg.crop_size)
         self.mean = torch.tensor(self.meta.mean, dtype=torch.float32, device=self.device)
         self.std = torch.tensor(self.meta.std, dtype=torch.float32, device=self.device)
@@ -410,15 +394,15 @@ class Trainer:
         in_workers = (self.mean.cpu(), self.std.cpu()) if self.device.type == "cpu" and nw > 0 else None
         self.train_loader = torch.utils.data.DataLoader(
             CachedBatches(PatchCache(folder, train_index), self.train_transform, self.tasks, in_workers),
-            sampler=RankBatchSampler(self.plan, ctx.rank, self.state.epoch, self.state.position),
+            sampler=RankBatchSampler(self.order, ctx.rank, self.state.epoch, self.state.position),
             batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(self.cfg.seed),
         )
-        self.val_loader: torch.utils.data.DataLoader | None = None
+        self.val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None = None
         self.eval_transform = build_eval_transform(cfg.crop_size)
         if val_index is not None:
             self.val_loader = torch.utils.data.DataLoader(
                 CachedBatches(PatchCache(folder, val_index), self.eval_transform, self.tasks, in_workers),
-                sampler=eval_batches(val_index.count, cfg.batch_size, ctx.rank, ctx.world_size),
+                sampler=eval_batches(val_index.count, cfg.batch_size, ctx.rank, ctx.world),
                 batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
                 generator=torch.Generator().manual_seed(self.cfg.seed))
         elif ctx.is_main:
@@ -440,7 +424,8 @@ class Trainer:
 
     def seed_rank_stream(self, saved: dict[str, Any] | None) -> None:
         """Give this process its RNG stream: the saved one when resuming, else rank 0 keeps the seeded
-        stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks)."""
+        stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks).
+        """
         if saved:
             set_rng_state(saved)
         elif self.ctx.rank > 0:
@@ -449,15 +434,7 @@ class Trainer:
     # ---- the step -----------------------------------------------------------------------------------
     def train_step(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """One optimisation step on a prepared batch; returns the detached total and task losses."""
-        try:
-            total, losses = self.ddp(batch)
-        except Exception as exc:  # torch.compile failed at its first call: continue without it
-            if self.step_module.net is self.model or self.compiled_ok or isinstance(exc, AerialMTLError):
-                raise
-            runtime.warn_compile_failed(exc, "training")
-            self.step_module.use(self.model)
-            total, losses = self.ddp(batch)
-        self.compiled_ok = True
+        total, losses = self.ddp(batch)
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         self.optimizer.step()
@@ -482,7 +459,7 @@ class Trainer:
         hm, cm = HeightMeter(), ConfusionMeter(self.k or 2)
         for raw in self.val_loader:
             batch = prepare_batch(raw, self.eval_transform, self.mean, self.std, self.device)
-            with autocast(self.device, self.precision):
+            with runtime.autocast(self.device, self.precision):
                 out = self.model(batch["image"])
             losses = self.objective(out, batch, scoring=True)
             for i, t in enumerate(self.tasks):
@@ -573,7 +550,8 @@ class Trainer:
     # ---- checkpoints --------------------------------------------------------------------------------
     def recovery_hint(self) -> str:
         """What to do after a divergence: where the last whole checkpoint is, and how to continue (first, when
-        the tile folder's reference heights are ones no surface has, that: no learning rate fixes them)."""
+        the tile folder's reference heights are ones no surface has, that: no learning rate fixes them).
+        """
         hr = self.meta.height_range
         if hr is not None and (hr[0] < SURFACE_HEIGHTS_M[0] or hr[1] > SURFACE_HEIGHTS_M[1]):
             return (f"the tile folder's reference heights reach {hr[0]:.3g}..{hr[1]:.3g} m, which no surface has "
@@ -599,14 +577,14 @@ class Trainer:
         if bad is not None:
             raise NonFiniteError(f"training diverged at step {self.state.step}: weight '{bad}' holds NaN or inf; "
                                  f"{self.recovery_hint()}")
-        rngs = self.ctx.gather_objects(rng_state())
+        rngs = self.ctx.gather(rng_state())
         if not self.ctx.is_main:
             if target == self.paths["last.pt"]:
                 self.saved_step = self.state.step
             return
         state = {"optimizer": self.optimizer.state_dict(), "weighting": self.weighting.state_dict(),
-                 **self.state.to_dict(self.plan.global_batch), "rng": rngs[0], "rng_ranks": rngs,
-                 "world_size": self.ctx.world_size, "global_batch": self.plan.global_batch,
+                 **self.state.to_dict(self.order.global_batch), "rng": rngs[0], "rng_ranks": rngs,
+                 "world_size": self.ctx.world, "global_batch": self.order.global_batch,
                  "config": self.cfg.to_dict()}
         save_checkpoint(target, self.model, self.meta, state)
         if target == self.paths["last.pt"]:
@@ -665,7 +643,7 @@ class Trainer:
             raise self._bad_state(path, "its counters or task weighting are incomplete", exc) from exc
         self.saved_step = self.state.step
         ranks = ts.get("rng_ranks")
-        if ranks and int(ts.get("world_size", 1)) == self.ctx.world_size:
+        if ranks and int(ts.get("world_size", 1)) == self.ctx.world:
             rng = ranks[self.ctx.rank]
         elif self.ctx.rank == 0:
             rng = ts.get("rng")
@@ -711,9 +689,11 @@ class Trainer:
     # ---- the loop -----------------------------------------------------------------------------------
     @property
     def lr(self) -> float:
+        """The current learning rate."""
         return float(self.optimizer.param_groups[0]["lr"])
 
     def elapsed(self) -> float:
+        """Seconds since this call of ``fit`` started."""
         return round(time.perf_counter() - self.t0, 3)
 
     def log_train_row(self) -> dict[str, float]:
@@ -739,7 +719,7 @@ class Trainer:
     def fit(self) -> TrainResult:
         """Train until a stop condition (each process returns the same counters and metrics)."""
         st, sched = self.state, self.cfg.schedule
-        nb = self.plan.steps_per_epoch
+        nb = self.order.steps_per_epoch
         total = sched.epochs * nb if self.steps_cap is None else min(self.steps_cap, sched.epochs * nb)
         stopped_by = self.done_before_start()
         validated_at = -1
@@ -754,7 +734,7 @@ class Trainer:
                 total_loss, losses = self.train_step(batch)
                 st.step += 1
                 self.losses.add(st.step, total_loss, losses)
-                st.epoch, st.position = self.plan.advance(st.epoch, st.position)
+                st.epoch, st.position = self.order.advance(st.epoch, st.position)
                 bar.update(1)
                 if st.step % sched.log_every == 0:
                     means = self.log_train_row()
@@ -766,8 +746,8 @@ class Trainer:
                         break
                 stopped_by = self.done()
         except RuntimeError as exc:  # DDP's gradient all-reduce: a peer process is gone
-            if self.ctx.distributed and distributed.is_peer_error(exc):
-                raise distributed.PeerFailure(distributed.peer_failure_message(exc)) from exc
+            if self.ctx.distributed and runtime.is_peer_error(exc):
+                raise runtime.peer_failure(exc) from exc
             raise
         finally:
             bar.close()
@@ -783,7 +763,8 @@ class Trainer:
 
     def calibrate(self) -> None:
         """Fit the calibration on the val split and store it in best.pt and last.pt (rank 0; see
-        :mod:`aerialmtl.training.calibrate`); skipped without a val split or a height task."""
+        :mod:`aerialmtl.training.calibrate`); skipped without a val split or a height task.
+        """
         cal = self.cfg.calibration
         if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
             return
@@ -807,8 +788,8 @@ class Trainer:
     def close(self) -> None:
         """Release the process group if this trainer created it."""
         if self.owns_ctx:
-            self.ctx.close()
+            self.ctx.leave()
 
 
-__all__ = ["Trainer", "TrainResult", "StepModule", "LossWindow", "build_optimizer", "resolve_precision", "autocast",
+__all__ = ["Trainer", "TrainResult", "StepModule", "LossWindow", "build_optimizer",
            "RUN_FILES"]

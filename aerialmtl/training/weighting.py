@@ -57,6 +57,7 @@ class EqualWeighting(nn.Module):
         self._weights = {t: float(weights.get(t, 1.0)) for t in self.tasks}
 
     def forward(self, losses: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The fixed-weight sum of the task losses."""
         _check_losses(self.tasks, losses)
         total = self._weights[self.tasks[0]] * losses[self.tasks[0]]
         for t in self.tasks[1:]:
@@ -64,6 +65,7 @@ class EqualWeighting(nn.Module):
         return total
 
     def weights(self) -> dict[str, float]:
+        """Task → its weight."""
         return dict(self._weights)
 
 
@@ -95,6 +97,7 @@ class UncertaintyWeighting(nn.Module):
         return 0.5 if self.kinds[task] == "regression" else 1.0
 
     def forward(self, losses: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The uncertainty-weighted sum of the task losses (learned log-variances)."""
         _check_losses(self.tasks, losses)
         total = torch.zeros((), device=self.log_vars[self.tasks[0]].device)
         for t in self.tasks:
@@ -103,6 +106,7 @@ class UncertaintyWeighting(nn.Module):
         return total
 
     def weights(self) -> dict[str, float]:
+        """Task → its current effective weight."""
         return {t: self._factor(t) * float(torch.exp(-self.log_vars[t].detach())) for t in self.tasks}
 
 

@@ -7,6 +7,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -22,8 +23,9 @@ from aerialmtl.data.synth.render import render_ortho
 from aerialmtl.data.synth.scene import Scene, build_scene
 from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
-from aerialmtl.io.align import HEIGHT_NODATA
+from aerialmtl.formats.tiles import HEIGHT_NODATA
 from aerialmtl.io.outputs import OutputFolder, atomic_write
+from aerialmtl.io.profiles import light_compression, raster_profile
 
 #: Version of the generator; bump it whenever the same seed would produce different rasters.
 SYNTH_VERSION = "1"
@@ -51,11 +53,11 @@ class SynthResult:
     buildings: Path
 
 
-def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict:
+def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict[str, Any]:
     block = 256 if size >= 256 else None
-    profile = dict(driver="GTiff", width=size, height=size, count=count, dtype=dtype, crs=crs,
-                   transform=transform, nodata=nodata, compress="zstd", zstd_level=1,
-                   predictor=3 if dtype == "float32" else 2, num_threads="ALL_CPUS", bigtiff="IF_SAFER")
+    profile = raster_profile(crs, transform, size, size, count, dtype, nodata)
+    profile.update(light_compression(), predictor=3 if dtype == "float32" else 2, num_threads="ALL_CPUS",
+                   bigtiff="IF_SAFER")
     if block:
         profile.update(tiled=True, blockxsize=block, blockysize=block)
     if count == 3:
@@ -130,7 +132,6 @@ def synthesize(
 def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, origin: tuple[float, float],
                  start: float) -> SynthResult:
     """Render and write the town (see :func:`synthesize`) into the held folder ``out``."""
-
     rng = np.random.default_rng(seed)
     scene = build_scene(int(size), float(gsd), rng)
     ortho, _ = render_ortho(scene, rng)
@@ -151,7 +152,7 @@ def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, orig
     paths = {name: out / name for name in _OUTPUTS}
 
     def write(name: str, data: np.ndarray, nodata: float | None, descriptions: tuple[str, ...],
-              units: str | None = None, colormap: dict | None = None) -> None:
+              units: str | None = None, colormap: dict[int, tuple[int, int, int, int]] | None = None) -> None:
         count = data.shape[0] if data.ndim == 3 else 1
         profile = _profile(size, count, data.dtype.name, crs_obj, transform, nodata)
         with atomic_write(paths[name]) as tmp, rasterio.open(tmp, "w", **profile) as dst:

@@ -13,7 +13,9 @@ scene's upper-left corner; u = X·cosθ + Y·sinθ, v = −X·sinθ + Y·cosθ.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from shapely.geometry import Polygon, box
@@ -66,6 +68,7 @@ class RoofPart:
 
 @dataclass(frozen=True)
 class Building:
+    """A building of the synthetic scene: its roof parts and its colour."""
     parts: tuple[RoofPart, ...]
     color: tuple[float, float, float]
     textured: bool  # roof tiles: stripes parallel to the ridge
@@ -73,6 +76,7 @@ class Building:
 
 @dataclass(frozen=True)
 class TreeSpec:
+    """A tree of the synthetic scene (position in scene units, crown size and height)."""
     u: float
     v: float
     radius: float  # crown radius, metres
@@ -228,7 +232,9 @@ class _Planner:
                 self._house_lot(a, a + lot_w, street, sign, lot_depth, rect, uv)
                 a += lot_w
 
-    def _house_lot(self, la0: float, la1: float, street: float, sign: float, depth: float, rect, uv) -> None:
+    def _house_lot(self, la0: float, la1: float, street: float, sign: float, depth: float,
+                   rect: Callable[[float, float, float, float], tuple[float, float, float, float]],
+                   uv: Callable[[float, float], tuple[float, float]]) -> None:
         rng = self.rng
         lot_w = la1 - la0
         setback = rng.uniform(3, 6)
@@ -375,7 +381,7 @@ class _Planner:
             self._tree_row(v0, v1, u1 - verge / 2, along_u=False)
 
 
-def _Pt(u: float, v: float):  # noqa: N802 - tiny shapely point factory
+def _Pt(u: float, v: float) -> Any:  # noqa: N802 - tiny shapely point factory
     from shapely.geometry import Point
 
     return Point(u, v)
@@ -412,6 +418,9 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
 
     Returns:
         A :class:`Scene` (terrain, nDSM, labels, albedo, sun angles).
+
+    Long (over 80 lines) on purpose: every random draw happens here in one fixed order, so a seed gives
+    the same town; moving draws into helpers would make that order easy to break unnoticed.
     """
     extent = size * gsd
     theta = 0.0 if rng.random() < 0.3 else math.radians(rng.uniform(-25, 25))

@@ -109,7 +109,7 @@ def write_tile_folder(
         tasks=tasks, classes=ClassScheme.from_dict(SCHEME) if "classes" in tasks else None,
         height={"nodata": -9999.0, "clip_negative": True, "max_height": None, "source": "ndsm"}
         if "height" in tasks else None,
-        splits={"method": "test"}, counts=counts, provenance={"inputs": "tests/tilefolder.py"},
+        splits={"method": "test"}, counts=counts, provenance={"inputs": "tests/helpers/tilefolder.py"},
     ).write()
     with ManifestWriter(root) as manifest:
         for row in rows:

@@ -1,0 +1,1 @@
+"""Helpers the tests share: tiny rasters, prediction and tile folders, tiny models, the CLI in-process."""
