@@ -35,9 +35,9 @@ import hashlib
 import os
 import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 import torch
@@ -54,6 +54,7 @@ from aerialmtl.models.mc_dropout import (
     dropout_masks,
     dropout_sites,
 )
+from aerialmtl.runtime import CpuThreads, resolve_threads
 
 if TYPE_CHECKING:
     import openvino
@@ -200,35 +201,56 @@ class OpenVINOEngine:
     name = "openvino"
 
     def __init__(self, model: nn.Module, in_channels: int, tasks: Sequence[str], precision: str,
-                 cache_dir: str | Path | None = None, cache: bool = True) -> None:
+                 cache_dir: str | Path | None = None, cache: bool = True, threads: CpuThreads | None = None,
+                 weights_key: str | None = None) -> None:
         import openvino as ov
 
         self.ov = ov
-        self.model = model
+        self.raw_model = model
+        self._model: nn.Module | None = None
         self.in_channels = in_channels
         self.tasks = tuple(tasks)
         self.precision = precision
+        #: Threads and streams the model is compiled for (:func:`aerialmtl.runtime.resolve_threads`).
+        self.threads = threads if threads is not None else resolve_threads()
         self._sites: list[DropoutSite] | None = None
         self.core = ov.Core()
         self.cache_dir: Path | None = None
         if cache:
             cfg = getattr(model, "cfg", "")
             extra = f"{__version__}|{ov.__version__}|{in_channels}|{self.tasks}|{cfg}|{CONVERT_SIZE}"
-            self.cache_dir = Path(cache_dir) if cache_dir is not None else cache_root() / fingerprint(model, extra)
+            if cache_dir is not None:
+                self.cache_dir = Path(cache_dir)
+            elif weights_key is not None:  # the checkpoint's hash, computed once by the caller
+                key = hashlib.blake2b(f"{weights_key}|folded|{extra}".encode(), digest_size=12).hexdigest()
+                self.cache_dir = cache_root() / key
+            else:
+                self.cache_dir = cache_root() / fingerprint(model, extra)
             try:
                 (self.cache_dir / "blobs").mkdir(parents=True, exist_ok=True)
                 self.core.set_property({"CACHE_DIR": str(self.cache_dir / "blobs")})
             except OSError:  # a read-only home: convert and compile every run
                 self.cache_dir = None
         self._models: dict[str, openvino.Model] = {}
-        self._compiled: dict[tuple[str, int, int], Any] = {}
+        self._compiled: dict[tuple[str, int, int], _Requests] = {}
         self._lock = threading.Lock()
 
     @property
+    def model(self) -> nn.Module:
+        """The model prepared for conversion (BatchNorm folded; made on first use: a warm cache never
+        needs it)."""
+        if self._model is None:
+            from aerialmtl.inference.runner import inference_model
+
+            self._model = inference_model(self.raw_model, torch.device("cpu"))
+        return self._model
+
+    @property
     def sites(self) -> list[DropoutSite]:
-        """The decoder's dropout layers (found on first use: only MC dropout needs them)."""
+        """The decoder's dropout layers (found on first use: only MC dropout needs them; folding does not
+        move them, so the model as loaded is probed)."""
         if self._sites is None:
-            self._sites = dropout_sites(self.model, self.in_channels)
+            self._sites = dropout_sites(self.raw_model, self.in_channels)
         return self._sites
 
     # ---- conversion and compilation ---------------------------------------------------------------
@@ -266,7 +288,8 @@ class OpenVINOEngine:
         self._models[part] = model
         return model
 
-    def _request(self, part: str, h: int, w: int) -> Any:
+    def _requests(self, part: str, h: int, w: int) -> _Requests:
+        """The infer requests of ``part`` compiled for ``h × w`` windows (compiled on first use)."""
         key = (part, h, w)
         with self._lock:
             if key not in self._compiled:
@@ -277,13 +300,16 @@ class OpenVINOEngine:
                     shapes = {k: list(s) for k, s in enumerate(feats)}
                     shapes.update({len(feats) + k: [1, *site.shape(h, w)] for k, site in enumerate(self.sites)})
                 model.reshape(shapes)
-                hint = "bf16" if self.precision == "bf16" else "f32"
-                # as many threads as torch uses (torchrun's OMP_NUM_THREADS, torch.set_num_threads)
-                config = {"INFERENCE_PRECISION_HINT": hint, "PERFORMANCE_HINT": "LATENCY",
-                          "INFERENCE_NUM_THREADS": torch.get_num_threads()}
-                compiled = self.core.compile_model(model, "CPU", config)
-                self._compiled[key] = compiled.create_infer_request()
+                compiled = self.core.compile_model(model, "CPU", self.compile_config())
+                self._compiled[key] = _Requests(compiled, self.threads.streams)
             return self._compiled[key]
+
+    def compile_config(self) -> dict[str, Any]:
+        """OpenVINO's CPU settings: precision, threads and streams (:attr:`threads`), no pinning of threads to
+        cores (a core another process holds would stall the stream pinned to it)."""
+        hint = "bf16" if self.precision == "bf16" else "f32"
+        return {"INFERENCE_PRECISION_HINT": hint, "INFERENCE_NUM_THREADS": self.threads.threads,
+                "NUM_STREAMS": self.threads.streams, "ENABLE_CPU_PINNING": False}
 
     def _feature_shapes(self, h: int, w: int) -> list[tuple[int, ...]]:
         enc = self._ov_model("encode")
@@ -292,61 +318,166 @@ class OpenVINOEngine:
         return [tuple(o.get_shape()) for o in model.outputs]
 
     # ---- running ----------------------------------------------------------------------------------
-    @staticmethod
-    def _outputs(request: Any) -> list[torch.Tensor]:
-        return [torch.from_numpy(np.array(request.get_output_tensor(k).data, copy=True))
-                for k in range(len(request.model_outputs))]
-
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        """(B, C, h, w) normalised → ``{task: (B, C_t, h, w)}`` (float32, one window per call)."""
+        """(B, C, h, w) normalised → ``{task: (B, C_t, h, w)}`` (float32; the windows run in parallel streams)."""
         h, w = x.shape[-2:]
-        req = self._request("forward", h, w)
-        outs: list[list[torch.Tensor]] = [[] for _ in self.tasks]
-        for n in range(x.shape[0]):
-            req.infer({0: x[n:n + 1].contiguous().numpy()})
-            for k, t in enumerate(self._outputs(req)):
-                outs[k].append(t)
-        return {task: torch.cat(o) for task, o in zip(self.tasks, outs)}
+        reqs = self._requests("forward", h, w)
+        jobs = [reqs.start({0: x[n:n + 1].contiguous().numpy()}) for n in range(x.shape[0])]
+        outs = [job.outputs() for job in jobs]
+        return {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) for k, task in enumerate(self.tasks)}
 
     def encode(self, x: torch.Tensor) -> list[np.ndarray]:
         """(1, C, h, w) normalised → the encoder features (numpy, for :meth:`decode`)."""
-        req = self._request("encode", *x.shape[-2:])
-        req.infer({0: x.contiguous().numpy()})
-        return [np.array(req.get_output_tensor(k).data, copy=True) for k in range(len(req.model_outputs))]
+        return self._requests("encode", *x.shape[-2:]).start({0: x.contiguous().numpy()}).outputs()
 
     def decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int) -> list[torch.Tensor]:
         """One image's features and one sample's masks → its outputs, in task order."""
-        req = self._request("decode", h, w)
+        return [torch.from_numpy(o) for o in self._start_decode(feats, masks, h, w).outputs()]
+
+    def _start_decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int) -> _Job:
         inputs: dict[int, np.ndarray] = dict(enumerate(feats))
         inputs.update({len(feats) + k: m.numpy() for k, m in enumerate(masks)})
-        req.infer(inputs)
-        return self._outputs(req)
+        return self._requests("decode", h, w).start(inputs)
+
+    def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
+               sample_batch: int) -> Pending:
+        """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` waits for them.
+
+        T = 1: each window's forward pass starts at once on a free stream (waiting for the oldest running
+        one when all are busy), so the caller stitches one batch while the next runs. T > 1: the work runs in
+        ``result()``, the samples of a window spread over the streams (:meth:`statistics`).
+        """
+        x = x.float()
+        if samples > 1:
+            return _Deferred(lambda: self.statistics(x, keys, samples, seed, sample_batch))
+        h, w = x.shape[-2:]
+        reqs = self._requests("forward", h, w)
+        return _Forward1(self.tasks, [reqs.start({0: x[n:n + 1].contiguous().numpy()}) for n in range(x.shape[0])])
 
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
-        """Normalised (B, C, h, w) batch → statistics of each window (as the torch path)."""
+        """Normalised (B, C, h, w) batch → statistics of each window (as the torch path).
+
+        T > 1: the encoder once per window, then the T decoder samples of the batch, started in order on
+        the streams ahead of the accumulation (one chunk plus one sample per stream in flight), so the
+        host's statistics of one chunk overlap the engine's next samples.
+        """
         x = x.float()
         if samples == 1:
-            raw = self.forward(x)
-            stats = McStatistics()
-            if "height" in raw:
-                stats.height_mean = raw["height"][:, 0].float()
-            if "classes" in raw:
-                stats.probs = class_probabilities(raw["classes"])
-            return stats
+            return self.submit(x, keys, samples, seed, sample_batch).result()
         b, _, h, w = x.shape
         feats = [self.encode(x[n:n + 1]) for n in range(b)]
+        order = [(t, n) for t in range(samples) for n in range(b)]  # sample-major, as accumulate_samples wants
+        jobs: list[_Job] = []
+
+        def start_until(count: int) -> None:
+            while len(jobs) < min(count, len(order)):
+                t, n = order[len(jobs)]
+                jobs.append(self._start_decode(feats[n], dropout_masks(self.sites, h, w, seed, keys[n], t), h, w))
 
         def decode_chunk(done: int, s: int) -> dict[str, torch.Tensor]:
-            outs: list[list[torch.Tensor]] = [[] for _ in self.tasks]
-            for t in range(done, done + s):
-                for n, key in enumerate(keys):
-                    for k, o in enumerate(self.decode(feats[n], dropout_masks(self.sites, h, w, seed, key, t), h, w)):
-                        outs[k].append(o)
-            return {task: torch.cat(o) for task, o in zip(self.tasks, outs)}
+            first, last = done * b, (done + s) * b
+            start_until(last)
+            outs = [jobs[i].outputs() for i in range(first, last)]
+            for i in range(first, last):
+                jobs[i] = _DONE  # free the outputs once accumulated
+            start_until(last + s * b + self.threads.streams)  # the next chunk runs while this one is accumulated
+            return {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) for k, task in enumerate(self.tasks)}
 
         return accumulate_samples(decode_chunk, samples, max(1, sample_batch), b)
 
 
-__all__ = ["CONVERT_SIZE", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "cache_root", "fingerprint",
-           "openvino_available", "resolve_engine"]
+# ---- requests in flight -------------------------------------------------------------------------------
+class _Job:
+    """One inference started on a request of :class:`_Requests`; :meth:`outputs` waits for it (once)."""
+
+    def __init__(self, owner: _Requests | None = None, slot: int = 0) -> None:
+        self.owner, self.slot = owner, slot
+        self._outputs: list[np.ndarray] | None = None
+
+    def collect(self) -> None:
+        """Wait for the request and copy its outputs out, freeing the request for the next job."""
+        if self._outputs is not None or self.owner is None:
+            return
+        req = self.owner.requests[self.slot]
+        req.wait()
+        self._outputs = [np.array(req.get_output_tensor(k).data, copy=True) for k in range(len(req.model_outputs))]
+        self.owner.running[self.slot] = None
+
+    def outputs(self) -> list[np.ndarray]:
+        """The model's outputs, in order (float32 numpy)."""
+        self.collect()
+        assert self._outputs is not None
+        return self._outputs
+
+
+_DONE = _Job()
+
+
+class _Requests:
+    """The infer requests of one compiled model, one per stream, used in turn: a new job takes the next
+    request, first collecting the job still on it (the oldest, as jobs take similar times)."""
+
+    def __init__(self, compiled: Any, n: int) -> None:
+        self.requests = [compiled.create_infer_request() for _ in range(max(1, n))]
+        self.running: list[_Job | None] = [None] * len(self.requests)
+        self._next = 0
+
+    def start(self, inputs: dict[int, np.ndarray]) -> _Job:
+        """Start one inference on ``inputs`` (copied into the request) and return its job."""
+        slot = self._next
+        self._next = (slot + 1) % len(self.requests)
+        busy = self.running[slot]
+        if busy is not None:
+            busy.collect()
+        job = _Job(self, slot)
+        self.running[slot] = job
+        self.requests[slot].start_async(inputs)
+        return job
+
+
+class Pending(Protocol):
+    """Statistics of a batch being computed; :meth:`result` waits for them."""
+
+    def result(self) -> McStatistics: ...
+
+
+class Done:
+    """Statistics already computed (the torch engine's, which runs synchronously)."""
+
+    def __init__(self, stats: McStatistics) -> None:
+        self.stats = stats
+
+    def result(self) -> McStatistics:
+        return self.stats
+
+
+class _Deferred:
+    """Statistics computed when asked for."""
+
+    def __init__(self, compute: Callable[[], McStatistics]) -> None:
+        self.compute = compute
+
+    def result(self) -> McStatistics:
+        return self.compute()
+
+
+class _Forward1:
+    """The T = 1 statistics of a batch whose forward passes are running (one job per window)."""
+
+    def __init__(self, tasks: tuple[str, ...], jobs: list[_Job]) -> None:
+        self.tasks, self.jobs = tasks, jobs
+
+    def result(self) -> McStatistics:
+        outs = [job.outputs() for job in self.jobs]
+        raw = {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) for k, task in enumerate(self.tasks)}
+        stats = McStatistics()
+        if "height" in raw:
+            stats.height_mean = raw["height"][:, 0].float()
+        if "classes" in raw:
+            stats.probs = class_probabilities(raw["classes"])
+        return stats
+
+
+__all__ = ["CONVERT_SIZE", "Done", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "Pending", "cache_root",
+           "fingerprint", "openvino_available", "resolve_engine"]

@@ -32,7 +32,7 @@ from aerialmtl.models.d3net import fold_batchnorm
 from aerialmtl.models.mc_dropout import McStatistics, class_probabilities, mc_statistics
 
 if TYPE_CHECKING:
-    from aerialmtl.inference.engines import OpenVINOEngine
+    from aerialmtl.inference.engines import OpenVINOEngine, Pending
 
 Precision = runtime.Precision
 
@@ -152,6 +152,12 @@ class TorchEngine:
                  tasks: Sequence[str]) -> None:
         self.net, self.model, self.device, self.precision, self.tasks = net, model, device, precision, tuple(tasks)
 
+    def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int, sample_batch: int) -> Pending:
+        """:meth:`statistics`, computed now (torch runs synchronously)."""
+        from aerialmtl.inference.engines import Done
+
+        return Done(self.statistics(x, keys, samples, seed, sample_batch))
+
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
@@ -172,7 +178,8 @@ class ModelRunner:
     """Run the model on batches of raw windows, on the engine of :func:`~aerialmtl.inference.engines.resolve_engine`.
 
     Args:
-        model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy.
+        model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy
+            (made on first use on the OpenVINO engine, which needs it only to convert the model).
         meta: its checkpoint metadata (bands' mean/std for normalisation).
         device: the device to run on.
         precision: ``"bf16"`` (autocast on torch, the inference precision on OpenVINO) or ``"fp32"``.
@@ -181,28 +188,62 @@ class ModelRunner:
         max_decode_pixels: see :data:`DECODE_PIXELS`.
         compile: apply ``torch.compile`` (:func:`compile_model`; torch engine only).
         engine: ``"torch"`` or ``"openvino"`` (already resolved).
+        threads: inference threads and streams on a CPU (:func:`aerialmtl.runtime.resolve_threads`).
+        weights_key: the checkpoint's fingerprint, when the caller has it: keys the OpenVINO cache without
+            hashing the weights again.
     """
 
     def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
                  mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
-                 engine: Literal["torch", "openvino"] = "torch") -> None:
+                 engine: Literal["torch", "openvino"] = "torch", threads: runtime.CpuThreads | None = None,
+                 weights_key: str | None = None) -> None:
         self.device = device
         self.precision = precision
         self.mc = mc
         self.seed = seed
         self.max_decode_pixels = max_decode_pixels
-        self.model = inference_model(model, device)
-        self.net: nn.Module = compile_model(self.model) if compile and engine == "torch" else self.model
+        self.threads = threads if threads is not None else runtime.resolve_threads()
         self.tasks = tuple(meta.model.tasks)
         self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
         self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
         self.engine: TorchEngine | OpenVINOEngine
+        self._raw = model
+        self._model: nn.Module | None = None
         if engine == "openvino":
             from aerialmtl.inference.engines import OpenVINOEngine
 
-            self.engine = OpenVINOEngine(self.model, meta.model.in_channels, self.tasks, precision)
+            self.engine = OpenVINOEngine(model, meta.model.in_channels, self.tasks, precision, threads=self.threads,
+                                         weights_key=weights_key)
         else:
-            self.engine = TorchEngine(self.net, self.model, device, precision, self.tasks)
+            self._model = inference_model(model, device)
+            net = compile_model(self._model) if compile else self._model
+            self.engine = TorchEngine(net, self._model, device, precision, self.tasks)
+
+    @property
+    def model(self) -> nn.Module:
+        """The model prepared for prediction (:func:`inference_model`; the OpenVINO engine's own copy there)."""
+        from aerialmtl.inference.engines import OpenVINOEngine
+
+        if isinstance(self.engine, OpenVINOEngine):
+            return self.engine.model
+        assert self._model is not None
+        return self._model
+
+    @property
+    def net(self) -> nn.Module:
+        """What the torch engine calls (the compiled wrapper with ``compile``); the model as given on
+        OpenVINO (CPU only: nothing measures it there)."""
+        if isinstance(self.engine, TorchEngine):
+            return self.engine.net
+        return self._raw
+
+    @property
+    def in_flight(self) -> int:
+        """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`): one per stream on
+        the OpenVINO engine at T = 1, none on torch (it computes synchronously)."""
+        from aerialmtl.inference.engines import OpenVINOEngine
+
+        return self.threads.streams if isinstance(self.engine, OpenVINOEngine) and self.mc == 1 else 0
 
     def to_device(self, data: Sequence[np.ndarray | torch.Tensor], valid: Sequence[np.ndarray]) -> tuple[
             torch.Tensor, torch.Tensor]:
@@ -224,9 +265,14 @@ class ModelRunner:
 
     def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
+        return self.submit(x, keys).result()
+
+    def submit(self, x: torch.Tensor, keys: Sequence[int]) -> Pending:
+        """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` gives them (the same
+        numbers as :meth:`__call__`). Up to :attr:`in_flight` batches run while the caller stitches."""
         b, _, h, w = x.shape
         chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
-        return self.engine.statistics(x, keys, self.mc, self.seed, chunk)
+        return self.engine.submit(x, keys, self.mc, self.seed, chunk)
 
 
 __all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "Precision", "TorchEngine", "auto_batch_size",
