@@ -234,6 +234,8 @@ class OpenVINOEngine:
         self._models: dict[str, openvino.Model] = {}
         self._compiled: dict[tuple[str, int, int], _Requests] = {}
         self._lock = threading.Lock()
+        self._buffers: list[list[np.ndarray]] = []
+        self._buffers_key: tuple[Any, ...] | None = None
 
     @property
     def model(self) -> nn.Module:
@@ -334,10 +336,11 @@ class OpenVINOEngine:
         """One image's features and one sample's masks → its outputs, in task order."""
         return [torch.from_numpy(o) for o in self._start_decode(feats, masks, h, w).outputs()]
 
-    def _start_decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int) -> _Job:
+    def _start_decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int,
+                      dest: list[np.ndarray] | None = None) -> _Job:
         inputs: dict[int, np.ndarray] = dict(enumerate(feats))
         inputs.update({len(feats) + k: m.numpy() for k, m in enumerate(masks)})
-        return self._requests("decode", h, w).start(inputs)
+        return self._requests("decode", h, w).start(inputs, dest)
 
     def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                sample_batch: int) -> Pending:
@@ -358,50 +361,75 @@ class OpenVINOEngine:
                    sample_batch: int) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (as the torch path).
 
-        T > 1: the encoder once per window, then the T decoder samples of the batch, started in order on
-        the streams ahead of the accumulation (one chunk plus one sample per stream in flight), so the
-        host's statistics of one chunk overlap the engine's next samples.
+        T > 1: the encoder once per window, then the T decoder samples of the batch in chunks of
+        ``sample_batch`` samples, started in order on the streams ahead of the accumulation (up to one
+        sample per stream of the next chunk runs while the host accumulates the current one). Each sample's
+        outputs are copied straight into one of two chunk buffers reused from window to window (fresh
+        buffers per sample cost more in page faults than the copies themselves; bench/RESULTS.md).
         """
         x = x.float()
         if samples == 1:
             return self.submit(x, keys, samples, seed, sample_batch).result()
         b, _, h, w = x.shape
+        chunk = max(1, min(int(sample_batch), samples))
         feats = [self.encode(x[n:n + 1]) for n in range(b)]
+        reqs = self._requests("decode", h, w)
+        buffers = self._chunk_buffers(reqs.shapes, chunk * b)
         order = [(t, n) for t in range(samples) for n in range(b)]  # sample-major, as accumulate_samples wants
         jobs: list[_Job] = []
 
         def start_until(count: int) -> None:
             while len(jobs) < min(count, len(order)):
-                t, n = order[len(jobs)]
-                jobs.append(self._start_decode(feats[n], dropout_masks(self.sites, h, w, seed, keys[n], t), h, w))
+                i = len(jobs)
+                t, n = order[i]
+                row = i - (t // chunk) * chunk * b
+                dest = [buf[row:row + 1] for buf in buffers[(t // chunk) % 2]]
+                jobs.append(self._start_decode(feats[n], dropout_masks(self.sites, h, w, seed, keys[n], t), h, w,
+                                               dest))
 
         def decode_chunk(done: int, s: int) -> dict[str, torch.Tensor]:
             first, last = done * b, (done + s) * b
             start_until(last)
-            outs = [jobs[i].outputs() for i in range(first, last)]
             for i in range(first, last):
-                jobs[i] = _DONE  # free the outputs once accumulated
-            start_until(last + s * b + self.threads.streams)  # the next chunk runs while this one is accumulated
-            return {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) for k, task in enumerate(self.tasks)}
+                jobs[i].collect()
+                jobs[i] = _DONE
+            start_until(last + min(chunk * b, self.threads.streams))  # the engine runs on while the host accumulates
+            out = buffers[(done // chunk) % 2]
+            return {task: torch.from_numpy(out[k][:s * b]) for k, task in enumerate(self.tasks)}
 
-        return accumulate_samples(decode_chunk, samples, max(1, sample_batch), b)
+        return accumulate_samples(decode_chunk, samples, chunk, b)
+
+    def _chunk_buffers(self, shapes: Sequence[tuple[int, ...]], rows: int) -> list[list[np.ndarray]]:
+        """Two sets of float32 buffers, ``rows × shape[1:]`` per output (kept for the next window of the same
+        shape; one shape at a time)."""
+        key = (rows, *[tuple(s) for s in shapes])
+        if self._buffers_key != key:
+            self._buffers = [[np.empty((rows, *s[1:]), np.float32) for s in shapes] for _ in range(2)]
+            self._buffers_key = key
+        return self._buffers
 
 
 # ---- requests in flight -------------------------------------------------------------------------------
 class _Job:
     """One inference started on a request of :class:`_Requests`; :meth:`outputs` waits for it (once)."""
 
-    def __init__(self, owner: _Requests | None = None, slot: int = 0) -> None:
-        self.owner, self.slot = owner, slot
+    def __init__(self, owner: _Requests | None = None, slot: int = 0, dest: list[np.ndarray] | None = None) -> None:
+        self.owner, self.slot, self.dest = owner, slot, dest
         self._outputs: list[np.ndarray] | None = None
 
     def collect(self) -> None:
-        """Wait for the request and copy its outputs out, freeing the request for the next job."""
+        """Wait for the request and copy its outputs out (into ``dest`` when given), freeing the request."""
         if self._outputs is not None or self.owner is None:
             return
         req = self.owner.requests[self.slot]
         req.wait()
-        self._outputs = [np.array(req.get_output_tensor(k).data, copy=True) for k in range(len(req.model_outputs))]
+        tensors = [req.get_output_tensor(k).data for k in range(len(req.model_outputs))]
+        if self.dest is not None:
+            for d, t in zip(self.dest, tensors):
+                np.copyto(d, t)
+            self._outputs = self.dest
+        else:
+            self._outputs = [np.array(t, copy=True) for t in tensors]
         self.owner.running[self.slot] = None
 
     def outputs(self) -> list[np.ndarray]:
@@ -420,17 +448,20 @@ class _Requests:
 
     def __init__(self, compiled: Any, n: int) -> None:
         self.requests = [compiled.create_infer_request() for _ in range(max(1, n))]
+        #: The outputs' shapes (one image).
+        self.shapes = [tuple(o.get_shape()) for o in compiled.outputs]
         self.running: list[_Job | None] = [None] * len(self.requests)
         self._next = 0
 
-    def start(self, inputs: dict[int, np.ndarray]) -> _Job:
-        """Start one inference on ``inputs`` (copied into the request) and return its job."""
+    def start(self, inputs: dict[int, np.ndarray], dest: list[np.ndarray] | None = None) -> _Job:
+        """Start one inference on ``inputs`` (copied into the request) and return its job (whose outputs are
+        copied into ``dest``, one array per output, when given)."""
         slot = self._next
         self._next = (slot + 1) % len(self.requests)
         busy = self.running[slot]
         if busy is not None:
             busy.collect()
-        job = _Job(self, slot)
+        job = _Job(self, slot, dest)
         self.running[slot] = job
         self.requests[slot].start_async(inputs)
         return job
