@@ -236,6 +236,7 @@ class OpenVINOEngine:
         self._lock = threading.Lock()
         self._buffers: list[list[np.ndarray]] = []
         self._buffers_key: tuple[Any, ...] | None = None
+        self._pool = _BufferPool(limit=self.threads.streams + 2)
 
     @property
     def model(self) -> nn.Module:
@@ -355,7 +356,9 @@ class OpenVINOEngine:
             return _Deferred(lambda: self.statistics(x, keys, samples, seed, sample_batch))
         h, w = x.shape[-2:]
         reqs = self._requests("forward", h, w)
-        return _Forward1(self.tasks, [reqs.start({0: x[n:n + 1].contiguous().numpy()}) for n in range(x.shape[0])])
+        jobs = [reqs.start({0: x[n:n + 1].contiguous().numpy()}, self._pool.take(reqs.shapes))
+                for n in range(x.shape[0])]
+        return _Forward1(self.tasks, jobs, self._pool)
 
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
@@ -494,20 +497,47 @@ class _Deferred:
 
 
 class _Forward1:
-    """The T = 1 statistics of a batch whose forward passes are running (one job per window)."""
+    """The T = 1 statistics of a batch whose forward passes are running (one job per window); the output
+    buffers go back to ``pool`` once the statistics are made from them."""
 
-    def __init__(self, tasks: tuple[str, ...], jobs: list[_Job]) -> None:
-        self.tasks, self.jobs = tasks, jobs
+    def __init__(self, tasks: tuple[str, ...], jobs: list[_Job], pool: _BufferPool) -> None:
+        self.tasks, self.jobs, self.pool = tasks, jobs, pool
 
     def result(self) -> McStatistics:
         outs = [job.outputs() for job in self.jobs]
-        raw = {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) for k, task in enumerate(self.tasks)}
+        raw = {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) if len(outs) > 1
+               else torch.from_numpy(outs[0][k]) for k, task in enumerate(self.tasks)}
         stats = McStatistics()
         if "height" in raw:
-            stats.height_mean = raw["height"][:, 0].float()
+            stats.height_mean = raw["height"][:, 0].clone()
         if "classes" in raw:
             stats.probs = class_probabilities(raw["classes"])
+        for o in outs:
+            self.pool.give(o)
         return stats
+
+
+class _BufferPool:
+    """Output buffers of T = 1 windows, reused: a fresh 80 MiB array per window (1024², 20 classes) costs
+    its page faults every time. Holds at most ``limit`` sets, of any shapes."""
+
+    def __init__(self, limit: int = 4) -> None:
+        self.limit = limit
+        self.free: list[list[np.ndarray]] = []
+
+    def take(self, shapes: Sequence[tuple[int, ...]]) -> list[np.ndarray]:
+        """A set of float32 arrays of ``shapes`` (reused when one is free)."""
+        want = [tuple(s) for s in shapes]
+        for k, bufs in enumerate(self.free):
+            if [b.shape for b in bufs] == want:
+                return self.free.pop(k)
+        return [np.empty(s, np.float32) for s in want]
+
+    def give(self, bufs: list[np.ndarray]) -> None:
+        """Return a set once nothing reads it any more (the oldest free set is dropped beyond ``limit``)."""
+        self.free.append(bufs)
+        if len(self.free) > self.limit:
+            self.free.pop(0)
 
 
 __all__ = ["CONVERT_SIZE", "Done", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "Pending", "cache_root",
