@@ -548,7 +548,7 @@ def evaluate_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
             continue
         t0, load0 = time.perf_counter(), os.getloadavg()
         model, meta = load_model(ckpt)
-        pred, ref, sd = validation_pixels(model, meta, tdir, mc=args.mc)
+        pred, ref, sd, _ = validation_pixels(model, meta, tdir, mc=args.mc)
         cals = {m: fit_calibration(pred, ref, sd, m) for m in CAL_METHODS}  # type: ignore[arg-type]
         entry: dict[str, Any] = {"step": torch.load(ckpt, weights_only=True)["train_state"]["step"],
                                  "val_cv": _val_cv(pred, ref, sd), "val_pixels": int(pred.size),

@@ -41,10 +41,48 @@ def test_known_compression_is_undone_on_new_pixels(method: str) -> None:
     assert np.abs(h - ref).mean() < 0.6 * np.abs(pred - ref).mean()
     assert np.all(np.diff(cal.height_y) >= 0) and h.min() >= 0.0
     # spread: ±1 σ covers 68 % of the new pixels (±2 σ less than a Gaussian's 95 %: the errors are heavy-tailed)
-    cov = interval_coverage(np.abs(h - ref), cal.std(std))
+    cov = interval_coverage(np.abs(h - ref), cal.std(std, pred))
     assert 0.62 < cov["within_1sigma"] < 0.74 and cov["within_2sigma"] > 0.8
     # the device path (predict's stitcher) gives the same heights
     np.testing.assert_allclose(cal.height_torch(torch.from_numpy(pred)).numpy(), h, rtol=1e-6, atol=1e-6)
+
+
+def test_spread_covers_per_range_of_predicted_height_not_only_on_average() -> None:
+    """Errors of 0.3 m on the ground and 6 m on tall pixels, one constant MC spread: one factor for all would
+    cover the ground at ~100 % and tall pixels far less; per range each covers ~68 %."""
+    rng = np.random.default_rng(3)
+    n = 60_000
+    ref = np.where(rng.random(n) < 0.6, rng.uniform(0, 0.5, n), rng.uniform(5, 25, n))
+    pred = ref + rng.normal(0, np.where(ref > 1, 6.0, 0.3))
+    std = np.full(n, 0.5)
+    cal = fit_calibration(pred, ref, std, "isotonic")
+    assert cal.std_edges and cal.spread_applied
+    p2 = ref + rng.normal(0, np.where(ref > 1, 6.0, 0.3))  # new pixels
+    err, sigma = np.abs(cal.height(p2) - ref), cal.std(std, p2)
+    for sel in (p2 < 1.0, p2 >= 10.0):
+        assert 0.6 < interval_coverage(err[sel], sigma[sel])["within_1sigma"] < 0.76
+    torch_sigma = cal.std_torch(torch.from_numpy(std.astype(np.float32)), torch.from_numpy(p2.astype(np.float32)))
+    np.testing.assert_allclose(torch_sigma.numpy(), sigma, rtol=1e-5)  # the stitcher's path agrees
+
+
+def test_a_part_that_does_not_help_on_held_out_validation_is_not_applied() -> None:
+    """Accurate predictions: the map's bins (64 equal-count bins, each its mean) can only add error, so the
+    cross-fitted check keeps heights as they are; a compressed model's map is kept. Old calibrations (no flags)
+    stay applied."""
+    rng = np.random.default_rng(4)
+    n = 40_000
+    ref = rng.uniform(0, 30, n)
+    folds = (np.arange(n) // 500) % 2  # whole "patches" of 500 pixels
+    good = ref + rng.normal(0, 0.05, n)
+    std = np.abs(good - ref) + rng.uniform(0, 0.3, n)  # a spread that already ranks and covers
+    cal = fit_calibration(good, ref, std, "isotonic", folds=folds)
+    assert not cal.height_applied and "height map off" in cal.notes
+    np.testing.assert_array_equal(cal.height(good), good)
+    np.testing.assert_array_equal(cal.height_torch(torch.from_numpy(good)).numpy(), good)
+    squeezed = 0.4 * good
+    cal2 = fit_calibration(squeezed, ref, std, "isotonic", folds=folds)
+    assert cal2.height_applied and np.abs(cal2.height(squeezed) - ref).mean() < np.abs(squeezed - ref).mean()
+    assert Calibration((0.0, 1.0), (0.0, 2.0)).height_applied  # checkpoints written before the flags
 
 
 def test_spread_of_confident_ground_gets_a_floor() -> None:
@@ -52,7 +90,7 @@ def test_spread_of_confident_ground_gets_a_floor() -> None:
     n = 20_000
     err = np.abs(rng.normal(0.0, 1.0, n))
     std = np.where(rng.random(n) < 0.5, 1e-8, 0.02)  # half the pixels: every MC sample alike
-    cal = fit_calibration(np.zeros(n), np.zeros(n), None)
+    cal = Calibration((0.0, 1.0), (0.0, 1.0))
     scale, floor = __import__("aerialmtl.models.calibration", fromlist=["fit_spread"]).fit_spread(err, std)
     cal = dataclasses.replace(cal, std_scale=scale, std_floor=floor)
     cov = interval_coverage(err, cal.std(std))

@@ -127,9 +127,11 @@ def test_report_files_json_markdown_and_plots(tmp_path: Path) -> None:
     md = (tmp_path / "ev" / "report.md").read_text()
     assert "height MAE" in md and "mIoU" in md
     pytest.importorskip("matplotlib")
-    for name in ("report_sparsification.png", "report_confusion.png", "report_reliability.png"):
+    plots = {"report_sparsification.png", "report_confusion.png", "report_reliability.png",
+             "report_height_reliability.png"}
+    for name in plots:
         assert (tmp_path / "ev" / name).stat().st_size > 1000
-    assert set(data["plots"]) == {"report_sparsification.png", "report_confusion.png", "report_reliability.png"}
+    assert set(data["plots"]) == plots
 
 
 def test_classes_from_tag_confusion_ece_and_entropy(tmp_path: Path) -> None:

@@ -110,3 +110,45 @@ def test_average_ranks_share_ties_and_agree_with_scipy(rng: np.random.Generator)
     x = rng.integers(0, 10, 300).astype(float)
     y = x + rng.normal(0, 3, 300)
     assert spearman(x, y) == pytest.approx(stats.spearmanr(x, y).statistic)
+
+
+# ---- the spread per stratum -----------------------------------------------------------------------
+def test_spread_strata_coverage_scores_and_ranking_per_bin() -> None:
+    """A spread that is the true σ of Gaussian errors covers 68 % / 95 % in every bin and ranks the errors
+    within bins; a spread proportional to height alone covers on average but ranks nothing within a bin."""
+    import math
+
+    from aerialmtl.evaluation.uncertainty import SpreadStrata, crps_gaussian, laplace_terms
+
+    rng = np.random.default_rng(42)  # not the subsample's seed: its keys would be the heights themselves
+    n = 200_000
+    ref = rng.uniform(0, 30, n)
+    sigma = rng.uniform(0.2, 3.0, n) * (1 + ref / 10)  # varies within every bin
+    pred = ref + rng.normal(0, 1, n) * sigma
+    good = SpreadStrata((0, 1, 2, 5, 10, 20, math.inf), sample_cap=50_000)
+    good.update(pred, sigma, ref)
+    res = good.result()
+    assert [b["range_m"][0] for b in res["bins"]] == [0, 1, 2, 5, 10, 20]
+    for b in res["bins"]:
+        assert b["coverage_1sigma"] == pytest.approx(0.683, abs=0.02)
+        assert b["coverage_2sigma"] == pytest.approx(0.954, abs=0.015)
+        assert b["spearman_std_vs_abs_error"] > 0.2
+        assert b["reliability_observed"][-1] == pytest.approx(0.954, abs=0.02)
+    assert sum(b["share"] for b in res["bins"]) == pytest.approx(1.0)
+    flat = SpreadStrata((0, 1, 2, 5, 10, 20, math.inf), sample_cap=50_000)
+    flat.update(pred, np.full(n, float(np.median(sigma))), ref)
+    assert res["crps_gaussian_m"] < flat.result()["crps_gaussian_m"]  # the proper score prefers the true σ
+    assert res["nll_gaussian"] < flat.result()["nll_gaussian"]
+    height_only = SpreadStrata((0, 1, 2, 5, 10, 20, math.inf), sample_cap=50_000)
+    height_only.update(pred, 0.5 + pred * 0.0 + 1.0, ref)  # constant within a bin: no ranking at all
+    assert all(math.isnan(b["spearman_std_vs_abs_error"]) for b in height_only.result()["bins"])
+    # closed forms against numerical integration of the CRPS (∫ (F(x) − 1{x ≥ y})² dx)
+    from scipy import stats
+
+    x = np.linspace(-40, 40, 400_001)
+    for dist, value in ((stats.norm(1.0, 2.0), crps_gaussian(np.array([1.0]), np.array([2.0]), np.array([3.5]))[0]),
+                        (stats.laplace(1.0, 2.0 / math.sqrt(2)),
+                         laplace_terms(np.array([1.0]), np.array([2.0]), np.array([3.5]))[1][0])):
+        integrand = (dist.cdf(x) - (x >= 3.5)) ** 2
+        trapz = getattr(np, "trapezoid", None) or getattr(np, "trapz")  # noqa: B009 - numpy < 2 has only trapz
+        assert value == pytest.approx(trapz(integrand, x), rel=1e-4)

@@ -11,20 +11,24 @@ from aerialmtl.cli.options import overwrite_option
 
 @click.command(name="demo")
 @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--train-seconds", type=click.FloatRange(min=1), default=420, show_default=True,
-              help="Wall-clock training budget.")
+@click.option("--train-steps", type=click.IntRange(min=1), default=800, show_default=True,
+              help="Training budget in optimizer steps (fixed, so every machine trains the same model).")
+@click.option("--train-seconds", type=click.FloatRange(min=1), default=None,
+              help="Optional wall-clock cap on top of --train-steps (a capped run is no longer comparable).")
 @click.option("--train-size", type=click.IntRange(min=256), default=1536, show_default=True,
               help="Side of the synthetic training town in pixels (0.25 m).")
 @click.option("--test-size", type=click.IntRange(min=128), default=768, show_default=True,
               help="Side of the synthetic test town in pixels.")
 @click.option("--mc", type=click.IntRange(min=1), default=16, show_default=True, help="MC-dropout samples.")
 @overwrite_option(help="Reuse a non-empty OUT folder.")
-def demo(out: Path, train_seconds: float, train_size: int, test_size: int, mc: int, overwrite: bool) -> None:
+def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: int, test_size: int, mc: int,
+         overwrite: bool) -> None:
     """Synthesize a training and a test town, tile, train the small D3-Net, predict with MC dropout,
     evaluate, and write GeoTIFFs, a report and PNG previews into OUT."""
     from aerialmtl.demo import DemoSettings, run_demo
 
-    settings = DemoSettings(train_size=train_size, test_size=test_size, train_seconds=train_seconds, mc=mc)
+    settings = DemoSettings(train_size=train_size, test_size=test_size, train_steps=train_steps,
+                            train_seconds=train_seconds, mc=mc)
     res = run_demo(out, settings, overwrite=overwrite, log=lambda m: click.echo(m, err=True))
     rep = res.report
     h = rep.get("height", {})

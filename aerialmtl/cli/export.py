@@ -15,9 +15,10 @@ from aerialmtl.cli.options import argument, option, overwrite_option
 @argument("checkpoint", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @option("--format", "format_", type=click.Choice(["onnx", "openvino"]), default="onnx", show_default=True,
         library="format", help="onnx: one .onnx file with metadata; openvino: an IR (.xml + .bin).")
-@option("--task", type=click.Choice(["all", "height", "classes"]), default="all", show_default=True,
-        help="all: every output in one file; height: a Deepness Regressor (metres); classes: a Deepness "
-             "Segmentor (class probabilities). QGIS's Deepness plugin takes one task per file.")
+@option("--task", type=click.Choice(["all", "height", "height_std", "classes"]), default="all", show_default=True,
+        help="all: every output in one file; height: a Deepness Regressor (metres); height_std: the one-pass "
+             "spread of a model with an aleatoric head (metres, a Regressor); classes: a Deepness Segmentor "
+             "(class probabilities). QGIS's Deepness plugin takes one task per file.")
 @option("--tile", type=int, default=512, show_default=True,
         help="Input tile side in pixels (multiple of 32); QGIS plugins cut the map into tiles of this size.")
 @option("--overlap", type=int, default=None,
@@ -45,7 +46,8 @@ def export(checkpoint: Path, format_: str, task: str, tile: int, overlap: int | 
     result = export_model(checkpoint, out, format=format_, task=task, tile=tile,  # type: ignore[arg-type]
                           overlap=tile // 8 if overlap is None else overlap, calibration=not no_calibration,
                           overwrite=overwrite)
-    kind = {"height": "Deepness Regressor", "classes": "Deepness Segmentor"}.get(result.task, "all tasks in one file")
+    kinds = {"height": "Deepness Regressor", "height_std": "Deepness Regressor", "classes": "Deepness Segmentor"}
+    kind = kinds.get(result.task, "all tasks in one file")
     bands = len(json.loads(result.metadata["standardization_mean"]))
     click.echo(f"{result.format} model, {kind}: input N×{bands}×{tile}×{tile}, outputs {', '.join(result.outputs)}; "
                f"{', '.join(str(f) for f in result.files)}")

@@ -92,6 +92,9 @@ def _batch_size(value: str) -> int | str:
 @option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
 @option("--no-calibration", "no_calibration", is_flag=True, library="calibration",
         help="Do not apply the checkpoint's calibration (height map and spread factor fitted on validation).")
+@option("--tta", is_flag=True,
+        help="Test-time augmentation: also run every window flipped and rotated (8 views) and combine them like "
+             "MC samples; height_std then includes their disagreement. 8 times the work.")
 @option("--rescale-input", is_flag=True,
         help="When an orthophoto's values do not look like the training images' (e.g. 16-bit on an 8-bit model), "
              "map them linearly onto the training range (mean ± 3 std of a sample) instead of refusing it.")
@@ -104,7 +107,7 @@ def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
     batch_size: str, engine: str, threads: str, precision: str, device: str, compile_: bool, aoi: Path | None,
     probabilities: bool, rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool,
-    no_calibration: bool = False,
+    no_calibration: bool = False, tta: bool = False,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
 
@@ -137,7 +140,7 @@ def predict(
         on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
         device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
         calibration=not no_calibration,
-        rescale_input=rescale_input, engine=engine, threads=threads,
+        rescale_input=rescale_input, engine=engine, threads=threads, tta=tta,
     )
     for path in job.skipped:
         click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete (same model, settings, input)")

@@ -40,6 +40,7 @@ from aerialmtl.evaluation.uncertainty import (
     DEFAULT_MIN_STD,
     DEFAULT_STEPS,
     CalibrationBins,
+    SpreadStrata,
     gaussian_nll_terms,
     sparsification,
     spearman,
@@ -411,6 +412,8 @@ class HeightEvaluation:
         self.pred, self.std, self.reference, self.stats = pred, std, reference, stats
         self.sample = Subsample(sample_size, seed + 1) if std is not None else None
         self.min_std = min_std
+        names = getattr(stats, "class_names", None) if stats.num_classes is not None else None
+        self.strata = SpreadStrata(stats.edges, names, sample_size, seed + 2, min_std) if std is not None else None
         self.nll_sum, self.nll_n = 0.0, 0
         self.within = np.zeros(2, dtype=np.int64)  # |error| ≤ 1 σ, ≤ 2 σ
         #: the unit each reference layer was read in (see :meth:`HeightSource.units`)
@@ -429,6 +432,8 @@ class HeightEvaluation:
             self.nll_n += int(sel.sum())
             err, s = np.abs(hp[sel] - ref[sel]), sd[sel]
             self.within += (int(np.count_nonzero(err <= s)), int(np.count_nonzero(err <= 2 * s)))
+            if self.strata is not None:
+                self.strata.update(hp[sel], sd[sel], ref[sel], None if labels_idx is None else labels_idx[sel])
 
     def report_into(self, report: dict[str, Any], steps: int) -> None:
         """Fill ``report["height"]``, ``report["uncertainty"]["height_std"]``, sampling counts and notes."""
@@ -453,6 +458,8 @@ class HeightEvaluation:
             "coverage_1sigma": float(self.within[0] / self.nll_n) if self.nll_n else math.nan,
             "coverage_2sigma": float(self.within[1] / self.nll_n) if self.nll_n else math.nan,
         }
+        if self.strata is not None:  # per reference-height bin and class: is the spread right where users look
+            report["uncertainty"]["height_std"]["strata"] = self.strata.result()
 
 
 class ClassEvaluation:

@@ -57,9 +57,14 @@ def headline(report: dict[str, Any]) -> list[tuple[str, str]]:
                  ("Cohen's kappa", _fmt(c["kappa"]))]
     u = report.get("uncertainty") or {}
     if "height_std" in u:
-        rows += [("height std AUSE", _fmt(u["height_std"]["sparsification"]["ause"])),
-                 ("height std Spearman", _fmt(u["height_std"]["spearman_std_vs_abs_error"])),
-                 ("height NLL (nats)", _fmt(u["height_std"]["nll"]))]
+        hs = u["height_std"]
+        rows += [("height std AUSE", _fmt(hs["sparsification"]["ause"])),
+                 ("height std Spearman", _fmt(hs["spearman_std_vs_abs_error"])),
+                 ("height NLL (nats)", _fmt(hs["nll"])),
+                 ("height ±1σ / ±2σ coverage", f"{_fmt(hs['coverage_1sigma'], pct=True)} / "
+                                             f"{_fmt(hs['coverage_2sigma'], pct=True)}")]
+        if hs.get("strata", {}).get("crps_gaussian_m") is not None:
+            rows.append(("height CRPS (m)", _fmt(hs["strata"]["crps_gaussian_m"])))
     if "class_entropy" in u:
         rows.append(("class entropy AUSE", _fmt(u["class_entropy"]["sparsification"]["ause"])))
     if "calibration" in u:
@@ -95,6 +100,22 @@ def markdown_summary(report: dict[str, Any]) -> str:
             hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
             lines.append(f"| [{lo:g}, {hi_s}) | {b['n_pixels']} | {_fmt(b['mae'])} | {_fmt(b['rmse'])} | "
                          f"{_fmt(b['bias'])} |")
+    strata = ((report.get("uncertainty") or {}).get("height_std") or {}).get("strata")
+    if strata:
+        lines += ["", "## Height spread per reference-height bin", "",
+                  "±1σ / ±2σ: share of pixels whose error lies within one / two `height_std` (0.68 / 0.95 for a "
+                  "Gaussian, 0.76 / 0.94 for a Laplace law); Spearman: rank correlation of `height_std` and |error| "
+                  "within the bin; NLL (Gaussian) and CRPS: proper scores, lower is better.", "",
+                  "| bin (m) | share | ±1σ | ±2σ | median std (m) | median abs error (m) | Spearman | NLL | "
+                  "CRPS (m) |", "|---|---|---|---|---|---|---|---|---|"]
+        for b in strata["bins"]:
+            lo, hi = b["range_m"]
+            hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
+            lines.append(f"| [{lo:g}, {hi_s}) | {_fmt(b.get('share'), pct=True)} | "
+                         f"{_fmt(b.get('coverage_1sigma'), 2)} | {_fmt(b.get('coverage_2sigma'), 2)} | "
+                         f"{_fmt(b.get('median_std_m'), 2)} | {_fmt(b.get('median_abs_error_m'), 2)} | "
+                         f"{_fmt(b.get('spearman_std_vs_abs_error'), 2)} | {_fmt(b.get('nll_gaussian'), 2)} | "
+                         f"{_fmt(b.get('crps_gaussian_m'), 2)} |")
     c = report.get("classes")
     if c:
         lines += ["", "## Classes", "", "| class | IoU | F1 | reference px | predicted px |", "|---|---|---|---|---|"]
@@ -164,6 +185,27 @@ def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
         ax.set_title(f"confusion (row-normalised), OA {_fmt(c['overall_accuracy'], pct=True)}")
         fig.colorbar(im, ax=ax, fraction=0.046)
         path = plot_path(stem, "confusion")
+        _save(fig, path)
+        written.append(path)
+    strata = (u.get("height_std") or {}).get("strata")
+    if strata and any(b.get("reliability_observed") for b in strata["bins"]):
+        fig = Figure(figsize=(4.6, 4.2))
+        ax = fig.add_subplot(1, 1, 1)
+        levels = np.asarray(strata["reliability_levels"], float)
+        for b in strata["bins"]:
+            obs = b.get("reliability_observed")
+            if not obs:
+                continue
+            lo, hi = b["range_m"]
+            label = f"{lo:g}–{hi:g} m" if hi is not None and math.isfinite(hi) else f"≥ {lo:g} m"
+            ax.plot(levels, np.asarray(obs, float), marker="o", ms=3,
+                    label=f"{label} ({_fmt(b.get('share'), pct=True)})")
+        ax.plot([0, 1], [0, 1], "k--", label="nominal")
+        ax.set_xlabel("nominal probability of the central ±zσ interval")
+        ax.set_ylabel("observed share of pixels inside")
+        ax.set_title("height spread reliability per reference height")
+        ax.legend(fontsize=7)
+        path = plot_path(stem, "height_reliability")
         _save(fig, path)
         written.append(path)
     cal = u.get("calibration")

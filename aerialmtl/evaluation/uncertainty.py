@@ -215,7 +215,161 @@ def gaussian_nll(
         return float(terms.mean()) if terms.size else math.nan
 
 
+# ---- the spread judged per stratum ---------------------------------------------------------------
+#: Nominal central-interval probabilities of the reliability curves.
+RELIABILITY_LEVELS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.683, 0.8, 0.9, 0.954)
+_SQRT2 = math.sqrt(2.0)
+
+
+def _erf(x: np.ndarray) -> np.ndarray:
+    from scipy.special import erf
+
+    return np.asarray(erf(x), np.float64)
+
+
+def crps_gaussian(mean: np.ndarray, std: np.ndarray, ref: np.ndarray, min_std: float = DEFAULT_MIN_STD) -> np.ndarray:
+    """Per-pixel CRPS (metres) of N(``mean``, σ²), σ = max(``std``, ``min_std``), at ``ref`` (closed form,
+    Gneiting & Raftery 2007): ``σ·[z(2Φ(z) − 1) + 2φ(z) − 1/√π]``, z = (ref − mean)/σ. A proper score: lower
+    is better, and it reduces to |error| for a spread of 0."""
+    sigma = np.maximum(np.asarray(std, np.float64), min_std)
+    z = (np.asarray(ref, np.float64) - np.asarray(mean, np.float64)) / sigma
+    pdf = np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
+    cdf = 0.5 * (1 + _erf(z / _SQRT2))
+    return sigma * (z * (2 * cdf - 1) + 2 * pdf - 1 / math.sqrt(math.pi))
+
+
+def laplace_terms(mean: np.ndarray, std: np.ndarray, ref: np.ndarray,
+                  min_std: float = DEFAULT_MIN_STD) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel NLL (nats) and CRPS (metres) of ``ref`` under the Laplace law of the same standard deviation,
+    b = σ/√2, σ = max(``std``, ``min_std``): NLL ``log 2b + |e|/b``, CRPS ``|e| + b·exp(−|e|/b) − 3b/4``."""
+    b = np.maximum(np.asarray(std, np.float64), min_std) / _SQRT2
+    e = np.abs(np.asarray(ref, np.float64) - np.asarray(mean, np.float64))
+    return np.log(2 * b) + e / b, e + b * np.exp(-e / b) - 0.75 * b
+
+
+def _gaussian_quantile(p: float) -> float:
+    from scipy.special import erfinv
+
+    return float(_SQRT2 * erfinv(p))
+
+
+class SpreadStrata:
+    """Is the height spread right where users look? Coverage, proper scores, medians and rank correlation of
+    ``height_std`` per reference-height bin (and per class), accumulated window by window.
+
+    Exact sums per stratum: pixels, pixels within ±1σ and ±2σ, Gaussian and Laplace NLL and CRPS (σ = the
+    layer's value, floored at ``min_std``). From a seeded uniform subsample of at most ``sample_cap`` pixels:
+    the median std and median |error| per bin, Spearman(std, |error|) within each bin (does the spread rank
+    the errors among pixels of similar height, which a spread that follows the predicted height alone cannot),
+    and the reliability curve (observed share of pixels inside the central Gaussian interval of each nominal
+    probability in :data:`RELIABILITY_LEVELS`).
+
+    Args:
+        edges: reference-height bin edges (metres, increasing; the last may be ``inf``); heights below the
+            first edge count in the first bin.
+        class_names: names of the reference classes (``None``: no per-class strata).
+        sample_cap, seed: the subsample.
+        min_std: floor of σ (metres) in the scores.
+    """
+
+    def __init__(self, edges: Any, class_names: list[str] | None = None, sample_cap: int = 2_000_000,
+                 seed: int = 0, min_std: float = DEFAULT_MIN_STD) -> None:
+        from aerialmtl.evaluation.metrics import Subsample
+
+        self.edges = np.asarray(edges, np.float64)
+        self.class_names = class_names
+        self.min_std = float(min_std)
+        nb = len(self.edges) - 1
+        nc = len(class_names) if class_names else 0
+        #: rows: height bins then classes; columns: n, ≤1σ, ≤2σ, NLL gauss, NLL laplace, CRPS gauss, CRPS laplace
+        self.sums = np.zeros((nb + nc, 7))
+        self.sample = Subsample(sample_cap, seed)
+
+    def _bins(self, ref: np.ndarray) -> np.ndarray:
+        nb = len(self.edges) - 1
+        return np.clip(np.searchsorted(self.edges, ref, side="right") - 1, 0, nb - 1)
+
+    def update(self, pred: np.ndarray, std: np.ndarray, ref: np.ndarray, labels: np.ndarray | None = None) -> None:
+        """Add pixels: 1-D ``pred``, ``std``, ``ref`` (metres, finite) and optional reference class indices
+        (values outside the classes are ignored for the per-class rows)."""
+        pred, std, ref = (np.asarray(a, np.float64).ravel() for a in (pred, std, ref))
+        if pred.size == 0:
+            return
+        nb = len(self.edges) - 1
+        err = np.abs(ref - pred)
+        sigma = np.maximum(std, self.min_std)
+        g_nll = gaussian_nll_terms(pred, std, ref, self.min_std)
+        l_nll, l_crps = laplace_terms(pred, std, ref, self.min_std)
+        g_crps = crps_gaussian(pred, std, ref, self.min_std)
+        cols = np.stack([np.ones_like(err), err <= sigma, err <= 2 * sigma, g_nll, l_nll, g_crps, l_crps], 1)
+        b = self._bins(ref)
+        rows = [(b, np.ones(b.size, bool))]
+        if self.class_names and labels is not None:
+            lab = np.asarray(labels).ravel().astype(np.int64)
+            ok = (lab >= 0) & (lab < len(self.class_names))
+            rows.append((nb + lab, ok))
+        for idx, ok in rows:
+            for k in range(cols.shape[1]):
+                self.sums[:, k] += np.bincount(idx[ok], weights=cols[ok, k], minlength=self.sums.shape[0])
+        lab_col = np.asarray(labels).ravel().astype(np.int64) if labels is not None else np.full(b.size, -1)
+        self.sample.add(abs_error=err, std=std, bin=b.astype(np.int64), label=lab_col)
+
+    def _row(self, k: int) -> dict[str, Any]:
+        n, w1, w2, gn, ln, gc, lc = self.sums[k]
+        if n == 0:
+            return {"n_pixels": 0}
+        return {"n_pixels": int(n), "coverage_1sigma": w1 / n, "coverage_2sigma": w2 / n,
+                "nll_gaussian": gn / n, "nll_laplace": ln / n, "crps_gaussian_m": gc / n, "crps_laplace_m": lc / n}
+
+    @staticmethod
+    def _sampled(err: np.ndarray, std: np.ndarray) -> dict[str, Any]:
+        if err.size == 0:
+            return {}
+        sigma = np.maximum(std, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = [float(np.mean(err <= _gaussian_quantile(p) * sigma)) for p in RELIABILITY_LEVELS]
+        med_err, med_std = float(np.median(err)), float(np.median(std))
+        return {"median_abs_error_m": med_err, "median_std_m": med_std,
+                "median_std_over_median_abs_error": med_std / med_err if med_err > 0 else math.nan,
+                "mean_abs_error_m": float(err.mean()), "max_std_m": float(std.max()),
+                "spearman_std_vs_abs_error": spearman(std, err), "reliability_observed": rel}
+
+    def result(self) -> dict[str, Any]:
+        """``bins`` (one dict per reference-height bin: ``range_m``, ``share``, the exact scores and the sampled
+        medians, Spearman and reliability), ``classes`` (the same per class, when given),
+        ``reliability_levels`` and the overall scores."""
+        nb = len(self.edges) - 1
+        if self.sample.total:
+            err, std = self.sample.get("abs_error"), self.sample.get("std")
+            bins_s, labels_s = self.sample.get("bin"), self.sample.get("label")
+        else:
+            err = std = np.empty(0)
+            bins_s = labels_s = np.empty(0, np.int64)
+        total = self.sums[:nb, 0].sum()
+        bins = []
+        for k in range(nb):
+            sel = bins_s == k
+            row = {"range_m": [float(self.edges[k]), float(self.edges[k + 1])],
+                   "share": float(self.sums[k, 0] / total) if total else math.nan, **self._row(k),
+                   **self._sampled(err[sel], std[sel])}
+            bins.append(row)
+        out: dict[str, Any] = {"reliability_levels": list(RELIABILITY_LEVELS), "bins": bins,
+                               "min_std_m": self.min_std}
+        if total:
+            n = total
+            keys = ("nll_gaussian", "nll_laplace", "crps_gaussian_m", "crps_laplace_m")
+            out.update({key: float(self.sums[:nb, 3 + i].sum() / n) for i, key in enumerate(keys)})
+        if self.class_names:
+            out["classes"] = {name: {**self._row(nb + c), **self._sampled(err[labels_s == c], std[labels_s == c])}
+                              for c, name in enumerate(self.class_names)}
+        return out
+
+
 __all__ = [
+    "RELIABILITY_LEVELS",
+    "SpreadStrata",
+    "crps_gaussian",
+    "laplace_terms",
     "CalibrationBins",
     "DEFAULT_ECE_BINS",
     "DEFAULT_MIN_STD",

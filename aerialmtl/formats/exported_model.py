@@ -42,13 +42,22 @@ OPSET = 18
 METADATA_VERSION = 1
 #: Metadata section of an OpenVINO IR's ``rt_info``.
 OPENVINO_SECTION = "model_info"
+#: The output of an aleatoric height head's spread (metres).
+HEIGHT_STD_OUTPUT = "height_std"
 #: Deepness's model type per task.
-MODEL_TYPES = {"height": "Regressor", "classes": "Segmentor"}
+MODEL_TYPES = {"height": "Regressor", HEIGHT_STD_OUTPUT: "Regressor", "classes": "Segmentor"}
 
 
 def model_tasks(meta: ModelMeta) -> tuple[str, ...]:
-    """The checkpoint's tasks in output order (``height`` before ``classes``)."""
-    return tuple(t for t in ("height", "classes") if t in meta.model.tasks)
+    """The checkpoint's exportable outputs in order: ``height``, ``height_std`` (a model with an aleatoric
+    height head: its one-pass spread √2·b in metres), ``classes``."""
+    out: list[str] = []
+    for t in ("height", "classes"):
+        if t in meta.model.tasks:
+            out.append(t)
+            if t == "height" and meta.model.aleatoric:
+                out.append(HEIGHT_STD_OUTPUT)
+    return tuple(out)
 
 
 def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibrated: bool = False) -> dict[str, str]:
@@ -57,6 +66,9 @@ def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibra
     outputs = model_tasks(meta) if task == "all" else (task,)
     k = meta.classes.num_classes if meta.classes is not None else 0
     shapes = {"height": {"shape": ["N", 1, tile, tile], "unit": "m", "meaning": "height above ground"},
+              HEIGHT_STD_OUTPUT: {"shape": ["N", 1, tile, tile], "unit": "m",
+                                  "meaning": "height standard deviation of the aleatoric head (sqrt(2)·b, one "
+                                             "deterministic pass: no MC dropout, no spread calibration)"},
               "classes": {"shape": ["N", k, tile, tile], "unit": "1",
                           "meaning": "class probabilities (softmax over the class axis)"}}
     values: dict[str, Any] = {}
@@ -66,6 +78,9 @@ def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibra
             values["class_names"] = {str(i): c.name for i, c in enumerate(meta.classes.classes)}
         elif task == "height":
             values["class_names"] = {"0": "height (m)"}
+            values["reg_output_scaling"] = 1.0
+        elif task == HEIGHT_STD_OUTPUT:
+            values["class_names"] = {"0": "height standard deviation (m)"}
             values["reg_output_scaling"] = 1.0
     values.update({
         "resolution": round(meta.gsd * 100.0, 6),
@@ -122,5 +137,5 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     return {p.key: json.loads(p.value) for p in proto.metadata_props}
 
 
-__all__ = ["INPUT", "METADATA_VERSION", "MODEL_TYPES", "OPENVINO_SECTION", "OPSET", "deepness_input_problem",
-           "export_metadata", "model_tasks", "read_metadata"]
+__all__ = ["HEIGHT_STD_OUTPUT", "INPUT", "METADATA_VERSION", "MODEL_TYPES", "OPENVINO_SECTION", "OPSET",
+           "deepness_input_problem", "export_metadata", "model_tasks", "read_metadata"]

@@ -5,7 +5,8 @@ One folder per orthophoto, all layers Cloud-Optimized GeoTIFFs on one grid (the 
 model's GSD)::
 
     height.tif               float32, metres above ground (MC mean), nodata FLOAT_NODATA
-    height_std.tif           float32, metres, MC-dropout standard deviation          (T > 1)
+    height_std.tif           float32, metres, predictive standard deviation: MC dropout (T > 1),
+                             plus the aleatoric Laplace scale of a model with model.aleatoric (any T)
     classes.tif              uint8 class index, nodata CLASS_NODATA, colour table,
                              tag CLASS_SCHEME_TAG = the class scheme as JSON
     class_entropy.tif        float32, predictive entropy (nats)                       (T > 1)
@@ -162,24 +163,32 @@ class LayerSpec:
 
 
 def prediction_layers(
-    tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False
+    tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False, aleatoric: bool = False,
+    tta: bool = False,
 ) -> tuple[LayerSpec, ...]:
     """The layers a prediction writes, in :data:`LAYERS` order.
 
     Args:
         tasks: the model's tasks (``"height"``, ``"classes"``).
         classes: the class scheme (required with the ``classes`` task).
-        mc: MC-dropout samples T; uncertainty layers only for T > 1.
+        mc: MC-dropout samples T; uncertainty layers only for T > 1 (``height_std`` at T = 1 too with
+            ``aleatoric``).
         probabilities: also the K-band ``class_probabilities`` layer.
+        aleatoric: the model's height head predicts a Laplace scale: ``height_std`` is the predictive
+            spread (MC dropout and the aleatoric scale).
+        tta: test-time augmentation (8 views): uncertainty layers at any T.
     """
     specs: list[LayerSpec] = []
-    unc = mc > 1
+    unc = mc > 1 or tta
     if HEIGHT in tasks:
         specs.append(LayerSpec(HEIGHT, 1, "float32", FLOAT_NODATA, ("height above ground (MC mean)",),
                                (LAYER_UNITS[HEIGHT],)))
-        if unc:
+        if unc or aleatoric:
+            parts = (["MC dropout"] if mc > 1 else []) + (["test-time augmentation"] if tta else []) + (
+                ["aleatoric scale"] if aleatoric else [])
+            what = ", ".join(parts)
             specs.append(LayerSpec(HEIGHT_STD, 1, "float32", FLOAT_NODATA,
-                                   ("height standard deviation (MC dropout)",), (LAYER_UNITS[HEIGHT_STD],)))
+                                   (f"height standard deviation ({what})",), (LAYER_UNITS[HEIGHT_STD],)))
     if CLASSES in tasks:
         if classes is None:
             raise InputError("the classes task needs a class scheme; pass the checkpoint's ModelMeta.classes")

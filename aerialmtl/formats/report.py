@@ -7,6 +7,7 @@
     report_sparsification.png    optional plots (same stem; :data:`PLOT_SUFFIXES`)
     report_confusion.png
     report_reliability.png
+    report_height_reliability.png
 
 The JSON path must end in ``.json`` (:func:`report_files` refuses anything else, so the Markdown never
 lands on the JSON). Every file is written through a staging file and renamed into place
@@ -29,7 +30,7 @@ REPORT_SUFFIX = ".json"
 SUMMARY_SUFFIX = ".md"
 #: Plot kind → file name suffix after the report's stem.
 PLOT_SUFFIXES = {"sparsification": "_sparsification.png", "confusion": "_confusion.png",
-                 "reliability": "_reliability.png"}
+                 "reliability": "_reliability.png", "height_reliability": "_height_reliability.png"}
 
 
 def report_files(out: str | Path, plots: bool = True) -> list[Path]:

@@ -50,9 +50,9 @@ from aerialmtl.models.mc_dropout import (
     DropoutSite,
     McStatistics,
     accumulate_samples,
-    class_probabilities,
     dropout_masks,
     dropout_sites,
+    single_pass_statistics,
 )
 from aerialmtl.runtime import CpuThreads, resolve_threads
 
@@ -140,10 +140,16 @@ class _MaskMul(nn.Module):
         return x * self.mask
 
 
+def model_outputs(model: nn.Module, tasks: Sequence[str]) -> tuple[str, ...]:
+    """The keys of ``model``'s output dict in order: its ``outputs`` (a D3-Net: the tasks, plus
+    ``height_scale`` for an aleatoric head), else ``tasks``."""
+    return tuple(getattr(model, "outputs", None) or tasks)
+
+
 class _Forward(nn.Module):
     def __init__(self, model: nn.Module, tasks: Sequence[str]) -> None:
         super().__init__()
-        self.model, self.tasks = model, tuple(tasks)
+        self.model, self.tasks = model, model_outputs(model, tasks)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         out = self.model(x)
@@ -167,7 +173,7 @@ class _Decoder(nn.Module):
         import copy
 
         self.model = copy.deepcopy(model).eval()
-        self.tasks, self.n_feats = tuple(tasks), n_feats
+        self.tasks, self.n_feats = model_outputs(model, tasks), n_feats
         self.sites: list[_MaskMul] = []
         for parent in list(self.model.modules()):
             for name, child in list(parent.named_children()):
@@ -209,7 +215,7 @@ class OpenVINOEngine:
         self.raw_model = model
         self._model: nn.Module | None = None
         self.in_channels = in_channels
-        self.tasks = tuple(tasks)
+        self.tasks = model_outputs(model, tasks)  # output order of the converted graphs
         self.precision = precision
         #: Threads and streams the model is compiled for (:func:`aerialmtl.runtime.resolve_threads`).
         self.threads = threads if threads is not None else resolve_threads()
@@ -507,11 +513,9 @@ class _Forward1:
         outs = [job.outputs() for job in self.jobs]
         raw = {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) if len(outs) > 1
                else torch.from_numpy(outs[0][k]) for k, task in enumerate(self.tasks)}
-        stats = McStatistics()
-        if "height" in raw:
-            stats.height_mean = raw["height"][:, 0].clone()
-        if "classes" in raw:
-            stats.probs = class_probabilities(raw["classes"])
+        stats = single_pass_statistics(raw)
+        if stats.height_mean is not None:  # a view of the buffer, which goes back to the pool
+            stats.height_mean = stats.height_mean.clone()
         for o in outs:
             self.pool.give(o)
         return stats

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import shutil
 import warnings
@@ -43,6 +44,7 @@ from aerialmtl import __version__
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.exported_model import (
+    HEIGHT_STD_OUTPUT,
     INPUT,
     OPENVINO_SECTION,
     OPSET,
@@ -52,11 +54,12 @@ from aerialmtl.formats.exported_model import (
 )
 from aerialmtl.io.outputs import OutputFolder, check_files_not_input, staging_path
 from aerialmtl.models.calibration import Calibration
+from aerialmtl.models.config import HEIGHT_SCALE
 
 Format = Literal["onnx", "openvino"]
-Task = Literal["all", "height", "classes"]
+Task = Literal["all", "height", "height_std", "classes"]
 FORMATS: tuple[str, ...] = ("onnx", "openvino")
-TASKS: tuple[str, ...] = ("all", "height", "classes")
+TASKS: tuple[str, ...] = ("all", "height", "height_std", "classes")
 class ExportHead(nn.Module):
     """The exported computation: the model's deterministic forward, class logits turned into probabilities,
     heights through the checkpoint's calibration (when given) as ``aerialmtl predict`` applies it.
@@ -74,6 +77,8 @@ class ExportHead(nn.Module):
         super().__init__()
         self.model = model
         self.tasks = tasks
+        if calibration is not None and not calibration.height_applied:  # validation said: heights unchanged
+            calibration = None
         self.calibrated = calibration is not None
         if calibration is not None:  # the piecewise-linear map as segments, 1×(K−1)×1×1 each
             x = torch.tensor(calibration.height_x, dtype=torch.float32)
@@ -96,6 +101,8 @@ class ExportHead(nn.Module):
         for t in self.tasks:
             if t == "classes":
                 results.append(torch.softmax(out[t], dim=1))
+            elif t == HEIGHT_STD_OUTPUT:  # the aleatoric spread of one pass: sqrt(2)·b
+                results.append(out[HEIGHT_SCALE] * math.sqrt(2.0))
             else:
                 results.append(self.calibrate(out[t]) if self.calibrated else out[t])
         return tuple(results)

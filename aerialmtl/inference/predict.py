@@ -170,7 +170,7 @@ def _record_timings(path: Path, timings: dict[str, float]) -> None:
 def _stats_window(stats: McStatistics, n: int) -> McStatistics:
     """The statistics of window ``n`` of a batch (views)."""
     return McStatistics(*(None if t is None else t[n] for t in (stats.height_mean, stats.height_std, stats.probs,
-                                                                 stats.mean_entropy)))
+                                                                 stats.mean_entropy, stats.height_aleatoric)))
 
 
 # ---- the predictor -----------------------------------------------------------------------------
@@ -207,6 +207,9 @@ class Predictor:
             records whether it was applied.
         rescale_input: map an orthophoto whose values do not match the training data's onto the training
             range instead of refusing it (:mod:`aerialmtl.inference.sanity`).
+        engine: ``auto``, ``torch`` or ``openvino`` (:func:`~aerialmtl.inference.engines.resolve_engine`).
+        tta: test-time augmentation: each window also flipped and rotated (8 views), combined like MC samples
+            into the maps and their spread (:class:`~aerialmtl.inference.runner.ModelRunner`); 8× the work.
         threads: inference threads on a CPU: a number, or ``"auto"``/``None`` (the
             :data:`~aerialmtl.runtime.THREADS_ENV` environment variable, else torch's own count);
             OpenVINO splits them into streams (:func:`aerialmtl.runtime.resolve_threads`), and
@@ -232,6 +235,7 @@ class Predictor:
         calibration: bool = True,
         rescale_input: bool = False,
         engine: str = "auto",
+        tta: bool = False,
         threads: int | str | None = None,
     ) -> None:
         check_tiling(tile, overlap)
@@ -269,14 +273,17 @@ class Predictor:
         self.calibration = self.meta.calibration if calibration else None
         self.calibration_available = self.meta.calibration is not None
         self.rescale_input = rescale_input
+        self.tta = bool(tta)
         # the checkpoint hashed once: provenance and the OpenVINO cache's key
         weights_key = self.fingerprint if self.engine == "openvino" else None
         self.runner = ModelRunner(model, self.meta, self.device, self.precision, self.mc, seed, max_decode_pixels,
-                                  compile, self.engine, threads=self.threads, weights_key=weights_key)
+                                  compile, self.engine, tta=self.tta, threads=self.threads, weights_key=weights_key)
         tasks = tuple(self.meta.model.tasks)
         self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
-        self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, probabilities)
+        self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, probabilities,
+                                                                 aleatoric=self.meta.model.aleatoric,
+                                                                 tta=self.tta)
         self._batch: dict[tuple[int, int], int] = {}
 
     @property
@@ -533,7 +540,7 @@ class Predictor:
         engine = getattr(self, "engine", None)
         return {
             "checkpoint": self.fingerprint,
-            "settings": {"mc_samples": self.mc, "seed": self.seed, "precision": self.precision,
+            "settings": {"mc_samples": self.mc, "tta": self.tta, "seed": self.seed, "precision": self.precision,
                          "engine": str(getattr(engine, "name", engine) or "torch"),
                          "probabilities": bool(self.probabilities), "aoi": file_fingerprint(aoi),
                          "calibration": self.calibration is not None,
@@ -556,6 +563,7 @@ class Predictor:
             "checkpoint": self.checkpoint_name,
             "model": model_summary(self.meta),
             "mc_samples": self.mc,
+            "tta": self.tta,
             "seed": self.seed,
             "tile": self.tile,
             "overlap": self.overlap,
@@ -618,6 +626,7 @@ def predict_raster(
     calibration: bool = True,
     rescale_input: bool = False,
     engine: str = "auto",
+    tta: bool = False,
     threads: int | str | None = None,
 ) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
@@ -635,7 +644,7 @@ def predict_raster(
     predictor = Predictor(checkpoint, mc=mc, tile=tile, overlap=overlap, batch_size=batch_size, precision=precision,
                           device=device, probabilities=probabilities, max_decode_pixels=max_decode_pixels,
                           compile=compile, seed=seed, checkpoint_name=checkpoint_name, calibration=calibration,
-                          rescale_input=rescale_input, engine=engine, threads=threads)
+                          rescale_input=rescale_input, engine=engine, tta=tta, threads=threads)
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 

@@ -29,7 +29,7 @@ from torch import nn
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.models.d3net import fold_batchnorm
-from aerialmtl.models.mc_dropout import McStatistics, class_probabilities, mc_statistics
+from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
 if TYPE_CHECKING:
     from aerialmtl.inference.engines import OpenVINOEngine, Pending
@@ -164,14 +164,58 @@ class TorchEngine:
         with torch.inference_mode(), _autocast(self.device, self.precision):
             if samples == 1:
                 self.model.eval()
-                raw = self.net(x)
-                stats = McStatistics()
-                if "height" in self.tasks:
-                    stats.height_mean = raw["height"][:, 0].float()
-                if "classes" in self.tasks:
-                    stats.probs = class_probabilities(raw["classes"])
-                return stats
+                return single_pass_statistics(self.net(x))
             return mc_statistics(self.net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys)
+
+
+#: The 8 views of test-time augmentation: (90° rotations k, then a horizontal flip).
+DIHEDRAL: tuple[tuple[int, bool], ...] = tuple((k, f) for f in (False, True) for k in range(4))
+
+
+def dihedral(x: torch.Tensor, t: int, dims: tuple[int, int]) -> torch.Tensor:
+    """View ``t`` of :data:`DIHEDRAL` of ``x`` over its two spatial ``dims``."""
+    k, flip = DIHEDRAL[t]
+    y = torch.rot90(x, k, dims) if k else x
+    return torch.flip(y, (dims[1],)) if flip else y
+
+
+def _undo(x: torch.Tensor, t: int) -> torch.Tensor:
+    """The inverse of :func:`dihedral` view ``t`` on a (B, h, w[, K]) statistic."""
+    k, flip = DIHEDRAL[t]
+    y = torch.flip(x, (2,)) if flip else x
+    return torch.rot90(y, -k, (1, 2)) if k else y
+
+
+def invert_statistics(stats: McStatistics, t: int) -> McStatistics:
+    """The statistics of view ``t`` back on the window's own grid."""
+    return McStatistics(*(None if v is None else _undo(v, t).contiguous() for v in (
+        stats.height_mean, stats.height_std, stats.probs, stats.mean_entropy, stats.height_aleatoric)))
+
+
+def combine_tta(parts: Sequence[McStatistics]) -> McStatistics:
+    """The statistics of V views together, each a mixture component of equal weight: mean height = mean of the
+    view means; ``height_std² = mean of the view variances + variance of the view means`` (the law of total
+    variance, as for the MC samples); probabilities averaged; the expected entropy averaged (per view: its
+    mean per-sample entropy, or the entropy of its probabilities at T = 1)."""
+    n = len(parts)
+    out = McStatistics()
+    if parts[0].height_mean is not None:
+        means = torch.stack([p.height_mean for p in parts if p.height_mean is not None])
+        out.height_mean = means.mean(0)
+        spread = means.var(0, unbiased=False)
+        if parts[0].height_std is not None:
+            spread = spread + torch.stack([p.height_std for p in parts if p.height_std is not None]).square().mean(0)
+        out.height_std = spread.sqrt()
+        if parts[0].height_aleatoric is not None:
+            out.height_aleatoric = torch.stack([p.height_aleatoric for p in parts
+                                                if p.height_aleatoric is not None]).square().mean(0).sqrt()
+    if parts[0].probs is not None:
+        probs = [p.probs for p in parts if p.probs is not None]
+        out.probs = torch.stack(probs).mean(0)
+        ents = [p.mean_entropy if p.mean_entropy is not None
+                else -(q * torch.log(q.clamp_min(1e-12))).sum(-1) for p, q in zip(parts, probs)]
+        out.mean_entropy = torch.stack(ents).sum(0) / n
+    return out
 
 
 class ModelRunner:
@@ -188,6 +232,9 @@ class ModelRunner:
         max_decode_pixels: see :data:`DECODE_PIXELS`.
         compile: apply ``torch.compile`` (:func:`compile_model`; torch engine only).
         engine: ``"torch"`` or ``"openvino"`` (already resolved).
+        tta: test-time augmentation: every window is also run flipped and rotated by 90°, 180°, 270° (8
+            views); the views are combined like MC samples (:func:`combine_tta`), so ``height_std`` also
+            holds their disagreement. 8 times the model's work.
         threads: inference threads and streams on a CPU (:func:`aerialmtl.runtime.resolve_threads`).
         weights_key: the checkpoint's fingerprint, when the caller has it: keys the OpenVINO cache without
             hashing the weights again.
@@ -195,9 +242,10 @@ class ModelRunner:
 
     def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
                  mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
-                 engine: Literal["torch", "openvino"] = "torch", threads: runtime.CpuThreads | None = None,
-                 weights_key: str | None = None) -> None:
+                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False,
+                 threads: runtime.CpuThreads | None = None, weights_key: str | None = None) -> None:
         self.device = device
+        self.tta = tta
         self.precision = precision
         self.mc = mc
         self.seed = seed
@@ -240,10 +288,11 @@ class ModelRunner:
     @property
     def in_flight(self) -> int:
         """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`): one per stream on
-        the OpenVINO engine at T = 1, none on torch (it computes synchronously)."""
+        the OpenVINO engine at T = 1, none on torch or with TTA (they compute synchronously)."""
         from aerialmtl.inference.engines import OpenVINOEngine
 
-        return self.threads.streams if isinstance(self.engine, OpenVINOEngine) and self.mc == 1 else 0
+        ahead = isinstance(self.engine, OpenVINOEngine) and self.mc == 1 and not self.tta
+        return self.threads.streams if ahead else 0
 
     def to_device(self, data: Sequence[np.ndarray | torch.Tensor], valid: Sequence[np.ndarray]) -> tuple[
             torch.Tensor, torch.Tensor]:
@@ -264,12 +313,27 @@ class ModelRunner:
         return x.contiguous(memory_format=torch.channels_last)
 
     def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
-        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
-        return self.submit(x, keys).result()
+        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`); with
+        :attr:`tta`, those of the 8 flips and 90° rotations combined (:func:`combine_tta`)."""
+        if not self.tta:
+            return self.submit(x, keys).result()
+        b, _, h, w = x.shape
+        chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
+        parts = []
+        for t in range(len(DIHEDRAL)):
+            xt = dihedral(x, t, (2, 3)).contiguous(memory_format=torch.channels_last)
+            tkeys = [int(k) * len(DIHEDRAL) + t for k in keys]  # other masks per view, still seeded per window
+            parts.append(invert_statistics(self.engine.statistics(xt, tkeys, self.mc, self.seed, chunk), t))
+        return combine_tta(parts)
 
     def submit(self, x: torch.Tensor, keys: Sequence[int]) -> Pending:
         """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` gives them (the same
-        numbers as :meth:`__call__`). Up to :attr:`in_flight` batches run while the caller stitches."""
+        numbers as :meth:`__call__`). Up to :attr:`in_flight` batches run while the caller stitches (with
+        :attr:`tta`, the views are computed here, one after the other)."""
+        if self.tta:
+            from aerialmtl.inference.engines import Done
+
+            return Done(self(x, keys))
         b, _, h, w = x.shape
         chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
         return self.engine.submit(x, keys, self.mc, self.seed, chunk)

@@ -20,7 +20,8 @@ Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each w
 
 * ``height_mean`` → ``height``; ``height_std`` → ``height_std`` (weighted mean of the window stds);
   with a ``calibration`` (:class:`~aerialmtl.models.calibration.Calibration`, from the checkpoint) the
-  finished values go through its height map and spread factor;
+  finished values go through its height map and its spread map (by range of the predicted height), each
+  where the checkpoint says it is applied;
 * ``probs`` (K, channels last) → ``classes`` (argmax), ``class_entropy`` (entropy of the blended
   probabilities), ``class_probabilities``;
 * ``mean_entropy`` (mean per-sample entropy) → ``class_mutual_info = clip(entropy − blended mean
@@ -327,10 +328,11 @@ class Stitcher:
         if HEIGHT_STD in specs:
             values[HEIGHT_STD] = (acc["height_std"][rs, cs] / safe).clamp_min_(0.0)
         if self.calibration is not None:  # the one place the checkpoint's calibration is applied
-            if HEIGHT in values:
-                values[HEIGHT] = self.calibration.height_torch(values[HEIGHT])
-            if HEIGHT_STD in values:
-                values[HEIGHT_STD] = self.calibration.std_torch(values[HEIGHT_STD])
+            raw_height = values.get(HEIGHT)
+            if HEIGHT_STD in values:  # the spread's range is that of the predicted (uncalibrated) height
+                values[HEIGHT_STD] = self.calibration.std_torch(values[HEIGHT_STD], raw_height)
+            if raw_height is not None:
+                values[HEIGHT] = self.calibration.height_torch(raw_height)
         if "probs" not in acc:
             return values
         probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)

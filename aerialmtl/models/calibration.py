@@ -19,15 +19,25 @@ correct both after training, fitted on validation pixels only:
     the reference, so the calibrated heights have the validation's height distribution (it undoes a
     compression fully, at the price of more spread for pixels whose prediction is uncertain).
 
-* **spread**: ``σ = sqrt((std_scale · height_std)² + std_floor²)`` with the factor and the floor fitted so
-  that ±1 σ covers 68.3 % and ±2 σ as close to 95.4 % as the pair allows of the validation pixels'
-  calibrated errors, as a Gaussian would. The floor matters: where the decoder's features are all zero
-  (confident ground), every MC sample gives the same height and the MC spread is ~0, which no factor
-  can turn into an interval.
+* **spread**: ``σ = sqrt((s_k · height_std)² + f_k²)`` with a factor ``s_k`` and a floor ``f_k`` per range
+  ``k`` of the predicted height (:data:`SPREAD_EDGES`, ranges with too few validation pixels merged into
+  their neighbour), each chosen for the lowest Gaussian CRPS of that range's validation pixels
+  (:func:`fit_spread_crps`): the spread holds per height range, not only on average (one factor for all
+  heights, fitted to a coverage, made ground ~0 m and roofs hundreds of metres wide). The floor matters:
+  where the decoder's features are all zero, every MC sample gives the same height and the MC spread is
+  ~0, which no factor can turn into an interval. (Checkpoints calibrated before this release hold one
+  factor and floor fitted to ±1σ/±2σ coverage, :func:`fit_spread`; they are applied as they are.)
+
+**Never worse than none** (:func:`fit_calibration` with ``folds``): each part is applied only if it is
+better on validation pixels it was not fitted on (two folds of the validation patches, each fitted on the
+other): the height map only if it lowers the MAE, the spread map only if it lowers the CRPS (a proper
+score of the spread). A part that is not applied is the identity, and the checkpoint records why
+(:attr:`Calibration.notes`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -40,6 +50,10 @@ CalibrationMethod = Literal["isotonic", "median", "quantile"]
 ONE_SIGMA = 0.6826894921370859
 TWO_SIGMA = 0.9544997361036416
 DEFAULT_KNOTS = 64
+#: Inner edges (metres of predicted height) of the ranges whose spread is fitted alone.
+SPREAD_EDGES: tuple[float, ...] = (1.0, 2.0, 5.0, 10.0, 20.0)
+#: Fewest validation pixels a range needs to be fitted alone (else it joins its lower neighbour).
+MIN_RANGE_PIXELS = 2000
 
 
 @dataclass(frozen=True)
@@ -54,6 +68,13 @@ class Calibration:
         method: ``isotonic``, ``median`` or ``quantile``.
         n_pixels: validation pixels the maps were fitted on.
         source: what they were fitted on (e.g. ``val split of TILES, T=16``).
+        height_applied: the height map is applied (``False``: it did not lower the cross-fitted
+            validation MAE, and heights pass unchanged).
+        spread_applied: the spread map is applied (``False``: it did not lower the cross-fitted CRPS).
+        std_edges: inner edges (metres of predicted height) of the spread ranges; empty = one range with
+            ``std_scale``/``std_floor`` (older calibrations).
+        std_scales, std_floors: factor and floor per range (``len(std_edges) + 1`` each).
+        notes: what the validation said of each part (cross-fitted scores, why a part is off).
     """
 
     height_x: tuple[float, ...]
@@ -63,6 +84,12 @@ class Calibration:
     n_pixels: int = 0
     source: str = ""
     std_floor: float = 0.0
+    height_applied: bool = True
+    spread_applied: bool = True
+    std_edges: tuple[float, ...] = ()
+    std_scales: tuple[float, ...] = ()
+    std_floors: tuple[float, ...] = ()
+    notes: str = ""
 
     def __post_init__(self) -> None:
         if len(self.height_x) != len(self.height_y) or len(self.height_x) < 2:
@@ -74,36 +101,77 @@ class Calibration:
             raise ValueError(f"Calibration: std_scale must be finite and ≥ 0, got {self.std_scale}")
         if not (math.isfinite(self.std_floor) and self.std_floor >= 0):
             raise ValueError(f"Calibration: std_floor must be finite and ≥ 0, got {self.std_floor}")
+        if self.std_edges and not (len(self.std_scales) == len(self.std_floors) == len(self.std_edges) + 1):
+            raise ValueError("Calibration: std_scales and std_floors need one value per range (len(std_edges) + 1)")
+        if any(not (math.isfinite(v) and v >= 0) for v in (*self.std_scales, *self.std_floors)):
+            raise ValueError("Calibration: std_scales and std_floors must be finite and ≥ 0")
 
     def height(self, h: np.ndarray) -> np.ndarray:
         """Calibrated heights (metres) of predicted heights ``h`` (any shape; NaN stays NaN)."""
+        if not self.height_applied:
+            return np.asarray(h)
         x, y = np.asarray(self.height_x), np.asarray(self.height_y)
         out = np.interp(h, x, y)
         beyond = h > x[-1]
         out = np.where(beyond, y[-1] + (h - x[-1]), out)
         return np.maximum(out, 0.0).astype(np.asarray(h).dtype, copy=False)
 
-    def std(self, s: np.ndarray) -> np.ndarray:
-        """Calibrated spreads (metres): ``sqrt((std_scale · s)² + std_floor²)``."""
-        out = np.hypot(np.asarray(s, dtype=np.float64) * self.std_scale, self.std_floor)
-        return out.astype(np.asarray(s).dtype, copy=False)
+    def _range_values(self) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        if self.std_edges:
+            return self.std_edges, self.std_scales, self.std_floors
+        return (), (self.std_scale,), (self.std_floor,)
 
-    def std_torch(self, s: torch.Tensor) -> torch.Tensor:
-        """:meth:`std` on a tensor."""
-        return torch.hypot(s * self.std_scale, torch.full_like(s, self.std_floor))
+    def std(self, s: np.ndarray, h: np.ndarray | None = None) -> np.ndarray:
+        """Calibrated spreads (metres): ``sqrt((s_k · s)² + f_k²)`` with the range ``k`` of the predicted
+        (uncalibrated) height ``h`` (same shape; needed when the spread is fitted per range)."""
+        s_arr = np.asarray(s)
+        if not self.spread_applied:
+            return s_arr
+        edges, scales, floors = self._range_values()
+        if edges:
+            if h is None:
+                raise ValueError("Calibration.std: this calibration is fitted per height range; pass the heights")
+            k = np.searchsorted(np.asarray(edges), np.asarray(h, np.float64), side="right")
+            sc: np.ndarray | float = np.asarray(scales)[k]
+            fl: np.ndarray | float = np.asarray(floors)[k]
+        else:
+            sc, fl = scales[0], floors[0]
+        out = np.hypot(np.asarray(s, dtype=np.float64) * sc, fl)
+        return out.astype(s_arr.dtype, copy=False)
+
+    def std_torch(self, s: torch.Tensor, h: torch.Tensor | None = None) -> torch.Tensor:
+        """:meth:`std` on tensors (``h``: the predicted, uncalibrated heights)."""
+        if not self.spread_applied:
+            return s
+        edges, scales, floors = self._range_values()
+        if edges:
+            if h is None:
+                raise ValueError("Calibration.std_torch: this calibration is fitted per height range; pass the heights")
+            k = torch.bucketize(h.contiguous(), torch.tensor(edges, dtype=h.dtype, device=h.device), right=True)
+            sc = torch.tensor(scales, dtype=s.dtype, device=s.device)[k]
+            fl = torch.tensor(floors, dtype=s.dtype, device=s.device)[k]
+            return torch.hypot(s * sc, fl)
+        return torch.hypot(s * scales[0], torch.full_like(s, floors[0]))
 
     def height_torch(self, h: torch.Tensor) -> torch.Tensor:
         """:meth:`height` on a tensor (any device, float dtype kept)."""
+        if not self.height_applied:
+            return h
         x = torch.tensor(self.height_x, dtype=h.dtype, device=h.device)
         y = torch.tensor(self.height_y, dtype=h.dtype, device=h.device)
         return interp_torch(h, x, y).clamp_min_(0.0)
 
     def summary(self) -> str:
+        """One line: what is applied, fitted on how many pixels."""
         pts = ", ".join(f"{a:.1f}→{b:.1f}" for a, b in zip(self.height_x[::max(1, len(self.height_x) // 6)],
                                                         self.height_y[::max(1, len(self.height_y) // 6)],
                                                         strict=False))
-        return (f"{self.method} height map ({pts} m), std × {self.std_scale:.3g} ⊕ {self.std_floor:.2f} m, "
-                f"{self.n_pixels} px")
+        height = f"{self.method} height map ({pts} m)" if self.height_applied else "heights unchanged"
+        edges, scales, floors = self._range_values()
+        spread = ("spread " + ", ".join(f"×{a:.3g}⊕{b:.2f} m" for a, b in zip(scales, floors, strict=True))
+                  + (f" by predicted height (edges {', '.join(f'{e:g}' for e in edges)} m)" if edges else "")
+                  if self.spread_applied else "spread unchanged")
+        return f"{height}, {spread}, {self.n_pixels} px" + (f"; {self.notes}" if self.notes else "")
 
 
 def interp_torch(h: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -219,17 +287,148 @@ def fit_std_scale(abs_error: np.ndarray, std: np.ndarray, coverage: float = ONE_
     return s if math.isfinite(s) and s > 0 else 1.0
 
 
+def spread_ranges(pred: np.ndarray, edges: tuple[float, ...] = SPREAD_EDGES,
+                  min_pixels: int = MIN_RANGE_PIXELS) -> tuple[float, ...]:
+    """The inner edges of :data:`SPREAD_EDGES` kept for ``pred`` (metres): a range with fewer than
+    ``min_pixels`` predicted heights is merged into its lower neighbour."""
+    kept: list[float] = []
+    pred = np.asarray(pred, np.float64)
+    lo = -np.inf
+    for e in (*edges, np.inf):
+        n = int(np.count_nonzero((pred >= lo) & (pred < e)))
+        if n >= min_pixels and e != np.inf:
+            kept.append(float(e))
+            lo = e
+        elif e == np.inf and n < min_pixels and kept:  # the top range is too small: join it below
+            kept.pop()
+    return tuple(kept)
+
+
+def fit_spread_crps(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 50_000) -> tuple[float, float]:
+    """``(scale, floor)`` of ``σ = sqrt((scale·std)² + floor²)`` with the lowest mean Gaussian CRPS on these pixels.
+
+    The CRPS is a proper score: its minimum is the spread that is right for these errors, and it grows with σ
+    when σ is too wide, so a few pixels with a tiny MC spread cannot drive the factor to 1e7 (as matching a
+    coverage can: the other pixels then get intervals of kilometres). A log-spaced grid of factors around
+    ``median |error| / median std`` times floors at quantiles of the error, then a finer grid around the best.
+    """
+    err = np.asarray(abs_error, dtype=np.float64).ravel()
+    sd = np.asarray(std, dtype=np.float64).ravel()
+    if err.size > max_pixels:
+        keep = np.random.default_rng(0).choice(err.size, max_pixels, replace=False)
+        err, sd = err[keep], sd[keep]
+    if err.size == 0:
+        return 1.0, 0.0
+    base = float(np.median(err)) / max(float(np.median(sd)), 1e-6)
+    base = base if math.isfinite(base) and base > 0 else 1.0
+    floors = [0.0, *np.quantile(err, (0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)).tolist()]
+    best = (math.inf, 1.0, 0.0)
+    for exps in (np.linspace(-4, 4, 17), None):
+        if exps is None:  # refine around the best factor
+            centre = math.log10(max(best[1], 1e-12) / base)
+            exps = np.linspace(centre - 0.5, centre + 0.5, 11)
+        for floor in floors:
+            for e in exps:
+                scale = base * 10.0 ** float(e)
+                score = _crps(err, np.hypot(scale * sd, floor))
+                if score < best[0]:
+                    best = (score, scale, float(floor))
+    # a floor alone (scale 0) where the spread carries nothing
+    for floor in np.quantile(err, (0.2, 0.4, 0.6, 0.8)).tolist():
+        score = _crps(err, np.full_like(err, max(floor, 0.01)))
+        if score < best[0]:
+            best = (score, 0.0, float(floor))
+    return best[1], best[2]
+
+
+def _fit_spread_ranges(err: np.ndarray, std: np.ndarray, pred: np.ndarray,
+                       edges: tuple[float, ...]) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    k = np.searchsorted(np.asarray(edges), pred, side="right")
+    scales, floors = [], []
+    for r in range(len(edges) + 1):
+        sel = k == r
+        a, b = fit_spread_crps(err[sel], std[sel]) if sel.any() else (1.0, 0.0)
+        scales.append(float(a))
+        floors.append(float(b))
+    return tuple(scales), tuple(floors)
+
+
+def _crps(err: np.ndarray, sigma: np.ndarray) -> float:
+    """Mean Gaussian CRPS (metres) of errors ``err`` under spreads ``sigma`` (floored at 1 cm)."""
+    from scipy.special import erf
+
+    sig = np.maximum(sigma, 0.01)
+    z = err / sig
+    return float(np.mean(sig * (z * erf(z / math.sqrt(2)) + 2 * np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
+                                - 1 / math.sqrt(math.pi))))
+
+
+def _fit_parts(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None, method: CalibrationMethod, knots: int,
+               edges: tuple[float, ...], height: bool = True) -> Calibration:
+    """The height map (``height``: else the identity) and the per-range spread map fitted around it."""
+    x, y = fit_height_map(pred, ref, method, knots)
+    cal = Calibration(tuple(float(v) for v in x), tuple(float(v) for v in y), 1.0, method, int(np.size(pred)),
+                      height_applied=height)
+    if std is None:
+        return dataclasses.replace(cal, spread_applied=False)
+    err = np.abs(cal.height(pred) - ref)
+    scales, floors = _fit_spread_ranges(err, std, pred, edges)
+    if not edges:
+        return dataclasses.replace(cal, std_scale=scales[0], std_floor=floors[0])
+    return dataclasses.replace(cal, std_edges=edges, std_scales=scales, std_floors=floors)
+
+
 def fit_calibration(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None = None,
                     method: CalibrationMethod = "isotonic", knots: int = DEFAULT_KNOTS,
-                    source: str = "") -> Calibration:
-    """Fit the height map and (with ``std``) the spread factor on validation pixels (1-D arrays)."""
-    x, y = fit_height_map(pred, ref, method, knots)
-    cal = Calibration(tuple(float(v) for v in x), tuple(float(v) for v in y), 1.0, method, int(np.size(pred)), source)
-    if std is not None:
-        err = np.abs(cal.height(np.asarray(pred, dtype=np.float64)) - np.asarray(ref, dtype=np.float64))
-        scale, floor = fit_spread(err, std)
-        cal = Calibration(cal.height_x, cal.height_y, scale, method, cal.n_pixels, source, floor)
-    return cal
+                    source: str = "", folds: np.ndarray | None = None,
+                    edges: tuple[float, ...] | None = None) -> Calibration:
+    """Fit the height map and (with ``std``) the per-range spread map on validation pixels (1-D arrays, metres).
+
+    Args:
+        pred, ref, std: predicted height, reference height and predicted spread of the same pixels.
+        method, knots: the height map (:func:`fit_height_map`).
+        source: recorded in the result.
+        folds: one label (0 or 1) per pixel, e.g. by validation patch: each part is then kept only if,
+            fitted on one fold and scored on the other (both ways), it beats no calibration — the height
+            map on MAE, the spread map on CRPS (see the module docstring). ``None``: both parts applied.
+        edges: inner edges of the spread ranges (default: :func:`spread_ranges` of ``pred``).
+    """
+    pred = np.asarray(pred, np.float64).ravel()
+    ref = np.asarray(ref, np.float64).ravel()
+    sd = None if std is None else np.asarray(std, np.float64).ravel()
+    if edges is None:
+        edges = spread_ranges(pred)
+    cal = dataclasses.replace(_fit_parts(pred, ref, sd, method, knots, edges), source=source)
+    if folds is None:
+        return cal
+    folds = np.asarray(folds).ravel()
+    parts = [folds == 0, folds == 1]
+    if not (parts[0].any() and parts[1].any()):
+        return dataclasses.replace(cal, notes="one validation fold: both parts applied unchecked")
+    n = pred.size
+    fitted = [(score, _fit_parts(pred[fit], ref[fit], None if sd is None else sd[fit], method, knots, edges))
+              for fit, score in (parts, parts[::-1])]
+    mae_raw = float(np.abs(pred - ref).mean())
+    mae_cal = sum(float(np.abs(c.height(pred[score]) - ref[score]).sum()) for score, c in fitted) / n
+    height_ok = mae_cal < mae_raw
+    notes = [f"validation MAE {mae_raw:.3f} m raw, {mae_cal:.3f} m with the height map (cross-fitted)"
+             + ("" if height_ok else ": height map off")]
+    spread_ok = False
+    if sd is not None:
+        if not height_ok:  # the spread is fitted and judged around the raw heights the user will get
+            cal = dataclasses.replace(_fit_parts(pred, ref, sd, method, knots, edges, height=False), source=source)
+            fitted = [(score, _fit_parts(pred[fit], ref[fit], sd[fit], method, knots, edges, height=False))
+                      for fit, score in (parts, parts[::-1])]
+        crps_raw = crps_cal = 0.0
+        for score, c in fitted:
+            err = np.abs(c.height(pred[score]) - ref[score])
+            w = float(score.sum()) / n
+            crps_raw += w * _crps(err, sd[score])
+            crps_cal += w * _crps(err, c.std(sd[score], pred[score]))
+        spread_ok = crps_cal < crps_raw
+        notes.append(f"validation CRPS {crps_raw:.3f} m raw, {crps_cal:.3f} m with the spread map (cross-fitted)"
+                     + ("" if spread_ok else ": spread map off"))
+    return dataclasses.replace(cal, height_applied=height_ok, spread_applied=spread_ok, notes="; ".join(notes))
 
 
 def interval_coverage(abs_error: np.ndarray, std: np.ndarray) -> dict[str, float]:
@@ -239,5 +438,6 @@ def interval_coverage(abs_error: np.ndarray, std: np.ndarray) -> dict[str, float
             "within_2sigma": float(np.count_nonzero(abs_error <= 2 * std) / n)}
 
 
-__all__ = ["Calibration", "CalibrationMethod", "fit_calibration", "fit_height_map", "fit_spread", "fit_std_scale",
-           "interp_torch", "interval_coverage", "ONE_SIGMA"]
+__all__ = ["MIN_RANGE_PIXELS", "ONE_SIGMA", "SPREAD_EDGES", "Calibration", "CalibrationMethod", "fit_calibration",
+           "fit_height_map", "fit_spread", "fit_spread_crps", "fit_std_scale", "interp_torch", "interval_coverage",
+           "spread_ranges"]

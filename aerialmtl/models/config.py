@@ -16,9 +16,13 @@ from aerialmtl.errors import ConfigError
 
 Task = Literal["height", "classes"]
 Encoder = Literal["densenet121", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2"]
+Activation = Literal["relu", "leaky_relu"]
 
 #: The encoders a D3-Net can have; ``densenet121`` (the paper's) is the default.
 ENCODERS: tuple[str, ...] = ("densenet121", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
+
+#: The output of an aleatoric height head: the per-pixel Laplace scale b (metres).
+HEIGHT_SCALE = "height_scale"
 
 #: The tasks a D3-Net can have, in output order.
 TASKS: tuple[Task, ...] = ("height", "classes")
@@ -51,6 +55,16 @@ class Architecture:
             it) or ``efficientnet_lite0|1|2``, an option beside it: EfficientNet-Lite (no squeeze-excitation,
             ReLU6) whose stride 2–32 stage outputs feed the same D3-Net decoder (the DenseNet fields are
             then ignored). See :mod:`aerialmtl.models.efficientnet`.
+        aleatoric: the height head also predicts a per-pixel Laplace scale ``b`` (metres): the aleatoric
+            part of the height uncertainty (Kendall & Gal, NeurIPS 2017), trained with the Laplace negative
+            log-likelihood, whose maximum for a fixed ``b`` is the paper's L1 (see
+            :func:`aerialmtl.training.losses.laplace_nll`). The predictive spread then combines it with the
+            MC-dropout (epistemic) spread: ``std² = mean_t 2·b_t² + var_t μ_t``. An option beside the paper's
+            network (``false``: one height channel, MC dropout alone).
+        task_activation: the activation of the task-owned decoder blocks: ``relu`` (the paper's) or
+            ``leaky_relu`` (slope 0.01), an option: with ReLU, on many pixels every feature entering the
+            height head is 0 and the head outputs its bias alone (the same height, and the same spread, for
+            all of them).
     """
 
     growth_rate: int = 32
@@ -63,8 +77,15 @@ class Architecture:
     task_blocks: int = 2
     encoder_weights: str | None = None
     encoder: Encoder = "densenet121"
+    aleatoric: bool = False
+    task_activation: Activation = "relu"
 
     def __post_init__(self) -> None:
+        if self.task_activation not in ("relu", "leaky_relu"):
+            raise ConfigError(f"model.task_activation: must be relu (the paper's) or leaky_relu, "
+                              f"got {self.task_activation!r}")
+        if not isinstance(self.aleatoric, bool):
+            raise ConfigError(f"model.aleatoric: must be true or false, got {self.aleatoric!r}")
         if self.encoder not in ENCODERS:
             raise ConfigError(f"model.encoder: must be one of {', '.join(ENCODERS)}, got {self.encoder!r}")
         if self.encoder == "densenet121" and self.encoder_weights == "imagenet":
@@ -124,3 +145,14 @@ class ModelConfig(Architecture):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_data_fields(self.in_channels, tuple(self.tasks), self.num_classes)
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        """The keys of the model's output dict, in order: the tasks, with ``height_scale`` after ``height``
+        when :attr:`aleatoric` (B×1×H×W Laplace scale b, metres, > 0)."""
+        out: list[str] = []
+        for t in self.tasks:
+            out.append(t)
+            if t == "height" and self.aleatoric:
+                out.append(HEIGHT_SCALE)
+        return tuple(out)

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aerialmtl.errors import InputError
-from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.config import HEIGHT_SCALE, ModelConfig
 from aerialmtl.models.densenet import DenseNetEncoder
 from aerialmtl.models.efficientnet import EfficientNetLiteEncoder
 
@@ -39,6 +39,20 @@ from aerialmtl.models.efficientnet import EfficientNetLiteEncoder
 SIZE_MULTIPLE = 32
 
 TASK_CHANNELS_HEIGHT = 1
+#: Smallest Laplace scale b of an aleatoric height head (metres): keeps the NLL finite on perfect fits.
+SCALE_MIN = 0.01
+#: Initial raw output of the scale channel: softplus(0.55) + SCALE_MIN ≈ 1 m.
+SCALE_INIT = 0.55
+
+
+def laplace_scale(raw: torch.Tensor) -> torch.Tensor:
+    """Raw scale channel → Laplace scale b = softplus(raw) + :data:`SCALE_MIN` (metres, > 0), float32."""
+    return F.softplus(raw.float()) + SCALE_MIN
+
+
+def _activation(name: str) -> nn.Module:
+    """``relu`` (the paper's) or ``leaky_relu`` (slope 0.01) as an in-place module."""
+    return nn.LeakyReLU(0.01, inplace=True) if name == "leaky_relu" else nn.ReLU(inplace=True)
 
 
 class UpBlock(nn.Module):
@@ -47,17 +61,17 @@ class UpBlock(nn.Module):
     Input B×in×h×w → output B×out×2h×2w.
     """
 
-    def __init__(self, in_channels: int, out_channels: int, dropout: float = 0.0) -> None:
+    def __init__(self, in_channels: int, out_channels: int, dropout: float = 0.0, activation: str = "relu") -> None:
         super().__init__()
         # The convolutions feed a BatchNorm, so their bias would be redundant.
         self.up = nn.ConvTranspose2d(in_channels, out_channels, kernel_size=4, stride=2, padding=1, bias=False)
         self.norm1: nn.Module = nn.BatchNorm2d(out_channels)
         self.drop1: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
-        self.relu1 = nn.ReLU(inplace=True)
+        self.relu1 = _activation(activation)
         self.conv = nn.Conv2d(out_channels, out_channels, kernel_size=3, padding=1, bias=False)
         self.norm2: nn.Module = nn.BatchNorm2d(out_channels)
         self.drop2: nn.Module = nn.Dropout(dropout) if dropout > 0 else nn.Identity()
-        self.relu2 = nn.ReLU(inplace=True)
+        self.relu2 = _activation(activation)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.relu1(self.drop1(self.norm1(self.up(x))))
@@ -97,7 +111,9 @@ class D3Net(nn.Module):
         cfg: the model configuration (encoder size, tasks, classes, dropout).
 
     ``forward(x)`` maps a B×C×H×W normalised image (C = ``cfg.in_channels``, H and W multiples of 32)
-    to ``{"height": B×1×H×W metres, "classes": B×K×H×W logits}`` for the enabled tasks.
+    to ``{"height": B×1×H×W metres, "classes": B×K×H×W logits}`` for the enabled tasks, plus
+    ``"height_scale"`` (B×1×H×W Laplace scale b in metres, > 0) with ``cfg.aleatoric``; :attr:`outputs` lists
+    the keys in order.
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -126,11 +142,13 @@ class D3Net(nn.Module):
         self.shared = nn.ModuleList(
             UpBlock(ins[j], outs[j], cfg.dropout if j < cfg.dropout_blocks else 0.0) for j in range(n_shared)
         )
-        out_ch = {"height": TASK_CHANNELS_HEIGHT, "classes": cfg.num_classes}
+        out_ch = {"height": TASK_CHANNELS_HEIGHT + int(cfg.aleatoric), "classes": cfg.num_classes}
         self.heads = nn.ModuleDict({
-            t: TaskDecoder([UpBlock(ins[j], outs[j]) for j in range(n_shared, n_up)], outs[-1], out_ch[t])
+            t: TaskDecoder([UpBlock(ins[j], outs[j], activation=cfg.task_activation) for j in range(n_shared, n_up)],
+                           outs[-1], out_ch[t])
             for t in self.tasks
         })
+        self.outputs: tuple[str, ...] = cfg.outputs
         self._n_up = n_up
         self._reset_decoder()
         if cfg.encoder_weights:
@@ -152,6 +170,10 @@ class D3Net(nn.Module):
                 nn.init.zeros_(m.bias)
         for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
             nn.init.normal_(cast(TaskDecoder, head).head.weight, std=1e-3)
+        if self.cfg.aleatoric and "height" in self.heads:  # scale channel: b ≈ 1 m at start
+            bias = cast(TaskDecoder, self.heads["height"]).head.bias
+            assert bias is not None
+            nn.init.constant_(bias[TASK_CHANNELS_HEIGHT:], SCALE_INIT)
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
@@ -178,7 +200,7 @@ class D3Net(nn.Module):
         return self.encoder(x)
 
     def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Stochastic part (every dropout layer): encoder features → ``{task: B×C_t×H×W}``.
+        """Stochastic part (every dropout layer): encoder features → ``{output: B×C×H×W}`` (:attr:`outputs`).
 
         The feature batch may be larger than the image batch (MC samples stacked along B).
         """
@@ -197,7 +219,12 @@ class D3Net(nn.Module):
             for i, block in enumerate(blocks):
                 j = n_shared + i
                 y = block(torch.cat([feats[n - 1 - j], y], 1))
-            results[task] = dec.get_submodule("head")(y)
+            y = dec.get_submodule("head")(y)
+            if task == "height" and self.cfg.aleatoric:
+                results[task] = y[:, :TASK_CHANNELS_HEIGHT]
+                results[HEIGHT_SCALE] = laplace_scale(y[:, TASK_CHANNELS_HEIGHT:])
+            else:
+                results[task] = y
         return results
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -230,4 +257,4 @@ def fold_batchnorm(model: nn.Module) -> nn.Module:
     return folded
 
 
-__all__ = ["D3Net", "UpBlock", "fold_batchnorm", "pad_to_multiple", "SIZE_MULTIPLE"]
+__all__ = ["D3Net", "SCALE_MIN", "SIZE_MULTIPLE", "UpBlock", "fold_batchnorm", "laplace_scale", "pad_to_multiple"]

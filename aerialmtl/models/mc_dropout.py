@@ -45,6 +45,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from aerialmtl.models.config import HEIGHT_SCALE
+
 _DROPOUT_TYPES = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d, nn.AlphaDropout, nn.FeatureAlphaDropout)
 
 
@@ -145,7 +147,12 @@ class McStatistics:
     """What T MC-dropout samples say about each pixel (float32, on the input's device).
 
     Attributes:
-        height_mean, height_std: B×H×W metres (population std over the samples); ``None`` without height.
+        height_mean, height_std: B×H×W metres; ``None`` without height. ``height_std`` is the predictive
+            standard deviation: the population std of the T sampled heights (epistemic) and, for a model
+            with an aleatoric height head, the Laplace part too: ``sqrt(var_t μ_t + mean_t 2·b_t²)``
+            (:func:`predictive_std`).
+        height_aleatoric: B×H×W ``sqrt(mean_t 2·b_t²)`` (metres), the aleatoric part alone; ``None`` for a
+            model without an aleatoric head.
         probs: B×H×W×K mean class probabilities (channels last); ``None`` without classes.
         mean_entropy: B×H×W mean over the samples of each sample's entropy (nats), i.e. the expected
             entropy; the mutual information is ``H[probs] − mean_entropy``.
@@ -155,6 +162,7 @@ class McStatistics:
     height_std: torch.Tensor | None = None
     probs: torch.Tensor | None = None
     mean_entropy: torch.Tensor | None = None
+    height_aleatoric: torch.Tensor | None = None
 
 
 def class_probabilities(logits: torch.Tensor) -> torch.Tensor:
@@ -286,6 +294,7 @@ def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor
     h_m2: torch.Tensor | None = None
     p_sum: torch.Tensor | None = None
     ent_sum: torch.Tensor | None = None
+    a_sum: torch.Tensor | None = None
     done = 0
     while done < samples:
         s = min(chunk, samples - done)
@@ -302,6 +311,9 @@ def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor
                 n = done + s
                 h_mean = h_mean + delta * (s / n)
                 h_m2 = h_m2 + c_m2 + delta**2 * (done * s / n)
+        if HEIGHT_SCALE in out:
+            c_a = laplace_variance(out[HEIGHT_SCALE]).unflatten(0, (s, b))[:, :, 0].sum(0)
+            a_sum = c_a if a_sum is None else a_sum.add_(c_a)
         if "classes" in out:
             c_p, c_e = _class_sums(out["classes"], s, b)
             p_sum = c_p if p_sum is None else p_sum.add_(c_p)
@@ -309,10 +321,44 @@ def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor
         done += s
     if h_mean is not None and h_m2 is not None:
         stats.height_mean = h_mean
-        stats.height_std = (h_m2 / samples).clamp_min(0).sqrt()
+        epistemic_var = (h_m2 / samples).clamp_min(0)
+        if a_sum is not None:
+            aleatoric_var = a_sum.div_(samples)
+            stats.height_aleatoric = aleatoric_var.sqrt()
+            stats.height_std = predictive_std(epistemic_var, aleatoric_var)
+        else:
+            stats.height_std = epistemic_var.sqrt()
     if p_sum is not None and ent_sum is not None:
         stats.probs = p_sum.div_(samples).permute(1, 2, 3, 0).contiguous()  # planes → channels last, once
         stats.mean_entropy = ent_sum.div_(samples)
+    return stats
+
+
+def laplace_variance(scale: torch.Tensor) -> torch.Tensor:
+    """Variance ``2·b²`` (m²) of a Laplace distribution of scale ``b`` (metres), float32."""
+    b = scale.float()
+    return 2.0 * b * b
+
+
+def predictive_std(epistemic_var: torch.Tensor, aleatoric_var: torch.Tensor) -> torch.Tensor:
+    """The predictive standard deviation (metres) of a mixture of T Laplace samples: ``sqrt(var_t μ_t +
+    mean_t 2·b_t²)`` (the law of total variance; Kendall & Gal 2017), from its two parts (m²)."""
+    return (epistemic_var + aleatoric_var).clamp_min(0).sqrt()
+
+
+def single_pass_statistics(raw: dict[str, torch.Tensor]) -> McStatistics:
+    """The statistics of one deterministic pass (T = 1) from the model's outputs (any engine).
+
+    ``height_std`` is the aleatoric spread ``sqrt(2)·b`` for a model with an aleatoric head, ``None`` otherwise.
+    """
+    stats = McStatistics()
+    if "height" in raw:
+        stats.height_mean = raw["height"][:, 0].float()
+    if HEIGHT_SCALE in raw:
+        stats.height_aleatoric = laplace_variance(raw[HEIGHT_SCALE][:, 0]).sqrt()
+        stats.height_std = stats.height_aleatoric
+    if "classes" in raw:
+        stats.probs = class_probabilities(raw["classes"])
     return stats
 
 
@@ -419,6 +465,8 @@ def mc_predict(
     result: dict[str, dict[str, torch.Tensor]] = {}
     if stats.height_mean is not None and stats.height_std is not None:
         result["height"] = {"mean": stats.height_mean.unsqueeze(1), "std": stats.height_std.unsqueeze(1)}
+        if stats.height_aleatoric is not None:
+            result["height"]["aleatoric_std"] = stats.height_aleatoric.unsqueeze(1)
     if stats.probs is not None and stats.mean_entropy is not None:
         entropy = _entropy(stats.probs, dim=-1)
         # one sample has no epistemic part; the two entropy formulas differ in the last bit
@@ -427,5 +475,6 @@ def mc_predict(
     return result
 
 
-__all__ = ["DropoutSite", "McStatistics", "accumulate_samples", "class_probabilities", "dropout_masks", "dropout_sites",
+__all__ = ["DropoutSite", "McStatistics", "accumulate_samples", "laplace_variance", "predictive_std",
+           "single_pass_statistics", "class_probabilities", "dropout_masks", "dropout_sites",
            "mc_dropout_mode", "mc_predict", "mc_statistics", "sample_generator", "sample_seed"]

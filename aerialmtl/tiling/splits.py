@@ -5,7 +5,8 @@ Two methods:
 * ``blocks`` — the grid is cut into disjoint square blocks of ``block_size`` metres (converted through
   the CRS's linear unit, so feet CRSs work), anchored at the grid's upper-left corner. When the patch
   stride is known (``tile``), the block side is snapped to the whole number of strides nearest to
-  ``block_size`` (at least enough to hold one patch), so blocks follow the patch grid and, with
+  ``block_size`` (at least enough to hold one patch, and two patch sides when patches overlap, so that a
+  val or test block keeps several patches), so blocks follow the patch grid and, with
   ``stride == size``, no patch straddles two blocks; the side actually used is recorded
   (:attr:`SplitAssigner.block_size_m`). Blocks are visited in a seeded random order and dealt to the
   split furthest below its share of the area (``ratios``); every split with a ratio > 0 gets at least one
@@ -33,6 +34,8 @@ from aerialmtl.errors import InputError
 from aerialmtl.io.vector import check_aoi_overlaps, load_geometries
 
 SPLITS = ("train", "val", "test")
+#: With overlapping patches (stride < size), a split block is at least this many patch sides wide.
+MIN_PATCHES_PER_BLOCK_SIDE = 2
 
 
 @dataclass(frozen=True)
@@ -156,6 +159,12 @@ class SplitAssigner:
         by = float(self.spec.block_size) / (res_y * unit)
         if self.stride is not None:  # follow the patch grid: a whole number of strides, holding a whole patch
             least = max(1, math.ceil(self.size / self.stride)) if self.size else 1
+            if self.size and self.stride < self.size:
+                # overlapping patches: a patch is kept only inside one split, so a block holding a single
+                # patch keeps one patch of an isolated val/test block and drops its neighbours (the README's
+                # small-area recipe gave validation 5 of 143 patches); blocks of two patch sides keep
+                # (size/stride + 1)² patches each (26 val patches of 273 there)
+                least = math.ceil(MIN_PATCHES_PER_BLOCK_SIDE * self.size / self.stride)
             bx = float(max(least, round(bx / self.stride)) * self.stride)
             by = float(max(least, round(by / self.stride)) * self.stride)
         self.block_px = (bx, by)

@@ -2,15 +2,18 @@
 
 After training, :func:`calibrate_checkpoint` predicts every validation patch with MC dropout (T samples,
 the model's own input normalisation), fits :func:`aerialmtl.models.calibration.fit_calibration` on the
-valid pixels (predicted mean height, reference height, MC spread) and rewrites the checkpoint with
-``meta.calibration`` set (weights and training state unchanged). ``predict`` then applies it.
-Validation patches only: the test data never enters the fit.
+valid pixels (predicted mean height, reference height, predictive spread) with two folds of whole
+validation patches, so that each part (height map, spread map) is kept only where it beat no calibration
+on patches it was not fitted on, and rewrites the checkpoint with ``meta.calibration`` set (weights and
+training state unchanged). ``predict`` then applies what it holds. A validation split of fewer than
+:data:`MIN_VAL_PATCHES` patches gives a warning. Validation patches only: the test data never enters the fit.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -31,13 +34,16 @@ log = logging.getLogger(__name__)
 DEFAULT_CALIBRATION_SAMPLES = 16
 #: Pixels kept for the fit (a seeded subsample beyond this).
 MAX_PIXELS = 2_000_000
+#: Fewest validation patches for which a calibration is fitted without a warning.
+MIN_VAL_PATCHES = 20
 
 
 def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path,
                       mc: int = DEFAULT_CALIBRATION_SAMPLES, batch_size: int = 4,
                       cache_folder: str | Path | None = None,
-                      device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """MC-dropout predictions of the validation patches: ``(pred, ref, std)`` over valid pixels (metres, 1-D).
+                      device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """MC-dropout predictions of the validation patches: ``(pred, ref, std, patch)`` over valid pixels
+    (metres, 1-D; ``patch``: the index of each pixel's validation patch).
 
     Raises:
         ConfigError: the tile folder has no validation patches or no heights.
@@ -54,21 +60,26 @@ def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | P
     std = torch.tensor(meta.std, dtype=torch.float32, device=dev)
     transform = build_eval_transform(None)
     data = CachedBatches(PatchCache(folder, index), transform, ("height",), None)
-    preds, refs, stds = [], [], []
+    preds, refs, stds, patches = [], [], [], []
     model = model.to(dev).eval()
+    first = 0
     for k, spec in enumerate(eval_batches(index.count, batch_size)):
         batch = prepare_batch(data[spec], transform, mean, std, dev)
         with torch.no_grad():
             out = mc_predict(model, batch["image"], mc, seed=k)["height"]
         valid = batch["height_valid"]
+        ids = torch.arange(first, first + valid.shape[0], device=valid.device).reshape(-1, 1, 1, 1)
+        first += valid.shape[0]
         preds.append(out["mean"][valid].cpu().numpy())
         stds.append(out["std"][valid].cpu().numpy())
         refs.append(batch["height"][valid].cpu().numpy())
+        patches.append(ids.expand_as(valid)[valid].cpu().numpy())
     pred, ref, sd = (np.concatenate(a) if a else np.zeros(0, np.float32) for a in (preds, refs, stds))
+    patch = np.concatenate(patches) if patches else np.zeros(0, np.int64)
     if pred.size > MAX_PIXELS:
         keep = np.random.default_rng(0).choice(pred.size, MAX_PIXELS, replace=False)
-        pred, ref, sd = pred[keep], ref[keep], sd[keep]
-    return pred, ref, sd
+        pred, ref, sd, patch = pred[keep], ref[keep], sd[keep], patch[keep]
+    return pred, ref, sd, patch
 
 
 def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DEFAULT_CALIBRATION_SAMPLES,
@@ -88,11 +99,22 @@ def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DE
     """
     payload, meta = load_checkpoint(path)
     model, _ = load_model(path)
-    pred, ref, sd = validation_pixels(model, meta, data_dir, mc, cache_folder=cache_folder, device=device)
+    pred, ref, sd, patch = validation_pixels(model, meta, data_dir, mc, cache_folder=cache_folder, device=device)
     if pred.size == 0:
         raise ConfigError(f"calibration: no valid validation pixel in '{data_dir}'", param="data_dir")
-    cal = fit_calibration(pred, ref, sd if mc > 1 else None, method,
-                          source=f"val split of {Path(data_dir).name}, T={mc}")
+    n_patches = int(np.unique(patch).size)
+    if n_patches < MIN_VAL_PATCHES:
+        warnings.warn(f"calibration: the validation split of '{data_dir}' holds {n_patches} patches, too few to "
+                      f"fit and check a calibration per height range (≥ {MIN_VAL_PATCHES}); each part is applied "
+                      "only where it beat no calibration on held-out validation patches. Give validation a larger "
+                      "share (aerialmtl tile --split-ratios 0.7,0.2,0.1, or larger --split-block), or set "
+                      "calibration.enabled: false", stacklevel=2)
+    # two folds of whole patches (alternating in patch order): each part must beat none on the other fold
+    rng = np.random.default_rng(0)
+    fold_of_patch = rng.permutation(np.arange(int(patch.max()) + 1) % 2) if patch.size else np.zeros(0, np.int64)
+    spread = sd if (mc > 1 or meta.model.aleatoric) else None
+    cal = fit_calibration(pred, ref, spread, method, source=f"val split of {Path(data_dir).name}, T={mc}",
+                          folds=fold_of_patch[patch])
     new_meta = dataclasses.replace(meta, calibration=cal)
     save_checkpoint(out or path, model, new_meta, payload.get("train_state"))
     log.info("calibration of '%s': %s", path, cal.summary())

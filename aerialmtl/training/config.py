@@ -133,6 +133,11 @@ class DataSection:
 class LossSection:
     """Per-task losses: ``height`` (masked to valid pixels) and ``classes`` (cross-entropy, ignore 255).
 
+    With ``model.aleatoric: true`` the height loss is the Laplace negative log-likelihood
+    (:func:`~aerialmtl.training.losses.laplace_nll`), the likelihood of the paper's L1; ``height`` must then
+    be ``l1``, and ``nll_beta`` (β-NLL, 0 … 1) sets how much the learned scale down-weights hard pixels'
+    pull on the heights (0: plain NLL; 1: the heights get L1's gradient).
+
     ``class_weights``: ``none``, ``balanced`` (``N / (K · n_k)`` from the train split's pixel counts,
     normalised to mean 1 over present classes) or an explicit list of K floats.
     """
@@ -140,8 +145,12 @@ class LossSection:
     height: HeightLoss = "l1"
     classes: Literal["ce"] = "ce"
     class_weights: Literal["none", "balanced"] | tuple[float, ...] = "none"
+    nll_beta: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.nll_beta, (int, float)) and 0.0 <= float(self.nll_beta) <= 1.0):
+            raise ConfigError(f"loss.nll_beta: must be a number in [0, 1], got {self.nll_beta!r}; 0 is the plain "
+                              "Laplace NLL of Kendall & Gal, 1 trains the heights exactly as L1 does")
         if isinstance(self.class_weights, tuple):
             bad = [w for w in self.class_weights if not (math.isfinite(w) and w >= 0)]
             if bad or not any(w > 0 for w in self.class_weights):
@@ -280,6 +289,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.seed < 2**63:
             raise ConfigError(f"seed: must be an integer in 0..2**63-1, got {self.seed}")
+        if self.model.aleatoric and self.loss.height != "l1":
+            raise ConfigError(f"loss.height: with model.aleatoric the height loss is the Laplace NLL, the likelihood "
+                              f"of L1; set loss.height: l1 (got {self.loss.height!r}) or model.aleatoric: false")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain mapping (YAML / checkpoint safe)."""

@@ -148,6 +148,31 @@ def scale_invariant_gradient(pred: torch.Tensor, target: torch.Tensor, mask: tor
     return _per_image_si(d, mask, lam) + alpha * _gradient_matching(d, mask, scales)
 
 
+def laplace_nll(pred: torch.Tensor, scale: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
+                beta: float = 0.0) -> torch.Tensor:
+    """Laplace negative log-likelihood of the heights, mean over valid pixels (nats, up to log 2).
+
+    Per pixel ``|y − μ| / b + log b`` with μ = ``pred`` and b = ``scale`` (metres, > 0; both B×1×H×W). For a
+    fixed b its minimum over μ is the paper's L1 (the median); its minimum over b is ``b = |y − μ|``, so b
+    learns the expected absolute error of each pixel (the aleatoric uncertainty, Kendall & Gal 2017).
+
+    ``beta`` (β-NLL, Seitzer et al., ICLR 2022) weights each pixel's term by ``b^β`` (not back-propagated):
+    with β = 0 the plain NLL, whose gradient on μ is ``sign(μ − y) / b`` — hard pixels, given a large b, pull
+    the heights less; with β = 1 the gradient on μ is L1's exactly, and b still learns ``|y − μ|``.
+    """
+    mask = _check(pred, target, mask)
+    if scale.shape != pred.shape:
+        raise ValueError(f"laplace_nll: scale {tuple(scale.shape)} must have the shape of pred, {tuple(pred.shape)}")
+    if not 0.0 <= beta <= 1.0:
+        raise ValueError(f"laplace_nll: beta must be in [0, 1], got {beta}")
+    err = _masked_error(pred, target, mask).abs()
+    b = torch.where(mask, scale.float(), torch.ones((), device=scale.device))
+    per = err / b + torch.log(b)
+    if beta > 0:
+        per = per * b.detach() ** beta
+    return _masked_mean(torch.where(mask, per, torch.zeros((), device=per.device)), mask)
+
+
 def cross_entropy(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None,
                   ignore_index: int = IGNORE_INDEX, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Class-weighted cross-entropy (nats) over labelled pixels.
@@ -228,5 +253,5 @@ class CrossEntropyLoss(nn.Module):
         return cross_entropy(logits, target, self.weight, self.ignore_index, mask)
 
 
-__all__ = ["l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
+__all__ = ["laplace_nll", "l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
            "HEIGHT_LOSSES", "CLASS_LOSSES", "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]

@@ -23,6 +23,7 @@ from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.data.dataset import class_pixel_counts
 from aerialmtl.errors import ConfigError, InputError
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo
+from aerialmtl.models.config import HEIGHT_SCALE
 from aerialmtl.training import losses
 from aerialmtl.training.config import TrainConfig
 
@@ -66,12 +67,23 @@ class Objective:
         self.classes_fn = losses.CLASS_LOSSES[cfg.loss.classes]
         self.class_weights = class_weights
         self.task_weights = {t: float(cfg.weighting.task_weights.get(t, 1.0)) for t in tasks}
+        self.nll_beta = float(cfg.loss.nll_beta)
 
-    def __call__(self, out: dict[str, torch.Tensor], batch: dict[str, Any]) -> dict[str, torch.Tensor]:
-        """``{task: loss}`` for the model outputs ``out`` and the batch's references."""
+    def __call__(self, out: dict[str, torch.Tensor], batch: dict[str, Any], scoring: bool = False) -> dict[
+            str, torch.Tensor]:
+        """``{task: loss}`` for the model outputs ``out`` and the batch's references.
+
+        With an aleatoric height head (``out`` holds ``height_scale``) the height loss is the Laplace NLL
+        (:func:`~aerialmtl.training.losses.laplace_nll`); with ``scoring`` (validation, which picks
+        ``best.pt``) it is ``loss.height`` of the mean alone, so every model is chosen by the same measure.
+        """
         result: dict[str, torch.Tensor] = {}
         if "height" in self.tasks:
-            result["height"] = self.height_fn(out["height"].float(), batch["height"], batch["height_valid"])
+            if HEIGHT_SCALE in out and not scoring:
+                result["height"] = losses.laplace_nll(out["height"].float(), out[HEIGHT_SCALE].float(),
+                                                      batch["height"], batch["height_valid"], beta=self.nll_beta)
+            else:
+                result["height"] = self.height_fn(out["height"].float(), batch["height"], batch["height_valid"])
         if "classes" in self.tasks:
             w = None if self.class_weights is None else self.class_weights.to(out["classes"].device)
             result["classes"] = self.classes_fn(out["classes"].float(), batch["classes"], weight=w,

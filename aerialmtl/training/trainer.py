@@ -444,7 +444,7 @@ class Trainer:
             batch = prepare_batch(raw, self.eval_transform, self.mean, self.std, self.device)
             with autocast(self.device, self.precision):
                 out = self.model(batch["image"])
-            losses = self.objective(out, batch)
+            losses = self.objective(out, batch, scoring=True)
             for i, t in enumerate(self.tasks):
                 sums[i] += float(losses[t])  # NaN/inf stays: a diverged model can never score best
             sums[-1] += 1
