@@ -16,8 +16,15 @@ once per window and the decoder T times, accumulated by
 :func:`~aerialmtl.models.mc_dropout.accumulate_samples`. On the OpenVINO engine the dropout masks are
 explicit inputs of the decoder, drawn by :func:`~aerialmtl.models.mc_dropout.dropout_masks` from the
 same ``(seed, window, sample)`` keys as the torch path's seeded hooks: both engines sample the same
-masks. The OpenVINO engine runs one window (and one sample) per call, so its results do not depend on the
-batch size or the sample chunking either.
+masks. The OpenVINO engine runs one window (and one sample) per infer request, so its results do not
+depend on the batch size or the sample chunking either.
+
+Running: the model is compiled for ``streams`` parallel streams of ``threads / streams`` threads each
+(:func:`aerialmtl.runtime.resolve_threads`: on 2 cores, two one-thread streams), with one infer request per
+stream used in turn. :meth:`OpenVINOEngine.submit` starts a batch's windows and returns at once, so the
+predictor blends and writes one batch while the next ones run; MC samples are started one chunk ahead of
+their accumulation. Narrow streams keep a CPU shared with other processes busy: one wide stream splits each
+layer over all its threads and waits for the slowest (bench/RESULTS.md, "predict end to end on CPUs").
 
 Precision: fp32, or bf16 (``INFERENCE_PRECISION_HINT``) on a CPU with native bf16 under ``auto``
 (:func:`aerialmtl.runtime.resolve_precision`); the statistics are accumulated in float32 either way.
