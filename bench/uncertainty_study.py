@@ -119,6 +119,19 @@ def evaluate(pred_dir: Path, data: Path, out_json: Path) -> dict[str, Any]:
     return res
 
 
+def val_scores(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray) -> dict[str, float]:
+    """What the choice between arms may look at: the validation patches' MAE, MAE and bias ≥ 2 m, and the raw
+    spread's ±1σ coverage, CRPS and Gaussian NLL (the test block is never used to choose)."""
+    from aerialmtl.evaluation.uncertainty import crps_gaussian, gaussian_nll_terms
+
+    err = pred - ref
+    tall = ref >= TALL_M
+    return {"mae": float(np.abs(err).mean()), "mae_tall": float(np.abs(err[tall]).mean()),
+            "bias_tall": float(err[tall].mean()), "coverage_1sigma": float(np.mean(np.abs(err) <= sd)),
+            "crps_gaussian_m": float(crps_gaussian(pred, sd, ref).mean()),
+            "nll_gaussian": float(gaussian_nll_terms(pred, sd, ref).mean()), "n_pixels": int(pred.size)}
+
+
 def legacy_calibration(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray) -> Calibration:
     """The calibration of the previous release: the isotonic height map always applied, one spread factor and
     floor for all heights fitted to ±1σ / ±2σ coverage (:func:`fit_spread`)."""
@@ -158,13 +171,14 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
         variants["raw"] = evaluate(pdir, args.data, rdir / "study_report_raw.json")
     pred, ref, sd, patch = validation_pixels(model, meta, tdir, mc=args.mc)
     folds = np.random.default_rng(0).permutation(np.arange(int(patch.max()) + 1) % 2)[patch]
+    res["val"] = val_scores(pred, ref, sd)
     cals: dict[str, Calibration] = {
         "cal": fit_calibration(pred, ref, sd, "isotonic", folds=folds),
         "legacy": legacy_calibration(pred, ref, sd),
     }
     res["calibration"] = {k: c.summary() for k, c in cals.items()}
     for key, c in cals.items():
-        if key not in variants or args.force:
+        if key not in variants or args.force or key in args.redo:
             cdir = transformed_copy(pdir, rdir / f"study_{key}", c.height, c.std)
             variants[key] = evaluate(cdir, args.data, rdir / f"study_report_{key}.json")
     if "height_only" not in variants or args.force:
@@ -233,6 +247,14 @@ def table(out: Path) -> str:
                          f"{_fmt_range([v['coverage_1sigma'] for v in vs])} | {_fmt_range([v['crps_gaussian_m'] for v in vs])} | "  # noqa: E501
                          f"{_fmt_range([v['nll_gaussian'] for v in vs])} | {per('coverage_1sigma')} | "
                          f"{per('spearman_std_vs_abs_error')} | {ratio} |")
+        vals = [r["val"] for r in recs if "val" in r]
+        if vals:
+            detail.append(f"- {arm} on VALIDATION (raw): MAE {_fmt_range([v['mae'] for v in vals])}, MAE ≥ 2 m "
+                          f"{_fmt_range([v['mae_tall'] for v in vals])}, bias ≥ 2 m "
+                          f"{_fmt_range([v['bias_tall'] for v in vals], sign=True)}, ±1σ "
+                          f"{_fmt_range([v['coverage_1sigma'] for v in vals])}, CRPS "
+                          f"{_fmt_range([v['crps_gaussian_m'] for v in vals])} m, NLL "
+                          f"{_fmt_range([v['nll_gaussian'] for v in vals], 1)}")
         steps = ", ".join(str(r["step"]) for r in recs)
         base = recs[0].get("baseline_train_mean")
         detail.append(f"- {arm}: best.pt steps {steps}; calibration fitted: {recs[0].get('calibration', {}).get('cal')}"
@@ -251,6 +273,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--force", action="store_true")
     ap.add_argument("--tta", action="store_true", help="also the tta variant (8 views × T samples)")
+    ap.add_argument("--redo", nargs="*", default=[], help="variants to compute again (e.g. cal legacy)")
     ap.add_argument("--table", action="store_true")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

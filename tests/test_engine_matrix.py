@@ -94,3 +94,23 @@ def test_every_encoder_and_head_predicts_on_every_engine_precision_and_t(
             assert diff <= BF16_REL_MAE * scale, f"{encoder} {engine} bf16 T={mc}: {diff:.3g} m vs {scale:.3g} m"
             assert (low["classes"][ok] == ref["classes"][ok]).mean() >= BF16_CLASS_AGREE
             assert (low["classes"] == 255).sum() == (ref["classes"] == 255).sum()  # the same nodata
+
+
+def test_auto_falls_back_to_torch_with_a_warning_when_openvino_cannot_run_the_model(
+        tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.inference.engines import OpenVINOEngine
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("Check 'TRShape::broadcast_merge_into(...)' failed")
+
+    monkeypatch.setattr(OpenVINOEngine, "statistics", broken)
+    model, meta = _model("densenet121", False)
+    ckpt = tmp_path / "m.pt"
+    save_checkpoint(ckpt, model, meta)
+    ortho = write_raster(tmp_path / "o.tif", np.random.default_rng(0).integers(1, 256, (3, 40, 50)).astype(np.uint8))
+    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "p", "--mc", 2)
+    assert code == 0, err
+    assert "cannot run this model" in err and "torch engine" in err
+    assert json.loads((tmp_path / "p" / "prediction.json").read_text())["engine"] == "torch"
+    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "q", "--engine", "openvino")
+    assert code != 0  # asked for by name: no silent substitute

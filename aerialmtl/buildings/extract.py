@@ -42,7 +42,6 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from shapely.affinity import affine_transform
 from shapely.geometry import Polygon, shape
-from tqdm.auto import tqdm
 
 from aerialmtl.buildings.attributes import building_attributes
 from aerialmtl.buildings.clean import DEFAULT_ANGLE_TOLERANCE_DEG, clean_footprint, largest_polygon
@@ -50,6 +49,7 @@ from aerialmtl.buildings.layers import BuildingLayers, building_class_indices
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.errors import InputError
 from aerialmtl.formats.prediction import CLASSES
+from aerialmtl.progress import tqdm_auto as tqdm
 
 #: GDAL block cache while extracting (MiB) unless GDAL_CACHEMAX is set: every block is read once, so a
 #: cache larger than one block row of tiles only grows with the raster (GDAL's default is 5 % of the RAM).

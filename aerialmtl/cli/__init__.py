@@ -23,13 +23,14 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import click
 
-from aerialmtl import __version__
+from aerialmtl import __version__, progress
 from aerialmtl.cli.buildings import buildings
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
 from aerialmtl.cli.export import export
 from aerialmtl.cli.options import flags_for, usage_errors
 from aerialmtl.cli.predict import predict
+from aerialmtl.cli.qgis_plugin import qgis_plugin
 from aerialmtl.cli.synth import synth
 from aerialmtl.cli.tile import tile
 from aerialmtl.cli.train import train
@@ -40,14 +41,19 @@ from aerialmtl.signals import stop_signal, stop_signals
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="aerialmtl")
 @click.option("--debug", is_flag=True, help="Show full tracebacks instead of one-line errors.")
+@click.option("--progress", "progress_mode", type=click.Choice(progress.MODES), default="bar", show_default=True,
+              envvar=progress.PROGRESS_ENV, show_envvar=True,
+              help="How commands report progress on stderr: tqdm bars, or one JSON line per step "
+                   '({"stage", "done", "total", "unit"}) for programs that run aerialmtl (the QGIS plugin).')
 @click.pass_context
-def cli(ctx: click.Context, debug: bool) -> None:
+def cli(ctx: click.Context, debug: bool, progress_mode: str) -> None:
     """Height (nDSM) and land-cover maps with MC-dropout uncertainty from aerial orthophotos."""
     ctx.ensure_object(dict)
     ctx.obj["debug"] = debug
+    progress.set_mode(progress_mode)
 
 
-for _command in (synth, tile, train, predict, evaluate, buildings, export, demo):
+for _command in (synth, tile, train, predict, evaluate, buildings, export, qgis_plugin, demo):
     assert _command.name is not None and _command.callback is not None
     _command.callback = usage_errors(_command.name, _command.callback)
     cli.add_command(_command)
@@ -85,7 +91,11 @@ def main(argv: list[str] | None = None) -> None:
             # libraries' deprecation notices are for developers; a user can act on neither
             for category in (DeprecationWarning, PendingDeprecationWarning):
                 warnings.filterwarnings("ignore", category=category)
-        _run(args, debug)
+        mode = progress.get_mode()
+        try:
+            _run(args, debug)
+        finally:  # --progress holds for this command only (the tests call main() many times in one process)
+            progress.set_mode(mode)
 
 
 def _command_name(args: list[str]) -> str | None:

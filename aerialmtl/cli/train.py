@@ -128,5 +128,11 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     click.echo(f"stopped by {result.stopped_by} after {result.step} steps ({result.epoch} epochs, "
                f"{result.elapsed_s:.0f} s)" + (f"; validation: {', '.join(parts)}" if parts else ""))
     click.echo(f"best checkpoint: {result.best_checkpoint}")
+    if Path(result.best_checkpoint).is_file():
+        from aerialmtl.formats.checkpoint import load_checkpoint
+
+        calibration = load_checkpoint(result.best_checkpoint)[1].calibration
+        if calibration is not None:  # what validation kept, and why (predict applies exactly this)
+            click.echo(f"calibration of best.pt: {calibration.summary()}")
     click.echo(f"last checkpoint: {result.last_checkpoint}")
     click.echo(f"log: {result.log_path}")

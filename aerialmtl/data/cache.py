@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from aerialmtl.data.dataset import RawPatch, read_raw_patch
 from aerialmtl.errors import InputError, OutputError
@@ -42,6 +41,7 @@ from aerialmtl.formats.tiles import (
     split_fingerprint,
 )
 from aerialmtl.io.outputs import staging_path
+from aerialmtl.progress import tqdm_auto as tqdm
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import rasterio
 from rasterio.windows import Window
-from tqdm import tqdm
 
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
@@ -63,6 +62,7 @@ from aerialmtl.formats.prediction import (
 from aerialmtl.formats.report import report_files
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, grid_of, open_raster
 from aerialmtl.io.outputs import OutputFolder, check_files_not_input
+from aerialmtl.progress import tqdm
 
 #: Layer name → file name of a prediction folder (see :mod:`aerialmtl.formats.prediction`).
 PREDICTION_FILES = {name: layer_filename(name) for name in LAYERS}

@@ -80,6 +80,8 @@ def model_summary(meta: Any) -> dict[str, Any]:
     return {
         "architecture": "D3-Net",
         "encoder": str(getattr(cfg, "encoder", "densenet121")),
+        "height_uncertainty": ("MC dropout + aleatoric Laplace scale" if getattr(cfg, "aleatoric", False)
+                               else "MC dropout"),
         "tasks": list(cfg.tasks),
         "in_channels": int(cfg.in_channels),
         "bands": list(meta.bands),

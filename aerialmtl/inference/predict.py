@@ -45,7 +45,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
-from tqdm.auto import tqdm
 
 from aerialmtl import __version__, runtime
 from aerialmtl.errors import InputError
@@ -78,6 +77,7 @@ from aerialmtl.inference.writer import PredictionWriter
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.models.mc_dropout import McStatistics
+from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.runtime import GDAL_CACHE_MB, gdal_env
 
 #: MC-dropout samples when neither the caller nor the checkpoint says otherwise.
@@ -277,7 +277,8 @@ class Predictor:
         # the checkpoint hashed once: provenance and the OpenVINO cache's key
         weights_key = self.fingerprint if self.engine == "openvino" else None
         self.runner = ModelRunner(model, self.meta, self.device, self.precision, self.mc, seed, max_decode_pixels,
-                                  compile, self.engine, tta=self.tta, threads=self.threads, weights_key=weights_key)
+                                  compile, self.engine, tta=self.tta, fallback=engine == "auto", threads=self.threads,
+                                  weights_key=weights_key)
         tasks = tuple(self.meta.model.tasks)
         self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
@@ -537,7 +538,7 @@ class Predictor:
     def provenance(self, src: OrthoInput, aoi: str | Path | None) -> dict[str, Any]:
         """What makes the maps of ``src`` (``provenance`` in prediction.json, :mod:`aerialmtl.formats.prediction`)."""
         native = src.native
-        engine = getattr(self, "engine", None)
+        engine = getattr(getattr(self, "runner", None), "engine", None) or getattr(self, "engine", None)
         return {
             "checkpoint": self.fingerprint,
             "settings": {"mc_samples": self.mc, "tta": self.tta, "seed": self.seed, "precision": self.precision,
@@ -570,7 +571,7 @@ class Predictor:
             "window_size": [plan.rows.size, plan.cols.size],
             "batch_size": self.resolved_batch_size(plan),
             "precision": self.precision,
-            "engine": self.engine,
+            "engine": self.runner.engine.name,  # torch if ``auto`` fell back from OpenVINO
             "threads": self.threads.as_dict() if self.device.type == "cpu" else None,
             "device": str(self.device),
             "compile": self.compile,

@@ -19,6 +19,7 @@ and the blending alike; bench/RESULTS.md).
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Literal, cast
 
@@ -235,6 +236,7 @@ class ModelRunner:
         tta: test-time augmentation: every window is also run flipped and rotated by 90°, 180°, 270° (8
             views); the views are combined like MC samples (:func:`combine_tta`), so ``height_std`` also
             holds their disagreement. 8 times the model's work.
+        fallback: the engine was chosen by ``auto``: fall back to torch when OpenVINO fails on the first batch.
         threads: inference threads and streams on a CPU (:func:`aerialmtl.runtime.resolve_threads`).
         weights_key: the checkpoint's fingerprint, when the caller has it: keys the OpenVINO cache without
             hashing the weights again.
@@ -242,10 +244,12 @@ class ModelRunner:
 
     def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
                  mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
-                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False,
+                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False, fallback: bool = False,
                  threads: runtime.CpuThreads | None = None, weights_key: str | None = None) -> None:
         self.device = device
         self.tta = tta
+        self.fallback = fallback
+        self._ran = False
         self.precision = precision
         self.mc = mc
         self.seed = seed
@@ -314,11 +318,30 @@ class ModelRunner:
 
     def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`); with
-        :attr:`tta`, those of the 8 flips and 90° rotations combined (:func:`combine_tta`)."""
-        if not self.tta:
-            return self.submit(x, keys).result()
+        :attr:`tta`, those of the 8 flips and 90° rotations combined (:func:`combine_tta`).
+
+        With :attr:`fallback` (``engine: auto``), an OpenVINO engine that fails on the first batch is
+        replaced by the torch engine, with a warning, and the batch is computed again: the whole raster then
+        comes from one engine, and ``prediction.json`` names it.
+        """
+        first, self._ran = not self._ran, True
+        try:
+            return self._statistics(x, keys)
+        except Exception as exc:
+            if not (first and self.fallback and self.engine.name == "openvino"):
+                raise
+            warnings.warn(f"the OpenVINO engine cannot run this model ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); predicting with the torch engine "
+                          "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
+            self._model = self.model  # the folded copy (the OpenVINO engine's)
+            self.engine = TorchEngine(self._model, self._model, self.device, self.precision, self.tasks)
+            return self._statistics(x, keys)
+
+    def _statistics(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         b, _, h, w = x.shape
         chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
+        if not self.tta:
+            return self.engine.statistics(x, keys, self.mc, self.seed, chunk)
         parts = []
         for t in range(len(DIHEDRAL)):
             xt = dihedral(x, t, (2, 3)).contiguous(memory_format=torch.channels_last)
@@ -328,9 +351,10 @@ class ModelRunner:
 
     def submit(self, x: torch.Tensor, keys: Sequence[int]) -> Pending:
         """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` gives them (the same
-        numbers as :meth:`__call__`). Up to :attr:`in_flight` batches run while the caller stitches (with
-        :attr:`tta`, the views are computed here, one after the other)."""
-        if self.tta:
+        numbers as :meth:`__call__`). Up to :attr:`in_flight` batches run while the caller stitches. Computed
+        here, synchronously: with :attr:`tta` (the views one after the other), and the first batch when
+        :attr:`fallback` may still switch engines."""
+        if self.tta or (self.fallback and not self._ran):
             from aerialmtl.inference.engines import Done
 
             return Done(self(x, keys))

@@ -30,8 +30,9 @@ correct both after training, fitted on validation pixels only:
 
 **Never worse than none** (:func:`fit_calibration` with ``folds``): each part is applied only if it is
 better on validation pixels it was not fitted on (two folds of the validation patches, each fitted on the
-other): the height map only if it lowers the MAE, the spread map only if it lowers the CRPS (a proper
-score of the spread). A part that is not applied is the identity, and the checkpoint records why
+other): the height map only if it lowers the MAE, the spread map only if it lowers both the CRPS and the
+Gaussian NLL (proper scores of the spread: the CRPS alone accepts a few confident misses that the NLL
+does not). A part that is not applied is the identity, and the checkpoint records why
 (:attr:`Calibration.notes`).
 """
 
@@ -363,6 +364,12 @@ def _crps(err: np.ndarray, sigma: np.ndarray) -> float:
                                 - 1 / math.sqrt(math.pi))))
 
 
+def _nll(err: np.ndarray, sigma: np.ndarray) -> float:
+    """Mean Gaussian negative log-likelihood (nats) of errors ``err`` under spreads ``sigma`` (floored at 1 cm)."""
+    sig = np.maximum(sigma, 0.01)
+    return float(np.mean(0.5 * np.log(2 * np.pi * sig * sig) + 0.5 * (err / sig) ** 2))
+
+
 def _fit_parts(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None, method: CalibrationMethod, knots: int,
                edges: tuple[float, ...], height: bool = True) -> Calibration:
     """The height map (``height``: else the identity) and the per-range spread map fitted around it."""
@@ -419,15 +426,17 @@ def fit_calibration(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None = 
             cal = dataclasses.replace(_fit_parts(pred, ref, sd, method, knots, edges, height=False), source=source)
             fitted = [(score, _fit_parts(pred[fit], ref[fit], sd[fit], method, knots, edges, height=False))
                       for fit, score in (parts, parts[::-1])]
-        crps_raw = crps_cal = 0.0
+        crps_raw = crps_cal = nll_raw = nll_cal = 0.0
         for score, c in fitted:
             err = np.abs(c.height(pred[score]) - ref[score])
             w = float(score.sum()) / n
             crps_raw += w * _crps(err, sd[score])
             crps_cal += w * _crps(err, c.std(sd[score], pred[score]))
-        spread_ok = crps_cal < crps_raw
-        notes.append(f"validation CRPS {crps_raw:.3f} m raw, {crps_cal:.3f} m with the spread map (cross-fitted)"
-                     + ("" if spread_ok else ": spread map off"))
+            nll_raw += w * _nll(err, sd[score])
+            nll_cal += w * _nll(err, c.std(sd[score], pred[score]))
+        spread_ok = crps_cal < crps_raw and nll_cal < nll_raw
+        notes.append(f"validation CRPS {crps_raw:.3f} → {crps_cal:.3f} m, Gaussian NLL {nll_raw:.3g} → {nll_cal:.3g} "
+                     "with the spread map (cross-fitted)" + ("" if spread_ok else ": spread map off"))
     return dataclasses.replace(cal, height_applied=height_ok, spread_applied=spread_ok, notes="; ".join(notes))
 
 

@@ -37,7 +37,6 @@ from typing import Any
 import numpy as np
 import rasterio
 from rasterio.windows import Window
-from tqdm import tqdm
 
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
@@ -61,6 +60,7 @@ from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
+from aerialmtl.progress import tqdm
 from aerialmtl.tiling.grid import count_windows, tile_windows
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
 

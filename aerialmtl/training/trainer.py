@@ -39,7 +39,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm.auto import tqdm
 
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
@@ -59,6 +58,7 @@ from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.config import ModelConfig
+from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.distributed import DistContext
