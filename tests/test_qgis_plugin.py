@@ -74,7 +74,7 @@ def test_command_line_refuses_missing_and_unknown_values() -> None:
 #: inputs, --skip-existing), tuning knobs with sound defaults; a new option of a command fails the test below
 #: until it is offered or listed here.
 LEFT_OUT = {
-    "predict": {"--quiet", "--skip-existing", "--batch-size", "--compile"},
+    "predict": {"--quiet", "--skip-existing", "--batch-size", "--compile", "--threads"},
     "buildings": {"--quiet", "--block-size", "--simplify"},
     "evaluate": {"--quiet", "--sample-size", "--seed", "--height-bins", "--height-threshold", "--ignore-unknown-codes",
                  "--pred-buildings"},
