@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+from collections.abc import Iterator
 
 # Before torch loads OpenMP: threads that sleep instead of spinning while they wait. On a CPU shared with
 # other jobs, spinning threads steal the cores the work needs (bench/RESULTS.md, train: 6× slower model
@@ -204,3 +206,20 @@ def tiny_d3net(gsd: float = 0.5, k: int = 4) -> tuple[D3Net, ModelMeta]:
     cfg = ModelConfig(num_classes=k, **TINY)  # type: ignore[arg-type]
     meta = ModelMeta(cfg, scheme, (1, 2, 3), (120.0, 110.0, 100.0), (40.0, 40.0, 40.0), gsd, ("r", "g", "b"))
     return D3Net(cfg).eval(), meta
+
+
+def mount_tmpfs(folder: Path, options: str) -> Iterator[Path]:
+    """Mount a tmpfs with ``options`` at ``folder`` for a fixture (root on Linux only; skipped where mounting
+    is not permitted), unmounted after it."""
+    folder.mkdir()
+    try:
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True,
+                              text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        pytest.skip(f"cannot mount a tmpfs here ({exc})")
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root: {done.stderr.strip()[:100]})")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], capture_output=True, timeout=30)

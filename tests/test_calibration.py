@@ -132,7 +132,10 @@ def test_checkpoints_of_both_encoders_round_trip_through_predict(encoder: str, t
     off = predict_raster(ortho, res.best_checkpoint, tmp_path / "off", mc=4, progress=False, calibration=False)
     info_on = json.loads((on.out_dir / "prediction.json").read_text())["calibration"]
     info_off = json.loads((off.out_dir / "prediction.json").read_text())["calibration"]
-    assert info_on["applied"] is True and info_off["applied"] is False
+    cal = meta.calibration
+    assert info_on["height_map_applied"] is cal.height_applied and info_on["spread_map_applied"] is cal.spread_applied
+    assert info_on["applied"] is (cal.height_applied or cal.spread_applied) and info_off["applied"] is False
+    assert "validation MAE" in info_on["summary"]  # what the cross-fitted check said
     with rasterio.open(on.out_dir / "height.tif") as a, rasterio.open(off.out_dir / "height.tif") as b:
         raw, cal = b.read(1), a.read(1)
     np.testing.assert_allclose(cal, meta.calibration.height(raw), rtol=1e-5, atol=1e-4)

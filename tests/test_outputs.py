@@ -3,6 +3,7 @@ processes), and SIGTERM/SIGHUP handled like Ctrl-C in real processes (issue 18, 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -183,6 +184,49 @@ def test_nested_holds_of_one_process_share_the_lock(tmp_path: Path) -> None:
     assert not (tmp_path / "a" / LOCK_FILE).exists()
 
 
+def test_a_symlink_as_lock_file_is_refused_and_its_target_untouched(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "d"
+    out.mkdir()
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    (out / LOCK_FILE).symlink_to(target)
+    line = assert_error(run(capsys, *_tile_args(tmp_path, out)), f"the lock file '{out / LOCK_FILE}' is a symbolic "
+                        "link", "delete the link")
+    assert "unexpected" not in line
+    assert target.read_text() == "keep me" and (out / LOCK_FILE).is_symlink()
+
+
+def test_the_lock_ends_with_its_holder_not_with_its_forked_workers(tmp_path: Path) -> None:
+    """A DataLoader worker (forked) does not keep the lock of a holder killed with SIGKILL."""
+    out = tmp_path / "d"
+    out.mkdir()
+    code = "\n".join([
+        "import sys, time, torch",
+        "from torch.utils.data import DataLoader, Dataset",
+        "from aerialmtl.io.outputs import FolderLock",
+        "class Slow(Dataset):",
+        "    def __len__(self): return 10**6",
+        "    def __getitem__(self, i): time.sleep(0.5); return i",
+        "FolderLock(sys.argv[1], 'train').acquire()",
+        "it = iter(DataLoader(Slow(), num_workers=2, multiprocessing_context='fork')); next(it)",
+        "print('workers', flush=True); time.sleep(300)"])
+    proc = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True,
+                            env=ONE_THREAD, start_new_session=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "workers"
+        with pytest.raises(OutputInUseError):
+            FolderLock(out, "tile").acquire()
+        os.kill(proc.pid, signal.SIGKILL)  # the workers live on for a while (they notice a dead parent late)
+        proc.wait()
+        with pytest.warns(UserWarning, match=rf"left locked by aerialmtl train \(PID {proc.pid}\)"):
+            lock = FolderLock(out, "tile").acquire()  # at once, not when the last worker has gone
+        lock.release()
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # the orphaned workers
+        proc.wait()
+
+
 def _wait_for(cond, proc: subprocess.Popen, what: str, timeout: float = 240.0) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
@@ -249,6 +293,60 @@ def test_tile_stopped_by_a_signal_cleans_up_like_ctrl_c(tmp_path: Path, sig: int
     assert stderr.strip().splitlines() == [
         "Error: interrupted; no output was left at a final path. Re-run the command to finish."]
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # staging folder and lock gone
+
+
+def _tile_swapping_slowly(args: list[str]) -> subprocess.Popen:
+    """`aerialmtl tile ARGS` in a real process whose swap of the tile dataset is slowed down (each move
+    sleeps 0.3 s) and announced on stdout, so a test can signal it mid-swap."""
+    code = "\n".join([
+        "import sys, time",
+        "import aerialmtl.tiling.tile as t",
+        "move = t._move_into",
+        "def slow(src, dst):",
+        "    print('swapping', flush=True); time.sleep(0.3); move(src, dst)",
+        "t._move_into = slow",
+        "from aerialmtl.cli import main",
+        "main(sys.argv[1:])"])
+    return subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=ONE_THREAD)
+
+
+def _check_whole_dataset(out: Path, patches: int) -> None:
+    from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
+
+    TileFolderInfo.read(out)
+    rows = read_manifest(out)
+    listed = {r["image_path"] for r in rows} | {r["height_path"] for r in rows}
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*.tif")}
+    assert len(rows) == patches and listed == on_disk  # the new set, nothing of the old one
+    assert not _hidden(out)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_tile_overwrite_stopped_mid_swap_leaves_a_whole_dataset_and_the_rerun_works(tmp_path: Path, capsys,
+                                                                                   sig: int) -> None:
+    out = tmp_path / "d"
+    assert_ok(run(capsys, *_tile_args(tmp_path, out, side=64, size=16)))  # the old set: 16 patches
+    _check_whole_dataset(out, 16)
+    args = [str(a) for a in _tile_args(tmp_path, out, side=64, size=32)] + ["--overwrite"]  # the new: 4 patches
+    proc = _tile_swapping_slowly(args)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "swapping"
+        proc.send_signal(sig)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # pragma: no cover
+            proc.kill()
+            proc.communicate()
+    if sig == signal.SIGTERM:  # the run finishes its swap before it stops
+        assert proc.returncode == 143, stderr
+        assert stderr.strip().splitlines()[-1].startswith("Error: interrupted")
+        _check_whole_dataset(out, 4)
+    else:  # killed: the journal is left; the re-run finishes the swap first, with a warning
+        assert (out / ".patches.partial" / "swap.json").is_file()
+    warnings = assert_ok(run(capsys, *args))  # the same command again
+    assert sig == signal.SIGTERM or any("stopped while it replaced the tile dataset" in w for w in warnings)
+    _check_whole_dataset(out, 4)
 
 
 def test_export_refuses_a_folder_another_process_writes(tmp_path: Path) -> None:

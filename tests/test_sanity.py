@@ -12,13 +12,12 @@ from __future__ import annotations
 import csv
 import json
 import math
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli, tiny_d3net, write_raster
+from conftest import mount_tmpfs, run_cli, tiny_d3net, write_raster
 from tilefolder import write_tile_folder
 
 from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFiniteError, OutputError
@@ -92,8 +91,8 @@ def test_validation_keeps_nan_batches_instead_of_scoring_them_zero(tiles: Path, 
     try:
         real = trainer.objective.__call__
 
-        def nan_height(out: dict, batch: dict) -> dict:
-            losses = real(out, batch)
+        def nan_height(out: dict, batch: dict, **kw: object) -> dict:
+            losses = real(out, batch, **kw)
             return {**losses, "height": losses["height"] * math.nan}
 
         monkeypatch.setattr(trainer, "objective", type("O", (), {"__call__": staticmethod(nan_height)})())
@@ -378,27 +377,10 @@ def test_geojson_without_crs_is_wgs84_and_projected_coordinates_name_the_crs(tmp
 
 
 # ---- disk full -------------------------------------------------------------------------------------
-def _tmpfs(folder: Path, options: str):
-    """Mount a tmpfs with ``options`` at ``folder`` for a fixture (root on Linux only; skipped where mounting
-    is not permitted), unmounted after it."""
-    folder.mkdir()
-    try:
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True,
-                              text=True, timeout=30)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        pytest.skip(f"cannot mount a tmpfs here ({exc})")
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here (needs root: {done.stderr.strip()[:100]})")
-    try:
-        yield folder
-    finally:
-        subprocess.run(["umount", "-l", str(folder)], capture_output=True, timeout=30)
-
-
 @pytest.fixture
 def small_fs(tmp_path: Path):
     """A 2 MiB tmpfs mounted in tmp_path."""
-    yield from _tmpfs(tmp_path / "small", "size=2m")
+    yield from mount_tmpfs(tmp_path / "small", "size=2m")
 
 
 def test_full_disk_while_saving_a_checkpoint_names_the_path(small_fs: Path) -> None:
@@ -598,7 +580,7 @@ def test_full_disk_during_training_names_the_checkpoint_and_keeps_nothing_partia
 @pytest.fixture
 def ro_fs(tmp_path: Path):
     """A read-only tmpfs (EROFS even for root)."""
-    yield from _tmpfs(tmp_path / "ro", "ro,size=1m")
+    yield from mount_tmpfs(tmp_path / "ro", "ro,size=1m")
 
 
 def test_read_only_folder_while_saving_a_checkpoint_names_the_path(ro_fs: Path) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import sys
 import warnings
+from pathlib import Path
 
 # Process settings read once by torch's allocator and its OpenMP runtime, so set before anything imports
 # torch (a user's own setting wins; bench/RESULTS.md, predict, has the measurements):
@@ -91,11 +92,35 @@ def main(argv: list[str] | None = None) -> None:
             # libraries' deprecation notices are for developers; a user can act on neither
             for category in (DeprecationWarning, PendingDeprecationWarning):
                 warnings.filterwarnings("ignore", category=category)
+            quiet_libtiff()
         mode = progress.get_mode()
         try:
             _run(args, debug)
         finally:  # --progress holds for this command only (the tests call main() many times in one process)
             progress.set_mode(mode)
+
+
+def quiet_libtiff() -> None:
+    """Stop libtiff's global default handlers from printing raw lines on stderr (``_tiffWriteProc: No space left on
+    device.`` above the one-line error). GDAL reports the same failures itself (a failed write becomes the
+    error the command turns into its one line); ``--debug`` keeps libtiff's lines. Linux only (the loaded
+    libtiff is found in ``/proc/self/maps``); elsewhere nothing changes."""
+    import ctypes
+
+    import rasterio  # noqa: F401 - loads GDAL and its libtiff
+
+    try:
+        maps = Path("/proc/self/maps").read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return
+    libs = {line.split()[-1] for line in maps.splitlines() if "libtiff" in line and line.split()[-1].startswith("/")}
+    for lib in libs:
+        try:
+            handle = ctypes.CDLL(lib)
+            handle.TIFFSetErrorHandler(None)
+            handle.TIFFSetWarningHandler(None)
+        except (OSError, AttributeError):
+            continue
 
 
 def _command_name(args: list[str]) -> str | None:

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import click
 
-from aerialmtl.cli.options import overwrite_option, quiet_option, raster_option
+from aerialmtl.cli.options import output_path, overwrite_option, quiet_option, raster_option
 from aerialmtl.errors import InputError
 
 
 @click.command(name="buildings")
 @click.argument("pred_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--out", "outputs", multiple=True, required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--out", "outputs", multiple=True, required=True, type=output_path(dir_okay=False),
               help="Output file, repeatable; the format follows the name: .gpkg (GeoPackage), .geojson (GeoJSON), "
                    ".city.json (CityJSON LoD1 solids).")
 @raster_option("--dtm",

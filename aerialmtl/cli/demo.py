@@ -25,7 +25,7 @@ def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: i
          overwrite: bool) -> None:
     """Synthesize a training and a test town, tile, train the small D3-Net, predict with MC dropout,
     evaluate, and write GeoTIFFs, a report and PNG previews into OUT."""
-    from aerialmtl.demo import DemoSettings, run_demo
+    from aerialmtl.demo import EXPECTED, EXPECTED_BAND, DemoSettings, run_demo
 
     settings = DemoSettings(train_size=train_size, test_size=test_size, train_steps=train_steps,
                             train_seconds=train_seconds, mc=mc)
@@ -35,11 +35,18 @@ def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: i
     c = rep.get("classes", {})
     click.echo("")
     click.echo(f"Done in {res.timings.get('total', 0):.0f} s. Test town results:")
-    if h:
-        click.echo(f"  height MAE {h.get('mae', float('nan')):.2f} m, RMSE {h.get('rmse', float('nan')):.2f} m")
-    if c:
-        oa, miou = c.get("overall_accuracy", float("nan")), c.get("miou", float("nan"))
-        click.echo(f"  classes OA {oa:.3f}, mIoU {miou:.3f}")
+    got = {"height MAE (m)": h.get("mae"), "height RMSE (m)": h.get("rmse"),
+           "classes OA": c.get("overall_accuracy"), "classes mIoU": c.get("miou")}
+    defaults = (train_steps, train_seconds, train_size, test_size, mc) == (800, None, 1536, 768, 16)
+    for key, value in got.items():
+        if value is None:
+            continue
+        line = f"  {key:<16} {value:.3f}"
+        if defaults:  # what the defaults gave when measured, and whether this run is within the band
+            ok = abs(value - EXPECTED[key]) <= EXPECTED_BAND[key]
+            line += (f"   expected {EXPECTED[key]:.3f} ± {EXPECTED_BAND[key]:g}"
+                     f"{'' if ok else '  <- outside the expected band'}")
+        click.echo(line)
     click.echo("Outputs:")
     for name, path in res.paths.items():
         click.echo(f"  {name:<11} {path}")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from aerialmtl.cli.options import option, overwrite_option, quiet_option, raster_option
+from aerialmtl.cli.options import option, output_path, overwrite_option, quiet_option, raster_option
 from aerialmtl.errors import OutputError
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
@@ -65,7 +65,7 @@ def _check_writable(folder: Path) -> None:
               help="Max pixels of the seeded subsample for median, AUSE/AURG and Spearman.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of that subsample.")
 @click.option("--no-plots", is_flag=True, help="Do not write PNG plots.")
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--out", "out", required=True, type=output_path(dir_okay=False),
               help="Report JSON path; report.md and PNG plots are written beside it.")
 @overwrite_option(help="Replace an existing report.")
 @quiet_option()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from aerialmtl.cli.options import argument, option, overwrite_option
+from aerialmtl.cli.options import argument, option, output_path, overwrite_option
 
 
 @click.command(name="export")
@@ -24,7 +24,7 @@ from aerialmtl.cli.options import argument, option, overwrite_option
 @option("--overlap", type=int, default=None,
         help="Overlap between tiles in pixels, recorded for QGIS plugins as a percentage of --tile "
              "[default: --tile / 8, 64 px for 512].")
-@option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@option("--out", "out", required=True, type=output_path(dir_okay=False),
         help="Output file: model.onnx, or model.xml for OpenVINO (its weights go to model.bin beside it).")
 @option("--no-calibration", "no_calibration", is_flag=True, library="calibration",
         help="Leave out the checkpoint's height calibration (applied in the graph by default, as predict does).")

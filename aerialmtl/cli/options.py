@@ -96,6 +96,23 @@ def raster_argument(name: str, library: str | Sequence[str] = (), **kwargs: Any)
     return argument(name, type=RASTER, library=library, **kwargs)
 
 
+# ---- outputs ---------------------------------------------------------------------------------------
+class OutputPath(click.Path):
+    """A local output path (``click.Path`` → ``pathlib.Path``); a URL or a GDAL ``/vsi...`` path is refused before
+    ``pathlib`` folds ``s3://b/x`` into a local folder ``s3:/b/x``."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and not is_local(value):
+            self.fail(f"outputs must be local, but '{value}' is a URL or GDAL virtual path; write to a local folder "
+                      "and copy it up afterwards (e.g. `aws s3 sync FOLDER s3://bucket/prefix`)", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+def output_path(*, file_okay: bool = True, dir_okay: bool = True) -> OutputPath:
+    """The type of every output option (``--out``): a local :class:`pathlib.Path` (see :class:`OutputPath`)."""
+    return OutputPath(file_okay=file_okay, dir_okay=dir_okay, path_type=Path)
+
+
 # ---- options shared by several commands --------------------------------------------------------------
 def overwrite_option(help: str = "Replace existing outputs.") -> Decorator[Any]:
     """``--overwrite``: replace what the command wrote before (each command says what in ``help``)."""
@@ -219,7 +236,7 @@ def usage_errors(command: str, callback: F) -> F:
 
 
 __all__ = [
-    "DEVICES", "PRECISIONS", "RASTER", "LibraryArgument", "LibraryOption", "RasterPath", "argument", "command_flags",
-    "common_flags", "compile_option", "device_option", "flags_for", "option", "overwrite_option",
-    "precision_option", "quiet_option", "raster_argument", "raster_option", "usage_errors",
+    "DEVICES", "PRECISIONS", "RASTER", "LibraryArgument", "LibraryOption", "OutputPath", "RasterPath", "argument",
+    "command_flags", "common_flags", "compile_option", "device_option", "flags_for", "option", "output_path",
+    "overwrite_option", "precision_option", "quiet_option", "raster_argument", "raster_option", "usage_errors",
 ]

@@ -15,12 +15,13 @@ from aerialmtl.cli.options import (
     compile_option,
     device_option,
     option,
+    output_path,
     overwrite_option,
     precision_option,
     quiet_option,
     raster_argument,
 )
-from aerialmtl.errors import InputError
+from aerialmtl.errors import CheckpointError, InputError
 from aerialmtl.io.paths import is_local, raster_name, raster_stem
 
 #: Environment variable naming the default checkpoint of `aerialmtl predict`.
@@ -62,7 +63,7 @@ def _batch_size(value: str) -> int | str:
         type=click.Path(dir_okay=False, path_type=Path),
         help="Checkpoint (best.pt / last.pt) written by `aerialmtl train` [default: the AERIALMTL_MODEL "
              "environment variable].")
-@option("--out", "out", type=click.Path(file_okay=False, path_type=Path), library="out_dir",
+@option("--out", "out", type=output_path(file_okay=False), library="out_dir",
         help="Prediction folder [default: <stem>_aerialmtl/ beside a local ORTHO, in the current folder for a "
              "remote one]; with several orthophotos, one sub-folder per input (file stem) and a "
              "<layer>.mosaic.vrt per layer over all of them [default: aerialmtl_predictions/ in their common "
@@ -75,7 +76,7 @@ def _batch_size(value: str) -> int | str:
 @option("--overlap", type=int, default=64, show_default=True,
         help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
 @option("--batch-size", "batch_size", default="auto", show_default=True,
-        help="Windows per model call, or 'auto' (from the free GPU memory; 2 on a CPU).")
+        help="Windows per model call, or 'auto' (from the free GPU memory; 1 on a CPU).")
 @option("--engine", type=click.Choice(["auto", "torch", "openvino"]), default="auto", show_default=True,
         help="What runs the model: auto = OpenVINO on a CPU when installed (faster, most with bf16), torch "
              "otherwise (and on CUDA).")
@@ -135,13 +136,20 @@ def predict(
             f"files: {', '.join(p.name for p in res.files.values())}"
         )
 
-    job = predict_many(
-        orthos, model, out, aoi=aoi, overwrite=overwrite, skip_existing=skip_existing, progress=not quiet,
-        on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
-        device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
-        calibration=not no_calibration,
-        rescale_input=rescale_input, engine=engine, threads=threads, tta=tta,
-    )
+    try:
+        job = predict_many(
+            orthos, model, out, aoi=aoi, overwrite=overwrite, skip_existing=skip_existing, progress=not quiet,
+            on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
+            device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
+            calibration=not no_calibration,
+            rescale_input=rescale_input, engine=engine, threads=threads, tta=tta,
+        )
+    except CheckpointError as exc:  # a model the user did not type here: say where it came from
+        source = click.get_current_context().get_parameter_source("model")
+        if source is not click.core.ParameterSource.ENVIRONMENT:
+            raise
+        raise CheckpointError(f"{exc} (this checkpoint comes from the {MODEL_ENV} environment variable: set it "
+                              f"to another model, e.g. `export {MODEL_ENV}=RUN/best.pt`, or pass --model)") from exc
     for path in job.skipped:
         click.echo(f"{raster_name(path)}: skipped, its prediction folder is complete (same model, settings, input)")
     if job.ranks.rank == 0:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from aerialmtl.cli.options import option, overwrite_option, quiet_option, raster_option
+from aerialmtl.cli.options import option, output_path, overwrite_option, quiet_option, raster_option
 from aerialmtl.io.align import NdsmOptions
 
 _FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
@@ -84,7 +84,7 @@ def _aoi(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) ->
               help="Set negative heights above ground to 0.")
 @click.option("--max-height", type=float, help="Treat heights above this (metres) as invalid.")
 @click.option("--ignore-unknown-codes", is_flag=True, help="Label codes outside the scheme become 'no label'.")
-@option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path), library="out_dir",
+@option("--out", "out", required=True, type=output_path(file_okay=False), library="out_dir",
         help="Output folder.")
 @overwrite_option(help="Replace an existing tile dataset in --out.")
 @quiet_option()

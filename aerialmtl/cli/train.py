@@ -15,6 +15,7 @@ from aerialmtl.cli.options import (
     compile_option,
     device_option,
     option,
+    output_path,
     overwrite_option,
     precision_option,
     quiet_option,
@@ -58,7 +59,7 @@ def _prepare_run_folder(folder: OutputFolder, stack: contextlib.ExitStack, clear
               help="Training YAML (e.g. configs/d3net_small_synth.yaml). With --resume, defaults to RUN/config.yaml.")
 @click.option("--data", "data_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Tile folder written by `aerialmtl tile` (overrides data.dir of the config).")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("runs/train"),
+@click.option("--out", "out_dir", type=output_path(file_okay=False), default=Path("runs/train"),
               show_default=True, help="Run folder for last.pt, best.pt, log.csv and config.yaml.")
 @click.option("--max-steps", type=int, help="Stop after this many optimisation steps in total.")
 @option("--max-time", "max_time", type=float, library="max_time_s", help="Wall-clock budget of this call in seconds.")

@@ -10,13 +10,15 @@ an open file handle). Training reads the same values from the decoded cache (:mo
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import rasterio
 import torch
+from rasterio.errors import RasterioError
 
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.data.types import Sample
@@ -73,15 +75,30 @@ def _layer_path(root: Path, row: dict[str, str], key: str) -> Path:
     return root / rel
 
 
+@contextlib.contextmanager
+def _reading(path: Path, root: Path) -> Iterator[None]:
+    """Turn a failed read of patch ``path`` (truncated, not a TIFF, unreadable) into one line naming it."""
+    try:
+        yield
+    except (RasterioError, OSError) as exc:
+        why = " ".join(str(exc).split())
+        if "See previous exception" in why and exc.__cause__ is not None:
+            why = " ".join(str(exc.__cause__).split())
+        raise InputError(
+            f"patch '{path}' of the tile folder '{root}' cannot be read ({why[:160]}): the file is truncated or "
+            "damaged; re-run `aerialmtl tile ... --overwrite` to write the tile folder again"
+        ) from exc
+
+
 def read_raw_patch(root: Path, row: dict[str, str], num_bands: int, tasks: Sequence[str]) -> RawPatch:
     """Decode the patch of manifest ``row`` of tile folder ``root``: the image and the layers of ``tasks``.
 
     Raises:
-        InputError: the row lacks a layer's path, or the image patch has another number of bands than
-            ``dataset.yaml`` lists.
+        InputError: the row lacks a layer's path, a patch cannot be read (named), or the image patch has
+            another number of bands than ``dataset.yaml`` lists.
     """
     image_path = _layer_path(root, row, "image_path")
-    with rasterio.open(image_path) as src:
+    with _reading(image_path, root), rasterio.open(image_path) as src:
         image = src.read()
         img_valid = src.dataset_mask() > 0
     if image.shape[0] != num_bands:
@@ -91,13 +108,15 @@ def read_raw_patch(root: Path, row: dict[str, str], num_bands: int, tasks: Seque
         )
     patch = RawPatch(image=image, image_valid=img_valid)
     if "height" in tasks:
-        with rasterio.open(_layer_path(root, row, "height_path")) as src:
+        path = _layer_path(root, row, "height_path")
+        with _reading(path, root), rasterio.open(path) as src:
             h = src.read(1).astype(np.float32)
             valid = src.read_masks(1) > 0
         valid &= np.isfinite(h) & img_valid
         patch.height = np.where(valid, h, np.float32(np.nan)).astype(np.float32)
     if "classes" in tasks:
-        with rasterio.open(_layer_path(root, row, "classes_path")) as src:
+        path = _layer_path(root, row, "classes_path")
+        with _reading(path, root), rasterio.open(path) as src:
             c = src.read(1).astype(np.uint8)
             valid = src.read_masks(1) > 0
         c[~(valid & img_valid)] = IGNORE_INDEX

@@ -25,6 +25,7 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
 
 from __future__ import annotations
 
+import io
 import math
 import pickle
 import warnings
@@ -75,6 +76,10 @@ class ModelMeta:
     #: (raw units, all bands); ``None`` when not recorded. Predict compares the orthophoto's with it
     #: (:mod:`aerialmtl.inference.sanity`).
     input_range: tuple[float, float] | None = None
+    #: the reference heights of the train split, ``(min, max)`` in metres above ground (valid pixels);
+    #: ``None`` when not recorded. Training calls a validation error far beyond them a divergence, predict a
+    #: map far outside them garbage (:func:`plausible_heights`).
+    height_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels
@@ -106,6 +111,10 @@ class ModelMeta:
                                                  and -math.inf < self.input_range[0] < self.input_range[1] < math.inf):
             raise CheckpointError(f"checkpoint meta is invalid: input_range must be [low, high] with low < high, got "
                                   f"{list(self.input_range)}")
+        if self.height_range is not None and not (len(self.height_range) == 2 and -math.inf < self.height_range[0]
+                                                  <= self.height_range[1] < math.inf):
+            raise CheckpointError(f"checkpoint meta is invalid: height_range must be [low, high] metres with low ≤ "
+                                  f"high, got {list(self.height_range)}")
 
     def to_dict(self) -> dict[str, Any]:
         return to_dict(self)
@@ -113,6 +122,31 @@ class ModelMeta:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelMeta:
         return from_dict(cls, data)
+
+
+#: Heights above ground (m) no surface has: below the deepest pits, above the tallest buildings.
+SURFACE_HEIGHTS_M = (-100.0, 1000.0)
+#: How far beyond the trained height range (factor × its span + margin, metres) a validation error or a
+#: predicted height may go before it is garbage rather than a model's mistake.
+DIVERGED_SPAN_FACTOR = 10.0
+DIVERGED_MARGIN_M = 100.0
+
+
+def height_slack(height_range: tuple[float, float] | None) -> float:
+    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches: the largest
+    plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``)."""
+    if height_range is None:
+        return SURFACE_HEIGHTS_M[1] - SURFACE_HEIGHTS_M[0]
+    return DIVERGED_SPAN_FACTOR * (height_range[1] - height_range[0]) + DIVERGED_MARGIN_M
+
+
+def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, float]:
+    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict (:func:`height_slack` beyond
+    it); :data:`SURFACE_HEIGHTS_M` when the range was not recorded."""
+    if height_range is None:
+        return SURFACE_HEIGHTS_M
+    slack = height_slack(height_range)
+    return height_range[0] - slack, height_range[1] + slack
 
 
 def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:
@@ -225,11 +259,33 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         CheckpointError: missing, truncated/corrupt, unsafe (would execute code), or not an aerialmtl
             checkpoint; the message names the file and what to do.
     """
+    payload, meta, _ = read_checkpoint(path, map_location)
+    return payload, meta
+
+
+def bytes_fingerprint(data: bytes) -> str:
+    """``sha256:<hex>`` of ``data`` (the fingerprint of a checkpoint file is that of the bytes that were loaded)."""
+    import hashlib
+
+    return f"sha256:{hashlib.sha256(data).hexdigest()}"
+
+
+def read_checkpoint(path: str | Path,
+                    map_location: str | torch.device = "cpu") -> tuple[dict[str, Any], ModelMeta, str]:
+    """:func:`load_checkpoint`, plus the fingerprint (:func:`bytes_fingerprint`) of the very bytes it parsed.
+
+    The file is read once into memory and parsed from there, so the fingerprint describes the weights in
+    use even when the file is replaced meanwhile (a training run writing a new ``best.pt``).
+    """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint '{path}' does not exist; pass the best.pt or last.pt of a training run")
-    with path.open("rb") as fh:
-        head = fh.read(4)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise CheckpointError(f"checkpoint '{path}' cannot be read ({exc.strerror or exc}); check its permissions, "
+                              "or pass another checkpoint") from exc
+    head = data[:4]
     if not head:
         raise CheckpointError(f"checkpoint '{path}' is empty (0 bytes); use another checkpoint or retrain")
     if head[:2] != b"PK" and head[:1] != b"\x80":  # neither torch.save's zip archive nor a pickle
@@ -240,7 +296,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     try:
         with warnings.catch_warnings():  # e.g. "Detected pickle protocol 4": the refusal below says it all
             warnings.simplefilter("ignore", UserWarning)
-            payload = torch.load(path, map_location=map_location, weights_only=True)
+            payload = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         raise CheckpointError(
             f"checkpoint '{path}' was refused: it contains objects that would run code when loaded "
@@ -290,7 +346,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             "file was edited or damaged and its results would be garbage; use another checkpoint (an earlier "
             "best.pt / last.pt)"
         )
-    return payload, meta
+    return payload, meta, bytes_fingerprint(data)
 
 
 def check_same_data(path: str | Path, saved: ModelMeta, current: ModelMeta) -> None:
@@ -344,9 +400,16 @@ def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tu
     Returns:
         ``(model, meta)``.
     """
+    model, meta, _ = read_model(path, map_location)
+    return model, meta
+
+
+def read_model(path: str | Path,
+               map_location: str | torch.device = "cpu") -> tuple[torch.nn.Module, ModelMeta, str]:
+    """:func:`load_model`, plus the fingerprint of the bytes the weights came from (:func:`read_checkpoint`)."""
     from aerialmtl.models.d3net import D3Net
 
-    payload, meta = load_checkpoint(path, map_location)
+    payload, meta, digest = read_checkpoint(path, map_location)
     model_cfg = meta.model
     if model_cfg.encoder_weights is not None:  # weights are in the state dict; don't look for the file
         model_cfg = ModelConfig(**{**to_dict(model_cfg), "encoder_weights": None,
@@ -367,4 +430,4 @@ def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tu
             "different runs (e.g. another class scheme); use the best.pt or last.pt of one `aerialmtl train` run"
         )
     model.eval()
-    return model.to(map_location), meta
+    return model.to(map_location), meta, digest

@@ -32,31 +32,39 @@ no complete-looking folder), every file it lists exists, each layer with the siz
 (``file_sizes``; the styles and ``item.json`` may be edited) and as a raster of the recorded grid, and its
 ``provenance`` matches the run at hand:
 
-    provenance.checkpoint   :func:`checkpoint_fingerprint`: SHA-256 of the checkpoint file (of the weights
-                            and metadata for a model given in memory)
+    provenance.checkpoint   SHA-256 of the checkpoint bytes that were loaded
+                            (:func:`aerialmtl.formats.checkpoint.read_checkpoint`; of the weights and
+                            metadata for a model given in memory)
     provenance.settings     what changes the maps: MC samples T, seed, precision, engine, the class
                             probabilities layer, the AOI (:func:`file_fingerprint` of the GeoJSON),
                             whether the checkpoint's calibration was applied, the linear map of
                             ``rescale_input`` (``input_rescale``, :mod:`aerialmtl.inference.sanity`)
-    provenance.input        :func:`input_fingerprint` of the orthophoto: resolved path, size and mtime
-                            (ns) of a local file; the GDAL path, size, transform and CRS of a remote or
-                            virtual one (no ``stat`` there)
+    provenance.input        :func:`input_fingerprint` of the orthophoto, taken when the run opens it and
+                            checked again before it commits (a file changed under the run is refused):
+                            resolved path, size and mtime (ns) of a local file, with every source of a
+                            VRT; for a remote or virtual path the GDAL path, raster size, transform and
+                            CRS, plus the ETag, Last-Modified and size the HTTP server gives, or the
+                            ``stat`` of a local archive (``/vsizip/``, ``/vsitar/``, ``/vsigzip/``)
 
 Window size, overlap, batch size and device are not part of it: they change speed and memory, and the
 maps only within the blending of window seams. ``prediction.json`` is also the proof of what a run owns:
 ``overwrite`` removes a stale layer of an earlier run only when that run's ``prediction.json`` lists it
 (:meth:`PredictionFolder.owned_files`).
+
+``prediction.json`` is read through one schema (:class:`PredictionInfo`, pydantic): any other shape (a
+list, ``null``, wrong types) is "not a prediction folder of aerialmtl" (:class:`NotAPredictionFolder`).
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError
@@ -228,6 +236,59 @@ def read_class_scheme_tag(path: str | Path) -> ClassScheme | None:
         ) from exc
 
 
+class NotAPredictionFolder(InputError):
+    """A ``prediction.json`` that is not one aerialmtl wrote (unreadable JSON, another shape, wrong types)."""
+
+
+class GridInfo(BaseModel):
+    """``prediction.json``'s ``grid``: the output grid (pixels, CRS, geotransform, GSD in metres)."""
+
+    model_config = ConfigDict(extra="allow")
+    width: int
+    height: int
+    crs: str | None = None
+    transform: list[float] | None = None
+    gsd: float | None = None
+
+
+class PredictionInfo(BaseModel):
+    """The schema of ``prediction.json`` (the fields readers rely on; the rest are kept as they are).
+
+    Attributes:
+        files: layer or file key → file name in the folder.
+        file_sizes: file name → size in bytes when the run committed.
+        grid: the output grid.
+        calibration: what calibration was applied (:meth:`Predictor.calibration_info
+            <aerialmtl.inference.predict.Predictor.calibration_info>`).
+        provenance: checkpoint, settings and input fingerprints (module docstring).
+    """
+
+    model_config = ConfigDict(extra="allow")
+    files: dict[str, str]
+    file_sizes: dict[str, int] = {}
+    grid: GridInfo | None = None
+    calibration: dict[str, Any] | None = None
+    provenance: dict[str, Any] | None = None
+
+
+def parse_info(text: str | bytes, path: str | Path) -> dict[str, Any]:
+    """``prediction.json``'s content, validated by :class:`PredictionInfo` (as a dict, every field kept).
+
+    Raises:
+        NotAPredictionFolder: not JSON, or not of the schema (the message names the file, the first problem
+            and the fix).
+    """
+    try:
+        info = PredictionInfo.model_validate_json(text)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err.get("loc", ())) or "the file"
+        raise NotAPredictionFolder(
+            f"'{path}' is not a prediction folder's {INFO_FILE} of aerialmtl ({where}: {err.get('msg', 'invalid')}); "
+            f"pass a folder written by `aerialmtl predict`, or predict again there with --overwrite") from exc
+    return info.model_dump()
+
+
 @dataclass(frozen=True)
 class PredictionFolder:
     """A prediction folder on disk (reading side).
@@ -254,10 +315,15 @@ class PredictionFolder:
         return self.path / INFO_FILE
 
     def info(self) -> dict[str, Any]:
-        """The parsed ``prediction.json`` (empty when the folder has none)."""
+        """The parsed and validated ``prediction.json`` (:class:`PredictionInfo`; empty when the folder has none).
+
+        Raises:
+            NotAPredictionFolder: it is not one aerialmtl wrote (a ``ValueError`` too).
+            OSError: it cannot be read.
+        """
         if not self.info_path.is_file():
             return {}
-        return dict(json.loads(self.info_path.read_text(encoding="utf-8")))
+        return parse_info(self.info_path.read_bytes(), self.info_path)
 
     def class_scheme(self) -> ClassScheme | None:
         """The class scheme tagged on ``classes.tif`` (``None`` without classes or tag)."""
@@ -268,7 +334,7 @@ class PredictionFolder:
         """Files an earlier run here wrote, as its ``prediction.json`` lists them (with itself); [] without one."""
         try:
             files = self.info().get("files")
-        except (OSError, ValueError, AttributeError):
+        except (OSError, ValueError):
             return []
         if not isinstance(files, dict):
             return []
@@ -289,12 +355,14 @@ class PredictionFolder:
         """
         try:
             info = self.info()
+        except NotAPredictionFolder as exc:
+            return f"its {INFO_FILE} is not aerialmtl's ({str(exc).split('(', 1)[-1].split(');', 1)[0]})"
         except (OSError, ValueError):
             return f"its {INFO_FILE} is unreadable"
         files = info.get("files")
         if not info:
             return f"it has no {INFO_FILE} (no run finished there)"
-        if not isinstance(files, dict) or not files:
+        if not files:
             return f"its {INFO_FILE} lists no layer"
         sizes = info.get("file_sizes") or {}
         grid = info.get("grid") or {}
@@ -349,15 +417,6 @@ def _layer_problem(path: Path, grid: Mapping[str, Any]) -> str | None:
 PROVENANCE_KEY = "provenance"
 
 
-def checkpoint_fingerprint(path: str | Path) -> str:
-    """``sha256:<hex>`` of a checkpoint file's bytes (streamed)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return f"sha256:{digest.hexdigest()}"
-
-
 def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
     """Resolved path, size and mtime (ns) of a local file (``None`` for ``None``); the path alone otherwise."""
     if path is None:
@@ -370,17 +429,106 @@ def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
     return {"path": str(Path(path).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
-def input_fingerprint(path: str | Path, width: int, height: int, transform: Sequence[float],
-                      crs: str) -> dict[str, Any]:
-    """The fingerprint of an orthophoto: :func:`file_fingerprint` of a local file; for a remote or virtual
-    path (no ``stat``) the GDAL path with the raster's size, geotransform and CRS."""
+#: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
+VRT_DEPTH = 4
+#: Seconds :func:`http_validators` waits for a server's answer.
+HEAD_TIMEOUT = 20.0
+
+
+def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
+    """:func:`file_fingerprint` of every source a local VRT lists (``SourceFilename``, relative ones resolved
+    against the VRT's folder; VRTs inside followed ``depth`` levels), in document order without repeats."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError):
+        return []
     from aerialmtl.io.paths import is_local
+
+    out: list[dict[str, Any]] = []
+    seen: set[str] = set()
+    for el in root.iter("SourceFilename"):
+        name = (el.text or "").strip()
+        if not name or name in seen:
+            continue
+        seen.add(name)
+        if is_local(name) and el.get("relativeToVRT", "0") == "1":
+            name = str(Path(path).parent / name)
+        try:
+            fp = input_fingerprint(name, depth=depth - 1) if depth > 0 else file_fingerprint(name)
+        except OSError:
+            fp = {"path": name, "missing": True}
+        if fp is not None:
+            out.append(fp)
+    return out
+
+
+def http_validators(url: str) -> dict[str, Any] | None:
+    """What an HTTP(S) server says identifies the current version of ``url`` (one HEAD request): ``etag``,
+    ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S)."""
+    import urllib.error
+    import urllib.request
+
+    if url.startswith("/vsicurl/"):
+        url = url[len("/vsicurl/"):]
+    if not url.lower().startswith(("http://", "https://")):
+        return None
+    req = urllib.request.Request(url, method="HEAD")
+    try:
+        with urllib.request.urlopen(req, timeout=HEAD_TIMEOUT) as resp:  # noqa: S310 - http(s) only, checked above
+            headers = resp.headers
+    except (urllib.error.URLError, OSError, ValueError):
+        return None
+    size = headers.get("Content-Length")
+    return {"etag": headers.get("ETag"), "last_modified": headers.get("Last-Modified"),
+            "size": int(size) if size and size.isdigit() else None}
+
+
+def input_fingerprint(path: str | Path, width: int | None = None, height: int | None = None,
+                      transform: Sequence[float] | None = None, crs: str | None = None,
+                      depth: int = VRT_DEPTH) -> dict[str, Any]:
+    """The fingerprint of an orthophoto (see the module docstring): what says whether the bytes read are
+    still the same.
+
+    Args:
+        path: the orthophoto (a local file, a VRT, a URL or a GDAL ``/vsi...`` path).
+        width, height, transform, crs: its raster size and georeferencing (recorded for a non-local path).
+        depth: how many levels of VRTs inside VRTs are followed.
+
+    Returns:
+        For a local file, :func:`file_fingerprint` (plus ``sources``, each source's fingerprint, for a VRT);
+        otherwise the GDAL path, the raster's size and georeferencing, and ``server`` (the HTTP validators)
+        or ``archive`` (the local archive's :func:`file_fingerprint`).
+    """
+    from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
 
     fp = file_fingerprint(path)
     assert fp is not None
-    if not is_local(path):
+    if is_local(path):
+        if str(path).lower().endswith(".vrt"):
+            fp["sources"] = vrt_sources(path, depth)
+        return fp
+    if width is not None and height is not None and transform is not None:
         fp.update(width=int(width), height=int(height), transform=[float(v) for v in transform][:6], crs=str(crs))
+    text = gdal_path(path)
+    archive = local_archive(text)
+    if archive is not None:
+        fp["archive"] = file_fingerprint(archive)
+    elif not text.startswith(ARCHIVE_VSI):
+        server = http_validators(text)
+        if server is not None:
+            fp["server"] = server
     return fp
+
+
+def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
+    """What differs between two :func:`input_fingerprint`\\ s of one input (``None``: nothing), for a message."""
+    if before == after:
+        return None
+    keys = [k for k in sorted(set(before) | set(after)) if before.get(k) != after.get(k)]
+    return ", ".join(f"{k} {before.get(k)!r} → {after.get(k)!r}" if k not in ("sources", "server", "archive")
+                     else f"its {k}" for k in keys)[:300]
 
 
 __all__ = [
@@ -390,5 +538,6 @@ __all__ = [
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
     "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
-    "PROVENANCE_KEY", "checkpoint_fingerprint", "file_fingerprint", "input_fingerprint",
+    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "changed", "file_fingerprint",
+    "http_validators", "input_fingerprint", "parse_info", "vrt_sources",
 ]

@@ -30,15 +30,18 @@ Precision: fp32, or bf16 (``INFERENCE_PRECISION_HINT``) on a CPU with native bf1
 (:func:`aerialmtl.runtime.resolve_precision`); the statistics are accumulated in float32 either way.
 
 Cache: converting the model takes seconds to a minute; the converted model (OpenVINO IR) and the compiled
-blobs (OpenVINO's ``CACHE_DIR``) are kept under ``$XDG_CACHE_HOME/aerialmtl/openvino/<fingerprint>``
+models (one per window shape and precision) are kept under ``$XDG_CACHE_HOME/aerialmtl/openvino/<fingerprint>``
 (default ``~/.cache``; ``AERIALMTL_OPENVINO_CACHE`` overrides the root), keyed by a fingerprint of the
 weights, the model configuration and the versions of aerialmtl and OpenVINO: a second run on the same
-checkpoint loads both instead of paying again.
+checkpoint loads both instead of paying again. Every entry carries its checksum and is written whole
+(:mod:`aerialmtl.inference.engine_cache`): a corrupt entry is rebuilt with a warning, and a folder that
+cannot be written means a prediction without caching (one warning naming it), never a failed one.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import threading
 import warnings
@@ -52,6 +55,7 @@ from torch import nn
 
 from aerialmtl import __version__
 from aerialmtl.errors import InputError
+from aerialmtl.inference.engine_cache import EngineCache
 from aerialmtl.models.mc_dropout import (
     _SEEDABLE,
     DropoutSite,
@@ -206,8 +210,8 @@ class OpenVINOEngine:
         in_channels: its input bands.
         tasks: its tasks, in output order.
         precision: ``"bf16"`` or ``"fp32"``.
-        cache_dir: where the IR and compiled blobs go (default :func:`cache_root`/fingerprint; ``None``
-            with ``cache=False``).
+        cache_dir: where the IR and compiled models go (default :func:`cache_root`/fingerprint; nothing is
+            cached with ``cache=False``; :class:`~aerialmtl.inference.engine_cache.EngineCache`).
         cache: keep converted and compiled models on disk.
     """
 
@@ -239,11 +243,7 @@ class OpenVINOEngine:
                 self.cache_dir = cache_root() / key
             else:
                 self.cache_dir = cache_root() / fingerprint(model, extra)
-            try:
-                (self.cache_dir / "blobs").mkdir(parents=True, exist_ok=True)
-                self.core.set_property({"CACHE_DIR": str(self.cache_dir / "blobs")})
-            except OSError:  # a read-only home: convert and compile every run
-                self.cache_dir = None
+        self.cache = EngineCache(self.cache_dir)
         self._models: dict[str, openvino.Model] = {}
         self._compiled: dict[tuple[str, int, int], _Requests] = {}
         self._lock = threading.Lock()
@@ -285,9 +285,10 @@ class OpenVINOEngine:
     def _ov_model(self, part: str) -> openvino.Model:
         if part in self._models:
             return self._models[part]
-        xml = self.cache_dir / f"{part}.xml" if self.cache_dir is not None else None
-        if xml is not None and xml.is_file():
-            model = self.core.read_model(str(xml))
+        cached = self.cache.read(f"{part}.ir")
+        if cached is not None and len(cached) == 2:
+            xml, weights = cached
+            model = self.core.read_model(xml, self.ov.Tensor(np.frombuffer(weights, np.uint8).copy()))
         else:
             module, example = self._module(part)
             # Traced with autograd on: D3-Net's dense blocks then concatenate (which OpenVINO fuses)
@@ -296,11 +297,8 @@ class OpenVINOEngine:
                 warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks traced as constants
                 traced = torch.jit.trace(module.eval(), example, check_trace=False, strict=False)
             model = self.ov.convert_model(traced)
-            if xml is not None:
-                tmp = xml.with_name(f".{xml.stem}.{os.getpid()}.xml")
-                self.ov.save_model(model, str(tmp), compress_to_fp16=False)
-                os.replace(tmp.with_suffix(".bin"), xml.with_suffix(".bin"))
-                os.replace(tmp, xml)
+            if self.cache.enabled:
+                self.cache.write(f"{part}.ir", self._serialize(model))
         self._models[part] = model
         return model
 
@@ -316,7 +314,9 @@ class OpenVINOEngine:
                     shapes = {k: list(s) for k, s in enumerate(feats)}
                     shapes.update({len(feats) + k: [1, *site.shape(h, w)] for k, site in enumerate(self.sites)})
                 model.reshape(shapes)
-                compiled = self.core.compile_model(model, "CPU", self.compile_config())
+                config = self.compile_config()
+                hint, n = config["INFERENCE_PRECISION_HINT"], self.threads
+                compiled = self._compile(model, f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.blob", config)
                 self._compiled[key] = _Requests(compiled, self.threads.streams)
             return self._compiled[key]
 
@@ -326,6 +326,30 @@ class OpenVINOEngine:
         hint = "bf16" if self.precision == "bf16" else "f32"
         return {"INFERENCE_PRECISION_HINT": hint, "INFERENCE_NUM_THREADS": self.threads.threads,
                 "NUM_STREAMS": self.threads.streams, "ENABLE_CPU_PINNING": False}
+
+    def _serialize(self, model: openvino.Model) -> list[bytes]:
+        """An IR's XML and weights as bytes (through a private temporary folder: OpenVINO writes files)."""
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="aerialmtl-ov-") as tmp:
+            xml = Path(tmp) / "model.xml"
+            self.ov.save_model(model, str(xml), compress_to_fp16=False)
+            return [xml.read_bytes(), xml.with_suffix(".bin").read_bytes()]
+
+    def _compile(self, model: openvino.Model, name: str, config: dict[str, Any]) -> Any:
+        """``model`` compiled for the CPU: imported from cache entry ``name`` when it is there and whole,
+        else compiled (and stored)."""
+        cached = self.cache.read(name)
+        if cached is not None and len(cached) == 1:
+            try:
+                return self.core.import_model(io.BytesIO(cached[0]), "CPU", config)
+            except RuntimeError as exc:  # a whole entry OpenVINO still refuses (e.g. written by another build)
+                warnings.warn(f"cached OpenVINO model '{self.cache.folder}/{name}' could not be loaded "
+                              f"({' '.join(str(exc).split())[:120]}); rebuilding it", UserWarning, stacklevel=2)
+        compiled = self.core.compile_model(model, "CPU", config)
+        if self.cache.enabled:
+            self.cache.write(name, [compiled.export_model().getvalue()])
+        return compiled
 
     def _feature_shapes(self, h: int, w: int) -> list[tuple[int, ...]]:
         enc = self._ov_model("encode")

@@ -237,6 +237,10 @@ def export_model(
         from aerialmtl.formats.checkpoint import load_model
 
         model, meta = load_model(checkpoint)
+    if calibration and "height" in model_tasks(meta):
+        from aerialmtl.inference.sanity import check_calibration
+
+        check_calibration(meta, "<in-memory model>" if isinstance(checkpoint, tuple) else str(checkpoint))
     if task != "all" and task not in model_tasks(meta):
         raise InputError(f"the model has no {task} task (its tasks: {', '.join(model_tasks(meta))}); pass "
                          f"‹task=all› or one of its tasks", param="task")

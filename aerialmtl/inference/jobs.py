@@ -42,7 +42,14 @@ import torch
 
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError
-from aerialmtl.formats.prediction import PredictionFolder, folder_files, mosaic_filename, mosaic_files
+from aerialmtl.formats.prediction import (
+    LAYERS,
+    PredictionFolder,
+    folder_files,
+    mosaic_filename,
+    mosaic_files,
+    mosaic_style_filename,
+)
 from aerialmtl.formats.qgis_style import write_raster_style
 from aerialmtl.formats.stac import collection_files, write_collection
 from aerialmtl.inference.ortho import OrthoInput
@@ -50,7 +57,7 @@ from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import check_outputs_free, remove_leftovers
 from aerialmtl.io.align import Grid
-from aerialmtl.io.outputs import OutputFolder, check_not_input
+from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
 
@@ -125,6 +132,7 @@ def targets_for(orthos: Sequence[str | Path], out: str | Path) -> list[Target]:
     Raises:
         InputError: several inputs share a file stem (their folders would clash).
     """
+    check_local_output(out, "out")
     paths = [gdal_path(p) for p in orthos]
     if not paths:
         raise InputError("no orthophoto given; pass one or more GeoTIFFs")
@@ -377,8 +385,19 @@ def _one_line(exc: BaseException) -> str:
 
 def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) -> dict[str, Path]:
     """One VRT per layer over every input's folder (:func:`~aerialmtl.formats.prediction.mosaic_filename`),
-    each with its QGIS style, and the STAC ``collection.json`` linking the inputs' items and the mosaics."""
+    each with its QGIS style, and the STAC ``collection.json`` linking the inputs' items and the mosaics.
+
+    A mosaic an earlier run here wrote (its ``collection.json`` lists it) of a layer this run does not make
+    (e.g. ``height_std`` after ``--mc 1``) is removed with its style: it would point at layers that are gone.
+    """
     mosaics, styles = {}, {}
+    earlier = set(collection_files(out))
+    made = {spec.name for spec in predictor.layers}
+    for name in LAYERS:
+        if name not in made:
+            for stale in (mosaic_filename(name), mosaic_style_filename(name)):
+                if stale in earlier:
+                    (out / stale).unlink(missing_ok=True)
     for spec in predictor.layers:
         sources = [t.out / spec.filename for t in targets if (t.out / spec.filename).is_file()]
         if sources:

@@ -14,12 +14,15 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from rasterio.enums import ColorInterp
 
 from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.formats.prediction import changed, input_fingerprint
 from aerialmtl.inference.windows import Plan, plan_windows
 from aerialmtl.io.align import Grid, check_bands, open_raster, ortho_grid, resampled_grid
+from aerialmtl.io.paths import is_local
 
 #: Relative GSD difference above which the orthophoto is resampled to the model's GSD.
 GSD_TOLERANCE = 0.01
@@ -45,6 +48,8 @@ class OrthoInput:
         plan: the window plan over ``grid``.
         rescale: ``(a, b)``: the model sees ``a·x + b`` for raw values x (``rescale_input``, see
             :mod:`aerialmtl.inference.sanity`); ``None``: the raw values.
+        fingerprint: :func:`~aerialmtl.formats.prediction.input_fingerprint`, taken before the file was first
+            read (``provenance.input``; checked again before the maps are committed, :meth:`changed`).
     """
 
     path: str | Path
@@ -55,6 +60,7 @@ class OrthoInput:
     unused_bands: tuple[int, ...]
     plan: Plan
     rescale: tuple[float, float] | None = None
+    fingerprint: dict[str, Any] | None = None
 
     @classmethod
     def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int, grid: Grid | None = None) -> OrthoInput:
@@ -70,6 +76,7 @@ class OrthoInput:
             AlignmentError: not georeferenced, geographic CRS.
             InputError: the file lacks a band the checkpoint reads (the message names the fix).
         """
+        local = input_fingerprint(path) if is_local(path) else None  # stat before the first read
         with open_raster(path, "orthophoto") as src:
             native = ortho_grid(src)
             check_bands(src, meta.bands, "orthophoto", bands_from=f"the checkpoint (trained on {trained_bands(meta)})",
@@ -81,8 +88,19 @@ class OrthoInput:
         resampled_from = native.gsd if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd else None
         if grid is None:
             grid = resampled_grid(native, meta.gsd) if resampled_from is not None else native
+        fingerprint = local if local is not None else input_fingerprint(
+            path, native.width, native.height, list(native.transform), native.crs.to_string())
         return cls(path, native, grid, resampled_from, count, unused,
-                   plan_windows(grid.height, grid.width, tile, overlap))
+                   plan_windows(grid.height, grid.width, tile, overlap), fingerprint=fingerprint)
+
+    def changed(self) -> str | None:
+        """What changed in the input since it was opened (``None``: nothing; see :attr:`fingerprint`)."""
+        if self.fingerprint is None:
+            return None
+        native = self.native
+        now = input_fingerprint(self.path, native.width, native.height, list(native.transform),
+                                native.crs.to_string())
+        return changed(self.fingerprint, now)
 
     @property
     def name(self) -> str:

@@ -52,7 +52,6 @@ from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import (
     PROVENANCE_KEY,
     LayerSpec,
-    checkpoint_fingerprint,
     file_fingerprint,
     input_fingerprint,
     prediction_layers,
@@ -70,7 +69,13 @@ from aerialmtl.inference.runner import (
     resolve_device,
     resolve_precision,
 )
-from aerialmtl.inference.sanity import check_finite_outputs, check_input_values, rescaled
+from aerialmtl.inference.sanity import (
+    check_calibration,
+    check_finite_outputs,
+    check_height_range,
+    check_input_values,
+    rescaled,
+)
 from aerialmtl.inference.stitch import Stitcher
 from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
 from aerialmtl.inference.writer import PredictionWriter
@@ -150,14 +155,17 @@ def model_grid(ortho: str | Path, meta: ModelMeta) -> tuple[Grid, float | None]:
     return src.grid, src.resampled_from
 
 
-def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta]) -> tuple[torch.nn.Module, ModelMeta, str]:
+def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta]
+          ) -> tuple[torch.nn.Module, ModelMeta, str, str | None]:
+    """``(model, meta, name, fingerprint)``; the fingerprint is that of the checkpoint bytes loaded (``None`` for a
+    model given in memory: computed from its weights when needed)."""
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
-        return model, meta, "<in-memory model>"
-    from aerialmtl.formats.checkpoint import load_model
+        return model, meta, "<in-memory model>", None
+    from aerialmtl.formats.checkpoint import read_model
 
-    model, meta = load_model(checkpoint)
-    return model, meta, str(checkpoint)
+    model, meta, digest = read_model(checkpoint)
+    return model, meta, str(checkpoint), digest
 
 
 def _record_timings(path: Path, timings: dict[str, float]) -> None:
@@ -252,7 +260,7 @@ class Predictor:
         self.threads = runtime.resolve_threads(threads)
         if self.threads.source != "auto" and self.device.type == "cpu":
             torch.set_num_threads(self.threads.threads)
-        model, self.meta, name = _load(checkpoint)
+        model, self.meta, name, loaded_fingerprint = _load(checkpoint)
         #: The engine that runs the model: ``"torch"`` or ``"openvino"``.
         self.engine = resolve_engine(engine, self.device, model)
         self.precision = resolve_precision(precision, self.device,
@@ -262,7 +270,7 @@ class Predictor:
                           UserWarning, stacklevel=2)
         self.checkpoint_name = checkpoint_name or name
         self._checkpoint = checkpoint
-        self._fingerprint: str | None = None
+        self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
         self.mc = mc if mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
         self.tile, self.overlap = tile, overlap
         self.batch_size = batch_size
@@ -270,6 +278,8 @@ class Predictor:
         self.seed = seed
         self.compile = compile
         self.reader_threads = reader_threads
+        if calibration:
+            check_calibration(self.meta, self.checkpoint_name)
         self.calibration = self.meta.calibration if calibration else None
         self.calibration_available = self.meta.calibration is not None
         self.rescale_input = rescale_input
@@ -396,6 +406,7 @@ class Predictor:
                         stats = pending.result()
                         assert valid is not None
                         check_finite_outputs(stats, valid, self.checkpoint_name)
+                        check_height_range(stats, valid, self.checkpoint_name, self.meta)
                         timings["model"] += time.perf_counter() - t0
                     flush(windows, stats, valid)
 
@@ -480,6 +491,11 @@ class Predictor:
                 timings[key] = max(timings.get(key, 0.0), v)
         before = (t0 - started) if started is not None else timings.get("strip_total", 0.0)
         try:
+            moved = src.changed()  # maps of a file replaced under the run would be recorded as the new file's
+            if moved is not None:
+                raise InputError(
+                    f"orthophoto '{src.path}' changed while it was read ({moved}), so its maps mix two versions and "
+                    f"were not written to '{out}': re-run when the file is no longer being written or replaced")
             info = self.info(src, src.grid, src.plan, aoi, computed, {**timings, "before_cog": before},
                              processes=processes)
             files = writer.commit(info, strips=[r.row_start for r in strips])
@@ -529,10 +545,11 @@ class Predictor:
     # ---- run information --------------------------------------------------------------------------
     @property
     def fingerprint(self) -> str:
-        """The model's fingerprint (:func:`~aerialmtl.formats.prediction.checkpoint_fingerprint`; computed once)."""
+        """The model's fingerprint: SHA-256 of the checkpoint bytes that were loaded
+        (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the weights of a model given in memory."""
         if self._fingerprint is None:
-            self._fingerprint = (model_fingerprint(*self._checkpoint) if isinstance(self._checkpoint, tuple)
-                                 else checkpoint_fingerprint(self._checkpoint))
+            assert isinstance(self._checkpoint, tuple)
+            self._fingerprint = model_fingerprint(*self._checkpoint)
         return self._fingerprint
 
     def provenance(self, src: OrthoInput, aoi: str | Path | None) -> dict[str, Any]:
@@ -546,8 +563,8 @@ class Predictor:
                          "probabilities": bool(self.probabilities), "aoi": file_fingerprint(aoi),
                          "calibration": self.calibration is not None,
                          "input_rescale": None if src.rescale is None else list(src.rescale)},
-            "input": input_fingerprint(src.path, native.width, native.height, list(native.transform),
-                                       native.crs.to_string()),
+            "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(
+                src.path, native.width, native.height, list(native.transform), native.crs.to_string()),
         }
 
     @staticmethod
@@ -595,10 +612,20 @@ class Predictor:
         cal = self.meta.calibration
         if cal is None:
             return {"applied": False, "reason": "the checkpoint has no calibration"}
-        info: dict[str, Any] = {"applied": self.calibration is not None, "method": cal.method,
-                                "std_scale": cal.std_scale, "std_floor_m": cal.std_floor, "n_pixels": cal.n_pixels,
-                                "source": cal.source,
-                                "height_knots_m": [list(cal.height_x), list(cal.height_y)]}
+        on = self.calibration is not None
+        info: dict[str, Any] = {"applied": on and (cal.height_applied or cal.spread_applied),
+                                "height_map_applied": on and cal.height_applied,
+                                "spread_map_applied": on and cal.spread_applied,
+                                "method": cal.method, "n_pixels": cal.n_pixels, "source": cal.source,
+                                "summary": cal.summary()}
+        if cal.height_applied:
+            info["height_knots_m"] = [list(cal.height_x), list(cal.height_y)]
+        if cal.spread_applied:
+            info.update({"std_scale": cal.std_scale, "std_floor_m": cal.std_floor} if not cal.std_edges else
+                        {"std_range_edges_m": list(cal.std_edges), "std_scales": list(cal.std_scales),
+                         "std_floors_m": list(cal.std_floors)})
+        if on and not (cal.height_applied or cal.spread_applied):
+            info["reason"] = f"validation kept neither part: {cal.notes}"
         if self.calibration is None:
             info["reason"] = "switched off (--no-calibration)"
         return info

@@ -34,8 +34,8 @@ import numpy as np
 import torch
 from rasterio.windows import Window
 
-from aerialmtl.errors import InputError, NonFiniteError
-from aerialmtl.formats.checkpoint import ModelMeta, value_envelope
+from aerialmtl.errors import CheckpointError, InputError, NonFiniteError
+from aerialmtl.formats.checkpoint import ModelMeta, plausible_heights, value_envelope
 from aerialmtl.io.align import open_raster
 from aerialmtl.models.mc_dropout import McStatistics
 
@@ -212,6 +212,73 @@ def check_finite_outputs(stats: McStatistics, valid: torch.Tensor, checkpoint: s
         )
 
 
+def check_height_range(stats: McStatistics, valid: torch.Tensor, checkpoint: str, meta: ModelMeta) -> None:
+    """Refuse heights far outside what the checkpoint was trained on (:func:`~aerialmtl.formats.checkpoint.
+    plausible_heights` of :attr:`~aerialmtl.formats.checkpoint.ModelMeta.height_range`) at valid pixels: a
+    diverged-but-finite model's maps (heights of 1e15 m) are never written.
+
+    Args:
+        stats: the model's statistics of a batch of windows (B×H×W heights, metres, before calibration).
+        valid: B×H×W bool, the valid input pixels.
+        checkpoint: the checkpoint's name, for the message.
+        meta: its metadata.
+
+    Raises:
+        NonFiniteError: naming the checkpoint, the heights found and allowed, and what to do.
+    """
+    h = stats.height_mean
+    if h is None:
+        return
+    low, high = plausible_heights(meta.height_range)
+    inside = valid.to(h.device)
+    if not bool(inside.any()):
+        return
+    values = h[inside]
+    lo, hi = float(values.min()), float(values.max())
+    if low <= lo and hi <= high:
+        return
+    trained = (f"the {meta.height_range[0]:.4g}..{meta.height_range[1]:.4g} m it was trained on"
+               if meta.height_range is not None else "the heights any surface has")
+    raise NonFiniteError(
+        f"the model of checkpoint '{checkpoint}' gives heights of {lo:.3g}..{hi:.3g} m, far outside {trained} "
+        f"(allowed {low:.4g}..{high:.4g} m), so no prediction was written: the training that wrote it diverged; use "
+        "another checkpoint (an earlier best.pt / last.pt) or retrain with a lower optim.lr")
+
+
+def check_calibration(meta: ModelMeta, checkpoint: str) -> None:
+    """Refuse a checkpoint calibration (:attr:`ModelMeta.calibration`) no fit writes: a height map with
+    non-finite knots, one that decreases (taller predictions would come out lower), or one that sends every
+    height below 0 m, or far outside the heights the model was trained on (an edited or damaged
+    checkpoint; applying it silently would give wrong maps that look complete).
+
+    Raises:
+        CheckpointError: naming the checkpoint, what is wrong, and the fix (``--no-calibration``).
+    """
+    cal = meta.calibration
+    if cal is None or not cal.height_applied:  # a height map that is not applied changes no height
+        return
+    x, y = np.asarray(cal.height_x, np.float64), np.asarray(cal.height_y, np.float64)
+    problem = None
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        problem = "its height map has non-finite knots"
+    elif (np.diff(y) < 0).any():
+        k = int(np.argmax(np.diff(y) < 0))
+        problem = (f"its height map decreases ({x[k]:.4g} m → {y[k]:.4g} m but {x[k + 1]:.4g} m → {y[k + 1]:.4g} m), "
+                   "so taller predictions would come out lower")
+    elif y.max() < 0:  # (all 0 m is what a fit on a flat validation area gives: allowed)
+        problem = f"its height map sends every height below 0 m (to {y.max():.4g} m at most: every map would be flat)"
+    else:
+        low, high = plausible_heights(meta.height_range)
+        if y.min() < low or y.max() > high:
+            problem = (f"its height map reaches {y.min():.4g}..{y.max():.4g} m, far outside {low:.4g}..{high:.4g} m "
+                       "for the heights the model was trained on")
+    if problem is not None:
+        raise CheckpointError(
+            f"checkpoint '{checkpoint}' has an invalid calibration: {problem}; no fit writes one (the file was edited "
+            "or damaged): predict without it (--no-calibration, or calibration=False in Python), or use the best.pt / "
+            "last.pt as `aerialmtl train` wrote it")
+
+
 def rescaled(raw: torch.Tensor, rescale: tuple[float, float] | None) -> torch.Tensor:
     """``raw`` (B, C, h, w) as ``a·raw + b`` in float32 when ``rescale`` is ``(a, b)``, else unchanged."""
     if rescale is None:
@@ -220,5 +287,5 @@ def rescaled(raw: torch.Tensor, rescale: tuple[float, float] | None) -> torch.Te
     return raw.float() * a + b if math.isfinite(a) and math.isfinite(b) else raw
 
 
-__all__ = ["InputSample", "SAMPLE_GRID", "SAMPLE_SIDE", "SPREAD_LIMIT", "check_finite_outputs", "check_input_values",
-           "input_mismatch", "rescaled", "sample_input", "value_envelope"]
+__all__ = ["InputSample", "SAMPLE_GRID", "SAMPLE_SIDE", "SPREAD_LIMIT", "check_calibration", "check_finite_outputs",
+           "check_height_range", "check_input_values", "input_mismatch", "rescaled", "sample_input", "value_envelope"]

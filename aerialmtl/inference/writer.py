@@ -46,6 +46,7 @@ from aerialmtl.inference.stitch import Block
 from aerialmtl.io import outputs
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
+from aerialmtl.io.oserrors import kind_of, output_error
 from aerialmtl.io.outputs import make_output_dir
 from aerialmtl.io.stats import BandStats, band_stats
 
@@ -120,6 +121,8 @@ def _apply_metadata(dst: Any, spec: LayerSpec) -> None:
 
 
 def _writable_error(out_dir: Path, exc: BaseException) -> OutputError:
+    if kind_of(exc, out_dir) is not None:  # a full disk or a read-only folder: said as every command says it
+        return output_error(exc, out_dir, "the prediction folder", "‹out_dir›")
     return OutputError(
         f"cannot write in output folder '{out_dir}' ({' '.join(str(exc).split())[:160]}); "
         "choose a writable ‹out_dir› with free space"

@@ -35,7 +35,15 @@ from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError
 from aerialmtl.formats.tiles import HEIGHT_NODATA as HEIGHT_NODATA  # re-exported: height rasters aerialmtl writes
-from aerialmtl.io.paths import configure_remote, gdal_path, is_local, is_remote
+from aerialmtl.io.paths import (
+    ARCHIVE_VSI,
+    archive_parts,
+    configure_remote,
+    gdal_path,
+    is_local,
+    is_remote,
+    probe_url,
+)
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 
 LayerKind = Literal["image", "height", "labels"]
@@ -125,9 +133,20 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
                    "AWS_NO_SIGN_REQUEST=YES "
                    "for a public bucket" if "/vsis3/" in gpath else
                    "a server that needs a login takes GDAL_HTTP_AUTH/GDAL_HTTP_USERPWD or GDAL_HTTP_HEADERS")
+            why = _gdal_message(exc)
+            if "not recognized" in why:  # what GDAL says after its retries, whatever the server did: ask it
+                why = probe_url(gpath) or why
             raise InputError(
-                f"{role} '{gpath}' cannot be opened ({_gdal_message(exc)}); check the URL and the network; {fix}"
+                f"{role} '{gpath}' cannot be opened ({why}); check the URL and the network; {fix}"
             ) from exc
+        if gpath.startswith(ARCHIVE_VSI):  # the archive or the file inside it is missing, before any pixel
+            parts = archive_parts(gpath)
+            if parts is None:
+                raise InputError(f"{role} '{gpath}': no archive file was found along this path; check the archive's "
+                                 "path (e.g. /vsizip//data/area.zip/ortho.tif)") from exc
+            raise InputError(f"{role} '{gpath}': the archive '{parts[0]}' holds no raster '{parts[1]}' (GDAL: "
+                             f"{_gdal_message(exc)}); list its files (`unzip -l {parts[0]}`) and give one of them"
+                             ) from exc
         raise InputError(
             f"{role} '{gpath}' cannot be read as a raster ({' '.join(str(exc).split())}); "
             "is it a complete GeoTIFF? re-download or re-export it"
@@ -206,6 +225,12 @@ def reference_grid(ortho: str | Path, gsd: float | None = None) -> Grid:
 def ortho_grid(src: rasterio.io.DatasetReader) -> Grid:
     """The grid of an open orthophoto, checked as :func:`reference_grid` checks it (projected, north-up)."""
     _check_georeferenced(src, "orthophoto")
+    t = src.transform
+    if t.e > 0 or t.a < 0:  # south-up or east-to-west rows: every window, stitch and output assumes north-up
+        which = "south-up (its pixel height is positive)" if t.e > 0 else "mirrored (its pixel width is negative)"
+        raise AlignmentError(
+            f"orthophoto '{src.name}' is {which}, not north-up; warp it north-up first "
+            f"(`gdalwarp {src.name} north_up.tif`)")
     if not src.crs.is_projected:
         lon, lat = transform_bounds(src.crs, "EPSG:4326", *src.bounds)[:2]
         require_projected(src.crs, "orthophoto", src.name, (lon, lat))
@@ -357,8 +382,20 @@ class AlignedRaster:
                 if self.vrt is None and self.alpha_band is not None:
                     inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0
             except RasterioError as exc:
+                if is_remote(gdal_path(self.path)):  # the server, not the file: a connection cut or timed out
+                    raise InputError(
+                        f"{self.role} '{self.path}' could not be read: the server stopped sending it or timed out "
+                        f"after the file was opened ({_gdal_message(exc)}); check the network and the server, then "
+                        "re-run (GDAL_HTTP_TIMEOUT and GDAL_HTTP_MAX_RETRY set how long and how often it retries)"
+                    ) from exc
+                why = _gdal_message(exc)
+                if str(self.path).lower().endswith(".vrt") and "No such file" in why:
+                    raise InputError(
+                        f"{self.role} '{self.path}' could not be read: a source file it lists is missing ({why}); "
+                        "restore it, or rebuild the VRT over the files you have (`gdalbuildvrt`)"
+                    ) from exc
                 raise InputError(
-                    f"{self.role} '{self.path}' could not be read ({_gdal_message(exc)}); the file is probably "
+                    f"{self.role} '{self.path}' could not be read ({why}); the file is probably "
                     f"truncated or corrupt: check it with `gdalinfo -checksum {self.path}`, then re-download or "
                     "re-export it"
                 ) from exc

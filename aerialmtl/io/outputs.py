@@ -23,7 +23,10 @@ Every command writes through this module (:class:`OutputFolder`), so the rules a
   that died is taken over with a warning. Under ``torchrun`` the job's rank 0 takes the lock for the
   whole job; the other ranks write only after a barrier that rank 0 passes once it holds it. Where
   ``fcntl`` is missing (Windows) the lock is the exclusive creation of the lock file; one left by a
-  killed process there must be deleted by hand (the message names it).
+  killed process there must be deleted by hand (the message names it). The lock file is opened without
+  following symlinks (a symlink in its place is refused: writing through it would truncate its target),
+  and a forked child (a DataLoader worker, a multiprocessing pool) closes its copy at once, so the lock
+  ends with the process that took it, not with the last of its children.
 """
 
 from __future__ import annotations
@@ -173,6 +176,19 @@ def check_files_not_input(outputs: Iterable[str | Path],
                              f"‹{option}›", param=option)
 
 
+def check_local_output(path: str | Path, option: str = "out_dir") -> None:
+    """Refuse an output location that is a URL or a GDAL ``/vsi...`` path (outputs are written locally).
+
+    Call it on the value as given: ``Path('s3://b/x')`` is already the local folder ``s3:/b/x``.
+
+    Raises:
+        OutputError: naming the parameter, the value and the fix.
+    """
+    if isinstance(path, str) and not is_local_path(path):
+        raise OutputError(f"outputs must be local, but ‹{option}› '{path}' is a URL or GDAL virtual path; write to a "
+                          "local folder and copy it up afterwards (e.g. `aws s3 sync FOLDER s3://bucket/prefix`)")
+
+
 # ---- locks ---------------------------------------------------------------------------------------
 def job_id() -> str | None:
     """The torchrun job this process belongs to (``None`` outside torchrun)."""
@@ -200,6 +216,22 @@ def _alive(pid: int) -> bool:
 #: Locks this process holds: resolved lock path → [count, fd]. Nested locks of one folder (the demo
 #: running predict into its own folder) share one.
 _HELD: dict[Path, list[int]] = {}
+
+
+def _forget_locks_in_child() -> None:
+    """In a forked child: close the inherited lock files (the parent keeps its locks; a ``flock`` lives as
+    long as any process holds the file open, so a worker outliving a killed parent would hold it)."""
+    for _, fd in _HELD.values():
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    _HELD.clear()
+
+
+if hasattr(os, "register_at_fork"):  # POSIX
+    os.register_at_fork(after_in_child=_forget_locks_in_child)
+
+#: Flags of every open of a lock file: never through a symlink, never inherited by an exec'd program.
+_LOCK_OPEN_FLAGS = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
 
 
 class FolderLock:
@@ -254,6 +286,10 @@ class FolderLock:
         if held is not None:
             held[0] += 1
             return self
+        if self.path.is_symlink():
+            raise OutputError(f"the lock file '{self.path}' is a symbolic link, which aerialmtl never writes (taking "
+                              f"the lock through it would overwrite its target); delete the link, or choose another "
+                              f"‹{self.option}›")
         try:
             fd = self._acquire_flock() if fcntl is not None else self._acquire_exclusive()
         except OSError as exc:
@@ -272,7 +308,7 @@ class FolderLock:
         if _HELD.get(self._key) is not None or fcntl is None or not self.path.is_file():
             return
         try:
-            fd = os.open(self.path, os.O_RDONLY)
+            fd = os.open(self.path, os.O_RDONLY | _LOCK_OPEN_FLAGS)
         except OSError:
             return
         try:
@@ -284,7 +320,7 @@ class FolderLock:
 
     def _acquire_flock(self) -> int:
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _LOCK_OPEN_FLAGS, 0o644)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -308,7 +344,7 @@ class FolderLock:
 
     def _acquire_exclusive(self) -> int:  # pragma: no cover - Windows
         try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _LOCK_OPEN_FLAGS, 0o644)
         except FileExistsError:
             old = self.holder()
             pid = old.get("pid")
@@ -385,6 +421,7 @@ class OutputFolder:
 
     def __init__(self, path: str | Path, command: str, *, inputs: Mapping[str, str | Path | None] | None = None,
                  option: str = "out_dir", what: str = "output folder", lock: bool = True) -> None:
+        check_local_output(path, option)
         self.path = Path(path)
         self.command = command
         self.option = option
@@ -476,6 +513,6 @@ def _remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write",
+__all__ = ["LOCK_FILE", "PARTIAL", "STAGING_TAGS", "FolderLock", "OutputFolder", "atomic_write", "check_local_output",
            "check_files_not_input", "check_not_input", "is_job_leader", "is_local_path", "is_staging_of", "job_id",
            "make_output_dir", "staging_path", "write_text", "write_text_atomic"]

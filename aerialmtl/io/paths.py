@@ -109,6 +109,70 @@ def recorded_path(path: str | os.PathLike[str]) -> str:
     return str(Path(text).resolve()) if is_local(text) else text
 
 
+#: GDAL's archive file systems whose archive can be a local file (``/vsizip/a.zip/x.tif``).
+ARCHIVE_VSI = ("/vsizip/", "/vsitar/", "/vsigzip/", "/vsi7z/", "/vsirar/")
+
+
+def archive_parts(path: str) -> tuple[str, str] | None:
+    """``(archive, member)`` of a ``/vsizip/``-like path over a local archive (``/vsizip//d/a.zip/o.tif`` →
+    ``("/d/a.zip", "o.tif")``; the archive is the longest leading part that is a file); ``None`` for other paths,
+    archives on remote file systems, or when no leading part is a file."""
+    prefix = next((p for p in ARCHIVE_VSI if path.startswith(p)), None)
+    if prefix is None:
+        return None
+    rest = path[len(prefix):]
+    if rest.startswith("{") and "}" in rest:
+        inner, member = rest[1:rest.index("}")], rest[rest.index("}") + 1:].lstrip("/")
+        return (inner, member) if os.path.isfile(inner) else None
+    if rest.startswith("/vsi"):
+        return None
+    parts = rest.split("/")
+    for k in range(len(parts), 0, -1):
+        candidate = "/".join(parts[:k])
+        if candidate and os.path.isfile(candidate):
+            return candidate, "/".join(parts[k:])
+    return None
+
+
+def local_archive(path: str) -> str | None:
+    """The local archive file of a ``/vsizip/``-like path (:func:`archive_parts`), if any."""
+    parts = archive_parts(path)
+    return None if parts is None else parts[0]
+
+
+#: Seconds :func:`probe_url` waits for a server (``GDAL_HTTP_TIMEOUT`` when it is shorter).
+PROBE_TIMEOUT = 15.0
+
+
+def probe_url(path: str) -> str | None:
+    """Why an HTTP(S) raster (a URL or ``/vsicurl/`` path) cannot be read, in the server's terms: ``"the server at
+    HOST did not answer within N s"``, ``"HTTP 403 Forbidden"``, ...; ``None`` when it answers normally or the
+    path is not HTTP(S). One ``HEAD`` request; for a message after GDAL could not open the file."""
+    import urllib.error
+    import urllib.request
+
+    url = path[len("/vsicurl/"):] if path.startswith("/vsicurl/") else path
+    if not url.lower().startswith(("http://", "https://")):
+        return None
+    try:
+        timeout = min(PROBE_TIMEOUT, float(os.environ.get("GDAL_HTTP_TIMEOUT", PROBE_TIMEOUT)))
+    except ValueError:
+        timeout = PROBE_TIMEOUT
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, method="HEAD"), timeout=timeout):  # noqa: S310
+            return None
+    except urllib.error.HTTPError as exc:
+        return f"HTTP {exc.code} {exc.reason}"
+    except TimeoutError:
+        return (f"the server did not answer within {timeout:g} s (a hung server or a very slow link; "
+                "GDAL_HTTP_TIMEOUT sets how long to wait)")
+    except (urllib.error.URLError, OSError) as exc:
+        reason = getattr(exc, "reason", exc)
+        if isinstance(reason, TimeoutError):
+            return f"the server did not answer within {timeout:g} s (GDAL_HTTP_TIMEOUT sets how long to wait)"
+        return f"the server cannot be reached: {reason}"
+
+
 def configure_remote() -> None:
     """Apply :data:`REMOTE_GDAL_OPTIONS` for this process, keeping any the user set.
 
@@ -119,5 +183,6 @@ def configure_remote() -> None:
         os.environ.setdefault(key, value)
 
 
-__all__ = ["NETWORK_VSI", "REMOTE_GDAL_OPTIONS", "SCHEMES", "configure_remote", "gdal_path", "is_local",
-           "is_remote", "raster_name", "raster_stem", "recorded_path"]
+__all__ = ["ARCHIVE_VSI", "NETWORK_VSI", "PROBE_TIMEOUT", "REMOTE_GDAL_OPTIONS", "SCHEMES", "archive_parts",
+           "configure_remote", "gdal_path", "is_local", "is_remote", "local_archive", "probe_url", "raster_name",
+           "raster_stem", "recorded_path"]

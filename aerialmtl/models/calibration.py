@@ -245,14 +245,20 @@ def fit_height_map(pred: np.ndarray, ref: np.ndarray, method: CalibrationMethod 
     return x, y
 
 
-def fit_spread(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 200_000) -> tuple[float, float]:
-    """``(std_scale, std_floor)`` such that ``sqrt((scale·std)² + floor²)`` covers :data:`ONE_SIGMA` of the
-    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error)."""
+def _sampled_pairs(abs_error: np.ndarray, std: np.ndarray, max_pixels: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(|error|, std)`` as float64 1-D arrays, a seeded subsample of ``max_pixels`` pairs beyond that."""
     err = np.asarray(abs_error, dtype=np.float64).ravel()
     sd = np.asarray(std, dtype=np.float64).ravel()
     if err.size > max_pixels:
         keep = np.random.default_rng(0).choice(err.size, max_pixels, replace=False)
         err, sd = err[keep], sd[keep]
+    return err, sd
+
+
+def fit_spread(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 200_000) -> tuple[float, float]:
+    """``(std_scale, std_floor)`` such that ``sqrt((scale·std)² + floor²)`` covers :data:`ONE_SIGMA` of the
+    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error)."""
+    err, sd = _sampled_pairs(abs_error, std, max_pixels)
     if err.size == 0:
         return 1.0, 0.0
 
@@ -313,11 +319,7 @@ def fit_spread_crps(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 50
     coverage can: the other pixels then get intervals of kilometres). A log-spaced grid of factors around
     ``median |error| / median std`` times floors at quantiles of the error, then a finer grid around the best.
     """
-    err = np.asarray(abs_error, dtype=np.float64).ravel()
-    sd = np.asarray(std, dtype=np.float64).ravel()
-    if err.size > max_pixels:
-        keep = np.random.default_rng(0).choice(err.size, max_pixels, replace=False)
-        err, sd = err[keep], sd[keep]
+    err, sd = _sampled_pairs(abs_error, std, max_pixels)
     if err.size == 0:
         return 1.0, 0.0
     base = float(np.median(err)) / max(float(np.median(sd)), 1e-6)

@@ -10,11 +10,14 @@ and writes the folder described in ``docs/CONTRACTS.md``::
     OUT/{train,val,test}/classes/<id>.tif   uint8 class indices, nodata 255
     OUT/manifest.csv, OUT/dataset.yaml      written last: their absence marks an unfinished run
 
-The patches and the manifest are written into a hidden staging folder (``OUT/.patches.partial``) and
-moved into place when every patch is written; ``dataset.yaml`` comes last. A run that fails (bad label
-codes, unreadable file) or is interrupted (Ctrl-C, SIGTERM, SIGHUP) removes its staging folder and leaves
-an earlier tile dataset in ``OUT`` as it was; the staging folder of a killed run is removed by the next
-run. ``overwrite`` replaces the tile dataset an earlier run wrote (the files its ``dataset.yaml`` and
+The patches, the manifest and ``dataset.yaml`` are written into a hidden staging folder
+(``OUT/.patches.partial``) and swapped into place when every patch is written; ``dataset.yaml`` comes
+last. A run that fails (bad label codes, unreadable file) or is interrupted (Ctrl-C, SIGTERM, SIGHUP)
+before the swap removes its staging folder and leaves an earlier tile dataset in ``OUT`` as it was. The
+swap starts by writing a journal into the staging folder (:data:`SWAP_FILE`: the earlier set's files to
+remove); from then on it is rolled forward — by the interrupted run itself, or by the next run when the
+process was killed — so ``OUT`` holds either the earlier tile dataset or the new one, never half of each.
+``overwrite`` replaces the tile dataset an earlier run wrote (the files its ``dataset.yaml`` and
 ``manifest.csv`` list, :func:`aerialmtl.formats.tiles.owned_files`), never another file or folder; a
 ``train``/``val``/``test`` folder that no tile dataset lists is refused. The run holds the folder's lock
 (:class:`aerialmtl.io.outputs.OutputFolder`) and refuses an ``OUT`` that is or contains an input.
@@ -26,9 +29,13 @@ accumulated over valid pixels of the train split only (float64, merged patch by 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as _dt
+import json
+import math
 import os
 import shutil
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +48,7 @@ from rasterio.windows import Window
 from aerialmtl import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
+from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M
 from aerialmtl.formats.tiles import (
     DATASET_YAML,
     HEIGHT_NODATA,
@@ -56,7 +64,7 @@ from aerialmtl.formats.tiles import (
 )
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import OutputFolder
+from aerialmtl.io.outputs import OutputFolder, atomic_write
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.io.vector import VectorLabels
@@ -115,8 +123,14 @@ class _HeightSummary:
 
     def __init__(self) -> None:
         self.acc: dict[str, list[float]] = {}
+        self.low, self.high = math.inf, -math.inf
+        self.implausible = 0  # pixels outside SURFACE_HEIGHTS_M
 
     def update(self, split: str, heights: np.ndarray) -> None:
+        if heights.size:
+            self.low, self.high = min(self.low, float(heights.min())), max(self.high, float(heights.max()))
+            lo, hi = SURFACE_HEIGHTS_M
+            self.implausible += int(np.count_nonzero((heights < lo) | (heights > hi)))
         a = self.acc.setdefault(split, [0.0, 0.0, 0.0])
         a[0] += float(heights.astype(np.float64).sum())
         a[1] += heights.size
@@ -195,8 +209,9 @@ def _remove_dataset(out_dir: Path, owned: Sequence[str]) -> None:
 
 
 def _move_into(src: Path, dst: Path) -> None:
-    """Move ``src`` (a file or folder) to ``dst``, merging into a folder that is already there."""
-    if not dst.exists():
+    """Move ``src`` (a file or folder) to ``dst``, merging into a folder that is already there (a file replaces
+    the file of the same name)."""
+    if not dst.exists() or not src.is_dir():
         os.replace(src, dst)
         return
     for child in src.iterdir():
@@ -204,14 +219,46 @@ def _move_into(src: Path, dst: Path) -> None:
     src.rmdir()
 
 
-def _commit(stage: Path, out_dir: Path, owned: Sequence[str]) -> None:
-    """Replace the earlier tile dataset by the staged one (dataset.yaml is written after this)."""
-    _remove_dataset(out_dir, owned)
+#: The swap's journal inside the staging folder: written when the staged tile dataset is whole, it lists the
+#: earlier set's files to remove (those the new set does not replace); its presence means "roll forward".
+SWAP_FILE = "swap.json"
+
+
+def _commit(stage: Path, out_dir: Path, owned: Sequence[str], info: TileFolderInfo) -> None:
+    """Swap the staged tile dataset (patches, manifest) and ``info`` (its ``dataset.yaml``) into ``out_dir``,
+    replacing the earlier dataset (``owned``): journal first, then :func:`_finish_swap`."""
+    dataclasses.replace(info, root=stage).write()
+    new = {p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file()}
+    journal = {"remove": sorted(set(owned) - new)}
+    with atomic_write(stage / SWAP_FILE) as tmp:
+        tmp.write_text(json.dumps(journal), encoding="utf-8")
+    _finish_swap(stage, out_dir)
+
+
+def _finish_swap(stage: Path, out_dir: Path) -> None:
+    """Carry out (or finish) the swap journaled in ``stage`` (:data:`SWAP_FILE`); every step can be repeated,
+    so an interrupted swap is finished by calling this again."""
+    plan = json.loads((stage / SWAP_FILE).read_text(encoding="utf-8"))
+    if (stage / DATASET_YAML).exists():  # the earlier dataset.yaml first: a half-swapped folder reads unfinished
+        (out_dir / DATASET_YAML).unlink(missing_ok=True)
+    _remove_dataset(out_dir, [str(f) for f in plan.get("remove", [])])
     for split in SPLITS:
         if (stage / split).exists():
             _move_into(stage / split, out_dir / split)
-    os.replace(stage / MANIFEST_CSV, out_dir / MANIFEST_CSV)
+    for name in (MANIFEST_CSV, DATASET_YAML):  # dataset.yaml last
+        if (stage / name).exists():
+            os.replace(stage / name, out_dir / name)
     shutil.rmtree(stage)
+
+
+def finish_interrupted_swap(out_dir: Path) -> bool:
+    """Roll forward the swap a killed run left journaled in ``out_dir`` (call under the folder's lock);
+    returns whether there was one."""
+    stage = out_dir / STAGING_DIR
+    if not (stage / SWAP_FILE).is_file():
+        return False
+    _finish_swap(stage, out_dir)
+    return True
 
 
 def _band_names(src: rasterio.io.DatasetReader, bands: Sequence[int]) -> list[str]:
@@ -312,6 +359,9 @@ def tile_dataset(
         assigner = SplitAssigner(splits, grid, stride=stride, size=size)
         inputs = {k: v for k, v in sources.paths.items()}
         with OutputFolder(out_dir, "tile", inputs=inputs, what="tile folder") as folder:
+            if finish_interrupted_swap(out_dir):  # a run killed while swapping: its new dataset is finished
+                warnings.warn(f"tile folder '{out_dir}': a run was stopped while it replaced the tile dataset; its new "
+                              "dataset was put in place first", UserWarning, stacklevel=2)
             folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
             owned = _claim(folder, overwrite)
             stage = out_dir / STAGING_DIR
@@ -319,20 +369,23 @@ def tile_dataset(
             try:
                 result = _tile_loop(sources, assigner, grid, stage, size, stride, min_valid, progress)
                 check_not_empty(result, grid, size, min_valid)
-                _commit(stage, out_dir, owned or [])
+                result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
+                result.dataset_yaml = out_dir / DATASET_YAML
+                result.tasks = list(sources.tasks)
+                if assigner.block_size_m is not None:
+                    result.block_size_m = assigner.block_size_m
+                    result.block_patches = int(round(assigner.block_px[0] / stride))
+                info = _describe(sources, grid, size, stride, min_valid, splits, assigner, result, ndsm_options)
+                _commit(stage, out_dir, owned or [], info)
             except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
+                if (stage / SWAP_FILE).is_file():  # stopped inside the swap: finish it, so the new set is whole
+                    with contextlib.suppress(Exception):
+                        _finish_swap(stage, out_dir)
                 shutil.rmtree(stage, ignore_errors=True)
                 if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError)
                                                             or kind_of(exc, out_dir) is not None):
                     raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
                 raise
-            result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
-            result.dataset_yaml = out_dir / DATASET_YAML
-            result.tasks = list(sources.tasks)
-            if assigner.block_size_m is not None:
-                result.block_size_m = assigner.block_size_m
-                result.block_patches = int(round(assigner.block_px[0] / stride))
-            _describe(sources, grid, size, stride, min_valid, splits, assigner, result, ndsm_options).write()
     return result
 
 
@@ -512,6 +565,15 @@ def _tile_loop(
                 stats.update(data, valid)
             counts[split] += 1
     ms = stats.result()
+    if heights.implausible:
+        lo, hi = SURFACE_HEIGHTS_M
+        layers = "nDSM" if sources.paths.get("ndsm") else "DSM − DTM"
+        warnings.warn(
+            f"the reference heights ({layers}) reach {heights.low:.3g}..{heights.high:.3g} m above ground, beyond "
+            f"{lo:g}..{hi:g} m on {heights.implausible} written pixels, which no surface has: probably an undeclared "
+            "nodata value (e.g. 3.4e38 or -32768) or a wrong --z-unit; declare it (`gdal_edit.py -a_nodata VALUE "
+            "FILE`), pass --max-height, or check the unit; training on these heights would diverge",
+            UserWarning, stacklevel=2)
     return TileResult(
         out_dir=out_dir, manifest=writer.path, dataset_yaml=out_dir / DATASET_YAML, counts=counts,
         windows=total, dropped_invalid=dropped_invalid, dropped_split=dropped_split,

@@ -25,6 +25,7 @@ either way. The model runs in ``channels_last``; ``compile: true`` (``--compile`
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import math
@@ -47,15 +48,17 @@ from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
 from aerialmtl.errors import AerialMTLError, CheckpointError, ConfigError, NonFiniteError, OutputError
 from aerialmtl.formats.checkpoint import (
+    SURFACE_HEIGHTS_M,
     ModelMeta,
     check_same_data,
     first_nonfinite,
+    height_slack,
     load_checkpoint,
     save_checkpoint,
     value_envelope,
 )
 from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
-from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo, cache_dir, read_manifest
+from aerialmtl.formats.tiles import HEIGHT_NODATA, MANIFEST_CSV, TileFolderInfo, cache_dir, cache_file, read_manifest
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.progress import tqdm_auto as tqdm
@@ -142,12 +145,19 @@ class StepModule(nn.Module):
         return self.weighting(self.objective.weighted(losses)), losses
 
 
+#: A task loss this many times its first logged value means the run diverged (finite or not).
+LOSS_GROWTH = 1e4
+#: A validation class loss above this many times ln K (an untrained model's) means the run diverged.
+EXPLODED_CLASS_LOSS = 20.0
+
+
 class LossWindow:
     """Per-step losses kept on the device, read (one synchronisation, reduced over processes) only when
     logged or before a validation — not after every step, which would stall a GPU.
 
-    ``flush`` checks every pending step for a non-finite loss and raises naming the first one (with
-    ``hint()``, what to do, appended).
+    ``flush`` checks every pending step for a non-finite loss, or a task loss that grew by more than
+    :data:`LOSS_GROWTH` times its first logged value (a diverged-but-finite run), and raises naming the first
+    one (with ``hint()``, what to do, appended).
     """
 
     def __init__(self, tasks: tuple[str, ...], ctx: DistContext, hint: Callable[[], str] | None = None) -> None:
@@ -157,6 +167,8 @@ class LossWindow:
         self.first_step = 0
         self.window: dict[str, list[float]] = {"loss": [], **{t: [] for t in tasks}}
         self.since_val: list[float] = []
+        #: each task's first logged loss (the untrained model's, or the resumed one's): the growth reference
+        self.first: dict[str, float] = {}
 
     def add(self, step: int, total: torch.Tensor, losses: dict[str, torch.Tensor]) -> None:
         if not self.pending:
@@ -176,6 +188,11 @@ class LossWindow:
                 which = f" ({', '.join(tasks)})" if tasks else ""
                 raise NonFiniteError(f"training diverged at step {first + i}: the loss is {row[0]}{which}; "
                                      f"{self.hint()}")
+            for t, v in zip(self.tasks, row[1:]):
+                ref = self.first.setdefault(t, v)
+                if ref > 0 and v > LOSS_GROWTH * ref:
+                    raise NonFiniteError(f"training diverged at step {first + i}: the {t} loss grew from {ref:.3g} "
+                                         f"to {v:.3g} (more than {LOSS_GROWTH:.0e} times); {self.hint()}")
             self.window["loss"].append(row[0])
             self.since_val.append(row[0])
             for t, v in zip(self.tasks, row[1:]):
@@ -293,6 +310,8 @@ class Trainer:
         #: step of the last checkpoint written whole (``last.pt``), or of the one resumed from
         self.saved_step: int | None = None
         self.prepare_caches()
+        if "height" in self.tasks:
+            self.meta = dataclasses.replace(self.meta, height_range=self.train_height_range())
         self.build_model()
         saved_rng: dict[str, Any] | None = None
         if resume:
@@ -356,6 +375,27 @@ class Trainer:
         if read_manifest(self.info.root, "val"):
             self.val_index = ensure_patch_cache(self.info, "val", self.cache_folder, workers=cfg.num_workers,
                                                 progress=self.progress)
+
+    def train_height_range(self) -> tuple[float, float] | None:
+        """``(min, max)`` metres of the train split's valid reference heights (read from the patch cache in
+        chunks; ``None`` without a valid height), recorded in the checkpoint (:attr:`ModelMeta.height_range`)."""
+        path = cache_file(self.cache_folder, "train", "height")
+        try:
+            heights = np.load(path, mmap_mode="r")
+        except (OSError, ValueError):
+            return None
+        lo, hi = math.inf, -math.inf
+        for start in range(0, len(heights), 64):
+            chunk = np.asarray(heights[start:start + 64])
+            ok = chunk[np.isfinite(chunk) & (chunk != HEIGHT_NODATA)]
+            if ok.size:
+                lo, hi = min(lo, float(ok.min())), max(hi, float(ok.max()))
+        return (lo, hi) if lo <= hi else None
+
+    @property
+    def height_slack(self) -> float:
+        """The largest validation height MAE (m) a sane model of these heights reaches (:func:`height_slack`)."""
+        return height_slack(self.meta.height_range)
 
     def build_data(self) -> None:
         """The batch plan from the current position, and the train and val loaders over the caches."""
@@ -492,6 +532,8 @@ class Trainer:
                 f"{' (' + ', '.join(bad) + ' loss)' if bad else ''}; best.pt keeps the best finite score; "
                 f"{self.recovery_hint()}"
             )
+        if measured:
+            self.check_exploded(st.step)
         improved = score < st.best_score
         if improved or not self.paths["best.pt"].exists():
             st.best_score = min(st.best_score, score)
@@ -501,9 +543,42 @@ class Trainer:
         patience = self.cfg.schedule.patience
         return patience is not None and st.since_best >= patience
 
+    def check_exploded(self, step: int) -> None:
+        """Stop like a non-finite run when the validation error is finite but can only be garbage: a height MAE
+        beyond :attr:`height_slack` (10 × the trained height span + 100 m), or a class loss above
+        :data:`EXPLODED_CLASS_LOSS` × ln K (an untrained model scores ln K). Every process sees the same
+        reduced metrics, so all stop together; ``best.pt`` and ``last.pt`` are not replaced.
+
+        Raises:
+            NonFiniteError: naming the step, the value, the bound and what to do.
+        """
+        kept = ("best.pt keeps the best earlier score" if self.paths["best.pt"].exists()
+                else "it was not saved as best.pt")
+        mae = self.metrics.get("height_mae")
+        if mae is not None and mae > self.height_slack:
+            trained = (f"reference heights of {self.meta.height_range[0]:.4g}..{self.meta.height_range[1]:.4g} m"
+                       if self.meta.height_range is not None else "reference heights")
+            raise NonFiniteError(
+                f"training diverged: the validation height MAE at step {step} is {mae:.3g} m, more than "
+                f"{self.height_slack:.4g} m for {trained}, so {kept}; "
+                f"{self.recovery_hint()}")
+        ce = self.metrics.get("val_loss_classes")
+        bound = EXPLODED_CLASS_LOSS * math.log(max(self.k or 2, 2))
+        if ce is not None and ce > bound:
+            raise NonFiniteError(
+                f"training diverged: the validation class loss at step {step} is {ce:.3g}, more than {bound:.3g} "
+                f"({EXPLODED_CLASS_LOSS:g} × ln {self.k}, what an untrained model scores), so {kept}; "
+                f"{self.recovery_hint()}")
+
     # ---- checkpoints --------------------------------------------------------------------------------
     def recovery_hint(self) -> str:
-        """What to do after a divergence: where the last whole checkpoint is, and how to continue."""
+        """What to do after a divergence: where the last whole checkpoint is, and how to continue (first, when
+        the tile folder's reference heights are ones no surface has, that: no learning rate fixes them)."""
+        hr = self.meta.height_range
+        if hr is not None and (hr[0] < SURFACE_HEIGHTS_M[0] or hr[1] > SURFACE_HEIGHTS_M[1]):
+            return (f"the tile folder's reference heights reach {hr[0]:.3g}..{hr[1]:.3g} m, which no surface has "
+                    "(an undeclared nodata value or a wrong unit in the DSM/DTM/nDSM): fix the height files "
+                    "(`gdal_edit.py -a_nodata VALUE FILE`, --z-unit) and run `aerialmtl tile ... --overwrite` again")
         last = self.paths["last.pt"]
         lower = f"lower optim.lr (now {self.cfg.optim.lr:g}; e.g. {self.cfg.optim.lr / 10:g})"
         if self.saved_step is not None and last.exists():

@@ -1,0 +1,146 @@
+"""The OpenVINO engine's on-disk cache: entries that carry their own checksum and heal themselves.
+
+The OpenVINO engine (:mod:`aerialmtl.inference.engines`) keeps two kinds of entry per model, in one folder
+per model fingerprint (:func:`aerialmtl.inference.engines.cache_root`):
+
+* ``<part>.ir`` — the converted model (OpenVINO IR: the XML graph and the weights) of ``forward``,
+  ``encode`` or ``decode``;
+* ``<part>.<h>x<w>.<precision>.blob`` — that part compiled for the CPU at one window shape.
+
+Each entry is one file (:func:`pack`): a magic line, the SHA-256 of the payload, the payload's section
+lengths and the payload. It is written through the staging convention of :mod:`aerialmtl.io.outputs`
+(``.NAME.partial``, renamed into place whole), and read back only when its checksum matches: a truncated
+file, a zero-filled one of the right size (what a power loss can leave) or an edited one is rebuilt,
+with one warning naming it, instead of being loaded.
+
+A cache folder that cannot be written (read-only, a full disk, a quota) never stops a prediction:
+the model is converted and compiled in memory, with one warning naming the folder and how to move the
+cache (``AERIALMTL_OPENVINO_CACHE``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import struct
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+from aerialmtl.io.outputs import atomic_write
+
+#: First bytes of every entry (the format's name and version).
+MAGIC = b"AERIALMTL-OV-CACHE 1\n"
+#: The environment variable that moves the cache (named in the warnings).
+CACHE_ENV = "AERIALMTL_OPENVINO_CACHE"
+
+_HEADER = struct.Struct("<32sI")  # SHA-256 of the payload, number of sections
+_LENGTH = struct.Struct("<Q")  # one section's length in bytes
+
+
+class CorruptEntry(ValueError):
+    """A cache entry whose bytes do not match its checksum (the message says how)."""
+
+
+def pack(sections: Sequence[bytes]) -> bytes:
+    """One cache entry holding ``sections`` (e.g. an IR's XML and weights): magic, checksum, lengths, data."""
+    payload = b"".join(sections)
+    lengths = b"".join(_LENGTH.pack(len(s)) for s in sections)
+    return MAGIC + _HEADER.pack(hashlib.sha256(payload).digest(), len(sections)) + lengths + payload
+
+
+def unpack(data: bytes) -> list[bytes]:
+    """The sections of an entry written by :func:`pack`.
+
+    Raises:
+        CorruptEntry: wrong magic, truncated, or a checksum that does not match the payload.
+    """
+    if not data.startswith(MAGIC):
+        raise CorruptEntry("it does not start like a cache entry")
+    pos = len(MAGIC)
+    if len(data) < pos + _HEADER.size:
+        raise CorruptEntry("it is truncated")
+    digest, count = _HEADER.unpack_from(data, pos)
+    pos += _HEADER.size
+    if len(data) < pos + count * _LENGTH.size:
+        raise CorruptEntry("it is truncated")
+    lengths = [_LENGTH.unpack_from(data, pos + k * _LENGTH.size)[0] for k in range(count)]
+    pos += count * _LENGTH.size
+    if len(data) != pos + sum(lengths):
+        raise CorruptEntry(f"it holds {len(data) - pos} bytes of data, its header says {sum(lengths)}")
+    if hashlib.sha256(memoryview(data)[pos:]).digest() != digest:
+        raise CorruptEntry("its checksum does not match its content")
+    out = []
+    for n in lengths:
+        out.append(data[pos:pos + n])
+        pos += n
+    return out
+
+
+class EngineCache:
+    """One model's cache folder (see the module docstring); ``folder=None`` caches nothing.
+
+    Args:
+        folder: the folder of this model's entries (created on first use).
+    """
+
+    def __init__(self, folder: str | Path | None) -> None:
+        self.folder: Path | None = None if folder is None else Path(folder)
+        self._warned = False
+
+    @property
+    def enabled(self) -> bool:
+        return self.folder is not None
+
+    def _disable(self, exc: OSError, doing: str) -> None:
+        """Stop caching for this run, with one warning naming the folder and how to move the cache."""
+        if not self._warned:
+            why = exc.strerror or exc.__class__.__name__
+            warnings.warn(
+                f"the OpenVINO cache folder '{self.folder}' cannot be {doing} ({why}); predicting without caching "
+                f"the converted model (every run converts it again): free space there, make it writable, or move "
+                f"the cache with {CACHE_ENV}=/a/writable/folder", UserWarning, stacklevel=4)
+            self._warned = True
+        self.folder = None
+
+    def read(self, name: str) -> list[bytes] | None:
+        """The sections of entry ``name``, or ``None`` when it is missing or was corrupt (then removed, with a
+        warning, so that it is rebuilt)."""
+        if self.folder is None:
+            return None
+        path = self.folder / name
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            warnings.warn(f"cached OpenVINO model '{path}' is unreadable ({exc.strerror or exc}); rebuilding it",
+                          UserWarning, stacklevel=3)
+            self._remove(path)
+            return None
+        try:
+            return unpack(data)
+        except CorruptEntry as exc:
+            warnings.warn(f"cached OpenVINO model '{path}' is corrupt ({exc}); rebuilding it", UserWarning,
+                          stacklevel=3)
+            self._remove(path)
+            return None
+
+    def write(self, name: str, sections: Sequence[bytes]) -> None:
+        """Store entry ``name`` (through its staging file); an unwritable folder turns caching off."""
+        if self.folder is None:
+            return
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            with atomic_write(self.folder / name, tag=f"partial.{os.getpid()}") as tmp:
+                tmp.write_bytes(pack(sections))
+        except OSError as exc:
+            self._disable(exc, "written")
+
+    def _remove(self, path: Path) -> None:
+        with contextlib.suppress(OSError):
+            path.unlink()
+
+
+__all__ = ["CACHE_ENV", "MAGIC", "CorruptEntry", "EngineCache", "pack", "unpack"]

@@ -1,0 +1,112 @@
+"""The OpenVINO engine's cache heals: a corrupt entry (truncated, zero-filled, edited) is rebuilt with a warning
+and never loaded; a cache folder that is full or read-only means a prediction without caching, never a crash."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from conftest import mount_tmpfs, run_cli, tiny_d3net, write_raster
+
+from aerialmtl.formats.checkpoint import save_checkpoint
+from aerialmtl.inference.engine_cache import CorruptEntry, pack, unpack
+
+pytest.importorskip("openvino")
+
+
+def test_entries_carry_their_checksum() -> None:
+    data = pack([b"<xml/>", b"\x01\x02\x03" * 100])
+    assert unpack(data) == [b"<xml/>", b"\x01\x02\x03" * 100]
+    for bad in (data[:-1], bytes(len(data)), data[:-5] + b"\x00" * 5, data[:10]):
+        with pytest.raises(CorruptEntry):
+            unpack(bad)
+
+
+@pytest.fixture
+def predict_setup(tmp_path: Path, rng: np.random.Generator) -> tuple[Path, Path]:
+    model, meta = tiny_d3net()
+    save_checkpoint(tmp_path / "m.pt", model, meta)
+    ortho = write_raster(tmp_path / "o.tif", rng.integers(1, 256, size=(3, 48, 64)).astype(np.uint8))
+    return tmp_path / "m.pt", ortho
+
+
+def _predict(capsys: pytest.CaptureFixture, ckpt: Path, ortho: Path, out: Path, cache: Path,
+             monkeypatch: pytest.MonkeyPatch) -> tuple[int, str, np.ndarray]:
+    """`aerialmtl predict` with default options (the OpenVINO engine on a CPU), cache at ``cache``."""
+    monkeypatch.setenv("AERIALMTL_OPENVINO_CACHE", str(cache))
+    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, "--mc", "2", "--tile", "64",
+                           "--overlap", "16")
+    assert code == 0, err
+    assert json.loads((out / "prediction.json").read_text())["engine"] == "openvino"
+    with rasterio.open(out / "height.tif") as src:
+        return code, err, src.read(1)
+
+
+def test_corrupt_entries_are_rebuilt_not_loaded(predict_setup: tuple[Path, Path], tmp_path: Path,
+                                                capsys: pytest.CaptureFixture,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    ckpt, ortho = predict_setup
+    cache = tmp_path / "cache"
+    _, err, first = _predict(capsys, ckpt, ortho, tmp_path / "a", cache, monkeypatch)
+    assert "warning" not in err.lower()
+    entries = sorted(p for p in cache.rglob("*") if p.is_file())
+    irs = [p for p in entries if p.suffix == ".ir"]
+    blobs = [p for p in entries if p.suffix == ".blob"]
+    assert irs and blobs and not [p for p in entries if p.name.startswith(".")]  # no staging file left
+    # the second run loads everything from the cache: the same maps, no warning
+    _, err, again = _predict(capsys, ckpt, ortho, tmp_path / "b", cache, monkeypatch)
+    assert "warning" not in err.lower()
+    np.testing.assert_array_equal(again, first)
+    # what a power loss leaves (zero-filled, same size), a truncated file, an edited byte
+    irs[0].write_bytes(bytes(irs[0].stat().st_size))
+    blobs[0].write_bytes(blobs[0].read_bytes()[: blobs[0].stat().st_size // 2])
+    data = bytearray(irs[-1].read_bytes())
+    data[-100] ^= 0xFF
+    irs[-1].write_bytes(bytes(data))
+    _, err, healed = _predict(capsys, ckpt, ortho, tmp_path / "c", cache, monkeypatch)
+    np.testing.assert_array_equal(healed, first)  # not all-zero heights from a zeroed IR
+    for path in (irs[0], blobs[0], irs[-1]):
+        assert f"cached OpenVINO model '{path}' is corrupt" in " ".join(err.split()) and "rebuilding it" in err
+    # rebuilt: the next run is silent again
+    _, err, _ = _predict(capsys, ckpt, ortho, tmp_path / "d", cache, monkeypatch)
+    assert "warning" not in err.lower()
+
+
+@pytest.fixture
+def full_fs(tmp_path: Path):
+    yield from mount_tmpfs(tmp_path / "full", "size=256k")
+
+
+@pytest.fixture
+def read_only_fs(tmp_path: Path):
+    yield from mount_tmpfs(tmp_path / "ro", "ro,size=256k")
+
+
+def test_full_cache_folder_predicts_without_caching(predict_setup: tuple[Path, Path], tmp_path: Path, full_fs: Path,
+                                                    capsys: pytest.CaptureFixture,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    ckpt, ortho = predict_setup
+    with warnings.catch_warnings():
+        (full_fs / "filler").write_bytes(b"\0" * (256 * 1024 - 8 * 1024))
+    _, err, heights = _predict(capsys, ckpt, ortho, tmp_path / "a", full_fs / "cache", monkeypatch)
+    line = " ".join(err.split())
+    assert f"the OpenVINO cache folder '{full_fs / 'cache'}" in line and "No space left" in line
+    assert "AERIALMTL_OPENVINO_CACHE" in line and line.count("OpenVINO cache folder") == 1  # one warning
+    assert "iostream" not in err and "unexpected" not in err
+    _, _, reference = _predict(capsys, ckpt, ortho, tmp_path / "b", tmp_path / "ok", monkeypatch)
+    np.testing.assert_array_equal(heights, reference)
+    assert not [p for p in full_fs.rglob(".*") if p.is_file()]  # no staging file left on the full disk
+
+
+def test_read_only_cache_folder_predicts_without_caching(predict_setup: tuple[Path, Path], tmp_path: Path,
+                                                         read_only_fs: Path, capsys: pytest.CaptureFixture,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    ckpt, ortho = predict_setup
+    _, err, _ = _predict(capsys, ckpt, ortho, tmp_path / "a", read_only_fs / "cache", monkeypatch)
+    line = " ".join(err.split())
+    assert f"the OpenVINO cache folder '{read_only_fs / 'cache'}/" in line
+    assert "' cannot be written (Read-only file system); predicting without caching" in line
