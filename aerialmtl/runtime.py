@@ -14,6 +14,9 @@
   (:data:`COLLECTIVE_TIMEOUT` for training, whose collectives are in step; :data:`SHARE_TIMEOUT` for
   prediction, whose ranks wait for each other's whole share of the work at the end).
 * **GDAL** — :func:`gdal_env`: a bounded block cache while rasters are streamed (tile, predict, buildings).
+* **CPU threads** — :func:`resolve_threads`: the inference threads of a process (an option, else
+  :data:`THREADS_ENV`, else torch's own count) and how they are split into engine streams
+  (:class:`CpuThreads`).
 
 The trainer (:mod:`aerialmtl.training.trainer`, :mod:`aerialmtl.training.distributed`) and the predictor
 (:mod:`aerialmtl.inference.predict`, :mod:`aerialmtl.inference.jobs`) both use this module.
@@ -55,6 +58,11 @@ GDAL_CACHE_MB = 32
 BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
 #: Environment variable that replaces the CPU probe of :func:`cpu_bf16_flags` (read on first use).
 CPU_FLAGS_ENV = "AERIALMTL_CPU_BF16_FLAGS"
+#: Environment variable with the inference threads of ``predict`` (a number, or ``auto``); ``--threads`` wins.
+THREADS_ENV = "AERIALMTL_THREADS"
+#: Most inference streams of one process under ``auto``: each stream holds its own window's activations
+#: (~0.3-1 GiB for a 1024² window of the full D3-Net), so many-core CPUs get wider streams, not more.
+MAX_STREAMS = 4
 
 
 # ---- device -------------------------------------------------------------------------------------
@@ -149,6 +157,66 @@ def autocast(device: torch.device, precision: str) -> contextlib.AbstractContext
     if precision == "bf16":
         return torch.autocast(device.type, dtype=torch.bfloat16)
     return contextlib.nullcontext()
+
+
+# ---- CPU threads --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CpuThreads:
+    """The inference threads of a process and their split into engine streams.
+
+    Attributes:
+        threads: threads computing the model (all streams together; torch's intra-op threads).
+        streams: independent inference streams (OpenVINO ``NUM_STREAMS``), each running its own window
+            or MC sample on ``threads // streams`` threads. Several narrow streams instead of one wide one
+            keep a CPU shared with other processes busy: a wide stream splits every layer over all its
+            threads and waits for the slowest, so one descheduled thread stalls all (bench/RESULTS.md,
+            predict end to end).
+        source: where ``threads`` came from: ``option``, ``env`` (:data:`THREADS_ENV`) or ``auto``.
+    """
+
+    threads: int
+    streams: int
+    source: str = "auto"
+
+    def as_dict(self) -> dict[str, Any]:
+        """What ``prediction.json`` records."""
+        return {"threads": self.threads, "streams": self.streams, "source": self.source}
+
+
+def _threads_value(value: int | str, param: str) -> int | None:
+    """A positive thread count, or ``None`` for ``auto``."""
+    number: int | None = None
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text == "auto":
+            return None
+        number = int(text) if text.isdigit() else None
+    elif isinstance(value, int) and not isinstance(value, bool):
+        number = value
+    if number is None or number < 1:
+        where = f"the environment variable {THREADS_ENV}" if param == THREADS_ENV else f"‹{param}›"
+        raise InputError(f"{where} must be a positive number of threads or 'auto', got {value!r}; "
+                         "pass e.g. 2, or auto", param=None if param == THREADS_ENV else param)
+    return number
+
+
+def resolve_threads(threads: int | str | None = "auto") -> CpuThreads:
+    """The inference threads of this process: ``threads`` (an option), else :data:`THREADS_ENV`, else
+    torch's own count (``torch.get_num_threads()``: the cores this process may run on, or
+    ``OMP_NUM_THREADS`` as torchrun sets it); split into ``min(threads, MAX_STREAMS)`` streams.
+
+    Raises:
+        InputError: a value that is not a positive number or ``auto`` (naming the option or variable).
+    """
+    n = _threads_value(threads if threads is not None else "auto", "threads")
+    source = "option"
+    if n is None:
+        env = os.environ.get(THREADS_ENV, "").strip()
+        n = _threads_value(env, THREADS_ENV) if env else None
+        source = "env"
+    if n is None:
+        n, source = max(1, torch.get_num_threads()), "auto"
+    return CpuThreads(n, min(n, MAX_STREAMS), source)
 
 
 # ---- compile ------------------------------------------------------------------------------------
@@ -377,6 +445,7 @@ def gdal_env(cache: int = GDAL_CACHE_MB, **options: Any) -> rasterio.Env:
     return rasterio.Env(**options)
 
 
-__all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "CompileFallback", "GDAL_CACHE_MB", "Precision",
-           "Resolved", "SHARE_TIMEOUT", "Torchrun", "autocast", "cpu_bf16_flags", "cpu_has_amx", "gdal_env",
-           "is_peer_error", "native_bf16", "peer_failure", "resolve_device", "resolve_precision"]
+__all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "MAX_STREAMS", "SHARE_TIMEOUT", "THREADS_ENV",
+           "CompileFallback", "CpuThreads", "GDAL_CACHE_MB", "Precision", "Resolved", "Torchrun", "autocast",
+           "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "is_peer_error", "native_bf16", "peer_failure",
+           "resolve_device", "resolve_precision", "resolve_threads"]

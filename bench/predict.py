@@ -30,11 +30,21 @@ Parts (select with flags; each can run alone):
   the model alone on one 1024² window on each engine/precision (best of 2, GFLOP/s from torch's flop
   counter), the CPU's name, its native-bf16 flags and its fp32/bf16 GEMM ceilings measured in the same run.
 
+* ``--startup``: warm start-up of ``aerialmtl predict`` with the full D3-Net: the wall time of whole
+  processes on a 256² raster (one small window, so almost all of it is imports, the checkpoint, the engine
+  from its warm cache and the outputs), ``--startup-runs`` times after one warm-up run; min / median / max.
+* ``--shared-cpu``: the default ``predict`` (OpenVINO, auto threads and streams) against ``--engine torch
+  --precision fp32`` on the full D3-Net, ``--size``² raster, T = 1, run in turn (default, torch, default,
+  ...) while ``--busy`` (default ``0,1,3``) extra busy-loop processes hold cores: the issue's "load 1, 2
+  and 4 on 2 cores" on a machine quiet otherwise. Each row has the load average before and after.
+
 Usage::
 
     python bench/predict.py --engines --size 2048 --engine-mc 1,8
     python bench/predict.py --speed --components --baseline --rss
     python bench/predict.py --pipeline --pipeline-cases 8192:1,4096:30
+    python bench/predict.py --startup --tmp DIR
+    python bench/predict.py --shared-cpu --size 2048 --busy 0,1,3 --tmp DIR
 """
 
 from __future__ import annotations
@@ -387,6 +397,82 @@ def bench_engines(size: int, mcs: list[int], tmp: Path, cache: Path) -> dict:
     return result
 
 
+def _run_predict(args: list[str], env: dict[str, str]) -> float:
+    """Wall seconds of ``python -m aerialmtl predict ARGS`` in a subprocess (raises on failure)."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "aerialmtl", "predict", *args], env=env, capture_output=True,
+                          text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"predict failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
+    return wall
+
+
+def _full_checkpoint(cache: Path) -> tuple[Path, dict[str, str]]:
+    """The full D3-Net's checkpoint in ``cache`` (kept, like its OpenVINO cache, between invocations: the
+    same seed writes the same weights) and the environment of the predict subprocesses."""
+    from aerialmtl.formats.checkpoint import save_checkpoint
+
+    ckpt = cache / "full.pt"
+    if not ckpt.exists():
+        model, meta = make_model("full")
+        save_checkpoint(ckpt, model, meta)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]),
+           "AERIALMTL_OPENVINO_CACHE": str(cache / "openvino-cache")}
+    return ckpt, env
+
+
+def bench_startup(runs: int, tmp: Path, cache: Path) -> dict:
+    """See the module docstring (``--startup``)."""
+    ckpt, env = _full_checkpoint(cache)
+    src = synthetic_raster(tmp / "startup.tif", 256, 256)
+    args = [str(src), "--model", str(ckpt), "--out", str(tmp / "startup_out"), "--mc", "1", "--quiet", "--overwrite"]
+    _run_predict(args, env)  # fills the engine cache
+    load_before = load_avg()
+    walls = sorted(_run_predict(args, env) for _ in range(runs))
+    res = {"part": "startup", "cpu": cpu_name(), "runs": runs, "wall_s_min": round(walls[0], 2),
+           "wall_s_median": round(walls[len(walls) // 2], 2), "wall_s_max": round(walls[-1], 2),
+           "load_avg_before": load_before, "load_avg_after": load_avg()}
+    print(json.dumps(res), flush=True)
+    return res
+
+
+def _busy() -> None:  # pragma: no cover - a child process spinning until killed
+    while True:
+        pass
+
+
+def bench_shared_cpu(size: int, busy: list[int], reps: int, tmp: Path, cache: Path) -> dict:
+    """See the module docstring (``--shared-cpu``)."""
+    import multiprocessing as mp
+
+    ckpt, env = _full_checkpoint(cache)
+    src = cache / f"engines_{size}.tif"
+    if not src.exists():
+        synthetic_raster(src, size, size)
+    base = [str(src), "--model", str(ckpt), "--mc", "1", "--quiet", "--overwrite"]
+    cases = {"default": [*base, "--out", str(tmp / "shared_a")],
+             "torch fp32": [*base, "--out", str(tmp / "shared_b"), "--engine", "torch", "--precision", "fp32"]}
+    _run_predict(cases["default"], env)  # fills the engine cache
+    rows = []
+    for extra in busy:
+        procs = [mp.Process(target=_busy, daemon=True) for _ in range(extra)]
+        for proc in procs:
+            proc.start()
+        try:
+            for rep in range(reps):
+                for label, args in cases.items():
+                    load_before = load_avg()
+                    wall = _run_predict(args, env)
+                    rows.append({"busy_processes": extra, "run": label, "rep": rep, "wall_s": round(wall, 2),
+                                 "load_avg_before": load_before, "load_avg_after": load_avg()})
+                    print(json.dumps(rows[-1]), flush=True)
+        finally:
+            for proc in procs:
+                proc.kill()
+    return {"part": "shared-cpu", "cpu": cpu_name(), "size": size, "runs": rows}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--speed", action="store_true")
@@ -407,6 +493,11 @@ def main() -> None:
     ap.add_argument("--pipeline-args", default="", help="extra predict CLI flags, space separated")
     ap.add_argument("--engines", action="store_true")
     ap.add_argument("--engine-mc", default="1,8", help="comma list of T (engines part)")
+    ap.add_argument("--startup", action="store_true")
+    ap.add_argument("--startup-runs", type=int, default=5)
+    ap.add_argument("--shared-cpu", action="store_true")
+    ap.add_argument("--busy", default="0,1,3", help="comma list of busy-loop processes (shared-cpu part)")
+    ap.add_argument("--shared-reps", type=int, default=2)
     ap.add_argument("--tmp", default=None)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -431,6 +522,13 @@ def main() -> None:
             cases = [(int(a), int(b)) for a, b in (c.split(":") for c in args.pipeline_cases.split(","))]
             cache = Path(args.tmp) if args.tmp else tmp
             print(json.dumps(bench_pipeline(cases, args.pipeline_args.split(), tmp, cache)), flush=True)
+        if args.startup:
+            cache = Path(args.tmp) if args.tmp else tmp
+            print(json.dumps(bench_startup(args.startup_runs, tmp, cache)), flush=True)
+        if args.shared_cpu:
+            cache = Path(args.tmp) if args.tmp else tmp
+            busy = [int(v) for v in args.busy.split(",")]
+            print(json.dumps(bench_shared_cpu(args.size, busy, args.shared_reps, tmp, cache)), flush=True)
         if args.rss:
             sizes = [tuple(int(v) for v in s.split("x")) for s in args.rss_sizes.split(",")]
             cache = Path(args.tmp) if args.tmp else tmp  # rasters kept there between invocations

@@ -148,3 +148,68 @@ def test_missing_openvino_is_a_one_line_error(monkeypatch: pytest.MonkeyPatch, t
     assert code != 0 and OPENVINO_INSTALL in message and "--engine" in message
     assert len(message.splitlines()) == 1, message
     assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("mc", [1, 3])
+def test_streams_give_the_maps_of_one_stream(tmp_path: Path, rng: np.random.Generator, mc: int) -> None:
+    """Windows (T = 1) and MC samples (T = 3) run in parallel streams, kept in flight while earlier ones are
+    stitched: the maps are those of one stream and of the torch engine (fp32; 1e-4 m / 1e-4 nats as the
+    fp32 equality above: streams of other widths may sum in another order)."""
+    model, meta = tiny_d3net()
+    img = rng.integers(1, 256, size=(3, 150, 110)).astype(np.uint8)
+    img[:, 100:, :40] = 0  # an empty window among computed ones
+    ortho = write_raster(tmp_path / "o.tif", img, nodata=0)
+    maps, infos = {}, {}
+    threads = torch.get_num_threads()
+    try:
+        for label, engine, n in (("torch", "torch", None), ("one", "openvino", 1), ("three", "openvino", 3)):
+            out = tmp_path / label
+            predict_raster(ortho, (model, meta), out, mc=mc, tile=64, overlap=16, batch_size=1, precision="fp32",
+                           engine=engine, progress=False, seed=3, threads=n)
+            maps[label], infos[label] = _layers(out), json.loads((out / "prediction.json").read_text())
+    finally:
+        torch.set_num_threads(threads)
+    assert infos["one"]["threads"] == {"threads": 1, "streams": 1, "source": "option"}
+    assert infos["three"]["threads"] == {"threads": 3, "streams": 3, "source": "option"}
+    for label in ("one", "three"):
+        for name in maps["torch"]:
+            if name == "classes":
+                np.testing.assert_array_equal(maps[label][name], maps["torch"][name])
+            else:
+                np.testing.assert_allclose(maps[label][name], maps["torch"][name], rtol=0, atol=1e-4,
+                                           err_msg=f"{label} {name}")
+
+
+def test_threads_option_env_and_errors(tmp_path: Path, rng: np.random.Generator, capsys: pytest.CaptureFixture,
+                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--threads N`` and ``AERIALMTL_THREADS`` reach the engine and prediction.json; the option wins over
+    the variable; bad values are errors naming the option (a usage error) or the variable."""
+    model, meta = tiny_d3net()
+    ckpt = tmp_path / "m.pt"
+    save_checkpoint(ckpt, model, meta)
+    ortho = write_raster(tmp_path / "o.tif", rng.integers(1, 256, size=(3, 40, 40)).astype(np.uint8))
+    threads = torch.get_num_threads()
+    try:
+        monkeypatch.setenv(runtime.THREADS_ENV, "1")
+        code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "env", "--quiet",
+                               "--mc", "1")
+        assert code == 0, err
+        info = json.loads((tmp_path / "env" / "prediction.json").read_text())
+        assert info["threads"] == {"threads": 1, "streams": 1, "source": "env"}
+        code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "opt", "--quiet",
+                               "--mc", "1", "--threads", "2")
+        assert code == 0, err
+        info = json.loads((tmp_path / "opt" / "prediction.json").read_text())
+        assert info["threads"] == {"threads": 2, "streams": 2, "source": "option"}
+        code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "bad", "--quiet",
+                               "--threads", "0")
+        assert code == 2 and "Invalid value for --threads" in err and "got '0'" in err, err  # click's usage error
+        monkeypatch.setenv(runtime.THREADS_ENV, "many")
+        code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "bad2", "--quiet")
+        assert code != 0 and runtime.THREADS_ENV in err and "'many'" in err, err
+        monkeypatch.delenv(runtime.THREADS_ENV)
+        auto = runtime.resolve_threads("auto")
+        assert auto.source == "auto" and auto.threads == torch.get_num_threads()
+        assert auto.streams == min(auto.threads, runtime.MAX_STREAMS)
+    finally:
+        torch.set_num_threads(threads)

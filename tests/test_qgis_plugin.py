@@ -76,7 +76,8 @@ def test_command_line_refuses_missing_and_unknown_values() -> None:
 #: inputs, --skip-existing), tuning knobs with sound defaults; a new option of a command fails the test below
 #: until it is offered or listed here.
 LEFT_OUT = {
-    "predict": {"--quiet", "--skip-existing", "--batch-size", "--compile", "--tile"},  # --tile: --window's old name
+    # --tile: --window's old name; --threads: predict runs with auto, like --batch-size
+    "predict": {"--quiet", "--skip-existing", "--batch-size", "--compile", "--tile", "--threads"},
     "buildings": {"--quiet", "--block-size", "--simplify"},
     "evaluate": {"--quiet", "--sample-size", "--seed", "--height-bins", "--height-threshold", "--ignore-unknown-codes",
                  "--pred-buildings"},

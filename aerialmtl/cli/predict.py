@@ -82,6 +82,10 @@ def _batch_size(value: str) -> int | str:
 @option("--engine", type=click.Choice(["auto", "torch", "openvino"]), default="auto", show_default=True,
         help="What runs the model: auto = OpenVINO on a CPU when installed (faster, most with bf16), torch "
              "otherwise (and on CUDA).")
+@option("--threads", "threads", default="auto", show_default=True,
+        help="Inference threads on a CPU: a number, or auto = the AERIALMTL_THREADS environment variable if set, "
+             "else the cores torch sees. OpenVINO splits them into streams that each run their own window, which "
+             "keeps a CPU shared with other jobs busy; prediction.json records threads and streams.")
 @precision_option(help="auto = bf16 where the hardware has it natively (CUDA; CPUs with AVX-512-BF16 or AMX on "
                        "OpenVINO, with AMX on torch), fp32 elsewhere (CPUs without bf16 units run bf16 far slower).")
 @device_option()
@@ -104,9 +108,9 @@ def _batch_size(value: str) -> int | str:
 @quiet_option()
 def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
-    batch_size: str, engine: str, precision: str, device: str, compile_: bool, aoi: Path | None, probabilities: bool,
-    rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool, no_calibration: bool = False,
-    tta: bool = False, tile_alias: int | None = None,
+    batch_size: str, engine: str, threads: str, precision: str, device: str, compile_: bool, aoi: Path | None,
+    probabilities: bool, rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool,
+    no_calibration: bool = False, tta: bool = False, tile_alias: int | None = None,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
 
@@ -147,7 +151,7 @@ def predict(
             on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
             device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
             calibration=not no_calibration,
-            rescale_input=rescale_input, engine=engine, tta=tta,
+            rescale_input=rescale_input, engine=engine, threads=threads, tta=tta,
         )
     except CheckpointError as exc:  # a model the user did not type here: say where it came from
         source = click.get_current_context().get_parameter_source("model")

@@ -16,8 +16,15 @@ once per window and the decoder T times, accumulated by
 :func:`~aerialmtl.models.mc_dropout.accumulate_samples`. On the OpenVINO engine the dropout masks are
 explicit inputs of the decoder, drawn by :func:`~aerialmtl.models.mc_dropout.dropout_masks` from the
 same ``(seed, window, sample)`` keys as the torch path's seeded hooks: both engines sample the same
-masks. The OpenVINO engine runs one window (and one sample) per call, so its results do not depend on the
-batch size or the sample chunking either.
+masks. The OpenVINO engine runs one window (and one sample) per infer request, so its results do not
+depend on the batch size or the sample chunking either.
+
+Running: the model is compiled for ``streams`` parallel streams of ``threads / streams`` threads each
+(:func:`aerialmtl.runtime.resolve_threads`: on 2 cores, two one-thread streams), with one infer request per
+stream used in turn. :meth:`OpenVINOEngine.submit` starts a batch's windows and returns at once, so the
+predictor blends and writes one batch while the next ones run; MC samples are started one chunk ahead of
+their accumulation. Narrow streams keep a CPU shared with other processes busy: one wide stream splits each
+layer over all its threads and waits for the slowest (bench/RESULTS.md, "predict end to end on CPUs").
 
 Precision: fp32, or bf16 (``INFERENCE_PRECISION_HINT``) on a CPU with native bf16 under ``auto``
 (:func:`aerialmtl.runtime.resolve_precision`); the statistics are accumulated in float32 either way.
@@ -38,7 +45,7 @@ import io
 import os
 import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
@@ -58,6 +65,7 @@ from aerialmtl.models.mc_dropout import (
     dropout_sites,
     single_pass_statistics,
 )
+from aerialmtl.runtime import CpuThreads, resolve_threads
 
 if TYPE_CHECKING:
     import openvino
@@ -73,7 +81,7 @@ class Engine(Protocol):
     """What runs the model in prediction: the one interface of the ``torch`` engine
     (:class:`~aerialmtl.inference.runner.TorchEngine`) and the ``openvino`` engine (:class:`OpenVINOEngine`).
 
-    A new engine implements these two members; :func:`resolve_engine` and the runner
+    A new engine implements these members; :func:`resolve_engine` and the runner
     (:class:`~aerialmtl.inference.runner.ModelRunner`) choose and build it.
     """
 
@@ -94,6 +102,13 @@ class Engine(Protocol):
         Returns:
             per-window height mean/std (B, h, w, metres), class probabilities (B, h, w, K) and mean
             per-sample entropy, as :class:`~aerialmtl.models.mc_dropout.McStatistics`.
+        """
+        ...
+
+    def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
+               sample_batch: int) -> Pending:
+        """Start :meth:`statistics` of a batch; ``.result()`` of the returned :class:`Pending` gives them (an
+        engine that runs synchronously returns them computed, as :class:`Done`).
         """
         ...
 
@@ -240,31 +255,57 @@ class OpenVINOEngine:
     name = "openvino"
 
     def __init__(self, model: nn.Module, in_channels: int, tasks: Sequence[str], precision: str,
-                 cache_dir: str | Path | None = None, cache: bool = True) -> None:
+                 cache_dir: str | Path | None = None, cache: bool = True, threads: CpuThreads | None = None,
+                 weights_key: str | None = None) -> None:
         import openvino as ov
 
         self.ov = ov
-        self.model = model
+        self.raw_model = model
+        self._model: nn.Module | None = None
         self.in_channels = in_channels
         self.tasks = model_outputs(model, tasks)  # output order of the converted graphs
         self.precision = precision
+        #: Threads and streams the model is compiled for (:func:`aerialmtl.runtime.resolve_threads`).
+        self.threads = threads if threads is not None else resolve_threads()
         self._sites: list[DropoutSite] | None = None
         self.core = ov.Core()
         self.cache_dir: Path | None = None
         if cache:
             cfg = getattr(model, "cfg", "")
             extra = f"{__version__}|{ov.__version__}|{in_channels}|{self.tasks}|{cfg}|{CONVERT_SIZE}"
-            self.cache_dir = Path(cache_dir) if cache_dir is not None else cache_root() / fingerprint(model, extra)
+            if cache_dir is not None:
+                self.cache_dir = Path(cache_dir)
+            elif weights_key is not None:  # the checkpoint's hash, computed once by the caller
+                key = hashlib.blake2b(f"{weights_key}|folded|{extra}".encode(), digest_size=12).hexdigest()
+                self.cache_dir = cache_root() / key
+            else:
+                self.cache_dir = cache_root() / fingerprint(model, extra)
         self.cache = EngineCache(self.cache_dir)
         self._models: dict[str, openvino.Model] = {}
-        self._compiled: dict[tuple[str, int, int], Any] = {}
+        self._compiled: dict[tuple[str, int, int], _Requests] = {}
         self._lock = threading.Lock()
+        self._buffers: list[list[np.ndarray]] = []
+        self._buffers_key: tuple[Any, ...] | None = None
+        self._pool = _BufferPool(limit=self.threads.streams + 2)
+
+    @property
+    def model(self) -> nn.Module:
+        """The model prepared for conversion (BatchNorm folded; made on first use: a warm cache never
+        needs it).
+        """
+        if self._model is None:
+            from aerialmtl.models.d3net import inference_model
+
+            self._model = inference_model(self.raw_model, torch.device("cpu"))
+        return self._model
 
     @property
     def sites(self) -> list[DropoutSite]:
-        """The decoder's dropout layers (found on first use: only MC dropout needs them)."""
+        """The decoder's dropout layers (found on first use: only MC dropout needs them; folding does not
+        move them, so the model as loaded is probed).
+        """
         if self._sites is None:
-            self._sites = dropout_sites(self.model, self.in_channels)
+            self._sites = dropout_sites(self.raw_model, self.in_channels)
         return self._sites
 
     # ---- conversion and compilation ---------------------------------------------------------------
@@ -301,7 +342,8 @@ class OpenVINOEngine:
         self._models[part] = model
         return model
 
-    def _request(self, part: str, h: int, w: int) -> Any:
+    def _requests(self, part: str, h: int, w: int) -> _Requests:
+        """The infer requests of ``part`` compiled for ``h × w`` windows (compiled on first use)."""
         key = (part, h, w)
         with self._lock:
             if key not in self._compiled:
@@ -312,13 +354,19 @@ class OpenVINOEngine:
                     shapes = {k: list(s) for k, s in enumerate(feats)}
                     shapes.update({len(feats) + k: [1, *site.shape(h, w)] for k, site in enumerate(self.sites)})
                 model.reshape(shapes)
-                hint = "bf16" if self.precision == "bf16" else "f32"
-                # as many threads as torch uses (torchrun's OMP_NUM_THREADS, torch.set_num_threads)
-                config = {"INFERENCE_PRECISION_HINT": hint, "PERFORMANCE_HINT": "LATENCY",
-                          "INFERENCE_NUM_THREADS": torch.get_num_threads()}
-                compiled = self._compile(model, f"{part}.{h}x{w}.{hint}.blob", config)
-                self._compiled[key] = compiled.create_infer_request()
+                config = self.compile_config()
+                hint, n = config["INFERENCE_PRECISION_HINT"], self.threads
+                compiled = self._compile(model, f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.blob", config)
+                self._compiled[key] = _Requests(compiled, self.threads.streams)
             return self._compiled[key]
+
+    def compile_config(self) -> dict[str, Any]:
+        """OpenVINO's CPU settings: precision, threads and streams (:attr:`threads`), no pinning of threads to
+        cores (a core another process holds would stall the stream pinned to it).
+        """
+        hint = "bf16" if self.precision == "bf16" else "f32"
+        return {"INFERENCE_PRECISION_HINT": hint, "INFERENCE_NUM_THREADS": self.threads.threads,
+                "NUM_STREAMS": self.threads.streams, "ENABLE_CPU_PINNING": False}
 
     def _serialize(self, model: openvino.Model) -> list[bytes]:
         """An IR's XML and weights as bytes (through a private temporary folder: OpenVINO writes files)."""
@@ -352,55 +400,230 @@ class OpenVINOEngine:
         return [tuple(o.get_shape()) for o in model.outputs]
 
     # ---- running ----------------------------------------------------------------------------------
-    @staticmethod
-    def _outputs(request: Any) -> list[torch.Tensor]:
-        return [torch.from_numpy(np.array(request.get_output_tensor(k).data, copy=True))
-                for k in range(len(request.model_outputs))]
-
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        """(B, C, h, w) normalised → ``{task: (B, C_t, h, w)}`` (float32, one window per call)."""
+        """(B, C, h, w) normalised → ``{task: (B, C_t, h, w)}`` (float32; the windows run in parallel streams)."""
         h, w = x.shape[-2:]
-        req = self._request("forward", h, w)
-        outs: list[list[torch.Tensor]] = [[] for _ in self.tasks]
-        for n in range(x.shape[0]):
-            req.infer({0: x[n:n + 1].contiguous().numpy()})
-            for k, t in enumerate(self._outputs(req)):
-                outs[k].append(t)
-        return {task: torch.cat(o) for task, o in zip(self.tasks, outs)}
+        reqs = self._requests("forward", h, w)
+        jobs = [reqs.start({0: x[n:n + 1].contiguous().numpy()}) for n in range(x.shape[0])]
+        outs = [job.outputs() for job in jobs]
+        return {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) for k, task in enumerate(self.tasks)}
 
     def encode(self, x: torch.Tensor) -> list[np.ndarray]:
         """(1, C, h, w) normalised → the encoder features (numpy, for :meth:`decode`)."""
-        req = self._request("encode", *x.shape[-2:])
-        req.infer({0: x.contiguous().numpy()})
-        return [np.array(req.get_output_tensor(k).data, copy=True) for k in range(len(req.model_outputs))]
+        return self._requests("encode", *x.shape[-2:]).start({0: x.contiguous().numpy()}).outputs()
 
     def decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int) -> list[torch.Tensor]:
         """One image's features and one sample's masks → its outputs, in task order."""
-        req = self._request("decode", h, w)
+        return [torch.from_numpy(o) for o in self._start_decode(feats, masks, h, w).outputs()]
+
+    def _start_decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int,
+                      dest: list[np.ndarray] | None = None) -> _Job:
         inputs: dict[int, np.ndarray] = dict(enumerate(feats))
         inputs.update({len(feats) + k: m.numpy() for k, m in enumerate(masks)})
-        req.infer(inputs)
-        return self._outputs(req)
+        return self._requests("decode", h, w).start(inputs, dest)
+
+    def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
+               sample_batch: int) -> Pending:
+        """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` waits for them.
+
+        T = 1: each window's forward pass starts at once on a free stream (waiting for the oldest running
+        one when all are busy), so the caller stitches one batch while the next runs. T > 1: the work runs in
+        ``result()``, the samples of a window spread over the streams (:meth:`statistics`).
+        """
+        x = x.float()
+        if samples > 1:
+            return _Deferred(lambda: self.statistics(x, keys, samples, seed, sample_batch))
+        h, w = x.shape[-2:]
+        reqs = self._requests("forward", h, w)
+        jobs = [reqs.start({0: x[n:n + 1].contiguous().numpy()}, self._pool.take(reqs.shapes))
+                for n in range(x.shape[0])]
+        return _Forward1(self.tasks, jobs, self._pool)
 
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
-        """Normalised (B, C, h, w) batch → statistics of each window (as the torch path)."""
+        """Normalised (B, C, h, w) batch → statistics of each window (as the torch path).
+
+        T > 1: the encoder once per window, then the T decoder samples of the batch in chunks of
+        ``sample_batch`` samples, started in order on the streams ahead of the accumulation (up to one
+        sample per stream of the next chunk runs while the host accumulates the current one). Each sample's
+        outputs are copied straight into one of two chunk buffers reused from window to window (fresh
+        buffers per sample cost more in page faults than the copies themselves; bench/RESULTS.md).
+        """
         x = x.float()
         if samples == 1:
-            return single_pass_statistics(self.forward(x))
+            return self.submit(x, keys, samples, seed, sample_batch).result()
         b, _, h, w = x.shape
+        chunk = max(1, min(int(sample_batch), samples))
         feats = [self.encode(x[n:n + 1]) for n in range(b)]
+        reqs = self._requests("decode", h, w)
+        buffers = self._chunk_buffers(reqs.shapes, chunk * b)
+        order = [(t, n) for t in range(samples) for n in range(b)]  # sample-major, as accumulate_samples wants
+        jobs: list[_Job] = []
+
+        def start_until(count: int) -> None:
+            while len(jobs) < min(count, len(order)):
+                i = len(jobs)
+                t, n = order[i]
+                row = i - (t // chunk) * chunk * b
+                dest = [buf[row:row + 1] for buf in buffers[(t // chunk) % 2]]
+                jobs.append(self._start_decode(feats[n], dropout_masks(self.sites, h, w, seed, keys[n], t), h, w,
+                                               dest))
 
         def decode_chunk(done: int, s: int) -> dict[str, torch.Tensor]:
-            outs: list[list[torch.Tensor]] = [[] for _ in self.tasks]
-            for t in range(done, done + s):
-                for n, key in enumerate(keys):
-                    for k, o in enumerate(self.decode(feats[n], dropout_masks(self.sites, h, w, seed, key, t), h, w)):
-                        outs[k].append(o)
-            return {task: torch.cat(o) for task, o in zip(self.tasks, outs)}
+            first, last = done * b, (done + s) * b
+            start_until(last)
+            for i in range(first, last):
+                jobs[i].collect()
+                jobs[i] = _DONE
+            start_until(last + min(chunk * b, self.threads.streams))  # the engine runs on while the host accumulates
+            out = buffers[(done // chunk) % 2]
+            return {task: torch.from_numpy(out[k][:s * b]) for k, task in enumerate(self.tasks)}
 
-        return accumulate_samples(decode_chunk, samples, max(1, sample_batch), b)
+        return accumulate_samples(decode_chunk, samples, chunk, b)
+
+    def _chunk_buffers(self, shapes: Sequence[tuple[int, ...]], rows: int) -> list[list[np.ndarray]]:
+        """Two sets of float32 buffers, ``rows × shape[1:]`` per output (kept for the next window of the same
+        shape; one shape at a time).
+        """
+        key = (rows, *[tuple(s) for s in shapes])
+        if self._buffers_key != key:
+            self._buffers = [[np.empty((rows, *s[1:]), np.float32) for s in shapes] for _ in range(2)]
+            self._buffers_key = key
+        return self._buffers
 
 
-__all__ = ["CONVERT_SIZE", "Engine", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "cache_root", "fingerprint",
-           "openvino_available", "resolve_engine"]
+# ---- requests in flight -------------------------------------------------------------------------------
+class _Job:
+    """One inference started on a request of :class:`_Requests`; :meth:`outputs` waits for it (once)."""
+
+    def __init__(self, owner: _Requests | None = None, slot: int = 0, dest: list[np.ndarray] | None = None) -> None:
+        self.owner, self.slot, self.dest = owner, slot, dest
+        self._outputs: list[np.ndarray] | None = None
+
+    def collect(self) -> None:
+        """Wait for the request and copy its outputs out (into ``dest`` when given), freeing the request."""
+        if self._outputs is not None or self.owner is None:
+            return
+        req = self.owner.requests[self.slot]
+        req.wait()
+        tensors = [req.get_output_tensor(k).data for k in range(len(req.model_outputs))]
+        if self.dest is not None:
+            for d, t in zip(self.dest, tensors):
+                np.copyto(d, t)
+            self._outputs = self.dest
+        else:
+            self._outputs = [np.array(t, copy=True) for t in tensors]
+        self.owner.running[self.slot] = None
+
+    def outputs(self) -> list[np.ndarray]:
+        """The model's outputs, in order (float32 numpy)."""
+        self.collect()
+        assert self._outputs is not None
+        return self._outputs
+
+
+_DONE = _Job()
+
+
+class _Requests:
+    """The infer requests of one compiled model, one per stream, used in turn: a new job takes the next
+    request, first collecting the job still on it (the oldest, as jobs take similar times).
+    """
+
+    def __init__(self, compiled: Any, n: int) -> None:
+        self.requests = [compiled.create_infer_request() for _ in range(max(1, n))]
+        #: The outputs' shapes (one image).
+        self.shapes = [tuple(o.get_shape()) for o in compiled.outputs]
+        self.running: list[_Job | None] = [None] * len(self.requests)
+        self._next = 0
+
+    def start(self, inputs: dict[int, np.ndarray], dest: list[np.ndarray] | None = None) -> _Job:
+        """Start one inference on ``inputs`` (copied into the request) and return its job (whose outputs are
+        copied into ``dest``, one array per output, when given).
+        """
+        slot = self._next
+        self._next = (slot + 1) % len(self.requests)
+        busy = self.running[slot]
+        if busy is not None:
+            busy.collect()
+        job = _Job(self, slot, dest)
+        self.running[slot] = job
+        self.requests[slot].start_async(inputs)
+        return job
+
+
+class Pending(Protocol):
+    """Statistics of a batch being computed; :meth:`result` waits for them."""
+
+    def result(self) -> McStatistics:
+        """The statistics, once computed (waits for them)."""
+        ...
+
+
+class Done:
+    """Statistics already computed (the torch engine's, which runs synchronously)."""
+
+    def __init__(self, stats: McStatistics) -> None:
+        self.stats = stats
+
+    def result(self) -> McStatistics:
+        """The statistics."""
+        return self.stats
+
+
+class _Deferred:
+    """Statistics computed when asked for."""
+
+    def __init__(self, compute: Callable[[], McStatistics]) -> None:
+        self.compute = compute
+
+    def result(self) -> McStatistics:
+        return self.compute()
+
+
+class _Forward1:
+    """The T = 1 statistics of a batch whose forward passes are running (one job per window); the output
+    buffers go back to ``pool`` once the statistics are made from them.
+    """
+
+    def __init__(self, tasks: tuple[str, ...], jobs: list[_Job], pool: _BufferPool) -> None:
+        self.tasks, self.jobs, self.pool = tasks, jobs, pool
+
+    def result(self) -> McStatistics:
+        outs = [job.outputs() for job in self.jobs]
+        raw = {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) if len(outs) > 1
+               else torch.from_numpy(outs[0][k]) for k, task in enumerate(self.tasks)}
+        stats = single_pass_statistics(raw)
+        if stats.height_mean is not None:  # a view of the buffer, which goes back to the pool
+            stats.height_mean = stats.height_mean.clone()
+        for o in outs:
+            self.pool.give(o)
+        return stats
+
+
+class _BufferPool:
+    """Output buffers of T = 1 windows, reused: a fresh 80 MiB array per window (1024², 20 classes) costs
+    its page faults every time. Holds at most ``limit`` sets, of any shapes.
+    """
+
+    def __init__(self, limit: int = 4) -> None:
+        self.limit = limit
+        self.free: list[list[np.ndarray]] = []
+
+    def take(self, shapes: Sequence[tuple[int, ...]]) -> list[np.ndarray]:
+        """A set of float32 arrays of ``shapes`` (reused when one is free)."""
+        want = [tuple(s) for s in shapes]
+        for k, bufs in enumerate(self.free):
+            if [b.shape for b in bufs] == want:
+                return self.free.pop(k)
+        return [np.empty(s, np.float32) for s in want]
+
+    def give(self, bufs: list[np.ndarray]) -> None:
+        """Return a set once nothing reads it any more (the oldest free set is dropped beyond ``limit``)."""
+        self.free.append(bufs)
+        if len(self.free) > self.limit:
+            self.free.pop(0)
+
+
+__all__ = ["CONVERT_SIZE", "Done", "Engine", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "Pending",
+           "cache_root", "fingerprint", "openvino_available", "resolve_engine"]

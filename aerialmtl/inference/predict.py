@@ -38,6 +38,7 @@ import dataclasses
 import json
 import time
 import warnings
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,7 +58,7 @@ from aerialmtl.formats.prediction import (
     prediction_layers,
 )
 from aerialmtl.formats.stac import model_summary
-from aerialmtl.inference.engines import resolve_engine
+from aerialmtl.inference.engines import Pending, resolve_engine
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
@@ -210,6 +211,10 @@ class Predictor:
         engine: ``auto``, ``torch`` or ``openvino`` (:func:`~aerialmtl.inference.engines.resolve_engine`).
         tta: test-time augmentation: each window also flipped and rotated (8 views), combined like MC samples
             into the maps and their spread (:class:`~aerialmtl.inference.runner.ModelRunner`); 8× the work.
+        threads: inference threads on a CPU: a number, or ``"auto"``/``None`` (the
+            :data:`~aerialmtl.runtime.THREADS_ENV` environment variable, else torch's own count);
+            OpenVINO splits them into streams (:func:`aerialmtl.runtime.resolve_threads`), and
+            ``prediction.json`` records both.
     """
 
     def __init__(
@@ -232,6 +237,7 @@ class Predictor:
         rescale_input: bool = False,
         engine: str = "auto",
         tta: bool = False,
+        threads: int | str | None = None,
     ) -> None:
         check_tiling(tile, overlap)
         if mc is not None and (not isinstance(mc, int) or mc < 1):
@@ -243,6 +249,10 @@ class Predictor:
                              param="batch_size")
         self.device = runtime.resolve_device(device)
         runtime.resolve_precision(precision, self.device)  # a bad value fails before the checkpoint is read
+        #: Inference threads and streams (:func:`aerialmtl.runtime.resolve_threads`).
+        self.threads = runtime.resolve_threads(threads)
+        if self.threads.source != "auto" and self.device.type == "cpu":
+            torch.set_num_threads(self.threads.threads)
         model, self.meta, name, loaded_fingerprint = _load(checkpoint)
         #: The engine that runs the model: ``"torch"`` or ``"openvino"``.
         self.engine = resolve_engine(engine, self.device, model)
@@ -267,8 +277,11 @@ class Predictor:
         self.calibration_available = self.meta.calibration is not None
         self.rescale_input = rescale_input
         self.tta = bool(tta)
+        # the checkpoint hashed once: provenance and the OpenVINO cache's key
+        weights_key = self.fingerprint if self.engine == "openvino" else None
         self.runner = ModelRunner(model, self.meta, self.device, self.precision, self.mc, seed, max_decode_pixels,
-                                  compile, self.engine, tta=self.tta, fallback=engine == "auto")
+                                  compile, self.engine, tta=self.tta, fallback=engine == "auto", threads=self.threads,
+                                  weights_key=weights_key)
         tasks = tuple(self.meta.model.tasks)
         self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
@@ -361,11 +374,14 @@ class Predictor:
         try:
             with reader:
                 waiting: list[Any] = []  # read windows not yet handed to the stitcher, in plan order
+                # batches submitted to the engine, oldest first: (windows in plan order, pending statistics,
+                # validity); up to runner.in_flight of them run while the oldest is stitched
+                queue: deque[tuple[list[Any], Pending | None, torch.Tensor | None]] = deque()
 
-                def flush(stats: McStatistics | None, valid: torch.Tensor | None) -> None:
+                def flush(windows: list[Any], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
                     t0 = time.perf_counter()
                     n = 0
-                    for w in waiting:
+                    for w in windows:
                         if w.data is None:
                             blocks = stitcher.add(w.i, w.j, None, None)
                         else:
@@ -374,9 +390,20 @@ class Predictor:
                             n += 1
                         for block in blocks:
                             writer.write(block)
-                    bar.update(len(waiting))
-                    waiting.clear()
+                    bar.update(len(windows))
                     timings["stitch_write"] += time.perf_counter() - t0
+
+                def finish_oldest() -> None:
+                    windows, pending, valid = queue.popleft()
+                    stats = None
+                    if pending is not None:
+                        t0 = time.perf_counter()
+                        stats = pending.result()
+                        assert valid is not None
+                        check_finite_outputs(stats, valid, self.checkpoint_name)
+                        check_height_range(stats, valid, self.checkpoint_name, self.meta)
+                        timings["model"] += time.perf_counter() - t0
+                    flush(windows, stats, valid)
 
                 for win in reader:
                     waiting.append(win)
@@ -385,17 +412,19 @@ class Predictor:
                     if len(todo) < batch_size and not row_end:
                         continue
                     if not todo:
-                        flush(None, None)
-                        continue
-                    t0 = time.perf_counter()
-                    raw, valid = self.runner.to_device([w.data for w in todo], [w.valid for w in todo])
-                    x = self.runner.normalise(rescaled(raw, rescale), valid)
-                    stats = self.runner(x, [w.i * n_cols + w.j for w in todo])
-                    check_finite_outputs(stats, valid, self.checkpoint_name)
-                    check_height_range(stats, valid, self.checkpoint_name, self.meta)
-                    timings["model"] += time.perf_counter() - t0
-                    computed += len(todo)
-                    flush(stats, valid)
+                        queue.append((list(waiting), None, None))
+                    else:
+                        t0 = time.perf_counter()
+                        raw, valid = self.runner.to_device([w.data for w in todo], [w.valid for w in todo])
+                        x = self.runner.normalise(rescaled(raw, rescale), valid)
+                        queue.append((list(waiting), self.runner.submit(x, [w.i * n_cols + w.j for w in todo]), valid))
+                        timings["model"] += time.perf_counter() - t0
+                        computed += len(todo)
+                    waiting.clear()
+                    while len(queue) > self.runner.in_flight:
+                        finish_oldest()
+                while queue:
+                    finish_oldest()
                 timings["read"] = reader.seconds_reading
             if not stitcher.finished:  # pragma: no cover - the reader yields every window of the rows
                 raise RuntimeError("stitcher did not receive every window")
@@ -557,6 +586,7 @@ class Predictor:
             "batch_size": self.resolved_batch_size(plan),
             "precision": self.precision,
             "engine": self.runner.engine.name,  # torch if ``auto`` fell back from OpenVINO
+            "threads": self.threads.as_dict() if self.device.type == "cpu" else None,
             "device": str(self.device),
             "compile": self.compile,
             "processes": processes,
@@ -622,6 +652,7 @@ def predict_raster(
     rescale_input: bool = False,
     engine: str = "auto",
     tta: bool = False,
+    threads: int | str | None = None,
 ) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
@@ -638,7 +669,7 @@ def predict_raster(
     predictor = Predictor(checkpoint, mc=mc, tile=tile, overlap=overlap, batch_size=batch_size, precision=precision,
                           device=device, probabilities=probabilities, max_decode_pixels=max_decode_pixels,
                           compile=compile, seed=seed, checkpoint_name=checkpoint_name, calibration=calibration,
-                          rescale_input=rescale_input, engine=engine, tta=tta)
+                          rescale_input=rescale_input, engine=engine, tta=tta, threads=threads)
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 

@@ -28,11 +28,11 @@ from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.models.d3net import fold_batchnorm
+from aerialmtl.models.d3net import inference_model
 from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
 if TYPE_CHECKING:
-    from aerialmtl.inference.engines import Engine
+    from aerialmtl.inference.engines import Engine, Pending
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
 #: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
@@ -102,13 +102,6 @@ class _Compiled(nn.Module):
         return cast(dict[str, torch.Tensor], self._compiled("forward", x))
 
 
-def inference_model(model: nn.Module, device: torch.device) -> nn.Module:
-    """A copy of ``model`` on ``device`` prepared for prediction (see the module docstring)."""
-    prepared = fold_batchnorm(model).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-    prepared.eval()
-    return prepared
-
-
 def compile_model(model: nn.Module) -> nn.Module:
     """The model with ``torch.compile`` applied where it can be (see :class:`_Compiled`)."""
     return _Compiled(model)
@@ -129,6 +122,12 @@ class TorchEngine:
     def __init__(self, net: nn.Module, model: nn.Module, device: torch.device, precision: str,
                  tasks: Sequence[str]) -> None:
         self.net, self.model, self.device, self.precision, self.tasks = net, model, device, precision, tuple(tasks)
+
+    def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int, sample_batch: int) -> Pending:
+        """:meth:`statistics`, computed now (torch runs synchronously)."""
+        from aerialmtl.inference.engines import Done
+
+        return Done(self.statistics(x, keys, samples, seed, sample_batch))
 
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
@@ -195,7 +194,8 @@ class ModelRunner:
     """Run the model on batches of raw windows, on the engine of :func:`~aerialmtl.inference.engines.resolve_engine`.
 
     Args:
-        model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy.
+        model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy
+            (made on first use on the OpenVINO engine, which needs it only to convert the model).
         meta: its checkpoint metadata (bands' mean/std for normalisation).
         device: the device to run on.
         precision: ``"bf16"`` (autocast on torch, the inference precision on OpenVINO) or ``"fp32"``.
@@ -208,11 +208,15 @@ class ModelRunner:
             views); the views are combined like MC samples (:func:`combine_tta`), so ``height_std`` also
             holds their disagreement. 8 times the model's work.
         fallback: the engine was chosen by ``auto``: fall back to torch when OpenVINO fails on the first batch.
+        threads: inference threads and streams on a CPU (:func:`aerialmtl.runtime.resolve_threads`).
+        weights_key: the checkpoint's fingerprint, when the caller has it: keys the OpenVINO cache without
+            hashing the weights again.
     """
 
     def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
                  mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
-                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False, fallback: bool = False) -> None:
+                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False, fallback: bool = False,
+                 threads: runtime.CpuThreads | None = None, weights_key: str | None = None) -> None:
         self.device = device
         self.tta = tta
         self.fallback = fallback
@@ -221,18 +225,51 @@ class ModelRunner:
         self.mc = mc
         self.seed = seed
         self.max_decode_pixels = max_decode_pixels
-        self.model = inference_model(model, device)
-        self.net: nn.Module = compile_model(self.model) if compile and engine == "torch" else self.model
+        self.threads = threads if threads is not None else runtime.resolve_threads()
         self.tasks = tuple(meta.model.tasks)
         self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
         self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
         self.engine: Engine
+        self._raw = model
+        self._model: nn.Module | None = None
         if engine == "openvino":
             from aerialmtl.inference.engines import OpenVINOEngine
 
-            self.engine = OpenVINOEngine(self.model, meta.model.in_channels, self.tasks, precision)
+            self.engine = OpenVINOEngine(model, meta.model.in_channels, self.tasks, precision, threads=self.threads,
+                                         weights_key=weights_key)
         else:
-            self.engine = TorchEngine(self.net, self.model, device, precision, self.tasks)
+            self._model = inference_model(model, device)
+            net = compile_model(self._model) if compile else self._model
+            self.engine = TorchEngine(net, self._model, device, precision, self.tasks)
+
+    @property
+    def model(self) -> nn.Module:
+        """The model prepared for prediction (:func:`inference_model`; the OpenVINO engine's own copy there)."""
+        from aerialmtl.inference.engines import OpenVINOEngine
+
+        if isinstance(self.engine, OpenVINOEngine):
+            return self.engine.model
+        assert self._model is not None
+        return self._model
+
+    @property
+    def net(self) -> nn.Module:
+        """What the torch engine calls (the compiled wrapper with ``compile``); the model as given on
+        OpenVINO (CPU only: nothing measures it there).
+        """
+        if isinstance(self.engine, TorchEngine):
+            return self.engine.net
+        return self._raw
+
+    @property
+    def in_flight(self) -> int:
+        """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`): one per stream on
+        the OpenVINO engine at T = 1, none on torch or with TTA (they compute synchronously).
+        """
+        from aerialmtl.inference.engines import OpenVINOEngine
+
+        ahead = isinstance(self.engine, OpenVINOEngine) and self.mc == 1 and not self.tta
+        return self.threads.streams if ahead else 0
 
     def to_device(self, data: Sequence[np.ndarray | torch.Tensor], valid: Sequence[np.ndarray]) -> tuple[
             torch.Tensor, torch.Tensor]:
@@ -269,7 +306,8 @@ class ModelRunner:
             warnings.warn(f"the OpenVINO engine cannot run this model ({type(exc).__name__}: "
                           f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); predicting with the torch engine "
                           "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
-            self.engine = TorchEngine(self.net, self.model, self.device, self.precision, self.tasks)
+            self._model = self.model  # the folded copy (the OpenVINO engine's)
+            self.engine = TorchEngine(self._model, self._model, self.device, self.precision, self.tasks)
             return self._statistics(x, keys)
 
     def _statistics(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
@@ -283,6 +321,20 @@ class ModelRunner:
             tkeys = [int(k) * len(DIHEDRAL) + t for k in keys]  # other masks per view, still seeded per window
             parts.append(invert_statistics(self.engine.statistics(xt, tkeys, self.mc, self.seed, chunk), t))
         return combine_tta(parts)
+
+    def submit(self, x: torch.Tensor, keys: Sequence[int]) -> Pending:
+        """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` gives them (the same
+        numbers as :meth:`__call__`). Up to :attr:`in_flight` batches run while the caller stitches. Computed
+        here, synchronously: with :attr:`tta` (the views one after the other), and the first batch when
+        :attr:`fallback` may still switch engines.
+        """
+        if self.tta or (self.fallback and not self._ran):
+            from aerialmtl.inference.engines import Done
+
+            return Done(self(x, keys))
+        b, _, h, w = x.shape
+        chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
+        return self.engine.submit(x, keys, self.mc, self.seed, chunk)
 
 
 __all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "TorchEngine", "auto_batch_size", "batch_from_memory",

@@ -195,9 +195,23 @@ def _class_sums(logits: torch.Tensor, s: int, b: int) -> tuple[torch.Tensor, tor
         inv = e.sum(0).reciprocal_()  # 1 / S
         ent = d.mul_(e).sum(0).mul_(inv).neg_().sub_(torch.log(inv))  # log S − Σ e·d / S
         ent.clamp_min_(0.0)
-        p_sum[:, :, r:r + rows] = e.mul_(inv).unflatten(1, (s, b)).sum(1)
-        e_sum[:, r:r + rows] = ent.unflatten(0, (s, b)).sum(0)
+        e.mul_(inv)
+        _sum_samples(e, p_sum[:, :, r:r + rows], 1, s, b)
+        _sum_samples(ent, e_sum[:, r:r + rows], 0, s, b)
     return p_sum, e_sum
+
+
+def _sum_samples(x: torch.Tensor, out: torch.Tensor, dim: int, s: int, b: int) -> None:
+    """``out = Σ_t x[..., t·b:(t+1)·b, ...]`` along ``dim``, as s − 1 element-wise adds into ``out``: for a
+    chunk of 2 samples of 1024², K = 20, :func:`_class_sums` took 0.34 s instead of 0.47 s with
+    ``x.unflatten(dim, (s, b)).sum(dim)`` copied into ``out`` (1 thread, Zen 4, load ~10; the same sums).
+    """
+    if s == 1:
+        out.copy_(x.narrow(dim, 0, b))
+        return
+    torch.add(x.narrow(dim, 0, b), x.narrow(dim, b, b), out=out)
+    for t in range(2, s):
+        out.add_(x.narrow(dim, t * b, b))
 
 
 @torch.no_grad()

@@ -5,7 +5,7 @@ window of the plan that has a valid pixel (in batches of ``batch_size`` windows 
 documented batching), blends ``acc += value * weight`` in plan order and finalises like the old numpy
 stitcher did: weighted means, argmax, entropy of the mean probabilities, mutual information
 ``clip(entropy − mean per-sample entropy, 0, entropy)``. It uses the model as the pipeline prepares it
-(:func:`aerialmtl.inference.runner.inference_model`) and, for T = 1, the same softmax, so with the same
+(:func:`aerialmtl.models.d3net.inference_model`) and, for T = 1, the same softmax, so with the same
 batches the T = 1 maps must match bit for bit. For T > 1 the per-window statistics are written out here
 in float64 (softmax, per-sample entropy ``−Σ p log p``, population std) with the dropout masks seeded
 per window as the pipeline seeds them, one sample per decoder call: they match to float rounding.
@@ -20,10 +20,10 @@ import torch
 from rasterio.features import geometry_mask
 
 from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.inference.runner import inference_model
 from aerialmtl.inference.windows import plan_windows
 from aerialmtl.io.align import AlignedRaster, Grid, reference_grid
 from aerialmtl.io.vector import load_geometries
+from aerialmtl.models.d3net import inference_model
 from aerialmtl.models.mc_dropout import _SeededMasks, sample_seed
 
 FLOAT_NODATA = -9999.0
