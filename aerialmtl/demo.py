@@ -21,7 +21,7 @@ from aerialmtl.io.outputs import OutputFolder, atomic_write, write_text_atomic
 
 #: Built-in configuration used by the demo.
 DEMO_CONFIG = "d3net_small_synth"
-#: What the demo's defaults gave (test town), identical in two runs at load 8–22 and 11–23 on one AMD EPYC
+#: What the demo's defaults gave (test town), identical in three runs at load 0.3–1.5, 8–22 and 11–23 on one AMD EPYC
 #: (family 26: Zen 5) with 2 cores (bench/RESULTS.md, "demo"): the step budget and seeds fix the model, whatever the
 #: machine's speed. Other CPUs round floats in other orders: the printed band allows for that.
 EXPECTED = {"height MAE (m)": 3.00, "height RMSE (m)": 6.80, "classes OA": 0.913, "classes mIoU": 0.778}
