@@ -186,3 +186,30 @@ def test_tta_views_are_undone_exactly_and_their_disagreement_enters_the_spread(
         with rasterio.open(out / "height_std.tif") as s:
             std[engine] = s.read(1)
     np.testing.assert_allclose(std["openvino"], std["torch"], rtol=0, atol=1e-3)
+
+
+def test_export_carries_the_aleatoric_spread(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """`export` of an aleatoric model has a height_std output (√2·b of one pass, metres), in the file with every
+    output and alone as a Deepness Regressor; ONNX Runtime gives torch's numbers."""
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    from aerialmtl.formats.exported_model import read_metadata
+
+    model, meta = _aleatoric()
+    ckpt = tmp_path / "al.pt"
+    save_checkpoint(ckpt, model, meta)
+    code, _, err = run_cli(capsys, "export", ckpt, "--tile", 64, "--out", tmp_path / "all.onnx")
+    assert code == 0, err
+    code, _, err = run_cli(capsys, "export", ckpt, "--task", "height_std", "--tile", 64, "--out", tmp_path / "s.onnx")
+    assert code == 0, err
+    x = np.random.default_rng(0).normal(size=(1, 3, 64, 64)).astype(np.float32)
+    with torch.no_grad():
+        want = (model(torch.from_numpy(x))[HEIGHT_SCALE] * math.sqrt(2.0)).numpy()
+    sess = ort.InferenceSession(str(tmp_path / "all.onnx"), providers=["CPUExecutionProvider"])
+    names = [o.name for o in sess.get_outputs()]
+    assert names == ["height", "height_std", "classes"]
+    np.testing.assert_allclose(sess.run(["height_std"], {"image": x})[0], want, rtol=1e-4, atol=1e-4)
+    alone = ort.InferenceSession(str(tmp_path / "s.onnx"), providers=["CPUExecutionProvider"])
+    assert [o.name for o in alone.get_outputs()] == ["height_std"]
+    np.testing.assert_allclose(alone.run(None, {"image": x})[0], want, rtol=1e-4, atol=1e-4)
+    assert read_metadata(tmp_path / "s.onnx")["model_type"] == "Regressor"
