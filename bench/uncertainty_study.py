@@ -57,7 +57,7 @@ from aerialmtl.models.calibration import (  # noqa: E402
     fit_spread,
     fit_spread_crps,
 )
-from aerialmtl.training.calibrate import validation_pixels  # noqa: E402
+from aerialmtl.training.calibrate import patch_folds, validation_pixels  # noqa: E402
 
 BINS = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
 
@@ -170,7 +170,7 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
                        progress=False, checkpoint_name=str(ckpt), calibration=False, seed=0)
         variants["raw"] = evaluate(pdir, args.data, rdir / "study_report_raw.json")
     pred, ref, sd, patch = validation_pixels(model, meta, tdir, mc=args.mc)
-    folds = np.random.default_rng(0).permutation(np.arange(int(patch.max()) + 1) % 2)[patch]
+    folds = patch_folds(patch)
     res["val"] = val_scores(pred, ref, sd)
     cals: dict[str, Calibration] = {
         "cal": fit_calibration(pred, ref, sd, "isotonic", folds=folds),

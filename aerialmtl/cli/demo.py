@@ -38,7 +38,7 @@ def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: i
     click.echo(f"Done in {res.timings.get('total', 0):.0f} s. Test town results:")
     got = {"height MAE (m)": h.get("mae"), "height RMSE (m)": h.get("rmse"),
            "classes OA": c.get("overall_accuracy"), "classes mIoU": c.get("miou")}
-    defaults = (train_steps, train_seconds, train_size, test_size, mc) == (800, None, 1536, 768, 16)
+    defaults = settings == DemoSettings()
     for key, value in got.items():
         if value is None:
             continue

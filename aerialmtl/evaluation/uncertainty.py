@@ -306,16 +306,14 @@ class SpreadStrata:
         g_crps = crps_gaussian(pred, std, ref, self.min_std)
         cols = np.stack([np.ones_like(err), err <= sigma, err <= 2 * sigma, g_nll, l_nll, g_crps, l_crps], 1)
         b = self._bins(ref)
+        lab = np.asarray(labels).ravel().astype(np.int64) if labels is not None else np.full(b.size, -1)
         rows = [(b, np.ones(b.size, bool))]
-        if self.class_names and labels is not None:
-            lab = np.asarray(labels).ravel().astype(np.int64)
-            ok = (lab >= 0) & (lab < len(self.class_names))
-            rows.append((nb + lab, ok))
+        if self.class_names:
+            rows.append((nb + lab, (lab >= 0) & (lab < len(self.class_names))))
         for idx, ok in rows:
             for k in range(cols.shape[1]):
                 self.sums[:, k] += np.bincount(idx[ok], weights=cols[ok, k], minlength=self.sums.shape[0])
-        lab_col = np.asarray(labels).ravel().astype(np.int64) if labels is not None else np.full(b.size, -1)
-        self.sample.add(abs_error=err, std=std, bin=b.astype(np.int64), label=lab_col)
+        self.sample.add(abs_error=err, std=std, bin=b.astype(np.int64), label=lab)
 
     def _row(self, k: int) -> dict[str, Any]:
         n, w1, w2, gn, ln, gc, lc = self.sums[k]

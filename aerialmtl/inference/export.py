@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import os
 import shutil
 import warnings
@@ -55,6 +54,7 @@ from aerialmtl.formats.exported_model import (
 from aerialmtl.io.outputs import OutputFolder, check_files_not_input, staging_path
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import HEIGHT_SCALE
+from aerialmtl.models.mc_dropout import laplace_variance
 
 Format = Literal["onnx", "openvino"]
 Task = Literal["all", "height", "height_std", "classes"]
@@ -104,7 +104,7 @@ class ExportHead(nn.Module):
             if t == "classes":
                 results.append(torch.softmax(out[t], dim=1))
             elif t == HEIGHT_STD_OUTPUT:  # the aleatoric spread of one pass: sqrt(2)·b
-                results.append(out[HEIGHT_SCALE] * math.sqrt(2.0))
+                results.append(laplace_variance(out[HEIGHT_SCALE]).sqrt())
             else:
                 results.append(self.calibrate(out[t]) if self.calibrated else out[t])
         return tuple(results)

@@ -53,7 +53,8 @@ TWO_SIGMA = 0.9544997361036416
 DEFAULT_KNOTS = 64
 #: Inner edges (metres of predicted height) of the ranges whose spread is fitted alone.
 SPREAD_EDGES: tuple[float, ...] = (1.0, 2.0, 5.0, 10.0, 20.0)
-#: Fewest validation pixels a range needs to be fitted alone (else it joins its lower neighbour).
+#: Fewest validation pixels a range needs to be fitted alone (else it joins the range above it; the top range
+#: joins the one below).
 MIN_RANGE_PIXELS = 2000
 
 
@@ -299,7 +300,8 @@ def fit_std_scale(abs_error: np.ndarray, std: np.ndarray, coverage: float = ONE_
 def spread_ranges(pred: np.ndarray, edges: tuple[float, ...] = SPREAD_EDGES,
                   min_pixels: int = MIN_RANGE_PIXELS) -> tuple[float, ...]:
     """The inner edges of :data:`SPREAD_EDGES` kept for ``pred`` (metres): a range with fewer than
-    ``min_pixels`` predicted heights is merged into its lower neighbour.
+    ``min_pixels`` predicted heights loses its upper edge (it joins the range above it); a top range that is
+    too small loses its lower edge (it joins the range below).
     """
     kept: list[float] = []
     pred = np.asarray(pred, np.float64)

@@ -82,6 +82,16 @@ def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | P
     return pred, ref, sd, patch
 
 
+def patch_folds(patch: np.ndarray, seed: int = 0) -> np.ndarray:
+    """The fold (0 or 1) of each pixel for the calibration's cross-fitted check: whole validation patches,
+    half of them in each fold, drawn with ``seed`` (``patch``: each pixel's patch index, 1-D).
+    """
+    if patch.size == 0:
+        return np.zeros(0, np.int64)
+    n = int(patch.max()) + 1
+    return np.random.default_rng(seed).permutation(np.arange(n) % 2)[patch]
+
+
 def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DEFAULT_CALIBRATION_SAMPLES,
                          method: CalibrationMethod = "isotonic", cache_folder: str | Path | None = None,
                          out: str | Path | None = None, device: str | torch.device = "cpu") -> Calibration:
@@ -109,16 +119,13 @@ def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DE
                       "only where it beat no calibration on held-out validation patches. Give validation a larger "
                       "share (aerialmtl tile --split-ratios 0.7,0.2,0.1, or larger --split-block), or set "
                       "calibration.enabled: false", stacklevel=2)
-    # two folds of whole patches (alternating in patch order): each part must beat none on the other fold
-    rng = np.random.default_rng(0)
-    fold_of_patch = rng.permutation(np.arange(int(patch.max()) + 1) % 2) if patch.size else np.zeros(0, np.int64)
     spread = sd if (mc > 1 or meta.model.aleatoric) else None
     cal = fit_calibration(pred, ref, spread, method, source=f"val split of {Path(data_dir).name}, T={mc}",
-                          folds=fold_of_patch[patch])
+                          folds=patch_folds(patch))
     new_meta = dataclasses.replace(meta, calibration=cal)
     save_checkpoint(out or path, model, new_meta, payload.get("train_state"))
     log.info("calibration of '%s': %s", path, cal.summary())
     return cal
 
 
-__all__ = ["DEFAULT_CALIBRATION_SAMPLES", "calibrate_checkpoint", "validation_pixels"]
+__all__ = ["DEFAULT_CALIBRATION_SAMPLES", "calibrate_checkpoint", "patch_folds", "validation_pixels"]
