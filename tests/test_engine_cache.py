@@ -113,3 +113,100 @@ def test_read_only_cache_folder_predicts_without_caching(predict_setup: tuple[Pa
     line = " ".join(err.split())
     assert f"the OpenVINO cache folder '{read_only_fs / 'cache'}/" in line
     assert "' cannot be written (Read-only file system); predicting without caching" in line
+
+
+# ---- the warm path: a cached engine needs no torch model (aerialmtl.inference.model_record) ----------------------
+def _outputs(out: Path) -> tuple[dict[str, bytes], dict]:
+    """Every layer's bytes, and prediction.json without what differs from run to run (timings, creation time)."""
+    files = {p.name: p.read_bytes() for p in sorted(out.glob("*.tif"))}
+    info = json.loads((out / "prediction.json").read_text())
+    info.pop("timings_s")
+    return files, {k: v for k, v in info.items() if k not in ("created", "created_utc")}
+
+
+def _no_loading(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make any load of a checkpoint's weights fail the test."""
+    import aerialmtl.formats.checkpoint as checkpoint
+
+    def refuse(*_: object, **__: object) -> None:
+        raise AssertionError("the warm path loaded the checkpoint")
+
+    monkeypatch.setattr(checkpoint, "read_model", refuse)
+
+
+@pytest.mark.parametrize("mc", [1, 2])
+def test_warm_cache_predicts_without_the_torch_model(predict_setup: tuple[Path, Path], tmp_path: Path, mc: int,
+                                                     capsys: pytest.CaptureFixture,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The second run reads the checkpoint's record and the compiled models, never the weights, and writes the
+    same bytes in every layer and the same prediction.json (timings and creation time aside): tolerance 0."""
+    ckpt, ortho = predict_setup
+    monkeypatch.setenv("AERIALMTL_OPENVINO_CACHE", str(tmp_path / "cache"))
+    args = ("predict", ortho, "--model", ckpt, "--mc", mc, "--window", "64", "--overlap", "16", "--probabilities")
+    code, _, err = run_cli(capsys, *args, "--out", tmp_path / "cold")
+    assert code == 0, err
+    assert list((tmp_path / "cache" / "records").glob("*.record"))
+    with monkeypatch.context() as m:
+        _no_loading(m)
+        code, _, err = run_cli(capsys, *args, "--out", tmp_path / "warm")
+    assert code == 0, err
+    assert "warning" not in err.lower()
+    cold, warm = _outputs(tmp_path / "cold"), _outputs(tmp_path / "warm")
+    assert warm[0].keys() == cold[0].keys() and len(cold[0]) >= 3
+    for name in cold[0]:
+        assert warm[0][name] == cold[0][name], name
+    assert warm[1] == cold[1]
+
+
+def test_warm_path_loads_the_model_when_the_cache_lost_it(predict_setup: tuple[Path, Path], tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """A record without its compiled or converted models (deleted) loads the weights then and converts them
+    again: same maps; a damaged record is ignored and written again; another checkpoint gets its own record."""
+    ckpt, ortho = predict_setup
+    cache = tmp_path / "cache"
+    _, _, first = _predict(capsys, ckpt, ortho, tmp_path / "a", cache, monkeypatch)
+    for entry in cache.rglob("*"):
+        if entry.suffix in (".ir", ".blob"):
+            entry.unlink()
+    _, err, again = _predict(capsys, ckpt, ortho, tmp_path / "b", cache, monkeypatch)
+    assert "warning" not in err.lower()
+    np.testing.assert_array_equal(again, first)
+    (record,) = list((cache / "records").glob("*.record"))
+    record.write_bytes(bytes(record.stat().st_size))  # zero-filled: not a record any more
+    _, err, healed = _predict(capsys, ckpt, ortho, tmp_path / "c", cache, monkeypatch)
+    np.testing.assert_array_equal(healed, first)
+    assert record.read_bytes() != bytes(record.stat().st_size)  # written again by the run that loaded the model
+    # another checkpoint (other weights): another record, other maps
+    import torch
+
+    model, meta = tiny_d3net()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.01)
+    save_checkpoint(ckpt, model, meta)
+    _, _, other = _predict(capsys, ckpt, ortho, tmp_path / "d", cache, monkeypatch)
+    assert len(list((cache / "records").glob("*.record"))) == 2
+    assert not np.array_equal(other, first)
+
+
+def test_checkpoint_replaced_during_a_warm_run_stops_it(predict_setup: tuple[Path, Path], tmp_path: Path) -> None:
+    """The model a record stands for is loaded only from the bytes the run started with: a file replaced in
+    between is refused, with a message naming it and what to do."""
+    from aerialmtl.errors import CheckpointError
+    from aerialmtl.formats.checkpoint import read_model
+    from aerialmtl.inference.model_record import CheckpointModel, file_fingerprint, make_record
+
+    ckpt, _ = predict_setup
+    model, meta, digest = read_model(ckpt)
+    assert digest == file_fingerprint(ckpt)
+    record = make_record(model, meta)
+    assert record is not None and record.meta == meta and record.outputs == model.outputs
+    lazy = CheckpointModel(ckpt, digest, record)
+    import torch
+
+    with torch.no_grad():
+        next(model.parameters()).add_(1.0)
+    save_checkpoint(ckpt, model, meta)
+    with pytest.raises(CheckpointError, match="changed while this run used it.*re-run"):
+        lazy.get()

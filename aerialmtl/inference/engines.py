@@ -56,6 +56,7 @@ from torch import nn
 from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.inference.engine_cache import EngineCache
+from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.models.mc_dropout import (
     _SEEDABLE,
     DropoutSite,
@@ -122,13 +123,14 @@ def openvino_available() -> bool:
     return True
 
 
-def _convertible(model: nn.Module) -> bool:
+def _convertible(model: nn.Module | CheckpointModel) -> bool:
     from aerialmtl.models.d3net import D3Net
 
-    return isinstance(model, D3Net)
+    return isinstance(model, (D3Net, CheckpointModel))  # a checkpoint's model is a D3-Net
 
 
-def resolve_engine(engine: str, device: torch.device, model: nn.Module) -> Literal["torch", "openvino"]:
+def resolve_engine(engine: str, device: torch.device,
+                   model: nn.Module | CheckpointModel) -> Literal["torch", "openvino"]:
     """``auto`` → ``openvino`` on a CPU when it is installed and ``model`` is a D3-Net, else ``torch``.
 
     Raises:
@@ -243,7 +245,8 @@ class OpenVINOEngine:
     """The model compiled by OpenVINO for the CPU (see the module docstring).
 
     Args:
-        model: the prepared (BatchNorm-folded, eval) D3-Net.
+        model: the D3-Net as loaded, or a :class:`~aerialmtl.inference.model_record.CheckpointModel` (then the
+            weights are loaded only when a cache entry is missing and the model must be converted).
         in_channels: its input bands.
         tasks: its tasks, in output order.
         precision: ``"bf16"`` or ``"fp32"``.
@@ -254,7 +257,7 @@ class OpenVINOEngine:
 
     name = "openvino"
 
-    def __init__(self, model: nn.Module, in_channels: int, tasks: Sequence[str], precision: str,
+    def __init__(self, model: nn.Module | CheckpointModel, in_channels: int, tasks: Sequence[str], precision: str,
                  cache_dir: str | Path | None = None, cache: bool = True, threads: CpuThreads | None = None,
                  weights_key: str | None = None) -> None:
         import openvino as ov
@@ -279,7 +282,7 @@ class OpenVINOEngine:
                 key = hashlib.blake2b(f"{weights_key}|folded|{extra}".encode(), digest_size=12).hexdigest()
                 self.cache_dir = cache_root() / key
             else:
-                self.cache_dir = cache_root() / fingerprint(model, extra)
+                self.cache_dir = cache_root() / fingerprint(resolve_model(model), extra)
         self.cache = EngineCache(self.cache_dir)
         self._models: dict[str, openvino.Model] = {}
         self._compiled: dict[tuple[str, int, int], _Requests] = {}
@@ -296,7 +299,7 @@ class OpenVINOEngine:
         if self._model is None:
             from aerialmtl.models.d3net import inference_model
 
-            self._model = inference_model(self.raw_model, torch.device("cpu"))
+            self._model = inference_model(resolve_model(self.raw_model), torch.device("cpu"))
         return self._model
 
     @property
@@ -305,7 +308,10 @@ class OpenVINOEngine:
         move them, so the model as loaded is probed).
         """
         if self._sites is None:
-            self._sites = dropout_sites(self.raw_model, self.in_channels)
+            if isinstance(self.raw_model, CheckpointModel):  # recorded when the checkpoint was first loaded
+                self._sites = list(self.raw_model.record.sites)
+            else:
+                self._sites = dropout_sites(self.raw_model, self.in_channels)
         return self._sites
 
     # ---- conversion and compilation ---------------------------------------------------------------
@@ -343,22 +349,33 @@ class OpenVINOEngine:
         return model
 
     def _requests(self, part: str, h: int, w: int) -> _Requests:
-        """The infer requests of ``part`` compiled for ``h × w`` windows (compiled on first use)."""
+        """The infer requests of ``part`` compiled for ``h × w`` windows (compiled on first use).
+
+        A compiled model in the cache is imported without reading the converted model (IR) at all; only a
+        missing one is compiled from the IR (which, missing too, is converted from the torch model).
+        """
         key = (part, h, w)
         with self._lock:
             if key not in self._compiled:
-                model = self._ov_model(part).clone()
-                shapes: dict[int, list[int]] = {0: [1, self.in_channels, h, w]}
-                if part == "decode":
-                    feats = self._feature_shapes(h, w)
-                    shapes = {k: list(s) for k, s in enumerate(feats)}
-                    shapes.update({len(feats) + k: [1, *site.shape(h, w)] for k, site in enumerate(self.sites)})
-                model.reshape(shapes)
                 config = self.compile_config()
                 hint, n = config["INFERENCE_PRECISION_HINT"], self.threads
-                compiled = self._compile(model, f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.blob", config)
+                name = f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.blob"
+                compiled = self._import(name, config)
+                if compiled is None:
+                    compiled = self._compile(self._shaped(part, h, w), name, config)
                 self._compiled[key] = _Requests(compiled, self.threads.streams)
             return self._compiled[key]
+
+    def _shaped(self, part: str, h: int, w: int) -> openvino.Model:
+        """The converted ``part`` reshaped for ``h × w`` windows (a copy)."""
+        model = self._ov_model(part).clone()
+        shapes: dict[int, list[int]] = {0: [1, self.in_channels, h, w]}
+        if part == "decode":
+            feats = self._feature_shapes(h, w)
+            shapes = {k: list(s) for k, s in enumerate(feats)}
+            shapes.update({len(feats) + k: [1, *site.shape(h, w)] for k, site in enumerate(self.sites)})
+        model.reshape(shapes)
+        return model
 
     def compile_config(self) -> dict[str, Any]:
         """OpenVINO's CPU settings: precision, threads and streams (:attr:`threads`), no pinning of threads to
@@ -377,9 +394,9 @@ class OpenVINOEngine:
             self.ov.save_model(model, str(xml), compress_to_fp16=False)
             return [xml.read_bytes(), xml.with_suffix(".bin").read_bytes()]
 
-    def _compile(self, model: openvino.Model, name: str, config: dict[str, Any]) -> Any:
-        """``model`` compiled for the CPU: imported from cache entry ``name`` when it is there and whole,
-        else compiled (and stored).
+    def _import(self, name: str, config: dict[str, Any]) -> Any | None:
+        """The compiled model of cache entry ``name``, or ``None`` when it is missing, corrupt (removed, with a
+        warning) or refused by this OpenVINO (a warning).
         """
         cached = self.cache.read(name)
         if cached is not None and len(cached) == 1:
@@ -387,7 +404,11 @@ class OpenVINOEngine:
                 return self.core.import_model(io.BytesIO(cached[0]), "CPU", config)
             except RuntimeError as exc:  # a whole entry OpenVINO still refuses (e.g. written by another build)
                 warnings.warn(f"cached OpenVINO model '{self.cache.folder}/{name}' could not be loaded "
-                              f"({' '.join(str(exc).split())[:120]}); rebuilding it", UserWarning, stacklevel=2)
+                              f"({' '.join(str(exc).split())[:120]}); rebuilding it", UserWarning, stacklevel=3)
+        return None
+
+    def _compile(self, model: openvino.Model, name: str, config: dict[str, Any]) -> Any:
+        """``model`` compiled for the CPU, stored as cache entry ``name``."""
         compiled = self.core.compile_model(model, "CPU", config)
         if self.cache.enabled:
             self.cache.write(name, [compiled.export_model().getvalue()])

@@ -58,7 +58,8 @@ from aerialmtl.formats.prediction import (
     prediction_layers,
 )
 from aerialmtl.formats.stac import model_summary
-from aerialmtl.inference.engines import Pending, resolve_engine
+from aerialmtl.inference.engines import Pending, openvino_available, resolve_engine
+from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
@@ -147,18 +148,39 @@ def model_grid(ortho: str | Path, meta: ModelMeta) -> tuple[Grid, float | None]:
     return src.grid, src.resampled_from
 
 
-def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta]
-          ) -> tuple[torch.nn.Module, ModelMeta, str, str | None]:
+def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool = False
+          ) -> tuple[torch.nn.Module | CheckpointModel, ModelMeta, str, str | None]:
     """``(model, meta, name, fingerprint)``; the fingerprint is that of the checkpoint bytes loaded (``None`` for a
     model given in memory: computed from its weights when needed).
+
+    With ``warm`` (a run that may use the OpenVINO engine), a checkpoint file whose record is beside the engine
+    cache (:mod:`aerialmtl.inference.model_record`) is not loaded: its bytes are hashed, and the model is a
+    :class:`~aerialmtl.inference.model_record.CheckpointModel` that loads them only if something needs the
+    weights; a checkpoint loaded here gets its record for the next run.
     """
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
     from aerialmtl.formats.checkpoint import read_model
 
-    model, meta, digest = read_model(checkpoint)
-    return model, meta, str(checkpoint), digest
+    if warm:
+        from aerialmtl.inference.engines import cache_root
+        from aerialmtl.inference.model_record import file_fingerprint, make_record, read_record, write_record
+
+        root = cache_root()
+        try:
+            digest: str | None = file_fingerprint(checkpoint)
+        except OSError:  # read_model says what is wrong with the file
+            digest = None
+        record = read_record(digest, root) if digest is not None else None
+        if digest is not None and record is not None:
+            return CheckpointModel(checkpoint, digest, record), record.meta, str(checkpoint), digest
+    model, meta, loaded = read_model(checkpoint)
+    if warm:
+        made = make_record(model, meta)
+        if made is not None:
+            write_record(loaded, made, root)
+    return model, meta, str(checkpoint), loaded
 
 
 def _record_timings(path: Path, timings: dict[str, float]) -> None:
@@ -253,9 +275,12 @@ class Predictor:
         self.threads = runtime.resolve_threads(threads)
         if self.threads.source != "auto" and self.device.type == "cpu":
             torch.set_num_threads(self.threads.threads)
-        model, self.meta, name, loaded_fingerprint = _load(checkpoint)
+        warm = engine in ("auto", "openvino") and self.device.type == "cpu" and openvino_available()
+        model, self.meta, name, loaded_fingerprint = _load(checkpoint, warm=warm)
         #: The engine that runs the model: ``"torch"`` or ``"openvino"``.
         self.engine = resolve_engine(engine, self.device, model)
+        if self.engine == "torch":
+            model = resolve_model(model)
         self.precision = runtime.resolve_precision(precision, self.device,
                                                    cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
         if compile and self.engine != "torch":
@@ -337,8 +362,8 @@ class Predictor:
             return int(self.batch_size)
         key = (plan.rows.size, plan.cols.size)
         if key not in self._batch:
-            self._batch[key] = auto_batch_size(self.runner.net, self.meta.model.in_channels, *key, self.device,
-                                               self.precision)
+            self._batch[key] = auto_batch_size(lambda: self.runner.net, self.meta.model.in_channels, *key,
+                                               self.device, self.precision)
         return self._batch[key]
 
     def warn_unused_bands(self, ortho: str | Path | OrthoInput) -> None:

@@ -33,6 +33,7 @@ from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass
 
 if TYPE_CHECKING:
     from aerialmtl.inference.engines import Engine, Pending
+    from aerialmtl.inference.model_record import CheckpointModel
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
 #: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
@@ -57,15 +58,18 @@ def batch_from_memory(free_bytes: int, bytes_per_window: int, limit: int = 64) -
     return int(max(1, min(limit, (free_bytes * MEMORY_SHARE) // max(1, bytes_per_window))))
 
 
-def auto_batch_size(model: nn.Module, in_channels: int, height: int, width: int, device: torch.device,
-                    precision: Literal["bf16", "fp32"]) -> int:
+def auto_batch_size(model: nn.Module | Callable[[], nn.Module], in_channels: int, height: int, width: int,
+                    device: torch.device, precision: Literal["bf16", "fp32"]) -> int:
     """Windows per model call for ``batch_size="auto"``.
 
     CPU: :data:`CPU_BATCH`. CUDA: one probe forward of a window measures the peak memory per window;
-    the batch fills :data:`MEMORY_SHARE` of the free memory (at most 64).
+    the batch fills :data:`MEMORY_SHARE` of the free memory (at most 64). ``model`` may be a function that
+    returns it (called on CUDA only: a CPU run on a warm OpenVINO cache never loads the torch model).
     """
     if device.type != "cuda":
         return CPU_BATCH
+    if not isinstance(model, nn.Module):
+        model = model()
     x = torch.zeros((1, in_channels, height, width), device=device).contiguous(memory_format=torch.channels_last)
     torch.cuda.synchronize(device)
     torch.cuda.reset_peak_memory_stats(device)
@@ -195,7 +199,8 @@ class ModelRunner:
 
     Args:
         model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy
-            (made on first use on the OpenVINO engine, which needs it only to convert the model).
+            (made on first use on the OpenVINO engine, which needs it only to convert the model). On the OpenVINO
+            engine also a :class:`~aerialmtl.inference.model_record.CheckpointModel`, loaded only when needed.
         meta: its checkpoint metadata (bands' mean/std for normalisation).
         device: the device to run on.
         precision: ``"bf16"`` (autocast on torch, the inference precision on OpenVINO) or ``"fp32"``.
@@ -213,7 +218,8 @@ class ModelRunner:
             hashing the weights again.
     """
 
-    def __init__(self, model: nn.Module, meta: ModelMeta, device: torch.device, precision: Literal["bf16", "fp32"],
+    def __init__(self, model: nn.Module | CheckpointModel, meta: ModelMeta, device: torch.device,
+                 precision: Literal["bf16", "fp32"],
                  mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
                  engine: Literal["torch", "openvino"] = "torch", tta: bool = False, fallback: bool = False,
                  threads: runtime.CpuThreads | None = None, weights_key: str | None = None) -> None:
@@ -238,7 +244,9 @@ class ModelRunner:
             self.engine = OpenVINOEngine(model, meta.model.in_channels, self.tasks, precision, threads=self.threads,
                                          weights_key=weights_key)
         else:
-            self._model = inference_model(model, device)
+            from aerialmtl.inference.model_record import resolve_model
+
+            self._model = inference_model(resolve_model(model), device)
             net = compile_model(self._model) if compile else self._model
             self.engine = TorchEngine(net, self._model, device, precision, self.tasks)
 
@@ -255,11 +263,13 @@ class ModelRunner:
     @property
     def net(self) -> nn.Module:
         """What the torch engine calls (the compiled wrapper with ``compile``); the model as given on
-        OpenVINO (CPU only: nothing measures it there).
+        OpenVINO (CPU only: nothing measures it there; loaded from its checkpoint when it was not yet).
         """
+        from aerialmtl.inference.model_record import resolve_model
+
         if isinstance(self.engine, TorchEngine):
             return self.engine.net
-        return self._raw
+        return resolve_model(self._raw)
 
     @property
     def in_flight(self) -> int:
