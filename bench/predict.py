@@ -33,6 +33,10 @@ Parts (select with flags; each can run alone):
 * ``--startup``: warm start-up of ``aerialmtl predict`` with the full D3-Net: the wall time of whole
   processes on a 256² raster (one small window, so almost all of it is imports, the checkpoint, the engine
   from its warm cache and the outputs), ``--startup-runs`` times after one warm-up run; min / median / max.
+* ``--alone``: the full D3-Net alone in this process, run as ``predict`` runs it (the same ``Predictor``: default
+  engine, precision, threads and streams, the OpenVINO cache of ``--startup``/``--shared-cpu`` under ``--tmp``) on
+  ``--alone-windows`` windows of the shape ``predict`` uses on a ``--size``² raster, one batch per stream kept in
+  flight, T = 1: Mpx/s of window pixels, the yardstick of the CLI's model stage (issue 27: ≥ 80 %).
 * ``--shared-cpu``: the default ``predict`` (OpenVINO, auto threads and streams) against ``--engine torch
   --precision fp32`` on the full D3-Net, ``--size``² raster, T = 1, run in turn (default, torch, default,
   ...) while ``--busy`` (default ``0,1,3``) extra busy-loop processes hold cores: the issue's "load 1, 2
@@ -45,6 +49,7 @@ Usage::
     python bench/predict.py --pipeline --pipeline-cases 8192:1,4096:30
     python bench/predict.py --startup --tmp DIR
     python bench/predict.py --shared-cpu --size 2048 --busy 0,1,3 --tmp DIR
+    python bench/predict.py --alone --size 2048 --tmp DIR
 """
 
 from __future__ import annotations
@@ -437,6 +442,38 @@ def bench_startup(runs: int, tmp: Path, cache: Path) -> dict:
     return res
 
 
+def bench_alone(size: int, windows: int, cache: Path) -> dict:
+    """See the module docstring (``--alone``)."""
+    from collections import deque
+
+    from aerialmtl.inference.predict import Predictor
+    from aerialmtl.inference.windows import plan_windows
+
+    ckpt, env = _full_checkpoint(cache)
+    os.environ["AERIALMTL_OPENVINO_CACHE"] = env["AERIALMTL_OPENVINO_CACHE"]
+    predictor = Predictor(ckpt, mc=1)
+    plan = plan_windows(size, size, predictor.tile, predictor.overlap)
+    h, w = plan.rows.size, plan.cols.size
+    x = torch.randn(1, 3, h, w).contiguous(memory_format=torch.channels_last)
+    runner = predictor.runner
+    runner.submit(x, [0]).result()  # compilation (or import from the cache) and warm-up
+    load_before = load_avg()
+    t0 = time.perf_counter()
+    pending: deque = deque()
+    for n in range(windows):
+        pending.append(runner.submit(x, [n]))
+        while len(pending) > runner.in_flight:
+            pending.popleft().result()
+    while pending:
+        pending.popleft().result()
+    dt = time.perf_counter() - t0
+    res = {"part": "alone", "cpu": cpu_name(), "engine": runner.engine.name, "precision": predictor.precision,
+           "threads": predictor.threads.as_dict(), "window": [h, w], "windows": windows, "s": round(dt, 3),
+           "mpx_per_s": windows * h * w / 1e6 / dt, "load_avg_before": load_before, "load_avg_after": load_avg()}
+    print(json.dumps(res), flush=True)
+    return res
+
+
 def _busy() -> None:  # pragma: no cover - a child process spinning until killed
     while True:
         pass
@@ -495,6 +532,8 @@ def main() -> None:
     ap.add_argument("--engine-mc", default="1,8", help="comma list of T (engines part)")
     ap.add_argument("--startup", action="store_true")
     ap.add_argument("--startup-runs", type=int, default=5)
+    ap.add_argument("--alone", action="store_true")
+    ap.add_argument("--alone-windows", type=int, default=8)
     ap.add_argument("--shared-cpu", action="store_true")
     ap.add_argument("--busy", default="0,1,3", help="comma list of busy-loop processes (shared-cpu part)")
     ap.add_argument("--shared-reps", type=int, default=2)
@@ -525,6 +564,9 @@ def main() -> None:
         if args.startup:
             cache = Path(args.tmp) if args.tmp else tmp
             print(json.dumps(bench_startup(args.startup_runs, tmp, cache)), flush=True)
+        if args.alone:
+            cache = Path(args.tmp) if args.tmp else tmp
+            bench_alone(args.size, args.alone_windows, cache)
         if args.shared_cpu:
             cache = Path(args.tmp) if args.tmp else tmp
             busy = [int(v) for v in args.busy.split(",")]

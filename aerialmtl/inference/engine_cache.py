@@ -28,6 +28,8 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from aerialmtl.io.outputs import atomic_write
 
 #: First bytes of every entry (the format's name and version).
@@ -56,7 +58,22 @@ def unpack(data: bytes) -> list[bytes]:
     Raises:
         CorruptEntry: wrong magic, truncated, or a checksum that does not match the payload.
     """
-    if not data.startswith(MAGIC):
+    lengths, pos = _checked(data)
+    out = []
+    for n in lengths:
+        out.append(bytes(data[pos:pos + n]))
+        pos += n
+    return out
+
+
+def _checked(data: bytes | bytearray) -> tuple[list[int], int]:
+    """The section lengths of entry ``data`` and where its payload starts, once its checksum matches.
+
+    Raises:
+        CorruptEntry: see :func:`unpack`.
+    """
+    view = memoryview(data)
+    if bytes(view[:len(MAGIC)]) != MAGIC:
         raise CorruptEntry("it does not start like a cache entry")
     pos = len(MAGIC)
     if len(data) < pos + _HEADER.size:
@@ -69,13 +86,9 @@ def unpack(data: bytes) -> list[bytes]:
     pos += count * _LENGTH.size
     if len(data) != pos + sum(lengths):
         raise CorruptEntry(f"it holds {len(data) - pos} bytes of data, its header says {sum(lengths)}")
-    if hashlib.sha256(memoryview(data)[pos:]).digest() != digest:
+    if hashlib.sha256(view[pos:]).digest() != digest:
         raise CorruptEntry("its checksum does not match its content")
-    out = []
-    for n in lengths:
-        out.append(data[pos:pos + n])
-        pos += n
-    return out
+    return lengths, pos
 
 
 class EngineCache:
@@ -128,6 +141,39 @@ class EngineCache:
                           stacklevel=3)
             self._remove(path)
             return None
+
+    def read_one(self, name: str) -> np.ndarray | None:
+        """The one section of entry ``name`` as a writable uint8 array over the file's bytes as read (no copy:
+        a compiled model of ~100 MB is then imported from it with one copy less than from :meth:`read`), or
+        ``None`` as :meth:`read` (a corrupt entry, or one of several sections, is removed with a warning).
+        """
+        if self.folder is None:
+            return None
+        path = self.folder / name
+        try:
+            with open(path, "rb", buffering=0) as f:
+                size = os.fstat(f.fileno()).st_size
+                data = bytearray(size)
+                got = f.readinto(data)
+            if got != size:  # the file changed size under us: read it as corrupt below
+                del data[got:]
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            warnings.warn(f"cached OpenVINO model '{path}' is unreadable ({exc.strerror or exc}); rebuilding it",
+                          UserWarning, stacklevel=3)
+            self._remove(path)
+            return None
+        try:
+            lengths, pos = _checked(data)
+            if len(lengths) != 1:
+                raise CorruptEntry(f"it holds {len(lengths)} sections where one was expected")
+        except CorruptEntry as exc:
+            warnings.warn(f"cached OpenVINO model '{path}' is corrupt ({exc}); rebuilding it", UserWarning,
+                          stacklevel=3)
+            self._remove(path)
+            return None
+        return np.frombuffer(data, np.uint8, offset=pos)
 
     def write(self, name: str, sections: Sequence[bytes]) -> None:
         """Store entry ``name`` (through its staging file); an unwritable folder turns caching off."""

@@ -41,7 +41,6 @@ cannot be written means a prediction without caching (one warning naming it), ne
 from __future__ import annotations
 
 import hashlib
-import io
 import os
 import threading
 import warnings
@@ -189,7 +188,7 @@ class _MaskMul(nn.Module):
         return x * self.mask
 
 
-def model_outputs(model: nn.Module, tasks: Sequence[str]) -> tuple[str, ...]:
+def model_outputs(model: nn.Module | CheckpointModel, tasks: Sequence[str]) -> tuple[str, ...]:
     """The keys of ``model``'s output dict in order: its ``outputs`` (a D3-Net: the tasks, plus
     ``height_scale`` for an aleatoric head), else ``tasks``.
     """
@@ -360,10 +359,10 @@ class OpenVINOEngine:
                 config = self.compile_config()
                 hint, n = config["INFERENCE_PRECISION_HINT"], self.threads
                 name = f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.blob"
-                compiled = self._import(name, config)
+                compiled, blob = self._import(name, config)
                 if compiled is None:
                     compiled = self._compile(self._shaped(part, h, w), name, config)
-                self._compiled[key] = _Requests(compiled, self.threads.streams)
+                self._compiled[key] = _Requests(compiled, self.threads.streams, keep=blob)
             return self._compiled[key]
 
     def _shaped(self, part: str, h: int, w: int) -> openvino.Model:
@@ -394,18 +393,22 @@ class OpenVINOEngine:
             self.ov.save_model(model, str(xml), compress_to_fp16=False)
             return [xml.read_bytes(), xml.with_suffix(".bin").read_bytes()]
 
-    def _import(self, name: str, config: dict[str, Any]) -> Any | None:
-        """The compiled model of cache entry ``name``, or ``None`` when it is missing, corrupt (removed, with a
-        warning) or refused by this OpenVINO (a warning).
+    def _import(self, name: str, config: dict[str, Any]) -> tuple[Any | None, np.ndarray | None]:
+        """The compiled model of cache entry ``name`` and the bytes it was imported from, or ``(None, None)``
+        when it is missing, corrupt (removed, with a warning) or refused by this OpenVINO (a warning).
+
+        The model is imported from a Tensor over the bytes as read (no copy into a stream first). OpenVINO
+        keeps using that memory after the import (its weights, measured: freed bytes gave other maps), so the
+        bytes must live as long as the compiled model: the caller keeps them with its requests.
         """
-        cached = self.cache.read(name)
-        if cached is not None and len(cached) == 1:
+        cached = self.cache.read_one(name)
+        if cached is not None:
             try:
-                return self.core.import_model(io.BytesIO(cached[0]), "CPU", config)
+                return self.core.import_model(self.ov.Tensor(cached, shared_memory=True), "CPU", config), cached
             except RuntimeError as exc:  # a whole entry OpenVINO still refuses (e.g. written by another build)
                 warnings.warn(f"cached OpenVINO model '{self.cache.folder}/{name}' could not be loaded "
                               f"({' '.join(str(exc).split())[:120]}); rebuilding it", UserWarning, stacklevel=3)
-        return None
+        return None, None
 
     def _compile(self, model: openvino.Model, name: str, config: dict[str, Any]) -> Any:
         """``model`` compiled for the CPU, stored as cache entry ``name``."""
@@ -515,25 +518,36 @@ class OpenVINOEngine:
 
 # ---- requests in flight -------------------------------------------------------------------------------
 class _Job:
-    """One inference started on a request of :class:`_Requests`; :meth:`outputs` waits for it (once)."""
+    """One inference started on a request of :class:`_Requests`; :meth:`outputs` waits for it (once).
 
-    def __init__(self, owner: _Requests | None = None, slot: int = 0, dest: list[np.ndarray] | None = None) -> None:
-        self.owner, self.slot, self.dest = owner, slot, dest
+    With ``direct``, the request writes its outputs straight into ``dest`` (set as its output tensors): nothing
+    is copied when it is collected.
+    """
+
+    def __init__(self, owner: _Requests | None = None, slot: int = 0, dest: list[np.ndarray] | None = None,
+                 direct: bool = False) -> None:
+        self.owner, self.slot, self.dest, self.direct = owner, slot, dest, direct
         self._outputs: list[np.ndarray] | None = None
 
     def collect(self) -> None:
-        """Wait for the request and copy its outputs out (into ``dest`` when given), freeing the request."""
+        """Wait for the request and copy its outputs out (into ``dest`` when given, unless the request wrote
+        there itself), freeing the request.
+        """
         if self._outputs is not None or self.owner is None:
             return
         req = self.owner.requests[self.slot]
         req.wait()
-        tensors = [req.get_output_tensor(k).data for k in range(len(req.model_outputs))]
-        if self.dest is not None:
-            for d, t in zip(self.dest, tensors):
-                np.copyto(d, t)
+        if self.direct:
+            assert self.dest is not None
             self._outputs = self.dest
         else:
-            self._outputs = [np.array(t, copy=True) for t in tensors]
+            tensors = [req.get_output_tensor(k).data for k in range(len(req.model_outputs))]
+            if self.dest is not None:
+                for d, t in zip(self.dest, tensors):
+                    np.copyto(d, t)
+                self._outputs = self.dest
+            else:
+                self._outputs = [np.array(t, copy=True) for t in tensors]
         self.owner.running[self.slot] = None
 
     def outputs(self) -> list[np.ndarray]:
@@ -551,25 +565,48 @@ class _Requests:
     request, first collecting the job still on it (the oldest, as jobs take similar times).
     """
 
-    def __init__(self, compiled: Any, n: int) -> None:
+    def __init__(self, compiled: Any, n: int, keep: np.ndarray | None = None) -> None:
+        import openvino as ov
+
+        #: The bytes ``compiled`` was imported from: OpenVINO reads them while it runs (:meth:`OpenVINOEngine._import`).
+        self.keep = keep
+        self._tensor = ov.Tensor
         self.requests = [compiled.create_infer_request() for _ in range(max(1, n))]
         #: The outputs' shapes (one image).
         self.shapes = [tuple(o.get_shape()) for o in compiled.outputs]
         self.running: list[_Job | None] = [None] * len(self.requests)
+        # each request's own output tensors, put back when a job without ``dest`` follows one that wrote into
+        # the caller's arrays (which the caller may be reading by then)
+        self._own = [[req.get_output_tensor(k) for k in range(len(self.shapes))] for req in self.requests]
+        self._lent = [False] * len(self.requests)
         self._next = 0
 
     def start(self, inputs: dict[int, np.ndarray], dest: list[np.ndarray] | None = None) -> _Job:
-        """Start one inference on ``inputs`` (copied into the request) and return its job (whose outputs are
-        copied into ``dest``, one array per output, when given).
+        """Start one inference on ``inputs`` (copied into the request) and return its job. With ``dest`` (one
+        float32 array per output, of its shape), the outputs end up there: written by the request itself when
+        the arrays are C-contiguous (no copy), else copied when the job is collected.
         """
         slot = self._next
         self._next = (slot + 1) % len(self.requests)
         busy = self.running[slot]
         if busy is not None:
             busy.collect()
-        job = _Job(self, slot, dest)
+        req = self.requests[slot]
+        direct = dest is not None and all(
+            d.dtype == np.float32 and d.flags.c_contiguous and d.flags.writeable and tuple(d.shape) == s
+            for d, s in zip(dest, self.shapes))
+        if direct:
+            assert dest is not None
+            for k, d in enumerate(dest):
+                req.set_output_tensor(k, self._tensor(d, shared_memory=True))
+            self._lent[slot] = True
+        elif self._lent[slot]:
+            for k, t in enumerate(self._own[slot]):
+                req.set_output_tensor(k, t)
+            self._lent[slot] = False
+        job = _Job(self, slot, dest, direct)
         self.running[slot] = job
-        self.requests[slot].start_async(inputs)
+        req.start_async(inputs)
         return job
 
 

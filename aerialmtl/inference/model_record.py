@@ -53,8 +53,13 @@ def file_fingerprint(path: str | Path) -> str:
     """``sha256:<hex>`` of the bytes of file ``path`` (streamed; equal to
     :func:`~aerialmtl.formats.checkpoint.bytes_fingerprint` of the same bytes).
     """
-    with open(path, "rb") as f:
-        return f"sha256:{hashlib.file_digest(f, 'sha256').hexdigest()}"
+    h = hashlib.sha256()
+    buf = bytearray(1 << 20)
+    view = memoryview(buf)
+    with open(path, "rb", buffering=0) as f:
+        while n := f.readinto(buf):
+            h.update(view[:n])
+    return f"sha256:{h.hexdigest()}"
 
 
 @dataclass(frozen=True)
