@@ -18,11 +18,11 @@ from helpers.rasters import write_raster
 from aerialmtl.classes import ClassScheme
 from aerialmtl.errors import ConfigError
 from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
-from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_SCALE, ModelConfig
+from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE, ModelConfig
 from aerialmtl.models.d3net import SCALE_MIN, D3Net
 from aerialmtl.models.height_bins import bin_edges, bin_index, bins_scale, second_moment
 from aerialmtl.training.config import TrainConfig
-from aerialmtl.training.losses import height_bins_ce, l1
+from aerialmtl.training.losses import height_bins_ce, l1, laplace_nll
 from aerialmtl.training.objective import Objective
 
 
@@ -69,6 +69,7 @@ def test_model_returns_the_logits_only_for_training_and_its_spread_from_them() -
     model.train()
     out = model(x)
     assert out[HEIGHT_BINS].shape == (2, 8, 64, 64)
+    assert out[HEIGHT_LAPLACE].shape == (2, 1, 64, 64) and (out[HEIGHT_LAPLACE] >= SCALE_MIN).all()
     expected = bins_scale(out[HEIGHT_BINS], out["height"], model.bin_edges, SCALE_MIN)
     torch.testing.assert_close(out[HEIGHT_SCALE], expected)
     model.eval()
@@ -79,7 +80,7 @@ def test_model_returns_the_logits_only_for_training_and_its_spread_from_them() -
 
 def test_training_loss_adds_the_bins_cross_entropy_and_validation_scores_l1_alone() -> None:
     cfg = TrainConfig.from_dict({"model": {"aleatoric": True, "height_bins": 8, "height_bin_max": 30.0},
-                                 "loss": {"bins_weight": 0.5}})
+                                 "loss": {"bins_weight": 0.5, "nll_beta": 0.5}})
     obj = Objective(cfg, ("height",), None)
     torch.manual_seed(1)
     height = torch.rand(2, 1, 8, 8) * 20
@@ -88,11 +89,14 @@ def test_training_loss_adds_the_bins_cross_entropy_and_validation_scores_l1_alon
     batch = {"height": height, "height_valid": valid}
     mu = torch.zeros(2, 1, 8, 8, requires_grad=True)
     logits = torch.zeros(2, 8, 8, 8, requires_grad=True)
-    out = {"height": mu, HEIGHT_SCALE: torch.ones(2, 1, 8, 8), HEIGHT_BINS: logits}
+    b = torch.full((2, 1, 8, 8), 2.0)
+    out = {"height": mu, HEIGHT_SCALE: torch.ones(2, 1, 8, 8), HEIGHT_LAPLACE: b, HEIGHT_BINS: logits}
     loss = obj(out, batch)["height"]
     ce = height_bins_ce(logits, height, valid, bin_edges(8, 30.0))
     assert ce.item() == pytest.approx(math.log(8), rel=1e-5)  # uniform logits: log K nats
-    assert loss.item() == pytest.approx((l1(mu, height, valid) + 0.5 * ce).item(), rel=1e-6)
+    # the height trains as in the aleatoric head (Laplace NLL with the training scale), plus the bins
+    want = laplace_nll(mu, b, height, valid, beta=0.5) + 0.5 * ce
+    assert loss.item() == pytest.approx(want.item(), rel=1e-6)
     loss.backward()
     assert logits.grad is not None and logits.grad.abs().sum() > 0
     assert logits.grad[0, :, :4].abs().sum() == 0  # invalid pixels do not train the bins

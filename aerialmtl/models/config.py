@@ -25,6 +25,10 @@ HEIGHT_SCALE = "height_scale"
 #: The bin logits of a height-bin head (B×K×H×W), returned in training mode only (for the loss).
 HEIGHT_BINS = "height_bins"
 
+#: The Laplace scale of a height-bin head (B×1×H×W metres), returned in training mode only: with it the
+#: height is trained by the Laplace NLL as in the aleatoric head, while the spread comes from the bins.
+HEIGHT_LAPLACE = "height_laplace"
+
 #: The tasks a D3-Net can have, in output order.
 TASKS: tuple[Task, ...] = ("height", "classes")
 
@@ -62,10 +66,10 @@ class Architecture:
             :func:`aerialmtl.training.losses.laplace_nll`). The predictive spread then combines it with the
             MC-dropout (epistemic) spread: ``std² = mean_t 2·b_t² + var_t μ_t``. An option beside the paper's
             network (``false``: one height channel, MC dropout alone).
-        height_bins: with ``aleatoric``, 0 (default: a Laplace scale channel) or K ≥ 2: the height head
-            outputs K logits over height bins instead of the scale channel, trained with cross-entropy beside
-            the L1 height, and the spread is the bins' second moment around the height (see
-            :mod:`aerialmtl.models.height_bins`). An option beside the Laplace scale.
+        height_bins: with ``aleatoric``, 0 (default: the spread is the Laplace scale) or K ≥ 2: the height
+            head also outputs K logits over height bins, trained with cross-entropy beside the height's Laplace
+            NLL, and the spread is the bins' second moment around the height instead of the Laplace scale
+            (see :mod:`aerialmtl.models.height_bins`). An option beside the Laplace scale.
         height_bin_max: the top bin edge in metres (heights above it fall in the last bin).
         task_activation: the activation of the task-owned decoder blocks: ``relu`` (the paper's) or
             ``leaky_relu`` (slope 0.01), an option: with ReLU, on many pixels every feature entering the

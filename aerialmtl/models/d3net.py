@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aerialmtl.errors import InputError
-from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_SCALE, ModelConfig
+from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE, ModelConfig
 from aerialmtl.models.encoders import encoder_spec, feature_channels
 from aerialmtl.models.height_bins import bin_edges, bins_scale
 
@@ -126,7 +126,7 @@ class D3Net(nn.Module):
     to ``{"height": B×1×H×W metres, "classes": B×K×H×W logits}`` for the enabled tasks, plus
     ``"height_scale"`` (B×1×H×W Laplace scale b in metres, > 0) with ``cfg.aleatoric`` (with
     ``cfg.height_bins``: the bins' spread as b = std/√2, and in training mode also ``"height_bins"``, the
-    B×K×H×W bin logits); :attr:`outputs` lists the keys of inference in order.
+    B×K×H×W bin logits, and ``"height_laplace"``, the Laplace scale that trains the height); :attr:`outputs` lists the keys of inference in order.
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -145,8 +145,8 @@ class D3Net(nn.Module):
         self.shared = nn.ModuleList(
             UpBlock(ins[j], outs[j], cfg.dropout if j < cfg.dropout_blocks else 0.0) for j in range(n_shared)
         )
-        spread_ch = cfg.height_bins or int(cfg.aleatoric)  # K bin logits, or one Laplace scale channel
-        out_ch = {"height": TASK_CHANNELS_HEIGHT + spread_ch, "classes": cfg.num_classes}
+        # the height, [a Laplace scale channel], [K bin logits]
+        out_ch = {"height": TASK_CHANNELS_HEIGHT + int(cfg.aleatoric) + cfg.height_bins, "classes": cfg.num_classes}
         self.heads = nn.ModuleDict({
             t: TaskDecoder([UpBlock(ins[j], outs[j], activation=cfg.task_activation) for j in range(n_shared, n_up)],
                            outs[-1], out_ch[t])
@@ -172,10 +172,10 @@ class D3Net(nn.Module):
                 nn.init.zeros_(m.bias)
         for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
             nn.init.normal_(cast(TaskDecoder, head).head.weight, std=1e-3)
-        if self.cfg.aleatoric and not self.cfg.height_bins and "height" in self.heads:  # b ≈ 1 m at start
+        if self.cfg.aleatoric and "height" in self.heads:  # scale channel: b ≈ 1 m at start (bin logits: 0)
             bias = cast(TaskDecoder, self.heads["height"]).head.bias
             assert bias is not None
-            nn.init.constant_(bias[TASK_CHANNELS_HEIGHT:], SCALE_INIT)
+            nn.init.constant_(bias[TASK_CHANNELS_HEIGHT:TASK_CHANNELS_HEIGHT + 1], SCALE_INIT)
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
@@ -218,10 +218,11 @@ class D3Net(nn.Module):
         for task, dec in self.heads.items():
             y = dec(out, skips)
             if task == "height" and self.cfg.height_bins:
-                mu, logits = y[:, :TASK_CHANNELS_HEIGHT], y[:, TASK_CHANNELS_HEIGHT:]
+                mu, raw_b, logits = y[:, :1], y[:, 1:2], y[:, 2:]
                 results[task] = mu
                 results[HEIGHT_SCALE] = bins_scale(logits, mu.detach(), cast(torch.Tensor, self.bin_edges), SCALE_MIN)
-                if self.training:  # the loss needs the logits; inference (and the engines) only the spread
+                if self.training:  # the loss needs these; inference (and the engines) only the spread
+                    results[HEIGHT_LAPLACE] = laplace_scale(raw_b)
                     results[HEIGHT_BINS] = logits
             elif task == "height" and self.cfg.aleatoric:
                 results[task] = y[:, :TASK_CHANNELS_HEIGHT]

@@ -3,8 +3,9 @@
 An option of the aleatoric height head (``model.aleatoric: true`` with ``model.height_bins: K``), beside
 the Laplace scale. Instead of one scale channel the height head outputs K logits over fixed height bins,
 trained with cross-entropy on the reference height's bin (as DORN's ordinal regression discretises depth,
-Fu et al., CVPR 2018, which the D3-Net authors' thesis cites). The height itself stays the regressed,
-L1-trained channel (the paper's); the bins only give its spread:
+Fu et al., CVPR 2018, which the D3-Net authors' thesis cites). The height itself stays the regressed
+channel, trained as in the aleatoric head (Laplace NLL with a scale channel used in training only); the
+bins give its spread:
 
     std² = Σ_k p_k · ((c_k − μ)² + w_k² / 12)
 

@@ -137,8 +137,8 @@ class LossSection:
     (:func:`~aerialmtl.training.losses.laplace_nll`), the likelihood of the paper's L1; ``height`` must then
     be ``l1``, and ``nll_beta`` (β-NLL, 0 … 1) sets how much the learned scale down-weights hard pixels'
     pull on the heights (0: plain NLL; 1: the heights get L1's gradient). With ``model.height_bins`` the
-    height loss is instead L1 on the height plus ``bins_weight`` × the cross-entropy of the reference
-    height's bin (:mod:`aerialmtl.models.height_bins`).
+    height loss adds ``bins_weight`` × the cross-entropy of the reference height's bin
+    (:mod:`aerialmtl.models.height_bins`).
 
     ``class_weights``: ``none``, ``balanced`` (``N / (K · n_k)`` from the train split's pixel counts,
     normalised to mean 1 over present classes) or an explicit list of K floats.
