@@ -126,7 +126,8 @@ class D3Net(nn.Module):
     to ``{"height": B×1×H×W metres, "classes": B×K×H×W logits}`` for the enabled tasks, plus
     ``"height_scale"`` (B×1×H×W Laplace scale b in metres, > 0) with ``cfg.aleatoric`` (with
     ``cfg.height_bins``: the bins' spread as b = std/√2, and in training mode also ``"height_bins"``, the
-    B×K×H×W bin logits, and ``"height_laplace"``, the Laplace scale that trains the height); :attr:`outputs` lists the keys of inference in order.
+    B×K×H×W bin logits, and ``"height_laplace"``, the Laplace scale that trains the height); :attr:`outputs`
+    lists the keys of inference in order.
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
