@@ -120,8 +120,8 @@ def predict(
 
     One parameter per command-line option: click passes each option to the command.
     """
+    from aerialmtl.inference.job import PredictResult
     from aerialmtl.inference.jobs import predict_many
-    from aerialmtl.inference.predict import PredictResult
 
     if tile_alias is not None:  # "tile" names the training patches of a tile folder only
         warnings.warn("--tile is deprecated for predict: pass --window (the side of the prediction window)",
