@@ -49,7 +49,7 @@ _EXPORTS: dict[str, str] = {
     "Predictor": "aerialmtl.inference.predict",
     "predict_raster": "aerialmtl.inference.predict",
     "predict_many": "aerialmtl.inference.jobs",
-    "PredictResult": "aerialmtl.inference.predict",
+    "PredictResult": "aerialmtl.inference.job",
     "PredictionFolder": "aerialmtl.formats.prediction",
     "extract_buildings": "aerialmtl.buildings",
     "write_buildings": "aerialmtl.buildings",
@@ -124,8 +124,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
     from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
     from aerialmtl.formats.prediction import PredictionFolder
+    from aerialmtl.inference.job import PredictResult
     from aerialmtl.inference.jobs import predict_many
-    from aerialmtl.inference.predict import Predictor, PredictResult, predict_raster
+    from aerialmtl.inference.predict import Predictor, predict_raster
     from aerialmtl.io.align import Grid, NdsmOptions, reference_grid
     from aerialmtl.models.config import ModelConfig
     from aerialmtl.models.d3net import D3Net

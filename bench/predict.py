@@ -245,13 +245,13 @@ def rss_child(width: int, height: int, tmp: Path, kind: str = "small", batch: st
             time.sleep(0.1)
 
     threading.Thread(target=sample, daemon=True).start()
-    commit = writer_mod.PredictionWriter.commit
+    convert = writer_mod.PredictionWriter.convert
 
-    def commit_phase(self, info):  # type: ignore[no-untyped-def]
+    def convert_phase(self, strips=()):  # type: ignore[no-untyped-def]
         phase[0] = "commit (COG)"
-        return commit(self, info)
+        return convert(self, strips)
 
-    writer_mod.PredictionWriter.commit = commit_phase  # type: ignore[method-assign]
+    writer_mod.PredictionWriter.convert = convert_phase  # type: ignore[method-assign]
     model, meta = make_model(kind)
     src = tmp / f"rss_{width}x{height}.tif"
     if not src.exists():

@@ -210,6 +210,58 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     return res
 
 
+def ensemble_run(name: str, members: list[str], args: argparse.Namespace) -> dict[str, Any]:
+    """A deep ensemble of runs (seeds of one arm, each with its ``raw`` test prediction already made): the mean
+    of the members' heights, spread ``sqrt(mean_m σ_m² + var_m μ_m)`` (each member's predictive variance, MC and
+    aleatoric, plus the members' disagreement). Written as the pseudo-run ``OUT/runs/<name>`` (variant ``raw``
+    on the test block, ``val`` on the validation patches), so ``--table`` lists it as an arm of one "seed"."""
+    rdir = args.out / "runs" / name
+    rdir.mkdir(parents=True, exist_ok=True)
+    t0, load0 = time.perf_counter(), os.getloadavg()
+    first = args.out / "runs" / members[0]
+    cfg = __import__("yaml").safe_load((first / "config.yaml").read_text())
+    tdir = Path(cfg["data"]["dir"])
+    hs, vs = [], []
+    for m in members:
+        pdir = args.out / "runs" / m / f"study_raw_{args.checkpoint.removesuffix('.pt')}"
+        with rasterio.open(pdir / layer_filename(HEIGHT)) as src:
+            hs.append(src.read(1))
+        with rasterio.open(pdir / layer_filename(HEIGHT_STD)) as src:
+            vs.append(src.read(1).astype(np.float64) ** 2)
+    h, v = np.stack(hs), np.stack(vs)
+    nod = (h == FLOAT_NODATA).any(0)
+    mean, std = h.mean(0), np.sqrt(v.mean(0) + h.var(0))
+    out_dir = rdir / "study_ensemble"
+    out_dir.mkdir(exist_ok=True)
+    src_dir = first / f"study_raw_{args.checkpoint.removesuffix('.pt')}"
+    _write_like(src_dir / layer_filename(HEIGHT), np.where(nod, FLOAT_NODATA, mean), out_dir / "height.tif")
+    _write_like(src_dir / layer_filename(HEIGHT_STD), np.where(nod, FLOAT_NODATA, std), out_dir / "height_std.tif")
+    import shutil
+
+    shutil.copy(src_dir / "prediction.json", out_dir / "prediction.json")
+    res: dict[str, Any] = {"members": members, "test": {"raw": evaluate(out_dir, args.data,
+                                                                        rdir / "study_report_raw.json")}}
+    preds, sds = [], []
+    for m in members:
+        model, meta = load_model(args.out / "runs" / m / args.checkpoint)
+        pred, ref, sd, _patch = validation_pixels(model, meta, tdir, mc=args.mc)
+        preds.append(pred)
+        sds.append(sd.astype(np.float64) ** 2)
+    p, q = np.stack(preds), np.stack(sds)
+    res["val"] = val_scores(p.mean(0), ref, np.sqrt(q.mean(0) + p.var(0)))
+    res["config"] = {"ensemble_of": members}
+    res["eval"] = {"seconds": time.perf_counter() - t0, "load": [load0, os.getloadavg()], "cpu": cpu_model(),
+                   "mc": args.mc}
+    (rdir / "study.json").write_text(json.dumps(res, indent=1, default=float))
+    v0 = res["test"]["raw"]
+    print(f"{name}: MAE {v0['mae']:.2f} MAE>=2 {v0['mae_tall']:.2f} bias>=2 {v0['bias_tall']:+.2f} CRPS "
+          f"{v0['crps_gaussian_m']:.2f} cov1/bin " + " ".join(f"{b['coverage_1sigma'] or math.nan:.2f}"
+                                                             for b in v0["bins"])
+          + " rho/bin " + " ".join(f"{b['spearman_std_vs_abs_error'] or math.nan:+.2f}" for b in v0["bins"]),
+          flush=True)
+    return res
+
+
 def _fmt_range(vals: list[float], digits: int = 2, sign: bool = False) -> str:
     vals = [v for v in vals if v is not None and math.isfinite(v)]
     if not vals:
@@ -255,7 +307,7 @@ def table(out: Path) -> str:
                           f"{_fmt_range([v['coverage_1sigma'] for v in vals])}, CRPS "
                           f"{_fmt_range([v['crps_gaussian_m'] for v in vals])} m, NLL "
                           f"{_fmt_range([v['nll_gaussian'] for v in vals], 1)}")
-        steps = ", ".join(str(r["step"]) for r in recs)
+        steps = ", ".join(str(r.get("step", "ensemble")) for r in recs)
         base = recs[0].get("baseline_train_mean")
         detail.append(f"- {arm}: best.pt steps {steps}; calibration fitted: {recs[0].get('calibration', {}).get('cal')}"
                       + (f"; train-mean baseline {base['value_m']:.2f} m: MAE {base['mae']:.2f}, "
@@ -275,11 +327,15 @@ def main() -> None:
     ap.add_argument("--tta", action="store_true", help="also the tta variant (8 views × T samples)")
     ap.add_argument("--redo", nargs="*", default=[], help="variants to compute again (e.g. cal legacy)")
     ap.add_argument("--table", action="store_true")
+    ap.add_argument("--ensemble", nargs="+", metavar=("NAME", "MEMBER"),
+                    help="NAME MEMBER...: a deep ensemble of the member runs (their raw predictions must exist)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     if args.table:
         print(table(args.out))
         return
+    if args.ensemble:
+        ensemble_run(args.ensemble[0], args.ensemble[1:], args)
     for name in args.runs:
         study_run(name, args)
 

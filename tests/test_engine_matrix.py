@@ -1,6 +1,9 @@
-"""Every model option on every engine, through the CLI: each encoder (the paper's DenseNet-121, small, and the
-EfficientNet-Lite options) × head (the paper's, aleatoric) × engine (torch, openvino) × precision (fp32, bf16)
-× T (1, > 1), on rasters whose sides are not multiples of 32. OpenVINO at fp32 equals torch within float
+"""Every model option on every engine, through the CLI.
+
+Each encoder (the paper's DenseNet-121, small, and the EfficientNet-Lite options) × head (the paper's,
+aleatoric Laplace scale; the height-bin head on the paper's encoder and the small-area recipe's, since the
+head sits after the decoder whatever the encoder) × engine (torch, openvino) × precision (fp32, bf16) × T
+(1, > 1), on rasters whose sides are not multiples of 32. OpenVINO at fp32 equals torch within float
 rounding; bf16 stays close to fp32 (stated tolerances below)."""
 
 from __future__ import annotations
@@ -31,12 +34,13 @@ FP32_ATOL = 1e-3
 BF16_REL_MAE, BF16_CLASS_AGREE = 0.1, 0.9
 
 
-def _model(encoder: str, aleatoric: bool) -> tuple[D3Net, ModelMeta]:
+def _model(encoder: str, aleatoric: bool, height_bins: int = 0) -> tuple[D3Net, ModelMeta]:
     torch.manual_seed(0)
     scheme = ClassScheme.load("synthetic")
     scheme = ClassScheme(scheme.name, scheme.classes[:3])
     extra = TINY if encoder == "densenet121" else {}
-    cfg = ModelConfig(num_classes=3, encoder=encoder, aleatoric=aleatoric, **extra)  # type: ignore[arg-type]
+    cfg = ModelConfig(num_classes=3, encoder=encoder, aleatoric=aleatoric, height_bins=height_bins,
+                      **extra)  # type: ignore[arg-type]
     model = D3Net(cfg).eval()
     with torch.no_grad():  # outputs of a few metres and confident classes, not the near-zero ones of a fresh head
         for head in model.heads.values():
@@ -56,12 +60,16 @@ def _layers(folder: Path) -> dict[str, np.ndarray]:
     return out
 
 
+HEADS = {"paper_head": (False, 0), "aleatoric": (True, 0), "height_bins": (True, 8)}
+CASES = [(e, h) for e in ENCODERS for h in HEADS if h != "height_bins" or e in ("densenet121", "efficientnet_lite0")]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("aleatoric", [False, True], ids=["paper_head", "aleatoric"])
-@pytest.mark.parametrize("encoder", ENCODERS)
+@pytest.mark.parametrize(("encoder", "head"), CASES, ids=[f"{e}-{h}" for e, h in CASES])
 def test_every_encoder_and_head_predicts_on_every_engine_precision_and_t(
-        encoder: str, aleatoric: bool, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    model, meta = _model(encoder, aleatoric)
+        encoder: str, head: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    aleatoric, bins = HEADS[head]
+    model, meta = _model(encoder, aleatoric, bins)
     ckpt = tmp_path / "m.pt"
     save_checkpoint(ckpt, model, meta)
     img = np.random.default_rng(1).integers(1, 256, (3, 71, 90)).astype(np.uint8)  # sides not multiples of 32

@@ -133,6 +133,24 @@ def test_auto_picks_openvino_on_cpu_for_d3net_else_torch(monkeypatch: pytest.Mon
     assert resolve_engine("auto", cpu, model) == "torch"
 
 
+def test_engines_are_listed_once_and_built_by_name() -> None:
+    """The CLI offers the engines of ENGINES; build_engine builds each one, with the Engine protocol's members."""
+    import click
+
+    from aerialmtl.cli.predict import predict
+    from aerialmtl.inference.engines import ENGINES, build_engine
+
+    choice = next(p.type for p in predict.params if p.name == "engine")
+    assert isinstance(choice, click.Choice) and tuple(choice.choices) == ("auto", *ENGINES)
+    model, meta = tiny_d3net()
+    for name in ENGINES:
+        engine = build_engine(name, model, meta, torch.device("cpu"), "fp32")  # type: ignore[arg-type]
+        assert engine.name == name and isinstance(engine.model, torch.nn.Module)
+        x = torch.zeros(1, 3, 64, 64).contiguous(memory_format=torch.channels_last)
+        stats = engine.submit(x, [0], 1, 0, 1).result()
+        assert stats.height_mean is not None and tuple(stats.height_mean.shape) == (1, 64, 64)
+
+
 def test_missing_openvino_is_a_one_line_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
                                               rng: np.random.Generator, capsys: pytest.CaptureFixture) -> None:
     model, meta = tiny_d3net()

@@ -31,10 +31,10 @@ ARGS = ("--mc", "2", "--window", "64", "--overlap", "16", "--quiet")
 pytestmark = pytest.mark.slow
 
 
-def _predict(orthos: list[Path], ckpt: Path, out: Path, ranks: int) -> subprocess.CompletedProcess:
+def _predict(orthos: list[Path], ckpt: Path, out: Path, ranks: int, *extra: str) -> subprocess.CompletedProcess:
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(ranks)]
     launch = [sys.executable, "-m", "aerialmtl"] if ranks == 1 else [*torchrun, "-m", "aerialmtl"]
-    cmd = [*launch, "predict", *map(str, orthos), "--model", str(ckpt), "--out", str(out), *ARGS]
+    cmd = [*launch, "predict", *map(str, orthos), "--model", str(ckpt), "--out", str(out), *ARGS, *extra]
     return subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=600)
 
 
@@ -57,6 +57,9 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         img = rng.integers(1, 256, size=(3, 96, 96)).astype(np.uint8)
         img[:, :10, :10] = 0
         paths[f"t{k}"] = write_raster(root / f"t{k}.tif", img, nodata=0, transform=Affine(0.5, 0, x0, 0, -0.5, y0))
+    model, meta = tiny_d3net(aleatoric=True)  # the small-area recipe's head
+    save_checkpoint(root / "aleatoric.pt", model, meta)
+    paths["aleatoric"] = root / "aleatoric.pt"
     big = rng.integers(1, 256, size=(3, 200, 90)).astype(np.uint8)
     paths["big"] = write_raster(root / "big.tif", big)
     return paths
@@ -107,3 +110,18 @@ def test_a_failing_rank_fails_the_run_naming_the_input(inputs: dict[str, Path], 
     assert f"failed on input '{bad}'" in res.stderr and "truncated or corrupt" in res.stderr
     assert not any((tmp_path / "out" / "bad" / f).exists() for f in ALL_FILES)
     assert (tmp_path / "out" / "t0" / "prediction.json").exists()  # the other input is complete
+
+
+def test_aleatoric_head_with_tta_split_across_two_ranks_equals_one_process(inputs: dict[str, Path],
+                                                                          tmp_path: Path) -> None:
+    """The recipe's options under torchrun: the aleatoric spread and ``--tta`` give one process's maps."""
+    one = _predict([inputs["big"]], inputs["aleatoric"], tmp_path / "one", 1, "--tta")
+    assert one.returncode == 0, one.stderr
+    two = _predict([inputs["big"]], inputs["aleatoric"], tmp_path / "two", 2, "--tta")
+    assert two.returncode == 0, two.stderr
+    a, b = _layers(tmp_path / "one"), _layers(tmp_path / "two")
+    assert a.keys() == b.keys() and "height_std.tif" in a
+    for name in a:
+        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    info = json.loads((tmp_path / "two" / "prediction.json").read_text())
+    assert info["processes"] == 2 and info["tta"]

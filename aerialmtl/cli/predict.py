@@ -79,6 +79,8 @@ def _batch_size(value: str) -> int | str:
         help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
 @option("--batch-size", "batch_size", default="auto", show_default=True,
         help="Windows per model call, or 'auto' (from the free GPU memory; 1 on a CPU).")
+# the names of aerialmtl.inference.engines.ENGINES (not imported here: it imports torch; tests/test_engines.py
+# checks the two agree)
 @option("--engine", type=click.Choice(["auto", "torch", "openvino"]), default="auto", show_default=True,
         help="What runs the model: auto = OpenVINO on a CPU when installed (faster, most with bf16), torch "
              "otherwise (and on CUDA).")
@@ -120,8 +122,8 @@ def predict(
 
     One parameter per command-line option: click passes each option to the command.
     """
+    from aerialmtl.inference.job import PredictResult
     from aerialmtl.inference.jobs import predict_many
-    from aerialmtl.inference.predict import PredictResult
 
     if tile_alias is not None:  # "tile" names the training patches of a tile folder only
         warnings.warn("--tile is deprecated for predict: pass --window (the side of the prediction window)",

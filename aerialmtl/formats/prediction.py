@@ -244,13 +244,13 @@ class NotAPredictionFolder(InputError):
 
 
 class GridInfo(BaseModel):
-    """``prediction.json``'s ``grid``: the output grid (pixels, CRS, geotransform, GSD in metres)."""
+    """``prediction.json``'s ``grid``: the output grid (CRS, geotransform, pixels, GSD in metres)."""
 
     model_config = ConfigDict(extra="allow")
-    width: int
-    height: int
     crs: str | None = None
     transform: list[float] | None = None
+    width: int
+    height: int
     gsd: float | None = None
 
 
@@ -272,6 +272,68 @@ class PredictionInfo(BaseModel):
     grid: GridInfo | None = None
     calibration: dict[str, Any] | None = None
     provenance: dict[str, Any] | None = None
+
+
+class PredictionRecord(BaseModel):
+    """What a run writes to ``prediction.json``, once, when it commits (field order = the file's key order).
+
+    Readers go through :class:`PredictionInfo` (the fields they rely on, any others kept); this is the
+    writing side, every field typed. Units: seconds for ``timings_s``, metres for GSDs.
+
+    Attributes:
+        aerialmtl_version: the package version that wrote it.
+        orthophoto: the input as given; ``checkpoint``: the checkpoint's name; ``model``: its summary
+            (:func:`aerialmtl.formats.stac.model_summary`).
+        mc_samples, tta, seed: MC-dropout samples T, test-time augmentation, base seed of the masks.
+        tile, overlap, window_size, batch_size: the largest window side and overlap asked for (pixels), the
+            window size used (rows, columns), windows per model call.
+        precision, engine, threads, device, compile, processes: how it ran (``threads``: CPU threads and
+            streams, ``None`` on a GPU; ``processes``: torchrun ranks that computed it).
+        aoi: the AOI file, if any; ``grid``: the output grid; ``resampled_from_gsd``: the input's GSD when it
+            was resampled; ``input_rescale``: ``(a, b)`` of ``rescale_input``.
+        windows_total, windows_computed, overlap_factor, plan_overlap_factor: the window plan and the work.
+        timings_s: seconds per stage (``read``, ``model``, ``stitch_write``, ``write``, ``strip_total``,
+            ``cog``, ``total``).
+        calibration: what calibration was applied; provenance: :data:`PROVENANCE_KEY` (module docstring).
+        created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    aerialmtl_version: str
+    orthophoto: str
+    checkpoint: str
+    model: dict[str, Any]
+    mc_samples: int
+    tta: bool
+    seed: int
+    tile: int
+    overlap: int
+    window_size: list[int]
+    batch_size: int
+    precision: str
+    engine: str
+    threads: dict[str, Any] | None
+    device: str
+    compile: bool
+    processes: int
+    aoi: str | None
+    grid: GridInfo
+    resampled_from_gsd: float | None
+    input_rescale: list[float] | None
+    windows_total: int
+    windows_computed: int
+    overlap_factor: float
+    plan_overlap_factor: float
+    timings_s: dict[str, float]
+    calibration: dict[str, Any]
+    provenance: dict[str, Any]
+    created: str | None = None
+    files: dict[str, str] = {}
+    file_sizes: dict[str, int] = {}
+
+    def to_json(self) -> str:
+        """The file's text (2-space indented JSON, as every earlier version wrote it)."""
+        return json.dumps(self.model_dump(), indent=2, default=str)
 
 
 def parse_info(text: str | bytes, path: str | Path) -> dict[str, Any]:
@@ -544,6 +606,7 @@ __all__ = [
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
     "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
-    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "changed", "file_fingerprint",
+    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord", "changed",
+    "file_fingerprint",
     "http_validators", "input_fingerprint", "parse_info", "vrt_sources",
 ]

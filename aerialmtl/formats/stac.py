@@ -80,8 +80,9 @@ def model_summary(meta: Any) -> dict[str, Any]:
     return {
         "architecture": "D3-Net",
         "encoder": str(getattr(cfg, "encoder", "densenet121")),
-        "height_uncertainty": ("MC dropout + aleatoric Laplace scale" if getattr(cfg, "aleatoric", False)
-                               else "MC dropout"),
+        "height_uncertainty": ("MC dropout" if not getattr(cfg, "aleatoric", False) else
+                               "MC dropout + height-bin spread" if getattr(cfg, "height_bins", 0) else
+                               "MC dropout + aleatoric Laplace scale"),
         "tasks": list(cfg.tasks),
         "in_channels": int(cfg.in_channels),
         "bands": list(meta.bands),

@@ -46,16 +46,19 @@ import threading
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol, cast
 
 import numpy as np
 import torch
 from torch import nn
 
+from aerialmtl import runtime
 from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
+from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.engine_cache import EngineCache
 from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.models.d3net import inference_model
 from aerialmtl.models.mc_dropout import (
     _SEEDABLE,
     DropoutSite,
@@ -63,6 +66,7 @@ from aerialmtl.models.mc_dropout import (
     accumulate_samples,
     dropout_masks,
     dropout_sites,
+    mc_statistics,
     single_pass_statistics,
 )
 from aerialmtl.runtime import CpuThreads, resolve_threads
@@ -71,6 +75,9 @@ if TYPE_CHECKING:
     import openvino
 
 EngineName = Literal["auto", "torch", "openvino"]
+#: The engines, by name: the one list (``auto`` picks one of them, :func:`resolve_engine`; :func:`build_engine`
+#: builds it; ``predict --engine`` offers them).
+ENGINES: tuple[str, ...] = ("torch", "openvino")
 #: The command that installs the OpenVINO engine (named in the error when it is missing).
 OPENVINO_INSTALL = "pip install openvino"
 #: Side of the example input the model is converted with (any multiple of 32; small converts fast).
@@ -78,15 +85,21 @@ CONVERT_SIZE = 64
 
 
 class Engine(Protocol):
-    """What runs the model in prediction: the one interface of the ``torch`` engine
-    (:class:`~aerialmtl.inference.runner.TorchEngine`) and the ``openvino`` engine (:class:`OpenVINOEngine`).
+    """What runs the model in prediction: the one interface of the ``torch`` engine (:class:`TorchEngine`)
+    and the ``openvino`` engine (:class:`OpenVINOEngine`).
 
-    A new engine implements these members; :func:`resolve_engine` and the runner
-    (:class:`~aerialmtl.inference.runner.ModelRunner`) choose and build it.
+    A new engine implements these members, is named in :data:`ENGINES`, and is chosen by
+    :func:`resolve_engine` and built by :func:`build_engine` (the runner,
+    :class:`~aerialmtl.inference.runner.ModelRunner`, calls both).
     """
 
     #: ``"torch"`` or ``"openvino"`` (recorded in ``prediction.json``).
     name: str
+
+    @property
+    def model(self) -> nn.Module:
+        """The engine's own copy of the model, prepared for prediction (the fallback and the tests use it)."""
+        ...
 
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
@@ -141,8 +154,8 @@ def resolve_engine(engine: str, device: torch.device,
         return "openvino" if ok else "torch"
     if engine == "torch":
         return "torch"
-    if engine != "openvino":
-        raise InputError(f"‹engine={engine}› is not supported; use auto, torch or openvino", param="engine")
+    if engine not in ENGINES:
+        raise InputError(f"‹engine={engine}› is not supported; use auto, {' or '.join(ENGINES)}", param="engine")
     if device.type != "cpu":
         raise InputError(f"‹engine=openvino› runs on the CPU, not on {device}; pass ‹device=cpu› or ‹engine=torch›",
                          param="engine")
@@ -153,6 +166,88 @@ def resolve_engine(engine: str, device: torch.device,
         raise InputError(f"‹engine=openvino› needs OpenVINO, which is not installed; install it with "
                          f"`{OPENVINO_INSTALL}` or pass ‹engine=torch›")
     return "openvino"
+
+
+class _Compiled(nn.Module):
+    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC) with the
+    fallback of :class:`aerialmtl.runtime.CompileFallback`.
+
+    The decoder stays eager under MC dropout: its per-window seeded masks are drawn by Python hooks.
+    """
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        self.model = model
+        self._compiled = runtime.CompileFallback(model, "the model")
+
+    def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return cast(list[torch.Tensor], self._compiled("encode", x))
+
+    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+        decode: Callable[[list[torch.Tensor]], dict[str, torch.Tensor]] = getattr(self.model, "decode")  # noqa: B009
+        return decode(feats)
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        return cast(dict[str, torch.Tensor], self._compiled("forward", x))
+
+
+def compile_model(model: nn.Module) -> nn.Module:
+    """The model with ``torch.compile`` applied where it can be (see :class:`_Compiled`)."""
+    return _Compiled(model)
+
+
+class TorchEngine:
+    """The model in PyTorch (eager, or ``torch.compile``), on any device: today's path and CUDA's only one.
+
+    Args:
+        net: the prepared model (:func:`~aerialmtl.models.d3net.inference_model`), or its compiled wrapper
+            (:func:`compile_model`).
+        model: the prepared model itself (its modes are switched for MC dropout).
+        device, precision: where and how it runs (bf16 = autocast).
+        tasks: the model's tasks.
+    """
+
+    name = "torch"
+
+    def __init__(self, net: nn.Module, model: nn.Module, device: torch.device, precision: str,
+                 tasks: Sequence[str]) -> None:
+        self.net, self.model, self.device, self.precision, self.tasks = net, model, device, precision, tuple(tasks)
+
+    def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int, sample_batch: int) -> Pending:
+        """:meth:`statistics`, computed now (torch runs synchronously)."""
+        return Done(self.statistics(x, keys, samples, seed, sample_batch))
+
+    def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
+                   sample_batch: int) -> McStatistics:
+        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
+        with torch.inference_mode(), runtime.autocast(self.device, self.precision):
+            if samples == 1:
+                self.model.eval()
+                return single_pass_statistics(self.net(x))
+            return mc_statistics(self.net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys)
+
+
+def build_engine(engine: Literal["torch", "openvino"], model: nn.Module | CheckpointModel, meta: ModelMeta,
+                 device: torch.device, precision: str, *, compile: bool = False, threads: CpuThreads | None = None,
+                 weights_key: str | None = None) -> Engine:
+    """The engine named ``engine`` (:data:`ENGINES`, already resolved by :func:`resolve_engine`) for ``model``.
+
+    Args:
+        model: the loaded model (each engine prepares its own copy: folded BatchNorms, channels-last), or a
+            :class:`~aerialmtl.inference.model_record.CheckpointModel` (the OpenVINO engine loads it only when
+            its cache lacks an entry; the torch engine at once).
+        meta: its checkpoint metadata (input bands, tasks).
+        device, precision: where and how it runs.
+        compile: ``torch.compile`` the torch engine's model.
+        threads: CPU threads and streams of the OpenVINO engine.
+        weights_key: the checkpoint's fingerprint (keys the OpenVINO cache without hashing the weights again).
+    """
+    tasks = tuple(meta.model.tasks)
+    if engine == "openvino":
+        return OpenVINOEngine(model, meta.model.in_channels, tasks, precision, threads=threads,
+                              weights_key=weights_key)
+    prepared = inference_model(resolve_model(model), device)
+    return TorchEngine(compile_model(prepared) if compile else prepared, prepared, device, precision, tasks)
 
 
 def cache_root() -> Path:
@@ -296,8 +391,6 @@ class OpenVINOEngine:
         needs it).
         """
         if self._model is None:
-            from aerialmtl.models.d3net import inference_model
-
             self._model = inference_model(resolve_model(self.raw_model), torch.device("cpu"))
         return self._model
 
@@ -683,5 +776,6 @@ class _BufferPool:
             self.free.pop(0)
 
 
-__all__ = ["CONVERT_SIZE", "Done", "Engine", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "Pending",
-           "cache_root", "fingerprint", "openvino_available", "resolve_engine"]
+__all__ = ["CONVERT_SIZE", "ENGINES", "Done", "Engine", "EngineName", "OPENVINO_INSTALL", "OpenVINOEngine", "Pending",
+           "TorchEngine", "build_engine", "cache_root", "compile_model", "fingerprint", "openvino_available",
+           "resolve_engine"]

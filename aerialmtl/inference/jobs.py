@@ -10,10 +10,10 @@ Under ``torchrun --nproc_per_node N -m aerialmtl predict ...`` every process (ra
 (on GPU ``LOCAL_RANK`` when CUDA is used; gloo on CPUs, NCCL on GPUs) and takes a contiguous share of
 the work: the window rows of all inputs, in order, cut into N parts of equal size. An input that falls
 into one share is predicted whole by its rank (one strip: :meth:`~aerialmtl.inference.predict.Predictor.run`'s
-path); an input cut between ranks is computed in strips of window rows
-(:meth:`~aerialmtl.inference.predict.Predictor.strip`; each strip also runs the window rows that reach into
+path, one :class:`~aerialmtl.inference.job.InputJob`); an input cut between ranks is computed in strips of window rows
+(:meth:`~aerialmtl.inference.job.InputJob.strip`; each strip also runs the window rows that reach into
 it, so the rows come out exactly as in a one-process run), and the rank of its first strip joins the
-strips into the final COGs (:meth:`~aerialmtl.inference.predict.Predictor.commit`). Every decision (what
+strips into the final COGs (:meth:`~aerialmtl.inference.job.InputJob.commit`). Every decision (what
 to skip, which inputs to share) is taken before any rank writes. Each input's header is read once
 (:class:`~aerialmtl.inference.ortho.OrthoInput`) and travels with it; the process group, device and GDAL
 settings come from :mod:`aerialmtl.runtime`, as for training.
@@ -51,8 +51,9 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.formats.qgis_style import write_raster_style
 from aerialmtl.formats.stac import collection_files, write_collection
+from aerialmtl.inference.job import InputJob, PredictResult, StripResult
 from aerialmtl.inference.ortho import OrthoInput
-from aerialmtl.inference.predict import Predictor, PredictResult, StripResult
+from aerialmtl.inference.predict import Predictor
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import prediction_folder
 from aerialmtl.io.align import Grid
@@ -108,15 +109,6 @@ def targets_for(orthos: Sequence[str | Path], out: str | Path) -> list[Target]:
     return [Target(p, Path(out) if len(paths) == 1 else Path(out) / s) for p, s in zip(paths, stems)]
 
 
-def check_input(ortho: str | Path, predictor: Predictor) -> OrthoInput:
-    """Open ``ortho`` for ``predictor``: georeferencing and bands checked against the checkpoint (errors
-    name the file and the fix); returns the input, to be used from then on.
-
-    Run for every input before the first prediction starts, so a bad last input fails at once.
-    """
-    return predictor.open(ortho, warn=False)
-
-
 def partition(row_costs: Sequence[Sequence[float]], world: int) -> list[list[Share]]:
     """Cut the window rows of all targets, in order, into ``world`` contiguous shares of about equal cost.
 
@@ -159,6 +151,12 @@ class JobResult:
     mosaics: dict[str, Path] = field(default_factory=dict)
     ranks: runtime.Torchrun = field(default_factory=runtime.Torchrun)
 
+    def add(self, result: PredictResult, on_result: Callable[[PredictResult], None] | None) -> None:
+        """Record an input's result as soon as it is committed (and hand it to ``on_result``)."""
+        self.results.append(result)
+        if on_result is not None:
+            on_result(result)
+
 
 def predict_many(
     orthos: Sequence[str | Path],
@@ -198,7 +196,7 @@ def predict_many(
     predictor = Predictor(checkpoint, device=str(device), **predictor_args)
     with runtime.gdal_env():
         for t in targets:  # every input usable before the first one takes time; each header read once
-            t.src = check_input(t.ortho, predictor)
+            t.src = predictor.open(t.ortho, warn=False)
     ranks.join(predictor.device, runtime.SHARE_TIMEOUT)
     try:
         with contextlib.ExitStack() as held:
@@ -236,7 +234,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
     Over 80 lines: it still owns the writers' life across ranks; the per-input job that will own it
     (the predictor keeping only the model) is the next step of the predict/job split.
     """
-    job = JobResult(ranks=ranks)
+    done = JobResult(ranks=ranks)
     todo = []
     replace: set[int] = set()  # inputs whose earlier, outdated outputs --skip-existing recomputes
     files = folder_files(s.name for s in predictor.layers)  # layers, styles, item.json, prediction.json
@@ -246,11 +244,11 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
             folder = PredictionFolder(t.out)
             reason = folder.check(predictor.provenance(t.src, aoi))
             if reason is None:
-                job.skipped.append(t.ortho)
+                done.skipped.append(t.ortho)
                 continue
             owned = set(folder.owned_files())
             if owned:  # an earlier run's outputs (its prediction.json lists them): recomputed, and said so
-                job.recomputed[t.ortho] = reason
+                done.recomputed[t.ortho] = reason
                 if all(f in owned for f in files if (t.out / f).exists()):
                     replace.add(k)
         todo.append(k)
@@ -282,54 +280,50 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
 
     failures: list[tuple[str, int, str]] = []
     strips: dict[int, StripResult] = {}
-    writers: dict[int, StripResult] = {}  # shared inputs this rank commits: their first strip, with its writer
+    committers: dict[int, InputJob] = {}  # shared inputs this rank commits: the job of their first strip
     with runtime.gdal_env():
         for share in mine:
             t = targets[share.target]
             assert t.src is not None
             whole = share.target not in shared
             started = time.perf_counter()
+            job = InputJob(predictor, t.src, t.out, aoi=aoi, overwrite=overwrite or share.target in replace)
             try:
-                strip = predictor.strip(t.src, t.out, aoi=aoi, window_rows=None if whole else (share.start, share.stop),
-                                        overwrite=overwrite or share.target in replace, check_outputs=False,
-                                        progress=progress and ranks.rank == 0)
+                strip = job.strip(None if whole else (share.start, share.stop), check_outputs=False,
+                                  progress=progress and ranks.rank == 0)
                 if whole:  # the one-strip case: commit at once
-                    res = predictor.commit(t.src, t.out, [strip], aoi=aoi, started=started)
+                    res = job.commit([strip], started=started)
             except Exception as exc:
                 if ranks.world == 1:
                     raise
                 failures.append((str(t.ortho), ranks.rank, _one_line(exc)))
                 continue
             if whole:
-                job.results.append(res)
-                if on_result is not None:
-                    on_result(res)
+                done.add(res, on_result)
             else:
                 strips[share.target] = strip
                 if share.start == 0:
-                    writers[share.target] = strip  # this rank joins the strips
+                    committers[share.target] = job  # this rank joins the strips
 
     # every rank's strips and failures; then the first strip's rank commits each shared input
     gathered = ranks.gather((strips, failures))
     all_failures = [f for _, fs in gathered for f in fs]
     failed = {f[0] for f in all_failures}
-    for k, first in writers.items():
+    for k, job in committers.items():
         t = targets[k]
-        assert t.src is not None and first.writer is not None
+        first = strips[k]
         others = [res for st, _ in gathered for kk, res in st.items() if kk == k and res.row_start != first.row_start]
         if str(t.ortho) in failed:
-            first.writer.abort()
+            job.abort()
             prediction_folder(t.out).remove_leftovers(ALL_FILES)
             continue
         try:
-            res = predictor.commit(t.src, t.out, [first, *others], aoi=aoi, processes=1 + len(others))
+            res = job.commit([first, *others], processes=1 + len(others))
         except Exception as exc:
             failures.append((str(t.ortho), ranks.rank, _one_line(exc)))
             all_failures.append(failures[-1])
             continue
-        job.results.append(res)
-        if on_result is not None:
-            on_result(res)
+        done.add(res, on_result)
     if ranks.world > 1:
         all_failures = [f for fs in ranks.gather(failures) for f in fs]
     if all_failures:
@@ -344,9 +338,9 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
             "re-run with ‹skip_existing=True› to finish"
         )
     if len(targets) > 1 and ranks.rank == 0:
-        job.mosaics = write_mosaics(predictor, targets, out)
+        done.mosaics = write_mosaics(predictor, targets, out)
     ranks.gather(None)  # nobody leaves before the mosaics exist
-    return job
+    return done
 
 
 def _one_line(exc: BaseException) -> str:
@@ -377,5 +371,5 @@ def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) ->
     return mosaics
 
 
-__all__ = ["JobResult", "Share", "Target", "check_input", "partition",
+__all__ = ["JobResult", "Share", "Target", "partition",
            "predict_many", "targets_for", "write_mosaics"]

@@ -2,7 +2,8 @@
 
 Everything prediction asks of an orthophoto's header — its grid (checked: projected, north-up), the
 prediction grid at the model's GSD, whether it has the checkpoint's bands, which of its bands the model
-does not read, the window plan — is read in one opening by :meth:`OrthoInput.open` and travels with the
+does not read, the window plan — and a sample of its values (like the training data's?
+:mod:`aerialmtl.inference.sanity`) is read in one opening by :meth:`OrthoInput.open` and travels with the
 input from the job (:mod:`aerialmtl.inference.jobs`) through the predictor to ``prediction.json``. Only
 the pixel readers open the file again: one handle per reader thread
 (:class:`~aerialmtl.inference.reader.WindowReader`), because a GDAL dataset handle must not be shared
@@ -20,6 +21,7 @@ from rasterio.enums import ColorInterp
 
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.prediction import changed, input_fingerprint
+from aerialmtl.inference.sanity import check_input_values
 from aerialmtl.inference.windows import Plan, plan_windows
 from aerialmtl.io.align import Grid, check_bands, open_raster, ortho_grid, resampled_grid
 from aerialmtl.io.paths import is_local
@@ -63,18 +65,22 @@ class OrthoInput:
     fingerprint: dict[str, Any] | None = None
 
     @classmethod
-    def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int, grid: Grid | None = None) -> OrthoInput:
-        """Read what prediction needs from the header of ``path`` (one opening).
+    def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int, grid: Grid | None = None,
+             rescale_input: bool = False) -> OrthoInput:
+        """Read what prediction needs from ``path`` in one opening: its header and a sample of its values.
 
         Args:
             path: the orthophoto.
-            meta: the checkpoint metadata (GSD, bands).
+            meta: the checkpoint metadata (GSD, bands, the training data's value range).
             tile, overlap: the window plan's settings.
             grid: the prediction grid when the caller knows it already (skips the GSD decision).
+            rescale_input: map values unlike the training data's onto the training range (:attr:`rescale`)
+                instead of refusing them (:func:`~aerialmtl.inference.sanity.check_input_values`).
 
         Raises:
             AlignmentError: not georeferenced, geographic CRS.
-            InputError: the file lacks a band the checkpoint reads (the message names the fix).
+            InputError: the file lacks a band the checkpoint reads, or its values are unlike the training
+                data's (the messages name the fix).
         """
         local = input_fingerprint(path) if is_local(path) else None  # stat before the first read
         with open_raster(path, "orthophoto") as src:
@@ -84,6 +90,7 @@ class OrthoInput:
                             "(`aerialmtl tile --bands ...`)")
             alpha = [i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha]
             count = int(src.count)
+            rescale = check_input_values(path, meta, rescale_input, dataset=src)
         unused = tuple(b for b in range(1, count + 1) if b not in meta.bands and b not in alpha[:1])
         resampled_from = native.gsd if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd else None
         if grid is None:
@@ -91,7 +98,7 @@ class OrthoInput:
         fingerprint = local if local is not None else input_fingerprint(
             path, native.width, native.height, list(native.transform), native.crs.to_string())
         return cls(path, native, grid, resampled_from, count, unused,
-                   plan_windows(grid.height, grid.width, tile, overlap), fingerprint=fingerprint)
+                   plan_windows(grid.height, grid.width, tile, overlap), rescale=rescale, fingerprint=fingerprint)
 
     def changed(self) -> str | None:
         """What changed in the input since it was opened (``None``: nothing; see :attr:`fingerprint`)."""

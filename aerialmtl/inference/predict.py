@@ -1,11 +1,13 @@
-"""Streaming prediction of one orthophoto into a prediction folder of Cloud-Optimized GeoTIFFs.
+"""Streaming prediction of one orthophoto into a prediction folder of Cloud-Optimized GeoTIFFs: the model.
 
-A :class:`Predictor` is a model loaded once with its settings (device, precision, MC samples, tiles):
-it predicts any number of orthophotos. One job is one orthophoto (:meth:`Predictor.run`) or one strip of
-its window rows (:meth:`Predictor.strip`, what a ``torchrun`` rank computes of an input it shares); the
-whole raster is the one-strip case, and :meth:`Predictor.commit` turns the strips into the final COGs.
-The orthophoto's header is read once into an :class:`~aerialmtl.inference.ortho.OrthoInput` (grid,
-bands, window plan) that travels through the job.
+A :class:`Predictor` is a model loaded once with its settings (device, precision, MC samples, windows),
+its output schema (:attr:`Predictor.layers`) and its fingerprint: it predicts any number of orthophotos.
+What runs once per input — claiming the prediction folder, the writer's staging files, the commit and
+``prediction.json`` — is the job's (:class:`~aerialmtl.inference.job.InputJob`): :meth:`Predictor.run`
+is one job over the whole raster, and a ``torchrun`` rank computes one strip of the window rows of an
+input it shares (:mod:`aerialmtl.inference.jobs`). The orthophoto's header is read once into an
+:class:`~aerialmtl.inference.ortho.OrthoInput` (grid, bands, window plan, value check) that travels
+through the job.
 
 A strip is read → model → stitch → write, each stage overlapping the others:
 
@@ -17,9 +19,9 @@ A strip is read → model → stitch → write, each stage overlapping the other
 3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device and hands
    back finished blocks in their output dtypes, following one output schema
    (:func:`~aerialmtl.formats.prediction.prediction_layers`);
-4. :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files in a
-   background thread, then converts every layer to a COG (the layers in parallel, each on several
-   threads) and renames everything into place at once.
+4. the job's :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files
+   in a background thread; at the commit it converts every layer to a COG (the layers in parallel, each
+   on several threads) and renames everything into place at once.
 
 Device, precision, autocast, the compile fallback and the GDAL settings come from
 :mod:`aerialmtl.runtime`, as for training.
@@ -34,20 +36,16 @@ one process or many (torchrun).
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import time
 import warnings
 from collections import deque
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
 import torch
 
 from aerialmtl import runtime
-from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import (
@@ -59,22 +57,15 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.engines import Pending, openvino_available, resolve_engine
+from aerialmtl.inference.job import InputJob, PredictResult, StripResult
 from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
-from aerialmtl.inference.sanity import (
-    check_calibration,
-    check_finite_outputs,
-    check_height_range,
-    check_input_values,
-    rescaled,
-)
-from aerialmtl.inference.stitch import Stitcher
-from aerialmtl.inference.windows import Plan, check_tiling, plan_windows
-from aerialmtl.inference.writer import PredictionWriter
-from aerialmtl.io.align import Grid
-from aerialmtl.io.outputs import OutputFolder, write_text_atomic
+from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
+from aerialmtl.inference.stitch import Block, Stitcher
+from aerialmtl.inference.windows import Plan, check_tiling
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.progress import tqdm_auto as tqdm
 
@@ -82,70 +73,6 @@ from aerialmtl.progress import tqdm_auto as tqdm
 DEFAULT_MC_SAMPLES = 30
 
 BatchSize = int | Literal["auto"]
-
-
-@dataclass(frozen=True)
-class PredictResult:
-    """What :func:`predict_raster` wrote and how long it took.
-
-    Attributes:
-        out_dir: the prediction folder.
-        files: layer name → final path (``"prediction"`` is ``prediction.json``).
-        mc: MC-dropout samples T.
-        windows_total, windows_computed: windows in the plan / actually run through the model.
-        overlap_factor: pixels computed / output pixels (computed windows only).
-        plan_overlap_factor: the same if every window were computed.
-        megapixels_per_s: output megapixels per second of total time.
-        timings: seconds per stage (``read`` and ``write`` run in background threads and overlap the
-            others; ``model``, ``stitch_write`` (stitching plus waiting for the writer), ``strip_total``
-            (the slowest strip, or the whole raster), ``cog``, ``total``).
-        ortho: the orthophoto.
-    """
-
-    out_dir: Path
-    files: dict[str, Path]
-    grid: Grid
-    mc: int
-    windows_total: int
-    windows_computed: int
-    overlap_factor: float
-    plan_overlap_factor: float
-    megapixels_per_s: float
-    timings: dict[str, float] = field(default_factory=dict)
-    ortho: str | Path | None = None
-
-
-@dataclass
-class StripResult:
-    """What one strip of window rows (or the whole raster) computed (see :meth:`Predictor.strip`).
-
-    Attributes:
-        windows_computed: windows run through the model.
-        timings: seconds per stage (see :class:`PredictResult`).
-        row_start: the first grid row the strip wrote (its staging files are named after it).
-        writer: the strip's writer (held by the process that commits; ``None`` once handed over).
-    """
-
-    windows_computed: int
-    timings: dict[str, float]
-    row_start: int = 0
-    writer: PredictionWriter | None = field(default=None, repr=False, compare=False)
-
-    def __getstate__(self) -> dict[str, Any]:  # strips travel between ranks without their writer
-        return {**self.__dict__, "writer": None}
-
-
-# ---- the grid ----------------------------------------------------------------------------------
-def model_grid(ortho: str | Path, meta: ModelMeta) -> tuple[Grid, float | None]:
-    """The grid predictions are made on: the orthophoto's, resampled to the model's GSD (metres, whatever
-    the CRS unit) when they differ by more than :data:`~aerialmtl.inference.ortho.GSD_TOLERANCE`.
-
-    Returns:
-        ``(grid, resampled_from)``: ``resampled_from`` is the orthophoto's own GSD when it was
-        resampled, else ``None``.
-    """
-    src = OrthoInput.open(ortho, meta, 32, 0)
-    return src.grid, src.resampled_from
 
 
 def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool = False
@@ -181,13 +108,6 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
         if made is not None:
             write_record(loaded, made, root)
     return model, meta, str(checkpoint), loaded
-
-
-def _record_timings(path: Path, timings: dict[str, float]) -> None:
-    """Add the final timings to ``prediction.json`` (atomic replace)."""
-    info = json.loads(path.read_text(encoding="utf-8"))
-    info["timings_s"] = dict(timings)
-    write_text_atomic(path, json.dumps(info, indent=2, default=str))
 
 
 def _stats_window(stats: McStatistics, n: int) -> McStatistics:
@@ -321,14 +241,14 @@ class Predictor:
         return self.runner.model
 
     # ---- inputs -----------------------------------------------------------------------------------
-    def open(self, ortho: str | Path | OrthoInput, warn: bool = True, grid: Grid | None = None) -> OrthoInput:
-        """Read the header of ``ortho`` once (:class:`~aerialmtl.inference.ortho.OrthoInput`); an
-        :class:`OrthoInput` is returned as it is.
+    def open(self, ortho: str | Path | OrthoInput, warn: bool = True) -> OrthoInput:
+        """Read the header of ``ortho`` and a sample of its values once
+        (:meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>`); an :class:`OrthoInput` is
+        returned as it is.
 
         Args:
             ortho: the orthophoto.
             warn: warn when it is resampled to the model's GSD or has bands the model does not read.
-            grid: the prediction grid when the caller knows it already.
 
         Raises:
             AlignmentError / InputError: unusable georeferencing or bands, or values unlike the training
@@ -336,25 +256,11 @@ class Predictor:
         """
         if isinstance(ortho, OrthoInput):
             return ortho
-        src = OrthoInput.open(ortho, self.meta, self.tile, self.overlap, grid=grid)
-        rescale = check_input_values(src.path, self.meta, self.rescale_input)
-        if rescale is not None:
-            src = dataclasses.replace(src, rescale=rescale)
+        src = OrthoInput.open(ortho, self.meta, self.tile, self.overlap, rescale_input=self.rescale_input)
         if warn:
             src.warn_resampled(self.meta, stacklevel=4)
             src.warn_unused_bands(self.meta, stacklevel=4)
         return src
-
-    def grid(self, ortho: str | Path, warn: bool = True) -> Grid:
-        """The prediction grid of ``ortho`` (:func:`model_grid`), warning when it is resampled."""
-        src = OrthoInput.open(ortho, self.meta, self.tile, self.overlap)
-        if warn:
-            src.warn_resampled(self.meta, stacklevel=4)
-        return src.grid
-
-    def plan(self, grid: Grid) -> Plan:
-        """The windows of this predictor's ``tile`` and ``overlap`` over ``grid``."""
-        return plan_windows(grid.height, grid.width, self.tile, self.overlap)
 
     def resolved_batch_size(self, plan: Plan) -> int:
         """Windows per model call for windows of ``plan`` (resolves ``"auto"`` once per window size)."""
@@ -366,36 +272,35 @@ class Predictor:
                                                self.device, self.precision)
         return self._batch[key]
 
-    def warn_unused_bands(self, ortho: str | Path | OrthoInput) -> None:
-        """Warn when the orthophoto has bands the model does not read."""
-        self.open(ortho, warn=False).warn_unused_bands(self.meta, stacklevel=4)
-
     # ---- computing --------------------------------------------------------------------------------
-    def compute(self, ortho: str | Path | OrthoInput, grid: Grid, plan: Plan, writer: PredictionWriter, *,
-                aoi: str | Path | None = None, window_rows: tuple[int, int] | None = None,
-                progress: bool = True) -> StripResult:
-        """Read, run and stitch window rows ``[start, stop)`` of ``plan`` (default all) into ``writer``.
+    def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
+                aoi: str | Path | None = None, progress: bool = True) -> StripResult:
+        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan; each finished block
+        goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
 
         The window rows before ``start`` that reach into it
         (:attr:`~aerialmtl.inference.windows.WindowRow.sources`) are computed too, so a strip gives exactly
         the output rows a whole-raster run gives.
+
+        Returns:
+            the windows computed and the stage times (``read``, ``model``, ``stitch_write``; seconds).
         """
-        path = ortho.path if isinstance(ortho, OrthoInput) else ortho
-        rescale = ortho.rescale if isinstance(ortho, OrthoInput) else None
-        start, stop = window_rows or (0, len(plan.window_rows))
+        plan, grid = src.plan, src.grid
+        rescale = src.rescale
+        start, stop = rows
         stitcher = Stitcher(plan, self.layers, self.num_classes, self.device, start, stop,
                             calibration=self.calibration)
         batch_size = self.resolved_batch_size(plan)
         aoi_mask = Aoi(aoi, grid) if aoi is not None else None
-        rows = range(stitcher.first_row, stop)
+        todo_rows = range(stitcher.first_row, stop)
         n_cols = len(plan.cols.starts)
         timings = {"read": 0.0, "model": 0.0, "stitch_write": 0.0}
         computed = 0
-        bar = tqdm(total=len(rows) * n_cols, unit="win", desc=Path(str(path)).name, disable=not progress,
+        bar = tqdm(total=len(todo_rows) * n_cols, unit="win", desc=src.name, disable=not progress,
                    dynamic_ncols=True)
         depth = max(4, 2 * batch_size)  # windows read ahead: a batch being computed and the next one
-        reader = WindowReader(path, grid, list(self.meta.bands), plan, rows, aoi_mask,
-                              threads=self.reader_threads, depth=depth, pin=self.device.type == "cuda")
+        reader = WindowReader(src, list(self.meta.bands), todo_rows, aoi_mask, threads=self.reader_threads,
+                              depth=depth, pin=self.device.type == "cuda")
         try:
             with reader:
                 waiting: list[Any] = []  # read windows not yet handed to the stitcher, in plan order
@@ -414,7 +319,7 @@ class Predictor:
                             blocks = stitcher.add(w.i, w.j, _stats_window(stats, n), valid[n])
                             n += 1
                         for block in blocks:
-                            writer.write(block)
+                            write(block)
                     bar.update(len(windows))
                     timings["stitch_write"] += time.perf_counter() - t0
 
@@ -457,88 +362,10 @@ class Predictor:
             bar.close()
         return StripResult(computed, timings)
 
-    def strip(self, src: OrthoInput, out: str | Path, *, aoi: str | Path | None = None,
-              window_rows: tuple[int, int] | None = None, overwrite: bool = False, check_outputs: bool = True,
-              progress: bool = True) -> StripResult:
-        """Compute window rows ``[start, stop)`` of ``src`` (default all) into staging files in ``out``.
-
-        The result holds the strip's writer; :meth:`commit` (with every strip of the input) turns the
-        staging files into the final COGs, :meth:`PredictionWriter.abort` removes them.
-
-        Args:
-            src: the input (:meth:`open`).
-            out: its prediction folder.
-            aoi: optional GeoJSON AOI.
-            window_rows: the strip; ``None`` is the whole raster.
-            overwrite, check_outputs: see :meth:`run` (a strip of a shared input checks nothing: the job did).
-            progress: a progress bar.
-        """
-        t0 = time.perf_counter()
-        plan = src.plan
-        whole = window_rows is None or tuple(window_rows) == (0, len(plan.window_rows))
-        start, stop = (0, len(plan.window_rows)) if window_rows is None else window_rows
-        rows = (plan.window_rows[start].out_start, plan.window_rows[stop - 1].out_stop)
-        writer = PredictionWriter(out, src.grid, self.layers, overwrite=overwrite, rows=None if whole else rows,
-                                  clean=whole, check=check_outputs and whole)
-        try:
-            res = self.compute(src, src.grid, plan, writer, aoi=aoi, window_rows=(start, stop), progress=progress)
-            t1 = time.perf_counter()
-            writer.finish()
-            res.timings["stitch_write"] += time.perf_counter() - t1
-            res.timings["write"] = writer.seconds_writing
-        except BaseException:
-            writer.abort()
-            raise
-        res.timings["strip_total"] = time.perf_counter() - t0
-        res.row_start, res.writer = rows[0], writer
-        return res
-
-    def commit(self, src: OrthoInput, out: str | Path, strips: Sequence[StripResult], *,
-               aoi: str | Path | None = None, processes: int = 1, started: float | None = None) -> PredictResult:
-        """Join the strips of ``src`` (the first one holding its writer) into the final COGs and
-        ``prediction.json``; aborts the writer if that fails.
-
-        Args:
-            started: ``time.perf_counter()`` when the job started (default: the strips' time is the total).
-        """
-        writer = strips[0].writer
-        assert writer is not None, "commit needs the writer of the first strip"
-        t0 = time.perf_counter()
-        computed = sum(r.windows_computed for r in strips)
-        timings: dict[str, float] = {}
-        for r in strips:  # the slowest strip's stage times
-            for key, v in r.timings.items():
-                timings[key] = max(timings.get(key, 0.0), v)
-        before = (t0 - started) if started is not None else timings.get("strip_total", 0.0)
-        try:
-            moved = src.changed()  # maps of a file replaced under the run would be recorded as the new file's
-            if moved is not None:
-                raise InputError(
-                    f"orthophoto '{src.path}' changed while it was read ({moved}), so its maps mix two versions and "
-                    f"were not written to '{out}': re-run when the file is no longer being written or replaced")
-            info = self.info(src, src.grid, src.plan, aoi, computed, {**timings, "before_cog": before},
-                             processes=processes)
-            files = writer.commit(info, strips=[r.row_start for r in strips])
-        except BaseException:
-            writer.abort()
-            raise
-        timings["cog"] = time.perf_counter() - t0
-        timings["total"] = before + timings["cog"]
-        _record_timings(files["prediction"], timings)
-        grid, plan = src.grid, src.plan
-        out_px = grid.width * grid.height
-        if computed == 0 and plan.num_windows > 0:  # complete, but a map of nodata only: say so
-            where = f" inside the AOI '{aoi}'" if aoi is not None else ""
-            warnings.warn(f"orthophoto '{src.path}' has no valid pixel{where} (all nodata or masked): every layer in "
-                          f"'{out}' is nodata; check the orthophoto's nodata value and mask", stacklevel=2)
-        return PredictResult(Path(out), files, grid, self.mc, plan.num_windows, computed,
-                             self.overlap_factor(plan, computed), plan.overlap_factor,
-                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path)
-
     def run(self, ortho: str | Path | OrthoInput, out: str | Path, *, aoi: str | Path | None = None,
-            overwrite: bool = False, progress: bool = True, check_outputs: bool = True,
-            grid: Grid | None = None) -> PredictResult:
-        """Predict ``ortho`` into the prediction folder ``out``: the whole raster as one strip.
+            overwrite: bool = False, progress: bool = True, check_outputs: bool = True) -> PredictResult:
+        """Predict ``ortho`` into the prediction folder ``out``: one job (:class:`~aerialmtl.inference.job.InputJob`),
+        the whole raster as one strip.
 
         Args:
             ortho: orthophoto GeoTIFF (any size; read window by window), or an input from :meth:`open`.
@@ -548,7 +375,6 @@ class Predictor:
             overwrite: replace existing outputs instead of raising.
             progress: show a tqdm progress bar.
             check_outputs: refuse existing outputs (off when the caller checked every input already).
-            grid: the prediction grid when the caller has it already (no second warning).
 
         Raises:
             OutputExistsError: outputs exist and ``overwrite`` is false.
@@ -557,10 +383,10 @@ class Predictor:
         started = time.perf_counter()
         given = ortho.path if isinstance(ortho, OrthoInput) else ortho
         with runtime.gdal_env(), OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
-                                      what="prediction folder"):
-            src = self.open(ortho, grid=grid, warn=grid is None)
-            strip = self.strip(src, out, aoi=aoi, overwrite=overwrite, check_outputs=check_outputs, progress=progress)
-            return self.commit(src, out, [strip], aoi=aoi, started=started)
+                                              what="prediction folder"):
+            job = InputJob(self, self.open(ortho), out, aoi=aoi, overwrite=overwrite)
+            strip = job.strip(check_outputs=check_outputs, progress=progress)
+            return job.commit([strip], started=started)
 
     # ---- run information --------------------------------------------------------------------------
     @property
@@ -588,18 +414,11 @@ class Predictor:
                 src.path, native.width, native.height, list(native.transform), native.crs.to_string()),
         }
 
-    @staticmethod
-    def overlap_factor(plan: Plan, computed: int) -> float:
-        """Pixels computed per output pixel (≥ 1: the windows' overlap) for ``computed`` windows of ``plan``."""
-        return computed * plan.rows.size * plan.cols.size / float(plan.rows.length * plan.cols.length)
-
-    def info(self, ortho: str | Path | OrthoInput, grid: Grid, plan: Plan, aoi: str | Path | None, computed: int,
-             timings: dict[str, float], processes: int = 1) -> dict[str, Any]:
-        """The ``prediction.json`` content of a run."""
-        src = self.open(ortho, warn=False, grid=grid)
+    def record_settings(self, src: OrthoInput, aoi: str | Path | None) -> dict[str, Any]:
+        """The model's and the settings' fields of ``src``'s ``prediction.json``
+        (:class:`~aerialmtl.formats.prediction.PredictionRecord`; the job adds the input's and the run's).
+        """
         return {
-            "aerialmtl_version": __version__,
-            "orthophoto": str(src.path),
             "checkpoint": self.checkpoint_name,
             "model": model_summary(self.meta),
             "mc_samples": self.mc,
@@ -607,24 +426,12 @@ class Predictor:
             "seed": self.seed,
             "tile": self.tile,
             "overlap": self.overlap,
-            "window_size": [plan.rows.size, plan.cols.size],
-            "batch_size": self.resolved_batch_size(plan),
+            "batch_size": self.resolved_batch_size(src.plan),
             "precision": self.precision,
             "engine": self.runner.engine.name,  # torch if ``auto`` fell back from OpenVINO
             "threads": self.threads.as_dict() if self.device.type == "cpu" else None,
             "device": str(self.device),
             "compile": self.compile,
-            "processes": processes,
-            "aoi": None if aoi is None else str(aoi),
-            "grid": {"crs": grid.crs.to_string(), "transform": list(grid.transform)[:6],
-                     "width": grid.width, "height": grid.height, "gsd": grid.gsd},
-            "resampled_from_gsd": src.resampled_from,
-            "input_rescale": None if src.rescale is None else list(src.rescale),
-            "windows_total": plan.num_windows,
-            "windows_computed": computed,
-            "overlap_factor": self.overlap_factor(plan, computed),
-            "plan_overlap_factor": plan.overlap_factor,
-            "timings_s": dict(timings),
             "calibration": self.calibration_info(),
             PROVENANCE_KEY: self.provenance(src, aoi),
         }
@@ -698,4 +505,4 @@ def predict_raster(
     return predictor.run(ortho, out_dir, aoi=aoi, overwrite=overwrite, progress=progress)
 
 
-__all__ = ["DEFAULT_MC_SAMPLES", "PredictResult", "Predictor", "StripResult", "model_grid", "predict_raster"]
+__all__ = ["DEFAULT_MC_SAMPLES", "Predictor", "predict_raster"]

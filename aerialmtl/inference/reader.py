@@ -28,7 +28,7 @@ from shapely.geometry import box
 from shapely.strtree import STRtree
 
 from aerialmtl.errors import InputError
-from aerialmtl.inference.windows import Plan
+from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.io.align import AlignedRaster, Grid
 
 if TYPE_CHECKING:
@@ -83,10 +83,9 @@ class WindowReader:
     """Windows of window rows ``rows`` of ``plan``, read ahead in background threads.
 
     Args:
-        ortho: the orthophoto.
-        grid: the reference grid (the plan is laid over it).
+        src: the input (:class:`~aerialmtl.inference.ortho.OrthoInput`: the orthophoto, its prediction grid
+            and the window plan over it); each thread opens its own handle on it.
         bands: 1-based bands to read.
-        plan: the window plan.
         rows: window rows to read, in order.
         aoi: optional AOI mask.
         threads: reader threads (each with its own dataset handle).
@@ -94,12 +93,12 @@ class WindowReader:
         pin: put the pixels into pinned host memory (CUDA).
     """
 
-    def __init__(self, ortho: str | Path, grid: Grid, bands: Sequence[int], plan: Plan, rows: Sequence[int],
-                 aoi: Aoi | None = None, threads: int = 2, depth: int = 8, pin: bool = False) -> None:
-        self.ortho = ortho
-        self.grid = grid
+    def __init__(self, src: OrthoInput, bands: Sequence[int], rows: Sequence[int], aoi: Aoi | None = None,
+                 threads: int = 2, depth: int = 8, pin: bool = False) -> None:
+        self.ortho = src.path
+        self.grid = src.grid
         self.bands = list(bands)
-        self.plan = plan
+        self.plan = src.plan
         self.rows = list(rows)
         self.aoi = aoi
         self.depth = max(1, depth)

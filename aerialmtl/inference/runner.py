@@ -6,11 +6,13 @@ deterministic forward pass (T = 1: height and softmax probabilities) or MC dropo
 (:func:`~aerialmtl.models.mc_dropout.mc_statistics`: encoder once, T decoder samples in chunks that fit
 the device, dropout masks seeded per window so results do not depend on batching).
 
-Also here: the batch-size choices (:func:`auto_batch_size`, :func:`mc_sample_batch`) and the optional
-``torch.compile`` of the deterministic parts (:func:`compile_model`); device, precision, autocast and the
-compile fallback come from :mod:`aerialmtl.runtime`.
+Also here: the batch-size choices (:func:`auto_batch_size`, :func:`mc_sample_batch`) and test-time
+augmentation (:func:`combine_tta`). The engines (and the optional ``torch.compile`` of the torch engine)
+are :mod:`aerialmtl.inference.engines`'; device, precision, autocast and the compile fallback come from
+:mod:`aerialmtl.runtime`.
 
-The runner predicts with its own copy of the model, prepared for inference (:func:`inference_model`):
+The engine (:func:`~aerialmtl.inference.engines.build_engine`) predicts with its own copy of the model,
+prepared for inference (:func:`~aerialmtl.models.d3net.inference_model`):
 decoder convolutions and their BatchNorms folded into one (:func:`~aerialmtl.models.d3net.fold_batchnorm`)
 and channels-last activations (measured faster on CPU than class planes for the head, the softmax
 and the blending alike; bench/RESULTS.md).
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Literal, cast
+from typing import Literal
 
 import numpy as np
 import torch
@@ -28,12 +30,9 @@ from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.models.d3net import inference_model
-from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
-
-if TYPE_CHECKING:
-    from aerialmtl.inference.engines import Engine, Pending
-    from aerialmtl.inference.model_record import CheckpointModel
+from aerialmtl.inference.engines import Done, Engine, OpenVINOEngine, Pending, TorchEngine, build_engine
+from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.models.mc_dropout import McStatistics
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
 #: The full D3-Net decoder needs about 1.2 GiB of activations per decoded megapixel in fp32, so a batch
@@ -81,66 +80,6 @@ def auto_batch_size(model: nn.Module | Callable[[], nn.Module], in_channels: int
     per_window = torch.cuda.max_memory_allocated(device) - base
     free, _ = torch.cuda.mem_get_info(device)
     return batch_from_memory(int(free), int(per_window))
-
-
-class _Compiled(nn.Module):
-    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC) with the
-    fallback of :class:`aerialmtl.runtime.CompileFallback`.
-
-    The decoder stays eager under MC dropout: its per-window seeded masks are drawn by Python hooks.
-    """
-
-    def __init__(self, model: nn.Module) -> None:
-        super().__init__()
-        self.model = model
-        self._compiled = runtime.CompileFallback(model, "the model")
-
-    def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
-        return cast(list[torch.Tensor], self._compiled("encode", x))
-
-    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-        decode: Callable[[list[torch.Tensor]], dict[str, torch.Tensor]] = getattr(self.model, "decode")  # noqa: B009
-        return decode(feats)
-
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        return cast(dict[str, torch.Tensor], self._compiled("forward", x))
-
-
-def compile_model(model: nn.Module) -> nn.Module:
-    """The model with ``torch.compile`` applied where it can be (see :class:`_Compiled`)."""
-    return _Compiled(model)
-
-
-class TorchEngine:
-    """The model in PyTorch (eager, or ``torch.compile``), on any device: today's path and CUDA's only one.
-
-    Args:
-        net: the prepared model, or its compiled wrapper (:func:`compile_model`).
-        model: the prepared model itself (its modes are switched for MC dropout).
-        device, precision: where and how it runs (bf16 = autocast).
-        tasks: the model's tasks.
-    """
-
-    name = "torch"
-
-    def __init__(self, net: nn.Module, model: nn.Module, device: torch.device, precision: str,
-                 tasks: Sequence[str]) -> None:
-        self.net, self.model, self.device, self.precision, self.tasks = net, model, device, precision, tuple(tasks)
-
-    def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int, sample_batch: int) -> Pending:
-        """:meth:`statistics`, computed now (torch runs synchronously)."""
-        from aerialmtl.inference.engines import Done
-
-        return Done(self.statistics(x, keys, samples, seed, sample_batch))
-
-    def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
-                   sample_batch: int) -> McStatistics:
-        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`)."""
-        with torch.inference_mode(), runtime.autocast(self.device, self.precision):
-            if samples == 1:
-                self.model.eval()
-                return single_pass_statistics(self.net(x))
-            return mc_statistics(self.net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys)
 
 
 #: The 8 views of test-time augmentation: (90° rotations k, then a horizontal flip).
@@ -207,7 +146,7 @@ class ModelRunner:
         mc: MC-dropout samples T.
         seed: base seed of the per-window dropout masks (T > 1).
         max_decode_pixels: see :data:`DECODE_PIXELS`.
-        compile: apply ``torch.compile`` (:func:`compile_model`; torch engine only).
+        compile: apply ``torch.compile`` (:func:`~aerialmtl.inference.engines.compile_model`; torch engine only).
         engine: ``"torch"`` or ``"openvino"`` (already resolved).
         tta: test-time augmentation: every window is also run flipped and rotated by 90°, 180°, 270° (8
             views); the views are combined like MC samples (:func:`combine_tta`), so ``height_std`` also
@@ -235,38 +174,22 @@ class ModelRunner:
         self.tasks = tuple(meta.model.tasks)
         self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
         self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
-        self.engine: Engine
         self._raw = model
-        self._model: nn.Module | None = None
-        if engine == "openvino":
-            from aerialmtl.inference.engines import OpenVINOEngine
-
-            self.engine = OpenVINOEngine(model, meta.model.in_channels, self.tasks, precision, threads=self.threads,
-                                         weights_key=weights_key)
-        else:
-            from aerialmtl.inference.model_record import resolve_model
-
-            self._model = inference_model(resolve_model(model), device)
-            net = compile_model(self._model) if compile else self._model
-            self.engine = TorchEngine(net, self._model, device, precision, self.tasks)
+        self.engine: Engine = build_engine(engine, model, meta, device, precision, compile=compile,
+                                           threads=self.threads, weights_key=weights_key)
 
     @property
     def model(self) -> nn.Module:
-        """The model prepared for prediction (:func:`inference_model`; the OpenVINO engine's own copy there)."""
-        from aerialmtl.inference.engines import OpenVINOEngine
-
-        if isinstance(self.engine, OpenVINOEngine):
-            return self.engine.model
-        assert self._model is not None
-        return self._model
+        """The model prepared for prediction (:func:`~aerialmtl.models.d3net.inference_model`; the OpenVINO
+        engine's own copy there).
+        """
+        return self.engine.model
 
     @property
     def net(self) -> nn.Module:
         """What the torch engine calls (the compiled wrapper with ``compile``); the model as given on
         OpenVINO (CPU only: nothing measures it there; loaded from its checkpoint when it was not yet).
         """
-        from aerialmtl.inference.model_record import resolve_model
-
         if isinstance(self.engine, TorchEngine):
             return self.engine.net
         return resolve_model(self._raw)
@@ -276,8 +199,6 @@ class ModelRunner:
         """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`): one per stream on
         the OpenVINO engine at T = 1, none on torch or with TTA (they compute synchronously).
         """
-        from aerialmtl.inference.engines import OpenVINOEngine
-
         ahead = isinstance(self.engine, OpenVINOEngine) and self.mc == 1 and not self.tta
         return self.threads.streams if ahead else 0
 
@@ -316,8 +237,8 @@ class ModelRunner:
             warnings.warn(f"the OpenVINO engine cannot run this model ({type(exc).__name__}: "
                           f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); predicting with the torch engine "
                           "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
-            self._model = self.model  # the folded copy (the OpenVINO engine's)
-            self.engine = TorchEngine(self._model, self._model, self.device, self.precision, self.tasks)
+            model = self.model  # the folded copy (the OpenVINO engine's)
+            self.engine = TorchEngine(model, model, self.device, self.precision, self.tasks)
             return self._statistics(x, keys)
 
     def _statistics(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
@@ -339,13 +260,10 @@ class ModelRunner:
         :attr:`fallback` may still switch engines.
         """
         if self.tta or (self.fallback and not self._ran):
-            from aerialmtl.inference.engines import Done
-
             return Done(self(x, keys))
         b, _, h, w = x.shape
         chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
         return self.engine.submit(x, keys, self.mc, self.seed, chunk)
 
 
-__all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "TorchEngine", "auto_batch_size", "batch_from_memory",
-           "compile_model", "mc_sample_batch"]
+__all__ = ["CPU_BATCH", "DECODE_PIXELS", "ModelRunner", "auto_batch_size", "batch_from_memory", "mc_sample_batch"]

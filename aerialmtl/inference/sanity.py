@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from rasterio.io import DatasetReader
 from rasterio.windows import Window
 
 from aerialmtl.errors import CheckpointError, InputError, NonFiniteError
@@ -70,27 +71,35 @@ class InputSample:
         return value_envelope(self.mean, self.std, self.dtype)
 
 
-def sample_input(path: str | Path, bands: Sequence[int]) -> InputSample | None:
-    """Per-band statistics of ``bands`` over a spread of windows of ``path`` (``None`` without valid pixels).
+def sample_input(source: str | Path | DatasetReader, bands: Sequence[int]) -> InputSample | None:
+    """Per-band statistics of ``bands`` over a spread of windows of ``source`` (``None`` without valid pixels).
 
     Reads :data:`SAMPLE_GRID` × :data:`SAMPLE_GRID` windows of :data:`SAMPLE_SIDE` pixels (fewer on a small
     raster); a pixel is valid where every band's mask (nodata, alpha, internal mask) says so and the values
     are finite.
+
+    Args:
+        source: the orthophoto's path, or its dataset already open (prediction reads the header and this
+            sample in one opening: :meth:`~aerialmtl.inference.ortho.OrthoInput.open`).
+        bands: 1-based bands.
     """
-    with open_raster(path, "orthophoto") as src:
-        dtype = str(src.dtypes[bands[0] - 1])
-        w, h = min(SAMPLE_SIDE, src.width), min(SAMPLE_SIDE, src.height)
-        cols = sorted({round(k * (src.width - w) / max(1, SAMPLE_GRID - 1)) for k in range(SAMPLE_GRID)})
-        rows = sorted({round(k * (src.height - h) / max(1, SAMPLE_GRID - 1)) for k in range(SAMPLE_GRID)})
-        values = []
-        for r in rows:
-            for c in cols:
-                win = Window(c, r, w, h)
-                data = src.read(list(bands), window=win)
-                ok = np.all(src.read_masks(list(bands), window=win) > 0, axis=0)
-                if data.dtype.kind == "f":
-                    ok &= np.all(np.isfinite(data), axis=0)
-                values.append(data[:, ok].astype(np.float64))
+    if not isinstance(source, DatasetReader):
+        with open_raster(source, "orthophoto") as src:
+            return sample_input(src, bands)
+    src = source
+    dtype = str(src.dtypes[bands[0] - 1])
+    w, h = min(SAMPLE_SIDE, src.width), min(SAMPLE_SIDE, src.height)
+    cols = sorted({round(k * (src.width - w) / max(1, SAMPLE_GRID - 1)) for k in range(SAMPLE_GRID)})
+    rows = sorted({round(k * (src.height - h) / max(1, SAMPLE_GRID - 1)) for k in range(SAMPLE_GRID)})
+    values = []
+    for r in rows:
+        for c in cols:
+            win = Window(c, r, w, h)
+            data = src.read(list(bands), window=win)
+            ok = np.all(src.read_masks(list(bands), window=win) > 0, axis=0)
+            if data.dtype.kind == "f":
+                ok &= np.all(np.isfinite(data), axis=0)
+            values.append(data[:, ok].astype(np.float64))
     x = np.concatenate(values, axis=1)
     if x.shape[1] == 0:
         return None
@@ -120,13 +129,15 @@ def _described(dtype: str | None, rng: tuple[float, float]) -> str:
     return f"{dtype or 'unknown type'} values about {_fmt(rng[0])}..{_fmt(rng[1])}"
 
 
-def check_input_values(path: str | Path, meta: ModelMeta, rescale: bool = False) -> tuple[float, float] | None:
+def check_input_values(path: str | Path, meta: ModelMeta, rescale: bool = False,
+                       dataset: DatasetReader | None = None) -> tuple[float, float] | None:
     """Refuse (or, with ``rescale``, map) an orthophoto whose values do not look like the training data's.
 
     Args:
-        path: the orthophoto.
+        path: the orthophoto (named in the messages).
         meta: the checkpoint metadata (``input_dtype``, ``input_range``, ``bands``).
         rescale: map a mismatching orthophoto onto the training range instead of refusing it.
+        dataset: ``path`` already open (its sample is read from it; default: opened here).
 
     Returns:
         ``(a, b)``: predict with ``a·x + b`` instead of the raw values x; ``None``: use them as they are.
@@ -137,7 +148,7 @@ def check_input_values(path: str | Path, meta: ModelMeta, rescale: bool = False)
     """
     if meta.input_dtype is None or meta.input_range is None:  # written before these were recorded
         return None
-    sample = sample_input(path, meta.bands)
+    sample = sample_input(path if dataset is None else dataset, meta.bands)
     if sample is None:  # nothing valid to judge by (and nothing to predict)
         return None
     problem = input_mismatch(meta, sample)

@@ -193,8 +193,11 @@ class Plan:
     @property
     def overlap_factor(self) -> float:
         """Pixels computed / output pixels when every window is computed."""
-        computed = self.num_windows * self.rows.size * self.cols.size
-        return computed / float(self.rows.length * self.cols.length)
+        return self.computed_overlap(self.num_windows)
+
+    def computed_overlap(self, computed: int) -> float:
+        """Pixels computed per output pixel (≥ 1 when every window is: their overlap) for ``computed`` windows."""
+        return computed * self.rows.size * self.cols.size / float(self.rows.length * self.cols.length)
 
     def weight(self, i: int, j: int) -> np.ndarray:
         """(height, width) float32 blending weight of window (row ``i``, column ``j``)."""

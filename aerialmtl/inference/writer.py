@@ -5,28 +5,29 @@ staging GeoTIFF in the output folder (``.height.tif.staging``; ``.height.tif.sta
 strip of rows one process of a distributed run computes). Staging files are raw (uncompressed) tiled
 GeoTIFFs: the stitcher's finished blocks are written as they come, in any shape, by a background
 thread while the model runs, and GDAL rewrites a partly written tile in place, so nothing is buffered
-(memory does not grow with the raster) and no compression is paid twice. :meth:`PredictionWriter.commit`
-converts every layer into a COG (``.height.tif.partial``; the layers in parallel, each compressed on
-several threads; strips of several processes are first joined by a VRT), writes each layer's QGIS
-style (:mod:`aerialmtl.formats.qgis_style`, its range from the COG's overviews), the STAC
-``item.json`` (:mod:`aerialmtl.formats.stac`) and ``prediction.json``, and only then renames
-everything to the final names, ``prediction.json`` last: an interrupted run leaves
-no file at a final path, and a folder with ``prediction.json`` is complete.
-:meth:`PredictionWriter.abort` removes the hidden files (and the folder, if this run created it and it
-is empty); hidden files that a killed run could not remove are deleted when the next run into the same
-folder starts, so a plain re-run completes.
+(memory does not grow with the raster) and no compression is paid twice. :meth:`PredictionWriter.convert`
+turns every layer into a COG (``.height.tif.partial``; the layers in parallel, each compressed on
+several threads; strips of several processes are first joined by a VRT); :meth:`PredictionWriter.publish`
+writes each layer's QGIS style (:mod:`aerialmtl.formats.qgis_style`, its range from the COG's overviews),
+the STAC ``item.json`` (:mod:`aerialmtl.formats.stac`) and ``prediction.json`` (the run's
+:class:`~aerialmtl.formats.prediction.PredictionRecord`, written once), and only then renames everything
+to the final names, ``prediction.json`` last: an interrupted run leaves no file at a final path, and a
+folder with ``prediction.json`` is complete. :meth:`PredictionWriter.abort` removes the hidden files (and
+the folder, if this run created it and it is empty).
+
+The writer is one input's, and the job that owns it (:class:`~aerialmtl.inference.job.InputJob`) claims
+the folder's outputs and removes a killed run's leftovers before it creates it.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import threading
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import rasterio
 from rasterio.errors import RasterioError
@@ -39,7 +40,7 @@ from aerialmtl.formats.prediction import (
     ITEM_FILE,
     LayerSpec,
     PredictionFolder,
-    folder_files,
+    PredictionRecord,
     style_filename,
 )
 from aerialmtl.inference.stitch import Block
@@ -114,19 +115,15 @@ class PredictionWriter:
         overwrite: replace existing outputs (and remove layers of an earlier run that this run does not write,
             when that run's prediction.json lists them).
         rows: write only grid rows ``[start, stop)`` (one strip of a distributed run): the staging files
-            are then named after ``start``, and only the process that calls :meth:`commit` with every
+            are then named after ``start``, and only the process that calls :meth:`convert` with every
             strip converts them. Default: the whole grid.
-        clean: delete hidden files a killed run left behind first (off for strips: another process may
-            already be writing its own).
-        check: refuse existing outputs (off when the caller checked them already, once per input).
 
     Raises:
-        OutputExistsError: an output exists and ``overwrite`` is false.
-        OutputError: the folder cannot be created.
+        OutputError: the folder cannot be created or written.
     """
 
     def __init__(self, out_dir: str | Path, grid: Grid, specs: Sequence[LayerSpec], overwrite: bool = False,
-                 rows: tuple[int, int] | None = None, clean: bool = True, check: bool = True) -> None:
+                 rows: tuple[int, int] | None = None) -> None:
         self.out_dir = Path(out_dir)
         self.grid = grid
         self.specs = {s.name: s for s in specs}
@@ -134,16 +131,14 @@ class PredictionWriter:
         self.rows = rows or (0, grid.height)
         self._strip_start = None if rows is None else rows[0]
         self.folder = prediction_folder(self.out_dir)
-        if check:
-            self.folder.claim(folder_files(s.name for s in specs), overwrite)
         self._created_dir = make_output_dir(self.out_dir)
         self._datasets: dict[str, Any] = {}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aerialmtl-writer")
         self._pending: list[Future[None]] = []
         self._slots = threading.BoundedSemaphore(MAX_PENDING_BLOCKS)
+        self._partials: dict[str, tuple[Path, Path]] = {}  # converted: key → (hidden file, final path)
+        self._stats: dict[str, BandStats | None] = {}
         self.seconds_writing = 0.0
-        if clean:
-            self.folder.remove_leftovers(ALL_FILES)
         try:
             r0, r1 = self.rows
             transform = grid.window_transform(Window(0, r0, grid.width, r1 - r0))
@@ -153,11 +148,8 @@ class PredictionWriter:
                 dst = rasterio.open(self.staging(s.name), "w", **profile)
                 self._datasets[s.name] = dst
                 _apply_metadata(dst, s)
-        except Exception as exc:
-            self.abort()
-            if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
-                raise _writable_error(self.out_dir, exc) from exc
-            raise
+        except BaseException as exc:
+            self._fail(exc)
 
     def staging(self, name: str, row_start: int | None = -1) -> Path:
         """Staging path of layer ``name`` (of this writer's strip by default)."""
@@ -216,21 +208,24 @@ class PredictionWriter:
         return {name: self.staging(name) for name in self.specs}
 
     # ---- committing -------------------------------------------------------------------------------
-    def commit(self, info: dict[str, Any], strips: Sequence[int] = ()) -> dict[str, Path]:
-        """Convert every layer to a COG, write ``prediction.json``, then rename all to their final names.
+    def _fail(self, exc: BaseException) -> NoReturn:
+        """Remove this run's hidden files and raise ``exc`` (an OS error as the one-line :class:`OutputError`)."""
+        for tmp, _ in self._partials.values():
+            tmp.unlink(missing_ok=True)
+        self.abort()
+        if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
+            raise _writable_error(self.out_dir, exc) from exc
+        raise exc
+
+    def convert(self, strips: Sequence[int] = ()) -> None:
+        """Convert every layer to a hidden COG (``.NAME.partial``) and delete the staging files.
 
         Args:
-            info: the run information written to ``prediction.json`` (``files`` is added).
             strips: first rows of the other strips of a distributed run (their staging files, written
                 by other processes, are joined with this writer's through a VRT).
-
-        Returns:
-            name → final path (``"prediction"`` for the JSON file).
         """
         from aerialmtl.io.vrt import mosaic_vrt
 
-        partials: dict[str, tuple[Path, Path]] = {}
-        extras: dict[str, tuple[Path, Path]] = {}
         merged: list[Path] = []
         try:
             self.finish()
@@ -248,46 +243,53 @@ class PredictionWriter:
                     sources[name] = vrt
             threads = cog_threads()
 
-            stats: dict[str, BandStats | None] = {}
-
             def convert(name: str) -> tuple[str, Path]:
                 spec = self.specs[name]
                 partial = staging_path(self.out_dir / spec.filename)
                 to_cog(sources[name], partial, categorical=spec.categorical, level=COG_LEVEL, num_threads=threads)
                 # from the COG's overviews: the display range of the style, the statistics of the STAC item
-                stats[name] = None if spec.categorical else band_stats(partial)
+                self._stats[name] = None if spec.categorical else band_stats(partial)
                 return name, partial
 
             with ThreadPoolExecutor(max_workers=max(1, len(self.specs)), thread_name_prefix="aerialmtl-cog") as pool:
                 futures = [pool.submit(convert, n) for n in self.specs]
                 for fut in futures:
                     name, partial = fut.result()
-                    partials[name] = (partial, self.out_dir / self.specs[name].filename)
+                    self._partials[name] = (partial, self.out_dir / self.specs[name].filename)
             for paths in stagings.values():
                 for path in paths:
                     path.unlink(missing_ok=True)
+        except BaseException as exc:
             for vrt in merged:
                 vrt.unlink(missing_ok=True)
-            info = dict(info, created=datetime.now(timezone.utc).replace(microsecond=0).isoformat())
-            extras = self._write_metadata(info, stats)
+            self._fail(exc)
+        for vrt in merged:
+            vrt.unlink(missing_ok=True)
+
+    def publish(self, record: PredictionRecord) -> dict[str, Path]:
+        """Write the styles, ``item.json`` and ``prediction.json`` (``record`` with ``created``, ``files`` and
+        ``file_sizes`` added), then rename every file of :meth:`convert` to its final name, ``prediction.json``
+        last.
+
+        Returns:
+            layer name → final path (``"prediction"`` for the JSON file).
+        """
+        partials = self._partials
+        try:
+            now = datetime.now(timezone.utc).replace(microsecond=0)
+            record = record.model_copy(update={"created": now.isoformat()})
+            extras = self._write_metadata(record, self._stats)
             partials.update(extras)
-            info = dict(info, files={n: p.name for n, (_, p) in partials.items()},
-                        # the layers' sizes; the styles and item.json are the user's to edit (QGIS "Save as
-                        # default", a STAC datetime) without making the folder look incomplete
-                        file_sizes={p.name: tmp.stat().st_size for k, (tmp, p) in partials.items()
-                                    if k not in extras})
+            record = record.model_copy(update={
+                "files": {n: p.name for n, (_, p) in partials.items()},
+                # the layers' sizes; the styles and item.json are the user's to edit (QGIS "Save as
+                # default", a STAC datetime) without making the folder look incomplete
+                "file_sizes": {p.name: tmp.stat().st_size for k, (tmp, p) in partials.items() if k not in extras}})
             js = staging_path(self.out_dir / INFO_FILE)
-            js.write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
+            js.write_text(record.to_json(), encoding="utf-8")
             partials["prediction"] = (js, self.out_dir / INFO_FILE)
         except BaseException as exc:
-            for tmp, _ in partials.values():
-                tmp.unlink(missing_ok=True)
-            for vrt in merged:
-                vrt.unlink(missing_ok=True)
-            self.abort()
-            if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
-                raise _writable_error(self.out_dir, exc) from exc
-            raise
+            self._fail(exc)
         if self.overwrite:  # layers of an earlier run this run does not produce would be stale: those its
             produced = {p.name for _, p in partials.values()}  # prediction.json lists (it proves they are its own)
             owned = PredictionFolder(self.out_dir).owned_files()
@@ -297,7 +299,8 @@ class PredictionWriter:
             os.replace(tmp, final)
         return {n: final for n, (_, final) in partials.items() if n not in extras}
 
-    def _write_metadata(self, info: dict[str, Any], stats: dict[str, BandStats | None]) -> dict[str, tuple[Path, Path]]:
+    def _write_metadata(self, record: PredictionRecord,
+                        stats: dict[str, BandStats | None]) -> dict[str, tuple[Path, Path]]:
         """The QGIS style of every layer and the STAC item, as hidden partial files.
 
         Returns:
@@ -311,7 +314,7 @@ class PredictionWriter:
             qml = staging_path(self.out_dir / style_filename(name))
             out[f"{name}_style"] = (write_style(qml, layer_style(spec, stats.get(name)), atomic=False),
                                     self.out_dir / style_filename(name))
-        item = build_item(self.out_dir, self.grid, list(self.specs.values()), info, stats)
+        item = build_item(self.out_dir, self.grid, list(self.specs.values()), record.model_dump(), stats)
         out["item"] = (write_json(staging_path(self.out_dir / ITEM_FILE), item, atomic=False),
                        self.out_dir / ITEM_FILE)
         return out

@@ -22,6 +22,13 @@ Activation = Literal["relu", "leaky_relu"]
 #: The output of an aleatoric height head: the per-pixel Laplace scale b (metres).
 HEIGHT_SCALE = "height_scale"
 
+#: The bin logits of a height-bin head (B×K×H×W), returned in training mode only (for the loss).
+HEIGHT_BINS = "height_bins"
+
+#: The Laplace scale of a height-bin head (B×1×H×W metres), returned in training mode only: with it the
+#: height is trained by the Laplace NLL as in the aleatoric head, while the spread comes from the bins.
+HEIGHT_LAPLACE = "height_laplace"
+
 #: The tasks a D3-Net can have, in output order.
 TASKS: tuple[Task, ...] = ("height", "classes")
 
@@ -59,6 +66,11 @@ class Architecture:
             :func:`aerialmtl.training.losses.laplace_nll`). The predictive spread then combines it with the
             MC-dropout (epistemic) spread: ``std² = mean_t 2·b_t² + var_t μ_t``. An option beside the paper's
             network (``false``: one height channel, MC dropout alone).
+        height_bins: with ``aleatoric``, 0 (default: the spread is the Laplace scale) or K ≥ 2: the height
+            head also outputs K logits over height bins, trained with cross-entropy beside the height's Laplace
+            NLL, and the spread is the bins' second moment around the height instead of the Laplace scale
+            (see :mod:`aerialmtl.models.height_bins`). An option beside the Laplace scale.
+        height_bin_max: the top bin edge in metres (heights above it fall in the last bin).
         task_activation: the activation of the task-owned decoder blocks: ``relu`` (the paper's) or
             ``leaky_relu`` (slope 0.01), an option: with ReLU, on many pixels every feature entering the
             height head is 0 and the head outputs its bias alone (the same height, and the same spread, for
@@ -76,6 +88,8 @@ class Architecture:
     encoder_weights: str | None = None
     encoder: str = "densenet121"
     aleatoric: bool = False
+    height_bins: int = 0
+    height_bin_max: float = 40.0
     task_activation: Activation = "relu"
 
     def __post_init__(self) -> None:
@@ -84,6 +98,16 @@ class Architecture:
                               f"got {self.task_activation!r}")
         if not isinstance(self.aleatoric, bool):
             raise ConfigError(f"model.aleatoric: must be true or false, got {self.aleatoric!r}")
+        if not isinstance(self.height_bins, int) or isinstance(self.height_bins, bool) or not (
+                self.height_bins == 0 or 2 <= self.height_bins <= 256):
+            raise ConfigError(f"model.height_bins: must be 0 (a Laplace scale) or a number of bins in 2..256, "
+                              f"got {self.height_bins!r}")
+        if self.height_bins and not self.aleatoric:
+            raise ConfigError("model.height_bins: the height bins are a kind of aleatoric height head; set "
+                              "model.aleatoric: true, or model.height_bins: 0")
+        if not (isinstance(self.height_bin_max, (int, float)) and 1.0 <= float(self.height_bin_max) <= 1000.0):
+            raise ConfigError(f"model.height_bin_max: must be a height in metres in 1..1000, got "
+                              f"{self.height_bin_max!r}; a little above the area's tallest objects, e.g. 40")
         if self.encoder not in ENCODERS:
             raise ConfigError(f"model.encoder: must be one of {', '.join(ENCODERS)}, got {self.encoder!r}")
         if self.encoder_weights == "imagenet" and not ENCODERS[self.encoder].imagenet:

@@ -32,8 +32,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from aerialmtl.errors import InputError
-from aerialmtl.models.config import HEIGHT_SCALE, ModelConfig
+from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE, ModelConfig
 from aerialmtl.models.encoders import encoder_spec, feature_channels
+from aerialmtl.models.height_bins import bin_edges, bins_scale
 
 #: H and W of the input must be multiples of this (five stride-2 stages).
 SIZE_MULTIPLE = 32
@@ -123,8 +124,10 @@ class D3Net(nn.Module):
 
     ``forward(x)`` maps a B×C×H×W normalised image (C = ``cfg.in_channels``, H and W multiples of 32)
     to ``{"height": B×1×H×W metres, "classes": B×K×H×W logits}`` for the enabled tasks, plus
-    ``"height_scale"`` (B×1×H×W Laplace scale b in metres, > 0) with ``cfg.aleatoric``; :attr:`outputs` lists
-    the keys in order.
+    ``"height_scale"`` (B×1×H×W Laplace scale b in metres, > 0) with ``cfg.aleatoric`` (with
+    ``cfg.height_bins``: the bins' spread as b = std/√2, and in training mode also ``"height_bins"``, the
+    B×K×H×W bin logits, and ``"height_laplace"``, the Laplace scale that trains the height); :attr:`outputs`
+    lists the keys of inference in order.
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -143,7 +146,8 @@ class D3Net(nn.Module):
         self.shared = nn.ModuleList(
             UpBlock(ins[j], outs[j], cfg.dropout if j < cfg.dropout_blocks else 0.0) for j in range(n_shared)
         )
-        out_ch = {"height": TASK_CHANNELS_HEIGHT + int(cfg.aleatoric), "classes": cfg.num_classes}
+        # the height, [a Laplace scale channel], [K bin logits]
+        out_ch = {"height": TASK_CHANNELS_HEIGHT + int(cfg.aleatoric) + cfg.height_bins, "classes": cfg.num_classes}
         self.heads = nn.ModuleDict({
             t: TaskDecoder([UpBlock(ins[j], outs[j], activation=cfg.task_activation) for j in range(n_shared, n_up)],
                            outs[-1], out_ch[t])
@@ -151,6 +155,9 @@ class D3Net(nn.Module):
         })
         self.outputs: tuple[str, ...] = cfg.outputs
         self._n_up = n_up
+        #: the height bins' edges (metres) with ``cfg.height_bins``; a buffer, so that it follows the device
+        self.register_buffer("bin_edges", bin_edges(cfg.height_bins, cfg.height_bin_max) if cfg.height_bins
+                             else torch.zeros(0), persistent=False)
         self._reset_decoder()
         if cfg.encoder_weights:
             spec.load_weights(self.encoder, cfg.encoder_weights)
@@ -166,10 +173,10 @@ class D3Net(nn.Module):
                 nn.init.zeros_(m.bias)
         for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
             nn.init.normal_(cast(TaskDecoder, head).head.weight, std=1e-3)
-        if self.cfg.aleatoric and "height" in self.heads:  # scale channel: b ≈ 1 m at start
+        if self.cfg.aleatoric and "height" in self.heads:  # scale channel: b ≈ 1 m at start (bin logits: 0)
             bias = cast(TaskDecoder, self.heads["height"]).head.bias
             assert bias is not None
-            nn.init.constant_(bias[TASK_CHANNELS_HEIGHT:], SCALE_INIT)
+            nn.init.constant_(bias[TASK_CHANNELS_HEIGHT:TASK_CHANNELS_HEIGHT + 1], SCALE_INIT)
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
@@ -211,7 +218,14 @@ class D3Net(nn.Module):
         results: dict[str, torch.Tensor] = {}
         for task, dec in self.heads.items():
             y = dec(out, skips)
-            if task == "height" and self.cfg.aleatoric:
+            if task == "height" and self.cfg.height_bins:
+                mu, raw_b, logits = y[:, :1], y[:, 1:2], y[:, 2:]
+                results[task] = mu
+                results[HEIGHT_SCALE] = bins_scale(logits, mu.detach(), cast(torch.Tensor, self.bin_edges), SCALE_MIN)
+                if self.training:  # the loss needs these; inference (and the engines) only the spread
+                    results[HEIGHT_LAPLACE] = laplace_scale(raw_b)
+                    results[HEIGHT_BINS] = logits
+            elif task == "height" and self.cfg.aleatoric:
                 results[task] = y[:, :TASK_CHANNELS_HEIGHT]
                 results[HEIGHT_SCALE] = laplace_scale(y[:, TASK_CHANNELS_HEIGHT:])
             else:

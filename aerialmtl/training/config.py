@@ -136,7 +136,9 @@ class LossSection:
     With ``model.aleatoric: true`` the height loss is the Laplace negative log-likelihood
     (:func:`~aerialmtl.training.losses.laplace_nll`), the likelihood of the paper's L1; ``height`` must then
     be ``l1``, and ``nll_beta`` (β-NLL, 0 … 1) sets how much the learned scale down-weights hard pixels'
-    pull on the heights (0: plain NLL; 1: the heights get L1's gradient).
+    pull on the heights (0: plain NLL; 1: the heights get L1's gradient). With ``model.height_bins`` the
+    height loss adds ``bins_weight`` × the cross-entropy of the reference height's bin
+    (:mod:`aerialmtl.models.height_bins`).
 
     ``class_weights``: ``none``, ``balanced`` (``N / (K · n_k)`` from the train split's pixel counts,
     normalised to mean 1 over present classes) or an explicit list of K floats.
@@ -146,8 +148,12 @@ class LossSection:
     classes: Literal["ce"] = "ce"
     class_weights: Literal["none", "balanced"] | tuple[float, ...] = "none"
     nll_beta: float = 0.0
+    bins_weight: float = 1.0
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.bins_weight, (int, float)) and 0.0 < float(self.bins_weight) <= 100.0):
+            raise ConfigError(f"loss.bins_weight: must be a number in (0, 100], got {self.bins_weight!r}; 1 weighs "
+                              "the height bins' cross-entropy (nats) like the L1 height loss (metres)")
         if not (isinstance(self.nll_beta, (int, float)) and 0.0 <= float(self.nll_beta) <= 1.0):
             raise ConfigError(f"loss.nll_beta: must be a number in [0, 1], got {self.nll_beta!r}; 0 is the plain "
                               "Laplace NLL of Kendall & Gal, 1 trains the heights exactly as L1 does")

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aerialmtl.errors import ConfigError
+from aerialmtl.models.height_bins import bin_index
 
 IGNORE_INDEX = 255
 
@@ -173,6 +174,18 @@ def laplace_nll(pred: torch.Tensor, scale: torch.Tensor, target: torch.Tensor, m
     return _masked_mean(torch.where(mask, per, torch.zeros((), device=per.device)), mask)
 
 
+def height_bins_ce(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
+                   edges: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy (nats, mean over valid pixels) of B×K×H×W height-bin logits against the bin of the
+    B×1×H×W reference height (metres); see :mod:`aerialmtl.models.height_bins`. 0 (with a gradient) when no
+    pixel is valid.
+    """
+    valid = _check(logits[:, :1], target, mask)
+    idx = bin_index(torch.where(valid, target.float(), torch.zeros((), device=target.device))[:, 0], edges)
+    ce = F.cross_entropy(logits.float(), idx, reduction="none")
+    return _masked_mean(torch.where(valid[:, 0], ce, torch.zeros((), device=ce.device)), valid)
+
+
 def cross_entropy(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None,
                   ignore_index: int = IGNORE_INDEX, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Class-weighted cross-entropy (nats) over labelled pixels.
@@ -255,5 +268,6 @@ class CrossEntropyLoss(nn.Module):
         return cross_entropy(logits, target, self.weight, self.ignore_index, mask)
 
 
-__all__ = ["laplace_nll", "l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
+__all__ = ["laplace_nll", "height_bins_ce",
+           "l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
            "HEIGHT_LOSSES", "CLASS_LOSSES", "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]

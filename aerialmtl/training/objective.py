@@ -23,7 +23,8 @@ from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.data.dataset import class_pixel_counts
 from aerialmtl.errors import ConfigError, InputError
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo
-from aerialmtl.models.config import HEIGHT_SCALE
+from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE
+from aerialmtl.models.height_bins import bin_edges
 from aerialmtl.training import losses
 from aerialmtl.training.config import TrainConfig
 
@@ -68,6 +69,9 @@ class Objective:
         self.class_weights = class_weights
         self.task_weights = {t: float(cfg.weighting.task_weights.get(t, 1.0)) for t in tasks}
         self.nll_beta = float(cfg.loss.nll_beta)
+        self.bins_weight = float(cfg.loss.bins_weight)
+        bins = cfg.model.height_bins
+        self.bin_edges = bin_edges(bins, float(cfg.model.height_bin_max)) if bins else None
 
     def __call__(self, out: dict[str, torch.Tensor], batch: dict[str, Any], scoring: bool = False) -> dict[
             str, torch.Tensor]:
@@ -76,10 +80,20 @@ class Objective:
         With an aleatoric height head (``out`` holds ``height_scale``) the height loss is the Laplace NLL
         (:func:`~aerialmtl.training.losses.laplace_nll`); with ``scoring`` (validation, which picks
         ``best.pt``) it is ``loss.height`` of the mean alone, so every model is chosen by the same measure.
+        With a height-bin head it is the Laplace NLL of the height and its training scale plus
+        ``loss.bins_weight`` × the cross-entropy of the reference height's bin, where the model returns them
+        (training mode); else (validation) ``loss.height`` of the height alone.
         """
         result: dict[str, torch.Tensor] = {}
         if "height" in self.tasks:
-            if HEIGHT_SCALE in out and not scoring:
+            if self.bin_edges is not None and HEIGHT_BINS in out and not scoring:
+                nll = losses.laplace_nll(out["height"].float(), out[HEIGHT_LAPLACE].float(), batch["height"],
+                                         batch["height_valid"], beta=self.nll_beta)
+                result["height"] = nll + self.bins_weight * losses.height_bins_ce(
+                    out[HEIGHT_BINS], batch["height"], batch["height_valid"], self.bin_edges)
+            elif self.bin_edges is not None:  # inference outputs of a bin head: the height alone
+                result["height"] = self.height_fn(out["height"].float(), batch["height"], batch["height_valid"])
+            elif HEIGHT_SCALE in out and not scoring:
                 result["height"] = losses.laplace_nll(out["height"].float(), out[HEIGHT_SCALE].float(),
                                                       batch["height"], batch["height_valid"], beta=self.nll_beta)
             else:

@@ -49,11 +49,12 @@ def identity_meta(bands: int = 3, mean: float = 0.0, std: float = 1.0, gsd: floa
 TINY = dict(growth_rate=4, block_config=(1, 1, 1, 1), num_init_features=8, bn_size=2)
 
 
-def tiny_d3net(gsd: float = 0.5, k: int = 4) -> tuple[D3Net, ModelMeta]:
-    """An untrained tiny D3-Net (seed 0) with ``k`` classes of the synthetic scheme, bands r, g, b."""
+def tiny_d3net(gsd: float = 0.5, k: int = 4, **model: object) -> tuple[D3Net, ModelMeta]:
+    """An untrained tiny D3-Net (seed 0) with ``k`` classes of the synthetic scheme, bands r, g, b; ``model``:
+    further :class:`ModelConfig` fields (e.g. ``aleatoric=True``)."""
     torch.manual_seed(0)
     scheme = ClassScheme.load("synthetic")
     scheme = ClassScheme(scheme.name, scheme.classes[:k])
-    cfg = ModelConfig(num_classes=k, **TINY)  # type: ignore[arg-type]
+    cfg = ModelConfig(num_classes=k, **{**TINY, **model})  # type: ignore[arg-type]
     meta = ModelMeta(cfg, scheme, (1, 2, 3), (120.0, 110.0, 100.0), (40.0, 40.0, 40.0), gsd, ("r", "g", "b"))
     return D3Net(cfg).eval(), meta
