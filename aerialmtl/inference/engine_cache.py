@@ -122,30 +122,28 @@ class EngineCache:
         """The sections of entry ``name``, or ``None`` when it is missing or was corrupt (then removed, with a
         warning, so that it is rebuilt).
         """
-        if self.folder is None:
+        entry = self._entry(name)
+        if entry is None:
             return None
-        path = self.folder / name
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
-            return None
-        except OSError as exc:
-            warnings.warn(f"cached OpenVINO model '{path}' is unreadable ({exc.strerror or exc}); rebuilding it",
-                          UserWarning, stacklevel=3)
-            self._remove(path)
-            return None
-        try:
-            return unpack(data)
-        except CorruptEntry as exc:
-            warnings.warn(f"cached OpenVINO model '{path}' is corrupt ({exc}); rebuilding it", UserWarning,
-                          stacklevel=3)
-            self._remove(path)
-            return None
+        data, lengths, pos = entry
+        view, out = memoryview(data), []
+        for n in lengths:
+            out.append(bytes(view[pos:pos + n]))
+            pos += n
+        return out
 
     def read_one(self, name: str) -> np.ndarray | None:
         """The one section of entry ``name`` as a writable uint8 array over the file's bytes as read (no copy:
         a compiled model of ~100 MB is then imported from it with one copy less than from :meth:`read`), or
         ``None`` as :meth:`read` (a corrupt entry, or one of several sections, is removed with a warning).
+        """
+        entry = self._entry(name, sections=1)
+        return None if entry is None else np.frombuffer(entry[0], np.uint8, offset=entry[2])
+
+    def _entry(self, name: str, sections: int | None = None) -> tuple[bytearray, list[int], int] | None:
+        """Entry ``name`` read whole into one buffer and checked: ``(bytes, section lengths, payload start)``, or
+        ``None`` when it is missing, unreadable or corrupt (or has other than ``sections`` sections): those are
+        removed with a warning.
         """
         if self.folder is None:
             return None
@@ -161,19 +159,19 @@ class EngineCache:
             return None
         except OSError as exc:
             warnings.warn(f"cached OpenVINO model '{path}' is unreadable ({exc.strerror or exc}); rebuilding it",
-                          UserWarning, stacklevel=3)
+                          UserWarning, stacklevel=4)
             self._remove(path)
             return None
         try:
             lengths, pos = _checked(data)
-            if len(lengths) != 1:
-                raise CorruptEntry(f"it holds {len(lengths)} sections where one was expected")
+            if sections is not None and len(lengths) != sections:
+                raise CorruptEntry(f"it holds {len(lengths)} sections where {sections} were expected")
         except CorruptEntry as exc:
             warnings.warn(f"cached OpenVINO model '{path}' is corrupt ({exc}); rebuilding it", UserWarning,
-                          stacklevel=3)
+                          stacklevel=4)
             self._remove(path)
             return None
-        return np.frombuffer(data, np.uint8, offset=pos)
+        return data, lengths, pos
 
     def write(self, name: str, sections: Sequence[bytes]) -> None:
         """Store entry ``name`` (through its staging file); an unwritable folder turns caching off."""
