@@ -56,7 +56,6 @@ from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.predict import Predictor
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import prediction_folder
-from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
@@ -70,11 +69,6 @@ class Target:
     ortho: str
     out: Path
     src: OrthoInput | None = None
-
-    @property
-    def grid(self) -> Grid | None:
-        """The input's grid, once opened."""
-        return None if self.src is None else self.src.grid
 
     @property
     def plan(self) -> Plan | None:
