@@ -50,10 +50,19 @@ COLLECTIVE_TIMEOUT = _dt.timedelta(minutes=30)
 #: How long a prediction rank waits for the others at the end of its share (they may have hours of
 #: work left: the shares are equal in pixels, not in time).
 SHARE_TIMEOUT = _dt.timedelta(days=7)
-#: GDAL block cache while streaming rasters (MB): it serves the windows being read (a few tiles each)
-#: and the staging tiles being written; a larger cache only grows memory with the raster width. A
-#: ``GDAL_CACHEMAX`` environment variable wins.
-GDAL_CACHE_MB = 32
+#: GDAL's block cache (``GDAL_CACHEMAX``) while a command streams rasters, **in bytes**, per command: the one
+#: place these sizes are set (:func:`gdal_env`); a ``GDAL_CACHEMAX`` environment variable wins.
+#:
+#: * ``tile``: 128 MiB, keeps memory flat on huge rasters;
+#: * ``buildings``: 64 MiB, every block is read once, so a cache larger than one block row of tiles only
+#:   grows with the raster (GDAL's default is 5 % of the RAM);
+#: * ``predict``: 32 **bytes**, i.e. practically no block cache. Earlier versions meant 32 MB (GDAL reads a
+#:   ``GDAL_CACHEMAX`` *configuration option* below 100000 as megabytes), but ``rasterio.Env`` hands the
+#:   number to ``GDALSetCacheMax64``, which takes bytes: predict has always run this way (its reader threads
+#:   read whole windows, and the writer's staging files are uncompressed, written block by block). Kept: an
+#:   earlier attempt at 32 MiB changed where a full disk surfaces during the staging writes (the one-line
+#:   message test failed) and it was never benchmarked; changing it is a change of behaviour, not a unit fix.
+GDAL_CACHE_BYTES: dict[str, int] = {"tile": 128 * 2**20, "buildings": 64 * 2**20, "predict": 32}
 #: CPU flags (``/proc/cpuinfo``) of native bf16 matrix arithmetic.
 BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
 #: Environment variable that replaces the CPU probe of :func:`cpu_bf16_flags` (read on first use).
@@ -431,21 +440,20 @@ def _collective(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
 
 
 # ---- GDAL ---------------------------------------------------------------------------------------
-def gdal_env(cache: int = GDAL_CACHE_MB, **options: Any) -> rasterio.Env:
-    """GDAL settings while a command streams rasters (the one place that sets GDAL's block cache).
+def gdal_env(command: Literal["tile", "buildings", "predict"], **options: Any) -> rasterio.Env:
+    """GDAL settings while ``command`` streams rasters (the one place that sets GDAL's block cache).
 
     Args:
-        cache: the ``GDAL_CACHEMAX`` value, as each command has always passed it (prediction:
-            :data:`GDAL_CACHE_MB`; tile and buildings: a size in bytes); a ``GDAL_CACHEMAX`` environment
-            variable wins.
+        command: whose block cache: :data:`GDAL_CACHE_BYTES` (bytes, as ``rasterio.Env`` passes them to
+            GDAL); a ``GDAL_CACHEMAX`` environment variable wins.
         options: other GDAL configuration options for the block (e.g. ``GDAL_TIFF_INTERNAL_MASK=True``).
     """
     if "GDAL_CACHEMAX" not in os.environ:  # a user's own setting wins
-        options["GDAL_CACHEMAX"] = cache
+        options["GDAL_CACHEMAX"] = GDAL_CACHE_BYTES[command]
     return rasterio.Env(**options)
 
 
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "MAX_STREAMS", "SHARE_TIMEOUT", "THREADS_ENV",
-           "CompileFallback", "CpuThreads", "GDAL_CACHE_MB", "Precision", "Resolved", "Torchrun", "autocast",
+           "CompileFallback", "CpuThreads", "GDAL_CACHE_BYTES", "Precision", "Resolved", "Torchrun", "autocast",
            "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "is_peer_error", "native_bf16", "peer_failure",
            "resolve_device", "resolve_precision", "resolve_threads"]

@@ -88,9 +88,10 @@ def test_nan_validation_stops_and_never_becomes_best(tiles: Path, tmp_path: Path
 
 def test_validation_keeps_nan_batches_instead_of_scoring_them_zero(tiles: Path, tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    from aerialmtl.training.setup import prepare_training
     from aerialmtl.training.trainer import Trainer
 
-    trainer = Trainer(tiny_cfg(), tiles, tmp_path / "r", progress=False)
+    trainer = Trainer(prepare_training(tiny_cfg(), tiles, tmp_path / "r", progress=False), progress=False)
     try:
         real = trainer.objective.__call__
 

@@ -271,7 +271,7 @@ def test_loss_registries_match_the_config_choices() -> None:
 
 def test_weight_decay_spares_biases_batchnorm_and_task_weighting() -> None:
     from aerialmtl.models.d3net import D3Net
-    from aerialmtl.training.trainer import build_optimizer
+    from aerialmtl.training.setup import build_optimizer
     from aerialmtl.training.weighting import build_weighting
 
     cfg = tiny_cfg(optim={"name": "adamw", "lr": 0.1, "weight_decay": 0.5})

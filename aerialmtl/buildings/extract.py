@@ -14,7 +14,8 @@ that completed it.
 
 Memory therefore holds one block of every layer, one row of pixel ids and heights along the frontier
 (a few bytes × the raster width), the pixels of the buildings that cross it and GDAL's block
-cache (capped at :data:`DEFAULT_CACHE_MB` unless ``GDAL_CACHEMAX`` is set); it does not grow with the
+cache (capped at ``GDAL_CACHE_BYTES["buildings"]`` of :mod:`aerialmtl.runtime` unless
+``GDAL_CACHEMAX`` is set); it does not grow with the
 raster's size, only with the size of the largest building.
 
 :func:`iter_buildings` turns each merged component into a :class:`Building`: map coordinates, cleaned
@@ -49,10 +50,6 @@ from aerialmtl.errors import InputError
 from aerialmtl.formats.prediction import CLASSES
 from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.runtime import gdal_env
-
-#: GDAL block cache while extracting (MiB) unless GDAL_CACHEMAX is set: every block is read once, so a
-#: cache larger than one block row of tiles only grows with the raster (GDAL's default is 5 % of the RAM).
-DEFAULT_CACHE_MB = 64
 
 #: 4-connectivity (pixels sharing an edge), as rasterio.features.shapes uses by default.
 FOUR_CONNECTED = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
@@ -285,8 +282,7 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
     frontier_h = np.full(width, np.nan, np.float32)
     above: dict[int, list[int]] = {}  # block column → pieces of the block above that reach its bottom row
     n_blocks = -(-height // b) * -(-width // b)
-    cache = DEFAULT_CACHE_MB * 1024 * 1024  # bytes
-    with gdal_env(cache), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
+    with gdal_env("buildings"), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
         for r0 in range(0, height, b):
             bh = min(b, height - r0)
             last_row = r0 + bh >= height

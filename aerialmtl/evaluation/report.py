@@ -148,6 +148,8 @@ def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
 
     Uses matplotlib's object API with the Agg canvas (no pyplot, no global backend change).
     Raises ImportError when matplotlib is missing.
+
+    Over 80 lines: one short block per plot, in the order of the report; each draws on its own figure.
     """
     from matplotlib.figure import Figure
 

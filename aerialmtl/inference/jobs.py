@@ -56,7 +56,6 @@ from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.predict import Predictor
 from aerialmtl.inference.windows import Plan
 from aerialmtl.inference.writer import prediction_folder
-from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
@@ -70,11 +69,6 @@ class Target:
     ortho: str
     out: Path
     src: OrthoInput | None = None
-
-    @property
-    def grid(self) -> Grid | None:
-        """The input's grid, once opened."""
-        return None if self.src is None else self.src.grid
 
     @property
     def plan(self) -> Plan | None:
@@ -194,7 +188,7 @@ def predict_many(
     targets = targets_for(orthos, out)
     device = ranks.resolve_device(str(predictor_args.pop("device", "auto")))
     predictor = Predictor(checkpoint, device=str(device), **predictor_args)
-    with runtime.gdal_env():
+    with runtime.gdal_env("predict"):
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = predictor.open(t.ortho, warn=False)
     ranks.join(predictor.device, runtime.SHARE_TIMEOUT)
@@ -229,14 +223,51 @@ def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Pa
 def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun, aoi: str | Path | None,
          overwrite: bool, skip_existing: bool, progress: bool,
          on_result: Callable[[PredictResult], None] | None) -> JobResult:
-    """:func:`predict_many` once the folders are held: plan the ranks' shares, compute, commit, mosaic.
-
-    Over 80 lines: it still owns the writers' life across ranks; the per-input job that will own it
-    (the predictor keeping only the model) is the next step of the predict/job split.
+    """:func:`predict_many` once the folders are held: choose the inputs, claim their outputs, plan the ranks'
+    shares, compute and commit (one :class:`~aerialmtl.inference.job.InputJob` per input or strip), mosaic.
     """
     done = JobResult(ranks=ranks)
+    todo, replace = _select(predictor, targets, aoi, skip_existing, done)
+    if not overwrite:  # once per input, before any work
+        _claim(predictor, targets, out, todo, replace)
+    if ranks.rank == 0:
+        for k in todo:
+            src = targets[k].src
+            assert src is not None
+            src.warn_resampled(predictor.meta)
+            src.warn_unused_bands(predictor.meta)
+    mine, shared = _shares(targets, todo, ranks)
+    if ranks.rank == 0:  # hidden files of killed runs: removed before any rank writes
+        for k in todo:
+            prediction_folder(targets[k].out).remove_leftovers(ALL_FILES)
+    ranks.gather(None)  # barrier
+    with runtime.gdal_env("predict"):
+        failures = _compute(predictor, targets, mine, shared, replace, ranks, aoi, overwrite, progress,
+                            lambda res: done.add(res, on_result))
+    if failures:
+        if ranks.rank == 0:  # strips of failed inputs: hidden files only, final paths untouched
+            for t in targets:
+                if str(t.ortho) in {f[0] for f in failures} and t.out.is_dir():
+                    prediction_folder(t.out).remove_leftovers(ALL_FILES)
+        ortho, rank, message = failures[0]
+        more = f" ({len(failures) - 1} more input(s) failed too)" if len(failures) > 1 else ""
+        raise PeerFailure(
+            f"rank {rank} failed on input '{ortho}': {message}{more}; the other inputs are complete: fix it and "
+            "re-run with ‹skip_existing=True› to finish"
+        )
+    if len(targets) > 1 and ranks.rank == 0:
+        done.mosaics = write_mosaics(predictor, targets, out)
+    ranks.gather(None)  # nobody leaves before the mosaics exist
+    return done
+
+
+def _select(predictor: Predictor, targets: Sequence[Target], aoi: str | Path | None, skip_existing: bool,
+            done: JobResult) -> tuple[list[int], set[int]]:
+    """The inputs to compute, and those of them whose earlier, outdated outputs ``skip_existing`` recomputes
+    (their ``prediction.json`` proves every output there is that run's); the skipped ones go into ``done``.
+    """
     todo = []
-    replace: set[int] = set()  # inputs whose earlier, outdated outputs --skip-existing recomputes
+    replace: set[int] = set()
     files = folder_files(s.name for s in predictor.layers)  # layers, styles, item.json, prediction.json
     for k, t in enumerate(targets):
         if skip_existing:
@@ -252,58 +283,69 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
                 if all(f in owned for f in files if (t.out / f).exists()):
                     replace.add(k)
         todo.append(k)
-    if not overwrite:  # once per input, before any work
-        for k in todo:
-            if k not in replace:
-                prediction_folder(targets[k].out, "out").claim(files, overwrite=False)
-        if len(targets) > 1:  # the mosaics and collection.json: a user's own are never replaced silently
-            owned = set(collection_files(out))
-            prediction_folder(out, "out").claim(
-                [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned], overwrite=False)
-    if ranks.rank == 0:
-        for k in todo:
-            src = targets[k].src
-            assert src is not None
-            src.warn_resampled(predictor.meta)
-            src.warn_unused_bands(predictor.meta)
+    return todo, replace
+
+
+def _claim(predictor: Predictor, targets: Sequence[Target], out: Path, todo: Sequence[int],
+           replace: set[int]) -> None:
+    """Refuse existing outputs (without ``overwrite``): each input's, and with several inputs the mosaics and
+    ``collection.json`` (a user's own are never replaced silently).
+    """
+    files = folder_files(s.name for s in predictor.layers)
+    for k in todo:
+        if k not in replace:
+            prediction_folder(targets[k].out, "out").claim(files, overwrite=False)
+    if len(targets) > 1:
+        owned = set(collection_files(out))
+        prediction_folder(out, "out").claim(
+            [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned], overwrite=False)
+
+
+def _shares(targets: Sequence[Target], todo: Sequence[int], ranks: runtime.Torchrun) -> tuple[list[Share], set[int]]:
+    """This rank's shares (:func:`partition` of the inputs' window rows), and the inputs cut between ranks."""
     plans = {k: targets[k].plan for k in todo}
     costs = [[float(len(p.cols.starts) * p.rows.size * p.cols.size)] * len(p.window_rows)
              for p in plans.values() if p is not None]
     shares = partition(costs, ranks.world)
     mine = [Share(todo[s.target], s.start, s.stop) for s in shares[ranks.rank]]
     shared = {todo[s.target] for r in shares for s in r
-             if s.start > 0 or s.stop < len(targets[todo[s.target]].plan.window_rows)}  # type: ignore[union-attr]
-    if ranks.rank == 0:  # hidden files of killed runs: removed before any rank writes
-        for k in todo:
-            prediction_folder(targets[k].out).remove_leftovers(ALL_FILES)
-    ranks.gather(None)  # barrier
+              if s.start > 0 or s.stop < len(targets[todo[s.target]].plan.window_rows)}  # type: ignore[union-attr]
+    return mine, shared
 
+
+def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Share], shared: set[int],
+             replace: set[int], ranks: runtime.Torchrun, aoi: str | Path | None, overwrite: bool, progress: bool,
+             committed: Callable[[PredictResult], None]) -> list[tuple[str, int, str]]:
+    """Compute this rank's shares and commit what it owns: a whole input at once, a shared one (its first
+    strip here) once every rank's strips are in; ``committed`` gets each result.
+
+    Returns:
+        every rank's failures, ``(input, rank, message)`` (in one process the first failure is raised instead).
+    """
     failures: list[tuple[str, int, str]] = []
     strips: dict[int, StripResult] = {}
     committers: dict[int, InputJob] = {}  # shared inputs this rank commits: the job of their first strip
-    with runtime.gdal_env():
-        for share in mine:
-            t = targets[share.target]
-            assert t.src is not None
-            whole = share.target not in shared
-            started = time.perf_counter()
-            job = InputJob(predictor, t.src, t.out, aoi=aoi, overwrite=overwrite or share.target in replace)
-            try:
-                strip = job.strip(None if whole else (share.start, share.stop), check_outputs=False,
-                                  progress=progress and ranks.rank == 0)
-                if whole:  # the one-strip case: commit at once
-                    res = job.commit([strip], started=started)
-            except Exception as exc:
-                if ranks.world == 1:
-                    raise
-                failures.append((str(t.ortho), ranks.rank, _one_line(exc)))
-                continue
-            if whole:
-                done.add(res, on_result)
-            else:
-                strips[share.target] = strip
-                if share.start == 0:
-                    committers[share.target] = job  # this rank joins the strips
+    for share in mine:
+        t = targets[share.target]
+        assert t.src is not None
+        whole = share.target not in shared
+        started = time.perf_counter()
+        job = InputJob(predictor, t.src, t.out, aoi=aoi, overwrite=overwrite or share.target in replace)
+        try:
+            strip = job.strip(None if whole else (share.start, share.stop), check_outputs=False,
+                              progress=progress and ranks.rank == 0)
+            res = job.commit([strip], started=started) if whole else None  # the one-strip case: commit at once
+        except Exception as exc:
+            if ranks.world == 1:
+                raise
+            failures.append((str(t.ortho), ranks.rank, _one_line(exc)))
+            continue
+        if res is not None:
+            committed(res)
+            continue
+        strips[share.target] = strip
+        if share.start == 0:
+            committers[share.target] = job  # this rank joins the strips
 
     # every rank's strips and failures; then the first strip's rank commits each shared input
     gathered = ranks.gather((strips, failures))
@@ -323,24 +365,10 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
             failures.append((str(t.ortho), ranks.rank, _one_line(exc)))
             all_failures.append(failures[-1])
             continue
-        done.add(res, on_result)
+        committed(res)
     if ranks.world > 1:
         all_failures = [f for fs in ranks.gather(failures) for f in fs]
-    if all_failures:
-        if ranks.rank == 0:  # strips of failed inputs: hidden files only, final paths untouched
-            for t in targets:
-                if str(t.ortho) in {f[0] for f in all_failures} and t.out.is_dir():
-                    prediction_folder(t.out).remove_leftovers(ALL_FILES)
-        ortho, rank, message = all_failures[0]
-        more = f" ({len(all_failures) - 1} more input(s) failed too)" if len(all_failures) > 1 else ""
-        raise PeerFailure(
-            f"rank {rank} failed on input '{ortho}': {message}{more}; the other inputs are complete: fix it and "
-            "re-run with ‹skip_existing=True› to finish"
-        )
-    if len(targets) > 1 and ranks.rank == 0:
-        done.mosaics = write_mosaics(predictor, targets, out)
-    ranks.gather(None)  # nobody leaves before the mosaics exist
-    return done
+    return all_failures
 
 
 def _one_line(exc: BaseException) -> str:

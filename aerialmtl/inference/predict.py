@@ -150,13 +150,16 @@ class Predictor:
             records whether it was applied.
         rescale_input: map an orthophoto whose values do not match the training data's onto the training
             range instead of refusing it (:mod:`aerialmtl.inference.sanity`).
-        engine: ``auto``, ``torch`` or ``openvino`` (:func:`~aerialmtl.inference.engines.resolve_engine`).
         tta: test-time augmentation: each window also flipped and rotated (8 views), combined like MC samples
             into the maps and their spread (:class:`~aerialmtl.inference.runner.ModelRunner`); 8× the work.
         threads: inference threads on a CPU: a number, or ``"auto"``/``None`` (the
             :data:`~aerialmtl.runtime.THREADS_ENV` environment variable, else torch's own count);
             OpenVINO splits them into streams (:func:`aerialmtl.runtime.resolve_threads`), and
             ``prediction.json`` records both.
+
+    The constructor takes each setting as a keyword of its own (18 parameters): they are predict's options,
+    one each, which :func:`predict_raster`, :func:`~aerialmtl.inference.jobs.predict_many` and the CLI pass
+    on by name.
     """
 
     def __init__(
@@ -284,6 +287,11 @@ class Predictor:
 
         Returns:
             the windows computed and the stage times (``read``, ``model``, ``stitch_write``; seconds).
+
+        Over 80 lines: the window loop and its two stages (``flush``: windows to the stitcher and the blocks
+        to ``write``; ``finish_oldest``: an engine's batch checked and flushed) are closures over the
+        reader, the stitcher, the queue of batches in flight and the timings; apart, they would pass
+        these around on every window.
         """
         plan, grid = src.plan, src.grid
         rescale = src.rescale
@@ -382,8 +390,9 @@ class Predictor:
         """
         started = time.perf_counter()
         given = ortho.path if isinstance(ortho, OrthoInput) else ortho
-        with runtime.gdal_env(), OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
-                                              what="prediction folder"):
+        folder = OutputFolder(out, "predict", inputs={"ortho": given, "aoi": aoi}, option="out_dir",
+                              what="prediction folder")
+        with runtime.gdal_env("predict"), folder:
             job = InputJob(self, self.open(ortho), out, aoi=aoi, overwrite=overwrite)
             strip = job.strip(check_outputs=check_outputs, progress=progress)
             return job.commit([strip], started=started)
@@ -489,7 +498,7 @@ def predict_raster(
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
     Builds a :class:`Predictor` and runs it once; the arguments are those of :class:`Predictor` and
-    :meth:`Predictor.run`.
+    :meth:`Predictor.run` (22 parameters: the one-call form takes every setting of both by name).
 
     Returns:
         A :class:`PredictResult`.

@@ -155,6 +155,9 @@ class ModelRunner:
         threads: inference threads and streams on a CPU (:func:`aerialmtl.runtime.resolve_threads`).
         weights_key: the checkpoint's fingerprint, when the caller has it: keys the OpenVINO cache without
             hashing the weights again.
+
+    The constructor takes each setting as a parameter of its own (13): those of the engines
+    (:func:`~aerialmtl.inference.engines.build_engine`) and those the runner applies around them.
     """
 
     def __init__(self, model: nn.Module | CheckpointModel, meta: ModelMeta, device: torch.device,

@@ -72,9 +72,6 @@ from aerialmtl.runtime import gdal_env
 from aerialmtl.tiling.grid import count_windows, tile_windows
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
 
-#: GDAL block cache while tiling (MB) unless GDAL_CACHEMAX is set: keeps memory flat on huge rasters.
-DEFAULT_CACHE_MB = 128
-
 
 @dataclass(frozen=True)
 class TileOptions:
@@ -373,7 +370,7 @@ def tile_dataset(
     size, stride = options.size, options.step
     scheme = _check_arguments(options, dsm, dtm, ndsm, labels, labels_vector, class_field, classes)
     grid = reference_grid(ortho, options.gsd)
-    with gdal_env(DEFAULT_CACHE_MB * 1024 * 1024, GDAL_TIFF_INTERNAL_MASK=True), TileSources(
+    with gdal_env("tile", GDAL_TIFF_INTERNAL_MASK=True), TileSources(
         ortho, grid, bands=options.bands, dsm=dsm, dtm=dtm, ndsm=ndsm, ndsm_options=options.heights, labels=labels,
         labels_vector=labels_vector, class_field=class_field, scheme=scheme,
         ignore_unknown_codes=options.ignore_unknown_codes,

@@ -36,6 +36,7 @@ from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, RunFolder
 from aerialmtl.io.outputs import FolderLock, OutputFolder, is_job_leader
 from aerialmtl.runtime import COLLECTIVE_TIMEOUT, Torchrun
 from aerialmtl.training.config import TrainConfig
+from aerialmtl.training.setup import prepare_training
 from aerialmtl.training.state import seed_everything
 from aerialmtl.training.trainer import Trainer, TrainResult
 
@@ -152,8 +153,8 @@ def train(
         with contextlib.ExitStack() as stack:
             ctx.barrier()  # every process has checked the folder before rank 0 changes it
             ctx.main_first(lambda: _take_run_folder(folder, stack, overwrite and not resume))
-            trainer = Trainer(cfg, data_dir, out_dir, max_steps=max_steps, max_time_s=max_time_s, resume=resume,
-                              init=init, progress=progress, ctx=ctx)
+            setup = prepare_training(cfg, data_dir, out_dir, resume=resume, init=init, progress=progress, ctx=ctx)
+            trainer = Trainer(setup, max_steps=max_steps, max_time_s=max_time_s, progress=progress)
             try:
                 return trainer.fit()
             finally:

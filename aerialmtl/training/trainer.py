@@ -25,105 +25,30 @@ either way. The model runs in ``channels_last``; ``compile: true`` (``--compile`
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import logging
 import math
-import os
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
-from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, eval_batches, prepare_batch
-from aerialmtl.data.cache import PatchCache, ensure_patch_cache
-from aerialmtl.data.transforms import build_eval_transform, build_train_transform
-from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, OutputError
-from aerialmtl.formats.checkpoint import (
-    SURFACE_HEIGHTS_M,
-    ModelMeta,
-    check_same_data,
-    first_nonfinite,
-    height_slack,
-    load_checkpoint,
-    save_checkpoint,
-    value_envelope,
-)
+from aerialmtl.data.batches import prepare_batch
+from aerialmtl.errors import NonFiniteError
+from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M, first_nonfinite, height_slack, save_checkpoint
 from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
-from aerialmtl.formats.tiles import HEIGHT_NODATA, MANIFEST_CSV, TileFolderInfo, cache_dir, cache_file, read_manifest
 from aerialmtl.io.oserrors import writing
-from aerialmtl.models.config import ModelConfig
-from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.progress import tqdm_auto as tqdm
-from aerialmtl.training import distributed
-from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
-from aerialmtl.training.objective import Objective, class_weights, validation_score
-from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_everything, set_rng_state
+from aerialmtl.training.objective import validation_score
+from aerialmtl.training.setup import TrainSetup
+from aerialmtl.training.state import rng_state
 
 log = logging.getLogger(__name__)
-
-
-def user_cache_dir(root: Path) -> Path:
-    """Where the patch cache of a read-only tile folder goes: ``$XDG_CACHE_HOME/aerialmtl/<hash of its path>``."""
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "aerialmtl" / hashlib.sha256(str(root.resolve()).encode()).hexdigest()[:16]
-
-
-#: Whether ``precision: auto`` trains in bf16 autocast on a CPU with native bf16 (measured: bench/RESULTS.md,
-#: "CPU training precision"; fp32 until bf16 is both faster and as good there).
-CPU_BF16_TRAINING = False
-
-
-def build_optimizer(optim: OptimSection, model: nn.Module, weighting: nn.Module) -> torch.optim.Optimizer:
-    """Adam or AdamW over the model and the weighting module.
-
-    With ``weight_decay > 0`` only the model's convolution weights (tensors of ≥ 2 dimensions) decay;
-    biases, BatchNorm parameters and the learned task weighting do not. With 0, one parameter group.
-    """
-    cls = torch.optim.AdamW if optim.name == "adamw" else torch.optim.Adam
-    params = list(model.parameters()) + list(weighting.parameters())
-    groups: list[dict[str, Any]]
-    if optim.weight_decay > 0:
-        decay = [p for p in model.parameters() if p.dim() >= 2]
-        rest = [p for p in params if p.dim() < 2 or not any(p is q for q in model.parameters())]
-        groups = [{"params": decay}, {"params": rest, "weight_decay": 0.0}]
-    else:
-        groups = [{"params": params}]
-    return cls(groups, lr=optim.lr, betas=optim.betas, weight_decay=optim.weight_decay)
-
-
-class StepModule(nn.Module):
-    """Forward + losses + task weighting of a batch: ``(total, {task: loss})``.
-
-    This is what DistributedDataParallel wraps, so the gradients of the learned task weighting are
-    averaged over processes like the network's. With ``compile`` the model's ``forward`` runs through
-    ``torch.compile`` with the package's one fallback (:class:`aerialmtl.runtime.CompileFallback`: eager
-    from the first failure on, with one warning).
-    """
-
-    def __init__(self, model: nn.Module, weighting: nn.Module, objective: Objective, device: torch.device,
-                 precision: str, compile: bool = False) -> None:
-        super().__init__()
-        self.model, self.weighting = model, weighting
-        self.objective, self.device, self.precision = objective, device, precision
-        self.compiled = runtime.CompileFallback(model, "training") if compile else None
-
-    def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """The weighted total and the per-task losses of ``batch``."""
-        with runtime.autocast(self.device, self.precision):
-            out = self.model(batch["image"]) if self.compiled is None else self.compiled("forward", batch["image"])
-        losses = self.objective(out, batch)
-        return self.weighting(self.objective.weighted(losses)), losses
-
 
 #: A task loss this many times its first logged value means the run diverged (finite or not).
 LOSS_GROWTH = 1e4
@@ -224,212 +149,53 @@ class TrainResult:
     model: torch.nn.Module | None = None
 
 
-def input_normalization(model_cfg: ModelConfig,
-                        info: TileFolderInfo) -> tuple[tuple[float, ...], tuple[float, ...], str]:
-    """The per-band ``(mean, std)`` the model's inputs are normalised with, and where it comes from.
-
-    An encoder with pretrained weights that were trained on a fixed input scaling (its registry entry's
-    ``input_scaling``, :mod:`aerialmtl.models.encoders`; EfficientNet-Lite: ``(x − 127) / 128`` on 8-bit
-    bands) gets that scaling (``"encoder"``); anything else the tile folder's train statistics
-    (``"dataset"``). Pretrained weights on other than 8-bit data fall back to the statistics, with a warning.
-    """
-    n = len(info.bands)
-    scaling = encoder_spec(model_cfg.encoder).input_scaling
-    if scaling is not None and model_cfg.encoder_weights:
-        if str(info.dtype) == "uint8":
-            return (scaling[0],) * n, (scaling[1],) * n, "encoder"
-        warnings.warn(f"model.encoder_weights: the pretrained {model_cfg.encoder} weights expect 8-bit images scaled "
-                      f"(x - 127) / 128, but the tile folder holds {info.dtype} bands; normalising with the tile "
-                      "folder's statistics instead", UserWarning, stacklevel=2)
-    return tuple(info.mean), tuple(info.std), "dataset"
-
-
 class Trainer:
     """Train a D3-Net on a tile folder; :meth:`fit` runs it (see :func:`aerialmtl.training.loop.train`).
 
     Args:
-        cfg: the training configuration.
-        data_dir: tile folder (overrides ``cfg.data.dir``).
-        out_dir: run folder.
+        setup: what it trains with (:func:`~aerialmtl.training.setup.prepare_training`: model, optimiser,
+            objective, loaders, the starting state), assembled before; the trainer writes ``config.yaml`` and
+            the log, runs the loop and writes the checkpoints.
         max_steps, max_time_s: override ``schedule.max_steps`` / ``schedule.max_time_s``.
-        resume: continue from ``out_dir/last.pt``.
-        init: start from the weights of this checkpoint (fine-tuning).
         progress: show a progress bar (rank 0 only).
-        ctx: the process context (default: from torchrun's environment, one process without it).
     """
 
-    def __init__(self, cfg: TrainConfig, data_dir: str | Path | None = None, out_dir: str | Path = "runs/train", *,
-                 max_steps: int | None = None, max_time_s: float | None = None, resume: bool = False,
-                 init: str | Path | None = None, progress: bool = True, ctx: runtime.Torchrun | None = None) -> None:
+    def __init__(self, setup: TrainSetup, *, max_steps: int | None = None, max_time_s: float | None = None,
+                 progress: bool = True) -> None:
         self.t0 = time.perf_counter()
-        if resume and init is not None:
-            raise ConfigError("init: a resumed run continues its own weights; pass init only when starting a run")
-        self.cfg = cfg
-        self.owns_ctx = ctx is None
-        if ctx is None:
-            ctx = runtime.Torchrun.start(cfg.device, runtime.COLLECTIVE_TIMEOUT, ConfigError)
-        self.ctx = ctx
-        self.device = self.ctx.device
-        self.precision = runtime.resolve_precision(cfg.precision, self.device, cpu_bf16=CPU_BF16_TRAINING)
+        self.setup = setup
+        cfg = self.cfg = setup.cfg
+        self.ctx, self.owns_ctx, self.device, self.precision = setup.ctx, setup.owns_ctx, setup.device, setup.precision
         self.steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
         self.time_cap = max_time_s if max_time_s is not None else cfg.schedule.max_time_s
         self.progress = progress and self.ctx.is_main
-        self.run = Path(out_dir)
+        self.run = setup.run
         self.paths = {n: self.run / n for n in RUN_FILES}
-
-        self.info, self.model_cfg = self.read_data_folder(data_dir)
-        self.tasks: tuple[str, ...] = tuple(self.model_cfg.tasks)
-        self.k = self.info.classes.num_classes if self.info.classes is not None else None
-        norm_mean, norm_std, normalization = input_normalization(self.model_cfg, self.info)
-        self.meta = ModelMeta(model=self.model_cfg, classes=self.info.classes if "classes" in self.tasks else None,
-                              bands=self.info.bands, mean=norm_mean, std=norm_std, gsd=self.info.gsd,
-                              band_names=self.info.band_names, crs=self.info.crs, normalization=normalization,
-                              input_dtype=self.info.dtype,
-                              input_range=value_envelope(self.info.mean, self.info.std, self.info.dtype)
-                              if self.info.mean and self.info.dtype else None)
-        if self.ctx.is_main:
-            self.run.mkdir(parents=True, exist_ok=True)
-        self.objective = Objective(cfg, self.tasks, class_weights(cfg, self.info, self.k or 2)
-                                   if "classes" in self.tasks else None)
-        self.state = TrainState()
+        data = setup.data
+        self.info, self.model_cfg, self.meta = data.info, data.model_cfg, data.meta
+        self.cache_folder = data.cache_folder
+        self.tasks: tuple[str, ...] = data.tasks
+        self.k = data.k
+        self.model, self.weighting, self.optimizer = setup.parts.model, setup.parts.weighting, setup.parts.optimizer
+        self.objective = setup.objective
+        self.state = setup.state
         #: step of the last checkpoint written whole (``last.pt``), or of the one resumed from
-        self.saved_step: int | None = None
-        self.prepare_caches()
-        if "height" in self.tasks:
-            self.meta = dataclasses.replace(self.meta, height_range=self.train_height_range())
-        self.build_model()
-        saved_rng: dict[str, Any] | None = None
-        if resume:
-            saved_rng = self.restore(self.paths["last.pt"])
-        elif init is not None:
-            from aerialmtl.training.finetune import load_init_weights
-
-            load_init_weights(self.model, init, self.meta)
-        self.seed_rank_stream(saved_rng)
-        self.step_module = StepModule(self.model, self.weighting, self.objective, self.device, self.precision,
-                                      compile=cfg.compile)
-        self.ddp = distributed.wrap(self.step_module, self.ctx)
+        self.saved_step: int | None = setup.saved_step
+        self.ddp = setup.ddp
+        loaders = setup.loaders
+        self.order, self.mean, self.std = loaders.order, loaders.mean, loaders.std
+        self.train_transform, self.eval_transform = loaders.train_transform, loaders.eval_transform
+        self.train_loader, self.val_loader = loaders.train_loader, loaders.val_loader
         if self.ctx.is_main:
-            self.write_config(data_dir if data_dir is not None else cfg.data.dir)
-        self.build_data()
-        self.csv_log = CsvLog(self.paths["log.csv"], append=resume) if self.ctx.is_main else None
+            self.write_config(setup.data_dir if setup.data_dir is not None else cfg.data.dir)
+        self.csv_log = CsvLog(self.paths["log.csv"], append=setup.resume) if self.ctx.is_main else None
         self.losses = LossWindow(self.tasks, self.ctx, self.recovery_hint)
         self.metrics: dict[str, float] = {}
-
-    # ---- data ---------------------------------------------------------------------------------------
-    def read_data_folder(self, data_dir: str | Path | None) -> tuple[TileFolderInfo, ModelConfig]:
-        """The tile folder and the model config it implies; checks ``data.crop_size`` against its patches."""
-        data = data_dir if data_dir is not None else self.cfg.data.dir
-        if data is None:
-            raise ConfigError("data.dir: no tile folder given; set data.dir in the config or pass ‹data_dir›",
-                              param="data_dir")
-        info = TileFolderInfo.read(data)
-        k = info.classes.num_classes if info.classes is not None else None
-        model_cfg = self.cfg.model.resolve(info.num_bands, info.tasks, k)
-        side = self.cfg.data.crop_size or info.patch_size
-        if side % 32 or side > info.patch_size:
-            raise ConfigError(
-                f"data.crop_size: the network needs sides that are multiples of 32 and at most the {info.patch_size} "
-                f"px patches of '{info.root}', got {side}; set data.crop_size to a multiple of 32 ≤ "
-                f"{info.patch_size} or re-tile with --size a multiple of 32"
-            )
-        return info, model_cfg
-
-    def prepare_caches(self) -> None:
-        """Make sure the train (and val) split's patch caches are up to date (built on first use).
-
-        Every process calls it; a lock file lets one build while the others wait.
-        """
-        cfg = self.cfg.data
-        self.cache_folder = Path(cfg.cache_dir) if cfg.cache_dir else cache_dir(self.info.root)
-        try:
-            self.train_index = ensure_patch_cache(self.info, "train", self.cache_folder, workers=cfg.num_workers,
-                                                  progress=self.progress)
-        except OutputError:
-            if cfg.cache_dir:
-                raise
-            self.cache_folder = user_cache_dir(self.info.root)  # a read-only tile folder still trains
-            warnings.warn(f"data.cache_dir: the tile folder '{self.info.root}' is not writable; caching its decoded "
-                          f"patches in '{self.cache_folder}' instead (set data.cache_dir to choose)",
-                          UserWarning, stacklevel=2)
-            self.train_index = ensure_patch_cache(self.info, "train", self.cache_folder, workers=cfg.num_workers,
-                                                  progress=self.progress)
-        self.val_index = None
-        if read_manifest(self.info.root, "val"):
-            self.val_index = ensure_patch_cache(self.info, "val", self.cache_folder, workers=cfg.num_workers,
-                                                progress=self.progress)
-
-    def train_height_range(self) -> tuple[float, float] | None:
-        """``(min, max)`` metres of the train split's valid reference heights (read from the patch cache in
-        chunks; ``None`` without a valid height), recorded in the checkpoint (:attr:`ModelMeta.height_range`).
-        """
-        path = cache_file(self.cache_folder, "train", "height")
-        try:
-            heights = np.load(path, mmap_mode="r")
-        except (OSError, ValueError):
-            return None
-        lo, hi = math.inf, -math.inf
-        for start in range(0, len(heights), 64):
-            chunk = np.asarray(heights[start:start + 64])
-            ok = chunk[np.isfinite(chunk) & (chunk != HEIGHT_NODATA)]
-            if ok.size:
-                lo, hi = min(lo, float(ok.min())), max(hi, float(ok.max()))
-        return (lo, hi) if lo <= hi else None
 
     @property
     def height_slack(self) -> float:
         """The largest validation height MAE (m) a sane model of these heights reaches (:func:`height_slack`)."""
         return height_slack(self.meta.height_range)
-
-    def build_data(self) -> None:
-        """The batch plan from the current position, and the train and val loaders over the caches."""
-        cfg, ctx, nw = self.cfg.data, self.ctx, self.cfg.data.num_workers
-        folder, train_index, val_index = self.cache_folder, self.train_index, self.val_index
-        pin = self.device.type == "cuda"
-        self.order = EpochOrder(train_index.count, cfg.batch_size, self.cfg.seed, ctx.world)
-        self.train_transform = build_train_transform(cfg.flips, cfg.rot90, cfg.jitter, cfg.crop_size)
-        self.mean = torch.tensor(self.meta.mean, dtype=torch.float32, device=self.device)
-        self.std = torch.tensor(self.meta.std, dtype=torch.float32, device=self.device)
-        # on a CPU with workers, the workers finish the batches (the main process computes the model)
-        in_workers = (self.mean.cpu(), self.std.cpu()) if self.device.type == "cpu" and nw > 0 else None
-        self.train_loader = torch.utils.data.DataLoader(
-            CachedBatches(PatchCache(folder, train_index), self.train_transform, self.tasks, in_workers),
-            sampler=RankBatchSampler(self.order, ctx.rank, self.state.epoch, self.state.position),
-            batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(self.cfg.seed),
-        )
-        self.val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None = None
-        self.eval_transform = build_eval_transform(cfg.crop_size)
-        if val_index is not None:
-            self.val_loader = torch.utils.data.DataLoader(
-                CachedBatches(PatchCache(folder, val_index), self.eval_transform, self.tasks, in_workers),
-                sampler=eval_batches(val_index.count, cfg.batch_size, ctx.rank, ctx.world),
-                batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
-                generator=torch.Generator().manual_seed(self.cfg.seed))
-        elif ctx.is_main:
-            log.warning("no 'val' patches in %s: best.pt is chosen by the training loss", self.info.root / MANIFEST_CSV)
-
-    # ---- model and optimizer ------------------------------------------------------------------------
-    def build_model(self) -> None:
-        """Seeded D3-Net (channels_last, SyncBatchNorm if asked with several processes), weighting, optimizer."""
-        from aerialmtl.models.d3net import D3Net
-        from aerialmtl.training.weighting import build_weighting
-
-        seed_everything(self.cfg.seed)
-        model: nn.Module = D3Net(self.model_cfg).to(self.device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-        if self.cfg.model.sync_bn and self.ctx.distributed:
-            model = distributed.convert_sync_batchnorm(model, self.device)
-        self.model = model
-        self.weighting = build_weighting(self.cfg.weighting.method, list(self.tasks)).to(self.device)
-        self.optimizer = build_optimizer(self.cfg.optim, self.model, self.weighting)
-
-    def seed_rank_stream(self, saved: dict[str, Any] | None) -> None:
-        """Give this process its RNG stream: the saved one when resuming, else rank 0 keeps the seeded
-        stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks).
-        """
-        if saved:
-            set_rng_state(saved)
-        elif self.ctx.rank > 0:
-            seed_everything(rank_seed(self.cfg.seed + self.state.step, self.ctx.rank))
 
     # ---- the step -----------------------------------------------------------------------------------
     def train_step(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -590,94 +356,6 @@ class Trainer:
         if target == self.paths["last.pt"]:
             self.saved_step = self.state.step
 
-    def restore(self, path: Path) -> dict[str, Any]:
-        """Load weights, optimizer, weighting and counters from ``path``; returns this process's RNG state.
-
-        The config's ``optim.lr`` and ``optim.betas`` replace those stored with the optimizer
-        state (its moments are kept), so a run that diverged can continue from its last good ``last.pt``
-        with a lower ``optim.lr`` written into the run's ``config.yaml``.
-
-        Raises:
-            CheckpointError: no training state, other data, another model config, or a training state that
-                does not have the form ``aerialmtl train`` writes (e.g. edited by hand); names the file.
-        """
-        payload, old_meta = load_checkpoint(path, map_location=self.device)
-        ts = payload.get("train_state")
-        if not ts:
-            raise CheckpointError(f"checkpoint '{path}' has no training state; cannot ‹resume› from it")
-        check_same_data(path, old_meta, self.meta)
-        if to_dict(old_meta.model) != to_dict(self.model_cfg):
-            raise CheckpointError(
-                f"checkpoint '{path}' was trained with another model config; "
-                "resume with the run's config.yaml or start a new run (--overwrite)"
-            )
-        try:
-            self.model.load_state_dict(payload["state_dict"])
-        except (RuntimeError, KeyError, TypeError) as exc:
-            raise self._bad_state(path, "its weights do not fit the model", exc) from exc
-        if not isinstance(ts, dict):
-            raise self._bad_state(path, "its training state is not a mapping", None)
-        bad = first_nonfinite(ts.get("optimizer"))
-        if bad is not None:
-            raise CheckpointError(
-                f"checkpoint '{path}': its optimizer state holds NaN or inf ('{bad}'); it cannot be resumed: start a "
-                "new run (another --out, or --overwrite), with a lower optim.lr"
-            )
-        try:
-            self.optimizer.load_state_dict(ts["optimizer"])
-        except ValueError as exc:
-            raise CheckpointError(
-                f"checkpoint '{path}': its optimizer state does not fit this optimizer ({exc}); resume with the "
-                "run's config.yaml (same optim section) or start a new run"
-            ) from exc
-        except (KeyError, TypeError, RuntimeError, IndexError) as exc:
-            raise self._bad_state(path, "its optimizer state is incomplete", exc) from exc
-        optim = self.cfg.optim
-        for group in self.optimizer.param_groups:  # weight decay: the group structure already follows the config
-            group.update(lr=optim.lr, betas=optim.betas)
-        try:
-            self.weighting.load_state_dict(ts["weighting"])
-            old_global = int(ts.get("global_batch") or 0)
-            self.state = TrainState.from_dict(ts, old_global or self._global_batch_guess())
-        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-            raise self._bad_state(path, "its counters or task weighting are incomplete", exc) from exc
-        self.saved_step = self.state.step
-        ranks = ts.get("rng_ranks")
-        if ranks and int(ts.get("world_size", 1)) == self.ctx.world:
-            rng = ranks[self.ctx.rank]
-        elif self.ctx.rank == 0:
-            rng = ts.get("rng")
-        else:
-            return {}
-        return self._checked_rng(path, rng)
-
-    def _checked_rng(self, path: Path, rng: Any) -> dict[str, Any]:
-        """``rng`` if it restores (tried on a copy of the current states), else a CheckpointError."""
-        if not rng:
-            raise self._bad_state(path, "its RNG state is missing", None)
-        current = rng_state()
-        try:
-            set_rng_state(rng)
-        except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as exc:
-            raise self._bad_state(path, "its RNG state is invalid", exc) from exc
-        finally:
-            set_rng_state(current)
-        return dict(rng)
-
-    @staticmethod
-    def _bad_state(path: Path, what: str, exc: BaseException | None) -> CheckpointError:
-        why = f" ({' '.join(str(exc).split())[:160] or exc.__class__.__name__})" if exc is not None else ""
-        return CheckpointError(
-            f"checkpoint '{path}' cannot be resumed: {what}{why}; it was not written by `aerialmtl train` as it is "
-            "(edited or from another version): resume from an unedited last.pt, or start a new run (another "
-            "--out, or --overwrite) with ‹init› to reuse its weights"
-        )
-
-    def _global_batch_guess(self) -> int:
-        """The global batch of a checkpoint written before it was recorded (one process, this batch size)."""
-        n = len(read_manifest(self.info.root, "train"))
-        return min(self.cfg.data.batch_size, n)
-
     def write_config(self, data: str | Path | None) -> None:
         """``config.yaml``: the config with the model fields taken from the data and the absolute data dir."""
         resolved = self.cfg.to_dict()
@@ -791,5 +469,5 @@ class Trainer:
             self.ctx.leave()
 
 
-__all__ = ["Trainer", "TrainResult", "StepModule", "LossWindow", "build_optimizer",
+__all__ = ["Trainer", "TrainResult", "LossWindow",
            "RUN_FILES"]

@@ -1,0 +1,537 @@
+"""What a training run is made of, assembled once: :class:`TrainSetup`, which the trainer receives.
+
+:func:`prepare_training` builds it from the configuration by small functions, each of which takes what it
+needs and returns a value (nothing is half-built and filled in later):
+
+1. the process context, device and precision (:mod:`aerialmtl.runtime`);
+2. the tile folder and the model config it implies (:func:`read_data_folder`), then :func:`open_data` →
+   :class:`TrainData`: the patch caches of the train and val splits (:func:`prepare_caches`) and the checkpoint
+   metadata (:func:`model_meta`, with the train split's height range, :func:`train_height_range`);
+3. the objective (:class:`~aerialmtl.training.objective.Objective`);
+4. :func:`build_model` → :class:`ModelParts`: the seeded D3-Net, the task weighting and the optimiser
+   (:func:`build_optimizer`);
+5. the starting point: :func:`restore` (``resume``: weights, optimiser, weighting, counters and the RNG
+   state of ``last.pt``), or the ``init`` weights, then this process's RNG stream (:func:`seed_rank_stream`);
+6. the step module (:class:`StepModule`, compiled through the runtime's
+   fallback) and its ``DistributedDataParallel`` wrapper;
+7. :func:`build_loaders` → :class:`Loaders`: the epoch order from the starting position and the train and
+   val loaders over the caches.
+
+The order is the one training always had: the RNG draws (the model's initial weights, the rank streams)
+happen at the same points, so a run is the same run as before the setup was split out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from aerialmtl import runtime
+from aerialmtl.config import to_dict
+from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, eval_batches
+from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+from aerialmtl.data.transforms import Compose, build_eval_transform, build_train_transform
+from aerialmtl.errors import CheckpointError, ConfigError, OutputError
+from aerialmtl.formats.checkpoint import (
+    ModelMeta,
+    check_same_data,
+    first_nonfinite,
+    load_checkpoint,
+    value_envelope,
+)
+from aerialmtl.formats.tiles import (
+    HEIGHT_NODATA,
+    MANIFEST_CSV,
+    PatchCacheIndex,
+    TileFolderInfo,
+    cache_dir,
+    cache_file,
+    read_manifest,
+)
+from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.encoders import encoder_spec
+from aerialmtl.training import distributed
+from aerialmtl.training.config import OptimSection, TrainConfig
+from aerialmtl.training.objective import Objective, class_weights
+from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_everything, set_rng_state
+
+#: The trainer's logger (the messages of training, whichever module writes them).
+log = logging.getLogger("aerialmtl.training.trainer")
+
+#: Whether ``precision: auto`` trains in bf16 autocast on a CPU with native bf16 (measured: bench/RESULTS.md,
+#: "CPU training precision"; fp32 until bf16 is both faster and as good there).
+CPU_BF16_TRAINING = False
+
+
+# ---- the data ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TrainData:
+    """The tile folder as training reads it.
+
+    Attributes:
+        info: the tile folder's ``dataset.yaml``.
+        model_cfg: the model config, completed from the data (bands, tasks, classes).
+        meta: the checkpoint metadata every checkpoint of the run carries (with the train split's height range).
+        cache_folder: where the decoded patch caches are.
+        train_index, val_index: the caches of the train and val splits (``None``: no val split).
+    """
+
+    info: TileFolderInfo
+    model_cfg: ModelConfig
+    meta: ModelMeta
+    cache_folder: Path
+    train_index: PatchCacheIndex
+    val_index: PatchCacheIndex | None
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        """The tasks trained (``"height"``, ``"classes"``)."""
+        return tuple(self.model_cfg.tasks)
+
+    @property
+    def k(self) -> int | None:
+        """The number of classes of the tile folder (``None`` without classes)."""
+        return self.info.classes.num_classes if self.info.classes is not None else None
+
+
+def user_cache_dir(root: Path) -> Path:
+    """Where the patch cache of a read-only tile folder goes: ``$XDG_CACHE_HOME/aerialmtl/<hash of its path>``."""
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "aerialmtl" / hashlib.sha256(str(root.resolve()).encode()).hexdigest()[:16]
+
+
+def read_data_folder(cfg: TrainConfig, data_dir: str | Path | None) -> tuple[TileFolderInfo, ModelConfig]:
+    """The tile folder and the model config it implies; checks ``data.crop_size`` against its patches."""
+    data = data_dir if data_dir is not None else cfg.data.dir
+    if data is None:
+        raise ConfigError("data.dir: no tile folder given; set data.dir in the config or pass ‹data_dir›",
+                          param="data_dir")
+    info = TileFolderInfo.read(data)
+    k = info.classes.num_classes if info.classes is not None else None
+    model_cfg = cfg.model.resolve(info.num_bands, info.tasks, k)
+    side = cfg.data.crop_size or info.patch_size
+    if side % 32 or side > info.patch_size:
+        raise ConfigError(
+            f"data.crop_size: the network needs sides that are multiples of 32 and at most the {info.patch_size} "
+            f"px patches of '{info.root}', got {side}; set data.crop_size to a multiple of 32 ≤ "
+            f"{info.patch_size} or re-tile with --size a multiple of 32"
+        )
+    return info, model_cfg
+
+
+def input_normalization(model_cfg: ModelConfig,
+                        info: TileFolderInfo) -> tuple[tuple[float, ...], tuple[float, ...], str]:
+    """The per-band ``(mean, std)`` the model's inputs are normalised with, and where it comes from.
+
+    An encoder with pretrained weights that were trained on a fixed input scaling (its registry entry's
+    ``input_scaling``, :mod:`aerialmtl.models.encoders`; EfficientNet-Lite: ``(x − 127) / 128`` on 8-bit
+    bands) gets that scaling (``"encoder"``); anything else the tile folder's train statistics
+    (``"dataset"``). Pretrained weights on other than 8-bit data fall back to the statistics, with a warning.
+    """
+    n = len(info.bands)
+    scaling = encoder_spec(model_cfg.encoder).input_scaling
+    if scaling is not None and model_cfg.encoder_weights:
+        if str(info.dtype) == "uint8":
+            return (scaling[0],) * n, (scaling[1],) * n, "encoder"
+        warnings.warn(f"model.encoder_weights: the pretrained {model_cfg.encoder} weights expect 8-bit images scaled "
+                      f"(x - 127) / 128, but the tile folder holds {info.dtype} bands; normalising with the tile "
+                      "folder's statistics instead", UserWarning, stacklevel=2)
+    return tuple(info.mean), tuple(info.std), "dataset"
+
+
+def model_meta(info: TileFolderInfo, model_cfg: ModelConfig) -> ModelMeta:
+    """The checkpoint metadata of a model trained on ``info`` (bands, normalisation, GSD, CRS, value range)."""
+    norm_mean, norm_std, normalization = input_normalization(model_cfg, info)
+    return ModelMeta(model=model_cfg, classes=info.classes if "classes" in model_cfg.tasks else None,
+                     bands=info.bands, mean=norm_mean, std=norm_std, gsd=info.gsd,
+                     band_names=info.band_names, crs=info.crs, normalization=normalization,
+                     input_dtype=info.dtype,
+                     input_range=value_envelope(info.mean, info.std, info.dtype) if info.mean and info.dtype else None)
+
+
+def prepare_caches(cfg: TrainConfig, info: TileFolderInfo,
+                   progress: bool) -> tuple[Path, PatchCacheIndex, PatchCacheIndex | None]:
+    """Make sure the train (and val) split's patch caches are up to date (built on first use).
+
+    Every process calls it; a lock file lets one build while the others wait.
+
+    Returns:
+        ``(cache folder, train index, val index or None)``.
+    """
+    data = cfg.data
+    folder = Path(data.cache_dir) if data.cache_dir else cache_dir(info.root)
+    try:
+        train_index = ensure_patch_cache(info, "train", folder, workers=data.num_workers, progress=progress)
+    except OutputError:
+        if data.cache_dir:
+            raise
+        folder = user_cache_dir(info.root)  # a read-only tile folder still trains
+        warnings.warn(f"data.cache_dir: the tile folder '{info.root}' is not writable; caching its decoded "
+                      f"patches in '{folder}' instead (set data.cache_dir to choose)", UserWarning, stacklevel=2)
+        train_index = ensure_patch_cache(info, "train", folder, workers=data.num_workers, progress=progress)
+    val_index = None
+    if read_manifest(info.root, "val"):
+        val_index = ensure_patch_cache(info, "val", folder, workers=data.num_workers, progress=progress)
+    return folder, train_index, val_index
+
+
+def train_height_range(cache_folder: Path) -> tuple[float, float] | None:
+    """``(min, max)`` metres of the train split's valid reference heights (read from the patch cache in
+    chunks; ``None`` without a valid height), recorded in the checkpoint (:attr:`ModelMeta.height_range`).
+    """
+    path = cache_file(cache_folder, "train", "height")
+    try:
+        heights = np.load(path, mmap_mode="r")
+    except (OSError, ValueError):
+        return None
+    lo, hi = math.inf, -math.inf
+    for start in range(0, len(heights), 64):
+        chunk = np.asarray(heights[start:start + 64])
+        ok = chunk[np.isfinite(chunk) & (chunk != HEIGHT_NODATA)]
+        if ok.size:
+            lo, hi = min(lo, float(ok.min())), max(hi, float(ok.max()))
+    return (lo, hi) if lo <= hi else None
+
+
+# ---- the model ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ModelParts:
+    """What the optimiser steps: the model, the task weighting and the optimiser over both."""
+
+    model: nn.Module
+    weighting: nn.Module
+    optimizer: torch.optim.Optimizer
+
+
+def build_optimizer(optim: OptimSection, model: nn.Module, weighting: nn.Module) -> torch.optim.Optimizer:
+    """Adam or AdamW over the model and the weighting module.
+
+    With ``weight_decay > 0`` only the model's convolution weights (tensors of ≥ 2 dimensions) decay;
+    biases, BatchNorm parameters and the learned task weighting do not. With 0, one parameter group.
+    """
+    cls = torch.optim.AdamW if optim.name == "adamw" else torch.optim.Adam
+    params = list(model.parameters()) + list(weighting.parameters())
+    groups: list[dict[str, Any]]
+    if optim.weight_decay > 0:
+        decay = [p for p in model.parameters() if p.dim() >= 2]
+        rest = [p for p in params if p.dim() < 2 or not any(p is q for q in model.parameters())]
+        groups = [{"params": decay}, {"params": rest, "weight_decay": 0.0}]
+    else:
+        groups = [{"params": params}]
+    return cls(groups, lr=optim.lr, betas=optim.betas, weight_decay=optim.weight_decay)
+
+
+def build_model(cfg: TrainConfig, model_cfg: ModelConfig, device: torch.device, ctx: runtime.Torchrun) -> ModelParts:
+    """Seeded D3-Net (channels_last, SyncBatchNorm if asked with several processes), weighting, optimiser."""
+    from aerialmtl.models.d3net import D3Net
+    from aerialmtl.training.weighting import build_weighting
+
+    seed_everything(cfg.seed)
+    model: nn.Module = D3Net(model_cfg).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    if cfg.model.sync_bn and ctx.distributed:
+        model = distributed.convert_sync_batchnorm(model, device)
+    weighting = build_weighting(cfg.weighting.method, list(model_cfg.tasks)).to(device)
+    return ModelParts(model, weighting, build_optimizer(cfg.optim, model, weighting))
+
+
+# ---- the starting point -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Resumed:
+    """Where a resumed run continues: its counters and this process's saved RNG state (``{}``: none)."""
+
+    state: TrainState
+    rng: dict[str, Any]
+
+
+def _bad_state(path: Path, what: str, exc: BaseException | None) -> CheckpointError:
+    why = f" ({' '.join(str(exc).split())[:160] or exc.__class__.__name__})" if exc is not None else ""
+    return CheckpointError(
+        f"checkpoint '{path}' cannot be resumed: {what}{why}; it was not written by `aerialmtl train` as it is "
+        "(edited or from another version): resume from an unedited last.pt, or start a new run (another "
+        "--out, or --overwrite) with ‹init› to reuse its weights"
+    )
+
+
+def _checked_rng(path: Path, rng: Any) -> dict[str, Any]:
+    """``rng`` if it restores (tried on a copy of the current states), else a CheckpointError."""
+    if not rng:
+        raise _bad_state(path, "its RNG state is missing", None)
+    current = rng_state()
+    try:
+        set_rng_state(rng)
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as exc:
+        raise _bad_state(path, "its RNG state is invalid", exc) from exc
+    finally:
+        set_rng_state(current)
+    return dict(rng)
+
+
+def _load_optimizer(path: Path, optimizer: torch.optim.Optimizer, ts: dict[str, Any], optim: OptimSection) -> None:
+    """The optimiser state of ``ts``, with the config's ``lr`` and ``betas`` (its moments are kept)."""
+    bad = first_nonfinite(ts.get("optimizer"))
+    if bad is not None:
+        raise CheckpointError(
+            f"checkpoint '{path}': its optimizer state holds NaN or inf ('{bad}'); it cannot be resumed: start a "
+            "new run (another --out, or --overwrite), with a lower optim.lr"
+        )
+    try:
+        optimizer.load_state_dict(ts["optimizer"])
+    except ValueError as exc:
+        raise CheckpointError(
+            f"checkpoint '{path}': its optimizer state does not fit this optimizer ({exc}); resume with the "
+            "run's config.yaml (same optim section) or start a new run"
+        ) from exc
+    except (KeyError, TypeError, RuntimeError, IndexError) as exc:
+        raise _bad_state(path, "its optimizer state is incomplete", exc) from exc
+    for group in optimizer.param_groups:  # weight decay: the group structure already follows the config
+        group.update(lr=optim.lr, betas=optim.betas)
+
+
+def restore(path: Path, parts: ModelParts, data: TrainData, cfg: TrainConfig, ctx: runtime.Torchrun,
+            device: torch.device) -> Resumed:
+    """Load weights, optimiser, weighting and counters from ``path`` into ``parts``.
+
+    The config's ``optim.lr`` and ``optim.betas`` replace those stored with the optimizer
+    state (its moments are kept), so a run that diverged can continue from its last good ``last.pt``
+    with a lower ``optim.lr`` written into the run's ``config.yaml``.
+
+    Raises:
+        CheckpointError: no training state, other data, another model config, or a training state that
+            does not have the form ``aerialmtl train`` writes (e.g. edited by hand); names the file.
+    """
+    payload, old_meta = load_checkpoint(path, map_location=device)
+    ts = payload.get("train_state")
+    if not ts:
+        raise CheckpointError(f"checkpoint '{path}' has no training state; cannot ‹resume› from it")
+    check_same_data(path, old_meta, data.meta)
+    if to_dict(old_meta.model) != to_dict(data.model_cfg):
+        raise CheckpointError(
+            f"checkpoint '{path}' was trained with another model config; "
+            "resume with the run's config.yaml or start a new run (--overwrite)"
+        )
+    try:
+        parts.model.load_state_dict(payload["state_dict"])
+    except (RuntimeError, KeyError, TypeError) as exc:
+        raise _bad_state(path, "its weights do not fit the model", exc) from exc
+    if not isinstance(ts, dict):
+        raise _bad_state(path, "its training state is not a mapping", None)
+    _load_optimizer(path, parts.optimizer, ts, cfg.optim)
+    try:
+        parts.weighting.load_state_dict(ts["weighting"])
+        old_global = int(ts.get("global_batch") or 0)
+        # a checkpoint written before the global batch was recorded: one process, this batch size
+        state = TrainState.from_dict(ts, old_global or min(cfg.data.batch_size,
+                                                            len(read_manifest(data.info.root, "train"))))
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise _bad_state(path, "its counters or task weighting are incomplete", exc) from exc
+    ranks = ts.get("rng_ranks")
+    if ranks and int(ts.get("world_size", 1)) == ctx.world:
+        rng = ranks[ctx.rank]
+    elif ctx.rank == 0:
+        rng = ts.get("rng")
+    else:
+        return Resumed(state, {})
+    return Resumed(state, _checked_rng(path, rng))
+
+
+def seed_rank_stream(cfg: TrainConfig, ctx: runtime.Torchrun, step: int, saved: dict[str, Any] | None) -> None:
+    """Give this process its RNG stream: the saved one when resuming, else rank 0 keeps the seeded
+    stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks).
+    """
+    if saved:
+        set_rng_state(saved)
+    elif ctx.rank > 0:
+        seed_everything(rank_seed(cfg.seed + step, ctx.rank))
+
+
+# ---- the data loaders ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Loaders:
+    """The batches of a run, from its starting position.
+
+    Attributes:
+        order: which patches each step uses (:class:`~aerialmtl.data.batches.EpochOrder`).
+        train_transform, eval_transform: the augmentations of training / the crop of validation.
+        mean, std: (C,) per-band normalisation on the device.
+        train_loader: this process's training batches from the state's epoch and position.
+        val_loader: its share of the val split (``None``: no val split).
+    """
+
+    order: EpochOrder
+    train_transform: Compose
+    eval_transform: Compose
+    mean: torch.Tensor
+    std: torch.Tensor
+    train_loader: torch.utils.data.DataLoader[dict[str, Any]]
+    val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None
+
+
+def build_loaders(cfg: TrainConfig, data: TrainData, device: torch.device, ctx: runtime.Torchrun,
+                  state: TrainState) -> Loaders:
+    """The batch plan from ``state``'s position, and the train and val loaders over the caches."""
+    dcfg, nw = cfg.data, cfg.data.num_workers
+    pin = device.type == "cuda"
+    order = EpochOrder(data.train_index.count, dcfg.batch_size, cfg.seed, ctx.world)
+    train_transform = build_train_transform(dcfg.flips, dcfg.rot90, dcfg.jitter, dcfg.crop_size)
+    mean = torch.tensor(data.meta.mean, dtype=torch.float32, device=device)
+    std = torch.tensor(data.meta.std, dtype=torch.float32, device=device)
+    # on a CPU with workers, the workers finish the batches (the main process computes the model)
+    in_workers = (mean.cpu(), std.cpu()) if device.type == "cpu" and nw > 0 else None
+    train_loader = torch.utils.data.DataLoader(
+        CachedBatches(PatchCache(data.cache_folder, data.train_index), train_transform, data.tasks, in_workers),
+        sampler=RankBatchSampler(order, ctx.rank, state.epoch, state.position),
+        batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(cfg.seed),
+    )
+    val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None = None
+    eval_transform = build_eval_transform(dcfg.crop_size)
+    if data.val_index is not None:
+        val_loader = torch.utils.data.DataLoader(
+            CachedBatches(PatchCache(data.cache_folder, data.val_index), eval_transform, data.tasks, in_workers),
+            sampler=eval_batches(data.val_index.count, dcfg.batch_size, ctx.rank, ctx.world),
+            batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
+            generator=torch.Generator().manual_seed(cfg.seed))
+    elif ctx.is_main:
+        log.warning("no 'val' patches in %s: best.pt is chosen by the training loss", data.info.root / MANIFEST_CSV)
+    return Loaders(order, train_transform, eval_transform, mean, std, train_loader, val_loader)
+
+
+class StepModule(nn.Module):
+    """Forward + losses + task weighting of a batch: ``(total, {task: loss})``.
+
+    This is what DistributedDataParallel wraps, so the gradients of the learned task weighting are
+    averaged over processes like the network's. With ``compile`` the model's ``forward`` runs through
+    ``torch.compile`` with the package's one fallback (:class:`aerialmtl.runtime.CompileFallback`: eager
+    from the first failure on, with one warning).
+    """
+
+    def __init__(self, model: nn.Module, weighting: nn.Module, objective: Objective, device: torch.device,
+                 precision: str, compile: bool = False) -> None:
+        super().__init__()
+        self.model, self.weighting = model, weighting
+        self.objective, self.device, self.precision = objective, device, precision
+        self.compiled = runtime.CompileFallback(model, "training") if compile else None
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted total and the per-task losses of ``batch``."""
+        with runtime.autocast(self.device, self.precision):
+            out = self.model(batch["image"]) if self.compiled is None else self.compiled("forward", batch["image"])
+        losses = self.objective(out, batch)
+        return self.weighting(self.objective.weighted(losses)), losses
+
+
+
+
+# ---- the setup ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TrainSetup:
+    """Everything a :class:`~aerialmtl.training.trainer.Trainer` trains with, assembled by :func:`prepare_training`.
+
+    Attributes:
+        cfg: the training configuration.
+        ctx: the process context; ``owns_ctx``: it was started here (the trainer closes it).
+        device, precision: where and how it trains.
+        run: the run folder; ``data_dir``: the tile folder as given (recorded in ``config.yaml``).
+        data: the tile folder, its caches and the checkpoint metadata.
+        parts: model, task weighting, optimiser.
+        objective: the losses.
+        step_module, ddp: one training step's forward and losses, and its DDP wrapper (the module itself
+            with one process).
+        loaders: the batches.
+        state: the counters (epoch, position, step, best score; the trainer advances them).
+        saved_step: the step of ``last.pt`` when resumed from it, else ``None``.
+        resume: the run continues ``last.pt`` (the log is appended to).
+    """
+
+    cfg: TrainConfig
+    ctx: runtime.Torchrun
+    owns_ctx: bool
+    device: torch.device
+    precision: Literal["bf16", "fp32"]
+    run: Path
+    data_dir: str | Path | None
+    data: TrainData
+    parts: ModelParts
+    objective: Objective
+    step_module: nn.Module
+    ddp: nn.Module
+    loaders: Loaders
+    state: TrainState
+    saved_step: int | None
+    resume: bool
+
+
+def open_data(cfg: TrainConfig, info: TileFolderInfo, model_cfg: ModelConfig, progress: bool) -> TrainData:
+    """The tile folder's metadata and up-to-date patch caches (see the module docstring)."""
+    meta = model_meta(info, model_cfg)
+    folder, train_index, val_index = prepare_caches(cfg, info, progress)
+    if "height" in model_cfg.tasks:
+        meta = dataclasses.replace(meta, height_range=train_height_range(folder))
+    return TrainData(info, model_cfg, meta, folder, train_index, val_index)
+
+
+def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_dir: str | Path = "runs/train", *,
+                     resume: bool = False, init: str | Path | None = None, progress: bool = True,
+                     ctx: runtime.Torchrun | None = None) -> TrainSetup:
+    """Assemble a run (see the module docstring for the order).
+
+    Args:
+        cfg: the training configuration.
+        data_dir: tile folder (overrides ``cfg.data.dir``).
+        out_dir: run folder (created on rank 0).
+        resume: continue from ``out_dir/last.pt``.
+        init: start from the weights of this checkpoint (fine-tuning).
+        progress: progress bars of the cache builds (rank 0 only).
+        ctx: the process context (default: from torchrun's environment, one process without it).
+
+    Raises:
+        ConfigError: ``resume`` with ``init``, no tile folder, a crop size the patches cannot give.
+        CheckpointError: a ``last.pt`` that cannot be resumed (names the file and the fix).
+    """
+    if resume and init is not None:
+        raise ConfigError("init: a resumed run continues its own weights; pass init only when starting a run")
+    owns_ctx = ctx is None
+    if ctx is None:
+        ctx = runtime.Torchrun.start(cfg.device, runtime.COLLECTIVE_TIMEOUT, ConfigError)
+    device = ctx.device
+    precision = runtime.resolve_precision(cfg.precision, device, cpu_bf16=CPU_BF16_TRAINING)
+    run = Path(out_dir)
+    progress = progress and ctx.is_main
+    info, model_cfg = read_data_folder(cfg, data_dir)  # checked before the run folder is made
+    if ctx.is_main:
+        run.mkdir(parents=True, exist_ok=True)
+    tasks = tuple(model_cfg.tasks)
+    k = info.classes.num_classes if info.classes is not None else None
+    objective = Objective(cfg, tasks, class_weights(cfg, info, k or 2) if "classes" in tasks else None)
+    data = open_data(cfg, info, model_cfg, progress)
+    parts = build_model(cfg, data.model_cfg, device, ctx)
+    state, saved_step, rng = TrainState(), None, None
+    if resume:
+        resumed = restore(run / "last.pt", parts, data, cfg, ctx, device)
+        state, saved_step, rng = resumed.state, resumed.state.step, resumed.rng
+    elif init is not None:
+        from aerialmtl.training.finetune import load_init_weights
+
+        load_init_weights(parts.model, init, data.meta)
+    seed_rank_stream(cfg, ctx, state.step, rng)
+    step_module = StepModule(parts.model, parts.weighting, objective, device, precision, compile=cfg.compile)
+    ddp = distributed.wrap(step_module, ctx)
+    loaders = build_loaders(cfg, data, device, ctx, state)
+    return TrainSetup(cfg, ctx, owns_ctx, device, precision, run, data_dir, data, parts, objective, step_module, ddp,
+                      loaders, state, saved_step, resume)
+
+
+__all__ = ["CPU_BF16_TRAINING", "Loaders", "ModelParts", "Resumed", "TrainData", "TrainSetup", "build_loaders",
+           "build_model", "build_optimizer", "input_normalization", "model_meta", "open_data", "prepare_caches",
+           "prepare_training", "read_data_folder", "restore", "seed_rank_stream", "train_height_range",
+           "user_cache_dir"]
