@@ -65,7 +65,7 @@ class OrthoInput:
     fingerprint: dict[str, Any] | None = None
 
     @classmethod
-    def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int, grid: Grid | None = None,
+    def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int,
              rescale_input: bool = False) -> OrthoInput:
         """Read what prediction needs from ``path`` in one opening: its header and a sample of its values.
 
@@ -73,7 +73,6 @@ class OrthoInput:
             path: the orthophoto.
             meta: the checkpoint metadata (GSD, bands, the training data's value range).
             tile, overlap: the window plan's settings.
-            grid: the prediction grid when the caller knows it already (skips the GSD decision).
             rescale_input: map values unlike the training data's onto the training range (:attr:`rescale`)
                 instead of refusing them (:func:`~aerialmtl.inference.sanity.check_input_values`).
 
@@ -93,8 +92,7 @@ class OrthoInput:
             rescale = check_input_values(path, meta, rescale_input, dataset=src)
         unused = tuple(b for b in range(1, count + 1) if b not in meta.bands and b not in alpha[:1])
         resampled_from = native.gsd if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd else None
-        if grid is None:
-            grid = resampled_grid(native, meta.gsd) if resampled_from is not None else native
+        grid = resampled_grid(native, meta.gsd) if resampled_from is not None else native
         fingerprint = local if local is not None else input_fingerprint(
             path, native.width, native.height, list(native.transform), native.crs.to_string())
         return cls(path, native, grid, resampled_from, count, unused,
