@@ -195,11 +195,11 @@ def test_checkpoint_replaced_during_a_warm_run_stops_it(predict_setup: tuple[Pat
     between is refused, with a message naming it and what to do."""
     from aerialmtl.errors import CheckpointError
     from aerialmtl.formats.checkpoint import read_model
-    from aerialmtl.inference.model_record import CheckpointModel, file_fingerprint, make_record
+    from aerialmtl.inference.model_record import CheckpointModel, file_sha256, make_record
 
     ckpt, _ = predict_setup
     model, meta, digest = read_model(ckpt)
-    assert digest == file_fingerprint(ckpt)
+    assert digest == file_sha256(ckpt)
     record = make_record(model, meta)
     assert record is not None and record.meta == meta and record.outputs == model.outputs
     lazy = CheckpointModel(ckpt, digest, record)

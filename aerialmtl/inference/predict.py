@@ -92,11 +92,11 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
 
     if warm:
         from aerialmtl.inference.engines import cache_root
-        from aerialmtl.inference.model_record import file_fingerprint, make_record, read_record, write_record
+        from aerialmtl.inference.model_record import file_sha256, make_record, read_record, write_record
 
         root = cache_root()
         try:
-            digest: str | None = file_fingerprint(checkpoint)
+            digest: str | None = file_sha256(checkpoint)
         except OSError:  # read_model says what is wrong with the file
             digest = None
         record = read_record(digest, root) if digest is not None else None
