@@ -219,7 +219,9 @@ def ensemble_run(name: str, members: list[str], args: argparse.Namespace) -> dic
     rdir.mkdir(parents=True, exist_ok=True)
     t0, load0 = time.perf_counter(), os.getloadavg()
     first = args.out / "runs" / members[0]
-    cfg = __import__("yaml").safe_load((first / "config.yaml").read_text())
+    import yaml
+
+    cfg = yaml.safe_load((first / "config.yaml").read_text())
     tdir = Path(cfg["data"]["dir"])
     hs, vs = [], []
     for m in members:

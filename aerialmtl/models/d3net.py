@@ -219,7 +219,8 @@ class D3Net(nn.Module):
         for task, dec in self.heads.items():
             y = dec(out, skips)
             if task == "height" and self.cfg.height_bins:
-                mu, raw_b, logits = y[:, :1], y[:, 1:2], y[:, 2:]
+                h = TASK_CHANNELS_HEIGHT
+                mu, raw_b, logits = y[:, :h], y[:, h:h + 1], y[:, h + 1:]
                 results[task] = mu
                 results[HEIGHT_SCALE] = bins_scale(logits, mu.detach(), cast(torch.Tensor, self.bin_edges), SCALE_MIN)
                 if self.training:  # the loss needs these; inference (and the engines) only the spread

@@ -86,14 +86,13 @@ class Objective:
         """
         result: dict[str, torch.Tensor] = {}
         if "height" in self.tasks:
-            if self.bin_edges is not None and HEIGHT_BINS in out and not scoring:
+            if HEIGHT_BINS in out and not scoring:  # a height-bin head in training mode
+                assert self.bin_edges is not None
                 nll = losses.laplace_nll(out["height"].float(), out[HEIGHT_LAPLACE].float(), batch["height"],
                                          batch["height_valid"], beta=self.nll_beta)
                 result["height"] = nll + self.bins_weight * losses.height_bins_ce(
                     out[HEIGHT_BINS], batch["height"], batch["height_valid"], self.bin_edges)
-            elif self.bin_edges is not None:  # inference outputs of a bin head: the height alone
-                result["height"] = self.height_fn(out["height"].float(), batch["height"], batch["height_valid"])
-            elif HEIGHT_SCALE in out and not scoring:
+            elif HEIGHT_SCALE in out and self.bin_edges is None and not scoring:  # (a bin head's is no Laplace b)
                 result["height"] = losses.laplace_nll(out["height"].float(), out[HEIGHT_SCALE].float(),
                                                       batch["height"], batch["height_valid"], beta=self.nll_beta)
             else:
