@@ -58,7 +58,7 @@ def test_openvino_fp32_equals_torch(tmp_path: Path, rng: np.random.Generator, mc
         for engine in ("torch", "openvino"):
             out = tmp_path / f"{engine}{k}"
             predict_raster(ortho, (model, meta), out, mc=mc, tile=64, overlap=16, batch_size=2, aoi=aoi,
-                           precision="fp32", engine=engine, progress=False, seed=5)
+                           precision="fp32", engine=engine, progress=False, seed=5, probabilities=True)
             maps[engine] = _layers(out)
             assert json.loads((out / "prediction.json").read_text())["engine"] == engine
         a, b = maps["torch"], maps["openvino"]

@@ -17,7 +17,8 @@ once per window and the decoder T times, accumulated by
 explicit inputs of the decoder, drawn by :func:`~aerialmtl.models.mc_dropout.dropout_masks` from the
 same ``(seed, window, sample)`` keys as the torch path's seeded hooks: both engines sample the same
 masks. The OpenVINO engine runs one window (and one sample) per infer request, so its results do not
-depend on the batch size or the sample chunking either.
+depend on the batch size or the sample chunking either. Its graphs hand the class logits back channels last
+(:data:`CHANNELS_LAST_OUTPUTS`), as the convolution wrote them, and the host's softmax reads them so.
 
 Running: the model is compiled for ``streams`` parallel streams of ``threads / streams`` threads each
 (:func:`aerialmtl.runtime.resolve_threads`: on 2 cores, two one-thread streams), with one infer request per
@@ -84,6 +85,14 @@ ENGINES: tuple[str, ...] = ("torch", "openvino")
 OPENVINO_INSTALL = "pip install openvino"
 #: Side of the example input the model is converted with (any multiple of 32; small converts fast).
 CONVERT_SIZE = 64
+#: Outputs that leave the converted graphs channels last, ``(1, h, w, C)``, instead of ``(1, C, h, w)``: OpenVINO's
+#: convolutions store their outputs channels last, and class planes cost a reorder of every logit after the last
+#: one (on the near-null D3-Net of ``bench/predict.py``, 1024² windows, one thread: 75 of 118 ms per decoder
+#: sample, bf16; the host's softmax wants the classes of a pixel side by side anyway; bench/RESULTS.md, issue 27).
+#: The engine hands them on as views in the models' ``(B, C, h, w)`` order (:func:`_as_planes`).
+CHANNELS_LAST_OUTPUTS = ("classes",)
+#: Version of the converted graphs' outputs (part of the cache key: a cache of other outputs is never read).
+GRAPH_OUTPUTS = "classes-nhwc"
 
 
 class Engine(Protocol):
@@ -292,6 +301,18 @@ def model_outputs(model: nn.Module | CheckpointModel, tasks: Sequence[str]) -> t
     return tuple(getattr(model, "outputs", None) or tasks)
 
 
+def _graph_output(task: str, t: torch.Tensor) -> torch.Tensor:
+    """Output ``task`` of a traced graph: ``(1, C, h, w)`` → ``(1, h, w, C)`` for :data:`CHANNELS_LAST_OUTPUTS`."""
+    return t.permute(0, 2, 3, 1) if task in CHANNELS_LAST_OUTPUTS else t
+
+
+def _as_planes(task: str, t: torch.Tensor) -> torch.Tensor:
+    """An engine output ``task`` in the models' ``(B, C, h, w)`` order: a view of a channels-last ``(B, h, w, C)``
+    array for :data:`CHANNELS_LAST_OUTPUTS` (no copy: the softmax reads it channels last again).
+    """
+    return t.permute(0, 3, 1, 2) if task in CHANNELS_LAST_OUTPUTS else t
+
+
 class _Forward(nn.Module):
     def __init__(self, model: nn.Module, tasks: Sequence[str]) -> None:
         super().__init__()
@@ -299,7 +320,7 @@ class _Forward(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         out = self.model(x)
-        return tuple(out[t] for t in self.tasks)
+        return tuple(_graph_output(t, out[t]) for t in self.tasks)
 
 
 class _Encoder(nn.Module):
@@ -333,7 +354,7 @@ class _Decoder(nn.Module):
         for site, mask in zip(self.sites, masks):
             site.mask = mask
         out = self.model.decode(feats)  # type: ignore[operator]
-        return tuple(out[t] for t in self.tasks)
+        return tuple(_graph_output(t, out[t]) for t in self.tasks)
 
 
 # ---- engines ----------------------------------------------------------------------------------------
@@ -371,7 +392,7 @@ class OpenVINOEngine:
         self.cache_dir: Path | None = None
         if cache:
             cfg = getattr(model, "cfg", "")
-            extra = f"{__version__}|{ov.__version__}|{in_channels}|{self.tasks}|{cfg}|{CONVERT_SIZE}"
+            extra = f"{__version__}|{ov.__version__}|{in_channels}|{self.tasks}|{cfg}|{CONVERT_SIZE}|{GRAPH_OUTPUTS}"
             if cache_dir is not None:
                 self.cache_dir = Path(cache_dir)
             elif weights_key is not None:  # the checkpoint's hash, computed once by the caller
@@ -525,15 +546,17 @@ class OpenVINOEngine:
         reqs = self._requests("forward", h, w)
         jobs = [reqs.start({0: x[n:n + 1].contiguous().numpy()}) for n in range(x.shape[0])]
         outs = [job.outputs() for job in jobs]
-        return {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) for k, task in enumerate(self.tasks)}
+        return {task: _as_planes(task, torch.cat([torch.from_numpy(o[k]) for o in outs]))
+                for k, task in enumerate(self.tasks)}
 
     def encode(self, x: torch.Tensor) -> list[np.ndarray]:
         """(1, C, h, w) normalised → the encoder features (numpy, for :meth:`decode`)."""
         return self._requests("encode", *x.shape[-2:]).start({0: x.contiguous().numpy()}).outputs()
 
     def decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int) -> list[torch.Tensor]:
-        """One image's features and one sample's masks → its outputs, in task order."""
-        return [torch.from_numpy(o) for o in self._start_decode(feats, masks, h, w).outputs()]
+        """One image's features and one sample's masks → its outputs, in task order (``(1, C_t, h, w)``)."""
+        outs = self._start_decode(feats, masks, h, w).outputs()
+        return [_as_planes(task, torch.from_numpy(o)) for task, o in zip(self.tasks, outs)]
 
     def _start_decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int,
                       dest: list[np.ndarray] | None = None) -> _Job:
@@ -596,7 +619,7 @@ class OpenVINOEngine:
                 jobs[i] = _DONE
             start_until(last + min(chunk * b, self.threads.streams))  # the engine runs on while the host accumulates
             out = buffers[(done // chunk) % 2]
-            return {task: torch.from_numpy(out[k][:s * b]) for k, task in enumerate(self.tasks)}
+            return {task: _as_planes(task, torch.from_numpy(out[k][:s * b])) for k, task in enumerate(self.tasks)}
 
         return accumulate_samples(decode_chunk, samples, chunk, b)
 
@@ -744,8 +767,8 @@ class _Forward1:
 
     def result(self) -> McStatistics:
         outs = [job.outputs() for job in self.jobs]
-        raw = {task: torch.cat([torch.from_numpy(o[k]) for o in outs]) if len(outs) > 1
-               else torch.from_numpy(outs[0][k]) for k, task in enumerate(self.tasks)}
+        raw = {task: _as_planes(task, torch.cat([torch.from_numpy(o[k]) for o in outs]) if len(outs) > 1
+                                else torch.from_numpy(outs[0][k])) for k, task in enumerate(self.tasks)}
         stats = single_pass_statistics(raw)
         if stats.height_mean is not None:  # a view of the buffer, which goes back to the pool
             stats.height_mean = stats.height_mean.clone()
