@@ -21,6 +21,10 @@ Parts (select with flags; each can run alone):
   nothing) saved as a checkpoint, then ``python -m aerialmtl predict`` in a subprocess on a synthetic
   raster for each of ``--pipeline-cases`` (``SIZE:T``), wall time including process start, plus the
   child's peak RSS and the stage timings of ``prediction.json``. ``--pipeline-args`` adds CLI flags.
+  ``--pipeline-head-bias drawn`` gives the heads' convolutions the non-zero biases any trained head has
+  (normal, std 0.5, seed 1); ``zero`` (the default, as in the earlier sessions) keeps their initial zeros,
+  with which OpenVINO (2026.4, bf16) reorders the decoder's class planes with a slow reference kernel that a
+  trained model does not meet (bench/RESULTS.md, issue 27, third session).
 
 * ``--engines``: the full D3-Net (DenseNet-121, 20 classes, untrained weights) saved as a checkpoint,
   then ``python -m aerialmtl predict`` in a subprocess on a synthetic ``--size``² raster for each T of
@@ -63,6 +67,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import cast
 
 # As the CLI does (aerialmtl/cli): OpenMP threads sleep instead of spinning, or in-process timings of torch on
 # a shared CPU come out several times too slow (bench/RESULTS.md, CPU engines).
@@ -289,7 +294,8 @@ def cpu_name() -> str:
         return "unknown CPU"
 
 
-def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, cache: Path) -> dict:
+def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, cache: Path,
+                   head_bias: str = "zero") -> dict:
     """Rasters are kept in ``cache`` (``--tmp``) between invocations; outputs go to ``tmp``."""
     from aerialmtl.formats.checkpoint import save_checkpoint
 
@@ -299,7 +305,15 @@ def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, ca
     scheme = ClassScheme("bench", tuple(ClassDef(i + 1, f"c{i}", (i * 12 % 256, 100, 200)) for i in range(k)))
     meta = ModelMeta(cfg, scheme, (1, 2, 3), (110.0, 110.0, 100.0), (45.0, 45.0, 45.0), 0.5)
     ckpt = tmp / "null.pt"
-    save_checkpoint(ckpt, D3Net(cfg).eval(), meta)
+    model = D3Net(cfg).eval()
+    if head_bias == "drawn":  # as a trained head has (the module docstring says why it matters)
+        gen = torch.Generator().manual_seed(1)
+        with torch.no_grad():
+            for head in model.heads.values():
+                bias = cast(torch.nn.Conv2d, getattr(head, "head")).bias  # noqa: B009
+                assert bias is not None
+                bias.copy_(torch.randn(tuple(bias.shape), generator=gen) * 0.5)
+    save_checkpoint(ckpt, model, meta)
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     runs = []
     for size, samples in cases:
@@ -325,6 +339,7 @@ def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, ca
                      "stdout": stdout.strip().splitlines()[-1:]})
         print(json.dumps(runs[-1]), flush=True)
     return {"part": "pipeline", "model": "near-null D3-Net (growth 1, blocks 1-1-1-1, 2 stem, bn_size 1, 20 classes)",
+            "head_bias": head_bias,
             "cpu": cpu_name(), "runs": runs}
 
 
@@ -528,6 +543,7 @@ def main() -> None:
     ap.add_argument("--pipeline", action="store_true")
     ap.add_argument("--pipeline-cases", default="8192:1,4096:30", help="comma list of SIZE:T")
     ap.add_argument("--pipeline-args", default="", help="extra predict CLI flags, space separated")
+    ap.add_argument("--pipeline-head-bias", choices=["zero", "drawn"], default="zero")
     ap.add_argument("--engines", action="store_true")
     ap.add_argument("--engine-mc", default="1,8", help="comma list of T (engines part)")
     ap.add_argument("--startup", action="store_true")
@@ -560,7 +576,8 @@ def main() -> None:
         if args.pipeline:
             cases = [(int(a), int(b)) for a, b in (c.split(":") for c in args.pipeline_cases.split(","))]
             cache = Path(args.tmp) if args.tmp else tmp
-            print(json.dumps(bench_pipeline(cases, args.pipeline_args.split(), tmp, cache)), flush=True)
+            result = bench_pipeline(cases, args.pipeline_args.split(), tmp, cache, args.pipeline_head_bias)
+            print(json.dumps(result), flush=True)
         if args.startup:
             cache = Path(args.tmp) if args.tmp else tmp
             print(json.dumps(bench_startup(args.startup_runs, tmp, cache)), flush=True)
