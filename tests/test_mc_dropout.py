@@ -166,3 +166,31 @@ def test_entropy_with_one_log_per_pixel_equals_the_definition() -> None:
     torch.testing.assert_close(p_sum[:, 0].double(), p.sum(0), rtol=1e-5, atol=1e-6)
     ent = -(p * torch.log(p.clamp_min(1e-300))).sum(1)
     torch.testing.assert_close(e_sum[0].double(), ent.sum(0), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 3])
+def test_class_sums_added_in_place_equal_the_sum_of_chunk_sums(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The class sums of each chunk are added into the running sums block by block (no chunk-sized array per
+    call): the same bits (tolerance 0) as summing each chunk's samples apart, then adding the chunk sums; row
+    blocks of a few rows, the last one shorter."""
+    from aerialmtl.models import mc_dropout
+    from aerialmtl.models.mc_dropout import _class_sums, accumulate_samples
+
+    monkeypatch.setattr(mc_dropout, "_ROW_BLOCK_ELEMENTS", 1000)
+
+    samples, b = 5, 2
+    z = (torch.randn(samples * b, 6, 11, 9) * 6).contiguous(memory_format=torch.channels_last)
+
+    def decode(done: int, s: int) -> dict[str, torch.Tensor]:
+        return {"classes": z[done * b:(done + s) * b]}
+
+    stats = accumulate_samples(decode, samples, chunk, b)
+    p_sum = e_sum = None
+    for done in range(0, samples, chunk):
+        s = min(chunk, samples - done)
+        c_p, c_e = _class_sums(z[done * b:(done + s) * b], s, b)
+        p_sum = c_p if p_sum is None else p_sum + c_p
+        e_sum = c_e if e_sum is None else e_sum + c_e
+    assert p_sum is not None and e_sum is not None and stats.probs is not None and stats.mean_entropy is not None
+    assert torch.equal(stats.probs, (p_sum / samples).permute(1, 2, 3, 0))
+    assert torch.equal(stats.mean_entropy, e_sum / samples)

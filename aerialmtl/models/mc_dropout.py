@@ -175,19 +175,31 @@ def class_probabilities(logits: torch.Tensor) -> torch.Tensor:
     return torch.softmax(zl if zl.is_contiguous() else zl.contiguous(), dim=-1)
 
 
-def _class_sums(logits: torch.Tensor, s: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(s·B)×K×H×W logits → (Σ_t p_t: K×B×H×W class planes, Σ_t H_t: B×H×W), row block by row block.
+def _class_sums(logits: torch.Tensor, s: int, b: int, p_sum: torch.Tensor | None = None,
+                e_sum: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(s·B)×K×H×W logits (sample-major: sample ``t`` of image ``n`` at ``t·B + n``) → the sums over these ``s``
+    samples, row block by row block: Σ_t p_t (K×B×H×W class planes) and Σ_t H_t (B×H×W, nats), float32; added
+    into ``p_sum`` and ``e_sum`` when given (the sums of earlier samples: ``p_sum + Σ_t p_t``), else new.
 
     Each block is gathered into class planes (K×N×rows×W) first: the max and the sums over K are then
     reductions across K whole planes, which vectorise over pixels, where reductions over K = 20 adjacent
     values of a channels-last tensor do not (1.4–2× faster for the whole function on 2 Zen 4 cores,
-    bench/RESULTS.md).
+    bench/RESULTS.md). A block's sum over the samples is formed in a block-sized scratch and added into the
+    running sums there, so no chunk-sized array is made per call: a fresh 80 MiB array per chunk (1024²,
+    K = 20) cost its page faults every time (31 % of the function's time in a torch.profiler run; the sums are
+    the same, in the same order).
     """
     n, k, h, w = logits.shape
     zp = logits.permute(1, 0, 2, 3)  # K×N×H×W (a view)
-    p_sum = torch.empty((k, b, h, w), dtype=torch.float32, device=logits.device)
-    e_sum = torch.empty((b, h, w), dtype=torch.float32, device=logits.device)
+    fresh = p_sum is None or e_sum is None
+    if p_sum is None or e_sum is None:
+        p_sum = torch.empty((k, b, h, w), dtype=torch.float32, device=logits.device)
+        e_sum = torch.empty((b, h, w), dtype=torch.float32, device=logits.device)
     rows = max(1, _ROW_BLOCK_ELEMENTS // max(1, n * w * k)) if logits.device.type == "cpu" else h
+    p_scratch = e_scratch = None
+    if s > 1 and not fresh:
+        p_scratch = torch.empty((k, b, min(rows, h), w), dtype=torch.float32, device=logits.device)
+        e_scratch = torch.empty((b, min(rows, h), w), dtype=torch.float32, device=logits.device)
     for r in range(0, h, rows):
         z = zp[:, :, r:r + rows].float().contiguous()  # K×N×rows×W planes
         d = z.sub_(z.amax(0))  # ≤ 0, exactly 0 at the largest logit
@@ -196,8 +208,20 @@ def _class_sums(logits: torch.Tensor, s: int, b: int) -> tuple[torch.Tensor, tor
         ent = d.mul_(e).sum(0).mul_(inv).neg_().sub_(torch.log(inv))  # log S − Σ e·d / S
         ent.clamp_min_(0.0)
         e.mul_(inv)
-        _sum_samples(e, p_sum[:, :, r:r + rows], 1, s, b)
-        _sum_samples(ent, e_sum[:, r:r + rows], 0, s, b)
+        m = e.shape[2]
+        p_rows, e_rows = p_sum[:, :, r:r + m], e_sum[:, r:r + m]
+        if fresh:  # the sums of these samples are the running sums
+            _sum_samples(e, p_rows, 1, s, b)
+            _sum_samples(ent, e_rows, 0, s, b)
+        elif p_scratch is None or e_scratch is None:  # one sample: added as it is
+            p_rows.add_(e)
+            e_rows.add_(ent)
+        else:
+            p_chunk, e_chunk = p_scratch[:, :, :m], e_scratch[:, :m]
+            _sum_samples(e, p_chunk, 1, s, b)
+            _sum_samples(ent, e_chunk, 0, s, b)
+            p_rows.add_(p_chunk)
+            e_rows.add_(e_chunk)
     return p_sum, e_sum
 
 
@@ -315,10 +339,8 @@ def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor
         if HEIGHT_SCALE in out:
             c_a = laplace_variance(out[HEIGHT_SCALE]).unflatten(0, (s, b))[:, :, 0].sum(0)
             a_sum = c_a if a_sum is None else a_sum.add_(c_a)
-        if "classes" in out:
-            c_p, c_e = _class_sums(out["classes"], s, b)
-            p_sum = c_p if p_sum is None else p_sum.add_(c_p)
-            ent_sum = c_e if ent_sum is None else ent_sum.add_(c_e)
+        if "classes" in out:  # added into the running sums (no chunk-sized array per call)
+            p_sum, ent_sum = _class_sums(out["classes"], s, b, p_sum, ent_sum)
         done += s
     if h_mean is not None and h_m2 is not None:
         stats.height_mean = h_mean
