@@ -195,3 +195,23 @@ def test_height_balance_config_errors() -> None:
     with pytest.raises(ConfigError, match="loss.height: l1"):
         LossSection(height="l2", height_balance=0.5)
     assert LossSection(height_balance=0.5).height_balance == 0.5
+
+
+def test_height_balance_weighs_the_bins_cross_entropy_too() -> None:
+    """With a height-bin head the balance weights every height term: the bins' cross-entropy is the weighted
+    mean of the per-pixel terms (weights of 1 give the plain mean)."""
+    from aerialmtl.models.height_bins import bin_edges
+
+    edges = bin_edges(4, 40.0)
+    target = torch.tensor([0.0, 0.0, 0.0, 25.0]).reshape(1, 1, 2, 2)
+    mask = torch.ones_like(target, dtype=torch.bool)
+    logits = torch.zeros(1, 4, 2, 2)
+    logits[:, 0] = 2.0  # every pixel confident of the lowest bin: the 25 m pixel is the costly one
+    plain = L.height_bins_ce(logits, target, mask, edges)
+    assert L.height_bins_ce(logits, target, mask, edges, weight=torch.ones_like(target)).item() == pytest.approx(
+        plain.item(), rel=1e-6)
+    w = L.height_balance_weights(target, mask, 1.0)  # ground 3 × 2/3, tall 1 × 2
+    per = torch.nn.functional.cross_entropy(logits, torch.tensor([[[0, 0], [0, 3]]]), reduction="none")[0]
+    expected = (per * w[0, 0]).mean()
+    assert L.height_bins_ce(logits, target, mask, edges, weight=w).item() == pytest.approx(expected.item(), rel=1e-6)
+    assert L.height_bins_ce(logits, target, mask, edges, weight=w).item() > plain.item()

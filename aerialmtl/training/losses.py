@@ -209,14 +209,16 @@ def laplace_nll(pred: torch.Tensor, scale: torch.Tensor, target: torch.Tensor, m
 
 
 def height_bins_ce(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
-                   edges: torch.Tensor) -> torch.Tensor:
+                   edges: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Cross-entropy (nats, mean over valid pixels) of B×K×H×W height-bin logits against the bin of the
     B×1×H×W reference height (metres); see :mod:`aerialmtl.models.height_bins`. 0 (with a gradient) when no
-    pixel is valid.
+    pixel is valid. ``weight`` (B×1×H×W, mean 1 over the valid pixels) multiplies each pixel's term.
     """
     valid = _check(logits[:, :1], target, mask)
     idx = bin_index(torch.where(valid, target.float(), torch.zeros((), device=target.device))[:, 0], edges)
     ce = F.cross_entropy(logits.float(), idx, reduction="none")
+    if weight is not None:
+        ce = ce * weight[:, 0]
     return _masked_mean(torch.where(valid[:, 0], ce, torch.zeros((), device=ce.device)), valid)
 
 

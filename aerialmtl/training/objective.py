@@ -94,7 +94,7 @@ class Objective:
                 nll = losses.laplace_nll(out["height"].float(), out[HEIGHT_LAPLACE].float(), batch["height"],
                                          batch["height_valid"], beta=self.nll_beta, weight=w)
                 result["height"] = nll + self.bins_weight * losses.height_bins_ce(
-                    out[HEIGHT_BINS], batch["height"], batch["height_valid"], self.bin_edges)
+                    out[HEIGHT_BINS], batch["height"], batch["height_valid"], self.bin_edges, weight=w)
             elif HEIGHT_SCALE in out and self.bin_edges is None and not scoring:  # (a bin head's is no Laplace b)
                 result["height"] = losses.laplace_nll(out["height"].float(), out[HEIGHT_SCALE].float(),
                                                       batch["height"], batch["height_valid"], beta=self.nll_beta,
