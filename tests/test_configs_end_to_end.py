@@ -59,11 +59,13 @@ def test_config_tile_train_predict_evaluate(name: str, town: Path, tmp_path: Pat
 
 
 #: Options beside the shipped configs' values, each on the config a user would change: the height-bin head
-#: and the height balance (small-area recipe), the balance on the paper's L1 loss (small synthetic D3-Net).
+#: and the height balance, the scale's own decoder (small-area recipe), the balance on the paper's L1 loss
+#: (small synthetic D3-Net).
 OPTIONS = {
     "small_area+height_bins+height_balance": ("small_area", {"model": {"height_bins": 8},
                                                              "loss": {"height_balance": 0.5}}),
     "d3net_small_synth+height_balance": ("d3net_small_synth", {"loss": {"height_balance": 0.5}}),
+    "small_area+scale_decoder": ("small_area", {"model": {"scale_decoder": True}}),
 }
 
 
