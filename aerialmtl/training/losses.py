@@ -51,7 +51,8 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
        weight: torch.Tensor | None = None) -> torch.Tensor:
     """Mean absolute error (metres) over valid pixels (the paper's height loss); ``weight`` (B×1×H×W, mean 1
-    over the valid pixels, e.g. :func:`height_balance_weights`) multiplies each pixel's error."""
+    over the valid pixels, e.g. :func:`height_balance_weights`) multiplies each pixel's error.
+    """
     mask = _check(pred, target, mask)
     err = _masked_error(pred, target, mask).abs()
     return _masked_mean(err if weight is None else err * weight, mask)
@@ -306,4 +307,5 @@ class CrossEntropyLoss(nn.Module):
 
 __all__ = ["laplace_nll", "height_bins_ce",
            "l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
-           "HEIGHT_LOSSES", "CLASS_LOSSES", "BALANCE_EDGES", "height_balance_weights", "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]
+           "HEIGHT_LOSSES", "CLASS_LOSSES", "BALANCE_EDGES", "height_balance_weights",
+           "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]
