@@ -3,8 +3,8 @@
 Each encoder (the paper's DenseNet-121, small, and the EfficientNet-Lite options) × head (the paper's,
 aleatoric Laplace scale; the height-bin head and the scale's own decoder on the paper's encoder and the
 small-area recipe's, since they sit after the shared decoder whatever the encoder) × engine (torch, openvino)
-× precision (fp32, bf16) × T (1, > 1), on rasters whose sides are not multiples of 32. OpenVINO at fp32 equals torch within float
-rounding; bf16 stays close to fp32 (stated tolerances below)."""
+× precision (fp32, bf16) × T (1, > 1), on rasters whose sides are not multiples of 32. OpenVINO at fp32
+equals torch within float rounding; bf16 stays close to fp32 (stated tolerances below)."""
 
 from __future__ import annotations
 
