@@ -97,6 +97,30 @@ def test_leaky_task_blocks_keep_information_where_relu_features_are_all_zero() -
     assert all(isinstance(a, torch.nn.ReLU) for a in shared)  # the shared blocks stay the paper's
 
 
+def test_scale_decoder_gives_the_scale_blocks_of_its_own() -> None:
+    """``model.scale_decoder``: the height head outputs the height alone and the scale comes from its own task
+    blocks — changing them moves the scale, never the height; the shared-head model keeps its parameter names
+    (checkpoints of it load as before)."""
+    model, _ = _aleatoric(scale_decoder=True)
+    shared_head, _ = _aleatoric()
+    assert model.scale_decoder is not None and shared_head.scale_decoder is None
+    assert model.heads["height"].head.out_channels == 1 and shared_head.heads["height"].head.out_channels == 2
+    assert not any(k.startswith("scale_decoder.") for k in shared_head.state_dict())
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():
+        before = model(x)
+        assert tuple(before) == model.outputs and (before[HEIGHT_SCALE] >= SCALE_MIN).all()
+        for p in model.scale_decoder.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+        after = model(x)
+    assert torch.equal(after["height"], before["height"]) and torch.equal(after["classes"], before["classes"])
+    assert not torch.allclose(after[HEIGHT_SCALE], before[HEIGHT_SCALE])
+    with pytest.raises(ConfigError, match="scale_decoder"):
+        ModelConfig(scale_decoder=True)  # without the aleatoric head
+    with pytest.raises(ConfigError, match="scale_decoder"):
+        ModelConfig(aleatoric=True, height_bins=8, scale_decoder=True)
+
+
 def test_predictive_std_combines_mc_spread_and_laplace_variance() -> None:
     """Two samples of one pixel: means 1 and 3 (variance 1), scales 1 and 2 (mean 2b² = 5) → std √6."""
     def decode(done: int, s: int) -> dict[str, torch.Tensor]:

@@ -55,7 +55,39 @@ def _labels_in(scheme: str, town: Path, out: Path) -> Path:
 @pytest.mark.parametrize("name", sorted(SCHEMES))
 def test_config_tile_train_predict_evaluate(name: str, town: Path, tmp_path: Path,
                                             capsys: pytest.CaptureFixture) -> None:
-    scheme = SCHEMES[name]
+    _user_path(CONFIGS / f"{name}.yaml", SCHEMES[name], town, tmp_path, capsys)
+
+
+#: Options beside the shipped configs' values, each on the config a user would change: the height-bin head
+#: and the height balance, the scale's own decoder (small-area recipe), the balance on the paper's L1 loss
+#: (small synthetic D3-Net).
+OPTIONS = {
+    "small_area+height_bins+height_balance": ("small_area", {"model": {"height_bins": 8},
+                                                             "loss": {"height_balance": 0.5}}),
+    "d3net_small_synth+height_balance": ("d3net_small_synth", {"loss": {"height_balance": 0.5}}),
+    "small_area+scale_decoder": ("small_area", {"model": {"scale_decoder": True}}),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", sorted(OPTIONS))
+def test_options_tile_train_predict_evaluate(case: str, town: Path, tmp_path: Path,
+                                             capsys: pytest.CaptureFixture) -> None:
+    name, changes = OPTIONS[case]
+    cfg = yaml.safe_load((CONFIGS / f"{name}.yaml").read_text())
+    for section, values in changes.items():
+        cfg[section].update(values)
+    path = tmp_path / f"{case}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    _user_path(path, SCHEMES[name], town, tmp_path, capsys)
+    used = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())  # the options took effect
+    assert all(used[section][k] == v for section, values in changes.items() for k, v in values.items())
+    model = json.loads((tmp_path / "pred" / "prediction.json").read_text())["model"]
+    assert ("height-bin spread" in model["height_uncertainty"]) == ("height_bins" in changes.get("model", {}))
+
+
+def _user_path(config: Path, scheme: str | None, town: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """tile → train (2 steps) → predict (default engine, T = 2) → evaluate through the CLI, as a user types it."""
     args = ["tile", "--ortho", town / "ortho.tif", "--dsm", town / "dsm.tif", "--dtm", town / "dtm.tif",
             "--size", 64, "--stride", 64, "--split-block", 32, "--out", tmp_path / "tiles"]
     if scheme is not None:
@@ -63,8 +95,8 @@ def test_config_tile_train_predict_evaluate(name: str, town: Path, tmp_path: Pat
         args += ["--labels", labels, "--classes", scheme]
     code, _, err = run_cli(capsys, *args)
     assert code == 0, err
-    cfg = yaml.safe_load((CONFIGS / f"{name}.yaml").read_text())
-    code, _, err = run_cli(capsys, "train", "--config", CONFIGS / f"{name}.yaml", "--data", tmp_path / "tiles",
+    cfg = yaml.safe_load(config.read_text())
+    code, _, err = run_cli(capsys, "train", "--config", config, "--data", tmp_path / "tiles",
                            "--out", tmp_path / "run", "--max-steps", 2, "--quiet")
     assert code == 0, err
     code, _, err = run_cli(capsys, "predict", town / "ortho.tif", "--model", tmp_path / "run" / "best.pt",

@@ -1,10 +1,10 @@
 """Every model option on every engine, through the CLI.
 
 Each encoder (the paper's DenseNet-121, small, and the EfficientNet-Lite options) × head (the paper's,
-aleatoric Laplace scale; the height-bin head on the paper's encoder and the small-area recipe's, since the
-head sits after the decoder whatever the encoder) × engine (torch, openvino) × precision (fp32, bf16) × T
-(1, > 1), on rasters whose sides are not multiples of 32. OpenVINO at fp32 equals torch within float
-rounding; bf16 stays close to fp32 (stated tolerances below)."""
+aleatoric Laplace scale; the height-bin head and the scale's own decoder on the paper's encoder and the
+small-area recipe's, since they sit after the shared decoder whatever the encoder) × engine (torch, openvino)
+× precision (fp32, bf16) × T (1, > 1), on rasters whose sides are not multiples of 32. OpenVINO at fp32
+equals torch within float rounding; bf16 stays close to fp32 (stated tolerances below)."""
 
 from __future__ import annotations
 
@@ -34,16 +34,16 @@ FP32_ATOL = 1e-3
 BF16_REL_MAE, BF16_CLASS_AGREE = 0.1, 0.9
 
 
-def _model(encoder: str, aleatoric: bool, height_bins: int = 0) -> tuple[D3Net, ModelMeta]:
+def _model(encoder: str, aleatoric: bool, height_bins: int = 0, scale_decoder: bool = False) -> tuple[D3Net, ModelMeta]:
     torch.manual_seed(0)
     scheme = ClassScheme.load("synthetic")
     scheme = ClassScheme(scheme.name, scheme.classes[:3])
     extra = TINY if encoder == "densenet121" else {}
     cfg = ModelConfig(num_classes=3, encoder=encoder, aleatoric=aleatoric, height_bins=height_bins,
-                      **extra)  # type: ignore[arg-type]
+                      scale_decoder=scale_decoder, **extra)  # type: ignore[arg-type]
     model = D3Net(cfg).eval()
     with torch.no_grad():  # outputs of a few metres and confident classes, not the near-zero ones of a fresh head
-        for head in model.heads.values():
+        for head in [*model.heads.values(), *([model.scale_decoder] if model.scale_decoder is not None else [])]:
             assert isinstance(head, TaskDecoder)
             torch.nn.init.normal_(head.head.weight, std=0.3)
     meta = ModelMeta(cfg, scheme, (1, 2, 3), (120.0, 110.0, 100.0), (40.0, 40.0, 40.0), 0.5, ("r", "g", "b"))
@@ -60,16 +60,19 @@ def _layers(folder: Path) -> dict[str, np.ndarray]:
     return out
 
 
-HEADS = {"paper_head": (False, 0), "aleatoric": (True, 0), "height_bins": (True, 8)}
-CASES = [(e, h) for e in ENCODERS for h in HEADS if h != "height_bins" or e in ("densenet121", "efficientnet_lite0")]
+HEADS = {"paper_head": (False, 0, False), "aleatoric": (True, 0, False), "height_bins": (True, 8, False),
+         "scale_decoder": (True, 0, True)}
+#: the heads after the decoder (height bins, the scale's own decoder) on the paper's encoder and the recipe's
+CASES = [(e, h) for e in ENCODERS for h in HEADS
+         if h not in ("height_bins", "scale_decoder") or e in ("densenet121", "efficientnet_lite0")]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("encoder", "head"), CASES, ids=[f"{e}-{h}" for e, h in CASES])
 def test_every_encoder_and_head_predicts_on_every_engine_precision_and_t(
         encoder: str, head: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    aleatoric, bins = HEADS[head]
-    model, meta = _model(encoder, aleatoric, bins)
+    aleatoric, bins, scale_decoder = HEADS[head]
+    model, meta = _model(encoder, aleatoric, bins, scale_decoder)
     ckpt = tmp_path / "m.pt"
     save_checkpoint(ckpt, model, meta)
     img = np.random.default_rng(1).integers(1, 256, (3, 71, 90)).astype(np.uint8)  # sides not multiples of 32

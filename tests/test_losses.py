@@ -164,3 +164,54 @@ def test_uncertainty_weighting_learns_to_downweight_a_large_loss() -> None:
 def test_unknown_weighting_name() -> None:
     with pytest.raises(ConfigError, match="uncertainty"):
         build_weighting("gradnorm", ["height"])
+
+
+def test_height_balance_weights_lift_the_rare_tall_pixels() -> None:
+    """``loss.height_balance``: 90 ground pixels and 10 at 25 m; at power 0.5 each bin's pixels weigh
+    ∝ n^−0.5, mean 1 over the valid pixels, so a tall pixel weighs 3× a ground one; invalid pixels weigh 0."""
+    target = torch.tensor([0.0] * 90 + [25.0] * 10 + [float("nan")] * 4).reshape(1, 1, 8, 13)
+    mask = torch.isfinite(target)
+    w = L.height_balance_weights(target, mask, 0.5)
+    ground, tall = 1 / math.sqrt(90), 1 / math.sqrt(10)
+    scale = 100 / (90 * ground + 10 * tall)
+    assert w[0, 0, 0, 0].item() == pytest.approx(ground * scale, rel=1e-6)
+    assert w[0, 0, 7, 8].item() == pytest.approx(tall * scale, rel=1e-6)  # index 99: the last tall pixel
+    assert w[~mask].eq(0).all() and w[mask].mean().item() == pytest.approx(1.0, rel=1e-6)
+    assert not w.requires_grad
+    assert torch.equal(L.height_balance_weights(target, mask, 0.0), mask.float())  # power 0: the plain mean
+    # the weighted L1 of a map at 0 m is then the weighted mean of the errors
+    pred = torch.zeros_like(target)
+    assert L.l1(pred, target, mask, weight=w).item() == pytest.approx(10 * 25 * tall * scale / 100, rel=1e-6)
+    scale_b = torch.ones_like(target)
+    assert L.laplace_nll(pred, scale_b, target, mask, weight=w).item() == pytest.approx(
+        L.l1(pred, target, mask, weight=w).item(), rel=1e-6)  # b = 1: the NLL is the L1
+
+
+def test_height_balance_config_errors() -> None:
+    from aerialmtl.training.config import LossSection
+
+    with pytest.raises(ConfigError, match="height_balance"):
+        LossSection(height_balance=1.5)
+    with pytest.raises(ConfigError, match="loss.height: l1"):
+        LossSection(height="l2", height_balance=0.5)
+    assert LossSection(height_balance=0.5).height_balance == 0.5
+
+
+def test_height_balance_weighs_the_bins_cross_entropy_too() -> None:
+    """With a height-bin head the balance weights every height term: the bins' cross-entropy is the weighted
+    mean of the per-pixel terms (weights of 1 give the plain mean)."""
+    from aerialmtl.models.height_bins import bin_edges
+
+    edges = bin_edges(4, 40.0)
+    target = torch.tensor([0.0, 0.0, 0.0, 25.0]).reshape(1, 1, 2, 2)
+    mask = torch.ones_like(target, dtype=torch.bool)
+    logits = torch.zeros(1, 4, 2, 2)
+    logits[:, 0] = 2.0  # every pixel confident of the lowest bin: the 25 m pixel is the costly one
+    plain = L.height_bins_ce(logits, target, mask, edges)
+    assert L.height_bins_ce(logits, target, mask, edges, weight=torch.ones_like(target)).item() == pytest.approx(
+        plain.item(), rel=1e-6)
+    w = L.height_balance_weights(target, mask, 1.0)  # ground 3 × 2/3, tall 1 × 2
+    per = torch.nn.functional.cross_entropy(logits, torch.tensor([[[0, 0], [0, 3]]]), reduction="none")[0]
+    expected = (per * w[0, 0]).mean()
+    assert L.height_bins_ce(logits, target, mask, edges, weight=w).item() == pytest.approx(expected.item(), rel=1e-6)
+    assert L.height_bins_ce(logits, target, mask, edges, weight=w).item() > plain.item()

@@ -71,6 +71,12 @@ class Architecture:
             NLL, and the spread is the bins' second moment around the height instead of the Laplace scale
             (see :mod:`aerialmtl.models.height_bins`). An option beside the Laplace scale.
         height_bin_max: the top bin edge in metres (heights above it fall in the last bin).
+        scale_decoder: with ``aleatoric`` (and no ``height_bins``), ``false`` (default): the Laplace scale is a
+            second channel of the height head's last convolution; ``true``: the scale has task blocks of its
+            own (as many as ``task_blocks``, from the shared decoder and the same skips), an option: with the
+            shared head, the 16–32 features entering it are nearly one-dimensional on a small area (one
+            principal component held 96 % of their variance on autzen_west), so the scale can only follow the
+            predicted height.
         task_activation: the activation of the task-owned decoder blocks: ``relu`` (the paper's) or
             ``leaky_relu`` (slope 0.01), an option: with ReLU, on many pixels every feature entering the
             height head is 0 and the head outputs its bias alone (the same height, and the same spread, for
@@ -91,6 +97,7 @@ class Architecture:
     height_bins: int = 0
     height_bin_max: float = 40.0
     task_activation: Activation = "relu"
+    scale_decoder: bool = False
 
     def __post_init__(self) -> None:
         if self.task_activation not in ("relu", "leaky_relu"):
@@ -105,6 +112,11 @@ class Architecture:
         if self.height_bins and not self.aleatoric:
             raise ConfigError("model.height_bins: the height bins are a kind of aleatoric height head; set "
                               "model.aleatoric: true, or model.height_bins: 0")
+        if not isinstance(self.scale_decoder, bool):
+            raise ConfigError(f"model.scale_decoder: must be true or false, got {self.scale_decoder!r}")
+        if self.scale_decoder and (not self.aleatoric or self.height_bins):
+            raise ConfigError("model.scale_decoder: gives the Laplace scale of the aleatoric head blocks of its own; "
+                              "set model.aleatoric: true and model.height_bins: 0, or model.scale_decoder: false")
         if not (isinstance(self.height_bin_max, (int, float)) and 1.0 <= float(self.height_bin_max) <= 1000.0):
             raise ConfigError(f"model.height_bin_max: must be a height in metres in 1..1000, got "
                               f"{self.height_bin_max!r}; a little above the area's tallest objects, e.g. 40")

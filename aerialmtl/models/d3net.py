@@ -146,13 +146,19 @@ class D3Net(nn.Module):
         self.shared = nn.ModuleList(
             UpBlock(ins[j], outs[j], cfg.dropout if j < cfg.dropout_blocks else 0.0) for j in range(n_shared)
         )
-        # the height, [a Laplace scale channel], [K bin logits]
-        out_ch = {"height": TASK_CHANNELS_HEIGHT + int(cfg.aleatoric) + cfg.height_bins, "classes": cfg.num_classes}
-        self.heads = nn.ModuleDict({
-            t: TaskDecoder([UpBlock(ins[j], outs[j], activation=cfg.task_activation) for j in range(n_shared, n_up)],
-                           outs[-1], out_ch[t])
-            for t in self.tasks
-        })
+        # the height, [a Laplace scale channel unless the scale has its own decoder], [K bin logits]
+        scale_channel = int(cfg.aleatoric and not cfg.scale_decoder)
+        out_ch = {"height": TASK_CHANNELS_HEIGHT + scale_channel + cfg.height_bins, "classes": cfg.num_classes}
+
+        def task_decoder(channels: int) -> TaskDecoder:
+            return TaskDecoder([UpBlock(ins[j], outs[j], activation=cfg.task_activation)
+                                for j in range(n_shared, n_up)], outs[-1], channels)
+
+        self.heads = nn.ModuleDict({t: task_decoder(out_ch[t]) for t in self.tasks})
+        #: the Laplace scale's own task blocks (``cfg.scale_decoder``); absent otherwise, so the paper's and the
+        #: shared-head models keep their parameter names
+        self.scale_decoder: TaskDecoder | None = (task_decoder(1) if cfg.scale_decoder and "height" in self.tasks
+                                                  else None)
         self.outputs: tuple[str, ...] = cfg.outputs
         self._n_up = n_up
         #: the height bins' edges (metres) with ``cfg.height_bins``; a buffer, so that it follows the device
@@ -163,7 +169,8 @@ class D3Net(nn.Module):
             spec.load_weights(self.encoder, cfg.encoder_weights)
 
     def _reset_decoder(self) -> None:
-        for m in list(self.shared.modules()) + list(self.heads.modules()):
+        decoders = list(self.heads.values()) + ([self.scale_decoder] if self.scale_decoder is not None else [])
+        for m in [m for d in [self.shared, *decoders] for m in d.modules()]:
             if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
                 nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
                 if m.bias is not None:
@@ -171,12 +178,15 @@ class D3Net(nn.Module):
             elif isinstance(m, nn.BatchNorm2d):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
-        for head in self.heads.values():  # small outputs at start: heights ≈ 0 m, near-uniform softmax
+        for head in decoders:  # small outputs at start: heights ≈ 0 m, near-uniform softmax
             nn.init.normal_(cast(TaskDecoder, head).head.weight, std=1e-3)
         if self.cfg.aleatoric and "height" in self.heads:  # scale channel: b ≈ 1 m at start (bin logits: 0)
-            bias = cast(TaskDecoder, self.heads["height"]).head.bias
+            if self.scale_decoder is not None:
+                bias, first = self.scale_decoder.head.bias, 0
+            else:
+                bias, first = cast(TaskDecoder, self.heads["height"]).head.bias, TASK_CHANNELS_HEIGHT
             assert bias is not None
-            nn.init.constant_(bias[TASK_CHANNELS_HEIGHT:TASK_CHANNELS_HEIGHT + 1], SCALE_INIT)
+            nn.init.constant_(bias[first:first + 1], SCALE_INIT)
 
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
@@ -226,6 +236,9 @@ class D3Net(nn.Module):
                 if self.training:  # the loss needs these; inference (and the engines) only the spread
                     results[HEIGHT_LAPLACE] = laplace_scale(raw_b)
                     results[HEIGHT_BINS] = logits
+            elif task == "height" and self.scale_decoder is not None:
+                results[task] = y
+                results[HEIGHT_SCALE] = laplace_scale(self.scale_decoder(out, skips))
             elif task == "height" and self.cfg.aleatoric:
                 results[task] = y[:, :TASK_CHANNELS_HEIGHT]
                 results[HEIGHT_SCALE] = laplace_scale(y[:, TASK_CHANNELS_HEIGHT:])

@@ -140,6 +140,11 @@ class LossSection:
     height loss adds ``bins_weight`` × the cross-entropy of the reference height's bin
     (:mod:`aerialmtl.models.height_bins`).
 
+    ``height_balance`` (0 … 1; 0, the paper: every pixel alike) weighs each pixel's height loss by
+    ``n_k^−height_balance``, ``n_k`` the batch's pixels in its reference-height bin (0–1, 1–2, 2–5, 5–10, 10–20,
+    ≥ 20 m), normalised to mean 1 (:func:`~aerialmtl.training.losses.height_balance_weights`): an option against
+    tall structures outvoted by ground. Validation still scores the plain L1.
+
     ``class_weights``: ``none``, ``balanced`` (``N / (K · n_k)`` from the train split's pixel counts,
     normalised to mean 1 over present classes) or an explicit list of K floats.
     """
@@ -149,8 +154,16 @@ class LossSection:
     class_weights: Literal["none", "balanced"] | tuple[float, ...] = "none"
     nll_beta: float = 0.0
     bins_weight: float = 1.0
+    height_balance: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.height_balance, (int, float)) and 0.0 <= float(self.height_balance) <= 1.0):
+            raise ConfigError(f"loss.height_balance: must be a number in [0, 1], got {self.height_balance!r}; 0 "
+                              "weighs every pixel alike (the paper), 0.5 by the inverse square root of its height "
+                              "bin's share of the batch")
+        if self.height_balance and self.height != "l1":
+            raise ConfigError(f"loss.height_balance: weighs the L1 / Laplace height loss; loss.height is "
+                              f"{self.height!r}: set loss.height: l1 or loss.height_balance: 0")
         if not (isinstance(self.bins_weight, (int, float)) and 0.0 < float(self.bins_weight) <= 100.0):
             raise ConfigError(f"loss.bins_weight: must be a number in (0, 100], got {self.bins_weight!r}; 1 weighs "
                               "the height bins' cross-entropy (nats) like the L1 height loss (metres)")

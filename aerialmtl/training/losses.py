@@ -48,10 +48,14 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return values.sum() / mask.sum().clamp_min(1)
 
 
-def l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean absolute error (metres) over valid pixels (the paper's height loss)."""
+def l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
+       weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean absolute error (metres) over valid pixels (the paper's height loss); ``weight`` (B×1×H×W, mean 1
+    over the valid pixels, e.g. :func:`height_balance_weights`) multiplies each pixel's error.
+    """
     mask = _check(pred, target, mask)
-    return _masked_mean(_masked_error(pred, target, mask).abs(), mask)
+    err = _masked_error(pred, target, mask).abs()
+    return _masked_mean(err if weight is None else err * weight, mask)
 
 
 def l2(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -149,8 +153,34 @@ def scale_invariant_gradient(pred: torch.Tensor, target: torch.Tensor, mask: tor
     return _per_image_si(d, mask, lam) + alpha * _gradient_matching(d, mask, scales)
 
 
+#: Upper edges (metres) of the reference-height bins that ``loss.height_balance`` counts pixels in (the last bin
+#: is open): the bins the evaluation reports.
+BALANCE_EDGES = (1.0, 2.0, 5.0, 10.0, 20.0)
+
+
+def height_balance_weights(target: torch.Tensor, mask: torch.Tensor, power: float) -> torch.Tensor:
+    """Per-pixel weights that balance the reference heights of one batch (``loss.height_balance``).
+
+    Each valid pixel of ``target`` (B×1×H×W, metres) gets ``n_k^−power`` where ``n_k`` is the batch's number of
+    valid pixels in its height bin (:data:`BALANCE_EDGES`), scaled so the weights' mean over the valid pixels is
+    1 (the loss keeps its scale); 0 at invalid pixels. ``power`` 0.5 is the inverse square root of the bin's
+    frequency (Yang et al., ICML 2021, "Delving into deep imbalanced regression"): a 20 m roof among 90 %
+    ground pulls the heights harder than in the plain mean, where it is outvoted. No gradient flows through
+    the weights.
+    """
+    valid = mask.bool() & torch.isfinite(target)
+    t = torch.where(valid, target.float(), torch.zeros((), device=target.device))
+    edges = torch.tensor(BALANCE_EDGES, dtype=torch.float32, device=target.device)
+    idx = torch.bucketize(t, edges, right=True)
+    counts = torch.bincount(idx[valid], minlength=len(BALANCE_EDGES) + 1).float()
+    per_bin = torch.where(counts > 0, counts.clamp_min(1.0) ** (-float(power)), torch.zeros_like(counts))
+    w = torch.where(valid, per_bin[idx], torch.zeros((), device=target.device))
+    n = valid.sum()
+    return (w * (n.clamp_min(1) / w.sum().clamp_min(1e-12))).detach()
+
+
 def laplace_nll(pred: torch.Tensor, scale: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
-                beta: float = 0.0) -> torch.Tensor:
+                beta: float = 0.0, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Laplace negative log-likelihood of the heights, mean over valid pixels (nats, up to log 2).
 
     Per pixel ``|y − μ| / b + log b`` with μ = ``pred`` and b = ``scale`` (metres, > 0; both B×1×H×W). For a
@@ -160,6 +190,9 @@ def laplace_nll(pred: torch.Tensor, scale: torch.Tensor, target: torch.Tensor, m
     ``beta`` (β-NLL, Seitzer et al., ICLR 2022) weights each pixel's term by ``b^β`` (not back-propagated):
     with β = 0 the plain NLL, whose gradient on μ is ``sign(μ − y) / b`` — hard pixels, given a large b, pull
     the heights less; with β = 1 the gradient on μ is L1's exactly, and b still learns ``|y − μ|``.
+
+    ``weight`` (B×1×H×W, mean 1 over the valid pixels, e.g. :func:`height_balance_weights`) multiplies each
+    pixel's term.
     """
     mask = _check(pred, target, mask)
     if scale.shape != pred.shape:
@@ -171,18 +204,22 @@ def laplace_nll(pred: torch.Tensor, scale: torch.Tensor, target: torch.Tensor, m
     per = err / b + torch.log(b)
     if beta > 0:
         per = per * b.detach() ** beta
+    if weight is not None:
+        per = per * weight
     return _masked_mean(torch.where(mask, per, torch.zeros((), device=per.device)), mask)
 
 
 def height_bins_ce(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
-                   edges: torch.Tensor) -> torch.Tensor:
+                   edges: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Cross-entropy (nats, mean over valid pixels) of B×K×H×W height-bin logits against the bin of the
     B×1×H×W reference height (metres); see :mod:`aerialmtl.models.height_bins`. 0 (with a gradient) when no
-    pixel is valid.
+    pixel is valid. ``weight`` (B×1×H×W, mean 1 over the valid pixels) multiplies each pixel's term.
     """
     valid = _check(logits[:, :1], target, mask)
     idx = bin_index(torch.where(valid, target.float(), torch.zeros((), device=target.device))[:, 0], edges)
     ce = F.cross_entropy(logits.float(), idx, reduction="none")
+    if weight is not None:
+        ce = ce * weight[:, 0]
     return _masked_mean(torch.where(valid[:, 0], ce, torch.zeros((), device=ce.device)), valid)
 
 
@@ -270,4 +307,5 @@ class CrossEntropyLoss(nn.Module):
 
 __all__ = ["laplace_nll", "height_bins_ce",
            "l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
-           "HEIGHT_LOSSES", "CLASS_LOSSES", "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]
+           "HEIGHT_LOSSES", "CLASS_LOSSES", "BALANCE_EDGES", "height_balance_weights",
+           "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]

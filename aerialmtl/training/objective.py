@@ -70,6 +70,7 @@ class Objective:
         self.task_weights = {t: float(cfg.weighting.task_weights.get(t, 1.0)) for t in tasks}
         self.nll_beta = float(cfg.loss.nll_beta)
         self.bins_weight = float(cfg.loss.bins_weight)
+        self.height_balance = float(cfg.loss.height_balance)
         bins = cfg.model.height_bins
         self.bin_edges = bin_edges(bins, float(cfg.model.height_bin_max)) if bins else None
 
@@ -86,15 +87,20 @@ class Objective:
         """
         result: dict[str, torch.Tensor] = {}
         if "height" in self.tasks:
+            w = (losses.height_balance_weights(batch["height"], batch["height_valid"], self.height_balance)
+                 if self.height_balance and not scoring else None)
             if HEIGHT_BINS in out and not scoring:  # a height-bin head in training mode
                 assert self.bin_edges is not None
                 nll = losses.laplace_nll(out["height"].float(), out[HEIGHT_LAPLACE].float(), batch["height"],
-                                         batch["height_valid"], beta=self.nll_beta)
+                                         batch["height_valid"], beta=self.nll_beta, weight=w)
                 result["height"] = nll + self.bins_weight * losses.height_bins_ce(
-                    out[HEIGHT_BINS], batch["height"], batch["height_valid"], self.bin_edges)
+                    out[HEIGHT_BINS], batch["height"], batch["height_valid"], self.bin_edges, weight=w)
             elif HEIGHT_SCALE in out and self.bin_edges is None and not scoring:  # (a bin head's is no Laplace b)
                 result["height"] = losses.laplace_nll(out["height"].float(), out[HEIGHT_SCALE].float(),
-                                                      batch["height"], batch["height_valid"], beta=self.nll_beta)
+                                                      batch["height"], batch["height_valid"], beta=self.nll_beta,
+                                                      weight=w)
+            elif w is not None:  # loss.height is l1 (the config checks it)
+                result["height"] = losses.l1(out["height"].float(), batch["height"], batch["height_valid"], weight=w)
             else:
                 result["height"] = self.height_fn(out["height"].float(), batch["height"], batch["height_valid"])
         if "classes" in self.tasks:
