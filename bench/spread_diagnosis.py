@@ -31,15 +31,16 @@ from typing import Any
 import numpy as np
 import rasterio
 import torch
-from rasterio.warp import Resampling, reproject
 from scipy import ndimage, optimize, stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_data import DATA, DSM, DTM, ORTHO  # noqa: E402
 
 import aerialmtl.models.d3net as d3net  # noqa: E402
+from aerialmtl.evaluation.uncertainty import crps_gaussian, gaussian_nll_terms  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
+from aerialmtl.io.align import HeightSource, grid_of  # noqa: E402
 
 BINS = ((0.0, 1.0), (1.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 #: the spread models: which of (a·s, c·d_r, e·μ, f) take part
@@ -67,17 +68,13 @@ def predict_maps(out: Path, run: str, split_dir: Path) -> None:
 
 
 def reference_on(grid_file: Path) -> np.ndarray:
-    """DSM − DTM (metres) reprojected bilinearly onto ``grid_file``'s grid; NaN outside."""
+    """The reference nDSM (metres) on ``grid_file``'s grid as ``aerialmtl evaluate`` reads it
+    (:class:`~aerialmtl.io.align.HeightSource`: DSM − DTM, bilinear, negatives clipped to 0); NaN where invalid."""
     with rasterio.open(grid_file) as src:
-        shape, transform, crs = src.shape, src.transform, src.crs
-    layers = []
-    for name in (DSM, DTM):
-        with rasterio.open(DATA / name) as s:
-            a = np.full(shape, np.nan, np.float32)
-            reproject(rasterio.band(s, 1), a, src_nodata=s.nodata, dst_nodata=np.nan,
-                      resampling=Resampling.bilinear, dst_transform=transform, dst_crs=crs)
-            layers.append(a)
-    return (layers[0] - layers[1]).astype(np.float64)
+        grid = grid_of(src)
+    with HeightSource(grid, dsm=DATA / DSM, dtm=DATA / DTM) as ref:
+        height, _ = ref.read(grid.full_window())
+    return height.astype(np.float64)
 
 
 def load(folder: Path) -> Arrays:
@@ -98,14 +95,13 @@ def neighbourhood(h: np.ndarray, r: int) -> np.ndarray:
 
 
 def crps(err: np.ndarray, sig: np.ndarray) -> np.ndarray:
-    """Gaussian CRPS (metres) of absolute errors ``err`` under spreads ``sig``."""
-    z = err / sig
-    return sig * (z * (2 * stats.norm.cdf(z) - 1) + 2 * stats.norm.pdf(z) - 1 / math.sqrt(math.pi))
+    """Gaussian CRPS (metres) of absolute errors ``err`` under spreads ``sig`` (the evaluation's, σ floored)."""
+    return crps_gaussian(err, sig, np.zeros_like(err))
 
 
 def nll(err: np.ndarray, sig: np.ndarray) -> np.ndarray:
-    """Gaussian negative log-likelihood (nats)."""
-    return 0.5 * np.log(2 * math.pi * sig**2) + err**2 / (2 * sig**2)
+    """Gaussian negative log-likelihood (nats; the evaluation's, σ floored)."""
+    return gaussian_nll_terms(err, sig, np.zeros_like(err))
 
 
 def sigma(p: np.ndarray, s: np.ndarray, d: np.ndarray, h: np.ndarray) -> np.ndarray:
