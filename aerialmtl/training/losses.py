@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aerialmtl.errors import ConfigError
+from aerialmtl.models.calibration import SPREAD_EDGES
 from aerialmtl.models.height_bins import bin_index
 
 IGNORE_INDEX = 255
@@ -154,8 +155,8 @@ def scale_invariant_gradient(pred: torch.Tensor, target: torch.Tensor, mask: tor
 
 
 #: Upper edges (metres) of the reference-height bins that ``loss.height_balance`` counts pixels in (the last bin
-#: is open): the bins the evaluation reports.
-BALANCE_EDGES = (1.0, 2.0, 5.0, 10.0, 20.0)
+#: is open): the height ranges of the spread calibration, which are the bins the evaluation reports.
+BALANCE_EDGES = SPREAD_EDGES
 
 
 def height_balance_weights(target: torch.Tensor, mask: torch.Tensor, power: float) -> torch.Tensor:
