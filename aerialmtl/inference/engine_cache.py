@@ -59,9 +59,14 @@ def unpack(data: bytes) -> list[bytes]:
         CorruptEntry: wrong magic, truncated, or a checksum that does not match the payload.
     """
     lengths, pos = _checked(data)
-    out = []
+    return _sections(data, lengths, pos)
+
+
+def _sections(data: bytes | bytearray, lengths: list[int], pos: int) -> list[bytes]:
+    """The sections of a checked entry: ``lengths`` bytes each from ``pos`` on, copied out of ``data``."""
+    view, out = memoryview(data), []
     for n in lengths:
-        out.append(bytes(data[pos:pos + n]))
+        out.append(bytes(view[pos:pos + n]))
         pos += n
     return out
 
@@ -123,14 +128,7 @@ class EngineCache:
         warning, so that it is rebuilt).
         """
         entry = self._entry(name)
-        if entry is None:
-            return None
-        data, lengths, pos = entry
-        view, out = memoryview(data), []
-        for n in lengths:
-            out.append(bytes(view[pos:pos + n]))
-            pos += n
-        return out
+        return None if entry is None else _sections(*entry)
 
     def read_one(self, name: str) -> np.ndarray | None:
         """The one section of entry ``name`` as a writable uint8 array over the file's bytes as read (no copy:
