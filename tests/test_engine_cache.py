@@ -194,8 +194,8 @@ def test_checkpoint_replaced_during_a_warm_run_stops_it(predict_setup: tuple[Pat
     """The model a record stands for is loaded only from the bytes the run started with: a file replaced in
     between is refused, with a message naming it and what to do."""
     from aerialmtl.errors import CheckpointError
-    from aerialmtl.formats.checkpoint import read_model
-    from aerialmtl.inference.model_record import CheckpointModel, file_sha256, make_record
+    from aerialmtl.formats.checkpoint import file_sha256, read_model
+    from aerialmtl.inference.model_record import CheckpointModel, make_record
 
     ckpt, _ = predict_setup
     model, meta, digest = read_model(ckpt)

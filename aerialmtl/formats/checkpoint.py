@@ -276,6 +276,19 @@ def bytes_fingerprint(data: bytes) -> str:
     return f"sha256:{hashlib.sha256(data).hexdigest()}"
 
 
+def file_sha256(path: str | Path) -> str:
+    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    buf = bytearray(1 << 20)
+    view = memoryview(buf)
+    with open(path, "rb", buffering=0) as f:
+        while n := f.readinto(buf):
+            h.update(view[:n])
+    return f"sha256:{h.hexdigest()}"
+
+
 def read_checkpoint(path: str | Path,
                     map_location: str | torch.device = "cpu") -> tuple[dict[str, Any], ModelMeta, str]:
     """:func:`load_checkpoint`, plus the fingerprint (:func:`bytes_fingerprint`) of the very bytes it parsed.

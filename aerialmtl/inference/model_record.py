@@ -12,7 +12,8 @@ D3-Net and loading its state dict cost about a CPU second for the paper's DenseN
   ``<cache root>/records/<key>.record``, where the key hashes the checkpoint's SHA-256 (of its bytes), the
   aerialmtl version and :data:`RECORD_VERSION`; the entry carries its own checksum like every cache entry
   (:func:`~aerialmtl.inference.engine_cache.pack`);
-* read by later runs after hashing the checkpoint's bytes (:func:`file_sha256`): same bytes, same record.
+* read by later runs after hashing the checkpoint's bytes (:func:`~aerialmtl.formats.checkpoint.file_sha256`):
+  same bytes, same record.
   The record is trusted only for bytes that the run that wrote it loaded and checked (``read_checkpoint``
   refuses NaN weights and damaged files before a record can exist), so the warm path refuses nothing the
   cold one would accept and accepts nothing it would refuse.
@@ -47,19 +48,6 @@ if TYPE_CHECKING:
 RECORD_VERSION = 1
 #: Folder of the records under the OpenVINO cache root.
 RECORDS = "records"
-
-
-def file_sha256(path: str | Path) -> str:
-    """``sha256:<hex>`` of the bytes of file ``path`` (streamed; equal to
-    :func:`~aerialmtl.formats.checkpoint.bytes_fingerprint` of the same bytes).
-    """
-    h = hashlib.sha256()
-    buf = bytearray(1 << 20)
-    view = memoryview(buf)
-    with open(path, "rb", buffering=0) as f:
-        while n := f.readinto(buf):
-            h.update(view[:n])
-    return f"sha256:{h.hexdigest()}"
 
 
 @dataclass(frozen=True)
@@ -158,7 +146,8 @@ class CheckpointModel:
 
     Args:
         path: the checkpoint file.
-        digest: the fingerprint of its bytes when the record was found (:func:`file_sha256`).
+        digest: the fingerprint of its bytes when the record was found
+            (:func:`~aerialmtl.formats.checkpoint.file_sha256`).
         record: its record (:func:`read_record`).
     """
 
@@ -205,5 +194,5 @@ def resolve_model(model: nn.Module | CheckpointModel) -> nn.Module:
     return model.get() if isinstance(model, CheckpointModel) else model
 
 
-__all__ = ["RECORD_VERSION", "CheckpointModel", "ModelRecord", "file_sha256", "make_record", "read_record",
+__all__ = ["RECORD_VERSION", "CheckpointModel", "ModelRecord", "make_record", "read_record",
            "record_path", "resolve_model", "write_record"]

@@ -88,11 +88,11 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
-    from aerialmtl.formats.checkpoint import read_model
+    from aerialmtl.formats.checkpoint import file_sha256, read_model
 
     if warm:
         from aerialmtl.inference.engines import cache_root
-        from aerialmtl.inference.model_record import file_sha256, make_record, read_record, write_record
+        from aerialmtl.inference.model_record import make_record, read_record, write_record
 
         root = cache_root()
         try:
