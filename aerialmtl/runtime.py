@@ -14,6 +14,8 @@
   (:data:`COLLECTIVE_TIMEOUT` for training, whose collectives are in step; :data:`SHARE_TIMEOUT` for
   prediction, whose ranks wait for each other's whole share of the work at the end).
 * **GDAL** — :func:`gdal_env`: a bounded block cache while rasters are streamed (tile, predict, buildings).
+* **OpenVINO** — :func:`import_openvino`: the one ``import openvino`` of the package, without OpenVINO's usage
+  telemetry (aerialmtl makes no network call and writes nothing in the user's home).
 * **CPU threads** — :func:`resolve_threads`: the inference threads of a process (an option, else
   :data:`THREADS_ENV`, else torch's own count) and how they are split into engine streams
   (:class:`CpuThreads`).
@@ -28,10 +30,12 @@ import contextlib
 import datetime as _dt
 import functools
 import os
+import sys
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any, Literal, TypeVar
 
 import rasterio
@@ -117,12 +121,43 @@ def cpu_bf16_flags() -> tuple[str, ...]:
                 break
         return tuple(f for f in BF16_CPU_FLAGS if f in flags)
     try:  # pragma: no cover - not Linux
-        import openvino as ov
-
+        ov = import_openvino()
         caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
         return ("openvino:BF16",) if "BF16" in caps else ()
     except Exception:  # pragma: no cover
         return ()
+
+
+#: OpenVINO's usage-telemetry package, which ``import openvino`` loads (through ``openvino.tools.ovc``) when it is
+#: installed: it sends an event to Google Analytics from a forked copy of the process and counts uses in
+#: ``~/intel`` on every import, unless a consent file says no.
+OPENVINO_TELEMETRY = "openvino_telemetry"
+
+
+def import_openvino() -> ModuleType:
+    """``import openvino``, the one place aerialmtl does it, without OpenVINO's usage telemetry.
+
+    The first import of OpenVINO in a process loads its converter, which reports the import to Google Analytics
+    (a forked copy of the process posts it, and waits for a timeout where there is no network) and writes
+    ``~/intel/openvino_ga_cid`` and a use counter, unless the user opted out with OpenVINO's own tool. aerialmtl
+    makes no network call and writes nothing outside the paths it is given, so the telemetry package is hidden
+    while OpenVINO is first imported: its converter then binds its no-op stand-in (as when the package is not
+    installed) and keeps it for the life of the process. A process that imported OpenVINO or its telemetry
+    before is left as it is.
+
+    Raises:
+        ImportError: OpenVINO is not installed.
+    """
+    if "openvino" not in sys.modules and OPENVINO_TELEMETRY not in sys.modules:
+        sys.modules[OPENVINO_TELEMETRY] = None  # type: ignore[assignment]  # `import` of it raises ImportError
+        try:
+            import openvino  # noqa: F401
+        finally:
+            if sys.modules.get(OPENVINO_TELEMETRY, 0) is None:
+                del sys.modules[OPENVINO_TELEMETRY]
+    import openvino  # noqa: F401 - loaded above, or already by the process
+
+    return sys.modules["openvino"]
 
 
 def cpu_has_amx() -> bool:

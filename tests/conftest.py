@@ -34,6 +34,11 @@ def pytest_configure(config: pytest.Config) -> None:
     if kind is not None:
         os.environ[runtime.CPU_FLAGS_ENV] = CPU_KINDS[kind]
     runtime.cpu_bf16_flags.cache_clear()
+    # the tests' own `import openvino` (importorskip, test_export) then finds it loaded without its telemetry
+    try:
+        runtime.import_openvino()
+    except ImportError:
+        pass
 
 
 def pytest_report_header(config: pytest.Config) -> str:

@@ -231,3 +231,38 @@ def test_threads_option_env_and_errors(tmp_path: Path, rng: np.random.Generator,
         assert auto.streams == min(auto.threads, runtime.MAX_STREAMS)
     finally:
         torch.set_num_threads(threads)
+
+
+def _import_in_fresh_process(code: str, home: Path) -> list[str]:
+    """Run ``code`` in a new interpreter with ``HOME=home`` outside any CI (OpenVINO's telemetry stays off in CI);
+    its last stdout line, JSON-decoded.
+    """
+    import os
+    import subprocess
+
+    env = {k: v for k, v in os.environ.items() if k not in ("CI", "TF_BUILD", "JENKINS_URL")}
+    env["HOME"] = str(home)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return list(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="OpenVINO's telemetry forks on Linux; the home layout is Linux's")
+def test_openvino_is_imported_without_its_telemetry(tmp_path):
+    """A user's run makes no network call and writes nothing in their home: aerialmtl's import of OpenVINO leaves
+    its usage telemetry out (no sender thread, no ``~/intel`` folder), where a plain ``import openvino`` in the
+    same environment starts it (the check that this test can fail).
+    """
+    pytest.importorskip("openvino_telemetry")
+    report = ("import json, sys, threading; "
+              "print(json.dumps(['openvino_telemetry' in sys.modules] + [t.name for t in threading.enumerate()]))")
+    plain, ours = tmp_path / "plain", tmp_path / "ours"
+    plain.mkdir()
+    ours.mkdir()
+    seen = _import_in_fresh_process(f"import openvino; {report}", plain)
+    if not (plain / "intel").exists():
+        pytest.skip("OpenVINO's telemetry is off in this environment (an opt-out or consent file elsewhere)")
+    assert seen[0] is True and len(seen) > 2
+    seen = _import_in_fresh_process(
+        f"from aerialmtl.runtime import import_openvino; ov = import_openvino(); ov.Core(); {report}", ours)
+    assert seen == [False, "MainThread"]
+    assert list(ours.iterdir()) == []

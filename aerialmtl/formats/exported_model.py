@@ -129,8 +129,9 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     """The metadata of an exported ``.onnx`` or OpenVINO ``.xml`` file, JSON-decoded."""
     path = Path(path)
     if path.suffix == ".xml":
-        import openvino as ov
+        from aerialmtl.runtime import import_openvino
 
+        ov = import_openvino()
         model = ov.Core().read_model(path)
         info = model.get_rt_info()[OPENVINO_SECTION]
         return {key: json.loads(value.astype(str)) for key, value in info.items()}

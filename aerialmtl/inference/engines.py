@@ -141,9 +141,9 @@ class Engine(Protocol):
 
 
 def openvino_available() -> bool:
-    """Whether ``import openvino`` works."""
+    """Whether ``import openvino`` works (:func:`aerialmtl.runtime.import_openvino`)."""
     try:
-        import openvino  # noqa: F401
+        runtime.import_openvino()
     except ImportError:
         return False
     return True
@@ -382,8 +382,7 @@ class OpenVINOEngine:
     def __init__(self, model: nn.Module | CheckpointModel, in_channels: int, tasks: Sequence[str], precision: str,
                  cache_dir: str | Path | None = None, cache: bool = True, threads: CpuThreads | None = None,
                  weights_key: str | None = None) -> None:
-        import openvino as ov
-
+        ov = runtime.import_openvino()
         self.ov = ov
         self.raw_model = model
         self._model: nn.Module | None = None
@@ -688,8 +687,7 @@ class _Requests:
     """
 
     def __init__(self, compiled: Any, n: int, keep: np.ndarray | None = None) -> None:
-        import openvino as ov
-
+        ov = runtime.import_openvino()
         #: The bytes ``compiled`` was imported from: OpenVINO reads them while it runs (:meth:`OpenVINOEngine._import`).
         self.keep = keep
         self._tensor = ov.Tensor

@@ -55,6 +55,7 @@ from aerialmtl.io.outputs import OutputFolder, check_files_not_input, staging_pa
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import HEIGHT_SCALE
 from aerialmtl.models.mc_dropout import laplace_variance
+from aerialmtl.runtime import import_openvino
 
 Format = Literal["onnx", "openvino"]
 Task = Literal["all", "height", "height_std", "classes"]
@@ -181,8 +182,7 @@ def _write_onnx(graph: Path, out: Path, metadata: dict[str, str], task: str) -> 
 
 
 def _write_openvino(graph: Path, out: Path, metadata: dict[str, str]) -> tuple[Path, ...]:
-    import openvino as ov
-
+    ov = import_openvino()
     model = ov.convert_model(str(graph))
     for key, value in metadata.items():
         model.set_rt_info(value, [OPENVINO_SECTION, key])
