@@ -157,11 +157,12 @@ def test_keyed_masks_do_not_depend_on_batch_or_sample_chunks() -> None:
     assert all(not m.training for m in model.modules())  # modes restored
 
 
-def test_entropy_with_one_log_per_pixel_equals_the_definition() -> None:
-    from aerialmtl.models.mc_dropout import _class_sums
+@pytest.mark.parametrize("path", ["kernel", "torch"])
+def test_entropy_with_one_log_per_pixel_equals_the_definition(path: str) -> None:
+    from aerialmtl.models.mc_dropout import _class_sums, _class_sums_torch
 
     z = (torch.randn(2, 6, 9, 11) * 8).contiguous(memory_format=torch.channels_last)
-    p_sum, e_sum = _class_sums(z, 2, 1)
+    p_sum, e_sum = (_class_sums if path == "kernel" else _class_sums_torch)(z, 2, 1)
     p = torch.softmax(z.double(), 1)
     torch.testing.assert_close(p_sum[:, 0].double(), p.sum(0), rtol=1e-5, atol=1e-6)
     ent = -(p * torch.log(p.clamp_min(1e-300))).sum(1)
@@ -173,10 +174,11 @@ def test_class_sums_added_in_place_equal_the_sum_of_chunk_sums(chunk: int, monke
     """The class sums of each chunk are added into the running sums block by block (no chunk-sized array per
     call): the same bits (tolerance 0) as summing each chunk's samples apart, then adding the chunk sums; row
     blocks of a few rows, the last one shorter."""
-    from aerialmtl.models import mc_dropout
+    from aerialmtl.models import class_kernel, mc_dropout
     from aerialmtl.models.mc_dropout import _class_sums, accumulate_samples
 
     monkeypatch.setattr(mc_dropout, "_ROW_BLOCK_ELEMENTS", 1000)
+    monkeypatch.setattr(class_kernel, "available", lambda: False)  # torch's path (CUDA, or no numba)
 
     samples, b = 5, 2
     z = (torch.randn(samples * b, 6, 11, 9) * 6).contiguous(memory_format=torch.channels_last)
@@ -194,3 +196,47 @@ def test_class_sums_added_in_place_equal_the_sum_of_chunk_sums(chunk: int, monke
     assert p_sum is not None and e_sum is not None and stats.probs is not None and stats.mean_entropy is not None
     assert torch.equal(stats.probs, (p_sum / samples).permute(1, 2, 3, 0))
     assert torch.equal(stats.mean_entropy, e_sum / samples)
+
+
+@pytest.mark.parametrize("k, h, w, scale", [(20, 7, 37, 6.0), (2, 5, 3, 1.0), (6, 4, 17, 60.0), (9, 3, 65, 0.0)])
+def test_class_kernel_equals_torch_path(k: int, h: int, w: int, scale: float) -> None:
+    """The CPU kernel's sums (mean probabilities, per-sample entropy) are torch's to 1e-6 / 2e-6: K from 2 to 20,
+    widths that are no multiple of the vector length, logits from all-equal (scale 0: p = 1/K, H = log K) to
+    ±200 (probabilities of exactly 0 and 1, exp underflow), two images, sample-major."""
+    from aerialmtl.models import class_kernel
+    from aerialmtl.models.mc_dropout import _class_sums, _class_sums_torch
+
+    assert class_kernel.available()
+    samples, b = 3, 2
+    z = torch.randn(samples * b, k, h, w, generator=torch.Generator().manual_seed(k)) * scale
+    if scale:
+        z[0, 0, 0, 0] = 200.0
+        z[1, :, 0, 1] = -200.0
+    p_k, e_k = _class_sums(z, samples, b)
+    p_t, e_t = _class_sums_torch(z, samples, b)
+    torch.testing.assert_close(p_k, p_t, rtol=0, atol=1e-6)
+    torch.testing.assert_close(e_k, e_t, rtol=0, atol=2e-6)
+    if scale == 0.0:
+        torch.testing.assert_close(e_k, torch.full_like(e_k, samples * math.log(k)), rtol=1e-6, atol=0)
+
+
+def test_class_kernel_sums_do_not_depend_on_the_chunks_and_keep_nan() -> None:
+    """The kernel adds samples one by one into the running sums, so chunks of 1, 2 or 5 samples give the same bits
+    (tolerance 0); a NaN logit (a broken model) gives NaN probabilities and entropy at that pixel, as torch's path
+    does, so the sanity checks still see it."""
+    from aerialmtl.models.mc_dropout import accumulate_samples
+
+    samples, b = 5, 2
+    z = torch.randn(samples * b, 6, 5, 19, generator=torch.Generator().manual_seed(3)) * 4
+    z[3, 2, 1, 4] = float("nan")
+
+    def decode(done: int, s: int) -> dict[str, torch.Tensor]:
+        return {"classes": z[done * b:(done + s) * b]}
+
+    runs = [accumulate_samples(decode, samples, chunk, b) for chunk in (1, 2, 5)]
+    for other in runs[1:]:
+        assert torch.equal(other.probs.nan_to_num(-1), runs[0].probs.nan_to_num(-1))
+        assert torch.equal(other.mean_entropy.nan_to_num(-1), runs[0].mean_entropy.nan_to_num(-1))
+    probs, ent = runs[0].probs, runs[0].mean_entropy
+    assert probs[1, 1, 4].isnan().all() and ent[1, 1, 4].isnan()  # image 1 (row 3 = sample 1, image 1)
+    assert not probs[0].isnan().any() and ent.isnan().sum() == 1
