@@ -198,11 +198,13 @@ def test_class_sums_added_in_place_equal_the_sum_of_chunk_sums(chunk: int, monke
     assert torch.equal(stats.mean_entropy, e_sum / samples)
 
 
+@pytest.mark.parametrize("layout", ["planes", "channels_last"])
 @pytest.mark.parametrize("k, h, w, scale", [(20, 7, 37, 6.0), (2, 5, 3, 1.0), (6, 4, 17, 60.0), (9, 3, 65, 0.0)])
-def test_class_kernel_equals_torch_path(k: int, h: int, w: int, scale: float) -> None:
+def test_class_kernel_equals_torch_path(k: int, h: int, w: int, scale: float, layout: str) -> None:
     """The CPU kernel's sums (mean probabilities, per-sample entropy) are torch's to 1e-6 / 2e-6: K from 2 to 20,
     widths that are no multiple of the vector length, logits from all-equal (scale 0: p = 1/K, H = log K) to
-    ±200 (probabilities of exactly 0 and 1, exp underflow), two images, sample-major."""
+    ±200 (probabilities of exactly 0 and 1, exp underflow), two images, sample-major; class planes and channels
+    last (as OpenVINO's decoder graph and a channels-last torch model return them)."""
     from aerialmtl.models import class_kernel
     from aerialmtl.models.mc_dropout import _class_sums, _class_sums_torch
 
@@ -212,8 +214,10 @@ def test_class_kernel_equals_torch_path(k: int, h: int, w: int, scale: float) ->
     if scale:
         z[0, 0, 0, 0] = 200.0
         z[1, :, 0, 1] = -200.0
+    if layout == "channels_last":
+        z = z.contiguous(memory_format=torch.channels_last)
     p_k, e_k = _class_sums(z, samples, b)
-    p_t, e_t = _class_sums_torch(z, samples, b)
+    p_t, e_t = _class_sums_torch(z.contiguous(), samples, b)
     torch.testing.assert_close(p_k, p_t, rtol=0, atol=1e-6)
     torch.testing.assert_close(e_k, e_t, rtol=0, atol=2e-6)
     if scale == 0.0:

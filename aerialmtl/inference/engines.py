@@ -17,9 +17,9 @@ once per window and the decoder T times, accumulated by
 explicit inputs of the decoder, drawn by :func:`~aerialmtl.models.mc_dropout.dropout_masks` from the
 same ``(seed, window, sample)`` keys as the torch path's seeded hooks: both engines sample the same
 masks. The OpenVINO engine runs one window (and one sample) per infer request, so its results do not
-depend on the batch size or the sample chunking either. Its forward graph (T = 1) hands the class logits back
-channels last (:data:`FORWARD_CHANNELS_LAST`), as the convolution wrote them, and the host's softmax reads them
-so.
+depend on the batch size or the sample chunking either. Its forward graph (T = 1) and decoder graph (T > 1) hand
+the class logits back channels last (:data:`FORWARD_CHANNELS_LAST`), as the convolution wrote them, and the
+host's softmax and MC class kernel read them so.
 
 Running: the model is compiled for ``streams`` parallel streams of ``threads / streams`` threads each
 (:func:`aerialmtl.runtime.resolve_threads`: on 2 cores, two one-thread streams), with one infer request per
@@ -90,12 +90,12 @@ CONVERT_SIZE = 64
 #: the host's softmax wants the classes of a pixel side by side, and OpenVINO's convolutions store them so (class
 #: planes cost a reorder there and a transposing copy on the host: 0.84× the CPU of predict at T = 1, 8192², on
 #: the near-null D3-Net of ``bench/predict.py`` with trained-like head biases; bench/RESULTS.md, issue 27). The
-#: decoder graph (T > 1) keeps class planes: the MC class sums gather planes, and a transposing gather costs the
-#: host more than the reorder costs OpenVINO (1.09× the CPU at T = 30 channels last, same bench). The engine hands
-#: them on as views in the models' ``(B, C, h, w)`` order (:func:`_as_planes`).
+#: decoder graph (T > 1) does the same: the CPU's MC class kernel (:mod:`aerialmtl.models.class_kernel`) turns a
+#: row into class planes in the cache, where OpenVINO's reorder to planes cost up to 75 ms per 1024² sample. The
+#: engine hands them on as views in the models' ``(B, C, h, w)`` order (:func:`_as_planes`).
 FORWARD_CHANNELS_LAST = ("classes",)
 #: Version of the converted graphs' outputs (part of the cache key: a cache of other outputs is never read).
-GRAPH_OUTPUTS = "forward-classes-nhwc"
+GRAPH_OUTPUTS = "forward-decoder-classes-nhwc"
 
 
 class Engine(Protocol):
@@ -305,15 +305,15 @@ def model_outputs(model: nn.Module | CheckpointModel, tasks: Sequence[str]) -> t
 
 
 def _graph_output(task: str, t: torch.Tensor) -> torch.Tensor:
-    """Output ``task`` of the traced forward graph: ``(1, C, h, w)`` → ``(1, h, w, C)`` for
+    """Output ``task`` of a traced graph (forward or decoder): ``(1, C, h, w)`` → ``(1, h, w, C)`` for
     :data:`FORWARD_CHANNELS_LAST`.
     """
     return t.permute(0, 2, 3, 1) if task in FORWARD_CHANNELS_LAST else t
 
 
 def _as_planes(task: str, t: torch.Tensor) -> torch.Tensor:
-    """A forward graph's output ``task`` in the models' ``(B, C, h, w)`` order: a view of a channels-last
-    ``(B, h, w, C)`` array for :data:`FORWARD_CHANNELS_LAST` (no copy: the softmax reads it channels last again).
+    """A graph's output ``task`` in the models' ``(B, C, h, w)`` order: a view of a channels-last ``(B, h, w, C)``
+    array for :data:`FORWARD_CHANNELS_LAST` (no copy: the softmax and the MC class kernel read it channels last).
     """
     return t.permute(0, 3, 1, 2) if task in FORWARD_CHANNELS_LAST else t
 
@@ -359,7 +359,7 @@ class _Decoder(nn.Module):
         for site, mask in zip(self.sites, masks):
             site.mask = mask
         out = self.model.decode(feats)  # type: ignore[operator]
-        return tuple(out[t] for t in self.tasks)
+        return tuple(_graph_output(t, out[t]) for t in self.tasks)
 
 
 # ---- engines ----------------------------------------------------------------------------------------
@@ -559,7 +559,8 @@ class OpenVINOEngine:
 
     def decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int) -> list[torch.Tensor]:
         """One image's features and one sample's masks → its outputs, in task order (``(1, C_t, h, w)``)."""
-        return [torch.from_numpy(o) for o in self._start_decode(feats, masks, h, w).outputs()]
+        outs = self._start_decode(feats, masks, h, w).outputs()
+        return [_as_planes(task, torch.from_numpy(o)) for task, o in zip(self.tasks, outs)]
 
     def _start_decode(self, feats: list[np.ndarray], masks: list[torch.Tensor], h: int, w: int,
                       dest: list[np.ndarray] | None = None) -> _Job:
@@ -622,7 +623,7 @@ class OpenVINOEngine:
                 jobs[i] = _DONE
             start_until(last + min(chunk * b, self.threads.streams))  # the engine runs on while the host accumulates
             out = buffers[(done // chunk) % 2]
-            return {task: torch.from_numpy(out[k][:s * b]) for k, task in enumerate(self.tasks)}
+            return {task: _as_planes(task, torch.from_numpy(out[k][:s * b])) for k, task in enumerate(self.tasks)}
 
         return accumulate_samples(decode_chunk, samples, chunk, b)
 

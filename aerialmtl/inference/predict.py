@@ -66,6 +66,7 @@ from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, 
 from aerialmtl.inference.stitch import Block, Stitcher
 from aerialmtl.inference.windows import Plan, check_tiling
 from aerialmtl.io.outputs import OutputFolder
+from aerialmtl.models import class_kernel
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.progress import tqdm_auto as tqdm
 
@@ -237,6 +238,8 @@ class Predictor:
                                                                  aleatoric=self.meta.model.aleatoric,
                                                                  tta=self.tta)
         self._batch: dict[tuple[int, int], int] = {}
+        if self.mc > 1 and self.device.type == "cpu":  # loaded before any output exists (class_kernel.prepare)
+            class_kernel.prepare()
 
     @property
     def model(self) -> torch.nn.Module:

@@ -190,7 +190,12 @@ def _class_sums(logits: torch.Tensor, s: int, b: int, p_sum: torch.Tensor | None
             k, h, w = logits.shape[1:]
             p_sum = torch.zeros((k, b, h, w), dtype=torch.float32)
             e_sum = torch.zeros((b, h, w), dtype=torch.float32)
-        class_kernel.add_class_sums(logits.float().contiguous().numpy(), b, p_sum.numpy(), e_sum.numpy())
+        z = logits.float()
+        nhwc = z.permute(0, 2, 3, 1)
+        if nhwc.is_contiguous() and not z.is_contiguous():  # channels last (OpenVINO's decoder, torch's model)
+            class_kernel.add_class_sums(nhwc.numpy(), b, p_sum.numpy(), e_sum.numpy(), channels_last=True)
+        else:
+            class_kernel.add_class_sums(z.contiguous().numpy(), b, p_sum.numpy(), e_sum.numpy())
         return p_sum, e_sum
     return _class_sums_torch(logits, s, b, p_sum, e_sum)
 
