@@ -244,3 +244,21 @@ def test_class_kernel_sums_do_not_depend_on_the_chunks_and_keep_nan() -> None:
     probs, ent = runs[0].probs, runs[0].mean_entropy
     assert probs[1, 1, 4].isnan().all() and ent[1, 1, 4].isnan()  # image 1 (row 3 = sample 1, image 1)
     assert not probs[0].isnan().any() and ent.isnan().sum() == 1
+
+
+def test_class_kernel_runs_where_numba_cannot_cache(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A read-only install and home: numba finds nowhere to keep the compiled kernel and refuses ``cache=True``;
+    the kernel is then compiled without its cache and still runs (not an error at the first MC window)."""
+    import numba
+    import numba.core.caching as caching
+    import numpy as np
+
+    from aerialmtl.models import class_kernel_jit
+
+    def add_one(x):  # noqa: ANN001, ANN202 - a function for numba
+        return x + 1
+
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])
+    with pytest.raises(RuntimeError, match="no locator"):
+        numba.njit(cache=True)(add_one)
+    assert class_kernel_jit.jit(add_one)(np.float32(1.0)) == 2.0

@@ -18,7 +18,8 @@ end). Against torch's path: probabilities within 1e-6 and entropies within 2e-6 
 NaN, as there.
 
 numba compiles the kernel on its first call in a process (about 1 s) and keeps the machine code in its cache
-(``__pycache__`` beside this file, or numba's user cache when that is read-only), so later runs load it. The
+(``__pycache__`` beside this file, or numba's user cache when that is read-only), so later runs load it; where
+neither can be written it compiles it in every process. The
 kernel runs in the calling thread (OpenVINO's streams hold the other cores).
 """
 

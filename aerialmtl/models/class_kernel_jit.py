@@ -20,7 +20,19 @@ one, half, zero = np.float32(1.0), np.float32(0.5), np.float32(0.0)
 #: exp(d) for d below this is taken as exp of it (float32's smallest normal number is 1.2e-38 = exp(−87.3)).
 EXP_FLOOR = np.float32(-87.0)
 
-jit = numba.njit(cache=True, boundscheck=False, error_model="numpy", nogil=True)
+_OPTIONS: dict[str, Any] = {"boundscheck": False, "error_model": "numpy", "nogil": True}
+
+
+def jit(fn: Any) -> Any:
+    """``numba.njit`` with its cache (machine code kept beside this file, else in numba's user cache); where
+    neither can be written (a read-only install and home), numba refuses to cache and the function is compiled
+    in every process instead (~1 s), rather than not run.
+    """
+    try:
+        return numba.njit(cache=True, **_OPTIONS)(fn)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return numba.njit(cache=False, **_OPTIONS)(fn)
+
 
 @jit
 def add_row(zk: Any, img: int, y: int, p_sum: Any, e_sum: Any, top: Any, s_exp: Any, s_ed: Any,
@@ -92,4 +104,4 @@ def kernel(z: Any, b: int, p_sum: Any, e_sum: Any, channels_last: bool) -> None:
                 add_row(z[n, :, y, :], img, y, p_sum, e_sum, top, s_exp, s_ed, poly, bits, e)
 
 
-__all__ = ["EXP_FLOOR", "add_row", "kernel"]
+__all__ = ["EXP_FLOOR", "add_row", "jit", "kernel"]
