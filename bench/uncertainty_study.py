@@ -14,6 +14,8 @@ to choose anything):
 * ``height_only`` — a spread that follows the predicted height alone, ``σ = a·h ⊕ b`` fitted on validation
   (lowest CRPS): what a spread must beat to carry information beyond the height;
 * ``tta`` (``--tta``) — flips and 90° rotations averaged into the MC statistics (no training).
+* ``--val-block`` — the validation block predicted raw and with ``--tta`` and evaluated as the test block is
+  (``study.json`` ``val_block``): what the choice of ``--tta`` for a recipe may look at.
 
 Per variant: MAE, MAE and bias on pixels ≥ 2 m, and per reference-height bin (0–1, 1–2, 2–5, 5–10, 10–20,
 ≥ 20 m): share, bias, MAE, ±1σ/±2σ coverage, median std / median |error|, Spearman(std, |error|) within the
@@ -192,6 +194,15 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
         predict_raster(args.data / ORTHO, (model, meta), tdir_out, mc=args.mc, aoi=test_aoi, overwrite=True,
                        progress=False, checkpoint_name=str(ckpt), calibration=False, seed=0, tta=True)
         variants["tta"] = evaluate(tdir_out, args.data, rdir / "study_report_tta.json")
+    if args.val_block:  # the validation block predicted as the test block is: what may choose `--tta`
+        blocks = res.setdefault("val_block", {})
+        for key, views in (("raw", False), ("tta", True)):
+            if key not in blocks or args.force:
+                vdir = rdir / f"study_valblock_{key}"
+                predict_raster(args.data / ORTHO, (model, meta), vdir, mc=args.mc, aoi=split_dir / "val.geojson",
+                               overwrite=True, progress=False, checkpoint_name=str(ckpt), calibration=False, seed=0,
+                               tta=views)
+                blocks[key] = evaluate(vdir, args.data, rdir / f"study_report_valblock_{key}.json")
     if "baseline_train_mean" not in res:
         mean = train_mean(pdir / layer_filename(HEIGHT), args.data, split_dir / "train.geojson")
         bdir = constant_prediction(pdir, mean, rdir / "study_baseline_train_mean")
@@ -327,6 +338,8 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--force", action="store_true")
     ap.add_argument("--tta", action="store_true", help="also the tta variant (8 views × T samples)")
+    ap.add_argument("--val-block", action="store_true",
+                    help="also predict the validation block (raw and --tta) and evaluate it like the test block")
     ap.add_argument("--redo", nargs="*", default=[], help="variants to compute again (e.g. cal legacy)")
     ap.add_argument("--table", action="store_true")
     ap.add_argument("--ensemble", nargs="+", metavar=("NAME", "MEMBER"),
