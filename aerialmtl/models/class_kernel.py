@@ -17,10 +17,10 @@ from its exponent bits; ``d`` below −87 is taken as −87 (``exp`` ≈ 1.6e-38
 end). Against torch's path: probabilities within 1e-6 and entropies within 2e-6 (tests); NaN logits give
 NaN, as there.
 
-numba compiles the kernel on its first call in a process (about 1 s) and keeps the machine code in its cache
-(``__pycache__`` beside this file, or numba's user cache when that is read-only), so later runs load it; where
-neither can be written it compiles it in every process. The
-kernel runs in the calling thread (OpenVINO's streams hold the other cores).
+numba compiles the kernel the first time it is used after an install (about 1 s) and keeps the machine code
+in its cache (``__pycache__`` beside :mod:`aerialmtl.models.class_kernel_jit`, or numba's user cache when that
+is read-only), so later runs load it (0.4 s with the numba import); where neither can be written it compiles it
+in every process. The kernel runs in the calling thread (OpenVINO's streams hold the other cores).
 """
 
 from __future__ import annotations
