@@ -15,7 +15,7 @@
   prediction, whose ranks wait for each other's whole share of the work at the end).
 * **GDAL** — :func:`gdal_env`: a bounded block cache while rasters are streamed (tile, predict, buildings).
 * **OpenVINO** — :func:`import_openvino`: the one ``import openvino`` of the package, without OpenVINO's usage
-  telemetry (aerialmtl makes no network call and writes nothing in the user's home).
+  telemetry (aerialmtl makes no network call, and writes in the user's home only its caches).
 * **CPU threads** — :func:`resolve_threads`: the inference threads of a process (an option, else
   :data:`THREADS_ENV`, else torch's own count) and how they are split into engine streams
   (:class:`CpuThreads`).
@@ -140,7 +140,7 @@ def import_openvino() -> ModuleType:
     The first import of OpenVINO in a process loads its converter, which reports the import to Google Analytics
     (a forked copy of the process posts it, and waits for a timeout where there is no network) and writes
     ``~/intel/openvino_ga_cid`` and a use counter, unless the user opted out with OpenVINO's own tool. aerialmtl
-    makes no network call and writes nothing outside the paths it is given, so the telemetry package is hidden
+    makes no network call and writes nothing but its outputs and its caches, so the telemetry package is hidden
     while OpenVINO is first imported: its converter then binds its no-op stand-in (as when the package is not
     installed) and keeps it for the life of the process. A process that imported OpenVINO or its telemetry
     before is left as it is.

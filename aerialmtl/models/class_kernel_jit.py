@@ -78,6 +78,7 @@ def add_row(zk: Any, img: int, y: int, p_sum: Any, e_sum: Any, top: Any, s_exp: 
         for x in range(width):
             p_sum[k, img, y, x] += e[k, x] * s_exp[x]
 
+
 @jit
 def kernel(z: Any, b: int, p_sum: Any, e_sum: Any, channels_last: bool) -> None:  # pragma: no cover
     """:func:`aerialmtl.models.class_kernel.add_class_sums` (its arguments), row by row of every sample."""
