@@ -31,9 +31,12 @@ from typing import Any
 import numpy as np
 
 from aerialmtl.classes import IGNORE_INDEX
+from aerialmtl.models.calibration import SPREAD_EDGES
 
-#: Default reference-height bin edges (metres) for per-bin errors: [0,1), [1,2), ..., [20, inf).
-DEFAULT_HEIGHT_BINS: tuple[float, ...] = (0.0, 1.0, 2.0, 5.0, 10.0, 20.0, math.inf)
+#: Default reference-height bin edges (metres) for per-bin errors: [0,1), [1,2), ..., [20, inf): the height
+#: ranges the calibration fits its spread in (:data:`aerialmtl.models.calibration.SPREAD_EDGES`, their one owner),
+#: so that the report's bins are the ranges the spread was fitted on.
+DEFAULT_HEIGHT_BINS: tuple[float, ...] = (0.0, *SPREAD_EDGES, math.inf)
 
 #: Ratio thresholds of the δ accuracies: 1.25, 1.25², 1.25³.
 DELTA_THRESHOLDS: tuple[float, ...] = (1.25, 1.25**2, 1.25**3)
