@@ -79,6 +79,12 @@ ORTHO, DSM, DTM = "ortho_1ft.tif", "dsm_1m_utm.tif", "dtm_1m_utm.tif"
 SPLITS: dict[str, dict[str, list[tuple[float, float]]]] = {
     "south-val": {"test": [(0.0, 0.25)], "train": [(0.25, 0.80)], "val": [(0.80, 1.0)]},
     "middle-val": {"test": [(0.0, 0.25)], "train": [(0.25, 0.45), (0.65, 1.0)], "val": [(0.45, 0.65)]},
+    # Cross-fit folds of middle-val's training block (bench/crossfit_study.py): each trains on two of its
+    # three bands, validates on the same band as middle-val, and its "test" is the held-out band, whose
+    # prediction gives out-of-fold errors. The real test block (north 25 %) is in none of them.
+    "cv3-a": {"test": [(0.25, 0.45)], "train": [(0.65, 1.0)], "val": [(0.45, 0.65)]},
+    "cv3-b": {"test": [(0.65, 0.825)], "train": [(0.25, 0.45), (0.825, 1.0)], "val": [(0.45, 0.65)]},
+    "cv3-c": {"test": [(0.825, 1.0)], "train": [(0.25, 0.45), (0.65, 0.825)], "val": [(0.45, 0.65)]},
 }
 DEFAULT_SPLIT = "middle-val"
 #: Metres left unused on each side of an inner block edge (between test/train and train/val).
