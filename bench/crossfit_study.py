@@ -169,7 +169,9 @@ def variants(models: dict[str, Any], x: np.ndarray, h: np.ndarray, s: np.ndarray
     return {"raw": (h, s), "cf_q68": (h, np.maximum(q, 0.1)), "cf_mix": (h, np.hypot(q, 0.5 * s))}
 
 
-def study_seed(out: Path, seed: int, base: str, force: bool) -> dict[str, Any]:
+def study_seed(out: Path, seed: int, base: str) -> dict[str, Any]:
+    """One seed: out-of-fold maps, the error model, the recipe's maps scored with it (maps already predicted are
+    reused); writes and returns ``crossfit.json``."""
     t0, load0 = time.perf_counter(), os.getloadavg()
     mid = out / "split_middle-val"
     xs, es, gs = [], [], []
@@ -240,19 +242,18 @@ def table(out: Path, base: str) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--seeds", type=int, nargs="*", default=[])
-    ap.add_argument("--base", default="al_b0")
-    ap.add_argument("--force", action="store_true")
-    ap.add_argument("--table", action="store_true")
-    ap.add_argument("--threads", type=int, default=2)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True, help="the bench/real_data.py --out folder")
+    ap.add_argument("--seeds", type=int, nargs="*", default=[], help="seeds whose fold and base runs to study")
+    ap.add_argument("--base", default="al_b0", help="the recipe's run name without _s<seed>")
+    ap.add_argument("--table", action="store_true", help="print every studied seed as Markdown")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads for the predictions")
     args = ap.parse_args()
     import torch
 
     torch.set_num_threads(args.threads)
     for seed in args.seeds:
-        res = study_seed(args.out, seed, args.base, args.force)
+        res = study_seed(args.out, seed, args.base)
         for block in ("val", "test"):
             for key, v in res[block].items():
                 cov = " ".join(f"{b['coverage_1sigma'] or math.nan:.2f}" for b in v["bins"])
