@@ -32,7 +32,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import rasterio
@@ -80,11 +80,23 @@ def _local_std(a: np.ndarray, size: int) -> np.ndarray:
     return np.sqrt(np.maximum(ndimage.uniform_filter(a * a, size) - m * m, 0.0))
 
 
-FEATURE_NAMES: list[str] = []
+class Pixels(NamedTuple):
+    """A prediction folder's pixels: ``x`` (N, F) float32 features named ``names``, ``height``, ``std`` and
+    ``reference`` (metres) of the N valid pixels, and the full maps (``height_map``, ``std_map``: NaN where nodata)
+    with the ``valid`` mask that picked them."""
+
+    x: np.ndarray
+    names: list[str]
+    height: np.ndarray
+    std: np.ndarray
+    reference: np.ndarray
+    height_map: np.ndarray
+    std_map: np.ndarray
+    valid: np.ndarray
 
 
-def features(folder: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(X, height, std, reference)`` of a prediction folder's valid pixels: X is (N, F) float32.
+def features(folder: Path) -> Pixels:
+    """The :class:`Pixels` of a prediction folder (its maps and reference read once).
 
     Features: the predicted height μ and spread s; for r = 2, 5, 10, 20 px the highest μ within r minus μ, the
     local mean and standard deviation of μ, the lowest μ; the local standard deviation of s (r = 5); the
@@ -107,20 +119,17 @@ def features(folder: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
     cols.update(r=rgb[0], g=rgb[1], b=rgb[2], tex3=_local_std(bright, 3), tex9=_local_std(bright, 9))
     exg = 2 * rgb[1] - rgb[0] - rgb[2]
     cols.update(exg=exg, exg9=ndimage.uniform_filter(exg, 9))
-    FEATURE_NAMES[:] = list(cols)
     x = np.stack([c[valid] for c in cols.values()], axis=1).astype(np.float32)
-    return x, h[valid], s[valid], ref[valid]
+    return Pixels(x, list(cols), h[valid], s[valid], ref[valid], h, s, valid)
 
 
-def write_maps(folder: Path, dst: Path, height: np.ndarray, std: np.ndarray) -> Path:
-    """A prediction folder like ``folder`` whose valid pixels carry ``height`` and ``std`` (same order as
-    :func:`features`)."""
-    h, s, ref = load(folder)
-    valid = np.isfinite(h) & np.isfinite(s) & np.isfinite(ref)
+def write_maps(folder: Path, px: Pixels, dst: Path, height: np.ndarray, std: np.ndarray) -> Path:
+    """A prediction folder like ``folder`` (whose :class:`Pixels` are ``px``) with ``height`` and ``std`` on its
+    valid pixels (in ``px``'s order); the other pixels keep the folder's values or nodata."""
     dst.mkdir(parents=True, exist_ok=True)
-    for name, values, fallback in (("height.tif", height, h), ("height_std.tif", std, s)):
+    for name, values, fallback in (("height.tif", height, px.height_map), ("height_std.tif", std, px.std_map)):
         out = np.where(np.isfinite(fallback), fallback, FLOAT_NODATA)
-        out[valid] = values
+        out[px.valid] = values
         _write_like(folder / name, out, dst / name)
     return dst
 
@@ -178,23 +187,23 @@ def study_seed(out: Path, seed: int, base: str) -> dict[str, Any]:
     for i, f in enumerate(FOLDS):
         run = f"{f}_s{seed}"
         pdir = predict(out, run, out / f"split_{FOLD_SPLIT[f]}" / "test.geojson", "cf_oof")
-        x, h, _, ref = features(pdir)
-        xs.append(x)
-        es.append(ref - h)
-        gs.append(np.full(len(x), i))
+        px = features(pdir)
+        xs.append(px.x)
+        es.append(px.reference - px.height)
+        gs.append(np.full(len(px.x), i))
     x_oof, e_oof = np.concatenate(xs), np.concatenate(es)
     models = fit_models(x_oof, e_oof, np.concatenate(gs), seed)
     brun = f"{base}_s{seed}"
     rdir = out / "runs" / brun
-    res: dict[str, Any] = {"seed": seed, "oof_pixels": int(len(x_oof)), "features": list(FEATURE_NAMES),
+    res: dict[str, Any] = {"seed": seed, "oof_pixels": int(len(x_oof)), "features": px.names,
                            "oof_mae": float(np.abs(e_oof).mean()),
                            "rounds": models["rounds"], "cv_pinball": models["cv_pinball"]}
     for block, aoi in (("val", mid / "val.geojson"), ("test", mid / "test.geojson")):
         pdir = predict(out, brun, aoi, f"cf_{block}")
-        x, h, s, _ = features(pdir)
+        px = features(pdir)
         scored: dict[str, Any] = {}
-        for key, (hv, sv) in variants(models, x, h, s).items():
-            vdir = write_maps(pdir, rdir / f"cf_{block}_{key}", hv, sv)
+        for key, (hv, sv) in variants(models, px.x, px.height, px.std).items():
+            vdir = write_maps(pdir, px, rdir / f"cf_{block}_{key}", hv, sv)
             scored[key] = evaluate(vdir, DATA, rdir / f"cf_report_{block}_{key}.json")
         res[block] = scored
     res["eval"] = {"seconds": time.perf_counter() - t0, "load": [load0, os.getloadavg()], "cpu": cpu_model()}
