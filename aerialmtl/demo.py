@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from aerialmtl.errors import OutputExistsError
 from aerialmtl.io.outputs import OutputFolder, atomic_write, write_text_atomic
@@ -46,6 +46,9 @@ class DemoSettings:
             machine and its numbers are no longer comparable).
         mc: MC-dropout samples at prediction.
         train_seed, test_seed: seeds of the two towns (must differ).
+        lr: the learning rate of the built-in config's Adam at its peak.
+        ema: decay of the weight average the demo's checkpoints hold (``optim.ema``; ``None``: none).
+        lr_schedule, warmup_steps: the learning-rate schedule (``schedule.lr_schedule``/``warmup_steps``).
     """
 
     train_size: int = 1536
@@ -57,6 +60,10 @@ class DemoSettings:
     mc: int = 16
     train_seed: int = 1
     test_seed: int = 1001
+    lr: float = 1e-3
+    ema: float | None = 0.99
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    warmup_steps: int = 50
 
 
 @dataclass
@@ -142,7 +149,9 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     log(f"[3/5] training the small D3-Net for {s.train_steps} steps ...")
     t = time.perf_counter()
     cfg = load_train_config(builtin_config(DEMO_CONFIG))
-    cfg = cfg.with_overrides(schedule={"max_time_s": None, "max_steps": s.train_steps}, seed=0)
+    cfg = cfg.with_overrides(schedule={"max_time_s": None, "max_steps": s.train_steps,
+                                       "lr_schedule": s.lr_schedule, "warmup_steps": s.warmup_steps},
+                             optim={"lr": s.lr, "ema": s.ema}, seed=0)
     result = train(cfg, data_dir=out / "tiles", out_dir=out / "run", max_steps=s.train_steps,
                    max_time_s=s.train_seconds, progress=progress, overwrite=overwrite)
     stage("train", t)

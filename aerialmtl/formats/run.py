@@ -47,6 +47,8 @@ LOG_COLUMNS = (
 #: ``global_batch`` are missing from checkpoints of older versions). Counters and the best score are
 #: :meth:`aerialmtl.training.state.TrainState.to_dict`.
 RESUME_KEYS = ("optimizer", "weighting", "rng", "rng_ranks", "world_size", "global_batch", "config")
+#: Also in ``train_state`` of a run with ``optim.ema``: the trained weights (the checkpoint's are their average)
+RAW_WEIGHTS_KEY = "raw_weights"
 
 
 @dataclass(frozen=True)
@@ -112,5 +114,5 @@ class CsvLog:
             csv.writer(fh).writerow(["" if row.get(c) is None else row.get(c) for c in LOG_COLUMNS])
 
 
-__all__ = ["BEST_PT", "CONFIG_YAML", "LAST_PT", "LOG_COLUMNS", "LOG_CSV", "RESUME_KEYS", "RUN_FILES", "CsvLog",
-           "RunFolder"]
+__all__ = ["BEST_PT", "CONFIG_YAML", "LAST_PT", "LOG_COLUMNS", "LOG_CSV", "RAW_WEIGHTS_KEY", "RESUME_KEYS",
+           "RUN_FILES", "CsvLog", "RunFolder"]

@@ -10,8 +10,9 @@ the key path (``optim.lr``) and the valid keys/choices::
                 crop_size: null, cache_dir: null}
     loss:      {height: l1, classes: ce, class_weights: none}      # or balanced, or a list of K floats
     weighting: {method: equal, task_weights: {height: 1.0, classes: 1.0}}
-    optim:     {name: adam, lr: 2.0e-4, betas: [0.5, 0.999], weight_decay: 0.0}
-    schedule:  {epochs: 50, max_steps: null, max_time_s: null, val_every: 1, log_every: 10, patience: null}
+    optim:     {name: adam, lr: 2.0e-4, betas: [0.5, 0.999], weight_decay: 0.0, ema: null}
+    schedule:  {epochs: 50, max_steps: null, max_time_s: null, val_every: 1, log_every: 10, patience: null,
+                lr_schedule: constant, warmup_steps: 0}
     predict:   {mc_samples: 30}
     seed: 0
     device: auto          # auto | cpu | cuda
@@ -204,12 +205,19 @@ class OptimSection:
 
     ``weight_decay`` applies to the network's convolution weights only, never to biases, BatchNorm
     parameters or the learned task weighting: L2 in the gradient with ``adam``, decoupled with ``adamw``.
+
+    ``ema`` (``None``: off, the paper's setting) is the decay of an exponential moving average of the weights
+    and BatchNorm statistics, updated after every step (:mod:`aerialmtl.training.averaging`): validation,
+    ``best.pt`` and ``last.pt`` use the average (``last.pt`` also keeps the raw weights to resume). 0.99
+    averages over about the last 100 steps, which makes a short training's outcome far less sensitive to
+    float rounding (bench/RESULTS.md, "the demo across CPU kinds").
     """
 
     name: Literal["adam", "adamw"] = "adam"
     lr: float = 2e-4
     betas: tuple[float, float] = (0.5, 0.999)
     weight_decay: float = 0.0
+    ema: float | None = None
 
     def __post_init__(self) -> None:
         # written as `not (in range)` so that NaN (given from Python, YAML's .nan is refused earlier) fails too
@@ -220,6 +228,9 @@ class OptimSection:
                               "the paper uses [0.5, 0.999]")
         if not 0.0 <= self.weight_decay < 1.0:
             raise ConfigError(f"optim.weight_decay: must be ≥ 0 and < 1, got {self.weight_decay}; e.g. 1.0e-4, or 0")
+        if self.ema is not None and not 0.0 < self.ema < 1.0:
+            raise ConfigError(f"optim.ema: must be a decay in (0, 1), got {self.ema}; e.g. 0.99 (about the last "
+                              "100 steps), or null for no average")
 
 
 @dataclass(frozen=True)
@@ -234,6 +245,12 @@ class ScheduleSection:
         log_every: write a training row to ``log.csv`` every this many steps.
         patience: early stopping: stop after this many validations in a row without a better score
             (``best.pt`` keeps the best model); ``None`` = never.
+        lr_schedule: ``constant`` (the paper's ``optim.lr`` throughout) or ``cosine`` (from ``optim.lr`` down
+            to 0 over the run's planned steps: this section's ``max_steps`` when set, else ``epochs`` × steps per
+            epoch; a run stopped earlier — ``--max-steps``, ``max_time_s``, ``patience`` — ends before the
+            learning rate reaches 0, and resumed, it continues the same schedule).
+        warmup_steps: the learning rate grows linearly from ``optim.lr / warmup_steps`` to ``optim.lr`` over
+            the first this many steps (0: no warm-up), then follows ``lr_schedule``.
     """
 
     epochs: int = 50
@@ -242,8 +259,12 @@ class ScheduleSection:
     val_every: int = 1
     log_every: int = 10
     patience: int | None = None
+    lr_schedule: Literal["constant", "cosine"] = "constant"
+    warmup_steps: int = 0
 
     def __post_init__(self) -> None:
+        if self.warmup_steps < 0:
+            raise ConfigError(f"schedule.warmup_steps: must be ≥ 0, got {self.warmup_steps}")
         for name in ("epochs", "val_every", "log_every"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"schedule.{name}: must be ≥ 1, got {getattr(self, name)}")

@@ -50,6 +50,7 @@ from aerialmtl.formats.checkpoint import (
     load_checkpoint,
     value_envelope,
 )
+from aerialmtl.formats.run import RAW_WEIGHTS_KEY
 from aerialmtl.formats.tiles import (
     HEIGHT_NODATA,
     MANIFEST_CSV,
@@ -248,10 +249,14 @@ def build_model(cfg: TrainConfig, model_cfg: ModelConfig, device: torch.device, 
 # ---- the starting point -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Resumed:
-    """Where a resumed run continues: its counters and this process's saved RNG state (``{}``: none)."""
+    """Where a resumed run continues: its counters, this process's saved RNG state (``{}``: none) and, for a
+    run with ``optim.ema``, the weight average the checkpoint holds (``None``: none; the model then holds the
+    raw weights saved beside it).
+    """
 
     state: TrainState
     rng: dict[str, Any]
+    averaged: dict[str, torch.Tensor] | None = None
 
 
 def _bad_state(path: Path, what: str, exc: BaseException | None) -> CheckpointError:
@@ -320,12 +325,16 @@ def restore(path: Path, parts: ModelParts, data: TrainData, cfg: TrainConfig, ct
             f"checkpoint '{path}' was trained with another model config; "
             "resume with the run's config.yaml or start a new run (--overwrite)"
         )
-    try:
-        parts.model.load_state_dict(payload["state_dict"])
-    except (RuntimeError, KeyError, TypeError) as exc:
-        raise _bad_state(path, "its weights do not fit the model", exc) from exc
     if not isinstance(ts, dict):
         raise _bad_state(path, "its training state is not a mapping", None)
+    raw = ts.get(RAW_WEIGHTS_KEY)  # optim.ema: the checkpoint's weights are the average, these the trained ones
+    try:
+        parts.model.load_state_dict(payload["state_dict"])
+        if raw is not None:
+            parts.model.load_state_dict(raw)
+    except (RuntimeError, KeyError, TypeError, AttributeError) as exc:
+        raise _bad_state(path, "its weights do not fit the model", exc) from exc
+    averaged = payload["state_dict"] if raw is not None else None
     _load_optimizer(path, parts.optimizer, ts, cfg.optim)
     try:
         parts.weighting.load_state_dict(ts["weighting"])
@@ -341,8 +350,8 @@ def restore(path: Path, parts: ModelParts, data: TrainData, cfg: TrainConfig, ct
     elif ctx.rank == 0:
         rng = ts.get("rng")
     else:
-        return Resumed(state, {})
-    return Resumed(state, _checked_rng(path, rng))
+        return Resumed(state, {}, averaged)
+    return Resumed(state, _checked_rng(path, rng), averaged)
 
 
 def seed_rank_stream(cfg: TrainConfig, ctx: runtime.Torchrun, step: int, saved: dict[str, Any] | None) -> None:
@@ -451,6 +460,7 @@ class TrainSetup:
         state: the counters (epoch, position, step, best score; the trainer advances them).
         saved_step: the step of ``last.pt`` when resumed from it, else ``None``.
         resume: the run continues ``last.pt`` (the log is appended to).
+        averaged: the weight average ``last.pt`` holds (``optim.ema``), ``None`` for a new run or without it.
     """
 
     cfg: TrainConfig
@@ -469,6 +479,7 @@ class TrainSetup:
     state: TrainState
     saved_step: int | None
     resume: bool
+    averaged: dict[str, torch.Tensor] | None = None
 
 
 def open_data(cfg: TrainConfig, info: TileFolderInfo, model_cfg: ModelConfig, progress: bool) -> TrainData:
@@ -515,10 +526,10 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
     objective = Objective(cfg, tasks, class_weights(cfg, info, k or 2) if "classes" in tasks else None)
     data = open_data(cfg, info, model_cfg, progress)
     parts = build_model(cfg, data.model_cfg, device, ctx)
-    state, saved_step, rng = TrainState(), None, None
+    state, saved_step, rng, averaged = TrainState(), None, None, None
     if resume:
         resumed = restore(run / "last.pt", parts, data, cfg, ctx, device)
-        state, saved_step, rng = resumed.state, resumed.state.step, resumed.rng
+        state, saved_step, rng, averaged = resumed.state, resumed.state.step, resumed.rng, resumed.averaged
     elif init is not None:
         from aerialmtl.training.finetune import load_init_weights
 
@@ -528,7 +539,7 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
     ddp = distributed.wrap(step_module, ctx)
     loaders = build_loaders(cfg, data, device, ctx, state)
     return TrainSetup(cfg, ctx, owns_ctx, device, precision, run, data_dir, data, parts, objective, step_module, ddp,
-                      loaders, state, saved_step, resume)
+                      loaders, state, saved_step, resume, averaged)
 
 
 __all__ = ["CPU_BF16_TRAINING", "Loaders", "ModelParts", "Resumed", "TrainData", "TrainSetup", "build_loaders",

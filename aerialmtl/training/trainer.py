@@ -25,6 +25,7 @@ either way. The model runs in ``channels_last``; ``compile: true`` (``--compile`
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -40,9 +41,11 @@ from aerialmtl.config import to_dict
 from aerialmtl.data.batches import prepare_batch
 from aerialmtl.errors import NonFiniteError
 from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M, first_nonfinite, height_slack, save_checkpoint
-from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
+from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.progress import tqdm_auto as tqdm
+from aerialmtl.training.averaging import WeightAverage
+from aerialmtl.training.lr_schedule import lr_factor
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
 from aerialmtl.training.setup import TrainSetup
@@ -188,9 +191,19 @@ class Trainer:
         self.train_loader, self.val_loader = loaders.train_loader, loaders.val_loader
         if self.ctx.is_main:
             self.write_config(setup.data_dir if setup.data_dir is not None else cfg.data.dir)
+        self.average: WeightAverage | None = None
+        if cfg.optim.ema is not None:
+            self.average = WeightAverage(self.model, cfg.optim.ema)
+            if setup.averaged is not None:
+                self.average.load(setup.averaged)
+        #: the steps the learning-rate schedule spans: the config's (``schedule.max_steps``, else every epoch's),
+        #: not this call's ``max_steps``, so a run stopped early and resumed follows the same schedule
+        self.planned_steps = min(cfg.schedule.max_steps or math.inf, cfg.schedule.epochs * self.order.steps_per_epoch)
         self.csv_log = CsvLog(self.paths["log.csv"], append=setup.resume) if self.ctx.is_main else None
         self.losses = LossWindow(self.tasks, self.ctx, self.recovery_hint)
         self.metrics: dict[str, float] = {}
+        #: the trained weights while the model holds their average for a checkpoint (``optim.ema``), else None
+        self.raw_weights: dict[str, torch.Tensor] | None = None
 
     @property
     def height_slack(self) -> float:
@@ -200,11 +213,23 @@ class Trainer:
     # ---- the step -----------------------------------------------------------------------------------
     def train_step(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """One optimisation step on a prepared batch; returns the detached total and task losses."""
+        sched = self.cfg.schedule
+        lr = self.cfg.optim.lr * lr_factor(self.state.step, self.planned_steps, sched.lr_schedule, sched.warmup_steps)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
         total, losses = self.ddp(batch)
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         self.optimizer.step()
+        if self.average is not None:
+            self.average.update(self.model)
         return total.detach(), {t: v.detach() for t, v in losses.items()}
+
+    def averaged(self) -> contextlib.AbstractContextManager[dict[str, torch.Tensor] | None]:
+        """A block in which the model holds the weight average (``optim.ema``); yields the raw weights (``None``
+        without an average, when the model is used as it is).
+        """
+        return self.average.applied(self.model) if self.average is not None else contextlib.nullcontext()
 
     # ---- validation ---------------------------------------------------------------------------------
     @torch.no_grad()
@@ -247,11 +272,18 @@ class Trainer:
         return metrics
 
     def after_epoch_validation(self) -> bool:
-        """Validate (or score by the training loss without a val split), log, write best.pt/last.pt.
+        """Validate (or score by the training loss without a val split), log, write best.pt/last.pt; with
+        ``optim.ema`` all of it with the weight average in the model.
 
         Returns:
             True when early stopping says to stop (``schedule.patience`` validations without improvement).
         """
+        with self.averaged() as raw:
+            self.raw_weights = raw
+            return self._validate_and_save()
+
+    def _validate_and_save(self) -> bool:
+        """:meth:`after_epoch_validation` with the weights to judge in the model."""
         self.losses.flush()
         st = self.state
         if self.val_loader is not None:
@@ -352,6 +384,8 @@ class Trainer:
                  **self.state.to_dict(self.order.global_batch), "rng": rngs[0], "rng_ranks": rngs,
                  "world_size": self.ctx.world, "global_batch": self.order.global_batch,
                  "config": self.cfg.to_dict()}
+        if self.raw_weights is not None and target == self.paths["last.pt"]:
+            state[RAW_WEIGHTS_KEY] = self.raw_weights  # the model holds the average: keep what training continues from
         save_checkpoint(target, self.model, self.meta, state)
         if target == self.paths["last.pt"]:
             self.saved_step = self.state.step
@@ -432,6 +466,8 @@ class Trainer:
             del it
         if validated_at != st.step or not self.paths["last.pt"].exists():
             self.after_epoch_validation()
+        if self.average is not None:  # the run is over: the model is its average, as in last.pt
+            self.model.load_state_dict(self.average.shadow)
         self.calibrate()
         return TrainResult(run_dir=self.run, last_checkpoint=self.paths["last.pt"],
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
