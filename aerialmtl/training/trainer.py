@@ -198,7 +198,8 @@ class Trainer:
                 self.average.load(setup.averaged)
         #: the steps the learning-rate schedule spans: the config's (``schedule.max_steps``, else every epoch's),
         #: not this call's ``max_steps``, so a run stopped early and resumed follows the same schedule
-        self.planned_steps = min(cfg.schedule.max_steps or math.inf, cfg.schedule.epochs * self.order.steps_per_epoch)
+        every_epoch = cfg.schedule.epochs * self.order.steps_per_epoch
+        self.planned_steps = min(cfg.schedule.max_steps or every_epoch, every_epoch)
         self.csv_log = CsvLog(self.paths["log.csv"], append=setup.resume) if self.ctx.is_main else None
         self.losses = LossWindow(self.tasks, self.ctx, self.recovery_hint)
         self.metrics: dict[str, float] = {}
