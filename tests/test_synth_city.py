@@ -1,0 +1,150 @@
+"""Tests of the synthetic city generator (`sample_city`), its relief displacement, styles, textures and stream."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from aerialmtl.data.city_stream import CityStream, CityStreamOptions, city_sample, city_seed
+from aerialmtl.data.synth import CityStyle, TexturePool, sample_city
+from aerialmtl.data.synth.city import render_city
+from aerialmtl.data.synth.city_canvas import CityCanvas
+from aerialmtl.data.synth.relief import relief_displacement
+from aerialmtl.data.synth.scene import BUILDING
+from aerialmtl.data.synth.style import Imaging
+from aerialmtl.errors import InputError
+
+BARE, ROAD, TREE, LOWVEG, WATER = 1, 2, 4, 5, 6
+
+
+@pytest.fixture(scope="module")
+def cities():
+    return [sample_city(seed, 96, gsd) for seed, gsd in ((0, 0.5), (1, 1.0), (2, 0.3), (3, 0.8))]
+
+
+def test_shapes_dtypes_units_and_height_ranges(cities) -> None:
+    for p in cities:
+        assert p.image.shape == (3, 96, 96) and p.image.dtype == np.uint8
+        assert p.height.shape == (96, 96) and p.height.dtype == np.float32
+        assert p.classes.shape == (96, 96) and p.classes.dtype == np.uint8
+        assert set(np.unique(p.classes)) <= {1, 2, 3, 4, 5, 6}, "every pixel carries a class of the scheme"
+        h, c = p.height, p.classes
+        assert h.min() >= 0
+        if (c == BUILDING).any():
+            assert 2.0 <= h[c == BUILDING].min() and h[c == BUILDING].max() <= 60.0
+        if (c == TREE).any():
+            assert 3.0 <= h[c == TREE].min() and h[c == TREE].max() <= 30.0
+        for ground in (BARE, ROAD, LOWVEG):
+            assert h[c == ground].max(initial=0) <= 1.8  # cars are the tallest thing labelled ground
+        assert np.all(h[c == WATER] == 0)
+
+
+def test_cities_hold_tall_buildings_and_ground_like_roofs() -> None:
+    """Over a few scenes: towers over 40 m, and flat roofs coloured like the ground around them."""
+    tall, like = 0, 0
+    for seed in range(6):
+        p = sample_city(seed, 256, 1.0, style=CityStyle.plain().with_lean(0.0))
+        bld = p.classes == BUILDING
+        tall += int((p.height[bld] > 40).sum())
+        if bld.sum() > 100 and (p.classes == ROAD).sum() > 100:
+            img = p.image.astype(np.float32).mean(axis=0)
+            road = np.median(img[p.classes == ROAD])
+            like += int((np.abs(img[bld] - road) < 15).mean() > 0.1)
+    assert tall > 0 and like > 0
+
+
+def test_same_seed_same_patch_and_style_or_textures_leave_labels_alone() -> None:
+    a, b = sample_city(11, 64, 0.5), sample_city(11, 64, 0.5)
+    assert a.image.tobytes() == b.image.tobytes() and a.height.tobytes() == b.height.tobytes()
+    plain = sample_city(11, 64, 0.5, style=CityStyle.plain().with_lean(0.5))
+    pool = TexturePool(np.full((2, 3, 16, 16), 200, np.uint8), gsd=0.5, share=1.0)
+    textured = sample_city(11, 64, 0.5, textures=pool)
+    for other in (plain, textured):
+        assert np.array_equal(a.height, other.height) and np.array_equal(a.classes, other.classes)
+        assert not np.array_equal(a.image, other.image)
+    assert not np.array_equal(a.height, sample_city(12, 64, 0.5).height)
+
+
+def _tower_canvas(size: int, gsd: float, height: float) -> CityCanvas:
+    cv = CityCanvas(size, gsd, 0.0)
+    cv.tint[:] = 100.0
+    cv.labels[:] = ROAD
+    r0, r1 = size // 2 - 4, size // 2 + 4
+    cv.ndsm[r0:r1, r0:r1] = height
+    cv.labels[r0:r1, r0:r1] = BUILDING
+    cv.tint[:, r0:r1, r0:r1] = np.array([250.0, 20.0, 20.0])[:, None, None]  # a red roof
+    cv.facade[:, r0:r1, r0:r1] = 60.0
+    return cv
+
+
+@pytest.mark.parametrize("lean_azimuth", [0.0, 90.0, 200.0, 315.0])
+@pytest.mark.parametrize("lean_tan", [0.2, 0.5])
+def test_relief_moves_the_roof_away_from_nadir_by_height_times_tan(lean_azimuth: float, lean_tan: float) -> None:
+    size, gsd, height = 160, 0.5, 40.0
+    cv = _tower_canvas(size, gsd, height)
+    relief = relief_displacement(cv.ndsm, gsd, lean_azimuth, lean_tan)
+    roof = (cv.labels[relief.src_row, relief.src_col] == BUILDING) & ~relief.wall
+    rows, cols = np.nonzero(roof)
+    shift = np.array([rows.mean() - (size / 2 - 0.5), cols.mean() - (size / 2 - 0.5)]) * gsd  # metres
+    az = math.radians(lean_azimuth)
+    expected = height * lean_tan * np.array([-math.cos(az), math.sin(az)])
+    assert np.allclose(shift, expected, atol=1.5 * gsd), (shift, expected)
+    assert roof.sum() == 64, "the roof keeps its size"
+    walls = relief.wall & (cv.labels[relief.src_row, relief.src_col] == BUILDING)
+    assert walls.sum() > 0 and relief.z[walls].max() <= height
+    assert np.all(cv.labels[relief.src_row, relief.src_col][~walls & ~roof] == ROAD)
+
+
+def test_true_ortho_has_no_lean() -> None:
+    cv = _tower_canvas(64, 0.5, 30.0)
+    relief = relief_displacement(cv.ndsm, 0.5, 45.0, 0.0)
+    assert not relief.wall.any()
+    assert np.array_equal(relief.src_row, np.indices((64, 64))[0])
+
+
+@pytest.mark.parametrize("sun_azimuth", [0.0, 135.0, 250.0])
+def test_shadows_fall_on_the_side_away_from_the_sun(sun_azimuth: float) -> None:
+    size, gsd = 160, 0.5
+    cv = _tower_canvas(size, gsd, 20.0)
+    img = render_city(cv, Imaging(sun_azimuth, 40.0, 0.0, 0.0), np.random.default_rng(0)).mean(axis=0)
+    az = math.radians(sun_azimuth)
+    towards_sun = np.array([-math.cos(az), math.sin(az)])  # (row, col)
+    c = size // 2
+    down = np.round(c - 0.5 - 12 * towards_sun).astype(int)  # 6 m from the tower's centre, away from the sun
+    up = np.round(c - 0.5 + 12 * towards_sun).astype(int)  # and towards it
+    assert img[down[0], down[1]] < 0.7 * img[up[0], up[1]]
+
+
+def test_texture_pool_cuts_only_near_ground_patches() -> None:
+    rng = np.random.default_rng(0)
+    image = np.zeros((3, 128, 128), np.uint8)
+    image[1] = rng.integers(100, 200, (128, 128))  # green ground
+    ndsm = np.zeros((128, 128), np.float32)
+    ndsm[30:70, 40:90] = 12.0  # a building, painted red
+    image[0][ndsm > 0], image[1][ndsm > 0] = 255, 0
+    ndsm[100:110, 5:15] = np.nan  # unknown heights are never used
+    image[2][100:110, 5:15] = 255
+    pool = TexturePool.from_arrays(image, ndsm, gsd=0.5, patch_px=16)
+    assert pool.patches.shape[1:] == (3, 16, 16) and len(pool.patches) > 10
+    assert pool.patches[:, 0].max() == 0 and pool.patches[:, 2].max() == 0, "a patch touched a roof or a hole"
+    with pytest.raises(InputError, match="patch_px"):
+        TexturePool.from_arrays(image, np.full((128, 128), 5.0, np.float32), gsd=0.5)
+
+
+def test_city_sample_has_the_training_sample_format() -> None:
+    opts = CityStreamOptions(seed=3, size=48, gsd=(0.5, 0.5))
+    s = city_sample(2, opts)
+    assert s["image"].shape == (3, 48, 48) and s["image"].dtype == torch.float32
+    assert s["height"].shape == (1, 48, 48) and s["height_valid"].all()
+    assert s["classes"].dtype == torch.int64 and int(s["classes"].max()) <= 5
+    raw = sample_city(city_seed(3, 2), 48, 0.5)
+    assert torch.allclose(s["image"], (torch.from_numpy(raw.image).float() - 127) / 128)
+    assert torch.equal(s["classes"], torch.from_numpy(raw.classes).long() - 1)
+    loader = torch.utils.data.DataLoader(CityStream(opts, length=4), batch_size=None, num_workers=0)
+    ids = [b["patch_id"] for b in loader]
+    assert ids == ["city-3-0", "city-3-1", "city-3-2", "city-3-3"]
+    with pytest.raises(InputError, match="gsd"):
+        CityStreamOptions(gsd=(1.0, 0.5))
