@@ -148,3 +148,22 @@ def test_city_sample_has_the_training_sample_format() -> None:
     assert ids == ["city-3-0", "city-3-1", "city-3-2", "city-3-3"]
     with pytest.raises(InputError, match="gsd"):
         CityStreamOptions(gsd=(1.0, 0.5))
+
+
+def test_cli_writes_a_city(tmp_path) -> None:
+    import rasterio
+    from click.testing import CliRunner
+
+    from aerialmtl.cli import cli
+
+    out = tmp_path / "city"
+    res = CliRunner().invoke(cli, ["synth", str(out), "--kind", "city", "--size", "64", "--gsd", "1", "--lean",
+                                   "0.3", "0.3", "--plain"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(out / "ortho.tif") as src:
+        assert src.count == 3 and src.res == (1.0, 1.0) and src.tags()["AERIALMTL_LEAN_TAN"] == "0.3000"
+    with rasterio.open(out / "ndsm.tif") as src, rasterio.open(out / "labels.tif") as lab:
+        patch = sample_city(0, 64, 1.0)
+        assert np.allclose(src.read(1), patch.height, atol=1e-4) and np.array_equal(lab.read(1), patch.classes)
+    res = CliRunner().invoke(cli, ["synth", str(tmp_path / "t"), "--plain", "--size", "64"])
+    assert res.exit_code == 2 and "--kind" in res.output

@@ -10,7 +10,7 @@ the fast scene source for pretraining.
 """
 
 from aerialmtl.data.synth.city import CityPatch, sample_city
-from aerialmtl.data.synth.generate import MIN_SIZE, SYNTH_VERSION, SynthResult, synthesize
+from aerialmtl.data.synth.generate import MIN_SIZE, SYNTH_VERSION, CityResult, SynthResult, synthesize, synthesize_city
 from aerialmtl.data.synth.render import AMBIENT, render_ortho
 from aerialmtl.data.synth.scene import Scene, build_scene
 from aerialmtl.data.synth.shading import cast_shadows, hillshade, sun_vector
@@ -20,6 +20,7 @@ from aerialmtl.data.synth.textures import TexturePool
 __all__ = [
     "AMBIENT",
     "CityPatch",
+    "CityResult",
     "CityStyle",
     "Imaging",
     "TexturePool",
@@ -34,4 +35,5 @@ __all__ = [
     "sample_city",
     "sun_vector",
     "synthesize",
+    "synthesize_city",
 ]

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,8 +21,11 @@ from shapely.affinity import affine_transform
 from shapely.geometry.polygon import orient
 
 from aerialmtl.classes import BUILTIN_DIR, ClassScheme
+from aerialmtl.data.synth.city import sample_city
 from aerialmtl.data.synth.render import render_ortho
 from aerialmtl.data.synth.scene import Scene, build_scene
+from aerialmtl.data.synth.style import CityStyle, Imaging
+from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
 from aerialmtl.formats.tiles import HEIGHT_NODATA
@@ -102,6 +107,14 @@ def synthesize(
         OutputError: ``out_dir`` cannot be created.
     """
     start = time.perf_counter()
+    crs_obj = _check_args(size, gsd, crs)
+    out = Path(out_dir)
+    with _claimed(out, _OUTPUTS, overwrite):
+        return _write_scene(out, size, seed, gsd, crs_obj, origin, start)
+
+
+def _check_args(size: int, gsd: float, crs: str) -> CRS:
+    """Validate the options shared by the writers; returns the CRS."""
     if int(size) != size or size < MIN_SIZE:
         raise InputError(f"‹size› must be an integer ≥ {MIN_SIZE} pixels, got {size}; pass e.g. ‹size=1024›",
                          param="size")
@@ -116,17 +129,22 @@ def synthesize(
     if not crs_obj.is_projected:
         raise InputError(f"‹crs› {crs!r} is not projected; synthetic scenes need a projected CRS, e.g. a UTM zone "
                          "'EPSG:32631'", param="crs")
-    out = Path(out_dir)
-    existing = [name for name in _OUTPUTS if os.path.lexists(out / name)]
+    return crs_obj
+
+
+@contextlib.contextmanager
+def _claimed(out: Path, outputs: tuple[str, ...], overwrite: bool) -> Iterator[None]:
+    """Hold ``out`` for writing ``outputs`` (refusing existing ones unless ``overwrite``)."""
+    existing = [name for name in outputs if os.path.lexists(out / name)]
     if existing and not overwrite:
         raise OutputExistsError(
             f"{out}: {', '.join(existing)} already exist; pass ‹overwrite=True› to replace them "
             "or choose another output folder"
         )
     with OutputFolder(out, "synth", what="output folder") as folder:
-        folder.claim(_OUTPUTS, overwrite)
-        folder.remove_leftovers(_OUTPUTS)
-        return _write_scene(out, size, seed, gsd, crs_obj, origin, start)
+        folder.claim(outputs, overwrite)
+        folder.remove_leftovers(outputs)
+        yield
 
 
 def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, origin: tuple[float, float],
@@ -135,19 +153,43 @@ def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, orig
     rng = np.random.default_rng(seed)
     scene = build_scene(int(size), float(gsd), rng)
     ortho, _ = render_ortho(scene, rng)
-    dsm = (scene.dtm + scene.ndsm).astype(np.float32)
-    ndsm = dsm - scene.dtm  # exactly DSM − DTM in float32
+    paths = _write_rasters(out, _Layers(ortho, scene.dtm, scene.ndsm, scene.labels), gsd, crs_obj, origin,
+                           _tags(seed, size, gsd, scene.sun_azimuth, scene.sun_elevation))
+    _write_reference_buildings(scene, out / REFERENCE_FILE, crs_obj, origin)
+    return SynthResult(out, paths["ortho.tif"], paths["dsm.tif"], paths["dtm.tif"], paths["ndsm.tif"],
+                       paths["labels.tif"], paths["classes.yaml"], scene.sun_azimuth, scene.sun_elevation,
+                       time.perf_counter() - start, out / REFERENCE_FILE)
 
-    px = gsd / float(crs_obj.linear_units_factor[1])  # pixel size in CRS units (e.g. feet)
-    transform = Affine(px, 0.0, origin[0], 0.0, -px, origin[1])
-    tags = {
+
+def _tags(seed: int, size: int, gsd: float, sun_azimuth: float, sun_elevation: float) -> dict[str, str]:
+    return {
         "AERIALMTL_SYNTH_VERSION": SYNTH_VERSION,
         "AERIALMTL_SYNTH_SEED": str(seed),
         "AERIALMTL_SYNTH_SIZE": str(size),
         "AERIALMTL_SYNTH_GSD": repr(float(gsd)),
-        "AERIALMTL_SUN_AZIMUTH": f"{scene.sun_azimuth:.4f}",
-        "AERIALMTL_SUN_ELEVATION": f"{scene.sun_elevation:.4f}",
+        "AERIALMTL_SUN_AZIMUTH": f"{sun_azimuth:.4f}",
+        "AERIALMTL_SUN_ELEVATION": f"{sun_elevation:.4f}",
     }
+
+
+@dataclass(frozen=True)
+class _Layers:
+    """What a scene writes: uint8 (3, H, W) ortho, float32 (H, W) DTM and nDSM (metres), uint8 labels."""
+
+    ortho: np.ndarray
+    dtm: np.ndarray
+    ndsm: np.ndarray
+    labels: np.ndarray
+
+
+def _write_rasters(out: Path, layers: _Layers, gsd: float, crs_obj: CRS, origin: tuple[float, float],
+                   tags: dict[str, str]) -> dict[str, Path]:
+    """Write ortho, DSM (= DTM + nDSM), DTM, nDSM, labels and classes.yaml into ``out``; returns their paths."""
+    size = layers.ndsm.shape[0]
+    dsm = (layers.dtm + layers.ndsm).astype(np.float32)
+    ndsm = dsm - layers.dtm  # exactly DSM − DTM in float32
+    px = gsd / float(crs_obj.linear_units_factor[1])  # pixel size in CRS units (e.g. feet)
+    transform = Affine(px, 0.0, origin[0], 0.0, -px, origin[1])
     scheme = ClassScheme.load("synthetic")
     paths = {name: out / name for name in _OUTPUTS}
 
@@ -167,19 +209,67 @@ def _write_scene(out: Path, size: int, seed: int, gsd: float, crs_obj: CRS, orig
             if colormap:
                 dst.write_colormap(1, colormap)
 
-    write("ortho.tif", ortho, None, ("red", "green", "blue"))
+    write("ortho.tif", layers.ortho, None, ("red", "green", "blue"))
     write("dsm.tif", dsm, HEIGHT_NODATA, ("DSM",), "metre")
-    write("dtm.tif", scene.dtm, HEIGHT_NODATA, ("DTM",), "metre")
+    write("dtm.tif", layers.dtm, HEIGHT_NODATA, ("DTM",), "metre")
     write("ndsm.tif", ndsm, HEIGHT_NODATA, ("nDSM",), "metre")
     cmap = {c.code: (*c.color, 255) for c in scheme.classes}
     cmap.update({code: (0, 0, 0, 0) for code in scheme.ignore_codes})
-    write("labels.tif", scene.labels, 0, ("land cover (raw code)",), colormap=cmap)
+    write("labels.tif", layers.labels, 0, ("land cover (raw code)",), colormap=cmap)
     with atomic_write(paths["classes.yaml"]) as tmp:
         shutil.copyfile(BUILTIN_DIR / "synthetic.yaml", tmp)
-    _write_reference_buildings(scene, paths[REFERENCE_FILE], crs_obj, origin)
-    return SynthResult(out, paths["ortho.tif"], paths["dsm.tif"], paths["dtm.tif"], paths["ndsm.tif"],
-                       paths["labels.tif"], paths["classes.yaml"], scene.sun_azimuth, scene.sun_elevation,
-                       time.perf_counter() - start, paths[REFERENCE_FILE])
+    return paths
+
+
+_CITY_OUTPUTS = _OUTPUTS[:-1]  # no reference footprints for a city
+#: Ground elevation of a synthetic city's (flat) DTM, metres.
+CITY_GROUND_M = 100.0
+
+
+@dataclass(frozen=True)
+class CityResult:
+    """Paths written by :func:`synthesize_city`, the imaging the ortho was made with, and the time taken (s)."""
+
+    out_dir: Path
+    ortho: Path
+    dsm: Path
+    dtm: Path
+    ndsm: Path
+    labels: Path
+    classes: Path
+    imaging: Imaging
+    seconds: float
+
+
+def synthesize_city(out_dir: str | Path, size: int = 1024, seed: int = 0, gsd: float = 0.5,
+                    crs: str = "EPSG:32631", origin: tuple[float, float] = (500000.0, 5000000.0),
+                    style: CityStyle | None = None, textures: TexturePool | None = None,
+                    overwrite: bool = False) -> CityResult:
+    """Write a synthetic city (:func:`~aerialmtl.data.synth.city.sample_city`) as pixel-aligned GeoTIFFs.
+
+    The files are those of :func:`synthesize` without ``buildings.geojson``; the DTM is flat at
+    :data:`CITY_GROUND_M`; the orthophoto is a non-true one (tall things lean, see the ``AERIALMTL_LEAN_*`` tags)
+    while the nDSM and labels sit at the true footprints. Arguments as :func:`synthesize`, plus ``style`` and
+    ``textures`` as :func:`~aerialmtl.data.synth.city.sample_city`.
+
+    Raises:
+        InputError: bad ``size``, ``gsd`` or ``crs``.
+        OutputExistsError: an output exists and ``overwrite`` is False.
+    """
+    start = time.perf_counter()
+    crs_obj = _check_args(size, gsd, crs)
+    out = Path(out_dir)
+    with _claimed(out, _CITY_OUTPUTS, overwrite):
+        patch = sample_city(seed, int(size), float(gsd), style, textures)
+        im = patch.imaging
+        tags = _tags(seed, size, gsd, im.sun_azimuth, im.sun_elevation)
+        tags.update(AERIALMTL_SYNTH_KIND="city", AERIALMTL_LEAN_AZIMUTH=f"{im.lean_azimuth:.4f}",
+                    AERIALMTL_LEAN_TAN=f"{im.lean_tan:.4f}")
+        dtm = np.full(patch.height.shape, CITY_GROUND_M, np.float32)
+        paths = _write_rasters(out, _Layers(patch.image, dtm, patch.height, patch.classes), gsd, crs_obj, origin,
+                               tags)
+    return CityResult(out, paths["ortho.tif"], paths["dsm.tif"], paths["dtm.tif"], paths["ndsm.tif"],
+                      paths["labels.tif"], paths["classes.yaml"], im, time.perf_counter() - start)
 
 
 def _write_reference_buildings(scene: Scene, path: Path, crs: CRS, origin: tuple[float, float]) -> None:

@@ -78,7 +78,7 @@ class TexturePool:
         rows, cols = np.nonzero(ok)
         if rows.size == 0:
             raise InputError(f"no {patch_px}×{patch_px} px patch of the orthophoto has an nDSM ≤ {max_height} m "
-                             "everywhere; pass a smaller ‹patch_px› or an area with open ground", param="ndsm")
+                             "everywhere; pass a smaller patch_px or an area with open ground", param="ndsm")
         rng = np.random.default_rng(seed)
         pick = rng.choice(rows.size, size=min(max_patches, rows.size), replace=False)
         step = max(1, half // 2)
