@@ -74,7 +74,8 @@ def relief_displacement(height: np.ndarray, gsd: float, lean_azimuth: float, lea
     if lean_tan > 1e-6:
         dz = step_m / lean_tan  # ray height gained per step back
         flat = h.ravel()
-        order = np.argsort(-flat, kind="stable")
+        candidates = np.flatnonzero(flat >= dz)  # only these can be seen from another pixel
+        order = candidates[np.argsort(-flat[candidates], kind="stable")]
         tall = flat[order]
         k_max = int(tall[0] / dz) if tall.size else 0
         src_r, src_c = order // n_cols, order % n_cols

@@ -419,23 +419,46 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
     Returns:
         A :class:`Scene` (terrain, nDSM, labels, albedo, sun angles).
 
-    Long (over 80 lines) on purpose: every random draw happens here in one fixed order, so a seed gives
-    the same town; moving draws into helpers would make that order easy to break unnoticed.
+    The steps below draw from ``rng`` in this order, which a seed's town depends on (tests/test_synth.py
+    pins a hash of one): frame and sun, street lines, blocks, terrain, ground textures. Roads and objects
+    draw nothing.
     """
     extent = size * gsd
     theta = 0.0 if rng.random() < 0.3 else math.radians(rng.uniform(-25, 25))
     sun_azimuth = float(rng.uniform(110, 250))
     sun_elevation = float(rng.uniform(35, 55))
     cv = _Canvas(size, gsd, theta)
-
     corners_u = np.array([0, extent, extent, 0]) * cv.cos + np.array([0, 0, extent, extent]) * cv.sin
     corners_v = -np.array([0, extent, extent, 0]) * cv.sin + np.array([0, 0, extent, extent]) * cv.cos
     scene_poly = Polygon(np.c_[corners_u, corners_v])
     lines_u = _road_lines(rng, corners_u.min(), corners_u.max())
     lines_v = _road_lines(rng, corners_v.min(), corners_v.max())
-
-    # ---- blocks ------------------------------------------------------------------------------
     plan = _Planner(cv, rng, scene_poly)
+    stats = _plan_blocks(plan, lines_u, lines_v)
+    u = _paint_roads(cv, plan.cover, lines_u, lines_v)
+    xs = (np.arange(size, dtype=np.float32) + 0.5) * gsd
+    dtm = _terrain(rng, xs, extent)
+    for rr, cc in plan.ponds:
+        if rr.size:
+            dtm[rr, cc] = dtm[rr, cc].min()
+    tex_small, tex_mid, fine = _ground_covers(cv, plan.cover, u, rng)
+    truths = []
+    for bld in plan.buildings:
+        drawn = _draw_building(cv, bld, tex_small, fine)
+        truth = _building_truth(cv, bld, drawn, box(0.0, 0.0, extent, extent))
+        if truth is not None:
+            truths.append(truth)
+    for tr in plan.trees:
+        _draw_tree(cv, tr, tex_small, tex_mid, fine)
+    stats.update(buildings=len(plan.buildings), trees=len(plan.trees), ponds=len(plan.ponds))
+    np.clip(cv.albedo, 0, 255, out=cv.albedo)
+    return Scene(dtm, cv.ndsm, cv.labels, cv.albedo, sun_azimuth, sun_elevation, gsd, stats, truths)
+
+
+def _plan_blocks(plan: _Planner, lines_u: list[tuple[float, float]],
+                 lines_v: list[tuple[float, float]]) -> dict[str, int]:
+    """Give every block between the streets a kind and plan its content; returns blocks per kind."""
+    rng, scene_poly = plan.rng, plan.scene_poly
     blocks = []
     for (cu0, wu0), (cu1, wu1) in zip(lines_u[:-1], lines_u[1:]):
         for (cv0, wv0), (cv1, wv1) in zip(lines_v[:-1], lines_v[1:]):
@@ -468,8 +491,13 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
             plan.field(iu0, iu1, iv0, iv1, ploughed=rng.random() < 0.6)
         if kind in ("residential", "commercial", "park") and rng.random() < (0.6 if kind == "residential" else 0.35):
             plan.street_trees(u0, u1, v0, v1, verge)
+    return stats
 
-    # ---- roads (vectorised over the whole grid) ----------------------------------------------
+
+def _paint_roads(cv: _Canvas, cover: np.ndarray, lines_u: list[tuple[float, float]],
+                 lines_v: list[tuple[float, float]]) -> np.ndarray:
+    """Mark asphalt (and dashed centre lines) in ``cover``, vectorised over the grid; returns the u grid (m)."""
+    size, gsd = cv.n, cv.gsd
     xs = (np.arange(size, dtype=np.float32) + 0.5) * gsd
     u = xs[None, :] * np.float32(cv.cos) + xs[:, None] * np.float32(cv.sin)
     v = -xs[None, :] * np.float32(cv.sin) + xs[:, None] * np.float32(cv.cos)
@@ -477,22 +505,19 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
     off_v, half_v = _nearest_line(v, lines_v)
     on_u = np.abs(off_u) <= half_u
     on_v = np.abs(off_v) <= half_v
-    cover = plan.cover
     cover[on_u | on_v] = ASPHALT
     if gsd <= 0.5:  # dashed centre lines on wide roads, not across junctions
         line_w = max(0.15, 0.55 * gsd)
         dash_u = on_u & ~on_v & (np.abs(off_u) < line_w) & (half_u >= 4) & (np.mod(v, 9.0) < 4.5)
         dash_v = on_v & ~on_u & (np.abs(off_v) < line_w) & (half_v >= 4) & (np.mod(u, 9.0) < 4.5)
         cover[dash_u | dash_v] = MARKING
-    del off_u, off_v, half_u, half_v, on_u, on_v
+    return u
 
-    # ---- terrain -----------------------------------------------------------------------------
-    dtm = _terrain(rng, xs, extent)
-    for rr, cc in plan.ponds:
-        if rr.size:
-            dtm[rr, cc] = dtm[rr, cc].min()
 
-    # ---- ground covers: labels, heights, colours ---------------------------------------------
+def _ground_covers(cv: _Canvas, cover: np.ndarray, u: np.ndarray,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Labels, grass heights and textured colours of the ground covers; returns the small, mid and fine noise."""
+    gsd = cv.gsd
     tex_large = smooth_noise(cv.shape, 25.0 / gsd, rng)
     tex_mid = smooth_noise(cv.shape, max(1.0, 4.0 / gsd), rng)
     tex_small = smooth_noise(cv.shape, max(1.0, 0.8 / gsd), rng)
@@ -511,21 +536,8 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
         base[grass] = (1 - dry) * _COVER_RGB[GRASS, ch] + dry * _DRY_GRASS[ch]
         base[field_px] *= furrows
         cv.albedo[ch] = base * gain + add
-    del gain, add, base
     cv.ndsm[grass] = np.clip(0.22 + 0.15 * tex_mid[grass] + 0.05 * tex_small[grass], 0.0, 0.5)
-
-    # ---- objects -----------------------------------------------------------------------------
-    truths = []
-    for bld in plan.buildings:
-        drawn = _draw_building(cv, bld, tex_small, fine)
-        truth = _building_truth(cv, bld, drawn, box(0.0, 0.0, extent, extent))
-        if truth is not None:
-            truths.append(truth)
-    for tr in plan.trees:
-        _draw_tree(cv, tr, tex_small, tex_mid, fine)
-    stats.update(buildings=len(plan.buildings), trees=len(plan.trees), ponds=len(plan.ponds))
-    np.clip(cv.albedo, 0, 255, out=cv.albedo)
-    return Scene(dtm, cv.ndsm, cv.labels, cv.albedo, sun_azimuth, sun_elevation, gsd, stats, truths)
+    return tex_small, tex_mid, fine
 
 
 def _terrain(rng: np.random.Generator, xs: np.ndarray, extent: float) -> np.ndarray:
