@@ -46,7 +46,7 @@ class TexturePool:
                              param="gsd")
 
     @classmethod
-    def from_arrays(cls, image: np.ndarray, ndsm: np.ndarray, gsd: float, patch_px: int = 32,
+    def from_arrays(cls, image: np.ndarray, ndsm: np.ndarray, gsd: float, patch_px: int = 16,
                     max_height: float = 0.5, max_patches: int = 256, share: float = 0.5,
                     seed: int = 0) -> TexturePool:
         """Cut patches from an orthophoto where its nDSM is near 0.
