@@ -263,9 +263,9 @@ def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options:
     if not isinstance(checkpoint, Predictor):
         return settings_of(settings, options)
     if settings is not None or options:
-        raise InputError("a Predictor predicts with its own settings; pass them to Predictor(...) instead of "
-                         f"here (got {'‹settings›' if settings is not None else ', '.join(map(str, options))})",
-                         param="settings")
+        given = "settings" if settings is not None else ", ".join(map(str, options))
+        raise InputError(f"a Predictor predicts with its own settings; pass them to Predictor(...) instead of "
+                         f"here (got {given})")
     return checkpoint.settings
 
 

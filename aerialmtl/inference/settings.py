@@ -96,7 +96,7 @@ class PredictSettings:
                              param="batch_size")
         runtime.resolve_precision(self.precision, torch.device("cpu"))  # a bad value fails here, naming it
         if self.reader_threads < 1:
-            raise InputError(f"‹reader_threads› must be ≥ 1, got {self.reader_threads!r}", param="reader_threads")
+            raise InputError(f"reader_threads must be ≥ 1 background thread, got {self.reader_threads!r}; pass e.g. 2")
         runtime.resolve_threads(self.threads)  # a bad value fails here, naming ‹threads›
 
     def with_options(self, **options: Unpack[PredictOptions]) -> PredictSettings:

@@ -201,7 +201,8 @@ class Plan:
 
     def weight(self, i: int, j: int) -> np.ndarray:
         """(height, width) float32 blending weight of window (row ``i``, column ``j``)."""
-        return self.rows.weights[i][:, None] * self.cols.weights[j][None, :]
+        result: np.ndarray = self.rows.weights[i][:, None] * self.cols.weights[j][None, :]
+        return result
 
 
 def plan_windows(height: int, width: int, tile: int = 512, overlap: int = 64) -> Plan:
