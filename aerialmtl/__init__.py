@@ -48,7 +48,8 @@ _EXPORTS: dict[str, str] = {
     # mapping
     "Predictor": "aerialmtl.inference.predict",
     "predict_raster": "aerialmtl.inference.predict",
-    "predict_many": "aerialmtl.inference.jobs",
+    "predict_many": "aerialmtl.inference.predict",
+    "PredictSettings": "aerialmtl.inference.predict",
     "PredictResult": "aerialmtl.inference.job",
     "PredictionFolder": "aerialmtl.formats.prediction",
     "extract_buildings": "aerialmtl.buildings",
@@ -88,6 +89,7 @@ __all__ = [
     "Predictor",
     "predict_raster",
     "predict_many",
+    "PredictSettings",
     "PredictResult",
     "PredictionFolder",
     "extract_buildings",
@@ -125,8 +127,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
     from aerialmtl.formats.prediction import PredictionFolder
     from aerialmtl.inference.job import PredictResult
-    from aerialmtl.inference.jobs import predict_many
-    from aerialmtl.inference.predict import Predictor, predict_raster
+    from aerialmtl.inference.predict import Predictor, PredictSettings, predict_many, predict_raster
     from aerialmtl.io.align import Grid, NdsmOptions, reference_grid
     from aerialmtl.models.config import ModelConfig
     from aerialmtl.models.d3net import D3Net

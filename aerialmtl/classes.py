@@ -86,7 +86,8 @@ class ClassScheme:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain mapping (YAML/JSON/checkpoint safe)."""
-        return to_dict(self)
+        result: dict[str, Any] = to_dict(self)
+        return result
 
     # ---- accessors ----------------------------------------------------------------------------
     @property

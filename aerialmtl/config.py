@@ -23,6 +23,7 @@ import difflib
 import math
 import re
 import types
+import warnings
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
@@ -135,6 +136,11 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
     data = {} if data is None else data
     if not isinstance(data, dict):
         raise ConfigError(f"{path or '<root>'}: expected a mapping, got {data!r}")
+    removed: dict[str, str] = getattr(cls, "REMOVED_KEYS", {})  # key → why it is read and ignored
+    for key in [k for k in data if k in removed]:
+        warnings.warn(f"'{f'{path}.{key}' if path else key}' is ignored: {removed[key]}; remove it from the file",
+                      FutureWarning, stacklevel=3)
+        data = {k: v for k, v in data.items() if k != key}
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     unknown = [k for k in data if k not in fields]

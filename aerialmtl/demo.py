@@ -236,7 +236,8 @@ def preview_figure(ortho: Path, pred_dir: Path, height_ref: Path | None, labels_
         if path is None or not Path(path).exists():
             return None
         with rasterio.open(path) as src:
-            return src.read(1, masked=masked)
+            result: np.ndarray | None = src.read(1, masked=masked)
+            return result
 
     with rasterio.open(ortho) as src:
         rgb = np.moveaxis(src.read([1, 2, 3]), 0, -1)

@@ -91,7 +91,8 @@ class JsonBar(_std_tqdm):
         shown = super().update(n)
         if not self.disable and n:
             self._emit()
-        return shown
+        result: bool | None = shown
+        return result
 
     def __iter__(self) -> Iterator[Any]:
         if self.disable:

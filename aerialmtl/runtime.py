@@ -429,9 +429,13 @@ class Torchrun:
         _collective(dist.broadcast_object_list, box, src=0)
         return box[0]
 
-    def main_first(self, fn: Callable[[], T]) -> T:
-        """Run ``fn`` on rank 0; if it raises, every rank raises the same error (no rank is left waiting)."""
-        result: Any = None
+    def main_first(self, fn: Callable[[], T]) -> T | None:
+        """Run ``fn`` on rank 0; if it raises, every rank raises the same error (no rank is left waiting).
+
+        Returns:
+            ``fn``'s result on rank 0, ``None`` on the other ranks.
+        """
+        result: T | None = None
         error: BaseException | None = None
         if self.is_main:
             try:

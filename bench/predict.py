@@ -347,6 +347,7 @@ def bench_model_alone(size: int = 1024, reps: int = 2) -> list[dict]:
     """The full model alone on one ``size``² window per engine and precision: seconds, Mpx/s, GFLOP/s."""
     from aerialmtl import runtime
     from aerialmtl.inference.runner import ModelRunner
+    from aerialmtl.inference.settings import PredictSettings, Resolved
 
     model, meta = make_model("full")
     flops = model_flops_per_px(model, 256)
@@ -356,7 +357,9 @@ def bench_model_alone(size: int = 1024, reps: int = 2) -> list[dict]:
         cases.append(("openvino", "bf16"))
     out = []
     for engine, precision in cases:
-        runner = ModelRunner(model, meta, torch.device("cpu"), precision, 1, engine=engine)  # type: ignore[arg-type]
+        settings = PredictSettings(mc=1, precision=precision, engine=engine)  # type: ignore[arg-type]
+        resolved = Resolved(torch.device("cpu"), engine, precision, runtime.resolve_threads(), 1)  # type: ignore[arg-type]
+        runner = ModelRunner(model, meta, settings, resolved)
         runner(x, [0])  # conversion, compilation, warm-up
         best = float("inf")
         for _ in range(reps):
@@ -467,7 +470,7 @@ def bench_alone(size: int, windows: int, cache: Path) -> dict:
     ckpt, env = _full_checkpoint(cache)
     os.environ["AERIALMTL_OPENVINO_CACHE"] = env["AERIALMTL_OPENVINO_CACHE"]
     predictor = Predictor(ckpt, mc=1)
-    plan = plan_windows(size, size, predictor.tile, predictor.overlap)
+    plan = plan_windows(size, size, predictor.settings.window, predictor.settings.overlap)
     h, w = plan.rows.size, plan.cols.size
     x = torch.randn(1, 3, h, w).contiguous(memory_format=torch.channels_last)
     runner = predictor.runner

@@ -50,7 +50,7 @@ def make(root: Path) -> None:
                            nodata=0) as dst:
             dst.write(img)
         orthos.append(path)
-    predict_many(orthos, (model, meta), root / "out", mc=3, tile=128, overlap=32, progress=False, overwrite=True)
+    predict_many(orthos, (model, meta), root / "out", mc=3, window=128, overlap=32, progress=False, overwrite=True)
     # the untrained model may find no building: draw some into the first folder's classes for the footprints
     cls_path = root / "out" / "ortho0" / "classes.tif"
     with rasterio.open(cls_path) as src:

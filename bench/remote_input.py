@@ -80,7 +80,7 @@ def main() -> None:
         for label, src in (("local file", str(root / "ortho.tif")), ("HTTP (range requests)", url)):
             STATS.update(requests=0, bytes=0)
             t0 = time.perf_counter()
-            predict_raster(src, model, root / label.split()[0], mc=1, tile=args.tile, progress=False)
+            predict_raster(src, model, root / label.split()[0], mc=1, window=args.tile, progress=False)
             rows.append((label, time.perf_counter() - t0, STATS["requests"], STATS["bytes"]))
         httpd.shutdown()
         with rasterio.open(root / "local" / "height.tif") as a, rasterio.open(root / "HTTP" / "height.tif") as b:

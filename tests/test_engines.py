@@ -57,7 +57,7 @@ def test_openvino_fp32_equals_torch(tmp_path: Path, rng: np.random.Generator, mc
         maps = {}
         for engine in ("torch", "openvino"):
             out = tmp_path / f"{engine}{k}"
-            predict_raster(ortho, (model, meta), out, mc=mc, tile=64, overlap=16, batch_size=2, aoi=aoi,
+            predict_raster(ortho, (model, meta), out, mc=mc, window=64, overlap=16, batch_size=2, aoi=aoi,
                            precision="fp32", engine=engine, progress=False, seed=5, probabilities=True)
             maps[engine] = _layers(out)
             assert json.loads((out / "prediction.json").read_text())["engine"] == engine
@@ -106,7 +106,7 @@ def test_openvino_bf16_close_to_torch_fp32_on_a_trained_model(trained: tuple[Pat
     maps = {}
     for engine, precision in (("torch", "fp32"), ("openvino", "bf16")):
         out = tmp_path / engine
-        predict_raster(ortho, ckpt, out, mc=mc, tile=64, overlap=16, precision=precision, engine=engine,
+        predict_raster(ortho, ckpt, out, mc=mc, window=64, overlap=16, precision=precision, engine=engine,
                        progress=False)
         maps[engine] = _layers(out)
         info = json.loads((out / "prediction.json").read_text())
@@ -125,7 +125,7 @@ def test_auto_picks_openvino_on_cpu_for_d3net_else_torch(monkeypatch: pytest.Mon
     assert resolve_engine("auto", cpu, model) == "openvino"
     assert resolve_engine("auto", torch.device("cuda"), model) == "torch"
     assert resolve_engine("auto", cpu, IdentityModel((1.0,), (1.0,))) == "torch"  # not convertible
-    pred = Predictor((model, meta), mc=1, tile=64, overlap=16, precision="auto")
+    pred = Predictor((model, meta), mc=1, window=64, overlap=16, precision="auto")
     assert pred.engine == "openvino"
     assert pred.precision == ("bf16" if runtime.native_bf16(cpu) else "fp32")
     assert Predictor((model, meta), mc=1, engine="torch").precision == ("bf16" if runtime.cpu_has_amx() else "fp32")
@@ -137,15 +137,19 @@ def test_engines_are_listed_once_and_built_by_name() -> None:
     """The CLI offers the engines of ENGINES; build_engine builds each one, with the Engine protocol's members."""
     import click
 
+    from aerialmtl import runtime
     from aerialmtl.cli.predict import predict
-    from aerialmtl.inference.engines import ENGINES, build_engine
+    from aerialmtl.inference.engines import ENGINES, EngineSetup, build_engine
+    from aerialmtl.inference.settings import PredictSettings, Resolved
 
     choice = next(p.type for p in predict.params if p.name == "engine")
     assert isinstance(choice, click.Choice) and tuple(choice.choices) == ("auto", *ENGINES)
     model, meta = tiny_d3net()
     for name in ENGINES:
-        engine = build_engine(name, model, meta, torch.device("cpu"), "fp32")  # type: ignore[arg-type]
+        resolved = Resolved(torch.device("cpu"), name, "fp32", runtime.resolve_threads(), 1)
+        engine = build_engine(EngineSetup(model, meta, PredictSettings(), resolved))
         assert engine.name == name and isinstance(engine.model, torch.nn.Module)
+        assert isinstance(engine.net, torch.nn.Module) and engine.ahead(4) == 0
         x = torch.zeros(1, 3, 64, 64).contiguous(memory_format=torch.channels_last)
         stats = engine.submit(x, [0], 1, 0, 1).result()
         assert stats.height_mean is not None and tuple(stats.height_mean.shape) == (1, 64, 64)
@@ -182,7 +186,7 @@ def test_streams_give_the_maps_of_one_stream(tmp_path: Path, rng: np.random.Gene
     try:
         for label, engine, n in (("torch", "torch", None), ("one", "openvino", 1), ("three", "openvino", 3)):
             out = tmp_path / label
-            predict_raster(ortho, (model, meta), out, mc=mc, tile=64, overlap=16, batch_size=1, precision="fp32",
+            predict_raster(ortho, (model, meta), out, mc=mc, window=64, overlap=16, batch_size=1, precision="fp32",
                            engine=engine, progress=False, seed=3, threads=n)
             maps[label], infos[label] = _layers(out), json.loads((out / "prediction.json").read_text())
     finally:

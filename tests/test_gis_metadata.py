@@ -42,7 +42,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     model = IdentityModel(meta.mean, meta.std, dropout=0.5)
     a = _ortho(tmp / "a.tif", 1)
     b = _ortho(tmp / "b.tif", 2, Affine(0.5, 0, 500032.0, 0, -0.5, 5000000.0))  # overlaps a by half
-    predict_many([a, b], (model, meta), tmp / "out", mc=2, tile=32, overlap=0, progress=False)
+    predict_many([a, b], (model, meta), tmp / "out", mc=2, window=32, overlap=0, progress=False)
     return tmp / "out"
 
 
@@ -181,7 +181,7 @@ def test_style_of_an_empty_layer_and_stats_without_valid_pixels(tmp_path: Path) 
 def test_single_input_writes_item_but_no_collection(tmp_path: Path) -> None:
     meta = identity_meta()
     res = predict_raster(_ortho(tmp_path / "o.tif", 3), (IdentityModel(meta.mean, meta.std), meta), tmp_path / "p",
-                         mc=1, tile=32, overlap=0, progress=False)
+                         mc=1, window=32, overlap=0, progress=False)
     info = json.loads(res.files["prediction"].read_text())
     assert info["files"]["item"] == "item.json" and info["files"]["height_style"] == "height.qml"
     assert (tmp_path / "p" / "item.json").is_file() and not (tmp_path / "p" / "collection.json").exists()
@@ -282,7 +282,7 @@ def test_edited_styles_and_item_keep_a_folder_complete_for_skip_existing(tmp_pat
     meta = identity_meta()
     model = IdentityModel(meta.mean, meta.std)
     a, b = _ortho(tmp_path / "a.tif", 1), _ortho(tmp_path / "b.tif", 2)
-    args = dict(mc=1, tile=32, overlap=0, progress=False)
+    args = dict(mc=1, window=32, overlap=0, progress=False)
     predict_many([a, b], (model, meta), tmp_path / "out", **args)
     qml = tmp_path / "out" / "a" / "height.qml"
     qml.write_text(qml.read_text().replace('opacity="1"', 'opacity="0.5"'))  # QGIS "Save as default"
@@ -307,10 +307,10 @@ def test_a_users_collection_or_mosaic_in_out_is_never_replaced_without_overwrite
     (out / "collection.json").write_text('{"mine": 1}')
     (out / "height.mosaic.qml").write_text("<mine/>")
     with pytest.raises(OutputExistsError, match=r"height\.mosaic\.qml, collection\.json"):
-        predict_many([a, b], (model, meta), out, mc=2, tile=32, overlap=0, progress=False)
+        predict_many([a, b], (model, meta), out, mc=2, window=32, overlap=0, progress=False)
     assert (out / "collection.json").read_text() == '{"mine": 1}' and not (out / "a").exists()
     (out / "collection.json").unlink()
     (out / "height.mosaic.qml").unlink()
-    predict_many([a, b], (model, meta), out, mc=2, tile=32, overlap=0, progress=False)
-    predict_many([a, b], (model, meta), out, mc=2, tile=32, overlap=0, progress=False, skip_existing=True)
+    predict_many([a, b], (model, meta), out, mc=2, window=32, overlap=0, progress=False)
+    predict_many([a, b], (model, meta), out, mc=2, window=32, overlap=0, progress=False, skip_existing=True)
     assert json.loads((out / "collection.json").read_text())["type"] == "Collection"

@@ -37,7 +37,7 @@ def ortho(tmp_path: Path, rng: np.random.Generator) -> Path:
 
 def test_mc_outputs_georeferencing_and_cog_layout(ortho: Path, tmp_path: Path) -> None:
     model, meta = tiny_d3net()
-    res = predict_raster(ortho, (model, meta), tmp_path / "pred", mc=4, tile=64, overlap=16, probabilities=True,
+    res = predict_raster(ortho, (model, meta), tmp_path / "pred", mc=4, window=64, overlap=16, probabilities=True,
                          progress=False)
     names = sorted(p.name for p in (tmp_path / "pred").iterdir())
     tifs = ["height.tif", "classes.tif", "class_probabilities.tif", *UNCERTAINTY]
@@ -77,7 +77,7 @@ def test_mc_outputs_georeferencing_and_cog_layout(ortho: Path, tmp_path: Path) -
     np.testing.assert_allclose(probs.sum(0), 1.0, atol=1e-4)
     np.testing.assert_array_equal(layers["classes"][0][valid], probs.argmax(0))
     info = json.loads((tmp_path / "pred" / "prediction.json").read_text())
-    assert info["mc_samples"] == 4 and info["tile"] == 64 and info["overlap"] == 16
+    assert info["mc_samples"] == 4 and info["window"] == 64 and info["overlap"] == 16
     assert info["overlap_factor"] == pytest.approx(res.overlap_factor) and "total" in info["timings_s"]
 
 
@@ -86,7 +86,7 @@ def test_single_pass_writes_no_uncertainty_and_skips_empty_windows(tmp_path: Pat
     img[:, :, :64] = 0  # the whole left window column is nodata
     src = write_raster(tmp_path / "o.tif", img, nodata=0)
     meta = identity_meta()
-    res = predict_raster(src, (IdentityModel(meta.mean, meta.std), meta), tmp_path / "p", mc=1, tile=64, overlap=0,
+    res = predict_raster(src, (IdentityModel(meta.mean, meta.std), meta), tmp_path / "p", mc=1, window=64, overlap=0,
                          precision="fp32", progress=False)
     assert res.windows_total == 4 and res.windows_computed == 2
     assert not any((tmp_path / "p" / f).exists() for f in UNCERTAINTY)
@@ -105,7 +105,7 @@ def test_aoi_limits_computation_and_output(tmp_path: Path, rng: np.random.Genera
                [500000.0, 5000000.0]]]}}]}
     (tmp_path / "aoi.geojson").write_text(json.dumps(aoi))
     meta = identity_meta()
-    res = predict_raster(src, (IdentityModel(meta.mean, meta.std), meta), tmp_path / "p", mc=1, tile=64, overlap=0,
+    res = predict_raster(src, (IdentityModel(meta.mean, meta.std), meta), tmp_path / "p", mc=1, window=64, overlap=0,
                          precision="fp32", aoi=tmp_path / "aoi.geojson", progress=False)
     assert res.windows_computed == 1 and res.windows_total == 4
     with rasterio.open(res.files["height"]) as ds:
@@ -128,7 +128,7 @@ def test_failure_mid_run_leaves_no_file_at_a_final_path(ortho: Path, tmp_path: P
     meta = identity_meta()
     out = tmp_path / "p"
     with pytest.raises(RuntimeError, match="injected"):
-        predict_raster(ortho, (_FailingModel(meta.mean, meta.std), meta), out, mc=1, tile=32, overlap=0,
+        predict_raster(ortho, (_FailingModel(meta.mean, meta.std), meta), out, mc=1, window=32, overlap=0,
                        batch_size=1, progress=False)
     assert not out.exists() or list(out.iterdir()) == []
 
@@ -137,11 +137,11 @@ def test_existing_outputs_are_refused_then_overwritten_without_stale_files(ortho
     meta = identity_meta()
     model = IdentityModel(meta.mean, meta.std, dropout=0.5)
     out = tmp_path / "p"
-    predict_raster(ortho, (model, meta), out, mc=3, tile=64, overlap=16, progress=False)
+    predict_raster(ortho, (model, meta), out, mc=3, window=64, overlap=16, progress=False)
     assert (out / "height_std.tif").exists()
     with pytest.raises(OutputExistsError, match="overwrite=True"):
-        predict_raster(ortho, (model, meta), out, mc=1, tile=64, overlap=16, progress=False)
-    predict_raster(ortho, (model, meta), out, mc=1, tile=64, overlap=16, overwrite=True, progress=False)
+        predict_raster(ortho, (model, meta), out, mc=1, window=64, overlap=16, progress=False)
+    predict_raster(ortho, (model, meta), out, mc=1, window=64, overlap=16, overwrite=True, progress=False)
     assert not any((out / f).exists() for f in UNCERTAINTY)  # stale T>1 maps removed
     assert json.loads((out / "prediction.json").read_text())["mc_samples"] == 1
     assert sorted(p.name for p in out.iterdir()) == ["classes.qml", "classes.tif", "height.qml", "height.tif",
@@ -174,7 +174,7 @@ def test_neon_ortho_is_resampled_to_the_model_gsd(tmp_path: Path) -> None:
     ortho = NEON_DIR / "rgb_0p1m.tif"
     model, meta = tiny_d3net(gsd=0.5)
     with pytest.warns(UserWarning, match=r"0\.1 m.*0\.5 m"):
-        res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=1, tile=128, overlap=32, progress=False)
+        res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=1, window=128, overlap=32, progress=False)
     with rasterio.open(ortho) as src, rasterio.open(res.files["height"]) as out:
         assert out.crs == src.crs
         assert out.res == (0.5, 0.5)
@@ -201,7 +201,7 @@ def test_mc_samples_are_decoded_in_chunks_that_fit_the_pixel_budget(ortho: Path,
     meta = identity_meta()
     model = _RecordingModel(meta.mean, meta.std, dropout=0.5)
     budget = 5 * 64 * 64  # at most 5 decoded 64² images per call
-    res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=7, tile=64, overlap=16, batch_size=2,
+    res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=7, window=64, overlap=16, batch_size=2,
                          max_decode_pixels=budget, progress=False)
     assert model.decoded and max(model.decoded) * 64 * 64 <= budget
     assert sum(model.decoded) == 7 * res.windows_computed  # every window got all T samples
@@ -265,7 +265,7 @@ def test_outputs_equal_a_whole_raster_reference(tmp_path: Path, rng: np.random.G
                        "geometry": {"type": "Polygon", "coordinates": [ring]}}],
                        "crs": {"type": "name", "properties": {"name": "EPSG:32631"}}}))
     model, meta = tiny_d3net()
-    res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=mc, tile=tile, overlap=overlap, batch_size=2,
+    res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=mc, window=tile, overlap=overlap, batch_size=2,
                          aoi=aoi, probabilities=True, progress=False, seed=3, engine="torch", precision="fp32")
     ref = reference_predict(ortho, model, meta, mc=mc, tile=tile, overlap=overlap, batch_size=2, aoi=aoi, seed=3)
     got = _read_layers(tmp_path / "p")
@@ -294,7 +294,7 @@ def test_results_do_not_depend_on_batch_size_or_sample_chunks(ortho: Path, tmp_p
     model, meta = tiny_d3net()
     outs = []
     for k, (batch, budget) in enumerate(((1, None), (3, 2 * 64 * 64))):
-        predict_raster(ortho, (model, meta), tmp_path / f"p{k}", mc=4, tile=64, overlap=16, batch_size=batch,
+        predict_raster(ortho, (model, meta), tmp_path / f"p{k}", mc=4, window=64, overlap=16, batch_size=batch,
                        max_decode_pixels=budget, progress=False, engine=engine)
         outs.append(_read_layers(tmp_path / f"p{k}"))
     for name in outs[0]:  # the same per-window dropout masks: only float rounding differs
@@ -312,11 +312,11 @@ def test_batch_size_auto_and_compile_fallback(ortho: Path, tmp_path: Path, monke
     monkeypatch.setattr(torch, "compile", broken_compile)
     model, meta = tiny_d3net()
     with pytest.warns(UserWarning, match="torch.compile is not available here .*no C\\+\\+ compiler"):
-        res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=1, tile=64, overlap=16, batch_size="auto",
+        res = predict_raster(ortho, (model, meta), tmp_path / "p", mc=1, window=64, overlap=16, batch_size="auto",
                              compile=True, progress=False, engine="torch")
     info = json.loads((tmp_path / "p" / "prediction.json").read_text())
     assert info["batch_size"] == CPU_BATCH and info["compile"] is True and res.windows_computed > 0
-    plain = predict_raster(ortho, (model, meta), tmp_path / "q", mc=1, tile=64, overlap=16, batch_size=CPU_BATCH,
+    plain = predict_raster(ortho, (model, meta), tmp_path / "q", mc=1, window=64, overlap=16, batch_size=CPU_BATCH,
                            progress=False, engine="torch")
     for name in ("height", "classes"):
         with rasterio.open(res.files[name]) as a, rasterio.open(plain.files[name]) as b:

@@ -26,7 +26,7 @@ from test_robustness import CRS, PREDICT, T05, no_final_outputs, rgb
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.formats.prediction import input_fingerprint
-from aerialmtl.inference.predict import Predictor
+from aerialmtl.inference.predict import Predictor, predict_raster
 
 run = run_cli
 
@@ -62,11 +62,11 @@ def test_the_checkpoint_hash_is_that_of_the_bytes_loaded(tmp_path: Path, capsys,
     """`train` replacing RUN/best.pt while predict runs: the maps are recorded as the old model's."""
     best = tmp_path / "best.pt"
     shutil.copy(ckpts[0], best)
-    predictor = Predictor(best, mc=2, tile=32, overlap=0, precision="fp32", engine="torch")
+    predictor = Predictor(best, mc=2, window=32, overlap=0, precision="fp32", engine="torch", progress=False)
     shutil.copy(ckpts[1], tmp_path / ".best.pt.partial")
     os.replace(tmp_path / ".best.pt.partial", best)  # as save_checkpoint replaces it
     ortho, out = rgb(tmp_path), tmp_path / "pred"
-    predictor.run(ortho, out, progress=False)
+    predict_raster(ortho, predictor, out)  # the model loaded above
     assert _provenance(out)["checkpoint"] == _sha(ckpts[0]) != _sha(best)
     assert _skip(capsys, ortho, best, out).endswith("it was made with another model")  # not kept for good
     assert _provenance(out)["checkpoint"] == _sha(best)
@@ -168,7 +168,7 @@ def test_skip_existing_removes_the_mosaics_of_layers_no_longer_made(tmp_path: Pa
 
 def test_an_unchanged_input_passes_the_check_after_reading(tmp_path: Path, ckpts: tuple[Path, Path]) -> None:
     ortho = write_raster(tmp_path / "o.tif", np.full((3, 40, 40), 100, np.uint8), CRS, T05)
-    predictor = Predictor(ckpts[0], mc=1, tile=32, overlap=0, precision="fp32")
+    predictor = Predictor(ckpts[0], mc=1, window=32, overlap=0, precision="fp32")
     src = predictor.open(ortho)
     assert src.changed() is None
     os.utime(ortho, ns=(0, 10**9))

@@ -74,7 +74,7 @@ def test_bad_tiling_is_refused(tile: int, overlap: int) -> None:
 @given(
     height=st.integers(1, 150),
     width=st.integers(1, 150),
-    tile=st.sampled_from([32, 64, 96, 128]),
+    window=st.sampled_from([32, 64, 96, 128]),
     overlap_frac=st.floats(0.0, 0.5),
     seed=st.integers(0, 2**16),
 )
@@ -87,7 +87,7 @@ def test_identity_model_is_reproduced_exactly(height: int, width: int, tile: int
     model = IdentityModel(meta.mean, meta.std)
     with tempfile.TemporaryDirectory() as tmp:
         src = write_raster(Path(tmp) / "ortho.tif", img)
-        res = predict_raster(src, (model, meta), Path(tmp) / "pred", mc=1, tile=tile, overlap=overlap,
+        res = predict_raster(src, (model, meta), Path(tmp) / "pred", mc=1, window=tile, overlap=overlap,
                              batch_size=3, precision="fp32", progress=False)
         with rasterio.open(res.files["height"]) as h, rasterio.open(res.files["classes"]) as c:
             height_out, classes_out = h.read(1), c.read(1)

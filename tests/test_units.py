@@ -165,12 +165,12 @@ def _tiny_model(gsd: float) -> tuple[D3Net, ModelMeta]:
 
 def test_predict_on_feet_ortho_resamples_by_the_metre_ratio(tmp_path: Path, rng: np.random.Generator) -> None:
     ortho = _feet_ortho(tmp_path, rng, n=96)
-    same = predict_raster(ortho, _tiny_model(FT), tmp_path / "same", mc=1, tile=64, overlap=16, progress=False)
+    same = predict_raster(ortho, _tiny_model(FT), tmp_path / "same", mc=1, window=64, overlap=16, progress=False)
     assert (same.grid.width, same.grid.height) == (96, 96)  # trained at 0.3048 m: 1 ft pixels are the same GSD
     info = json.loads(same.files["prediction"].read_text())
     assert info["grid"]["gsd"] == pytest.approx(FT)
     with pytest.warns(UserWarning, match=r"GSD of 0\.3048 m but the model was trained at 0\.25 m"):
-        res = predict_raster(ortho, _tiny_model(0.25), tmp_path / "p", mc=1, tile=64, overlap=16, progress=False)
+        res = predict_raster(ortho, _tiny_model(0.25), tmp_path / "p", mc=1, window=64, overlap=16, progress=False)
     assert res.grid.width == 118  # 96 ft = 29.26 m at 0.25 m: ×1.22, not ×4
     assert res.grid.gsd == pytest.approx(0.25)
     with rasterio.open(res.files["height"]) as out:
@@ -179,7 +179,7 @@ def test_predict_on_feet_ortho_resamples_by_the_metre_ratio(tmp_path: Path, rng:
 
 def test_evaluate_with_feet_dsm_dtm_reference(tmp_path: Path, rng: np.random.Generator) -> None:
     ortho = _feet_ortho(tmp_path, rng, n=64)
-    pred = predict_raster(ortho, _tiny_model(FT), tmp_path / "p", mc=1, tile=64, overlap=16, progress=False)
+    pred = predict_raster(ortho, _tiny_model(FT), tmp_path / "p", mc=1, window=64, overlap=16, progress=False)
     with rasterio.open(pred.files["height"]) as src:
         predicted = src.read(1, masked=True)
     dsm = _utm_height(tmp_path, ortho, "dsm.tif", 20.0 + 3.0, scale=FT)  # feet values, unit not stated

@@ -70,7 +70,8 @@ def _intersect(p: np.ndarray, u: np.ndarray, q: np.ndarray, v: np.ndarray) -> np
     if abs(cross) < 1e-6:
         return None
     s = ((q[0] - p[0]) * v[1] - (q[1] - p[1]) * v[0]) / cross
-    return p + s * u
+    result: np.ndarray | None = p + s * u
+    return result
 
 
 def _supports(pts: np.ndarray, original: np.ndarray | None) -> list[np.ndarray] | None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING, Literal, cast
 
 import click
 
@@ -24,6 +25,9 @@ from aerialmtl.cli.options import (
 )
 from aerialmtl.errors import CheckpointError, InputError
 from aerialmtl.io.paths import is_local, raster_name, raster_stem
+
+if TYPE_CHECKING:
+    from aerialmtl.runtime import Precision
 
 #: Environment variable naming the default checkpoint of `aerialmtl predict`.
 MODEL_ENV = "AERIALMTL_MODEL"
@@ -50,12 +54,14 @@ def default_out(orthos: tuple[str, ...]) -> Path:
 
 
 
-def _batch_size(value: str) -> int | str:
+def _batch_size(value: str) -> int | Literal["auto"]:
     """``auto`` or a number (the library checks the value)."""
+    if value == "auto":
+        return "auto"
     try:
-        return value if value == "auto" else int(value)
-    except ValueError:
-        return value
+        return int(value)
+    except ValueError:  # PredictSettings refuses it, naming ‹batch_size›
+        return cast(Literal["auto"], value)
 
 
 @click.command(name="predict")
@@ -71,7 +77,7 @@ def _batch_size(value: str) -> int | str:
              "folder, or the current folder if one is remote].")
 @option("--mc", type=int, default=None,
         help="MC-dropout samples T (1 = single pass, no uncertainty maps). Default: 30 if the model has dropout.")
-@option("--window", "tile", type=int, default=1024, show_default=True,
+@option("--window", "window", type=int, default=1024, show_default=True,
         help="Largest window side (pixels, multiple of 32); smaller windows use less memory but recompute more "
              "overlap.")
 @option("--tile", "tile_alias", type=int, default=None, hidden=True, help="Deprecated name of --window.")
@@ -109,8 +115,8 @@ def _batch_size(value: str) -> int | str:
              "every layer whole); recompute the others, saying why (resume a job).")
 @quiet_option()
 def predict(
-    orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, tile: int, overlap: int,
-    batch_size: str, engine: str, threads: str, precision: str, device: str, compile_: bool, aoi: Path | None,
+    orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, window: int, overlap: int,
+    batch_size: str, engine: str, threads: str, precision: Precision, device: str, compile_: bool, aoi: Path | None,
     probabilities: bool, rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool,
     no_calibration: bool = False, tta: bool = False, tile_alias: int | None = None,
 ) -> None:
@@ -120,22 +126,28 @@ def predict(
     `aerialmtl predict ortho.tif` writes ortho_aerialmtl/ beside ortho.tif.
     \f
 
-    One parameter per command-line option: click passes each option to the command.
+    One parameter per command-line option: click passes each option to the command; the settings are built
+    once (:class:`~aerialmtl.inference.settings.PredictSettings`) and travel unchanged to the engine.
     """
     from aerialmtl.inference.job import PredictResult
     from aerialmtl.inference.jobs import predict_many
+    from aerialmtl.inference.settings import PredictSettings
 
     if tile_alias is not None:  # "tile" names the training patches of a tile folder only
         warnings.warn("--tile is deprecated for predict: pass --window (the side of the prediction window)",
                       FutureWarning, stacklevel=1)
-        tile = tile_alias
+        window = tile_alias
     if model is None:
         raise InputError(f"no model given: pass --model RUN/best.pt, or set {MODEL_ENV}=RUN/best.pt once for every "
                          "`aerialmtl predict`")
     default = out is None
     if out is None:
         out = default_out(orthos)
-    batch = _batch_size(batch_size)
+    settings = PredictSettings(
+        mc=mc, window=window, overlap=overlap, batch_size=_batch_size(batch_size), precision=precision,
+        device=device, engine=engine, threads=threads, aoi=aoi, probabilities=probabilities,
+        calibration=not no_calibration, rescale_input=rescale_input, tta=tta, compile=compile_,
+        checkpoint_name=str(model), progress=not quiet)
 
     def report(res: PredictResult) -> None:
         t = res.timings
@@ -148,13 +160,8 @@ def predict(
         )
 
     try:
-        job = predict_many(
-            orthos, model, out, aoi=aoi, overwrite=overwrite, skip_existing=skip_existing, progress=not quiet,
-            on_result=report, mc=mc, tile=tile, overlap=overlap, batch_size=batch, precision=precision,
-            device=device, probabilities=probabilities, compile=compile_, checkpoint_name=str(model),
-            calibration=not no_calibration,
-            rescale_input=rescale_input, engine=engine, threads=threads, tta=tta,
-        )
+        job = predict_many(orthos, model, out, settings, overwrite=overwrite, skip_existing=skip_existing,
+                           on_result=report)
     except CheckpointError as exc:  # a model the user did not type here: say where it came from
         source = click.get_current_context().get_parameter_source("model")
         if source is not click.core.ParameterSource.ENVIRONMENT:

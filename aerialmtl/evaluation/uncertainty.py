@@ -56,7 +56,8 @@ def _kept_means(error: np.ndarray, key: np.ndarray, kept: np.ndarray) -> np.ndar
     start, end = starts[g], ends[g]
     group_mean = (cs[end] - cs[start]) / (end - start)
     sums = cs[start] + (kept - start) * group_mean
-    return sums / kept
+    result: np.ndarray = sums / kept
+    return result
 
 
 def sparsification(
@@ -189,7 +190,8 @@ def expected_calibration_error(
     """
     bins = CalibrationBins(n_bins)
     bins.update(confidence, correct)
-    return bins.result()["ece"]
+    result: float = bins.result()["ece"]
+    return result
 
 
 def gaussian_nll_terms(
@@ -201,7 +203,8 @@ def gaussian_nll_terms(
     """
     sigma = np.maximum(np.asarray(std, np.float64), min_std)
     d = np.asarray(ref, np.float64) - np.asarray(mean, np.float64)
-    return 0.5 * np.log(2 * np.pi * sigma * sigma) + d * d / (2 * sigma * sigma)
+    result: np.ndarray = 0.5 * np.log(2 * np.pi * sigma * sigma) + d * d / (2 * sigma * sigma)
+    return result
 
 
 def gaussian_nll(

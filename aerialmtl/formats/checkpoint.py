@@ -118,7 +118,8 @@ class ModelMeta:
 
     def to_dict(self) -> dict[str, Any]:
         """The metadata as plain types (stored in the checkpoint)."""
-        return to_dict(self)
+        result: dict[str, Any] = to_dict(self)
+        return result
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelMeta:

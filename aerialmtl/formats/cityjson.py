@@ -69,7 +69,8 @@ class CityJSONWriter:
         self._hi = np.full(3, -np.inf)
 
     def _int_xy(self, coords: np.ndarray) -> np.ndarray:
-        return np.rint((coords[:, :2] - np.array(self.translate[:2])) / SCALE).astype(np.int64)
+        result: np.ndarray = np.rint((coords[:, :2] - np.array(self.translate[:2])) / SCALE).astype(np.int64)
+        return result
 
     def add(self, object_id: str, footprint: Polygon | None, z_ground_m: float, height_m: float,
             attributes: dict[str, Any]) -> None:

@@ -285,8 +285,8 @@ class PredictionRecord(BaseModel):
         orthophoto: the input as given; ``checkpoint``: the checkpoint's name; ``model``: its summary
             (:func:`aerialmtl.formats.stac.model_summary`).
         mc_samples, tta, seed: MC-dropout samples T, test-time augmentation, base seed of the masks.
-        tile, overlap, window_size, batch_size: the largest window side and overlap asked for (pixels), the
-            window size used (rows, columns), windows per model call.
+        window, overlap, window_size, batch_size: the largest window side and overlap asked for (pixels), the
+            window size used (rows, columns), windows per model call (earlier files say ``tile`` for ``window``).
         precision, engine, threads, device, compile, processes: how it ran (``threads``: CPU threads and
             streams, ``None`` on a GPU; ``processes``: torchrun ranks that computed it).
         aoi: the AOI file, if any; ``grid``: the output grid; ``resampled_from_gsd``: the input's GSD when it
@@ -306,7 +306,7 @@ class PredictionRecord(BaseModel):
     mc_samples: int
     tta: bool
     seed: int
-    tile: int
+    window: int
     overlap: int
     window_size: list[int]
     batch_size: int

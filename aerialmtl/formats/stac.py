@@ -156,9 +156,10 @@ def build_item(folder: str | Path, grid: Grid, specs: Sequence[LayerSpec], info:
     model = info.get("model")
     if model:
         props[PREFIX + "model"] = model
-    for key in ("checkpoint", "mc_samples", "orthophoto", "tile", "overlap", "aerialmtl_version"):
-        if info.get(key) is not None:
-            props[PREFIX + key] = info[key]
+    for key in ("checkpoint", "mc_samples", "orthophoto", "window", "overlap", "aerialmtl_version"):
+        value = info.get(key, info.get("tile")) if key == "window" else info.get(key)  # "tile": earlier folders'
+        if value is not None:
+            props[PREFIX + key] = value
     item = pystac.Item(id=folder.name, geometry=geometry, bbox=_bbox(geometry), datetime=created,
                        properties=props)
     item.common_metadata.gsd = grid.gsd

@@ -1,14 +1,17 @@
 """One input predicted into its prediction folder: the job, apart from the model that computes it.
 
 An :class:`InputJob` is one orthophoto (:class:`~aerialmtl.inference.ortho.OrthoInput`) and its
-prediction folder. It owns the writer's whole life: the claim of the folder's outputs and the removal
-of a killed run's leftovers (through :func:`~aerialmtl.inference.writer.prediction_folder`, the output
-owner), the staging files of each strip it computes (:meth:`InputJob.strip`), their abort, and the commit
-(:meth:`InputJob.commit`): COGs, then ``prediction.json`` written once, timings included
-(:class:`~aerialmtl.formats.prediction.PredictionRecord`), then the :class:`PredictResult`.
+prediction folder, which it owns: it creates it, claims its outputs (:meth:`InputJob.claim`), removes a
+killed run's leftovers (:meth:`InputJob.clean`) and an earlier run's stale layers, and removes the folder
+again when a failed run created it. Its writers (:class:`~aerialmtl.inference.writer.PredictionWriter`, one
+per strip it computes, :meth:`InputJob.strip`) own only their staging files. The commit
+(:meth:`InputJob.commit`) writes the COGs, then ``prediction.json`` once, timings included
+(:class:`~aerialmtl.formats.prediction.PredictionRecord`), then returns the :class:`PredictResult`.
+:func:`prediction_folder` is the folder as :mod:`aerialmtl.io.outputs` owns it, for the job and the jobs
+(:mod:`aerialmtl.inference.jobs`) alone.
 
 The model — loaded once, with its settings, its output schema and the window loop — is the
-:class:`~aerialmtl.inference.predict.Predictor`; a job only needs what :class:`JobModel` lists of it.
+:class:`~aerialmtl.inference.model.Predictor`; a job only needs what :class:`JobModel` lists of it.
 The whole raster is the one-strip case; a ``torchrun`` rank computes one strip of an input it shares
 (:mod:`aerialmtl.inference.jobs`), and the rank of the first strip commits them all.
 """
@@ -26,15 +29,28 @@ from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.formats.prediction import (
     ALL_FILES,
+    INFO_FILE,
     GridInfo,
     LayerSpec,
+    PredictionFolder,
     PredictionRecord,
     folder_files,
 )
+from aerialmtl.inference.model import StripResult
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.stitch import Block
-from aerialmtl.inference.writer import PredictionWriter, prediction_folder
+from aerialmtl.inference.writer import PredictionWriter
 from aerialmtl.io.align import Grid
+from aerialmtl.io.outputs import OutputFolder, make_output_dir
+
+
+def prediction_folder(out_dir: str | Path, option: str = "out_dir") -> OutputFolder:
+    """``out_dir`` as :mod:`aerialmtl.io.outputs` owns it: its claim (existing outputs refused without
+    ``overwrite``) and the removal of a killed run's hidden files.
+
+    The lock is not taken here: the job holds it (:class:`~aerialmtl.io.outputs.OutputFolder` entered).
+    """
+    return OutputFolder(out_dir, "predict", option=option, what="prediction folder", lock=False)
 
 
 @dataclass(frozen=True)
@@ -69,23 +85,8 @@ class PredictResult:
     ortho: str | Path | None = None
 
 
-@dataclass
-class StripResult:
-    """What one strip of window rows (or the whole raster) computed; travels between ranks.
-
-    Attributes:
-        windows_computed: windows run through the model.
-        timings: seconds per stage (see :class:`PredictResult`).
-        row_start: the first grid row the strip wrote (its staging files are named after it).
-    """
-
-    windows_computed: int
-    timings: dict[str, float]
-    row_start: int = 0
-
-
 class JobModel(Protocol):
-    """What a job needs of the model that computes it (:class:`~aerialmtl.inference.predict.Predictor`)."""
+    """What a job needs of the model that computes it (:class:`~aerialmtl.inference.model.Predictor`)."""
 
     @property
     def layers(self) -> tuple[LayerSpec, ...]:
@@ -97,12 +98,17 @@ class JobModel(Protocol):
         """MC-dropout samples T."""
         ...
 
+    @property
+    def aoi(self) -> str | Path | None:
+        """The AOI of the run (the settings')."""
+        ...
+
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
-                aoi: str | Path | None = None, progress: bool = True) -> StripResult:
+                progress: bool = True) -> StripResult:
         """Read, run and stitch window rows ``rows`` of ``src``, handing each finished block to ``write``."""
         ...
 
-    def record_settings(self, src: OrthoInput, aoi: str | Path | None) -> dict[str, Any]:
+    def record_settings(self, src: OrthoInput) -> dict[str, Any]:
         """The model's and the settings' fields of ``prediction.json`` for ``src``."""
         ...
 
@@ -112,16 +118,31 @@ class InputJob:
 
     Args:
         model: what computes the maps.
-        src: the input (:meth:`Predictor.open <aerialmtl.inference.predict.Predictor.open>`).
+        src: the input (:meth:`Predictor.open <aerialmtl.inference.model.Predictor.open>`).
         out: its prediction folder.
-        aoi: optional GeoJSON AOI (windows outside are not computed, pixels outside are nodata).
         overwrite: replace existing outputs.
+        option: the parameter naming the folder, for messages.
     """
 
-    def __init__(self, model: JobModel, src: OrthoInput, out: str | Path, *, aoi: str | Path | None = None,
-                 overwrite: bool = False) -> None:
-        self.model, self.src, self.out, self.aoi, self.overwrite = model, src, Path(out), aoi, overwrite
+    def __init__(self, model: JobModel, src: OrthoInput, out: str | Path, *, overwrite: bool = False,
+                 option: str = "out_dir") -> None:
+        self.model, self.src, self.out, self.overwrite = model, src, Path(out), overwrite
+        self.aoi = model.aoi
         self.writer: PredictionWriter | None = None  # the first strip's: the one that commits
+        self.folder = prediction_folder(self.out, option)
+        self._created = False
+
+    def claim(self) -> None:
+        """Refuse existing outputs (unless ``overwrite``).
+
+        Raises:
+            OutputExistsError: outputs exist and ``overwrite`` is false.
+        """
+        self.folder.claim(folder_files(s.name for s in self.model.layers), self.overwrite)
+
+    def clean(self) -> None:
+        """Remove the hidden files of a killed or failed run here (called under the job's lock)."""
+        self.folder.remove_leftovers(ALL_FILES)
 
     def strip(self, window_rows: tuple[int, int] | None = None, *, check_outputs: bool = True,
               progress: bool = True) -> StripResult:
@@ -146,20 +167,19 @@ class InputJob:
         whole = (start, stop) == (0, n_rows)
         rows = (plan.window_rows[start].out_start, plan.window_rows[stop - 1].out_stop)
         if whole:
-            folder = prediction_folder(self.out)
             if check_outputs:
-                folder.claim(folder_files(s.name for s in self.model.layers), self.overwrite)
-            folder.remove_leftovers(ALL_FILES)  # hidden files of a killed run (under the job's lock)
-        writer = PredictionWriter(self.out, self.src.grid, self.model.layers, overwrite=self.overwrite,
-                                  rows=None if whole else rows)
+                self.claim()
+            self.clean()  # hidden files of a killed run (under the job's lock)
+        writer = self._writer(None if whole else rows)
         try:
-            res = self.model.compute(self.src, (start, stop), writer.write, aoi=self.aoi, progress=progress)
+            res = self.model.compute(self.src, (start, stop), writer.write, progress=progress)
             t1 = time.perf_counter()
             writer.finish()
             res.timings["stitch_write"] += time.perf_counter() - t1
             res.timings["write"] = writer.seconds_writing
         except BaseException:
             writer.abort()
+            self._after_abort(whole)
             raise
         res.timings["strip_total"] = time.perf_counter() - t0
         res.row_start = rows[0]
@@ -167,11 +187,40 @@ class InputJob:
             self.writer = writer
         return res
 
+    def _writer(self, rows: tuple[int, int] | None) -> PredictionWriter:
+        """A writer of grid rows ``rows`` (``None``: all) into the folder, created here when missing."""
+        self._created = make_output_dir(self.out) or self._created
+        return PredictionWriter(self.out, self.src.grid, self.model.layers, rows=rows)
+
+    def _after_abort(self, whole: bool) -> None:
+        """After a writer's abort: the whole input's hidden files, and the folder if this job created it and it
+        is empty (a strip leaves the others' files: other processes may still be writing theirs).
+        """
+        if whole:
+            self.clean()
+        if self._created:
+            try:
+                self.out.rmdir()
+            except OSError:
+                pass
+
     def abort(self) -> None:
-        """Remove this job's hidden files (its writer's, and a failed shared input's leftovers)."""
+        """Remove this job's hidden files (its writer's, and a failed input's leftovers)."""
         if self.writer is not None:
             self.writer.abort()
             self.writer = None
+        self._after_abort(True)
+
+    def _replace_earlier(self, produced: list[str]) -> None:
+        """With ``overwrite``: an earlier run's layers this run does not produce are stale; those its
+        ``prediction.json`` lists (it proves they are its own) are removed, ``prediction.json`` first (never a
+        complete-looking mix).
+        """
+        if not self.overwrite:
+            return
+        owned = PredictionFolder(self.out).owned_files()
+        self.folder.remove_owned([INFO_FILE])
+        self.folder.remove_owned(f for f in owned if f not in set(produced))
 
     def commit(self, strips: Sequence[StripResult], *, processes: int = 1,
                started: float | None = None) -> PredictResult:
@@ -205,7 +254,9 @@ class InputJob:
             writer.convert(strips=[r.row_start for r in strips])
             timings["cog"] = time.perf_counter() - t0
             timings["total"] = before + timings["cog"]
-            files = writer.publish(self.record(computed, timings, processes))
+            produced = writer.stage(self.record(computed, timings, processes))
+            self._replace_earlier(produced)
+            files = writer.publish()
         except BaseException:
             self.abort()
             raise
@@ -230,7 +281,7 @@ class InputJob:
             overlap_factor=plan.computed_overlap(computed),
             plan_overlap_factor=plan.overlap_factor,
             timings_s=dict(timings),
-            **self.model.record_settings(src, self.aoi),
+            **self.model.record_settings(src),
         )
 
     def result(self, files: dict[str, Path], computed: int, timings: dict[str, float]) -> PredictResult:
@@ -246,4 +297,4 @@ class InputJob:
                              out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path)
 
 
-__all__ = ["InputJob", "JobModel", "PredictResult", "StripResult"]
+__all__ = ["InputJob", "JobModel", "PredictResult", "StripResult", "prediction_folder"]

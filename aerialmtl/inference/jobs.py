@@ -1,5 +1,6 @@
-"""Predict many orthophotos: in one process, or in many under ``torchrun``.
+"""Predict orthophotos: the one orchestrator, in one process or in many under ``torchrun``.
 
+:func:`predict_raster` is the one-input case of :func:`predict_many` (the same code path, its one result).
 :func:`predict_many` is what ``aerialmtl predict A.tif B.tif ... --out maps/`` runs. One input writes its
 prediction folder at ``out``; several write one folder per input, ``out/<file stem>``, and end with a
 VRT mosaic per layer over all of them (``out/<layer>.mosaic.vrt``, :func:`~aerialmtl.io.vrt.mosaic_vrt`:
@@ -9,14 +10,16 @@ the later input shown where inputs overlap).
 Under ``torchrun --nproc_per_node N -m aerialmtl predict ...`` every process (rank) loads the model
 (on GPU ``LOCAL_RANK`` when CUDA is used; gloo on CPUs, NCCL on GPUs) and takes a contiguous share of
 the work: the window rows of all inputs, in order, cut into N parts of equal size. An input that falls
-into one share is predicted whole by its rank (one strip: :meth:`~aerialmtl.inference.predict.Predictor.run`'s
-path, one :class:`~aerialmtl.inference.job.InputJob`); an input cut between ranks is computed in strips of window rows
+into one share is predicted whole by its rank (one strip, one
+:class:`~aerialmtl.inference.job.InputJob`); an input cut between ranks is computed in strips of window rows
 (:meth:`~aerialmtl.inference.job.InputJob.strip`; each strip also runs the window rows that reach into
 it, so the rows come out exactly as in a one-process run), and the rank of its first strip joins the
 strips into the final COGs (:meth:`~aerialmtl.inference.job.InputJob.commit`). Every decision (what
 to skip, which inputs to share) is taken before any rank writes. Each input's header is read once
 (:class:`~aerialmtl.inference.ortho.OrthoInput`) and travels with it; the process group, device and GDAL
-settings come from :mod:`aerialmtl.runtime`, as for training.
+settings come from :mod:`aerialmtl.runtime`, as for training. Predict's settings are one
+:class:`~aerialmtl.inference.settings.PredictSettings`, built once by the caller and handed to the model
+(:class:`~aerialmtl.inference.model.Predictor`) unchanged but for the rank's device.
 
 ``skip_existing`` skips inputs whose folder is complete for this run (``prediction.json`` of the same
 model, settings and input, every layer whole: :meth:`~aerialmtl.formats.prediction.PredictionFolder.check`),
@@ -32,16 +35,19 @@ way no half-written file is ever at a final path.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+
+import torch
+from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError, PeerFailure
+from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.prediction import (
-    ALL_FILES,
     LAYERS,
     PredictionFolder,
     folder_files,
@@ -51,11 +57,11 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.formats.qgis_style import write_raster_style
 from aerialmtl.formats.stac import collection_files, write_collection
-from aerialmtl.inference.job import InputJob, PredictResult, StripResult
+from aerialmtl.inference.job import InputJob, PredictResult, StripResult, prediction_folder
+from aerialmtl.inference.model import Predictor
 from aerialmtl.inference.ortho import OrthoInput
-from aerialmtl.inference.predict import Predictor
+from aerialmtl.inference.settings import PredictOptions, PredictSettings, settings_of
 from aerialmtl.inference.windows import Plan
-from aerialmtl.inference.writer import prediction_folder
 from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
 from aerialmtl.io.vrt import mosaic_vrt
@@ -85,13 +91,13 @@ class Share:
     stop: int
 
 
-def targets_for(orthos: Sequence[str | Path], out: str | Path) -> list[Target]:
+def targets_for(orthos: Sequence[str | Path], out: str | Path, option: str = "out") -> list[Target]:
     """One input → ``out``; several → ``out/<stem>`` each (inputs may be URLs: :mod:`aerialmtl.io.paths`).
 
     Raises:
         InputError: several inputs share a file stem (their folders would clash).
     """
-    check_local_output(out, "out")
+    check_local_output(out, option)
     paths = [gdal_path(p) for p in orthos]
     if not paths:
         raise InputError("no orthophoto given; pass one or more GeoTIFFs")
@@ -152,30 +158,65 @@ class JobResult:
             on_result(result)
 
 
+#: A checkpoint path, a model already loaded with its metadata, or a :class:`~aerialmtl.inference.model.Predictor`
+#: (a model loaded once with its settings, run on any number of inputs).
+Checkpoint = str | Path | tuple[torch.nn.Module, ModelMeta] | Predictor
+
+
+def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Path,
+                   settings: PredictSettings | None = None, *, overwrite: bool = False,
+                   **options: Unpack[PredictOptions]) -> PredictResult:
+    """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto: the one-input case
+    of :func:`predict_many`.
+
+    Args:
+        ortho: orthophoto GeoTIFF (any size; read window by window), a URL or a GDAL path.
+        checkpoint: checkpoint path, ``(model, meta)`` already loaded, or a
+            :class:`~aerialmtl.inference.model.Predictor` (then with its own settings: pass neither ``settings``
+            nor ``options``).
+        out_dir: the prediction folder (see :mod:`aerialmtl.formats.prediction`).
+        settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`).
+        overwrite: replace existing outputs instead of raising.
+        options: the settings as keywords (``mc=16, precision="fp32", aoi=..., progress=False``, ...:
+            :class:`~aerialmtl.inference.settings.PredictOptions`), applied over ``settings``.
+
+    Returns:
+        A :class:`~aerialmtl.inference.job.PredictResult`.
+
+    Raises:
+        OutputExistsError: outputs exist and ``overwrite`` is false.
+        InputError / AlignmentError / CheckpointError: unusable inputs (messages name the fix).
+    """
+    settings = _settings(checkpoint, settings, options)
+    policy = _Policy(overwrite, False, settings.progress, None, "out_dir")
+    return _predict([ortho], checkpoint, out_dir, settings, policy).results[0]
+
+
 def predict_many(
     orthos: Sequence[str | Path],
-    checkpoint: Any,
+    checkpoint: Checkpoint,
     out: str | Path,
+    settings: PredictSettings | None = None,
     *,
-    aoi: str | Path | None = None,
     overwrite: bool = False,
     skip_existing: bool = False,
-    progress: bool = True,
     on_result: Callable[[PredictResult], None] | None = None,
-    **predictor_args: Any,
+    **options: Unpack[PredictOptions],
 ) -> JobResult:
     """Predict every orthophoto of ``orthos``; see the module docstring.
 
     Args:
         orthos: the orthophotos.
-        checkpoint: checkpoint path or ``(model, meta)``.
+        checkpoint: checkpoint path, ``(model, meta)`` or a :class:`~aerialmtl.inference.model.Predictor` (as
+            for :func:`predict_raster`).
         out: prediction folder (one input) or parent folder (several).
-        aoi: optional GeoJSON AOI (applied to every input).
+        settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`; the AOI applies
+            to every input, progress bars show on rank 0 only).
         overwrite: replace existing outputs.
         skip_existing: skip inputs whose prediction folder is complete.
-        progress: progress bars (rank 0 only).
         on_result: called with each input's result as soon as it is committed.
-        predictor_args: :class:`~aerialmtl.inference.predict.Predictor` options (``mc``, ``tile``, ...).
+        options: the settings as keywords (:class:`~aerialmtl.inference.settings.PredictOptions`), applied over
+            ``settings``.
 
     Returns:
         A :class:`JobResult` for this process.
@@ -184,24 +225,63 @@ def predict_many(
         OutputExistsError: an input's outputs exist (neither ``overwrite`` nor ``skip_existing``).
         PeerFailure: an input failed on another rank (distributed runs).
     """
+    settings = _settings(checkpoint, settings, options)
+    return _predict(orthos, checkpoint, out, settings,
+                    _Policy(overwrite, skip_existing, settings.progress, on_result, "out"))
+
+
+def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Path, settings: PredictSettings,
+             policy: _Policy) -> JobResult:
+    """:func:`predict_many` and :func:`predict_raster`: load the model on this rank's device, read every input's
+    header, hold the output folders, run.
+    """
     ranks = runtime.Torchrun.from_env()
-    targets = targets_for(orthos, out)
-    device = ranks.resolve_device(str(predictor_args.pop("device", "auto")))
-    predictor = Predictor(checkpoint, device=str(device), **predictor_args)
+    targets = targets_for(orthos, out, policy.option)
+    if isinstance(checkpoint, Predictor):
+        predictor = checkpoint
+    else:
+        device = ranks.resolve_device(settings.device)
+        predictor = Predictor(checkpoint, dataclasses.replace(settings, device=str(device)))
     with runtime.gdal_env("predict"):
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = predictor.open(t.ortho, warn=False)
     ranks.join(predictor.device, runtime.SHARE_TIMEOUT)
     try:
         with contextlib.ExitStack() as held:
-            _hold_folders(held, targets, Path(out), ranks, aoi)
-            return _run(predictor, targets, Path(out), ranks, aoi, overwrite, skip_existing, progress, on_result)
+            _hold_folders(held, targets, Path(out), ranks, settings.aoi, policy.option)
+            return _run(predictor, targets, Path(out), ranks, policy)
     finally:
         ranks.leave()
 
 
+def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options: PredictOptions) -> PredictSettings:
+    """The run's settings: ``settings`` with ``options``, or a given :class:`Predictor`'s own.
+
+    Raises:
+        InputError: a :class:`Predictor` and settings too (they would not apply to it).
+    """
+    if not isinstance(checkpoint, Predictor):
+        return settings_of(settings, options)
+    if settings is not None or options:
+        given = "settings" if settings is not None else ", ".join(map(str, options))
+        raise InputError(f"a Predictor predicts with its own settings; pass them to Predictor(...) instead of "
+                         f"here (got {given})")
+    return checkpoint.settings
+
+
+@dataclass(frozen=True)
+class _Policy:
+    """What :func:`predict_many` does with existing outputs, progress bars and results."""
+
+    overwrite: bool
+    skip_existing: bool
+    progress: bool
+    on_result: Callable[[PredictResult], None] | None
+    option: str = "out"
+
+
 def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: runtime.Torchrun,
-                  aoi: str | Path | None) -> None:
+                  aoi: str | Path | None, option: str) -> None:
     """Take the job's output folders (:class:`~aerialmtl.io.outputs.OutputFolder`: every input's prediction
     folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error.
     """
@@ -209,10 +289,10 @@ def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Pa
     if ranks.rank == 0:
         try:
             for t in targets:  # an --out holding an input: refused (naming that input)
-                check_not_input(out, {"ortho": t.ortho, "aoi": aoi}, option="out")
+                check_not_input(out, {"ortho": t.ortho, "aoi": aoi}, option=option)
             folders = [out] if len(targets) > 1 else []
             for folder in [*folders, *(t.out for t in targets)]:
-                held.enter_context(OutputFolder(folder, "predict", option="out", what="prediction folder"))
+                held.enter_context(OutputFolder(folder, "predict", option=option, what="prediction folder"))
         except (AerialMTLError, OSError) as exc:
             error = exc
     errors = ranks.gather(error)  # also the barrier: no rank writes before rank 0 holds the folders
@@ -220,16 +300,21 @@ def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Pa
         raise errors[0]
 
 
-def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun, aoi: str | Path | None,
-         overwrite: bool, skip_existing: bool, progress: bool,
-         on_result: Callable[[PredictResult], None] | None) -> JobResult:
+def _job(predictor: Predictor, t: Target, overwrite: bool = False, option: str = "out") -> InputJob:
+    """The job of target ``t`` (opened); ``option`` names its folder in messages."""
+    assert t.src is not None
+    return InputJob(predictor, t.src, t.out, overwrite=overwrite, option=option)
+
+
+def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun,
+         policy: _Policy) -> JobResult:
     """:func:`predict_many` once the folders are held: choose the inputs, claim their outputs, plan the ranks'
     shares, compute and commit (one :class:`~aerialmtl.inference.job.InputJob` per input or strip), mosaic.
     """
     done = JobResult(ranks=ranks)
-    todo, replace = _select(predictor, targets, aoi, skip_existing, done)
-    if not overwrite:  # once per input, before any work
-        _claim(predictor, targets, out, todo, replace)
+    todo, replace = _select(predictor, targets, policy.skip_existing, done)
+    if not policy.overwrite:  # once per input, before any work
+        _claim(predictor, targets, out, todo, replace, policy.option)
     if ranks.rank == 0:
         for k in todo:
             src = targets[k].src
@@ -239,16 +324,16 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
     mine, shared = _shares(targets, todo, ranks)
     if ranks.rank == 0:  # hidden files of killed runs: removed before any rank writes
         for k in todo:
-            prediction_folder(targets[k].out).remove_leftovers(ALL_FILES)
+            _job(predictor, targets[k]).clean()
     ranks.gather(None)  # barrier
     with runtime.gdal_env("predict"):
-        failures = _compute(predictor, targets, mine, shared, replace, ranks, aoi, overwrite, progress,
-                            lambda res: done.add(res, on_result))
+        failures = _compute(predictor, targets, mine, shared, replace, ranks, policy,
+                            lambda res: done.add(res, policy.on_result))
     if failures:
         if ranks.rank == 0:  # strips of failed inputs: hidden files only, final paths untouched
             for t in targets:
                 if str(t.ortho) in {f[0] for f in failures} and t.out.is_dir():
-                    prediction_folder(t.out).remove_leftovers(ALL_FILES)
+                    _job(predictor, t).clean()
         ortho, rank, message = failures[0]
         more = f" ({len(failures) - 1} more input(s) failed too)" if len(failures) > 1 else ""
         raise PeerFailure(
@@ -261,7 +346,7 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
     return done
 
 
-def _select(predictor: Predictor, targets: Sequence[Target], aoi: str | Path | None, skip_existing: bool,
+def _select(predictor: Predictor, targets: Sequence[Target], skip_existing: bool,
             done: JobResult) -> tuple[list[int], set[int]]:
     """The inputs to compute, and those of them whose earlier, outdated outputs ``skip_existing`` recomputes
     (their ``prediction.json`` proves every output there is that run's); the skipped ones go into ``done``.
@@ -273,7 +358,7 @@ def _select(predictor: Predictor, targets: Sequence[Target], aoi: str | Path | N
         if skip_existing:
             assert t.src is not None
             folder = PredictionFolder(t.out)
-            reason = folder.check(predictor.provenance(t.src, aoi))
+            reason = folder.check(predictor.provenance(t.src))
             if reason is None:
                 done.skipped.append(t.ortho)
                 continue
@@ -287,17 +372,16 @@ def _select(predictor: Predictor, targets: Sequence[Target], aoi: str | Path | N
 
 
 def _claim(predictor: Predictor, targets: Sequence[Target], out: Path, todo: Sequence[int],
-           replace: set[int]) -> None:
+           replace: set[int], option: str) -> None:
     """Refuse existing outputs (without ``overwrite``): each input's, and with several inputs the mosaics and
     ``collection.json`` (a user's own are never replaced silently).
     """
-    files = folder_files(s.name for s in predictor.layers)
     for k in todo:
         if k not in replace:
-            prediction_folder(targets[k].out, "out").claim(files, overwrite=False)
+            _job(predictor, targets[k], option=option).claim()
     if len(targets) > 1:
         owned = set(collection_files(out))
-        prediction_folder(out, "out").claim(
+        prediction_folder(out, option).claim(
             [f for f in mosaic_files(s.name for s in predictor.layers) if f not in owned], overwrite=False)
 
 
@@ -314,7 +398,7 @@ def _shares(targets: Sequence[Target], todo: Sequence[int], ranks: runtime.Torch
 
 
 def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Share], shared: set[int],
-             replace: set[int], ranks: runtime.Torchrun, aoi: str | Path | None, overwrite: bool, progress: bool,
+             replace: set[int], ranks: runtime.Torchrun, policy: _Policy,
              committed: Callable[[PredictResult], None]) -> list[tuple[str, int, str]]:
     """Compute this rank's shares and commit what it owns: a whole input at once, a shared one (its first
     strip here) once every rank's strips are in; ``committed`` gets each result.
@@ -330,10 +414,10 @@ def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Sha
         assert t.src is not None
         whole = share.target not in shared
         started = time.perf_counter()
-        job = InputJob(predictor, t.src, t.out, aoi=aoi, overwrite=overwrite or share.target in replace)
+        job = _job(predictor, t, policy.overwrite or share.target in replace)
         try:
             strip = job.strip(None if whole else (share.start, share.stop), check_outputs=False,
-                              progress=progress and ranks.rank == 0)
+                              progress=policy.progress and ranks.rank == 0)
             res = job.commit([strip], started=started) if whole else None  # the one-strip case: commit at once
         except Exception as exc:
             if ranks.world == 1:
@@ -356,8 +440,7 @@ def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Sha
         first = strips[k]
         others = [res for st, _ in gathered for kk, res in st.items() if kk == k and res.row_start != first.row_start]
         if str(t.ortho) in failed:
-            job.abort()
-            prediction_folder(t.out).remove_leftovers(ALL_FILES)
+            job.abort()  # its writer's files and the input's leftovers
             continue
         try:
             res = job.commit([first, *others], processes=1 + len(others))
@@ -399,5 +482,5 @@ def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) ->
     return mosaics
 
 
-__all__ = ["JobResult", "Share", "Target", "partition",
-           "predict_many", "targets_for", "write_mosaics"]
+__all__ = ["Checkpoint", "JobResult", "Share", "Target", "partition", "predict_many", "predict_raster", "targets_for",
+           "write_mosaics"]

@@ -60,7 +60,8 @@ class Aoi:
         hits = [self.geoms[k] for k in self.tree.query(box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)))]
         if not hits:
             return np.zeros((h, w), bool)
-        return geometry_mask(hits, out_shape=(h, w), transform=tr, invert=True)
+        result: np.ndarray = geometry_mask(hits, out_shape=(h, w), transform=tr, invert=True)
+        return result
 
 
 @dataclass

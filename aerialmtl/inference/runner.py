@@ -30,8 +30,18 @@ from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.inference.engines import Done, Engine, OpenVINOEngine, Pending, TorchEngine, build_engine
-from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.inference.engines import (
+    FALLBACK,
+    Done,
+    Engine,
+    EngineSetup,
+    Pending,
+    build_engine,
+    engine_spec,
+    fallback_engine,
+)
+from aerialmtl.inference.model_record import CheckpointModel
+from aerialmtl.inference.settings import PredictSettings, Resolved
 from aerialmtl.models.mc_dropout import McStatistics
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
@@ -137,49 +147,35 @@ class ModelRunner:
     """Run the model on batches of raw windows, on the engine of :func:`~aerialmtl.inference.engines.resolve_engine`.
 
     Args:
-        model: a D3-Net-like model (``encode``/``decode``/``forward``); the runner works on a prepared copy
+        model: a D3-Net-like model (``encode``/``decode``/``forward``); the engine works on a prepared copy
             (made on first use on the OpenVINO engine, which needs it only to convert the model). On the OpenVINO
             engine also a :class:`~aerialmtl.inference.model_record.CheckpointModel`, loaded only when needed.
         meta: its checkpoint metadata (bands' mean/std for normalisation).
-        device: the device to run on.
-        precision: ``"bf16"`` (autocast on torch, the inference precision on OpenVINO) or ``"fp32"``.
-        mc: MC-dropout samples T.
-        seed: base seed of the per-window dropout masks (T > 1).
-        max_decode_pixels: see :data:`DECODE_PIXELS`.
-        compile: apply ``torch.compile`` (:func:`~aerialmtl.inference.engines.compile_model`; torch engine only).
-        engine: ``"torch"`` or ``"openvino"`` (already resolved).
-        tta: test-time augmentation: every window is also run flipped and rotated by 90°, 180°, 270° (8
-            views); the views are combined like MC samples (:func:`combine_tta`), so ``height_std`` also
-            holds their disagreement. 8 times the model's work.
-        fallback: the engine was chosen by ``auto``: fall back to torch when OpenVINO fails on the first batch.
-        threads: inference threads and streams on a CPU (:func:`aerialmtl.runtime.resolve_threads`).
+        settings: predict's settings; the runner applies ``tta``, ``seed`` and ``max_decode_pixels`` around the
+            engine, and falls back to the torch engine when ``engine`` is ``auto`` and the engine it chose fails
+            on the first batch. ``tta``: every window is also run flipped and rotated by 90°, 180°, 270° (8
+            views), combined like MC samples (:func:`combine_tta`), so ``height_std`` also holds their
+            disagreement; 8 times the model's work.
+        resolved: what they resolved to (device, engine, precision, threads, MC samples T).
         weights_key: the checkpoint's fingerprint, when the caller has it: keys the OpenVINO cache without
             hashing the weights again.
-
-    The constructor takes each setting as a parameter of its own (13): those of the engines
-    (:func:`~aerialmtl.inference.engines.build_engine`) and those the runner applies around them.
     """
 
-    def __init__(self, model: nn.Module | CheckpointModel, meta: ModelMeta, device: torch.device,
-                 precision: Literal["bf16", "fp32"],
-                 mc: int, seed: int = 0, max_decode_pixels: int | None = None, compile: bool = False,
-                 engine: Literal["torch", "openvino"] = "torch", tta: bool = False, fallback: bool = False,
-                 threads: runtime.CpuThreads | None = None, weights_key: str | None = None) -> None:
-        self.device = device
-        self.tta = tta
-        self.fallback = fallback
+    def __init__(self, model: nn.Module | CheckpointModel, meta: ModelMeta, settings: PredictSettings,
+                 resolved: Resolved, weights_key: str | None = None) -> None:
+        self.settings, self.resolved = settings, resolved
+        self.device = resolved.device
+        self.precision = resolved.precision
+        self.mc = resolved.mc
+        self.tta = settings.tta
+        self.seed = settings.seed
+        self.fallback = settings.engine == "auto"
         self._ran = False
-        self.precision = precision
-        self.mc = mc
-        self.seed = seed
-        self.max_decode_pixels = max_decode_pixels
-        self.threads = threads if threads is not None else runtime.resolve_threads()
-        self.tasks = tuple(meta.model.tasks)
-        self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=device)[:, None, None]
-        self.std = torch.tensor(meta.std, dtype=torch.float32, device=device)[:, None, None]
-        self._raw = model
-        self.engine: Engine = build_engine(engine, model, meta, device, precision, compile=compile,
-                                           threads=self.threads, weights_key=weights_key)
+        self.threads = resolved.threads
+        self.mean = torch.tensor(meta.mean, dtype=torch.float32, device=self.device)[:, None, None]
+        self.std = torch.tensor(meta.std, dtype=torch.float32, device=self.device)[:, None, None]
+        self._setup = EngineSetup(model, meta, settings, resolved, weights_key)
+        self.engine: Engine = build_engine(self._setup)
 
     @property
     def model(self) -> nn.Module:
@@ -190,20 +186,16 @@ class ModelRunner:
 
     @property
     def net(self) -> nn.Module:
-        """What the torch engine calls (the compiled wrapper with ``compile``); the model as given on
-        OpenVINO (CPU only: nothing measures it there; loaded from its checkpoint when it was not yet).
-        """
-        if isinstance(self.engine, TorchEngine):
-            return self.engine.net
-        return resolve_model(self._raw)
+        """What measures the memory of a window (:attr:`Engine.net <aerialmtl.inference.engines.Engine.net>`)."""
+        return self.engine.net
 
     @property
     def in_flight(self) -> int:
-        """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`): one per stream on
-        the OpenVINO engine at T = 1, none on torch or with TTA (they compute synchronously).
+        """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`): the engine's
+        :meth:`~aerialmtl.inference.engines.Engine.ahead` (one per stream on OpenVINO at T = 1), none with TTA
+        (the views are computed one after the other).
         """
-        ahead = isinstance(self.engine, OpenVINOEngine) and self.mc == 1 and not self.tta
-        return self.threads.streams if ahead else 0
+        return 0 if self.tta else self.engine.ahead(self.mc)
 
     def to_device(self, data: Sequence[np.ndarray | torch.Tensor], valid: Sequence[np.ndarray]) -> tuple[
             torch.Tensor, torch.Tensor]:
@@ -235,18 +227,18 @@ class ModelRunner:
         try:
             return self._statistics(x, keys)
         except Exception as exc:
-            if not (first and self.fallback and self.engine.name == "openvino"):
+            if not (first and self.fallback and self.engine.name != FALLBACK):
                 raise
-            warnings.warn(f"the OpenVINO engine cannot run this model ({type(exc).__name__}: "
+            label = engine_spec(self.engine.name).label
+            warnings.warn(f"the {label} engine cannot run this model ({type(exc).__name__}: "
                           f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); predicting with the torch engine "
                           "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
-            model = self.model  # the folded copy (the OpenVINO engine's)
-            self.engine = TorchEngine(model, model, self.device, self.precision, self.tasks)
+            self.engine = fallback_engine(self.engine, self._setup)  # over the engine's folded copy
             return self._statistics(x, keys)
 
     def _statistics(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         b, _, h, w = x.shape
-        chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
+        chunk = mc_sample_batch(b, h, w, self.device, self.settings.max_decode_pixels)
         if not self.tta:
             return self.engine.statistics(x, keys, self.mc, self.seed, chunk)
         parts = []
@@ -265,7 +257,7 @@ class ModelRunner:
         if self.tta or (self.fallback and not self._ran):
             return Done(self(x, keys))
         b, _, h, w = x.shape
-        chunk = mc_sample_batch(b, h, w, self.device, self.max_decode_pixels)
+        chunk = mc_sample_batch(b, h, w, self.device, self.settings.max_decode_pixels)
         return self.engine.submit(x, keys, self.mc, self.seed, chunk)
 
 

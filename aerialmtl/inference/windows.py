@@ -52,20 +52,20 @@ def _round_up(value: int, multiple: int = SIZE_MULTIPLE) -> int:
     return int(math.ceil(value / multiple) * multiple)
 
 
-def check_tiling(tile: int, overlap: int) -> None:
-    """Validate ``tile`` and ``overlap`` (pixels).
+def check_tiling(window: int, overlap: int) -> None:
+    """Validate the window side ``window`` and ``overlap`` (pixels).
 
     Raises:
-        InputError: ``tile`` is not a positive multiple of 32, or ``overlap`` is outside ``[0, tile / 2]``.
+        InputError: ``window`` is not a positive multiple of 32, or ``overlap`` is outside ``[0, window / 2]``.
     """
-    if not isinstance(tile, int) or tile < SIZE_MULTIPLE or tile % SIZE_MULTIPLE:
+    if not isinstance(window, int) or window < SIZE_MULTIPLE or window % SIZE_MULTIPLE:
         raise InputError(
-            f"‹tile› must be a positive multiple of {SIZE_MULTIPLE} pixels, got {tile!r}; pass e.g. ‹tile=512›",
-            param="tile")
-    if not isinstance(overlap, int) or not 0 <= overlap <= tile // 2:
+            f"‹window› must be a positive multiple of {SIZE_MULTIPLE} pixels, got {window!r}; pass e.g. ‹window=512›",
+            param="window")
+    if not isinstance(overlap, int) or not 0 <= overlap <= window // 2:
         raise InputError(
-            f"‹overlap› must be between 0 and ‹tile›/2 = {tile // 2} pixels, got {overlap!r}; pass e.g. "
-            f"‹overlap={min(64, tile // 4)}›",
+            f"‹overlap› must be between 0 and ‹window›/2 = {window // 2} pixels, got {overlap!r}; pass e.g. "
+            f"‹overlap={min(64, window // 4)}›",
             param="overlap")
 
 
@@ -201,7 +201,8 @@ class Plan:
 
     def weight(self, i: int, j: int) -> np.ndarray:
         """(height, width) float32 blending weight of window (row ``i``, column ``j``)."""
-        return self.rows.weights[i][:, None] * self.cols.weights[j][None, :]
+        result: np.ndarray = self.rows.weights[i][:, None] * self.cols.weights[j][None, :]
+        return result
 
 
 def plan_windows(height: int, width: int, tile: int = 512, overlap: int = 64) -> Plan:

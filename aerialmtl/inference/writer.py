@@ -12,11 +12,11 @@ writes each layer's QGIS style (:mod:`aerialmtl.formats.qgis_style`, its range f
 the STAC ``item.json`` (:mod:`aerialmtl.formats.stac`) and ``prediction.json`` (the run's
 :class:`~aerialmtl.formats.prediction.PredictionRecord`, written once), and only then renames everything
 to the final names, ``prediction.json`` last: an interrupted run leaves no file at a final path, and a
-folder with ``prediction.json`` is complete. :meth:`PredictionWriter.abort` removes the hidden files (and
-the folder, if this run created it and it is empty).
+folder with ``prediction.json`` is complete. :meth:`PredictionWriter.abort` removes the hidden files it wrote.
 
-The writer is one input's, and the job that owns it (:class:`~aerialmtl.inference.job.InputJob`) claims
-the folder's outputs and removes a killed run's leftovers before it creates it.
+The writer owns only its own staging files. The folder is the job's (:class:`~aerialmtl.inference.job.InputJob`):
+it creates it, claims its outputs, removes a killed run's leftovers and an earlier run's stale layers, and
+removes the folder again when a failed run created it.
 """
 
 from __future__ import annotations
@@ -35,11 +35,9 @@ from rasterio.windows import Window
 
 from aerialmtl.errors import OutputError
 from aerialmtl.formats.prediction import (
-    ALL_FILES,
     INFO_FILE,
     ITEM_FILE,
     LayerSpec,
-    PredictionFolder,
     PredictionRecord,
     style_filename,
 )
@@ -47,7 +45,7 @@ from aerialmtl.inference.stitch import Block
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import MERGE_VRT, STAGING, OutputFolder, make_output_dir, staging_path
+from aerialmtl.io.outputs import MERGE_VRT, STAGING, staging_path
 from aerialmtl.io.stats import BandStats, band_stats
 
 #: Blocks queued for the writer thread at most (the model waits beyond; memory stays bounded).
@@ -63,15 +61,6 @@ def cog_threads() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
-
-
-def prediction_folder(out_dir: str | Path, option: str = "out_dir") -> OutputFolder:
-    """``out_dir`` as :mod:`aerialmtl.io.outputs` owns it: its claim (existing outputs refused without
-    ``overwrite``), its owned removal and its leftovers (hidden ``.NAME.<tag>`` files of a killed run).
-
-    The lock is not taken here: the job holds it (:class:`~aerialmtl.io.outputs.OutputFolder` entered).
-    """
-    return OutputFolder(out_dir, "predict", option=option, what="prediction folder", lock=False)
 
 
 def _staging_tag(row_start: int | None) -> str:
@@ -109,11 +98,9 @@ class PredictionWriter:
     """Write the layers of one prediction folder; see the module docstring.
 
     Args:
-        out_dir: the prediction folder (created if missing).
+        out_dir: the prediction folder (the job creates it).
         grid: the reference grid (CRS, transform, size of every output).
         specs: the layers to write.
-        overwrite: replace existing outputs (and remove layers of an earlier run that this run does not write,
-            when that run's prediction.json lists them).
         rows: write only grid rows ``[start, stop)`` (one strip of a distributed run): the staging files
             are then named after ``start``, and only the process that calls :meth:`convert` with every
             strip converts them. Default: the whole grid.
@@ -122,22 +109,20 @@ class PredictionWriter:
         OutputError: the folder cannot be created or written.
     """
 
-    def __init__(self, out_dir: str | Path, grid: Grid, specs: Sequence[LayerSpec], overwrite: bool = False,
+    def __init__(self, out_dir: str | Path, grid: Grid, specs: Sequence[LayerSpec],
                  rows: tuple[int, int] | None = None) -> None:
         self.out_dir = Path(out_dir)
         self.grid = grid
         self.specs = {s.name: s for s in specs}
-        self.overwrite = overwrite
         self.rows = rows or (0, grid.height)
         self._strip_start = None if rows is None else rows[0]
-        self.folder = prediction_folder(self.out_dir)
-        self._created_dir = make_output_dir(self.out_dir)
         self._datasets: dict[str, Any] = {}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aerialmtl-writer")
         self._pending: list[Future[None]] = []
         self._slots = threading.BoundedSemaphore(MAX_PENDING_BLOCKS)
         self._partials: dict[str, tuple[Path, Path]] = {}  # converted: key → (hidden file, final path)
         self._stats: dict[str, BandStats | None] = {}
+        self._extras: set[str] = set()  # keys of the styles and item.json among the staged files
         self.seconds_writing = 0.0
         try:
             r0, r1 = self.rows
@@ -210,8 +195,6 @@ class PredictionWriter:
     # ---- committing -------------------------------------------------------------------------------
     def _fail(self, exc: BaseException) -> NoReturn:
         """Remove this run's hidden files and raise ``exc`` (an OS error as the one-line :class:`OutputError`)."""
-        for tmp, _ in self._partials.values():
-            tmp.unlink(missing_ok=True)
         self.abort()
         if isinstance(exc, (OSError, RasterioError)) and not isinstance(exc, OutputError):
             raise _writable_error(self.out_dir, exc) from exc
@@ -266,13 +249,12 @@ class PredictionWriter:
         for vrt in merged:
             vrt.unlink(missing_ok=True)
 
-    def publish(self, record: PredictionRecord) -> dict[str, Path]:
+    def stage(self, record: PredictionRecord) -> list[str]:
         """Write the styles, ``item.json`` and ``prediction.json`` (``record`` with ``created``, ``files`` and
-        ``file_sizes`` added), then rename every file of :meth:`convert` to its final name, ``prediction.json``
-        last.
+        ``file_sizes`` added) as hidden files beside those of :meth:`convert`.
 
         Returns:
-            layer name → final path (``"prediction"`` for the JSON file).
+            the final names of every file :meth:`publish` will put in place.
         """
         partials = self._partials
         try:
@@ -280,6 +262,7 @@ class PredictionWriter:
             record = record.model_copy(update={"created": now.isoformat()})
             extras = self._write_metadata(record, self._stats)
             partials.update(extras)
+            self._extras = set(extras)
             record = record.model_copy(update={
                 "files": {n: p.name for n, (_, p) in partials.items()},
                 # the layers' sizes; the styles and item.json are the user's to edit (QGIS "Save as
@@ -290,14 +273,17 @@ class PredictionWriter:
             partials["prediction"] = (js, self.out_dir / INFO_FILE)
         except BaseException as exc:
             self._fail(exc)
-        if self.overwrite:  # layers of an earlier run this run does not produce would be stale: those its
-            produced = {p.name for _, p in partials.values()}  # prediction.json lists (it proves they are its own)
-            owned = PredictionFolder(self.out_dir).owned_files()
-            self.folder.remove_owned([INFO_FILE])  # first: never a complete-looking mix
-            self.folder.remove_owned(f for f in owned if f not in produced)
-        for tmp, final in partials.values():  # prediction.json last: its presence marks a complete folder
+        return [p.name for _, p in partials.values()]
+
+    def publish(self) -> dict[str, Path]:
+        """Rename every staged file (:meth:`convert`, :meth:`stage`) to its final name, ``prediction.json`` last.
+
+        Returns:
+            layer name → final path (``"prediction"`` for the JSON file).
+        """
+        for tmp, final in self._partials.values():  # prediction.json last: its presence marks a complete folder
             os.replace(tmp, final)
-        return {n: final for n, (_, final) in partials.items() if n not in extras}
+        return {n: final for n, (_, final) in self._partials.items() if n not in self._extras}
 
     def _write_metadata(self, record: PredictionRecord,
                         stats: dict[str, BandStats | None]) -> dict[str, tuple[Path, Path]]:
@@ -331,16 +317,10 @@ class PredictionWriter:
                     dst.close()
             except Exception:  # pragma: no cover - best effort cleanup
                 pass
-        if self._strip_start is None:
-            self.folder.remove_leftovers(ALL_FILES)
-        else:  # only this strip's files: other processes may still be writing theirs
-            for name in self.specs:
-                self.staging(name).unlink(missing_ok=True)
-        if self._created_dir:  # leave no empty folder behind either
-            try:
-                self.out_dir.rmdir()
-            except OSError:
-                pass
+        for name in self.specs:  # this writer's own files only: other processes may still be writing theirs
+            self.staging(name).unlink(missing_ok=True)
+        for tmp, _ in self._partials.values():
+            tmp.unlink(missing_ok=True)
 
 
-__all__ = ["PredictionWriter", "prediction_folder"]
+__all__ = ["PredictionWriter"]

@@ -94,7 +94,8 @@ class Grid:
 
     def window_transform(self, window: Window) -> Affine:
         """Transform of ``window`` (``rasterio.windows.transform`` on this grid)."""
-        return window_transform(window, self.transform)
+        result: Affine = window_transform(window, self.transform)
+        return result
 
     def full_window(self) -> Window:
         """The window of the whole grid."""

@@ -116,7 +116,8 @@ class Calibration:
         out = np.interp(h, x, y)
         beyond = h > x[-1]
         out = np.where(beyond, y[-1] + (h - x[-1]), out)
-        return np.maximum(out, 0.0).astype(np.asarray(h).dtype, copy=False)
+        result: np.ndarray = np.maximum(out, 0.0).astype(np.asarray(h).dtype, copy=False)
+        return result
 
     def _range_values(self) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
         if self.std_edges:

@@ -77,7 +77,8 @@ class UpBlock(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, in, h, w) → (B, out, 2h, 2w) (see the class docstring)."""
         x = self.relu1(self.drop1(self.norm1(self.up(x))))
-        return self.relu2(self.drop2(self.norm2(self.conv(x))))
+        result: torch.Tensor = self.relu2(self.drop2(self.norm2(self.conv(x))))
+        return result
 
 
 class TaskDecoder(nn.Module):
@@ -211,7 +212,8 @@ class D3Net(nn.Module):
     def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Deterministic part: B×C×H×W image → encoder features (strides 2, 4, 8, 16, 32)."""
         self.check_input(x)
-        return self.encoder(x)
+        result: list[torch.Tensor] = self.encoder(x)
+        return result
 
     def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
         """Stochastic part (every dropout layer): encoder features → ``{output: B×C×H×W}`` (:attr:`outputs`).
@@ -282,7 +284,8 @@ def inference_model(model: nn.Module, device: torch.device) -> nn.Module:
     """
     prepared = fold_batchnorm(model).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     prepared.eval()
-    return prepared
+    result: nn.Module = prepared
+    return result
 
 
 __all__ = ["D3Net", "SCALE_MIN", "SIZE_MULTIPLE", "UpBlock", "fold_batchnorm", "inference_model", "laplace_scale",

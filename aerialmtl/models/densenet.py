@@ -47,7 +47,8 @@ class DenseLayer(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C, H, W) → (B, growth_rate, H, W) new features of the layer."""
         out = self.conv1(self.relu1(self.norm1(x)))
-        return self.conv2(self.relu2(self.norm2(out)))
+        result: torch.Tensor = self.conv2(self.relu2(self.norm2(out)))
+        return result
 
 
 class DenseBlock(nn.ModuleDict):
@@ -104,7 +105,8 @@ class Transition(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C, H, W) → (B, out_channels, H/2, W/2)."""
-        return self.conv(self.relu(self.norm(x)))
+        result: torch.Tensor = self.conv(self.relu(self.norm(x)))
+        return result
 
 
 class DenseNetEncoder(nn.Module):

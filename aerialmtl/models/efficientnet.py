@@ -151,7 +151,8 @@ class MBConv(nn.Module):
         y = F.relu6(self._bn0(self._expand_conv(x))) if self.expand else x
         y = F.relu6(self._bn1(self._depthwise_conv(y)))
         y = self._bn2(self._project_conv(y))
-        return x + y if self.residual else y
+        result: torch.Tensor = x + y if self.residual else y
+        return result
 
 
 def stage_specs(variant: str) -> list[tuple[int, int, int, int, int, int]]:
@@ -238,7 +239,8 @@ class EfficientNetLiteClassifier(nn.Module):
         """(B, C, H, W) images → (B, num_classes) logits (the ImageNet classifier the weights come with)."""
         feat = self.encoder(x)[-1]
         feat = F.relu6(self._bn1(self._conv_head(feat)))
-        return self._fc(feat.mean(dim=(2, 3)))
+        result: torch.Tensor = self._fc(feat.mean(dim=(2, 3)))
+        return result
 
 
 __all__ = ["EfficientNetLiteEncoder", "EfficientNetLiteClassifier", "MBConv", "SameConv2d", "VARIANTS",

@@ -207,7 +207,8 @@ class AerialMTLAlgorithm(QgsProcessingAlgorithm):
         if p.kind == "float":
             return float(self.parameterAsDouble(parameters, p.name, context))
         if p.kind == "enum":
-            return p.choices[self.parameterAsEnum(parameters, p.name, context)]
+            result: Value = p.choices[self.parameterAsEnum(parameters, p.name, context)]
+            return result
         if p.kind == "bool":
             return bool(self.parameterAsBoolean(parameters, p.name, context))
         return str(self.parameterAsString(parameters, p.name, context)) or None

@@ -89,7 +89,8 @@ def patch_folds(patch: np.ndarray, seed: int = 0) -> np.ndarray:
     if patch.size == 0:
         return np.zeros(0, np.int64)
     n = int(patch.max()) + 1
-    return np.random.default_rng(seed).permutation(np.arange(n) % 2)[patch]
+    result: np.ndarray = np.random.default_rng(seed).permutation(np.arange(n) % 2)[patch]
+    return result
 
 
 def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DEFAULT_CALIBRATION_SAMPLES,

@@ -13,7 +13,6 @@ the key path (``optim.lr``) and the valid keys/choices::
     optim:     {name: adam, lr: 2.0e-4, betas: [0.5, 0.999], weight_decay: 0.0, ema: null}
     schedule:  {epochs: 50, max_steps: null, max_time_s: null, val_every: 1, log_every: 10, patience: null,
                 lr_schedule: constant, warmup_steps: 0}
-    predict:   {mc_samples: 30}
     seed: 0
     device: auto          # auto | cpu | cuda
     precision: auto       # auto (bf16 autocast on a CUDA GPU that has bf16, fp32 otherwise) | fp32 | bf16
@@ -29,7 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from aerialmtl.config import from_dict, load_yaml_config, to_dict
 from aerialmtl.errors import ConfigError
@@ -277,17 +276,6 @@ class ScheduleSection:
 
 
 @dataclass(frozen=True)
-class PredictSection:
-    """Defaults stored for ``aerialmtl predict`` (``mc_samples``: MC-dropout passes T)."""
-
-    mc_samples: int = 30
-
-    def __post_init__(self) -> None:
-        if self.mc_samples < 1:
-            raise ConfigError(f"predict.mc_samples: must be ≥ 1, got {self.mc_samples}")
-
-
-@dataclass(frozen=True)
 class CalibrationSection:
     """Calibration fitted on the validation split at the end of training (:mod:`aerialmtl.training.calibrate`).
 
@@ -319,12 +307,16 @@ class TrainConfig:
     weighting: WeightingSection = field(default_factory=WeightingSection)
     optim: OptimSection = field(default_factory=OptimSection)
     schedule: ScheduleSection = field(default_factory=ScheduleSection)
-    predict: PredictSection = field(default_factory=PredictSection)
     seed: int = 0
     device: Literal["auto", "cpu", "cuda"] = "auto"
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     compile: bool = False
     calibration: CalibrationSection = field(default_factory=CalibrationSection)
+    #: Keys of earlier configs (and of the configs stored in earlier checkpoints) read and ignored, with a warning:
+    #: ``predict`` held ``mc_samples``, which nothing read; ``predict --mc`` and
+    #: :class:`~aerialmtl.inference.settings.PredictSettings` decide T (30 with dropout).
+    REMOVED_KEYS: ClassVar[dict[str, str]] = {
+        "predict": "predict's MC samples are predict's own option (--mc; 30 by default with dropout)"}
 
     def __post_init__(self) -> None:
         if not 0 <= self.seed < 2**63:
@@ -335,7 +327,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain mapping (YAML / checkpoint safe)."""
-        return to_dict(self)
+        result: dict[str, Any] = to_dict(self)
+        return result
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> TrainConfig:
@@ -362,4 +355,4 @@ def load_train_config(path: str | Path) -> TrainConfig:
 
 
 __all__ = ["TrainConfig", "ModelSection", "DataSection", "LossSection", "WeightingSection", "OptimSection",
-           "ScheduleSection", "PredictSection", "load_train_config"]
+           "ScheduleSection", "load_train_config"]

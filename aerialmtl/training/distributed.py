@@ -54,10 +54,12 @@ def all_reduce(tensor: torch.Tensor) -> torch.Tensor:
     world = dist.group.WORLD
     assert world is not None
     if hasattr(fc, "all_reduce_backward"):  # functional collectives with autograd (recent torch)
-        return fc.wait_tensor(fc.all_reduce(tensor, "sum", world))
+        result: torch.Tensor = fc.wait_tensor(fc.all_reduce(tensor, "sum", world))
+        return result
     from torch.distributed.nn.functional import all_reduce as legacy  # pragma: no cover - older torch
 
-    return legacy(tensor)  # pragma: no cover
+    reduced: torch.Tensor = legacy(tensor)  # pragma: no cover
+    return reduced
 
 
 class CpuSyncBatchNorm(nn.BatchNorm2d):
@@ -98,7 +100,8 @@ class CpuSyncBatchNorm(nn.BatchNorm2d):
 def convert_sync_batchnorm(model: nn.Module, device: torch.device) -> nn.Module:
     """Replace every BatchNorm2d of ``model`` by a synchronised one (weights and statistics kept)."""
     if device.type == "cuda":
-        return nn.SyncBatchNorm.convert_sync_batchnorm(model)
+        result: nn.Module = nn.SyncBatchNorm.convert_sync_batchnorm(model)
+        return result
     for name, child in list(model.named_children()):
         if isinstance(child, nn.BatchNorm2d) and not isinstance(child, CpuSyncBatchNorm):
             new = CpuSyncBatchNorm(child.num_features, child.eps, child.momentum, child.affine,

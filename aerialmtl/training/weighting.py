@@ -117,7 +117,8 @@ def build_weighting(name: str, tasks: Sequence[str], **kwargs: object) -> nn.Mod
     """Build a weighting by name (``equal`` or ``uncertainty``); ``kwargs`` go to its constructor."""
     if name not in WEIGHTINGS:
         raise ConfigError(f"task weighting: got {name!r}; valid choices are {', '.join(WEIGHTINGS)}")
-    return WEIGHTINGS[name](tasks, **kwargs)
+    result: nn.Module = WEIGHTINGS[name](tasks, **kwargs)
+    return result
 
 
 __all__ = ["EqualWeighting", "UncertaintyWeighting", "build_weighting", "WEIGHTINGS", "TASK_KIND"]

@@ -27,7 +27,8 @@ def smooth_noise(shape: tuple[int, int], cell_px: float, rng: np.random.Generato
     rows = (np.arange(h, dtype=np.float32) + 0.5) / cell + 1.5
     cols = (np.arange(w, dtype=np.float32) + 0.5) / cell + 1.5
     # Separable Catmull-Rom interpolation as two small matrix products (the coarse grid is tiny).
-    return (_interp_matrix(rows, gh) @ coarse @ _interp_matrix(cols, gw).T).astype(np.float32)
+    result: np.ndarray = (_interp_matrix(rows, gh) @ coarse @ _interp_matrix(cols, gw).T).astype(np.float32)
+    return result
 
 
 def _interp_matrix(pos: np.ndarray, n: int) -> np.ndarray:

@@ -152,7 +152,8 @@ class _Canvas:
 
     def fill(self, u: list[float] | np.ndarray, v: list[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r, c = self.to_px(np.asarray(u, np.float64), np.asarray(v, np.float64))
-        return polygon(r, c, self.shape)
+        result: tuple[np.ndarray, np.ndarray] = polygon(r, c, self.shape)
+        return result
 
     def fill_rect(self, u0: float, u1: float, v0: float, v1: float) -> tuple[np.ndarray, np.ndarray]:
         return self.fill([u0, u1, u1, u0], [v0, v0, v1, v1])
@@ -557,7 +558,8 @@ def _terrain(rng: np.random.Generator, xs: np.ndarray, extent: float) -> np.ndar
         sx, cx = np.sin(kx * xs + phase), np.cos(kx * xs + phase)
         sy, cy = np.sin(ky * xs), np.cos(ky * xs)
         dtm += (amp * (cy[:, None] * sx[None, :] + sy[:, None] * cx[None, :])).astype(np.float32)
-    return dtm
+    result: np.ndarray = dtm
+    return result
 
 
 def _building_truth(cv: _Canvas, bld: Building, drawn: list[tuple[np.ndarray, np.ndarray, np.ndarray]],

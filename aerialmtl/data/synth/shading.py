@@ -44,12 +44,14 @@ def hillshade(surface: np.ndarray, gsd: float, azimuth: float, elevation: float,
     se, sn, su = sun_vector(azimuth, elevation)
     # normal = (-dz/dx, -dz/dy, 1) / norm
     dot = (-dz_east * se - dz_north * sn + su) / np.sqrt(dz_east * dz_east + dz_north * dz_north + 1.0)
-    return (np.maximum(dot, 0.0) / su).astype(np.float32)
+    result: np.ndarray = (np.maximum(dot, 0.0) / su).astype(np.float32)
+    return result
 
 
 def _digital_line_offsets(n: int, slope: float) -> np.ndarray:
     """Integer cross-axis offset of a digital line with ``slope`` at positions ``0..n-1``."""
-    return np.floor(np.arange(n) * slope + 0.5).astype(np.int64)
+    result: np.ndarray = np.floor(np.arange(n) * slope + 0.5).astype(np.int64)
+    return result
 
 
 def cast_shadows(surface: np.ndarray, gsd: float, azimuth: float, elevation: float,

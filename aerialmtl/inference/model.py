@@ -1,0 +1,409 @@
+"""Streaming prediction of orthophotos: the model, loaded once, that computes strips of window rows.
+
+A :class:`Predictor` is a model loaded once with its settings (:class:`~aerialmtl.inference.settings.PredictSettings`
+and what they resolved to), its output schema (:attr:`Predictor.layers`) and its fingerprint: it computes any
+number of orthophotos. What runs once per input — claiming the prediction folder, the writer's staging files,
+the commit and ``prediction.json`` — is the job's (:class:`~aerialmtl.inference.job.InputJob`); the whole
+raster is the one-strip case, and a ``torchrun`` rank computes one strip of the window rows of an input it
+shares (:mod:`aerialmtl.inference.jobs`). The orthophoto's header is read once into an
+:class:`~aerialmtl.inference.ortho.OrthoInput` (grid, bands, window plan, value check) that travels
+through the job.
+
+A strip is read → model → stitch → write, each stage overlapping the others:
+
+1. :class:`~aerialmtl.inference.reader.WindowReader` reads and decodes the windows of the plan
+   (:func:`~aerialmtl.inference.windows.plan_windows`) on the prediction grid at the model's GSD in
+   background threads, a few windows ahead;
+2. :class:`~aerialmtl.inference.runner.ModelRunner` normalises them on the device and runs the model in
+   batches of windows of one window row (plain forward for T = 1, MC dropout for T > 1);
+3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device and hands
+   back finished blocks in their output dtypes, following one output schema
+   (:func:`~aerialmtl.formats.prediction.prediction_layers`);
+4. the job's :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files
+   in a background thread; at the commit it converts every layer to a COG (the layers in parallel, each
+   on several threads) and renames everything into place at once.
+
+Device, precision, autocast, the compile fallback and the GDAL settings come from
+:mod:`aerialmtl.runtime`, as for training.
+
+Memory holds a few windows (reader queue, accumulators, blocks in flight) plus the rows two window rows
+share (a few KiB per raster column): it does not grow with the raster height, and barely with its
+width. Windows with no valid input pixel (nodata, outside the AOI) are not computed.
+
+:func:`~aerialmtl.inference.jobs.predict_raster` is the one-call form and
+:func:`~aerialmtl.inference.jobs.predict_many` its many-input form (in one process or many, torchrun); this
+module imports neither the job nor the jobs (an import-linter contract, pyproject.toml).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from typing_extensions import Unpack
+
+from aerialmtl import runtime
+from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
+from aerialmtl.formats.prediction import (
+    PROVENANCE_KEY,
+    LayerSpec,
+    file_fingerprint,
+    input_fingerprint,
+    prediction_layers,
+)
+from aerialmtl.formats.stac import model_summary
+from aerialmtl.inference.engines import Pending, openvino_available, resolve_engine
+from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.inference.ortho import OrthoInput
+from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
+from aerialmtl.inference.runner import ModelRunner, auto_batch_size
+from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
+from aerialmtl.inference.settings import PredictOptions, PredictSettings, Resolved, settings_of
+from aerialmtl.inference.stitch import Block, Stitcher
+from aerialmtl.inference.windows import Plan
+from aerialmtl.models import class_kernel
+from aerialmtl.models.mc_dropout import McStatistics
+from aerialmtl.progress import tqdm_auto as tqdm
+
+#: MC-dropout samples when the caller does not say otherwise and the model has dropout.
+DEFAULT_MC_SAMPLES = 30
+
+
+@dataclass
+class StripResult:
+    """What one strip of window rows (or the whole raster) computed; travels between ranks.
+
+    Attributes:
+        windows_computed: windows run through the model.
+        timings: seconds per stage (see :class:`~aerialmtl.inference.job.PredictResult`).
+        row_start: the first grid row the strip wrote (its staging files are named after it).
+    """
+
+    windows_computed: int
+    timings: dict[str, float]
+    row_start: int = 0
+
+
+def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool = False
+          ) -> tuple[torch.nn.Module | CheckpointModel, ModelMeta, str, str | None]:
+    """``(model, meta, name, fingerprint)``; the fingerprint is that of the checkpoint bytes loaded (``None`` for a
+    model given in memory: computed from its weights when needed).
+
+    With ``warm`` (a run that may use the OpenVINO engine), a checkpoint file whose record is beside the engine
+    cache (:mod:`aerialmtl.inference.model_record`) is not loaded: its bytes are hashed, and the model is a
+    :class:`~aerialmtl.inference.model_record.CheckpointModel` that loads them only if something needs the
+    weights; a checkpoint loaded here gets its record for the next run.
+    """
+    if isinstance(checkpoint, tuple):
+        model, meta = checkpoint
+        return model, meta, "<in-memory model>", None
+    from aerialmtl.formats.checkpoint import file_sha256, read_model
+
+    if warm:
+        from aerialmtl.inference.engines import cache_root
+        from aerialmtl.inference.model_record import make_record, read_record, write_record
+
+        root = cache_root()
+        try:
+            digest: str | None = file_sha256(checkpoint)
+        except OSError:  # read_model says what is wrong with the file
+            digest = None
+        record = read_record(digest, root) if digest is not None else None
+        if digest is not None and record is not None:
+            return CheckpointModel(checkpoint, digest, record), record.meta, str(checkpoint), digest
+    model, meta, loaded = read_model(checkpoint)
+    if warm:
+        made = make_record(model, meta)
+        if made is not None:
+            write_record(loaded, made, root)
+    return model, meta, str(checkpoint), loaded
+
+
+def _stats_window(stats: McStatistics, n: int) -> McStatistics:
+    """The statistics of window ``n`` of a batch (views)."""
+    return McStatistics(*(None if t is None else t[n] for t in (stats.height_mean, stats.height_std, stats.probs,
+                                                                 stats.mean_entropy, stats.height_aleatoric)))
+
+
+# ---- the predictor -----------------------------------------------------------------------------
+class Predictor:
+    """A model ready to predict orthophotos: read → model → stitch (the job writes).
+
+    Args:
+        checkpoint: checkpoint path, or ``(model, meta)`` already loaded.
+        settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`; default: its
+            defaults).
+        options: the Python API's keywords, one per field of the settings
+            (:class:`~aerialmtl.inference.settings.PredictOptions`), applied over ``settings``.
+
+    What ``auto`` and the defaults resolve to is :attr:`resolved` (and, one by one, :attr:`device`,
+    :attr:`engine`, :attr:`precision`, :attr:`threads`, :attr:`mc`).
+    """
+
+    def __init__(self, checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta],
+                 settings: PredictSettings | None = None, **options: Unpack[PredictOptions]) -> None:
+        self.settings = s = settings_of(settings, options)
+        self.device = runtime.resolve_device(s.device)
+        #: Inference threads and streams (:func:`aerialmtl.runtime.resolve_threads`).
+        self.threads = runtime.resolve_threads(s.threads)
+        if self.threads.source != "auto" and self.device.type == "cpu":
+            torch.set_num_threads(self.threads.threads)
+        warm = s.engine in ("auto", "openvino") and self.device.type == "cpu" and openvino_available()
+        model, self.meta, name, loaded_fingerprint = _load(checkpoint, warm=warm)
+        #: The engine that runs the model (a name of :data:`~aerialmtl.inference.engines.ENGINES`).
+        self.engine = resolve_engine(s.engine, self.device, model)
+        if self.engine == "torch":
+            model = resolve_model(model)
+        self.precision = runtime.resolve_precision(s.precision, self.device,
+                                                   cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
+        if s.compile and self.engine != "torch":
+            warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
+                          UserWarning, stacklevel=2)
+        self.checkpoint_name = s.checkpoint_name or name
+        self._checkpoint = checkpoint
+        self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
+        self.mc = s.mc if s.mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
+        if s.calibration:
+            check_calibration(self.meta, self.checkpoint_name)
+        self.calibration = self.meta.calibration if s.calibration else None
+        self.calibration_available = self.meta.calibration is not None
+        #: What the settings resolved to.
+        self.resolved = Resolved(self.device, self.engine, self.precision, self.threads, self.mc)
+        # the checkpoint hashed once: provenance and the OpenVINO cache's key
+        weights_key = self.fingerprint if self.engine == "openvino" else None
+        self.runner = ModelRunner(model, self.meta, s, self.resolved, weights_key)
+        tasks = tuple(self.meta.model.tasks)
+        self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
+        #: The output schema: one :class:`LayerSpec` per layer, in file order.
+        self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, s.probabilities,
+                                                                 aleatoric=self.meta.model.aleatoric, tta=s.tta)
+        self._batch: dict[tuple[int, int], int] = {}
+        if self.mc > 1 and self.device.type == "cpu":  # loaded before any output exists (class_kernel.prepare)
+            class_kernel.prepare()
+
+    @property
+    def aoi(self) -> str | Path | None:
+        """The AOI of the settings (windows outside it are not computed)."""
+        return self.settings.aoi
+
+    @property
+    def model(self) -> torch.nn.Module:
+        """The prepared model the runner predicts with."""
+        return self.runner.model
+
+    # ---- inputs -----------------------------------------------------------------------------------
+    def open(self, ortho: str | Path | OrthoInput, warn: bool = True) -> OrthoInput:
+        """Read the header of ``ortho`` and a sample of its values once
+        (:meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>`); an :class:`OrthoInput` is
+        returned as it is.
+
+        Args:
+            ortho: the orthophoto.
+            warn: warn when it is resampled to the model's GSD or has bands the model does not read.
+
+        Raises:
+            AlignmentError / InputError: unusable georeferencing or bands, or values unlike the training
+                data's (:func:`~aerialmtl.inference.sanity.check_input_values`; messages name the fix).
+        """
+        if isinstance(ortho, OrthoInput):
+            return ortho
+        src = OrthoInput.open(ortho, self.meta, self.settings.window, self.settings.overlap,
+                               rescale_input=self.settings.rescale_input)
+        if warn:
+            src.warn_resampled(self.meta, stacklevel=4)
+            src.warn_unused_bands(self.meta, stacklevel=4)
+        return src
+
+    def resolved_batch_size(self, plan: Plan) -> int:
+        """Windows per model call for windows of ``plan`` (resolves ``"auto"`` once per window size)."""
+        if self.settings.batch_size != "auto":
+            return int(self.settings.batch_size)
+        key = (plan.rows.size, plan.cols.size)
+        if key not in self._batch:
+            self._batch[key] = auto_batch_size(lambda: self.runner.net, self.meta.model.in_channels, *key,
+                                               self.device, self.precision)
+        return self._batch[key]
+
+    # ---- computing --------------------------------------------------------------------------------
+    def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
+                progress: bool = True) -> StripResult:
+        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan (inside the settings'
+        AOI); each finished block goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
+
+        The window rows before ``start`` that reach into it
+        (:attr:`~aerialmtl.inference.windows.WindowRow.sources`) are computed too, so a strip gives exactly
+        the output rows a whole-raster run gives.
+
+        Returns:
+            the windows computed and the stage times (``read``, ``model``, ``stitch_write``; seconds).
+        """
+        start, stop = rows
+        stitcher = Stitcher(src.plan, self.layers, self.num_classes, self.device, start, stop,
+                            calibration=self.calibration)
+        loop = _StripLoop(self, src, stitcher, write, progress, range(stitcher.first_row, stop))
+        try:
+            loop.run()
+            if not stitcher.finished:  # pragma: no cover - the reader yields every window of the rows
+                raise RuntimeError("stitcher did not receive every window")
+        finally:
+            loop.bar.close()
+        return StripResult(loop.computed, loop.timings)
+
+    # ---- run information --------------------------------------------------------------------------
+    @property
+    def fingerprint(self) -> str:
+        """The model's fingerprint: SHA-256 of the checkpoint bytes that were loaded
+        (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the weights of a model given in memory.
+        """
+        if self._fingerprint is None:
+            assert isinstance(self._checkpoint, tuple)
+            self._fingerprint = model_fingerprint(*self._checkpoint)
+        return self._fingerprint
+
+    def provenance(self, src: OrthoInput) -> dict[str, Any]:
+        """What makes the maps of ``src`` (``provenance`` in prediction.json, :mod:`aerialmtl.formats.prediction`)."""
+        native, s = src.native, self.settings
+        return {
+            "checkpoint": self.fingerprint,
+            "settings": {"mc_samples": self.mc, "tta": s.tta, "seed": s.seed, "precision": self.precision,
+                         "engine": self.runner.engine.name, "probabilities": bool(s.probabilities),
+                         "aoi": file_fingerprint(s.aoi), "calibration": self.calibration is not None,
+                         "input_rescale": None if src.rescale is None else list(src.rescale)},
+            "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(
+                src.path, native.width, native.height, list(native.transform), native.crs.to_string()),
+        }
+
+    def record_settings(self, src: OrthoInput) -> dict[str, Any]:
+        """The model's and the settings' fields of ``src``'s ``prediction.json``
+        (:class:`~aerialmtl.formats.prediction.PredictionRecord`; the job adds the input's and the run's): the
+        settings with what they resolved to (:meth:`PredictSettings.record
+        <aerialmtl.inference.settings.PredictSettings.record>`).
+        """
+        resolved = dataclasses.replace(self.resolved, engine=self.runner.engine.name)  # torch if auto fell back
+        return {
+            "checkpoint": self.checkpoint_name,
+            "model": model_summary(self.meta),
+            **self.settings.record(resolved, self.resolved_batch_size(src.plan)),
+            "calibration": self.calibration_info(),
+            PROVENANCE_KEY: self.provenance(src),
+        }
+
+    def calibration_info(self) -> dict[str, Any]:
+        """``prediction.json``'s ``calibration``: whether the checkpoint's calibration was applied, and which."""
+        cal = self.meta.calibration
+        if cal is None:
+            return {"applied": False, "reason": "the checkpoint has no calibration"}
+        on = self.calibration is not None
+        info: dict[str, Any] = {"applied": on and (cal.height_applied or cal.spread_applied),
+                                "height_map_applied": on and cal.height_applied,
+                                "spread_map_applied": on and cal.spread_applied,
+                                "method": cal.method, "n_pixels": cal.n_pixels, "source": cal.source,
+                                "summary": cal.summary()}
+        if cal.height_applied:
+            info["height_knots_m"] = [list(cal.height_x), list(cal.height_y)]
+        if cal.spread_applied:
+            info.update({"std_scale": cal.std_scale, "std_floor_m": cal.std_floor} if not cal.std_edges else
+                        {"std_range_edges_m": list(cal.std_edges), "std_scales": list(cal.std_scales),
+                         "std_floors_m": list(cal.std_floors)})
+        if on and not (cal.height_applied or cal.spread_applied):
+            info["reason"] = f"validation kept neither part: {cal.notes}"
+        if self.calibration is None:
+            info["reason"] = "switched off (--no-calibration)"
+        return info
+
+
+class _StripLoop:
+    """The window loop of :meth:`Predictor.compute`: windows read → batches submitted to the engine (up to
+    :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked and stitched → blocks
+    to ``write``; with the stage times.
+    """
+
+    def __init__(self, predictor: Predictor, src: OrthoInput, stitcher: Stitcher, write: Callable[[Block], None],
+                 progress: bool, todo_rows: range) -> None:
+        self.p, self.src, self.stitcher, self.write = predictor, src, stitcher, write
+        self.runner = predictor.runner
+        self.n_cols = len(src.plan.cols.starts)
+        self.batch_size = predictor.resolved_batch_size(src.plan)
+        self.timings = {"read": 0.0, "model": 0.0, "stitch_write": 0.0}
+        self.computed = 0
+        # batches submitted to the engine, oldest first: (windows in plan order, pending statistics, validity)
+        self.queue: deque[tuple[list[ReadWindow], Pending | None, torch.Tensor | None]] = deque()
+        self.todo_rows = todo_rows
+        self.bar = tqdm(total=len(todo_rows) * self.n_cols, unit="win", desc=src.name, disable=not progress,
+                        dynamic_ncols=True)
+
+    def run(self) -> None:
+        """Compute the window rows ``todo_rows`` of the plan."""
+        p, src, todo_rows = self.p, self.src, self.todo_rows
+        aoi_mask = Aoi(p.settings.aoi, src.grid) if p.settings.aoi is not None else None
+        depth = max(4, 2 * self.batch_size)  # windows read ahead: a batch being computed and the next one
+        reader = WindowReader(src, list(p.meta.bands), todo_rows, aoi_mask, threads=p.settings.reader_threads,
+                              depth=depth, pin=p.device.type == "cuda")
+        with reader:
+            waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
+            for win in reader:
+                waiting.append(win)
+                todo = [w for w in waiting if w.data is not None]
+                if len(todo) < self.batch_size and win.j != self.n_cols - 1:
+                    continue
+                self.submit(waiting, todo)
+                waiting = []
+                while len(self.queue) > self.runner.in_flight:
+                    self.finish_oldest()
+            while self.queue:
+                self.finish_oldest()
+            self.timings["read"] = reader.seconds_reading
+
+    def submit(self, windows: list[ReadWindow], todo: list[ReadWindow]) -> None:
+        """Queue ``windows``, starting the statistics of those with data (``todo``) on the engine."""
+        if not todo:
+            self.queue.append((windows, None, None))
+            return
+        t0 = time.perf_counter()
+        raw, valid = self.runner.to_device([w.data for w in todo if w.data is not None], [w.valid for w in todo])
+        x = self.runner.normalise(rescaled(raw, self.src.rescale), valid)
+        keys = [w.i * self.n_cols + w.j for w in todo]
+        self.queue.append((windows, self.runner.submit(x, keys), valid))
+        self.timings["model"] += time.perf_counter() - t0
+        self.computed += len(todo)
+
+    def finish_oldest(self) -> None:
+        """Wait for the oldest batch's statistics, check them, and stitch its windows."""
+        windows, pending, valid = self.queue.popleft()
+        stats = None
+        if pending is not None:
+            t0 = time.perf_counter()
+            stats = pending.result()
+            assert valid is not None
+            check_finite_outputs(stats, valid, self.p.checkpoint_name)
+            check_height_range(stats, valid, self.p.checkpoint_name, self.p.meta)
+            self.timings["model"] += time.perf_counter() - t0
+        self.flush(windows, stats, valid)
+
+    def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
+        """Hand ``windows`` (with their statistics, in order, for those with data) to the stitcher and the
+        finished blocks to ``write``.
+        """
+        t0 = time.perf_counter()
+        n = 0
+        for w in windows:
+            if w.data is None:
+                blocks = self.stitcher.add(w.i, w.j, None, None)
+            else:
+                assert stats is not None and valid is not None
+                blocks = self.stitcher.add(w.i, w.j, _stats_window(stats, n), valid[n])
+                n += 1
+            for block in blocks:
+                self.write(block)
+        self.bar.update(len(windows))
+        self.timings["stitch_write"] += time.perf_counter() - t0
+
+
+__all__ = ["DEFAULT_MC_SAMPLES", "Predictor", "StripResult"]
