@@ -412,6 +412,8 @@ def run(name: str, recipe: Recipe, args: argparse.Namespace) -> dict[str, Any]:
     init, pre_record = (None, None)
     if recipe.pretrain:
         init, pre_record = pretrained_checkpoint(recipe, args)
+    elif args.init is not None:  # a start made elsewhere (`aerialmtl pretrain`, or a shipped start's name)
+        init, pre_record = args.init, {"init": str(args.init)}
     if recipe.mix:
         assert init is not None, "mix needs a pretrain section (its tiles)"
         tdir, minfo = mixed_view(tdir, init.parent.parent / "tiles", recipe.mix)
@@ -681,6 +683,7 @@ def main() -> None:
     ap.add_argument("--max-time", type=float, default=3600.0, help="wall-clock cap of the training (s)")
     ap.add_argument("--mc", type=int, default=16, help="MC-dropout samples at prediction")
     ap.add_argument("--also-last", action="store_true", help="evaluate last.pt too")
+    ap.add_argument("--init", help="fine-tune from this checkpoint or shipped start name (train --init)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--split", choices=sorted(SPLITS), default=DEFAULT_SPLIT,
