@@ -209,7 +209,8 @@ def value_noise(shape: tuple[int, int], cell_px: float, rng: np.random.Generator
     ri, rf = axis(h)
     ci, cf = axis(w)
     rows = coarse[ri] * (1 - rf)[:, None] + coarse[ri + 1] * rf[:, None]  # (H, gw)
-    return (rows[:, ci] * (1 - cf) + rows[:, ci + 1] * cf).astype(np.float32)
+    noise: np.ndarray = (rows[:, ci] * (1 - cf) + rows[:, ci + 1] * cf).astype(np.float32)
+    return noise
 
 
 def _albedo(cv: CityCanvas, rng: np.random.Generator) -> np.ndarray:
@@ -219,7 +220,8 @@ def _albedo(cv: CityCanvas, rng: np.random.Generator) -> np.ndarray:
     fine = rng.standard_normal(cv.ndsm.shape, dtype=np.float32)
     amp = TEXTURE[cv.material]  # (N, N, 3)
     gain = 1.0 + amp[..., 0] * large + amp[..., 1] * mid
-    return cv.tint * gain[None] + (amp[..., 2] * fine)[None]
+    tinted: np.ndarray = cv.tint * gain[None] + (amp[..., 2] * fine)[None]
+    return tinted
 
 
 def render_city(cv: CityCanvas, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
@@ -247,7 +249,8 @@ def render_city(cv: CityCanvas, imaging: Imaging, rng: np.random.Generator) -> n
                            np.where(np.mod(z, STOREY_M) < 0.45 * STOREY_M, np.float32(0.7), np.float32(1.0)),
                            np.float32(0.9))
         out[:, relief.wall] = cv.facade[:, rows, cols] * wall_light[:, None] * storeys[None]
-    return out
+    result: np.ndarray = out
+    return result
 
 
 def _check(size: int, gsd: float) -> None:

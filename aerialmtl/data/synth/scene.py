@@ -512,7 +512,8 @@ def _paint_roads(cv: _Canvas, cover: np.ndarray, lines_u: list[tuple[float, floa
         dash_u = on_u & ~on_v & (np.abs(off_u) < line_w) & (half_u >= 4) & (np.mod(v, 9.0) < 4.5)
         dash_v = on_v & ~on_u & (np.abs(off_v) < line_w) & (half_v >= 4) & (np.mod(u, 9.0) < 4.5)
         cover[dash_u | dash_v] = MARKING
-    return u
+    along: np.ndarray = u
+    return along
 
 
 def _ground_covers(cv: _Canvas, cover: np.ndarray, u: np.ndarray,

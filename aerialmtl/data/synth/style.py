@@ -147,7 +147,9 @@ def _resample(band: np.ndarray, factor: float) -> np.ndarray:
     """Down- then up-sample a (H, W) band by ``factor`` (bilinear), as an image made at a coarser GSD."""
     h, w = band.shape
     small = ndimage.zoom(band, 1.0 / factor, order=1, grid_mode=True, mode="nearest")
-    return ndimage.zoom(small, (h / small.shape[0], w / small.shape[1]), order=1, grid_mode=True, mode="nearest")
+    zoomed: np.ndarray = ndimage.zoom(small, (h / small.shape[0], w / small.shape[1]), order=1, grid_mode=True,
+                                      mode="nearest")
+    return zoomed
 
 
 def finish_image(rendered: np.ndarray, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
@@ -187,4 +189,5 @@ def _jpeg_round_trip(image: np.ndarray, quality: int) -> np.ndarray:
     Image.fromarray(np.ascontiguousarray(image.transpose(1, 2, 0))).save(buf, format="JPEG", quality=int(quality))
     buf.seek(0)
     with Image.open(buf) as im:
-        return np.asarray(im.convert("RGB")).transpose(2, 0, 1).copy()
+        rgb: np.ndarray = np.asarray(im.convert("RGB")).transpose(2, 0, 1).copy()
+        return rgb
