@@ -24,9 +24,10 @@ low density is unlike anything the model was trained on.
   than this one (0.5: a typical training pixel; 0.99: only 1 % of the training pixels looked as unusual;
   1: beyond everything seen). The map is upsampled to the output pixels bilinearly.
 
-Cost at predict time: a 1×1 projection and K quadratic forms of dimension d per feature pixel (stride 16:
-1/256 of the output pixels), plus one bilinear upsampling: well under 1 % of a T = 8 prediction
-(bench/RESULTS.md). At T = 1 the OpenVINO engine runs its encoder graph once more per window for it.
+Cost at predict time: a 1×1 projection and K quadratic forms of dimension d per feature pixel (the default
+stride 8: 1/64 of the output pixels; ~200 flops per output pixel at d = 32, K = 6), plus one bilinear
+upsampling: no measurable change of a T = 16 prediction on 2 cores (bench/RESULTS.md, "unfamiliarity"). At
+T = 1 the OpenVINO engine runs its encoder graph once more per window for it.
 """
 
 from __future__ import annotations

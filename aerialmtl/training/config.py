@@ -18,7 +18,7 @@ the key path (``optim.lr``) and the valid keys/choices::
     precision: auto       # auto (bf16 autocast on a CUDA GPU that has bf16, fp32 otherwise) | fp32 | bf16
     compile: false        # torch.compile the model (falls back to eager with a warning if it fails)
     calibration: {enabled: true, method: isotonic, mc_samples: 16}   # fitted on val after training
-    familiarity: {enabled: true, levels: [3], dims: 32, method: gda}  # feature density fitted on train
+    familiarity: {enabled: true, levels: [2], dims: 32, method: gda}  # feature density fitted on train
 
 Relative ``data.dir`` paths are resolved against the current working directory. With several processes
 (``torchrun``), ``data.batch_size`` is per process: a step uses ``batch_size × processes`` patches.
@@ -305,15 +305,16 @@ class FamiliaritySection:
 
     Attributes:
         enabled: fit it and store it in ``best.pt`` and ``last.pt``.
-        levels: encoder outputs used (0..4 = strides 2, 4, 8, 16, 32); the default, stride 16, was chosen on
-            validation (bench/RESULTS.md, "unfamiliarity").
+        levels: encoder outputs used (0..4 = strides 2, 4, 8, 16, 32); the default, stride 8, was chosen on
+            validation among strides 4-32, level pairs, EM mixtures, densities given the prediction and nearest
+            neighbours (bench/RESULTS.md, "unfamiliarity").
         dims: principal axes kept.
         method: ``gda`` (one Gaussian per reference-height bin, DDU's choice) or ``em`` (a mixture fitted by EM).
         components: Gaussians of ``em``.
     """
 
     enabled: bool = True
-    levels: tuple[int, ...] = (3,)
+    levels: tuple[int, ...] = (2,)
     dims: int = 32
     method: Literal["gda", "em"] = "gda"
     components: int = 8

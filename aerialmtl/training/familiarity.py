@@ -95,7 +95,7 @@ def feature_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path
 
 
 def fit_from_patches(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path, *,
-                     levels: tuple[int, ...] = (3,), dims: int = 32, method: Literal["gda", "em"] = "gda",
+                     levels: tuple[int, ...] = (2,), dims: int = 32, method: Literal["gda", "em"] = "gda",
                      components: int = 8, cache_folder: str | Path | None = None,
                      device: str | torch.device = "cpu", seed: int = 0) -> FeatureDensity:
     """:func:`feature_pixels` of the train split → :func:`~aerialmtl.models.familiarity.fit_density`.
@@ -117,7 +117,7 @@ def fit_from_patches(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Pa
                        source=f"train split of {Path(data_dir).name}")
 
 
-def familiarize_checkpoint(path: str | Path, data_dir: str | Path, *, levels: tuple[int, ...] = (3,),
+def familiarize_checkpoint(path: str | Path, data_dir: str | Path, *, levels: tuple[int, ...] = (2,),
                            dims: int = 32, method: Literal["gda", "em"] = "gda", components: int = 8,
                            cache_folder: str | Path | None = None, out: str | Path | None = None,
                            device: str | torch.device = "cpu") -> FeatureDensity:
