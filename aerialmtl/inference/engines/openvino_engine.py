@@ -291,7 +291,8 @@ class OpenVINOEngine:
 
     def _unfamiliarity(self, x: torch.Tensor, feats: Sequence[list[np.ndarray]] | None = None) -> torch.Tensor:
         """(B, h, w) unfamiliarity of a normalised batch from each window's encoder outputs (``feats``, else the
-        encoder graph run here)."""
+        encoder graph run here).
+        """
         assert self.density is not None
         size = (x.shape[-2], x.shape[-1])
         if feats is None:
