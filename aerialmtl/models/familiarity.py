@@ -207,7 +207,7 @@ def _log_prob(z: np.ndarray, weights: np.ndarray, means: np.ndarray, chol: np.nd
 
 def _logsumexp(a: np.ndarray) -> np.ndarray:
     top = a.max(1, keepdims=True)
-    return (top + np.log(np.exp(a - top).sum(1, keepdims=True)))[:, 0]
+    return np.asarray((top + np.log(np.exp(a - top).sum(1, keepdims=True)))[:, 0], np.float64)
 
 
 def fit_density(x: np.ndarray, levels: Sequence[int], stride: int, *, dims: int = 32,
