@@ -15,6 +15,7 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
         "crs": "EPSG:...",           # CRS of the training data (information only)
         "normalization": "dataset",  # or "encoder": mean/std are the pretrained encoder's input scaling
         "calibration": {...} | None, # height knots + std scale fitted on validation (models.calibration)
+        "familiarity": {...} | None, # encoder-feature density of the train split (models.familiarity)
         "input_dtype": "uint8",      # data type of the training images (None: not recorded)
         "input_range": [lo, hi],     # their value range (value_envelope of the train statistics)
       },
@@ -45,6 +46,7 @@ from aerialmtl.io.oserrors import output_error
 from aerialmtl.io.outputs import atomic_write
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.signals import deferred
 
 FORMAT = "aerialmtl-checkpoint"
@@ -80,6 +82,9 @@ class ModelMeta:
     #: ``None`` when not recorded. Training calls a validation error far beyond them a divergence, predict a
     #: map far outside them garbage (:func:`plausible_heights`).
     height_range: tuple[float, float] | None = None
+    #: density of the encoder's features on the train split, fitted after training (predict writes the
+    #: ``unfamiliarity`` layer from it); ``None`` for checkpoints without one (:mod:`aerialmtl.models.familiarity`).
+    familiarity: FeatureDensity | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels

@@ -12,6 +12,9 @@ model's GSD)::
     class_entropy.tif        float32, predictive entropy (nats)                       (T > 1)
     class_mutual_info.tif    float32, mutual information (nats), the epistemic part   (T > 1)
     class_probabilities.tif  K × float32, MC mean class probabilities                 (optional)
+    unfamiliarity.tif        float32 0–1, share of the training feature pixels the model found more
+                             familiar than this pixel's encoder features (a checkpoint with a
+                             feature density, :mod:`aerialmtl.models.familiarity`; any T)
     <layer>.qml              QGIS style of each layer (:func:`style_filename`; QGIS applies a .qml
                              named like the raster when it opens it; :mod:`aerialmtl.formats.qgis_style`)
     item.json                STAC 1.1 Item describing the folder (:mod:`aerialmtl.formats.stac`)
@@ -76,10 +79,11 @@ CLASSES = "classes"
 CLASS_ENTROPY = "class_entropy"
 CLASS_MUTUAL_INFO = "class_mutual_info"
 CLASS_PROBABILITIES = "class_probabilities"
-LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES)
+UNFAMILIARITY = "unfamiliarity"
+LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES, UNFAMILIARITY)
 
-#: Unit of each float layer (``class_probabilities``: none).
-LAYER_UNITS = {HEIGHT: "m", HEIGHT_STD: "m", CLASS_ENTROPY: "nats", CLASS_MUTUAL_INFO: "nats"}
+#: Unit of each float layer (``class_probabilities``: none; ``unfamiliarity``: a share, 0–1, no unit).
+LAYER_UNITS = {HEIGHT: "m", HEIGHT_STD: "m", CLASS_ENTROPY: "nats", CLASS_MUTUAL_INFO: "nats", UNFAMILIARITY: ""}
 
 #: The run-information file.
 INFO_FILE = "prediction.json"
@@ -175,7 +179,7 @@ class LayerSpec:
 
 def prediction_layers(
     tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False, aleatoric: bool = False,
-    tta: bool = False,
+    tta: bool = False, unfamiliarity: bool = False,
 ) -> tuple[LayerSpec, ...]:
     """The layers a prediction writes, in :data:`LAYERS` order.
 
@@ -188,6 +192,7 @@ def prediction_layers(
         aleatoric: the model's height head predicts a Laplace scale: ``height_std`` is the predictive
             spread (MC dropout and the aleatoric scale).
         tta: test-time augmentation (8 views): uncertainty layers at any T.
+        unfamiliarity: the checkpoint holds a feature density: the ``unfamiliarity`` layer (any T).
     """
     specs: list[LayerSpec] = []
     unc = mc > 1 or tta
@@ -219,6 +224,10 @@ def prediction_layers(
         if probabilities:
             specs.append(LayerSpec(CLASS_PROBABILITIES, classes.num_classes, "float32", FLOAT_NODATA,
                                    tuple(f"P({n})" for n in classes.names), ("",) * classes.num_classes))
+    if unfamiliarity:
+        specs.append(LayerSpec(UNFAMILIARITY, 1, "float32", FLOAT_NODATA,
+                               ("unfamiliarity: share of training pixels more familiar to the model (0-1)",),
+                               (LAYER_UNITS[UNFAMILIARITY],)))
     return tuple(specs)
 
 
@@ -602,6 +611,7 @@ def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
 __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
     "CLASS_SCHEME_TAG", "COLLECTION_FILE", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "ITEM_FILE", "LAYERS",
+    "UNFAMILIARITY",
     "LAYER_UNITS",
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
     "mosaic_style_filename",

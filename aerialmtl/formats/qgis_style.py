@@ -8,6 +8,8 @@ QGIS applies ``<raster name without extension>.qml`` when it opens a raster (``h
   not flatten the ramp; values above it take the top colour);
 * ``height_std``, ``class_entropy``, ``class_mutual_info``: sequential ramps over 0..p98 of the layer
   (metres, nats); ``class_probabilities``: its first band over 0..1;
+* ``unfamiliarity``: a sequential ramp over its fixed range 0..1 (0.5: as familiar as a typical training
+  pixel; near 1: unlike anything the model was trained on);
 * ``classes``: a ``paletted`` renderer with one entry per class, labelled with the class **name** and
   coloured as in the class scheme (QGIS 3.22 reads names neither from the colour table nor from tags).
 
@@ -36,6 +38,7 @@ from aerialmtl.formats.prediction import (
     CLASSES,
     HEIGHT,
     HEIGHT_STD,
+    UNFAMILIARITY,
     LayerSpec,
 )
 from aerialmtl.io.outputs import write_text
@@ -61,7 +64,9 @@ BLUES = Ramp("Blues", ("#eff3ff", "#bdd7e7", "#6baed6", "#3182bd", "#08519c"))
 
 #: The ramp of each continuous layer.
 RAMPS: dict[str, Ramp] = {HEIGHT: VIRIDIS, HEIGHT_STD: YLORRD, CLASS_ENTROPY: MAGMA, CLASS_MUTUAL_INFO: MAGMA,
-                          CLASS_PROBABILITIES: BLUES}
+                          CLASS_PROBABILITIES: BLUES, UNFAMILIARITY: MAGMA}
+#: Layers styled over a fixed range (their values are shares, 0..1) instead of 0..p98.
+FIXED_RANGES: dict[str, tuple[float, float]] = {CLASS_PROBABILITIES: (0.0, 1.0), UNFAMILIARITY: (0.0, 1.0)}
 
 #: The top of the ramp when a layer has no valid pixel (nothing to scale to).
 FALLBACK_MAX = 1.0
@@ -187,8 +192,8 @@ def layer_style(spec: LayerSpec, stats: BandStats | None) -> ET.ElementTree:
         if scheme is None:
             raise OutputError(f"layer '{spec.name}' carries no class scheme; cannot style it with class names")
         return paletted_style(scheme, spec.nodata)
-    if spec.name == CLASS_PROBABILITIES:
-        return pseudocolor_style(0.0, 1.0, RAMPS[spec.name], spec.nodata)
+    if spec.name in FIXED_RANGES:
+        return pseudocolor_style(*FIXED_RANGES[spec.name], RAMPS[spec.name], spec.nodata)
     vmax = stats.p98 if stats is not None else FALLBACK_MAX
     unit = spec.units[0] if spec.units else ""
     return pseudocolor_style(0.0, max(vmax, 0.0), RAMPS.get(spec.name, VIRIDIS), spec.nodata, unit)
@@ -220,5 +225,5 @@ def write_raster_style(raster: str | Path, spec: LayerSpec) -> Path:
     return write_style(style_path(raster), layer_style(spec, stats))
 
 
-__all__ = ["BLUES", "MAGMA", "QGIS_VERSION", "RAMPS", "VIRIDIS", "YLORRD", "Ramp", "class_scheme_of",
+__all__ = ["BLUES", "FIXED_RANGES", "MAGMA", "QGIS_VERSION", "RAMPS", "VIRIDIS", "YLORRD", "Ramp", "class_scheme_of",
            "layer_style", "paletted_style", "pseudocolor_style", "style_path", "write_raster_style", "write_style"]

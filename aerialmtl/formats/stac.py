@@ -48,6 +48,7 @@ from aerialmtl.formats.prediction import (
     HEIGHT_STD,
     INFO_FILE,
     ITEM_FILE,
+    UNFAMILIARITY,
     LayerSpec,
     style_filename,
 )
@@ -61,8 +62,8 @@ COG_TYPE = pystac.MediaType.COG
 VRT_TYPE = "application/xml"
 QML_TYPE = "text/xml"
 JSON_TYPE = pystac.MediaType.JSON
-#: Layers holding MC-dropout uncertainty (role ``uncertainty`` besides ``data``).
-UNCERTAINTY_LAYERS = (HEIGHT_STD, CLASS_ENTROPY, CLASS_MUTUAL_INFO)
+#: Layers holding uncertainty (role ``uncertainty`` besides ``data``): MC dropout's, and the feature density's.
+UNCERTAINTY_LAYERS = (HEIGHT_STD, CLASS_ENTROPY, CLASS_MUTUAL_INFO, UNFAMILIARITY)
 #: Points per footprint edge reprojected to WGS 84 (a reprojected straight edge is curved).
 EDGE_POINTS = 21
 #: Prefix of the plain properties describing the model and the run.
@@ -73,7 +74,7 @@ def model_summary(meta: Any) -> dict[str, Any]:
     """What a catalogue needs to know about the model (a :class:`~aerialmtl.formats.checkpoint.ModelMeta`).
 
     Returns a JSON-able dict: architecture, encoder, tasks, input bands and normalisation, GSD (m),
-    class names, MC-dropout rate.
+    class names, MC-dropout rate, and the feature density behind the ``unfamiliarity`` layer (or why there is none).
     """
     cfg = meta.model
     classes = meta.classes if "classes" in cfg.tasks else None
@@ -93,6 +94,8 @@ def model_summary(meta: Any) -> dict[str, Any]:
         "gsd_m": float(meta.gsd),
         "dropout": float(cfg.dropout),
         "class_names": list(classes.names) if classes is not None else [],
+        "unfamiliarity": (meta.familiarity.summary() if getattr(meta, "familiarity", None) is not None else
+                          "none: the checkpoint holds no feature density, so no unfamiliarity layer"),
     }
 
 

@@ -38,6 +38,7 @@ module imports neither the job nor the jobs (an import-linter contract, pyprojec
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 import warnings
 from collections import deque
@@ -71,6 +72,8 @@ from aerialmtl.inference.windows import Plan
 from aerialmtl.models import class_kernel
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.progress import tqdm_auto as tqdm
+
+log = logging.getLogger(__name__)
 
 #: MC-dropout samples when the caller does not say otherwise and the model has dropout.
 DEFAULT_MC_SAMPLES = 30
@@ -128,8 +131,7 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
 
 def _stats_window(stats: McStatistics, n: int) -> McStatistics:
     """The statistics of window ``n`` of a batch (views)."""
-    return McStatistics(*(None if t is None else t[n] for t in (stats.height_mean, stats.height_std, stats.probs,
-                                                                 stats.mean_entropy, stats.height_aleatoric)))
+    return stats.map(lambda t: t[n])
 
 
 # ---- the predictor -----------------------------------------------------------------------------
@@ -183,7 +185,11 @@ class Predictor:
         self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
         self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, s.probabilities,
-                                                                 aleatoric=self.meta.model.aleatoric, tta=s.tta)
+                                                                 aleatoric=self.meta.model.aleatoric, tta=s.tta,
+                                                                 unfamiliarity=self.meta.familiarity is not None)
+        if self.meta.familiarity is None:  # said once per run (and in prediction.json's model summary)
+            log.info("%s holds no feature density: no unfamiliarity layer (a model trained with this version "
+                     "fits one after training)", self.checkpoint_name)
         self._batch: dict[tuple[int, int], int] = {}
         if self.mc > 1 and self.device.type == "cpu":  # loaded before any output exists (class_kernel.prepare)
             class_kernel.prepare()

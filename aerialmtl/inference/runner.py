@@ -112,8 +112,7 @@ def _undo(x: torch.Tensor, t: int) -> torch.Tensor:
 
 def invert_statistics(stats: McStatistics, t: int) -> McStatistics:
     """The statistics of view ``t`` back on the window's own grid."""
-    return McStatistics(*(None if v is None else _undo(v, t).contiguous() for v in (
-        stats.height_mean, stats.height_std, stats.probs, stats.mean_entropy, stats.height_aleatoric)))
+    return stats.map(lambda v: _undo(v, t).contiguous())
 
 
 def combine_tta(parts: Sequence[McStatistics]) -> McStatistics:
@@ -140,6 +139,8 @@ def combine_tta(parts: Sequence[McStatistics]) -> McStatistics:
         ents = [p.mean_entropy if p.mean_entropy is not None
                 else -(q * torch.log(q.clamp_min(1e-12))).sum(-1) for p, q in zip(parts, probs)]
         out.mean_entropy = torch.stack(ents).sum(0) / n
+    if parts[0].unfamiliarity is not None:  # the views' mean
+        out.unfamiliarity = torch.stack([p.unfamiliarity for p in parts if p.unfamiliarity is not None]).mean(0)
     return out
 
 

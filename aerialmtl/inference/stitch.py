@@ -25,7 +25,8 @@ Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each w
 * ``probs`` (K, channels last) → ``classes`` (argmax), ``class_entropy`` (entropy of the blended
   probabilities), ``class_probabilities``;
 * ``mean_entropy`` (mean per-sample entropy) → ``class_mutual_info = clip(entropy − blended mean
-  entropy, 0, entropy)``, so ``0 ≤ MI ≤ entropy ≤ log K`` holds exactly in the blended result.
+  entropy, 0, entropy)``, so ``0 ≤ MI ≤ entropy ≤ log K`` holds exactly in the blended result;
+* ``unfamiliarity`` (0–1) → ``unfamiliarity`` (weighted mean, so it stays in 0–1).
 
 Every sum is formed in window order with one rounding per product and per addition, so any
 implementation that adds the same products in the same order (e.g. a whole-raster reference in numpy)
@@ -48,6 +49,7 @@ from aerialmtl.formats.prediction import (
     CLASSES,
     HEIGHT,
     HEIGHT_STD,
+    UNFAMILIARITY,
     LayerSpec,
 )
 from aerialmtl.inference.windows import Plan
@@ -59,7 +61,7 @@ CHUNK_ELEMENTS = 1 << 20
 #: Largest carry held in memory (bytes); a larger one goes to a temporary file (see the module docstring).
 CARRY_IN_MEMORY = 32 << 20
 
-_QUANTITIES = ("height_mean", "height_std", "probs", "mean_entropy")
+_QUANTITIES = ("height_mean", "height_std", "probs", "mean_entropy", "unfamiliarity")
 
 
 @dataclass
@@ -88,6 +90,8 @@ def _quantities(names: set[str]) -> tuple[str, ...]:
         need.append("probs")
     if CLASS_MUTUAL_INFO in names:
         need.append("mean_entropy")
+    if UNFAMILIARITY in names:
+        need.append("unfamiliarity")
     return tuple(need)
 
 
@@ -333,6 +337,8 @@ class Stitcher:
                 values[HEIGHT_STD] = self.calibration.std_torch(values[HEIGHT_STD], raw_height)
             if raw_height is not None:
                 values[HEIGHT] = self.calibration.height_torch(raw_height)
+        if UNFAMILIARITY in specs:
+            values[UNFAMILIARITY] = (acc["unfamiliarity"][rs, cs] / safe).clamp_(0.0, 1.0)
         if "probs" not in acc:
             return values
         probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)

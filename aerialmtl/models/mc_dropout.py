@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import cast
 
 import numpy as np
@@ -49,6 +49,7 @@ from torch import nn
 
 from aerialmtl.models import class_kernel
 from aerialmtl.models.config import HEIGHT_SCALE
+from aerialmtl.models.familiarity import FeatureDensity
 
 _DROPOUT_TYPES = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d, nn.AlphaDropout, nn.FeatureAlphaDropout)
 
@@ -159,6 +160,9 @@ class McStatistics:
         probs: B×H×W×K mean class probabilities (channels last); ``None`` without classes.
         mean_entropy: B×H×W mean over the samples of each sample's entropy (nats), i.e. the expected
             entropy; the mutual information is ``H[probs] − mean_entropy``.
+        unfamiliarity: B×H×W in [0, 1], from the encoder's features and the checkpoint's feature density
+            (:meth:`FeatureDensity.unfamiliarity <aerialmtl.models.familiarity.FeatureDensity.unfamiliarity>`);
+            ``None`` without a density.
     """
 
     height_mean: torch.Tensor | None = None
@@ -166,6 +170,12 @@ class McStatistics:
     probs: torch.Tensor | None = None
     mean_entropy: torch.Tensor | None = None
     height_aleatoric: torch.Tensor | None = None
+    unfamiliarity: torch.Tensor | None = None
+
+    def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> McStatistics:
+        """A copy with ``fn`` applied to every statistic present (e.g. one window of a batch, a view undone)."""
+        return McStatistics(**{f.name: None if getattr(self, f.name) is None else fn(getattr(self, f.name))
+                               for f in fields(self)})
 
 
 def class_probabilities(logits: torch.Tensor) -> torch.Tensor:
@@ -271,6 +281,7 @@ def mc_statistics(
     sample_batch: int | None = None,
     seed: int | None = None,
     keys: Sequence[int] | None = None,
+    density: FeatureDensity | None = None,
 ) -> McStatistics:
     """MC-dropout statistics of a D3-Net-like model (with ``encode``/``decode``); encoder run once.
 
@@ -284,6 +295,7 @@ def mc_statistics(
             with ``keys``: the base seed of the per-image generators (default 0).
         keys: one integer per image; image ``b``'s masks in sample ``t`` come from a generator seeded by
             ``(seed, keys[b], t)`` (see the module docstring).
+        density: the checkpoint's feature density: ``unfamiliarity`` from the encoder's features too.
 
     Returns:
         :class:`McStatistics` for the tasks the model returns.
@@ -316,7 +328,10 @@ def mc_statistics(
                                     for t in range(done, done + s) for key in keys]
             return decode([f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats])
 
-        return accumulate_samples(decode_chunk, samples, chunk, b)
+        stats = accumulate_samples(decode_chunk, samples, chunk, b)
+    if density is not None:
+        stats.unfamiliarity = density.unfamiliarity(feats, (x.shape[-2], x.shape[-1]))
+    return stats
 
 
 def sample_generator(seed: int, key: int, sample: int, device: torch.device | str = "cpu") -> torch.Generator:

@@ -282,6 +282,7 @@ PREDICTION_LAYERS: tuple[tuple[str, str], ...] = (
     ("class_entropy.tif", "class entropy (nats)"),
     ("class_mutual_info.tif", "class mutual information (nats)"),
     ("class_probabilities.tif", "class probabilities"),
+    ("unfamiliarity.tif", "unfamiliarity (0-1)"),
 )
 
 #: Name of the provider setting that holds the ``aerialmtl`` program.

@@ -18,6 +18,7 @@ the key path (``optim.lr``) and the valid keys/choices::
     precision: auto       # auto (bf16 autocast on a CUDA GPU that has bf16, fp32 otherwise) | fp32 | bf16
     compile: false        # torch.compile the model (falls back to eager with a warning if it fails)
     calibration: {enabled: true, method: isotonic, mc_samples: 16}   # fitted on val after training
+    familiarity: {enabled: true, levels: [2], dims: 32, method: gda}  # feature density fitted on train
 
 Relative ``data.dir`` paths are resolved against the current working directory. With several processes
 (``torchrun``), ``data.batch_size`` is per process: a step uses ``batch_size × processes`` patches.
@@ -298,6 +299,35 @@ class CalibrationSection:
 
 
 @dataclass(frozen=True)
+class FamiliaritySection:
+    """The encoder-feature density fitted on the train split at the end of training
+    (:mod:`aerialmtl.training.familiarity`); ``predict`` writes the ``unfamiliarity`` layer from it.
+
+    Attributes:
+        enabled: fit it and store it in ``best.pt`` and ``last.pt``.
+        levels: encoder outputs used (0..4 = strides 2, 4, 8, 16, 32); the default, stride 8, was chosen on
+            validation among strides 4-32, level pairs, EM mixtures, densities given the prediction and nearest
+            neighbours (bench/RESULTS.md, "unfamiliarity").
+        dims: principal axes kept.
+        method: ``gda`` (one Gaussian per reference-height bin, DDU's choice) or ``em`` (a mixture fitted by EM).
+        components: Gaussians of ``em``.
+    """
+
+    enabled: bool = True
+    levels: tuple[int, ...] = (2,)
+    dims: int = 32
+    method: Literal["gda", "em"] = "gda"
+    components: int = 8
+
+    def __post_init__(self) -> None:
+        if not self.levels or any(not 0 <= v <= 4 for v in self.levels):
+            raise ConfigError(f"familiarity.levels: encoder levels 0..4 (strides 2..32), got {list(self.levels)}")
+        if self.dims < 1 or self.components < 1:
+            raise ConfigError(f"familiarity.dims and familiarity.components: must be ≥ 1, got {self.dims} and "
+                              f"{self.components}")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """The whole training configuration (see the module docstring for the YAML layout)."""
 
@@ -312,6 +342,7 @@ class TrainConfig:
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     compile: bool = False
     calibration: CalibrationSection = field(default_factory=CalibrationSection)
+    familiarity: FamiliaritySection = field(default_factory=FamiliaritySection)
     #: Keys of earlier configs (and of the configs stored in earlier checkpoints) read and ignored, with a warning:
     #: ``predict`` held ``mc_samples``, which nothing read; ``predict --mc`` and
     #: :class:`~aerialmtl.inference.settings.PredictSettings` decide T (30 with dropout).

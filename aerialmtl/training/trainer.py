@@ -470,6 +470,7 @@ class Trainer:
         if self.average is not None:  # the run is over: the model is its average, as in last.pt
             self.model.load_state_dict(self.average.shadow)
         self.calibrate()
+        self.familiarize()
         return TrainResult(run_dir=self.run, last_checkpoint=self.paths["last.pt"],
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
                            config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
@@ -490,6 +491,22 @@ class Trainer:
                 c = calibrate_checkpoint(self.paths[name], self.info.root, mc=cal.mc_samples, method=cal.method,
                                          cache_folder=self.cache_folder, device=self.device)
                 log.info("%s: %s", name, c.summary())
+
+    def familiarize(self) -> None:
+        """Fit the encoder-feature density on the train split and store it in best.pt and last.pt (rank 0; see
+        :mod:`aerialmtl.training.familiarity`).
+        """
+        fam = self.cfg.familiarity
+        if not (fam.enabled and self.ctx.is_main):
+            return
+        from aerialmtl.training.familiarity import familiarize_checkpoint
+
+        for name in ("best.pt", "last.pt"):
+            if self.paths[name].exists():
+                d = familiarize_checkpoint(self.paths[name], self.info.root, levels=fam.levels, dims=fam.dims,
+                                           method=fam.method, components=fam.components,
+                                           cache_folder=self.cache_folder, device=self.device)
+                log.info("%s: %s", name, d.summary())
 
     def done_before_start(self) -> str | None:
         """Stop reason of a resumed run that has nothing left to do (no time check: it has not started)."""

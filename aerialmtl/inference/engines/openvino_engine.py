@@ -34,6 +34,7 @@ from aerialmtl.inference.engines.openvino_graphs import (
 from aerialmtl.inference.engines.openvino_requests import _DONE, _BufferPool, _Forward1, _Job, _Requests
 from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.models.d3net import inference_model
+from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import DropoutSite, McStatistics, accumulate_samples, dropout_masks, dropout_sites
 from aerialmtl.runtime import CpuThreads, resolve_threads
 
@@ -65,14 +66,17 @@ class OpenVINOEngine:
         cache_dir: where the IR and compiled models go (default :func:`cache_root`/fingerprint; nothing is
             cached with ``cache=False``; :class:`~aerialmtl.inference.engine_cache.EngineCache`).
         cache: keep converted and compiled models on disk.
+        density: the checkpoint's feature density: each window's ``unfamiliarity`` from the encoder graph's
+            outputs (at T = 1 the encoder graph runs once more per window for it).
     """
 
     name = "openvino"
 
     def __init__(self, model: nn.Module | CheckpointModel, in_channels: int, tasks: Sequence[str], precision: str,
                  cache_dir: str | Path | None = None, cache: bool = True, threads: CpuThreads | None = None,
-                 weights_key: str | None = None) -> None:
+                 weights_key: str | None = None, density: FeatureDensity | None = None) -> None:
         ov = runtime.import_openvino()
+        self.density = density
         self.ov = ov
         self.raw_model = model
         self._model: nn.Module | None = None
@@ -279,10 +283,21 @@ class OpenVINOEngine:
         if samples > 1:
             return Deferred(lambda: self.statistics(x, keys, samples, seed, sample_batch))
         h, w = x.shape[-2:]
+        unfamiliarity = self._unfamiliarity(x) if self.density is not None else None
         reqs = self._requests("forward", h, w)
         jobs = [reqs.start({0: x[n:n + 1].contiguous().numpy()}, self._pool.take(reqs.shapes))
                 for n in range(x.shape[0])]
-        return _Forward1(self.tasks, jobs, self._pool)
+        return _Forward1(self.tasks, jobs, self._pool, unfamiliarity)
+
+    def _unfamiliarity(self, x: torch.Tensor, feats: Sequence[list[np.ndarray]] | None = None) -> torch.Tensor:
+        """(B, h, w) unfamiliarity of a normalised batch from each window's encoder outputs (``feats``, else the
+        encoder graph run here).
+        """
+        assert self.density is not None
+        size = (x.shape[-2], x.shape[-1])
+        if feats is None:
+            feats = [self.encode(x[n:n + 1]) for n in range(x.shape[0])]
+        return torch.cat([self.density.unfamiliarity(f, size) for f in feats])
 
     def statistics(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                    sample_batch: int) -> McStatistics:
@@ -324,7 +339,10 @@ class OpenVINOEngine:
             out = buffers[(done // chunk) % 2]
             return {task: _as_planes(task, torch.from_numpy(out[k][:s * b])) for k, task in enumerate(self.tasks)}
 
-        return accumulate_samples(decode_chunk, samples, chunk, b)
+        stats = accumulate_samples(decode_chunk, samples, chunk, b)
+        if self.density is not None:
+            stats.unfamiliarity = self._unfamiliarity(x, feats)
+        return stats
 
     def _chunk_buffers(self, shapes: Sequence[tuple[int, ...]], rows: int) -> list[list[np.ndarray]]:
         """Two sets of float32 buffers, ``rows × shape[1:]`` per output (kept for the next window of the same
@@ -364,7 +382,8 @@ def openvino_unusable(device: torch.device, model: nn.Module | CheckpointModel) 
 def build_openvino(setup: EngineSetup) -> OpenVINOEngine:
     """The OpenVINO engine of ``setup`` (its cache keyed by ``setup.weights_key`` when given)."""
     return OpenVINOEngine(setup.model, setup.meta.model.in_channels, setup.tasks, setup.resolved.precision,
-                          threads=setup.resolved.threads, weights_key=setup.weights_key)
+                          threads=setup.resolved.threads, weights_key=setup.weights_key,
+                          density=setup.meta.familiarity)
 
 
 __all__ = ["OPENVINO_INSTALL", "OpenVINOEngine", "build_openvino", "openvino_available", "openvino_unusable"]

@@ -113,8 +113,9 @@ class _Forward1:
     buffers go back to ``pool`` once the statistics are made from them.
     """
 
-    def __init__(self, tasks: tuple[str, ...], jobs: list[_Job], pool: _BufferPool) -> None:
-        self.tasks, self.jobs, self.pool = tasks, jobs, pool
+    def __init__(self, tasks: tuple[str, ...], jobs: list[_Job], pool: _BufferPool,
+                 unfamiliarity: torch.Tensor | None = None) -> None:
+        self.tasks, self.jobs, self.pool, self.unfamiliarity = tasks, jobs, pool, unfamiliarity
 
     def result(self) -> McStatistics:
         outs = [job.outputs() for job in self.jobs]
@@ -125,6 +126,7 @@ class _Forward1:
             stats.height_mean = stats.height_mean.clone()
         for o in outs:
             self.pool.give(o)
+        stats.unfamiliarity = self.unfamiliarity  # computed from the encoder graph when the batch was submitted
         return stats
 
 

@@ -12,6 +12,7 @@ from aerialmtl import runtime
 from aerialmtl.inference.engines.base import Done, EngineSetup, Pending
 from aerialmtl.inference.model_record import resolve_model
 from aerialmtl.models.d3net import inference_model
+from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
 
@@ -52,14 +53,16 @@ class TorchEngine:
         model: the prepared model itself (its modes are switched for MC dropout).
         device, precision: where and how it runs (bf16 = autocast).
         tasks: the model's tasks.
+        density: the checkpoint's feature density: each window's ``unfamiliarity`` from its encoder features.
     """
 
     name = "torch"
 
     def __init__(self, net: nn.Module, model: nn.Module, device: torch.device, precision: str,
-                 tasks: Sequence[str]) -> None:
+                 tasks: Sequence[str], density: FeatureDensity | None = None) -> None:
         self._net, self._model = net, model
         self.device, self.precision, self.tasks = device, precision, tuple(tasks)
+        self.density = density
 
     @property
     def model(self) -> nn.Module:
@@ -85,8 +88,14 @@ class TorchEngine:
         with torch.inference_mode(), runtime.autocast(self.device, self.precision):
             if samples == 1:
                 self._model.eval()
-                return single_pass_statistics(self._net(x))
-            return mc_statistics(self._net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys)
+                if self.density is None:
+                    return single_pass_statistics(self._net(x))
+                feats = self._net.encode(x)  # type: ignore[operator]
+                stats = single_pass_statistics(self._net.decode(feats))  # type: ignore[operator]
+                stats.unfamiliarity = self.density.unfamiliarity(feats, (x.shape[-2], x.shape[-1]))
+                return stats
+            return mc_statistics(self._net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys,
+                                 density=self.density)
 
 
 
@@ -97,12 +106,13 @@ def build_torch(setup: EngineSetup) -> TorchEngine:
     device = setup.resolved.device
     prepared = inference_model(resolve_model(setup.model), device)
     net = compile_model(prepared) if setup.settings.compile else prepared
-    return TorchEngine(net, prepared, device, setup.resolved.precision, setup.tasks)
+    return TorchEngine(net, prepared, device, setup.resolved.precision, setup.tasks, density=setup.meta.familiarity)
 
 
 def torch_over(model: nn.Module, setup: EngineSetup) -> TorchEngine:
     """The torch engine over a model another engine prepared already (the fallback: not compiled)."""
-    return TorchEngine(model, model, setup.resolved.device, setup.resolved.precision, setup.tasks)
+    return TorchEngine(model, model, setup.resolved.device, setup.resolved.precision, setup.tasks,
+                       density=setup.meta.familiarity)
 
 
 __all__ = ["TorchEngine", "build_torch", "compile_model", "torch_over"]
