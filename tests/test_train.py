@@ -380,6 +380,20 @@ def test_init_refuses_other_bands_and_architectures(trained: Path, tiles: Path, 
         train(tiny_cfg(model={"growth_rate": 12}), tiles, tmp_path / "b", max_steps=1, init=trained, progress=False)
 
 
+def test_init_between_lite0_configs_ignores_the_unused_densenet_fields(tiles: Path, tmp_path: Path) -> None:
+    """A Lite0 start (made from one config) fine-tunes under a Lite0 recipe whose DenseNet fields, unused by
+    that encoder, hold other values; a DenseNet pair with other fields is still refused (test above).
+    """
+    lite = {"encoder": "efficientnet_lite0", "encoder_weights": None}
+    start = train(tiny_cfg(model=lite), tiles, tmp_path / "start", max_steps=1, progress=False).last_checkpoint
+    res = train(tiny_cfg(model={**lite, "growth_rate": 12, "block_config": [2, 4, 6, 4]}, optim={"lr": 1e-30}),
+                tiles, tmp_path / "ft", max_steps=1, init=start, progress=False)
+    assert res.model is not None
+    source = load_checkpoint(start)[0]["state_dict"]
+    key = next(k for k in source if k.startswith("encoder.") and k.endswith(".weight"))
+    torch.testing.assert_close(res.model.state_dict()[key], source[key])
+
+
 def test_init_into_a_new_task_and_cli_flags(trained: Path, tmp_path: Path) -> None:
     from click.testing import CliRunner
 

@@ -26,6 +26,16 @@ from aerialmtl.models.config import Architecture
 #: Architecture fields that change tensor shapes or names (dropout does not).
 _SHAPE_FIELDS = tuple(f.name for f in fields(Architecture) if f.name not in ("dropout", "dropout_blocks",
                                                                                 "encoder_weights"))
+#: The fields that describe the DenseNet encoder only: another encoder ignores them (a Lite0 start made from one
+#: config and a Lite0 recipe from another may carry different, unused values there).
+_DENSENET_FIELDS = ("growth_rate", "block_config", "num_init_features", "bn_size", "compression")
+
+
+def _shape_fields(old: Architecture, new: Architecture) -> tuple[str, ...]:
+    """The fields whose difference changes the network's tensors, for this pair of architectures."""
+    if old.encoder == new.encoder and not old.encoder.startswith("densenet"):
+        return tuple(n for n in _SHAPE_FIELDS if n not in _DENSENET_FIELDS)
+    return _SHAPE_FIELDS
 
 
 @dataclass(frozen=True)
@@ -67,7 +77,7 @@ def load_init_weights(model: torch.nn.Module, path: str | Path, meta: ModelMeta)
             "orthophoto with the checkpoint's bands"
         )
     differ = [f"model.{n}: checkpoint {getattr(old.model, n)!r}, config {getattr(meta.model, n)!r}"
-              for n in _SHAPE_FIELDS if getattr(old.model, n) != getattr(meta.model, n)]
+              for n in _shape_fields(old.model, meta.model) if getattr(old.model, n) != getattr(meta.model, n)]
     if differ:
         raise CheckpointError(
             f"init: checkpoint '{path}' has another architecture ({'; '.join(differ)}); set the config's model "
