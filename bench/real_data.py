@@ -67,7 +67,7 @@ from aerialmtl.training.config import TrainConfig, load_train_config
 from aerialmtl.training.loop import train
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = Path("/work/shared/data/autzen_west")
+DATA = ROOT / "samples" / "autzen_west"  # samples/README.md
 ORTHO, DSM, DTM = "ortho_1ft.tif", "dsm_1m_utm.tif", "dtm_1m_utm.tif"
 
 #: Bands along the north–south axis, as fractions of the orthophoto's extent from its north edge. The

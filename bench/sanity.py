@@ -36,7 +36,7 @@ from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net
 from aerialmtl.models.mc_dropout import McStatistics
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "autzen_west"
+DATA = Path(__file__).resolve().parents[1] / "samples" / "autzen_west"  # samples/README.md
 
 
 def median_time(fn, reps: int) -> float:

@@ -76,6 +76,8 @@ def _renderer(layer: Any) -> dict[str, Any]:
         shader = r.shader().rasterShaderFunction()
         items = shader.colorRampItemList()
         info["min"], info["max"], info["colors"] = shader.minimumValue(), shader.maximumValue(), len(items)
+        legend = shader.legendSettings()  # the continuous legend of the layers panel and print layouts
+        info["legend_suffix"] = legend.suffix() if legend is not None else None
     if r is not None and r.type() == "graduatedSymbol":
         info["field"], info["ranges"] = r.classAttribute(), len(r.ranges())
     return info

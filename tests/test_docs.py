@@ -1,10 +1,16 @@
 """The documentation site covers the package: every page in the navigation, every public name in the API
-reference, every command and option in the generated CLI reference (the strict build itself runs in .ci/run)."""
+reference, every command and option in the generated CLI reference with click's real defaults; the built site
+shows no warning block, traceback, ``Sentinel`` or path of the machine that built it."""
 
 from __future__ import annotations
 
 import html
+import importlib.util
+import os
 import re
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import click
@@ -16,6 +22,15 @@ from aerialmtl.cli import cli
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"
+
+
+def _docs_hooks() -> object:
+    """The site's hooks module (docs_hooks.py, beside mkdocs.yml)."""
+    spec = importlib.util.spec_from_file_location("docs_hooks", REPO / "docs_hooks.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def _nav_pages(nav: object) -> list[str]:
@@ -50,10 +65,16 @@ def test_the_api_reference_documents_every_public_name() -> None:
 
 def test_the_cli_reference_shows_every_command_and_option() -> None:
     """Render the page as the site does (mkdocs-click) and look for every command and option in it."""
-    markdown = pytest.importorskip("markdown")
-    pytest.importorskip("mkdocs_click")
+    markdown = pytest.importorskip("markdown", reason="the test extra installs markdown and mkdocs-click")
+    pytest.importorskip("mkdocs_click", reason="the test extra installs markdown and mkdocs-click")
+    _docs_hooks().use_real_defaults()  # type: ignore[attr-defined]  # as the site's build does (mkdocs.yml hooks)
     page = markdown.markdown((DOCS / "reference" / "cli.md").read_text(), extensions=["mkdocs-click", "tables"])
     text = html.unescape(re.sub("<[^>]+>", " ", page))
+    assert "Sentinel" not in text and "UNSET" not in text  # click 8.3+'s marker for "no default"
+    rows = [re.findall(r"<td>(.*?)</td>", row, flags=re.S) for row in re.findall(r"<tr>.*?</tr>", page, flags=re.S)]
+    defaults = {(cells[0], cells[3]) for cells in rows if len(cells) == 4}
+    assert {d for name, d in defaults if name == "<code>--overwrite</code>"} == {"<code>False</code>"}  # a flag: off
+    assert ("<code>--size</code>", "<code>320</code>") in defaults  # tile's patch side
     for name, command in cli.commands.items():
         assert f"aerialmtl {name}" in text, name
         for p in command.params:
@@ -75,3 +96,33 @@ def test_the_readme_keeps_the_two_commands_and_its_links() -> None:
     for link in re.findall(r"\]\(([^)#]+)\)", readme):
         if not link.startswith(("http://", "https://")):
             assert (REPO / link).exists(), link
+
+
+# ---- the built site ----------------------------------------------------------------------------------
+#: What no page of the site may show: a notebook cell's stderr block (a warning), a traceback, click's
+#: marker for "no default", and paths of the machine that built it (checkout, Python, home, build temp folders).
+_MACHINE = {str(REPO), sys.prefix, os.path.expanduser("~")}
+_TMP = re.escape(tempfile.gettempdir().rstrip(os.sep) + os.sep)
+FORBIDDEN = [re.compile(r'<[^>]*data-mime-type="application/vnd\.jupyter\.stderr"'), re.compile("Traceback"),
+             re.compile("Sentinel"),
+             *(re.compile(re.escape(p.rstrip(os.sep) + os.sep)) for p in _MACHINE if p.strip(os.sep)),
+             re.compile(_TMP + r"(?:tmp[a-z0-9_]{8}|aerialmtl_nb_)")]
+
+
+@pytest.mark.slow
+def test_the_built_site_shows_no_warning_traceback_sentinel_or_machine_path(tmp_path: Path) -> None:
+    """Build the site as .ci/run does (~2 min: the notebook runs) and grep every page."""
+    pytest.importorskip("mkdocs", reason="building the site needs the docs extra: pip install -e '.[docs]'")
+    for plugin in ("material", "mkdocs_jupyter", "mkdocstrings", "mkdocs_click"):
+        pytest.importorskip(plugin, reason="building the site needs the docs extra: pip install -e '.[docs]'")
+    site = tmp_path / "site"
+    env = {**os.environ, "NO_MKDOCS_2_WARNING": "1",
+           "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+    done = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)], cwd=REPO,
+                          capture_output=True, text=True, env=env, timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    pages = sorted(site.rglob("*.html"))
+    assert len(pages) >= 15
+    found = [(str(page.relative_to(site)), m.group(0)) for page in pages for pattern in FORBIDDEN
+             if (m := pattern.search(page.read_text(encoding="utf-8")))]
+    assert not found, found

@@ -126,6 +126,9 @@ def test_every_layer_and_mosaic_has_a_style_qgis_can_apply(run: Path) -> None:
     assert float(renderer.get("classificationMax", "nan")) == pytest.approx(p98, rel=1e-6)
     items = renderer.findall("rastershader/colorrampshader/item")
     assert len(items) >= 2 and items[-1].get("label", "").endswith(" m")
+    # the continuous legend QGIS draws in the layers panel and print layouts: "0 m" ... "12.4 m"
+    legend = renderer.find("rastershader/colorrampshader/rampLegendSettings")
+    assert legend is not None and legend.get("suffix") == " m" and legend.get("useContinuousLegend") == "1"
     entry = renderer.find("rasterTransparency/singleValuePixelList/pixelListEntry")
     assert entry is not None and float(entry.get("min", "0")) == -9999.0 and entry.get("percentTransparent") == "100"
     for name in ("height_std", "class_entropy", "class_mutual_info"):

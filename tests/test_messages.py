@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import functools
 import http.server
@@ -226,3 +227,32 @@ def test_the_calibration_of_a_flat_area_is_not_refused(tmp_path: Path, capsys) -
     save_checkpoint(path, model, dataclasses.replace(meta, height_range=(0.0, 0.0),
                                                      calibration=Calibration((0.0, 3.0), (0.0, 0.0))))
     assert_ok(run(capsys, "predict", rgb(tmp_path), "--model", path, "--out", tmp_path / "p", *PREDICT))
+
+
+# ---- issue 38: which number is which, every file named -----------------------------------------------
+def test_train_says_which_validation_belongs_to_best_pt(tmp_path: Path, capsys) -> None:
+    tiles = write_tile_folder(tmp_path / "tiles", size=64, counts={"train": 4, "val": 2})
+    code, out, err = run(capsys, "train", "--config", tiny_train_yaml(tmp_path / "c.yaml"), "--data", tiles, "--out",
+                         tmp_path / "run", "--max-steps", "4", "--quiet")
+    assert code == 0, err
+    lines = out.splitlines()
+    stopped = next(line for line in lines if line.startswith("stopped by"))
+    best = next(line for line in lines if line.startswith("best checkpoint:"))
+    assert "last validation (step 4, last.pt): height MAE " in stopped and " m, RMSE " in stopped
+    assert f"{tmp_path / 'run' / 'best.pt'} (the lowest validation score of the run: step " in best
+    assert "height MAE " in best
+    # the step named is a validation row of log.csv with that MAE
+    step = int(best.split("step ")[1].split(",")[0])
+    mae = best.split("height MAE ")[1].split(" m")[0]
+    with open(tmp_path / "run" / "log.csv", newline="") as f:
+        (row,) = [r for r in csv.DictReader(f) if r["kind"] == "val" and int(r["step"]) == step]
+    assert f"{float(row['height_mae']):.4g}" == mae
+
+
+def test_predict_lists_every_file_it_wrote(tmp_path: Path, capsys, ckpt: Path) -> None:
+    out = tmp_path / "p"
+    code, stdout, err = run(capsys, "predict", rgb(tmp_path), "--model", ckpt, "--out", out, *PREDICT)
+    assert code == 0, err
+    listed = stdout.split("files: ")[1].split("\n")[0].split(", ")
+    assert sorted(listed) == sorted(p.name for p in out.iterdir())
+    assert {"height.qml", "item.json", "prediction.json"} <= set(listed)

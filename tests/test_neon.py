@@ -22,7 +22,7 @@ RGB = NEON_DIR / "rgb_0p1m.tif"
 CHM = NEON_DIR / "chm_1m.tif"
 pytestmark = pytest.mark.skipif(
     not (RGB.is_file() and CHM.is_file()),
-    reason=f"NEON sample not found in {NEON_DIR} (expects rgb_0p1m.tif and chm_1m.tif from ../shared/data)",
+    reason=f"NEON sample not found in {NEON_DIR} (expects rgb_0p1m.tif and chm_1m.tif from samples/neon_bart)",
 )
 
 

@@ -63,11 +63,16 @@ def test_notebook_runs_the_mini_pipeline(tmp_path: Path, monkeypatch: pytest.Mon
     monkeypatch.setenv("AERIALMTL_NB_WORKDIR", str(work))
     monkeypatch.setenv("AERIALMTL_NB_THREADS", "1")  # the test machine is shared: 1 thread is much faster there
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    result = _run(nbformat.read(NOTEBOOK, as_version=4), tmp_path)
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    result = _run(nb, tmp_path)
     assert result == json.loads((work / "notebook_summary.json").read_text())
+    # the site publishes the outputs as they are, and its build fails on a warning (docs_hooks.py)
+    stderr = [o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs
+              if o.output_type == "stream" and o.get("name") == "stderr"]
+    assert not stderr, stderr
 
     pred = work / "prediction"
-    assert Path(result["prediction"]) == pred
+    assert result["prediction"] == "WORKDIR/prediction"  # printed relative: no path of the machine on the site
     for name in ("height.tif", "height_std.tif", "classes.tif", "class_entropy.tif", "class_mutual_info.tif"):
         assert (pred / name).is_file(), name
     assert {"maps.png", "maps_zoom.png", "sparsification.png", "areas_height_std.png", "buildings.png"} <= set(

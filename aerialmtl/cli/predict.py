@@ -27,6 +27,7 @@ from aerialmtl.errors import CheckpointError, InputError
 from aerialmtl.io.paths import is_local, raster_name, raster_stem
 
 if TYPE_CHECKING:
+    from aerialmtl.inference.job import PredictResult
     from aerialmtl.runtime import Precision
 
 #: Environment variable naming the default checkpoint of `aerialmtl predict`.
@@ -129,7 +130,6 @@ def predict(
     One parameter per command-line option: click passes each option to the command; the settings are built
     once (:class:`~aerialmtl.inference.settings.PredictSettings`) and travel unchanged to the engine.
     """
-    from aerialmtl.inference.job import PredictResult
     from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.settings import PredictSettings
 
@@ -156,7 +156,7 @@ def predict(
             f"{res.grid.width}×{res.grid.height} px at {res.grid.gsd:.3g} m, T={res.mc}, "
             f"{res.windows_computed}/{res.windows_total} windows, overlap factor {res.overlap_factor:.2f}, "
             f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); "
-            f"files: {', '.join(p.name for p in res.files.values())}"
+            f"files: {', '.join(_written(res))}"
         )
 
     try:
@@ -178,3 +178,13 @@ def predict(
         click.echo(f"mosaics: {', '.join(str(p) for p in job.mosaics.values())}")
     if default and job.ranks.rank == 0:
         click.echo(f"outputs in {out} (the default without --out)")
+
+
+def _written(res: PredictResult) -> list[str]:
+    """Every file the prediction folder of ``res`` holds from this run: the layers, their ``.qml`` styles, the
+    STAC ``item.json`` and ``prediction.json`` (the order of :func:`~aerialmtl.formats.prediction.folder_files`).
+    """
+    from aerialmtl.formats.prediction import folder_files
+
+    layers = [name for name in res.files if name != "prediction"]  # "prediction" is prediction.json
+    return [f for f in folder_files(layers) if (res.out_dir / f).is_file()]

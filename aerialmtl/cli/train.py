@@ -90,16 +90,29 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
                         resume=resume, progress=not quiet, init=init_ckpt, overwrite=overwrite)
     if not process.is_main:
         return
-    m = result.metrics
-    parts = [f"{k}={m[k]:.4g}" for k in ("height_mae", "height_rmse", "oa", "miou") if k in m]
+    last = _scores(result.metrics)
     click.echo(f"stopped by {result.stopped_by} after {result.step} steps ({result.epoch} epochs, "
-               f"{result.elapsed_s:.0f} s)" + (f"; validation: {', '.join(parts)}" if parts else ""))
-    click.echo(f"best checkpoint: {result.best_checkpoint}")
+               f"{result.elapsed_s:.0f} s)" + (f"; last validation (step {result.step}, last.pt): {last}"
+                                                if last else ""))
+    best = _scores(result.best_metrics)
+    if best and result.best_step is not None:  # the scores that belong to best.pt, not the last validation's
+        click.echo(f"best checkpoint: {result.best_checkpoint} (the lowest validation score of the run: "
+                   f"step {result.best_step}, {best})")
+    else:
+        click.echo(f"best checkpoint: {result.best_checkpoint}")
     if Path(result.best_checkpoint).is_file():
         from aerialmtl.formats.checkpoint import load_checkpoint
 
         calibration = load_checkpoint(result.best_checkpoint)[1].calibration
         if calibration is not None:  # what validation kept, and why (predict applies exactly this)
-            click.echo(f"calibration of best.pt: {calibration.summary()}")
+            click.echo(f"calibration of best.pt (its scores: best.pt on the same validation patches, mean of "
+                       f"{cfg.calibration.mc_samples} MC-dropout samples): {calibration.summary()}")
     click.echo(f"last checkpoint: {result.last_checkpoint}")
     click.echo(f"log: {result.log_path}")
+
+
+def _scores(metrics: dict[str, float]) -> str:
+    """Validation scores as one phrase: ``height MAE 3.304 m, RMSE 5.12 m, OA 0.912, mIoU 0.61``."""
+    names = (("height_mae", "height MAE", " m"), ("height_rmse", "RMSE", " m"), ("oa", "OA", ""),
+             ("miou", "mIoU", ""))
+    return ", ".join(f"{label} {metrics[k]:.4g}{unit}" for k, label, unit in names if k in metrics)

@@ -146,9 +146,26 @@ def pseudocolor_style(vmin: float, vmax: float, ramp: Ramp, nodata: float | int 
         value = vmin + (vmax - vmin) * k / n
         ET.SubElement(shader, "item", {"alpha": "255", "value": repr(float(value)),
                                        "label": f"{value:.{digits}f}{suffix}", "color": color})
+    _ramp_legend(shader, suffix, digits)
     _pipe_tail(pipe, categorical=False)
     ET.SubElement(root, "blendMode").text = "0"
     return ET.ElementTree(root)
+
+
+def _ramp_legend(shader: ET.Element, suffix: str, digits: int) -> None:
+    """The continuous legend QGIS (≥ 3.18) draws for an interpolated ramp, in the layers panel and in print
+    layouts: its minimum and maximum labelled with the unit (``0 m`` … ``12.4 m``), ``digits`` decimals at most
+    (trailing zeros dropped). Without it the legend shows the bare numbers.
+    """
+    settings = ET.SubElement(shader, "rampLegendSettings", {
+        "minimumLabel": "", "maximumLabel": "", "prefix": "", "suffix": suffix, "direction": "0",
+        "useContinuousLegend": "1", "orientation": "2"})
+    options = ET.SubElement(ET.SubElement(settings, "numericFormat", {"id": "basic"}), "Option", {"type": "Map"})
+    for name, value, kind in (("decimal_separator", "", "QChar"), ("decimals", str(digits), "int"),
+                              ("rounding_type", "0", "int"), ("show_plus", "false", "bool"),
+                              ("show_thousand_separator", "true", "bool"), ("show_trailing_zeros", "false", "bool"),
+                              ("thousand_separator", "", "QChar")):
+        ET.SubElement(options, "Option", {"name": name, "value": value, "type": kind})
 
 
 def paletted_style(scheme: ClassScheme, nodata: float | int | None, band: int = 1) -> ET.ElementTree:

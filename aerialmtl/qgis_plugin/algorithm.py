@@ -50,6 +50,7 @@ from .spec import (
     Value,
     command_line,
     default_executable,
+    dialog_message,
     not_found_message,
 )
 
@@ -156,10 +157,10 @@ class AerialMTLAlgorithm(QgsProcessingAlgorithm):
                 feedback.setProgress(p.percent)
 
         def on_message(kind: str, text: str) -> None:
-            if kind == "error":
-                feedback.reportError(text, True)
-            elif kind == "warning":
-                feedback.pushWarning(text)
+            if kind == "error":  # raised below as the run's error: QGIS shows it once, in the dialog's terms
+                return
+            if kind == "warning":
+                feedback.pushWarning(dialog_message(self.spec, text))
             else:
                 feedback.pushInfo(text)
 
@@ -168,7 +169,7 @@ class AerialMTLAlgorithm(QgsProcessingAlgorithm):
         except OSError as exc:
             raise QgsProcessingException(not_found_message(str(executable), exc)) from exc
         if not result.ok:
-            raise QgsProcessingException(result.message())
+            raise QgsProcessingException(dialog_message(self.spec, result.message()))
         outputs: dict[str, Any] = {p.name: values[p.name] for p in self.spec.params
                                    if p.kind in ("folder_out", "file_out")}
         if self.spec.loads == "prediction":

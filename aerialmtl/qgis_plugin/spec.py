@@ -298,6 +298,31 @@ def default_executable() -> str:
 
 def not_found_message(executable: str, error: OSError) -> str:
     """What to say when the ``aerialmtl`` program cannot be started."""
-    return (f"cannot run aerialmtl at '{executable}' ({error.strerror or error}): install it (pip install aerialmtl) "
-            "and set the path of its `aerialmtl` program in Settings → Options → Processing → Providers → "
+    return (f"cannot run aerialmtl at '{executable}' ({error.strerror or error}): install it (from a clone of its "
+            "repository: pip install torch==2.13.0 -e . in a virtual environment) and set the path of its "
+            "`aerialmtl` program in Settings → Options → Processing → Providers → "
             "aerialmtl → 'aerialmtl executable'")
+
+
+def dialog_message(algorithm: Algorithm, text: str) -> str:
+    """The command's message ``text`` with its options named as the dialog names them.
+
+    The command's errors name its flags (``pass --overwrite to replace them or choose another --out``); in QGIS
+    the user sees fields, and scripts (``processing.run``, ``qgis_process``) pass parameter names, so each flag
+    of ``algorithm`` becomes its label and name: ``tick 'Replace existing outputs' (OVERWRITE) ... choose
+    another 'Prediction folder' (OUTPUT)``. Text that names no flag is returned as it is.
+    """
+    import re
+
+    for p in sorted((p for p in algorithm.params if p.flag), key=lambda p: -len(str(p.flag))):
+        label = p.label.split(" [")[0]  # without the "[empty: ...]" hint
+        field_name = f"'{label}' ({p.name})"
+        flag = re.escape(str(p.flag))
+        if p.kind == "bool":  # "pass --overwrite" → "tick 'Replace existing outputs' (OVERWRITE)"
+            text = re.sub(rf"\b(pass|add|use|give) {flag}(?![\w-])", f"tick {field_name}", text)
+        text = re.sub(rf"(?<![\w-]){flag}(?![\w-])", field_name, text)
+    positional = [p for p in algorithm.params if p.flag is None]
+    if len(positional) == 1:  # click names the argument by its metavar: "Invalid value for 'CHECKPOINT'"
+        p = positional[0]
+        text = re.sub(r"(?<=for )'[A-Z_]+(\.\.\.)?'", f"'{p.label.split(' [')[0]}' ({p.name})", text)
+    return text

@@ -136,6 +136,9 @@ class TrainResult:
             ``oa``/``miou``, ``score``); only ``score`` without a validation split.
         best_score: best validation score of the run (lower is better).
         model: the trained model as it is in ``last.pt`` (in train mode, on the training device).
+        best_step: the step whose validation wrote ``best.pt`` in this call (``None``: ``best.pt`` is from
+            before a resume).
+        best_metrics: that validation's metrics (as ``metrics``): the scores that belong to ``best.pt``.
     """
 
     run_dir: Path
@@ -150,6 +153,8 @@ class TrainResult:
     metrics: dict[str, float] = field(default_factory=dict)
     best_score: float = math.inf
     model: torch.nn.Module | None = None
+    best_step: int | None = None
+    best_metrics: dict[str, float] = field(default_factory=dict)
 
 
 class Trainer:
@@ -205,6 +210,8 @@ class Trainer:
         self.metrics: dict[str, float] = {}
         #: the trained weights while the model holds their average for a checkpoint (``optim.ema``), else None
         self.raw_weights: dict[str, torch.Tensor] | None = None
+        self.best_step: int | None = None  # the validation that wrote best.pt in this call, and its metrics
+        self.best_metrics: dict[str, float] = {}
 
     @property
     def height_slack(self) -> float:
@@ -314,6 +321,7 @@ class Trainer:
         if improved or not self.paths["best.pt"].exists():
             st.best_score = min(st.best_score, score)
             self.checkpoint(self.paths["best.pt"])
+            self.best_step, self.best_metrics = st.step, dict(self.metrics)
         st.since_best = 0 if improved else st.since_best + 1
         self.checkpoint(self.paths["last.pt"])
         patience = self.cfg.schedule.patience
@@ -475,7 +483,7 @@ class Trainer:
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
                            config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
                            elapsed_s=time.perf_counter() - self.t0, metrics=self.metrics, best_score=st.best_score,
-                           model=self.model)
+                           model=self.model, best_step=self.best_step, best_metrics=self.best_metrics)
 
     def calibrate(self) -> None:
         """Fit the calibration on the val split and store it in best.pt and last.pt (rank 0; see
