@@ -80,6 +80,10 @@ class ModelMeta:
     #: ``None`` when not recorded. Training calls a validation error far beyond them a divergence, predict a
     #: map far outside them garbage (:func:`plausible_heights`).
     height_range: tuple[float, float] | None = None
+    #: the name of the pretrained start these weights are (:mod:`aerialmtl.formats.starts`): trained on synthetic
+    #: scenes only, a start for fine-tuning (``train --init``), not a map of anywhere; ``None``: trained on its
+    #: tile folder (a fine-tuned run's checkpoints are ``None`` again). Predict says so, and records it.
+    start: str | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels

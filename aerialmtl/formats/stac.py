@@ -93,6 +93,8 @@ def model_summary(meta: Any) -> dict[str, Any]:
         "gsd_m": float(meta.gsd),
         "dropout": float(cfg.dropout),
         "class_names": list(classes.names) if classes is not None else [],
+        # a pretrained start used as it is (trained on synthetic scenes only, not fine-tuned): its name, else None
+        "start": getattr(meta, "start", None),
     }
 
 
