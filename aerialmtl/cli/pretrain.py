@@ -25,7 +25,7 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
         help="Training YAML whose model, loss, optimiser and data.batch_size are used [default: the small-area "
              "recipe, configs/small_area.yaml; with --resume, OUT/config.yaml].")
 @option("--checkpoint-every", type=int, default=500, show_default=True, help="Write last.pt every this many steps.")
-@option("--name", default="synthtown-lite0", show_default=True, help="Name of the exported start (NAME.pt).")
+@option("--name", default="synthcity-lite0", show_default=True, help="Name of the exported start (NAME.pt).")
 @option("--seed", type=int, default=None, help="Overrides the config's seed (the scenes and the weights).")
 @option("--batch-size", type=int, default=None, help="Overrides data.batch_size (patches per step).")
 @option("--workers", type=int, default=None, help="Overrides data.num_workers (processes making scenes).")
@@ -33,6 +33,10 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
 @option("--scene-size", type=int, default=256, show_default=True, help="Side of each synthetic scene in pixels.")
 @option("--gsd-range", type=(float, float), default=(0.5, 1.0), show_default=True, metavar="LOW HIGH",
         help="Each scene's pixel size in metres is drawn from this range.")
+@option("--scenes-per-step", type=int, default=4, show_default=True,
+        help="Scenes a step's patches are cut from (patch i from scene i mod this).")
+@option("--scene-reuse", type=int, default=4, show_default=True,
+        help="Consecutive steps that cut their patches from the same scenes (a scene costs about a quarter step).")
 @option("--export-dtype", type=click.Choice(["float16", "float32"]), default="float16", show_default=True,
         help="Storage of the start's weights.")
 @option("--resume", is_flag=True, help="Continue the run in --out from its last.pt.")
@@ -42,9 +46,9 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
 @quiet_option()
 def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_every: int, name: str,
              seed: int | None, batch_size: int | None, workers: int | None, patch_size: int, scene_size: int,
-             gsd_range: tuple[float, float], export_dtype: str, resume: bool, device: str | None,
-             precision: str | None, overwrite: bool, quiet: bool) -> None:
-    """Pretrain the small-area recipe's network on synthetic towns generated on the fly (nothing downloaded,
+             gsd_range: tuple[float, float], scenes_per_step: int, scene_reuse: int, export_dtype: str,
+             resume: bool, device: str | None, precision: str | None, overwrite: bool, quiet: bool) -> None:
+    """Pretrain the small-area recipe's network on synthetic cities generated on the fly (nothing downloaded,
     nothing written but the run folder), then export a start that `aerialmtl train --init` fine-tunes.
 
     The start is trained on synthetic scenes only: a start for fine-tuning, not a map of anywhere.
@@ -74,7 +78,8 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
         cfg = cfg.with_overrides(**over)
     settings = PretrainSettings(steps=steps, checkpoint_every=checkpoint_every, name=name, export_dtype=export_dtype,
                                 stream=SyntheticStream(patch_size=patch_size, scene_size=scene_size,
-                                                       gsd_range=gsd_range))
+                                                       gsd_range=gsd_range, scenes_per_step=scenes_per_step,
+                                                       scene_reuse=scene_reuse))
     res = run_pretrain(cfg, out_dir, settings, resume=resume, overwrite=overwrite, progress=not quiet,
                        command=shlex.join(["aerialmtl", *sys.argv[1:]]))
     per_step = res.elapsed_s / res.steps_this_call if res.steps_this_call else float("nan")

@@ -1,7 +1,8 @@
 """Training batches cut from synthetic scenes generated on the fly (no disk): the data of ``aerialmtl pretrain``.
 
-:func:`synthetic_scene` is the one place that asks a generator for a scene; today it is the procedural town
-of :mod:`aerialmtl.data.synth` (:func:`~aerialmtl.data.synth.build_scene` + :func:`~aerialmtl.data.synth.render_ortho`).
+:func:`synthetic_scene` is the one place that asks a generator for a scene; today it is the synthetic city of
+:func:`aerialmtl.data.synth.city.sample_city` (towers and halls with ground-like roofs, stands, trees, cars; its own
+sun, lean and sensor style per scene).
 :class:`SyntheticBatches` is a map-style dataset whose item ``step`` is the whole batch of that optimisation
 step: its patches are cut at random places, quarter turns and flips out of a few scenes, each scene reused
 for ``scene_reuse`` consecutive steps (a scene costs about as much as a training step). Everything is a pure
@@ -25,7 +26,8 @@ from aerialmtl.errors import ConfigError
 #: The class scheme of the synthetic scenes (:mod:`aerialmtl.resources.classes`).
 SCHEME_NAME = "synthetic"
 #: The name and version of the scene generator (recorded in a start's model card).
-GENERATOR = "aerialmtl.data.synth town (build_scene + render_ortho)"
+GENERATOR = ("aerialmtl.data.synth.city.sample_city (synthetic cities: towers, halls, stands, trees, cars; per-scene "
+             "sun, lean and sensor style)")
 
 
 @dataclass(frozen=True)
@@ -45,13 +47,12 @@ def synthetic_scene(seed: int, index: int, size: int, gsd: float) -> SyntheticSc
 
     The one function that asks the generator for a scene: switching generators changes only this body.
     """
-    from aerialmtl.data.synth import build_scene, render_ortho
+    from aerialmtl.data.city_stream import city_seed
+    from aerialmtl.data.synth.city import sample_city
 
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5CE7E, index]))
-    scene = build_scene(size, gsd, rng)
-    image, _ = render_ortho(scene, rng)
-    classes = ClassScheme.load(SCHEME_NAME).remap(scene.labels, on_unknown="ignore").astype(np.uint8)
-    return SyntheticScene(image, scene.ndsm.astype(np.float32), classes, gsd)
+    city = sample_city(city_seed(seed, index), size, gsd)
+    classes = ClassScheme.load(SCHEME_NAME).remap(city.classes, on_unknown="ignore").astype(np.uint8)
+    return SyntheticScene(city.image, city.height.astype(np.float32), classes, gsd)
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,7 @@ class SyntheticStream:
     patch_size: int = 128
     scene_size: int = 256
     gsd_range: tuple[float, float] = (0.5, 1.0)
-    scenes_per_step: int = 2
+    scenes_per_step: int = 4
     scene_reuse: int = 4
 
     def __post_init__(self) -> None:

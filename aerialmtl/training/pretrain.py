@@ -53,7 +53,7 @@ LAST_PT, LOG_CSV, CONFIG_YAML = "last.pt", "log.csv", "config.yaml"
 #: Scaling of 8-bit inputs for an encoder without pretrained input statistics.
 PLAIN_SCALING = (127.5, 64.0)
 #: The start's name unless told otherwise.
-DEFAULT_NAME = "synthtown-lite0"
+DEFAULT_NAME = "synthcity-lite0"
 #: Tallest synthetic structure (m), recorded as the start's height range.
 SYNTH_MAX_HEIGHT_M = 60.0
 
