@@ -32,6 +32,7 @@ from aerialmtl.cli.evaluate import evaluate
 from aerialmtl.cli.export import export
 from aerialmtl.cli.options import flags_for, usage_errors
 from aerialmtl.cli.predict import predict
+from aerialmtl.cli.pretrain import pretrain
 from aerialmtl.cli.qgis_plugin import qgis_plugin
 from aerialmtl.cli.synth import synth
 from aerialmtl.cli.tile import tile
@@ -55,7 +56,7 @@ def cli(ctx: click.Context, debug: bool, progress_mode: str) -> None:
     progress.set_mode(progress_mode)
 
 
-for _command in (synth, tile, train, predict, evaluate, buildings, export, qgis_plugin, demo):
+for _command in (synth, tile, train, pretrain, predict, evaluate, buildings, export, qgis_plugin, demo):
     assert _command.name is not None and _command.callback is not None
     _command.callback = usage_errors(_command.name, _command.callback)
     cli.add_command(_command)

@@ -65,6 +65,18 @@ def _batch_size(value: str) -> int | Literal["auto"]:
         return cast(Literal["auto"], value)
 
 
+def _say_if_start(model: Path) -> None:
+    """Say once when ``model`` is a pretrained start (not fine-tuned on real data; prediction.json records it)."""
+    from aerialmtl.formats.checkpoint import load_checkpoint
+
+    start = load_checkpoint(model)[1].start
+    if start is not None:
+        click.echo(f"note: '{model}' is the pretrained start '{start}', trained on synthetic scenes only and not "
+                   "fine-tuned on real data: a start for fine-tuning, not a map of anywhere (fine-tune it with "
+                   f"`aerialmtl train --init {model} --data TILES ...`); prediction.json records it as model.start",
+                   err=True)
+
+
 @click.command(name="predict")
 @raster_argument("orthos", library="ortho", nargs=-1, required=True)
 @option("--model", "model", envvar=MODEL_ENV, show_envvar=True, library="checkpoint",
@@ -160,6 +172,7 @@ def predict(
         )
 
     try:
+        _say_if_start(model)
         job = predict_many(orthos, model, out, settings, overwrite=overwrite, skip_existing=skip_existing,
                            on_result=report)
     except CheckpointError as exc:  # a model the user did not type here: say where it came from

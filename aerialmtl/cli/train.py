@@ -35,8 +35,8 @@ from aerialmtl.training.distributed import install_stop_handler
 @option("--max-time", "max_time", type=float, library="max_time_s", help="Wall-clock budget of this call in seconds.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last.pt (any number of processes).")
 @option("--init", "init_ckpt", type=click.Path(dir_okay=False, path_type=Path), library="init",
-              help="Start from the weights of this aerialmtl checkpoint (fine-tuning); task heads of other "
-                   "classes or tasks start afresh.")
+              help="Start from the weights of this aerialmtl checkpoint, or of the pretrained start of this name "
+                   "shipped with the package (fine-tuning); task heads of other classes or tasks start afresh.")
 @device_option(default=None, help="Overrides the config's device.")
 @precision_option(default=None, help="Overrides the config's precision (auto: bf16 autocast on a GPU, fp32 on a CPU).")
 @compile_option("compile_model")
@@ -68,9 +68,14 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     if resume and init_ckpt is not None:
         raise click.BadParameter("--resume continues the run's own weights; --init starts a new run from a "
                                  "checkpoint; pass only one", param_hint="--resume/--init")
-    if init_ckpt is not None and not init_ckpt.is_file():
-        raise click.BadParameter(f"'{init_ckpt}' does not exist; pass the best.pt or last.pt of a training run",
-                                 param_hint="--init")
+    if init_ckpt is not None:  # a checkpoint file, or the name of a start shipped with the package
+        from aerialmtl.errors import CheckpointError
+        from aerialmtl.formats.starts import resolve_start
+
+        try:
+            init_ckpt = resolve_start(init_ckpt)
+        except CheckpointError as exc:
+            raise click.BadParameter(str(exc).removeprefix("init: "), param_hint="--init") from exc
     check_run_folder(out_dir, resume, overwrite, init_ckpt)  # before the config is read: says what is wrong first
     if resume and config_path is None:
         config_path = RunFolder(out_dir).config

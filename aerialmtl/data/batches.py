@@ -31,6 +31,7 @@ from typing import Any
 import torch
 
 from aerialmtl.data.cache import PatchCache
+from aerialmtl.data.copy_paste import CopyPaster
 from aerialmtl.data.dataset import normalise_batch
 from aerialmtl.data.transforms import Compose, stack_params
 from aerialmtl.errors import InputError
@@ -143,11 +144,14 @@ class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
         normalisation: ``(mean, std)`` to finish the batch here (:func:`prepare_batch` on the CPU, in the
             worker): what training on a CPU does, so that workers augment while the main process computes.
             ``None`` (training on a GPU): return the compact arrays for the device to finish.
+        paster: pastes banked objects into the gathered (cropped) patches before the other augmentations
+            (:mod:`aerialmtl.data.copy_paste`); ``None``: no copy-paste.
     """
 
     def __init__(self, cache: PatchCache, transform: Compose, tasks: Sequence[str],
-                 normalisation: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
-        self.cache, self.transform, self.normalisation = cache, transform, normalisation
+                 normalisation: tuple[torch.Tensor, torch.Tensor] | None = None,
+                 paster: CopyPaster | None = None) -> None:
+        self.cache, self.transform, self.normalisation, self.paster = cache, transform, normalisation, paster
         self.layers = ("image", "image_valid") + tuple(t for t in tasks if t in cache.layers)
 
     def __len__(self) -> int:
@@ -164,6 +168,8 @@ class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
         else:
             size, rows, cols = window
             data = self.cache.gather(indices, list(zip(rows.tolist(), cols.tolist())), size)
+        if self.paster is not None:
+            data = self.paster.paste(data, spec)
         raw = {"data": {k: v for k, v in data.items() if k in self.layers}, "params": params}
         if self.normalisation is None:
             return raw

@@ -85,6 +85,10 @@ class ModelMeta:
     #: density of the encoder's features on the train split, fitted after training (predict writes the
     #: ``unfamiliarity`` layer from it); ``None`` for checkpoints without one (:mod:`aerialmtl.models.familiarity`).
     familiarity: FeatureDensity | None = None
+    #: the name of the pretrained start these weights are (:mod:`aerialmtl.formats.starts`): trained on synthetic
+    #: scenes only, a start for fine-tuning (``train --init``), not a map of anywhere; ``None``: trained on its
+    #: tile folder (a fine-tuned run's checkpoints are ``None`` again). Predict says so, and records it.
+    start: str | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels

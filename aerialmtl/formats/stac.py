@@ -96,6 +96,8 @@ def model_summary(meta: Any) -> dict[str, Any]:
         "class_names": list(classes.names) if classes is not None else [],
         "unfamiliarity": (meta.familiarity.summary() if getattr(meta, "familiarity", None) is not None else
                           "none: the checkpoint holds no feature density, so no unfamiliarity layer"),
+        # a pretrained start used as it is (trained on synthetic scenes only, not fine-tuned): its name, else None
+        "start": getattr(meta, "start", None),
     }
 
 

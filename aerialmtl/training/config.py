@@ -7,7 +7,7 @@ the key path (``optim.lr``) and the valid keys/choices::
     model:     {block_config: [6, 12, 24, 16], dropout: 0.5, ..., sync_bn: false}   # ModelConfig; in_channels,
                                                                    # num_classes, tasks from dataset.yaml
     data:      {dir: tiles/, batch_size: 8, num_workers: 2, flips: true, rot90: true, jitter: false,
-                crop_size: null, cache_dir: null}
+                crop_size: null, cache_dir: null, copy_paste: {prob: 0.0, max_objects: 3, min_height_m: 2.5}}
     loss:      {height: l1, classes: ce, class_weights: none}      # or balanced, or a list of K floats
     weighting: {method: equal, task_weights: {height: 1.0, classes: 1.0}}
     optim:     {name: adam, lr: 2.0e-4, betas: [0.5, 0.999], weight_decay: 0.0, ema: null}
@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 from aerialmtl.config import from_dict, load_yaml_config, to_dict
+from aerialmtl.data.copy_paste import CopyPaste
 from aerialmtl.errors import ConfigError
 from aerialmtl.models.config import Architecture, ModelConfig, Task, check_data_fields
 
@@ -110,6 +111,8 @@ class DataSection:
         cache_dir: folder of the decoded patch cache, ``None`` = ``cache/`` inside the tile folder, or
             ``$XDG_CACHE_HOME/aerialmtl/<hash>`` (with a warning) when that cannot be written (written on
             first use; see :mod:`aerialmtl.data.cache`).
+        copy_paste: paste the train split's tall objects (image, heights and labels together) into other
+            training patches (:class:`~aerialmtl.data.copy_paste.CopyPaste`; off unless ``prob > 0``).
     """
 
     dir: str | None = None
@@ -120,6 +123,7 @@ class DataSection:
     jitter: bool = False
     crop_size: int | None = None
     cache_dir: str | None = None
+    copy_paste: CopyPaste = field(default_factory=CopyPaste)
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:

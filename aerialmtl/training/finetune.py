@@ -1,4 +1,5 @@
-"""``train --init CKPT``: start a run from the weights of an existing aerialmtl checkpoint (fine-tuning).
+"""``train --init CKPT``: start a run from the weights of an existing aerialmtl checkpoint, or of a pretrained
+start shipped with the package (``--init NAME``, :mod:`aerialmtl.formats.starts`) (fine-tuning).
 
 What is loaded: every tensor of the new model whose name and shape the checkpoint has (encoder, shared
 decoder, BatchNorm statistics, and the task heads that still mean the same thing). A task head is
@@ -21,6 +22,7 @@ import torch
 
 from aerialmtl.errors import CheckpointError
 from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint
+from aerialmtl.formats.starts import resolve_start
 from aerialmtl.models.config import Architecture
 
 #: Architecture fields that change tensor shapes or names (dropout does not).
@@ -64,11 +66,15 @@ def _scheme(meta: ModelMeta) -> str:
 def load_init_weights(model: torch.nn.Module, path: str | Path, meta: ModelMeta) -> InitReport:
     """Copy what fits from checkpoint ``path`` into ``model`` (a freshly initialised D3-Net described by ``meta``).
 
+    ``path`` is a checkpoint file or the name of a start shipped with the package
+    (:func:`~aerialmtl.formats.starts.resolve_start`); a start's float16 weights are loaded as float32.
+
     Warns (``UserWarning``, one line) when task heads are initialised afresh.
 
     Raises:
         CheckpointError: unusable checkpoint, other bands, or another architecture.
     """
+    path = resolve_start(path)  # a file, or the name of a start shipped with the package
     payload, old = load_checkpoint(path)
     if tuple(old.bands) != tuple(meta.bands):
         raise CheckpointError(

@@ -41,6 +41,7 @@ from aerialmtl import runtime
 from aerialmtl.config import to_dict
 from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, eval_batches
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+from aerialmtl.data.copy_paste import CopyPaster, build_object_bank
 from aerialmtl.data.transforms import Compose, build_eval_transform, build_train_transform
 from aerialmtl.errors import CheckpointError, ConfigError, OutputError
 from aerialmtl.formats.checkpoint import (
@@ -397,8 +398,9 @@ def build_loaders(cfg: TrainConfig, data: TrainData, device: torch.device, ctx: 
     std = torch.tensor(data.meta.std, dtype=torch.float32, device=device)
     # on a CPU with workers, the workers finish the batches (the main process computes the model)
     in_workers = (mean.cpu(), std.cpu()) if device.type == "cpu" and nw > 0 else None
+    train_cache = PatchCache(data.cache_folder, data.train_index)
     train_loader = torch.utils.data.DataLoader(
-        CachedBatches(PatchCache(data.cache_folder, data.train_index), train_transform, data.tasks, in_workers),
+        CachedBatches(train_cache, train_transform, data.tasks, in_workers, copy_paster(cfg, data, train_cache)),
         sampler=RankBatchSampler(order, ctx.rank, state.epoch, state.position),
         batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(cfg.seed),
     )
@@ -413,6 +415,34 @@ def build_loaders(cfg: TrainConfig, data: TrainData, device: torch.device, ctx: 
     elif ctx.is_main:
         log.warning("no 'val' patches in %s: best.pt is chosen by the training loss", data.info.root / MANIFEST_CSV)
     return Loaders(order, train_transform, eval_transform, mean, std, train_loader, val_loader)
+
+
+def copy_paster(cfg: TrainConfig, data: TrainData, cache: PatchCache) -> CopyPaster | None:
+    """The copy-paste of ``data.copy_paste`` over the train split's object bank, or ``None`` when it is off.
+
+    Raises:
+        ConfigError: copy-paste is on but the tile folder has no heights.
+    """
+    spec = cfg.data.copy_paste
+    if not spec.enabled:
+        return None
+    if "height" not in data.tasks:
+        raise ConfigError("data.copy_paste: finds tall objects by their reference heights, and this run trains no "
+                          "height task; set data.copy_paste.prob: 0 or tile with --dsm/--dtm (or --ndsm)")
+    rows = read_manifest(data.info.root, "train")
+    try:  # the tile grid: an object seen in several overlapping patches is banked once
+        offsets: list[tuple[int, int]] | None = [(int(r["row_off"]), int(r["col_off"])) for r in rows]
+    except (KeyError, TypeError, ValueError):
+        offsets = None
+    if offsets is not None and len(offsets) != len(cache):
+        offsets = None
+    bank = build_object_bank(cache.arrays(), spec, data.info.gsd, cfg.seed, offsets)
+    log.info("copy-paste: %s", bank.summary())
+    if not len(bank):
+        warnings.warn(f"data.copy_paste: no object of ≥ {spec.min_height_m:g} m with its margin inside a training "
+                      f"patch of '{data.info.root}'; nothing is pasted (lower min_height_m or margin_m)",
+                      UserWarning, stacklevel=2)
+    return CopyPaster(bank, spec)
 
 
 class StepModule(nn.Module):
@@ -543,6 +573,7 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
 
 
 __all__ = ["CPU_BF16_TRAINING", "Loaders", "ModelParts", "Resumed", "TrainData", "TrainSetup", "build_loaders",
-           "build_model", "build_optimizer", "input_normalization", "model_meta", "open_data", "prepare_caches",
+           "build_model", "build_optimizer", "copy_paster", "input_normalization", "model_meta", "open_data",
+           "prepare_caches",
            "prepare_training", "read_data_folder", "restore", "seed_rank_stream", "train_height_range",
            "user_cache_dir"]

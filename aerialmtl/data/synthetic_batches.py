@@ -1,0 +1,169 @@
+"""Training batches cut from synthetic scenes generated on the fly (no disk): the data of ``aerialmtl pretrain``.
+
+:func:`synthetic_scene` is the one place that asks a generator for a scene; today it is the synthetic city of
+:func:`aerialmtl.data.synth.city.sample_city` (towers and halls with ground-like roofs, stands, trees, cars; its own
+sun, lean and sensor style per scene).
+:class:`SyntheticBatches` is a map-style dataset whose item ``step`` is the whole batch of that optimisation
+step: its patches are cut at random places, quarter turns and flips out of a few scenes, each scene reused
+for ``scene_reuse`` consecutive steps (a scene costs about as much as a training step). Everything is a pure
+function of ``(seed, step)``: scene ``j`` is generated from ``(seed, j)``, a patch from ``(seed, step, i)``, so
+a resumed run sees the batches an uninterrupted one sees, with any number of DataLoader workers (each keeps a
+few scenes in memory; a scene it lacks it generates again, identically).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from aerialmtl.classes import ClassScheme
+from aerialmtl.data.dataset import normalise_batch
+from aerialmtl.errors import ConfigError
+
+#: The class scheme of the synthetic scenes (:mod:`aerialmtl.resources.classes`).
+SCHEME_NAME = "synthetic"
+#: The name and version of the scene generator (recorded in a start's model card).
+GENERATOR = ("aerialmtl.data.synth.city.sample_city (synthetic cities: towers, halls, stands, trees, cars; per-scene "
+             "sun, lean and sensor style)")
+
+
+@dataclass(frozen=True)
+class SyntheticScene:
+    """One scene: ``image`` uint8 (3, H, W) RGB, ``height`` float32 (H, W) metres above ground, ``classes``
+    uint8 (H, W) class indices of the ``synthetic`` scheme (255 unlabelled), ``gsd`` metres per pixel.
+    """
+
+    image: np.ndarray
+    height: np.ndarray
+    classes: np.ndarray
+    gsd: float
+
+
+def synthetic_scene(seed: int, index: int, size: int, gsd: float) -> SyntheticScene:
+    """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres).
+
+    The one function that asks the generator for a scene: switching generators changes only this body.
+    """
+    from aerialmtl.data.city_stream import city_seed
+    from aerialmtl.data.synth.city import sample_city
+
+    city = sample_city(city_seed(seed, index), size, gsd)
+    classes = ClassScheme.load(SCHEME_NAME).remap(city.classes, on_unknown="ignore").astype(np.uint8)
+    return SyntheticScene(city.image, city.height.astype(np.float32), classes, gsd)
+
+
+@dataclass(frozen=True)
+class SyntheticStream:
+    """What :class:`SyntheticBatches` cuts: scene size and GSD range, patches per step, scene reuse.
+
+    Attributes:
+        seed: the stream's seed.
+        batch_size: patches per step.
+        patch_size: patch side (pixels, a multiple of 32).
+        scene_size: scene side (pixels, ≥ ``patch_size``).
+        gsd_range: ``(low, high)`` metres per pixel; each scene draws its GSD uniformly from it.
+        scenes_per_step: scenes a step's patches come from (patch i from scene i mod this).
+        scene_reuse: consecutive steps that cut from the same scenes.
+    """
+
+    seed: int = 0
+    batch_size: int = 8
+    patch_size: int = 128
+    scene_size: int = 256
+    gsd_range: tuple[float, float] = (0.5, 1.0)
+    scenes_per_step: int = 4
+    scene_reuse: int = 4
+
+    def __post_init__(self) -> None:
+        if self.patch_size < 32 or self.patch_size % 32:
+            raise ConfigError(f"patch_size: must be a multiple of 32 (the network's stride), got {self.patch_size}")
+        if self.scene_size < self.patch_size:
+            raise ConfigError(f"scene_size: must be ≥ patch_size {self.patch_size}, got {self.scene_size}")
+        lo, hi = self.gsd_range
+        if not 0 < lo <= hi:
+            raise ConfigError(f"gsd_range: must be two pixel sizes 0 < low ≤ high (metres), got {list(self.gsd_range)}")
+        for name in ("batch_size", "scenes_per_step", "scene_reuse"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name}: must be ≥ 1, got {getattr(self, name)}")
+
+    def scene_of(self, step: int, i: int) -> int:
+        """The index of the scene patch ``i`` of ``step`` is cut from."""
+        return (step // self.scene_reuse) * self.scenes_per_step + i % self.scenes_per_step
+
+    def scene_gsd(self, index: int) -> float:
+        """The GSD (metres) of scene ``index``."""
+        lo, hi = self.gsd_range
+        return float(np.random.default_rng([self.seed, 0x65D, index]).uniform(lo, hi)) if hi > lo else float(lo)
+
+
+class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
+    """Item ``step``: the normalised batch of that step (use with ``batch_size=None`` and a sampler of steps).
+
+    Args:
+        stream: what is cut (:class:`SyntheticStream`).
+        mean, std: (3,) per-band normalisation in raw 8-bit units.
+        length: the number of steps (``len``).
+        keep: scenes kept in memory per process.
+
+    Items are :class:`~aerialmtl.data.types.Sample` batches: ``image`` float32 (B, 3, P, P), ``height``
+    float32 (B, 1, P, P) metres with ``height_valid``, ``classes`` int64 (B, P, P).
+    """
+
+    def __init__(self, stream: SyntheticStream, mean: tuple[float, ...], std: tuple[float, ...], length: int,
+                 keep: int = 4) -> None:
+        self.stream, self.length, self.keep = stream, length, max(keep, stream.scenes_per_step)
+        self.mean = torch.tensor(mean, dtype=torch.float32)
+        self.std = torch.tensor(std, dtype=torch.float32)
+        self._scenes: OrderedDict[int, SyntheticScene] = OrderedDict()
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getstate__(self) -> dict[str, object]:
+        return {**self.__dict__, "_scenes": OrderedDict()}
+
+    def scene(self, index: int) -> SyntheticScene:
+        """Scene ``index`` (generated, or kept from an earlier step)."""
+        if index in self._scenes:
+            self._scenes.move_to_end(index)
+            return self._scenes[index]
+        s = self.stream
+        scene = synthetic_scene(s.seed, index, s.scene_size, s.scene_gsd(index))
+        self._scenes[index] = scene
+        while len(self._scenes) > self.keep:
+            self._scenes.popitem(last=False)
+        return scene
+
+    def raw(self, step: int) -> dict[str, torch.Tensor]:
+        """The compact batch of ``step``: ``image`` uint8 (B, 3, P, P), ``height`` float32 (B, 1, P, P),
+        ``classes`` uint8 (B, P, P).
+        """
+        s, p = self.stream, self.stream.patch_size
+        images, heights, classes = [], [], []
+        for i in range(s.batch_size):
+            scene = self.scene(s.scene_of(step, i))
+            rng = np.random.default_rng([s.seed, 0xBA7C, step, i])
+            side = scene.height.shape[0]
+            r, c = (int(v) for v in rng.integers(0, side - p + 1, 2))
+            k, flip = int(rng.integers(0, 4)), bool(rng.integers(0, 2))
+
+            def cut(a: np.ndarray, r: int = r, c: int = c, k: int = k, flip: bool = flip) -> np.ndarray:
+                out = np.rot90(a[..., r:r + p, c:c + p], k, axes=(-2, -1))
+                return np.ascontiguousarray(out[..., ::-1] if flip else out)
+
+            images.append(cut(scene.image))
+            heights.append(cut(scene.height)[None])
+            classes.append(cut(scene.classes))
+        return {"image": torch.from_numpy(np.stack(images)), "height": torch.from_numpy(np.stack(heights)),
+                "classes": torch.from_numpy(np.stack(classes))}
+
+    def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
+        raw = self.raw(step)
+        valid = torch.ones(raw["image"].shape[0], *raw["image"].shape[2:], dtype=torch.bool)
+        return normalise_batch(raw["image"], valid, self.mean, self.std, raw["height"], raw["classes"])
+
+
+__all__ = ["GENERATOR", "SCHEME_NAME", "SyntheticBatches", "SyntheticScene", "SyntheticStream", "synthetic_scene"]

@@ -1,0 +1,130 @@
+"""`aerialmtl pretrain`: synthetic batches made on the fly, resume, the exported start and its card, `train --init
+NAME`, and predict saying that a start is not fine-tuned."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from affine import Affine
+from helpers.cli import run_cli
+from helpers.rasters import write_raster
+from helpers.tilefolder import write_tile_folder
+
+from aerialmtl.data.synthetic_batches import SyntheticBatches, SyntheticStream
+from aerialmtl.errors import CheckpointError, OutputExistsError
+from aerialmtl.formats import starts
+from aerialmtl.formats.checkpoint import load_checkpoint
+from aerialmtl.training.config import TrainConfig
+from aerialmtl.training.loop import train
+from aerialmtl.training.pretrain import LAST_PT, PretrainSettings, pretrain
+
+TINY_MODEL = {"growth_rate": 8, "block_config": [2, 2, 2, 2], "num_init_features": 16, "bn_size": 2,
+              "aleatoric": True}
+STREAM = SyntheticStream(patch_size=32, scene_size=64, gsd_range=(0.5, 1.0), scenes_per_step=2, scene_reuse=2)
+
+
+def tiny_cfg() -> TrainConfig:
+    return TrainConfig.from_dict({"model": TINY_MODEL, "data": {"batch_size": 2, "num_workers": 0},
+                                  "optim": {"lr": 1e-3}, "schedule": {"log_every": 1}, "seed": 3, "device": "cpu"})
+
+
+def settings(steps: int) -> PretrainSettings:
+    return PretrainSettings(steps=steps, checkpoint_every=2, name="tiny-start", stream=STREAM)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("pre") / "run"
+    pretrain(tiny_cfg(), out, settings(4), progress=False)
+    return out
+
+
+def test_synthetic_batches_depend_only_on_seed_and_step() -> None:
+    stream = SyntheticStream(seed=1, batch_size=3, patch_size=32, scene_size=64)
+    a, b = SyntheticBatches(stream, (127.0,) * 3, (128.0,) * 3, 10), SyntheticBatches(stream, (127.0,) * 3,
+                                                                                      (128.0,) * 3, 10)
+    b[7]  # another scene in b's memory first: the batch of a step does not depend on what was made before
+    x, y = a[5], b[5]
+    assert all(torch.equal(x[k], y[k]) for k in x)
+    assert x["image"].shape == (3, 3, 32, 32) and x["height"].shape == (3, 1, 32, 32)
+    assert x["classes"].dtype == torch.int64 and set(x["classes"].unique().tolist()) <= set(range(6)) | {255}
+    assert not torch.equal(a[6]["image"], x["image"])
+
+
+def test_interrupted_pretraining_resumes_to_the_same_weights(run: Path, tmp_path: Path) -> None:
+    part = tmp_path / "part"
+    first = pretrain(tiny_cfg(), part, settings(2), progress=False)
+    assert first.step == 2
+    with pytest.raises(OutputExistsError, match="resume"):
+        pretrain(tiny_cfg(), part, settings(4), progress=False)
+    resumed = pretrain(tiny_cfg(), part, settings(4), resume=True, progress=False)
+    assert (resumed.step, resumed.steps_this_call) == (4, 2)
+    full, again = load_checkpoint(run / LAST_PT)[0], load_checkpoint(part / LAST_PT)[0]
+    for k, v in full["state_dict"].items():
+        assert torch.equal(v, again["state_dict"][k]), k
+
+    def rows(folder: Path) -> list[list[str]]:  # the log without its time column
+        return [ln.split(",")[:3] + ln.split(",")[4:8] for ln in (folder / "log.csv").read_text().splitlines()[1:]]
+
+    assert [r[1] for r in rows(part)] == ["1", "2", "3", "4"] and rows(part) == rows(run)
+
+
+def test_the_start_is_small_weights_only_and_carded(run: Path) -> None:
+    path = run / "tiny-start.pt"
+    assert path.stat().st_size <= starts.MAX_BYTES
+    payload = torch.load(path, weights_only=True)
+    assert payload["train_state"] is None
+    floats = [v for v in payload["state_dict"].values() if v.is_floating_point()]
+    assert floats and all(v.dtype == torch.float16 for v in floats)
+    meta = load_checkpoint(path)[1]
+    assert meta.start == "tiny-start" and meta.classes is not None and meta.classes.name == "synthetic"
+    card = yaml.safe_load((run / "tiny-start.yaml").read_text())
+    assert card["name"] == "tiny-start" and card["sha256"] == starts.file_sha256(path)
+    assert "not a map of anywhere" in card["intended_use"]
+    assert card["training"]["steps"] == 4 and card["training"]["seed"] == 3
+    assert card["training"]["wall_time_s"] > 0 and card["training"]["machine"]["cpu"]
+    assert card["pretrained_cfg"]["input_size"] == [3, 32, 32] and card["trained_on"]["real_data"].startswith("none")
+
+
+def test_init_resolves_a_shipped_start_by_name(run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                              capsys: pytest.CaptureFixture) -> None:
+    shipped = tmp_path / "starts"
+    shipped.mkdir()
+    for suffix in (".pt", ".yaml"):
+        shutil.copy(run / f"tiny-start{suffix}", shipped / f"tiny-start{suffix}")
+    monkeypatch.setattr(starts, "STARTS_DIR", shipped)
+    assert starts.shipped_starts() == {"tiny-start": shipped / "tiny-start.pt"}
+    assert starts.resolve_start("tiny-start") == shipped / "tiny-start.pt"
+    with pytest.raises(CheckpointError, match=r"shipped starts: tiny-start"):
+        starts.resolve_start("no-such-start")
+    code, out, err = run_cli(capsys, "train", "--config", tmp_path / "none.yaml", "--init", "no-such-start",
+                             "--out", tmp_path / "x")
+    assert code == 2 and "--init" in err and "tiny-start" in err
+    tiles = write_tile_folder(tmp_path / "tiles", size=64, counts={"train": 4})
+    cfg = TrainConfig.from_dict({**tiny_cfg().to_dict(), "calibration": {"enabled": False}})
+    with pytest.warns(UserWarning, match=r"the classes head \(the checkpoint has class scheme 'synthetic'"):
+        res = train(cfg, tiles, tmp_path / "ft", max_steps=1, progress=False, init="tiny-start")
+    tuned = load_checkpoint(res.last_checkpoint)[1]
+    assert tuned.start is None  # fine-tuned on its tile folder: no longer the start
+
+
+def test_predict_says_once_that_a_start_is_not_fine_tuned(run: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture) -> None:
+    rng = np.random.default_rng(0)
+    ortho = write_raster(tmp_path / "ortho.tif", rng.integers(0, 255, (3, 64, 64), dtype=np.uint8),
+                         transform=Affine(1.0, 0, 500000.0, 0, -1.0, 5000000.0))
+    code, out, err = run_cli(capsys, "predict", ortho, "--model", run / "tiny-start.pt", "--out", tmp_path / "p",
+                             "--mc", 2, "--engine", "torch", "--quiet")
+    assert code == 0, err
+    assert (out + err).count("pretrained start 'tiny-start'") == 1 and "not a map of anywhere" in out + err
+    info = json.loads((tmp_path / "p" / "prediction.json").read_text())
+    assert info["model"]["start"] == "tiny-start"
+    code, out, err = run_cli(capsys, "predict", ortho, "--model", run / LAST_PT, "--out", tmp_path / "q", "--mc", 1,
+                             "--engine", "torch", "--quiet")
+    assert code == 0 and "pretrained start" in out + err  # the pretraining run's own checkpoint is not fine-tuned
