@@ -50,7 +50,7 @@ def _commands() -> list[str]:
 
 
 def test_commands_listed() -> None:
-    assert {"predict", "train", "evaluate", "tile"} <= set(_commands())
+    assert {"predict", "train", "evaluate", "tile", "bench"} <= set(_commands())
 
 
 @pytest.mark.parametrize("args", [["--help"], ["--version"], *([c, "--help"] for c in _commands())],
