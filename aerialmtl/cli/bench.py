@@ -52,14 +52,22 @@ def bench(models: tuple[str, ...], cases: tuple[str, ...], window: int, windows:
 
     One parameter per command-line option: click passes each option to the command.
     """
-    from aerialmtl.inference.cpu_bench import BenchRow, BenchSettings, best_entry, cpu_info, run_bench, write_table
+    from aerialmtl.inference.cpu_bench import (
+        BenchRow,
+        BenchSettings,
+        best_entry,
+        cpu_info,
+        run_bench,
+        within_tolerance,
+        write_table,
+    )
 
     cpu = cpu_info()
     click.echo(f"cpu: {cpu['name']} (family {cpu.get('cpu_family', '?')} model {cpu.get('model', '?')}), kind "
                f"{cpu['kind']}{' (ONEDNN_MAX_CPU_ISA=' + cpu['isa_cap'] + ')' if cpu['isa_cap'] else ''}, "
                f"{cpu['cores']} cores, flags {' '.join(cpu.get('flags', []))}; load {os.getloadavg()[0]:.2f}")
     click.echo(f"{'model':<6} {'engine':<9} {'prec':<5} {'stage':<11} {'Mpx/s':>8} {'s':>8} {'|Δh| m':>8} "
-               f"{'class =':>8}  load")
+               f"{'class =':>8} ok  load")
 
     def num(value: float | None, spec: str) -> str:
         return format(value, spec) if value is not None else "-"
@@ -67,7 +75,8 @@ def bench(models: tuple[str, ...], cases: tuple[str, ...], window: int, windows:
     def show(r: BenchRow) -> None:
         click.echo(f"{r.model:<6} {r.engine:<9} {r.precision:<5} {r.stage:<11} {num(r.mpx_s, '8.4f'):>8} "
                    f"{num(r.seconds, '8.2f'):>8} {num(r.height_mae_m, '8.4f'):>8} {num(r.class_agreement, '8.4f'):>8}"
-                   f"  {r.load[0]:.1f}→{r.load[1]:.1f}{'  ' + r.note if r.note else ''}")
+                   f" {('yes' if within_tolerance(r) else 'no ') if r.stage == 'model' and r.mpx_s else '   '} "
+                   f"{r.load[0]:.1f}→{r.load[1]:.1f}{'  ' + r.note if r.note else ''}")
 
     settings = BenchSettings(models=models, cases=tuple(tuple(c.split("/")) for c in cases),  # type: ignore[misc]
                              window=window, windows=windows, size=size, threads=threads, workdir=workdir)

@@ -55,9 +55,16 @@ _ISA_CAPS: dict[str, CpuKind] = {
     "AVX512_CORE": "avx512", "AVX512_CORE_VNNI": "avx512", "AVX512_CORE_BF16": "avx512_bf16",
     "AVX10_1_512": "avx512_bf16", "AVX512_CORE_FP16": "avx512_bf16",
 }
-#: How close to torch fp32 an engine × precision must stay to be chosen by ``auto`` (on the bench's maps):
-#: mean absolute height difference (metres) and the share of pixels whose class agrees.
-TOLERANCES = {"height_mae_m": 0.05, "class_agreement": 0.995}
+#: How close to torch fp32 each precision must stay to be chosen by ``auto`` (the bench's model-alone maps):
+#: the mean absolute height difference in metres (``height_mae_m``) or relative to the mean |height|
+#: (``height_rel_mae``), and the share of pixels whose class agrees. fp32: float rounding; bf16: the bounds the
+#: engine-matrix tests state for bf16 (tests/test_engine_matrix.py: 8-bit mantissa through an untrained network);
+#: int8: issue 39's bar for adopting post-training quantisation (0.05 m, 99.5 %).
+TOLERANCES: dict[str, dict[str, float]] = {
+    "fp32": {"height_mae_m": 1e-3, "class_agreement": 0.999},
+    "bf16": {"height_rel_mae": 0.1, "class_agreement": 0.9},
+    "int8": {"height_mae_m": 0.05, "class_agreement": 0.995},
+}
 #: The table shipped with the package.
 TABLE_RESOURCE = "engine_choice.yaml"
 Layout = Literal["channels_last", "openvino"]
