@@ -159,8 +159,8 @@ def synthetic_window(size: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:size, 0:size]
     base = 120 + 60 * np.sin(xx / 37.0 + seed) * np.cos(yy / 23.0)
-    return np.clip(np.stack([base + rng.normal(0, 10, (size, size)) + 10 * i for i in range(3)]), 0, 255).astype(
-        np.uint8)
+    bands = np.stack([base + rng.normal(0, 10, (size, size)) + 10 * i for i in range(3)])
+    return np.asarray(np.clip(bands, 0, 255), dtype=np.uint8)
 
 
 def _maps(stats: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -180,10 +180,12 @@ def _model_alone(model: Any, meta: Any, engine: str, precision: str, settings: B
 
     from aerialmtl import runtime
     from aerialmtl.inference.runner import ModelRunner
+    from aerialmtl.inference.settings import PredictSettings, Resolved
 
     threads = runtime.resolve_threads(settings.threads)
-    runner = ModelRunner(model, meta, torch.device("cpu"), precision, 1, engine=engine,  # type: ignore[arg-type]
-                         threads=threads)
+    asked = PredictSettings(engine=engine, precision=precision, mc=1, threads=settings.threads)  # type: ignore[arg-type]
+    runner = ModelRunner(model, meta, asked, Resolved(torch.device("cpu"), engine, precision,  # type: ignore[arg-type]
+                                                      threads, 1))
     maps = _maps(runner(x, [0]))  # conversion or compilation, warm-up
     pending: deque[Any] = deque()
     t0 = time.perf_counter()

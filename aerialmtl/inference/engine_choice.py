@@ -199,12 +199,13 @@ class EngineChoice:
     """The engine and precision a prediction runs on, and why (``prediction.json``'s ``engine_choice``).
 
     Attributes:
-        engine: ``torch`` or ``openvino``; precision: ``fp32`` or ``bf16``; layout: see :class:`KindEntry`.
+        engine: a name of the engine registry (``torch``, ``openvino``); precision: ``fp32`` or ``bf16``;
+            layout: see :class:`KindEntry`.
         asked: the ``engine``/``precision`` options as given; cpu_kind: :func:`cpu_kind` (``None`` off the CPU).
         reason: one sentence: which rule or measurement decided.
     """
 
-    engine: Literal["torch", "openvino"]
+    engine: str
     precision: Literal["fp32", "bf16"]
     layout: Layout
     asked: str
