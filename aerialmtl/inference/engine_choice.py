@@ -263,7 +263,7 @@ def choose_engine(engine: str, precision: str, device: torch.device, model: nn.M
         prec = entry.precision if precision == "auto" else runtime.resolve_precision(precision, device)
         if prec == "bf16" and precision == "auto" and not runtime.native_bf16(device):
             prec = "fp32"  # the table's kind and the bf16 probe disagree (an override): never emulated bf16
-        ratio = f", {entry.speedup:.2f}× torch fp32 end to end" if entry.speedup else ""
+        ratio = f", {entry.speedup:.2f}× torch fp32" if entry.speedup else ""  # `measured` says of what
         return EngineChoice(entry.engine, prec, entry.layout, asked, kind,
                             f"auto on a CPU of kind {kind}: {entry.engine} {entry.precision} measured fastest within "
                             f"the tolerances{ratio} ({entry.measured})")
