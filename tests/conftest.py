@@ -18,22 +18,28 @@ torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
 
 #: ``pytest --cpu-kind K``: the CPU capability probe answers as on that kind of CPU (the bf16 choices of
 #: ``precision: auto`` follow), in this process and in the subprocesses tests start.
-CPU_KINDS = {"amx": "amx_bf16,avx512_bf16", "avx512bf16": "avx512_bf16", "none": ""}
+#: ``avx512`` and ``avx2`` also set the kind (AERIALMTL_CPU_KIND) that ``--engine auto`` looks up in its table
+#: (:mod:`aerialmtl.inference.engine_choice`); the others derive it from the bf16 flags.
+CPU_KINDS = {"amx": "amx_bf16,avx512_bf16", "avx512bf16": "avx512_bf16", "avx512": "", "avx2": "", "none": ""}
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--cpu-kind", choices=sorted(CPU_KINDS), default=None,
-                     help="run as on a CPU with AMX-BF16 (amx), AVX-512-BF16 only (avx512bf16) or neither (none); "
-                          "default: this machine's CPU")
+                     help="run as on a CPU with AMX-BF16 (amx), AVX-512-BF16 only (avx512bf16), AVX-512 without bf16 "
+                          "(avx512), AVX2 only (avx2) or no native bf16 (none); default: this machine's CPU")
 
 
 def pytest_configure(config: pytest.Config) -> None:
     from aerialmtl import runtime
+    from aerialmtl.inference import engine_choice
 
     kind = config.getoption("--cpu-kind")
     if kind is not None:
         os.environ[runtime.CPU_FLAGS_ENV] = CPU_KINDS[kind]
+        if kind in ("avx512", "avx2"):
+            os.environ[engine_choice.CPU_KIND_ENV] = kind
     runtime.cpu_bf16_flags.cache_clear()
+    engine_choice.cpu_kind.cache_clear()
     # the tests' own `import openvino` (importorskip, test_export) then finds it loaded without its telemetry
     try:
         runtime.import_openvino()
@@ -43,8 +49,9 @@ def pytest_configure(config: pytest.Config) -> None:
 
 def pytest_report_header(config: pytest.Config) -> str:
     from aerialmtl import runtime
+    from aerialmtl.inference.engine_choice import cpu_kind
 
-    return f"aerialmtl CPU probe: native bf16 flags {runtime.cpu_bf16_flags() or 'none'}"
+    return f"aerialmtl CPU probe: native bf16 flags {runtime.cpu_bf16_flags() or 'none'}, kind {cpu_kind()}"
 
 
 @pytest.fixture(autouse=True, scope="session")

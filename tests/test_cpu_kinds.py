@@ -1,6 +1,7 @@
-"""The CPU capability probe can be replaced (AERIALMTL_CPU_BF16_FLAGS, ``pytest --cpu-kind``), and ``auto`` then
-chooses for each kind of CPU what it chooses on that CPU: bf16 on OpenVINO with AVX-512-BF16 or AMX, bf16 on
-torch only with AMX, fp32 without native bf16."""
+"""The CPU capability probe can be replaced (AERIALMTL_CPU_BF16_FLAGS, AERIALMTL_CPU_KIND, ``pytest --cpu-kind``),
+and ``auto`` then chooses for each kind of CPU what it chooses on that CPU: the measured table's engine and
+precision where the kind was measured (aerialmtl/resources/engine_choice.yaml), else bf16 on OpenVINO with
+AVX-512-BF16 or AMX; an explicit torch engine takes bf16 only with AMX, fp32 without native bf16."""
 
 from __future__ import annotations
 
@@ -10,15 +11,20 @@ import torch
 from aerialmtl import runtime
 
 
-@pytest.mark.parametrize(("flags", "openvino", "torch_engine"), [
-    ("amx_bf16,avx512_bf16", "bf16", "bf16"),
-    ("avx512_bf16", "bf16", "fp32"),
-    ("", "fp32", "fp32"),
+@pytest.mark.parametrize(("flags", "kind", "openvino", "torch_engine"), [
+    ("amx_bf16,avx512_bf16", "amx", "bf16", "bf16"),
+    ("avx512_bf16", "avx512_bf16", "bf16", "fp32"),
+    ("", "avx512", "fp32", "fp32"),
+    ("", "avx2", "fp32", "fp32"),
 ])
-def test_auto_precision_per_cpu_kind(monkeypatch: pytest.MonkeyPatch, flags: str, openvino: str,
+def test_auto_precision_per_cpu_kind(monkeypatch: pytest.MonkeyPatch, flags: str, kind: str, openvino: str,
                                      torch_engine: str) -> None:
+    from aerialmtl.inference import engine_choice
+
     monkeypatch.setenv(runtime.CPU_FLAGS_ENV, flags)
+    monkeypatch.setenv(engine_choice.CPU_KIND_ENV, kind)
     runtime.cpu_bf16_flags.cache_clear()
+    engine_choice.cpu_kind.cache_clear()
     try:
         cpu = torch.device("cpu")
         assert runtime.resolve_precision("auto", cpu, cpu_bf16=True) == openvino
@@ -29,8 +35,15 @@ def test_auto_precision_per_cpu_kind(monkeypatch: pytest.MonkeyPatch, flags: str
         from aerialmtl.inference.predict import Predictor
 
         pytest.importorskip("openvino")
-        assert Predictor(tiny_d3net(), mc=1).precision == openvino
+        measured = engine_choice.shipped_table().get(kind)  # auto follows the table where the kind was measured
+        auto = Predictor(tiny_d3net(), mc=1)
+        if measured is None:
+            assert (auto.engine, auto.precision) == ("openvino", openvino)
+        else:
+            assert (auto.engine, auto.precision) == (measured.engine, measured.precision)
+        assert auto.choice.cpu_kind == kind
         assert Predictor(tiny_d3net(), mc=1, engine="torch").precision == torch_engine
     finally:
         monkeypatch.undo()
         runtime.cpu_bf16_flags.cache_clear()
+        engine_choice.cpu_kind.cache_clear()

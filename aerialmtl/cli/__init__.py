@@ -3,14 +3,23 @@
 Every command module defines one click command; this module registers them and turns expected
 errors (:class:`~aerialmtl.errors.AerialMTLError`, unreadable rasters, unwritable folders) into a
 one-line message on stderr with exit code 1. ``--debug`` shows the traceback instead.
+
+Answers that compute nothing (``--help`` of the group and of every command, ``--version``, shell completion)
+import neither torch, OpenVINO, numba nor rasterio: the command modules import their library inside the
+command's function, and GDAL's libtiff is quietened only when a command runs (tests/test_cli_imports.py).
 """
 
 from __future__ import annotations
 
+import functools
+import gc
+import importlib
 import os
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 # Process settings read once by torch's allocator and its OpenMP runtime, so set before anything imports
 # torch (a user's own setting wins; bench/RESULTS.md, predict, has the measurements):
@@ -26,6 +35,7 @@ import click
 
 from aerialmtl import progress
 from aerialmtl._version import __version__
+from aerialmtl.cli.bench import bench
 from aerialmtl.cli.buildings import buildings
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
@@ -56,9 +66,56 @@ def cli(ctx: click.Context, debug: bool, progress_mode: str) -> None:
     progress.set_mode(progress_mode)
 
 
-for _command in (synth, tile, train, pretrain, predict, evaluate, buildings, export, qgis_plugin, demo):
+#: Whether a command quietens libtiff before it runs (set by :func:`main` unless ``--debug``).
+_quiet_libtiff = False
+
+#: The library each command that computes imports when it runs (torch, OpenVINO's bindings, GDAL), loaded by
+#: :func:`_prepared` before the command's own function so that they are frozen out of the garbage collector's sight.
+LIBRARIES: dict[str, tuple[str, ...]] = {
+    "predict": ("aerialmtl.inference.jobs",),
+    "train": ("aerialmtl.training.loop",),
+    "pretrain": ("aerialmtl.training.pretrain",),
+    "evaluate": ("aerialmtl.evaluation.evaluate",),
+    "tile": ("aerialmtl.tiling.tile",),
+    "buildings": ("aerialmtl.buildings",),
+    "export": ("aerialmtl.inference.export",),
+    "demo": ("aerialmtl.demo",),
+    "synth": ("aerialmtl.data.synth",),
+    "bench": ("aerialmtl.inference.cpu_bench", "aerialmtl.inference.runner"),
+}
+
+
+def _prepared(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
+    """Wrap command ``name``'s callback: import its library (:data:`LIBRARIES`) and quieten libtiff only once the
+    command runs (never for ``--help``, ``--version`` or completion).
+
+    The imports run with Python's cyclic garbage collector paused, and what they made (about a million objects
+    that live as long as the process) is then moved out of its sight (:func:`gc.freeze`): walking them again in
+    every full collection during a run and at exit cost ~0.5 s of a 2.2 s warm ``predict`` (bench/RESULTS.md,
+    issue 27). Objects made by the command itself are collected as usual.
+    """
+
+    @functools.wraps(callback)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        enabled = gc.isenabled()
+        gc.disable()
+        try:
+            for module in LIBRARIES.get(name, ()):
+                importlib.import_module(module)
+            if _quiet_libtiff:
+                quiet_libtiff()
+        finally:
+            gc.freeze()
+            if enabled:
+                gc.enable()
+        return callback(*args, **kwargs)
+
+    return wrapper
+
+
+for _command in (synth, tile, train, pretrain, predict, evaluate, buildings, export, qgis_plugin, demo, bench):
     assert _command.name is not None and _command.callback is not None
-    _command.callback = usage_errors(_command.name, _command.callback)
+    _command.callback = usage_errors(_command.name, _prepared(_command.name, _command.callback))
     cli.add_command(_command)
 
 
@@ -86,6 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     (documented fallbacks) are printed as one ``warning:`` line each. ``--debug`` shows tracebacks
     and Python's own warning format instead.
     """
+    global _quiet_libtiff
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
     with warnings.catch_warnings(), stop_signals():
@@ -94,12 +152,13 @@ def main(argv: list[str] | None = None) -> None:
             # libraries' deprecation notices are for developers; a user can act on neither
             for category in (DeprecationWarning, PendingDeprecationWarning):
                 warnings.filterwarnings("ignore", category=category)
-            quiet_libtiff()
-        mode = progress.get_mode()
+        mode, quiet = progress.get_mode(), _quiet_libtiff
+        _quiet_libtiff = not debug  # done by the command itself when it runs (--help never loads GDAL)
         try:
             _run(args, debug)
         finally:  # --progress holds for this command only (the tests call main() many times in one process)
             progress.set_mode(mode)
+            _quiet_libtiff = quiet
 
 
 def quiet_libtiff() -> None:
@@ -149,9 +208,20 @@ def _interrupted(args: list[str], exc: BaseException | None = None) -> None:
     sys.exit(code)
 
 
-def _run(args: list[str], debug: bool) -> None:
-    from rasterio.errors import RasterioError
+def _is_raster_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a rasterio error (looked up only if rasterio was imported: none is raised else)."""
+    errors = sys.modules.get("rasterio.errors")
+    return errors is not None and isinstance(exc, errors.RasterioError)
 
+
+def _expected(exc: BaseException, args: list[str]) -> None:
+    """Report an expected error (aerialmtl's, rasterio's, the operating system's) as one line; exit 1."""
+    hint = "" if isinstance(exc, AerialMTLError) else " (run with --debug for the traceback)"
+    click.echo(f"Error: {_one_line(exc, flags_for(_command_name(args)))}{hint}", err=True)
+    sys.exit(1)
+
+
+def _run(args: list[str], debug: bool) -> None:
     try:
         cli.main(args=args, prog_name="aerialmtl", standalone_mode=False)
     except click.exceptions.Abort as exc:  # click turns Ctrl-C (KeyboardInterrupt) into Abort
@@ -168,15 +238,15 @@ def _run(args: list[str], debug: bool) -> None:
         if debug:
             raise
         _interrupted(args, exc)
-    except (AerialMTLError, RasterioError, OSError) as exc:
+    except (AerialMTLError, OSError) as exc:
         if debug:
             raise
-        hint = "" if isinstance(exc, AerialMTLError) else " (run with --debug for the traceback)"
-        click.echo(f"Error: {_one_line(exc, flags_for(_command_name(args)))}{hint}", err=True)
-        sys.exit(1)
+        _expected(exc, args)
     except Exception as exc:  # a bug: still one line, and the way to get the details
         if debug:
             raise
+        if _is_raster_error(exc):
+            _expected(exc, args)
         click.echo(f"Error: unexpected {exc.__class__.__name__}: {_one_line(exc)[:300]}; run again with "
                    "`aerialmtl --debug ...` for the traceback and report it", err=True)
         sys.exit(1)

@@ -10,13 +10,12 @@ import click
 
 from aerialmtl.cli.options import option, output_path, overwrite_option, quiet_option, raster_option
 from aerialmtl.errors import OutputError
-from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
-from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS
-from aerialmtl.evaluation.report import headline
 
 
 def _parse_bins(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[float, ...]:
     if value is None:
+        from aerialmtl.evaluation.metrics import DEFAULT_HEIGHT_BINS  # torch: imported only when the command runs
+
         return DEFAULT_HEIGHT_BINS
     try:
         edges = tuple(math.inf if v.strip().lower() in ("inf", "infinity") else float(v) for v in value.split(","))
@@ -80,6 +79,9 @@ def evaluate(pred: Path, height_ref: str | None, dsm_ref: str | None, dtm_ref: s
 
     One parameter per command-line option: click passes each option to the command.
     """
+    from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
+    from aerialmtl.evaluation.report import headline
+
     if height_ref is None and dsm_ref is None and labels_ref is None and buildings_ref is None:
         raise click.UsageError("give at least one reference: --height NDSM.tif (or --dsm with --dtm) and/or "
                                "--labels LABELS.tif and/or --buildings FOOTPRINTS")

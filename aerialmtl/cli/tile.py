@@ -7,7 +7,6 @@ from pathlib import Path
 import click
 
 from aerialmtl.cli.options import option, output_path, overwrite_option, quiet_option, raster_option
-from aerialmtl.io.align import NdsmOptions
 
 _FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
 
@@ -100,6 +99,7 @@ def tile(ortho: str, dsm: str | None, dtm: str | None, ndsm: str | None, z_unit:
 
     One parameter per command-line option: click passes each option to the command.
     """
+    from aerialmtl.io.align import NdsmOptions
     from aerialmtl.tiling.splits import SplitSpec
     from aerialmtl.tiling.tile import TileOptions, tile_dataset
 

@@ -19,9 +19,6 @@ from aerialmtl.cli.options import (
     precision_option,
     quiet_option,
 )
-from aerialmtl.formats.run import RunFolder
-from aerialmtl.runtime import Torchrun
-from aerialmtl.training.distributed import install_stop_handler
 
 
 @click.command(name="train")
@@ -57,7 +54,10 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
 
     One parameter per command-line option: click passes each option to the command.
     """
+    from aerialmtl.formats.run import RunFolder
+    from aerialmtl.runtime import Torchrun
     from aerialmtl.training.config import load_train_config
+    from aerialmtl.training.distributed import install_stop_handler
     from aerialmtl.training.loop import check_budget, check_run_folder
     from aerialmtl.training.loop import train as train_loop
 

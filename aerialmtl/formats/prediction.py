@@ -297,7 +297,8 @@ class PredictionRecord(BaseModel):
         window, overlap, window_size, batch_size: the largest window side and overlap asked for (pixels), the
             window size used (rows, columns), windows per model call (earlier files say ``tile`` for ``window``).
         precision, engine, threads, device, compile, processes: how it ran (``threads``: CPU threads and
-            streams, ``None`` on a GPU; ``processes``: torchrun ranks that computed it).
+            streams, ``None`` on a GPU; ``processes``: torchrun ranks that computed it); engine_choice: the engine
+            and precision chosen and why (:class:`aerialmtl.inference.engine_choice.EngineChoice`).
         aoi: the AOI file, if any; ``grid``: the output grid; ``resampled_from_gsd``: the input's GSD when it
             was resampled; ``input_rescale``: ``(a, b)`` of ``rescale_input``.
         windows_total, windows_computed, overlap_factor, plan_overlap_factor: the window plan and the work.
@@ -322,6 +323,7 @@ class PredictionRecord(BaseModel):
     precision: str
     engine: str
     threads: dict[str, Any] | None
+    engine_choice: dict[str, Any] | None = None
     device: str
     compile: bool
     processes: int

@@ -60,7 +60,8 @@ from aerialmtl.formats.prediction import (
     prediction_layers,
 )
 from aerialmtl.formats.stac import model_summary
-from aerialmtl.inference.engines import Pending, openvino_available, resolve_engine
+from aerialmtl.inference.engine_choice import choose_engine
+from aerialmtl.inference.engines import Pending, openvino_available
 from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
@@ -160,11 +161,11 @@ class Predictor:
         warm = s.engine in ("auto", "openvino") and self.device.type == "cpu" and openvino_available()
         model, self.meta, name, loaded_fingerprint = _load(checkpoint, warm=warm)
         #: The engine that runs the model (a name of :data:`~aerialmtl.inference.engines.ENGINES`).
-        self.engine = resolve_engine(s.engine, self.device, model)
+        #: Engine and precision, and why (``auto``: measured per CPU kind, :mod:`~aerialmtl.inference.engine_choice`).
+        self.choice = choose_engine(s.engine, s.precision, self.device, model)
+        self.engine, self.precision = self.choice.engine, self.choice.precision
         if self.engine == "torch":
             model = resolve_model(model)
-        self.precision = runtime.resolve_precision(s.precision, self.device,
-                                                   cpu_bf16=self.engine == "openvino" or runtime.cpu_has_amx())
         if s.compile and self.engine != "torch":
             warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
                           UserWarning, stacklevel=2)
@@ -297,6 +298,7 @@ class Predictor:
             "checkpoint": self.checkpoint_name,
             "model": model_summary(self.meta),
             **self.settings.record(resolved, self.resolved_batch_size(src.plan)),
+            "engine_choice": self.choice.as_dict(),
             "calibration": self.calibration_info(),
             PROVENANCE_KEY: self.provenance(src),
         }
