@@ -277,28 +277,42 @@ def tile_dataset(
                               "dataset was put in place first", UserWarning, stacklevel=2)
             folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
             owned = claim(folder, overwrite)
-            stage = staging_path(out_dir / STAGING_NAME)
-            stage.mkdir()
-            try:
-                result = _tile_loop(sources, assigner, grid, stage, options, progress)
-                check_not_empty(result, grid, size, options.min_valid)
-                result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
-                result.dataset_yaml = out_dir / DATASET_YAML
-                result.tasks = list(sources.tasks)
-                if assigner.block_size_m is not None:
-                    result.block_size_m = assigner.block_size_m
-                    result.block_patches = int(round(assigner.block_px[0] / stride))
-                info = _describe(sources, grid, options, assigner, result)
-                commit(stage, out_dir, owned or [], info)
-            except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
-                if (stage / SWAP_FILE).is_file():  # stopped inside the swap: finish it, so the new set is whole
-                    with contextlib.suppress(Exception):
-                        finish_swap(stage, out_dir)
-                shutil.rmtree(stage, ignore_errors=True)
-                if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError)
-                                                            or kind_of(exc, out_dir) is not None):
-                    raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
-                raise
+            result = _write_staged(sources, assigner, grid, options, out_dir, owned or [], progress)
+    return result
+
+
+def _write_staged(
+    sources: TileSources, assigner: SplitAssigner, grid: Grid, options: TileOptions, out_dir: Path,
+    owned: Sequence[str], progress: bool,
+) -> TileResult:
+    """Write the tile dataset into a staging folder, then swap it into ``out_dir`` in place of ``owned``.
+
+    A failed or interrupted run removes its staging folder (finishing the swap first when it had begun), so
+    ``out_dir`` holds the earlier tile dataset or the new one; OS errors become
+    :class:`~aerialmtl.errors.OutputError` naming the tile folder.
+    """
+    stage = staging_path(out_dir / STAGING_NAME)
+    stage.mkdir()
+    try:
+        result = _tile_loop(sources, assigner, grid, stage, options, progress)
+        check_not_empty(result, grid, options.size, options.min_valid)
+        result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
+        result.dataset_yaml = out_dir / DATASET_YAML
+        result.tasks = list(sources.tasks)
+        if assigner.block_size_m is not None:
+            result.block_size_m = assigner.block_size_m
+            result.block_patches = int(round(assigner.block_px[0] / options.step))
+        info = _describe(sources, grid, options, assigner, result)
+        commit(stage, out_dir, owned, info)
+    except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
+        if (stage / SWAP_FILE).is_file():  # stopped inside the swap: finish it, so the new set is whole
+            with contextlib.suppress(Exception):
+                finish_swap(stage, out_dir)
+        shutil.rmtree(stage, ignore_errors=True)
+        if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError)
+                                                    or kind_of(exc, out_dir) is not None):
+            raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
+        raise
     return result
 
 
