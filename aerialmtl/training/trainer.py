@@ -566,9 +566,10 @@ class Trainer:
 
         for name in ("best.pt", "last.pt"):
             if self.paths[name].exists():
-                d = familiarize_checkpoint(self.paths[name], self.info.root, levels=fam.levels, dims=fam.dims,
+                data = self.setup.data
+                d = familiarize_checkpoint(self.paths[name], data.info.root, levels=fam.levels, dims=fam.dims,
                                            method=fam.method, components=fam.components,
-                                           cache_folder=self.cache_folder, device=self.device)
+                                           cache_folder=data.cache_folder, device=self.device)
                 log.info("%s: %s", name, d.summary())
 
     def done_before_start(self) -> str | None:
