@@ -51,7 +51,8 @@ class AerialMTLError(Exception):
 
     Args:
         message: the message, parameters marked as ``‹name›`` / ``‹name=value›`` (see the module docstring).
-        param: the parameter whose value is wrong, when the error is about one parameter's value.
+        param: the parameter whose value is wrong, when the error is about one parameter's value
+            (``"a/b"``: two parameters that cannot be given together).
     """
 
     def __init__(self, message: str = "", *, param: str | None = None) -> None:

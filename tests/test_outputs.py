@@ -301,7 +301,7 @@ def _tile_swapping_slowly(args: list[str]) -> subprocess.Popen:
     sleeps 0.3 s) and announced on stdout, so a test can signal it mid-swap."""
     code = "\n".join([
         "import sys, time",
-        "import aerialmtl.tiling.tile as t",
+        "import aerialmtl.tiling.swap as t",
         "move = t._move_into",
         "def slow(src, dst):",
         "    print('swapping', flush=True); time.sleep(0.3); move(src, dst)",

@@ -63,10 +63,10 @@ def test_overlap_factor_close_to_theory_on_large_rasters() -> None:
     assert plan.overlap_factor < 1.45
 
 
-@pytest.mark.parametrize("tile,overlap", [(100, 10), (0, 0), (512, 300), (512, -1)])
-def test_bad_tiling_is_refused(tile: int, overlap: int) -> None:
-    with pytest.raises(InputError, match="tile|overlap"):
-        plan_windows(100, 100, tile, overlap)
+@pytest.mark.parametrize("window,overlap", [(100, 10), (0, 0), (512, 300), (512, -1)])
+def test_bad_tiling_is_refused(window: int, overlap: int) -> None:
+    with pytest.raises(InputError, match="window|overlap"):
+        plan_windows(100, 100, window, overlap)
 
 
 # ---- property: identity model ------------------------------------------------------------------
@@ -78,16 +78,16 @@ def test_bad_tiling_is_refused(tile: int, overlap: int) -> None:
     overlap_frac=st.floats(0.0, 0.5),
     seed=st.integers(0, 2**16),
 )
-def test_identity_model_is_reproduced_exactly(height: int, width: int, tile: int, overlap_frac: float,
+def test_identity_model_is_reproduced_exactly(height: int, width: int, window: int, overlap_frac: float,
                                               seed: int) -> None:
-    overlap = int(tile * overlap_frac)
+    overlap = int(window * overlap_frac)
     rng = np.random.default_rng(seed)
     img = rng.integers(1, 256, size=(3, height, width)).astype(np.uint8)
     meta = identity_meta()
     model = IdentityModel(meta.mean, meta.std)
     with tempfile.TemporaryDirectory() as tmp:
         src = write_raster(Path(tmp) / "ortho.tif", img)
-        res = predict_raster(src, (model, meta), Path(tmp) / "pred", mc=1, window=tile, overlap=overlap,
+        res = predict_raster(src, (model, meta), Path(tmp) / "pred", mc=1, window=window, overlap=overlap,
                              batch_size=3, precision="fp32", progress=False)
         with rasterio.open(res.files["height"]) as h, rasterio.open(res.files["classes"]) as c:
             height_out, classes_out = h.read(1), c.read(1)

@@ -251,6 +251,95 @@ def _merge(pieces: list[PixelBuilding]) -> PixelBuilding:
     return PixelBuilding(poly, values)
 
 
+class _BlockWalk:
+    """The open buildings of a walk over the blocks in raster order, and the edges they may continue through.
+
+    Per block row: :meth:`start_row`, one :meth:`add_block` per block left to right, :meth:`end_row`.
+
+    Attributes:
+        groups: union–find over the pieces of the buildings not yet complete.
+        live: piece id → its :class:`PixelBuilding`, while its building is open.
+        frontier_ids, frontier_h: (width,) piece id (−1: none) and height of the pixels just above the
+            current block row.
+        above: block column → pieces of the block above that reach its bottom row.
+    """
+
+    def __init__(self, width: int, step: float | None) -> None:
+        self.width = width
+        self.step = step
+        self.groups = _Groups()
+        self.live: dict[int, PixelBuilding] = {}
+        self.next_id = 0
+        self.frontier_ids = np.full(width, -1, np.int64)
+        self.frontier_h = np.full(width, np.nan, np.float32)
+        self.above: dict[int, list[int]] = {}
+        self.start_row(0)
+
+    def start_row(self, rows: int) -> None:
+        """Begin a block row ``rows`` pixels high: nothing on its left yet, its bottom row still to fill."""
+        self.new_ids = np.full(self.width, -1, np.int64)  # the bottom row of this block row: the next frontier
+        self.new_h = np.full(self.width, np.nan, np.float32)
+        self.below: dict[int, list[int]] = {}
+        self.left_ids = np.full(rows, -1, np.int64)  # right column of the block on the left
+        self.left_h = np.full(rows, np.nan, np.float32)
+        self.left_open: list[int] = []  # pieces of the block on the left that reach its right column
+
+    def end_row(self) -> None:
+        """The block row is read: its bottom row becomes the frontier of the next one."""
+        self.frontier_ids, self.frontier_h, self.above = self.new_ids, self.new_h, self.below
+
+    def add_block(self, block: dict[str, np.ndarray], mask: np.ndarray, col_off: int, row_off: int, *,
+                  last_row: bool, last_col: bool, stats: ExtractionStats) -> Iterator[PixelBuilding]:
+        """Add the building pixels ``mask`` (h, w) of the block at ``col_off, row_off``; yields every building
+        the block completes.
+        """
+        n_mask = int(np.count_nonzero(mask))
+        new: list[int] = []
+        right_open: list[int] = []
+        if n_mask:
+            stats.building_pixels += n_mask
+            new, right_open = self._add_pieces(block, mask, col_off, row_off, last_row, last_col, stats)
+        else:
+            self.left_ids = np.full(mask.shape[0], -1, np.int64)
+        # the right column of the block on the left and the bottom row of the block above are read now
+        resolved = self.left_open + self.above.get(col_off, [])
+        for pid in resolved:
+            self.groups.close_edge(pid)
+        self.left_open = right_open
+        for members in self.groups.pop_closed(new + resolved):
+            yield _merge([self.live.pop(pid) for pid in members])
+
+    def _add_pieces(self, block: dict[str, np.ndarray], mask: np.ndarray, col_off: int, row_off: int,
+                    last_row: bool, last_col: bool, stats: ExtractionStats) -> tuple[list[int], list[int]]:
+        """Open one piece per component of ``mask`` and join it to its neighbours on the left and above;
+        returns the new piece ids and those reaching the block's right column.
+        """
+        labels, n = _components(mask, block["height"], self.step)
+        stats.components += n
+        gid = np.where(labels > 0, labels.astype(np.int64) + (self.next_id - 1), -1)
+        at_bottom = set() if last_row else set(np.unique(gid[-1][gid[-1] >= 0]).tolist())
+        at_right = set() if last_col else set(np.unique(gid[:, -1][gid[:, -1] >= 0]).tolist())
+        new = []
+        for i, piece in enumerate(_block_pieces(labels, n, mask, block, col_off, row_off)):
+            pid = self.next_id + i
+            self.live[pid] = piece
+            self.groups.add(pid, int(pid in at_bottom) + int(pid in at_right))
+            new.append(pid)
+        self.next_id += n
+        self.below[col_off] = sorted(at_bottom)
+        hgt = block["height"]
+        bw = mask.shape[1]
+        if col_off > 0:
+            _join(self.groups, self.left_ids, self.left_h, gid[:, 0], hgt[:, 0], self.step)
+        if row_off > 0:
+            _join(self.groups, self.frontier_ids[col_off:col_off + bw], self.frontier_h[col_off:col_off + bw],
+                  gid[0], hgt[0], self.step)
+        self.left_ids, self.left_h = gid[:, -1].copy(), hgt[:, -1].copy()
+        self.new_ids[col_off:col_off + bw] = gid[-1]
+        self.new_h[col_off:col_off + bw] = hgt[-1]
+        return new, sorted(at_right)
+
+
 def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], block_size: int = 1024,
                          height_step_m: float | None = None, stats: ExtractionStats | None = None,
                          progress: bool = False) -> Iterator[PixelBuilding]:
@@ -267,77 +356,27 @@ def iter_pixel_buildings(layers: BuildingLayers, class_indices: Sequence[int], b
     Yields:
         every 4-connected building component once, as soon as no block still to be read can touch it
         (after the block holding its last pixel in raster order, or the block below or right of it).
-
-    A little over 80 lines: the block loop keeps the open groups, the edges they may continue through and
-    the blocks' pixels in one scope; split, they would travel as six arguments.
     """
     stats = stats if stats is not None else ExtractionStats()
     height, width = layers.grid.height, layers.grid.width
     b = int(block_size)
     classes = np.asarray(sorted(class_indices), dtype=np.uint8)
-    groups = _Groups()
-    live: dict[int, PixelBuilding] = {}
-    next_id = 0
-    frontier_ids = np.full(width, -1, np.int64)  # piece id of the pixels just above this block row
-    frontier_h = np.full(width, np.nan, np.float32)
-    above: dict[int, list[int]] = {}  # block column → pieces of the block above that reach its bottom row
+    walk = _BlockWalk(width, height_step_m)
     n_blocks = -(-height // b) * -(-width // b)
     with gdal_env("buildings"), tqdm(total=n_blocks, desc="buildings", unit="block", disable=not progress) as bar:
         for r0 in range(0, height, b):
             bh = min(b, height - r0)
-            last_row = r0 + bh >= height
-            new_ids = np.full(width, -1, np.int64)
-            new_h = np.full(width, np.nan, np.float32)
-            below: dict[int, list[int]] = {}
-            left_ids = np.full(bh, -1, np.int64)
-            left_h = np.full(bh, np.nan, np.float32)
-            left_open: list[int] = []  # pieces of the block on the left that reach its right column
+            walk.start_row(bh)
             for c0 in range(0, width, b):
                 bw = min(b, width - c0)
-                last_col = c0 + bw >= width
                 block = layers.read(Window(c0, r0, bw, bh))
                 stats.blocks += 1
                 bar.update(1)
                 cls = block["class"]
                 stats.valid_pixels += int(np.count_nonzero(cls != IGNORE_INDEX))
-                mask = np.isin(cls, classes)
-                n_mask = int(np.count_nonzero(mask))
-                new: list[int] = []
-                right_open: list[int] = []
-                if n_mask:
-                    stats.building_pixels += n_mask
-                    labels, n = _components(mask, block["height"], height_step_m)
-                    stats.components += n
-                    gid = np.where(labels > 0, labels.astype(np.int64) + (next_id - 1), -1)
-                    at_bottom = set() if last_row else set(np.unique(gid[-1][gid[-1] >= 0]).tolist())
-                    at_right = set() if last_col else set(np.unique(gid[:, -1][gid[:, -1] >= 0]).tolist())
-                    for i, piece in enumerate(_block_pieces(labels, n, mask, block, c0, r0)):
-                        pid = next_id + i
-                        live[pid] = piece
-                        groups.add(pid, int(pid in at_bottom) + int(pid in at_right))
-                        new.append(pid)
-                    next_id += n
-                    below[c0] = sorted(at_bottom)
-                    right_open = sorted(at_right)
-                    hgt = block["height"]
-                    if c0 > 0:
-                        _join(groups, left_ids, left_h, gid[:, 0], hgt[:, 0], height_step_m)
-                    if r0 > 0:
-                        _join(groups, frontier_ids[c0:c0 + bw], frontier_h[c0:c0 + bw], gid[0], hgt[0],
-                              height_step_m)
-                    left_ids, left_h = gid[:, -1].copy(), hgt[:, -1].copy()
-                    new_ids[c0:c0 + bw] = gid[-1]
-                    new_h[c0:c0 + bw] = hgt[-1]
-                else:
-                    left_ids = np.full(bh, -1, np.int64)
-                # the right column of the block on the left and the bottom row of the block above are read now
-                resolved = left_open + above.get(c0, [])
-                for pid in resolved:
-                    groups.close_edge(pid)
-                left_open = right_open
-                for members in groups.pop_closed(new + resolved):
-                    yield _merge([live.pop(pid) for pid in members])
-            frontier_ids, frontier_h, above = new_ids, new_h, below
+                yield from walk.add_block(block, np.isin(cls, classes), c0, r0, last_row=r0 + bh >= height,
+                                          last_col=c0 + bw >= width, stats=stats)
+            walk.end_row()
 
 
 def extract_buildings(

@@ -217,7 +217,8 @@ def usage_errors(command: str, callback: F) -> F:
     """Wrap a command's callback: a library error about one option's value becomes click's usage error.
 
     The message is spelled with the command's options; a leading mark of the option itself is dropped
-    (click already says ``Invalid value for --tile:``).
+    (click already says ``Invalid value for --tile:``). An error about two options given together
+    (``param="resume/init"``) names both (``Invalid value for --resume/--init:``).
     """
 
     @functools.wraps(callback)
@@ -226,9 +227,10 @@ def usage_errors(command: str, callback: F) -> F:
             return callback(*args, **kwargs)
         except (InputError, ConfigError) as exc:
             flags = flags_for(command)
-            option = flags.get(exc.param or "")
-            if option is None or not option.startswith("-"):
+            options = [flags.get(name) for name in (exc.param or "").split("/")]
+            if not all(o is not None and o.startswith("-") for o in options):
                 raise
+            option = "/".join(o for o in options if o is not None)
             text = exc.message
             lead = PARAM_MARK.match(text)
             if lead is not None and lead.group(1) == exc.param and lead.group(2) is None:

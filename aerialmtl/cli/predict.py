@@ -90,7 +90,7 @@ def _say_if_start(model: Path) -> None:
              "folder, or the current folder if one is remote].")
 @option("--mc", type=int, default=None,
         help="MC-dropout samples T (1 = single pass, no uncertainty maps). Default: 30 if the model has dropout.")
-@option("--window", "window", type=int, default=1024, show_default=True,
+@option("--window", "window", library="tile", type=int, default=1024, show_default=True,
         help="Largest window side (pixels, multiple of 32); smaller windows use less memory but recompute more "
              "overlap.")
 @option("--tile", "tile_alias", type=int, default=None, hidden=True, help="Deprecated name of --window.")

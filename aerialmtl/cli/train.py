@@ -62,12 +62,8 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     from aerialmtl.training.loop import train as train_loop
 
     check_budget(max_steps, max_time)  # before the run folder is touched
-    if resume and overwrite:  # option pairs: usage errors naming both (the library refuses them too)
-        raise click.BadParameter("--resume continues a run and --overwrite deletes it; pass only one",
-                                 param_hint="--resume/--overwrite")
-    if resume and init_ckpt is not None:
-        raise click.BadParameter("--resume continues the run's own weights; --init starts a new run from a "
-                                 "checkpoint; pass only one", param_hint="--resume/--init")
+    # the option pairs (--resume with --overwrite or --init) first: the library's refusal names both options
+    check_run_folder(out_dir, resume, overwrite, init_ckpt)  # before the config is read: says what is wrong first
     if init_ckpt is not None:  # a checkpoint file, or the name of a start shipped with the package
         from aerialmtl.errors import CheckpointError
         from aerialmtl.formats.starts import resolve_start
@@ -76,7 +72,6 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
             init_ckpt = resolve_start(init_ckpt)
         except CheckpointError as exc:
             raise click.BadParameter(str(exc).removeprefix("init: "), param_hint="--init") from exc
-    check_run_folder(out_dir, resume, overwrite, init_ckpt)  # before the config is read: says what is wrong first
     if resume and config_path is None:
         config_path = RunFolder(out_dir).config
     if config_path is None:

@@ -146,87 +146,114 @@ def _save(fig: Any, path: Path) -> None:
 def write_plots(report: dict[str, Any], stem: Path) -> list[Path]:
     """PNG plots beside ``stem`` (``<stem>_sparsification.png``, ...); returns the paths written.
 
-    Uses matplotlib's object API with the Agg canvas (no pyplot, no global backend change).
+    Uses matplotlib's object API with the Agg canvas (no pyplot, no global backend change): one figure per
+    plot, in the order of the report, each drawn only when the report has its numbers.
     Raises ImportError when matplotlib is missing.
-
-    Over 80 lines: one short block per plot, in the order of the report; each draws on its own figure.
     """
+    u = report.get("uncertainty") or {}
+    figures = [
+        ("sparsification", _sparsification_figure(u)),
+        ("confusion", _confusion_figure(report.get("classes"))),
+        ("height_reliability", _height_reliability_figure(u)),
+        ("reliability", _calibration_figure(u)),
+    ]
+    written: list[Path] = []
+    for name, fig in figures:
+        if fig is not None:
+            path = plot_path(stem, name)
+            _save(fig, path)
+            written.append(path)
+    return written
+
+
+def _sparsification_figure(u: dict[str, Any]) -> Any:
+    """Sparsification curves of each uncertainty layer beside its oracle and random curves, or ``None``."""
     from matplotlib.figure import Figure
 
-    written: list[Path] = []
-    u = report.get("uncertainty") or {}
     curves = [(k, u[k]["sparsification"]) for k in ("height_std", "class_entropy", "class_mutual_info") if k in u]
-    if curves:
-        fig = Figure(figsize=(4.2 * len(curves), 3.6))
-        for i, (key, sp) in enumerate(curves):
-            ax = fig.add_subplot(1, len(curves), i + 1)
-            f = np.asarray(sp["fractions"], float)
-            ax.plot(f, np.asarray(sp["curve"], float), label=f"uncertainty (AUSE {_fmt(sp['ause'])})")
-            ax.plot(f, np.asarray(sp["oracle"], float), "--", label="oracle")
-            ax.plot(f, np.asarray(sp["random"], float), ":", label=f"random (AURG {_fmt(sp['aurg'])})")
-            ax.set_xlabel("fraction of pixels removed")
-            ax.set_ylabel("mean error / full-set mean error" if sp["normalised"] else "mean error")
-            ax.set_title(key.replace("_", " "))
-            ax.legend(fontsize=7)
-        path = plot_path(stem, "sparsification")
-        _save(fig, path)
-        written.append(path)
-    c = report.get("classes")
-    if c and c["n_pixels"]:
-        cm = np.asarray(c["confusion_matrix"], float)
-        norm = cm / np.maximum(cm.sum(1, keepdims=True), 1)
-        names = list(c["per_class"])
-        size = 2.5 + 0.45 * len(names)
-        fig = Figure(figsize=(size + 1, size))
-        ax = fig.add_subplot(1, 1, 1)
-        im = ax.imshow(norm, vmin=0, vmax=1, cmap="Blues")
-        ax.set_xticks(range(len(names)), names, rotation=45, ha="right", fontsize=7)
-        ax.set_yticks(range(len(names)), names, fontsize=7)
-        ax.set_xlabel("predicted")
-        ax.set_ylabel("reference")
-        ax.set_title(f"confusion (row-normalised), OA {_fmt(c['overall_accuracy'], pct=True)}")
-        fig.colorbar(im, ax=ax, fraction=0.046)
-        path = plot_path(stem, "confusion")
-        _save(fig, path)
-        written.append(path)
+    if not curves:
+        return None
+    fig = Figure(figsize=(4.2 * len(curves), 3.6))
+    for i, (key, sp) in enumerate(curves):
+        ax = fig.add_subplot(1, len(curves), i + 1)
+        f = np.asarray(sp["fractions"], float)
+        ax.plot(f, np.asarray(sp["curve"], float), label=f"uncertainty (AUSE {_fmt(sp['ause'])})")
+        ax.plot(f, np.asarray(sp["oracle"], float), "--", label="oracle")
+        ax.plot(f, np.asarray(sp["random"], float), ":", label=f"random (AURG {_fmt(sp['aurg'])})")
+        ax.set_xlabel("fraction of pixels removed")
+        ax.set_ylabel("mean error / full-set mean error" if sp["normalised"] else "mean error")
+        ax.set_title(key.replace("_", " "))
+        ax.legend(fontsize=7)
+    return fig
+
+
+def _confusion_figure(c: dict[str, Any] | None) -> Any:
+    """The row-normalised confusion matrix of the classes, or ``None`` without class pixels."""
+    from matplotlib.figure import Figure
+
+    if not (c and c["n_pixels"]):
+        return None
+    cm = np.asarray(c["confusion_matrix"], float)
+    norm = cm / np.maximum(cm.sum(1, keepdims=True), 1)
+    names = list(c["per_class"])
+    size = 2.5 + 0.45 * len(names)
+    fig = Figure(figsize=(size + 1, size))
+    ax = fig.add_subplot(1, 1, 1)
+    im = ax.imshow(norm, vmin=0, vmax=1, cmap="Blues")
+    ax.set_xticks(range(len(names)), names, rotation=45, ha="right", fontsize=7)
+    ax.set_yticks(range(len(names)), names, fontsize=7)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("reference")
+    ax.set_title(f"confusion (row-normalised), OA {_fmt(c['overall_accuracy'], pct=True)}")
+    fig.colorbar(im, ax=ax, fraction=0.046)
+    return fig
+
+
+def _height_reliability_figure(u: dict[str, Any]) -> Any:
+    """Observed vs nominal coverage of the height spread per reference-height bin, or ``None``."""
+    from matplotlib.figure import Figure
+
     strata = (u.get("height_std") or {}).get("strata")
-    if strata and any(b.get("reliability_observed") for b in strata["bins"]):
-        fig = Figure(figsize=(4.6, 4.2))
-        ax = fig.add_subplot(1, 1, 1)
-        levels = np.asarray(strata["reliability_levels"], float)
-        for b in strata["bins"]:
-            obs = b.get("reliability_observed")
-            if not obs:
-                continue
-            lo, hi = b["range_m"]
-            label = f"{lo:g}–{hi:g} m" if hi is not None and math.isfinite(hi) else f"≥ {lo:g} m"
-            ax.plot(levels, np.asarray(obs, float), marker="o", ms=3,
-                    label=f"{label} ({_fmt(b.get('share'), pct=True)})")
-        ax.plot([0, 1], [0, 1], "k--", label="nominal")
-        ax.set_xlabel("nominal probability of the central ±zσ interval")
-        ax.set_ylabel("observed share of pixels inside")
-        ax.set_title("height spread reliability per reference height")
-        ax.legend(fontsize=7)
-        path = plot_path(stem, "height_reliability")
-        _save(fig, path)
-        written.append(path)
+    if not (strata and any(b.get("reliability_observed") for b in strata["bins"])):
+        return None
+    fig = Figure(figsize=(4.6, 4.2))
+    ax = fig.add_subplot(1, 1, 1)
+    levels = np.asarray(strata["reliability_levels"], float)
+    for b in strata["bins"]:
+        obs = b.get("reliability_observed")
+        if not obs:
+            continue
+        lo, hi = b["range_m"]
+        label = f"{lo:g}–{hi:g} m" if hi is not None and math.isfinite(hi) else f"≥ {lo:g} m"
+        ax.plot(levels, np.asarray(obs, float), marker="o", ms=3,
+                label=f"{label} ({_fmt(b.get('share'), pct=True)})")
+    ax.plot([0, 1], [0, 1], "k--", label="nominal")
+    ax.set_xlabel("nominal probability of the central ±zσ interval")
+    ax.set_ylabel("observed share of pixels inside")
+    ax.set_title("height spread reliability per reference height")
+    ax.legend(fontsize=7)
+    return fig
+
+
+def _calibration_figure(u: dict[str, Any]) -> Any:
+    """The class-confidence reliability diagram, or ``None`` without calibration numbers."""
+    from matplotlib.figure import Figure
+
     cal = u.get("calibration")
-    if cal and cal["n_pixels"]:
-        fig = Figure(figsize=(4.2, 4))
-        ax = fig.add_subplot(1, 1, 1)
-        edges = np.asarray(cal["bin_edges"], float)
-        centres = 0.5 * (edges[1:] + edges[:-1])
-        acc = np.array([np.nan if a is None else a for a in cal["accuracy"]], float)
-        ax.bar(centres, np.nan_to_num(acc), width=edges[1] - edges[0], edgecolor="k", alpha=0.7, label="accuracy")
-        ax.plot([0, 1], [0, 1], "k--", label="perfect calibration")
-        ax.set_xlabel("confidence (max class probability)")
-        ax.set_ylabel("accuracy")
-        ax.set_title(f"reliability, ECE {_fmt(cal['ece'])}")
-        ax.legend(fontsize=7)
-        path = plot_path(stem, "reliability")
-        _save(fig, path)
-        written.append(path)
-    return written
+    if not (cal and cal["n_pixels"]):
+        return None
+    fig = Figure(figsize=(4.2, 4))
+    ax = fig.add_subplot(1, 1, 1)
+    edges = np.asarray(cal["bin_edges"], float)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    acc = np.array([np.nan if a is None else a for a in cal["accuracy"]], float)
+    ax.bar(centres, np.nan_to_num(acc), width=edges[1] - edges[0], edgecolor="k", alpha=0.7, label="accuracy")
+    ax.plot([0, 1], [0, 1], "k--", label="perfect calibration")
+    ax.set_xlabel("confidence (max class probability)")
+    ax.set_ylabel("accuracy")
+    ax.set_title(f"reliability, ECE {_fmt(cal['ece'])}")
+    ax.legend(fontsize=7)
+    return fig
 
 
 def write_report(report: dict[str, Any], out: str | Path, plots: bool = True) -> Path:

@@ -218,25 +218,9 @@ def export_model(
         InputError: a bad ``format``/``task``/``tile``/``overlap``, a task the model does not have, or
             ``out`` without the format's extension.
         OutputExistsError: ``out`` exists and ``overwrite`` is false.
-
-    A little over 80 lines: the argument checks come first, each with its own message, before the
-    checkpoint is read.
     """
     out = Path(out)
-    if format not in FORMATS:
-        raise InputError(f"‹format› must be one of {', '.join(FORMATS)}, got {format!r}", param="format")
-    if task not in TASKS:
-        raise InputError(f"‹task› must be one of {', '.join(TASKS)}, got {task!r}", param="task")
-    if tile < 32 or tile % 32:
-        raise InputError(f"‹tile› must be a positive multiple of 32 pixels, got {tile}; pass e.g. ‹tile=512›",
-                         param="tile")
-    if not 0 <= overlap < tile:
-        raise InputError(f"‹overlap› must be within 0..{tile - 1} pixels (less than ‹tile›), got {overlap}",
-                         param="overlap")
-    suffix = ".onnx" if format == "onnx" else ".xml"
-    if out.suffix.lower() != suffix:
-        raise InputError(f"‹out› of a {format} export must end in {suffix}, got '{out}'; pass e.g. "
-                         f"‹out={out.with_suffix(suffix).name}›", param="out")
+    _check_arguments(out, format, task, tile, overlap)
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
     else:
@@ -261,6 +245,39 @@ def export_model(
         check_files_not_input(files, {"checkpoint": checkpoint}, option="out")
 
     metadata = export_metadata(meta, task, tile, overlap, calibrated=calibration and meta.calibration is not None)
+    outputs = _write_files(model, meta, files, format, task, tile, calibration, metadata)
+    return ExportResult(files, format, task, outputs, tile, metadata)
+
+
+def _check_arguments(out: Path, format: str, task: str, tile: int, overlap: int) -> None:
+    """Refuse a bad ``format``/``task``/``tile``/``overlap`` or an ``out`` without the format's extension
+    (:class:`~aerialmtl.errors.InputError` naming the argument), before the checkpoint is read.
+    """
+    if format not in FORMATS:
+        raise InputError(f"‹format› must be one of {', '.join(FORMATS)}, got {format!r}", param="format")
+    if task not in TASKS:
+        raise InputError(f"‹task› must be one of {', '.join(TASKS)}, got {task!r}", param="task")
+    if tile < 32 or tile % 32:
+        raise InputError(f"‹tile› must be a positive multiple of 32 pixels, got {tile}; pass e.g. ‹tile=512›",
+                         param="tile")
+    if not 0 <= overlap < tile:
+        raise InputError(f"‹overlap› must be within 0..{tile - 1} pixels (less than ‹tile›), got {overlap}",
+                         param="overlap")
+    suffix = ".onnx" if format == "onnx" else ".xml"
+    if out.suffix.lower() != suffix:
+        raise InputError(f"‹out› of a {format} export must end in {suffix}, got '{out}'; pass e.g. "
+                         f"‹out={out.with_suffix(suffix).name}›", param="out")
+
+
+def _write_files(model: nn.Module, meta: ModelMeta, files: tuple[Path, ...], format: str, task: str, tile: int,
+                 calibration: bool, metadata: dict[str, str]) -> tuple[str, ...]:
+    """Export the graph, cut it to ``task`` and write it as ``format`` with ``metadata`` to ``files`` (the
+    ``.onnx``, or the ``.xml`` and its ``.bin``), staged beside them and renamed whole; returns its outputs.
+
+    Raises:
+        OutputError: the folder is in use or cannot be written.
+    """
+    out = files[0]
     try:
         # the folder held for the run (aerialmtl.io.outputs); the files staged in .NAME.partial/ beside them
         with OutputFolder(out.parent, "export", option="out") as folder, _staging_dir(folder, out) as tmp:
@@ -281,7 +298,7 @@ def export_model(
         if isinstance(exc, OutputError):  # the folder in use by another process, or not creatable
             raise
         raise OutputError(f"cannot write '{out}': {exc.strerror or exc}; choose a writable ‹out›") from exc
-    return ExportResult(files, format, task, outputs, tile, metadata)
+    return outputs
 
 
 @contextlib.contextmanager

@@ -65,14 +65,14 @@ class OrthoInput:
     fingerprint: dict[str, Any] | None = None
 
     @classmethod
-    def open(cls, path: str | Path, meta: ModelMeta, tile: int, overlap: int,
+    def open(cls, path: str | Path, meta: ModelMeta, window: int, overlap: int,
              rescale_input: bool = False) -> OrthoInput:
         """Read what prediction needs from ``path`` in one opening: its header and a sample of its values.
 
         Args:
             path: the orthophoto.
             meta: the checkpoint metadata (GSD, bands, the training data's value range).
-            tile, overlap: the window plan's settings.
+            window, overlap: the window plan's settings.
             rescale_input: map values unlike the training data's onto the training range (:attr:`rescale`)
                 instead of refusing them (:func:`~aerialmtl.inference.sanity.check_input_values`).
 
@@ -96,7 +96,7 @@ class OrthoInput:
         fingerprint = local if local is not None else input_fingerprint(
             path, native.width, native.height, list(native.transform), native.crs.to_string())
         return cls(path, native, grid, resampled_from, count, unused,
-                   plan_windows(grid.height, grid.width, tile, overlap), rescale=rescale, fingerprint=fingerprint)
+                   plan_windows(grid.height, grid.width, window, overlap), rescale=rescale, fingerprint=fingerprint)
 
     def changed(self) -> str | None:
         """What changed in the input since it was opened (``None``: nothing; see :attr:`fingerprint`)."""

@@ -1,14 +1,14 @@
 """The window plan of streaming prediction: which windows the model sees and how their outputs blend.
 
 Along each axis of ``length`` output pixels the plan places ``n`` windows of one common ``size``
-(a multiple of 32, at most ``tile``), evenly spread from the first to the last pixel, so that
+(a multiple of 32, at most ``window``), evenly spread from the first to the last pixel, so that
 neighbours share at least ``overlap`` pixels::
 
-    n    = max(1, ceil((length − overlap) / (tile − overlap)))
-    size = min(tile, round_up_32(ceil((length + (n − 1) · overlap) / n)))
+    n    = max(1, ceil((length − overlap) / (window − overlap)))
+    size = min(window, round_up_32(ceil((length + (n − 1) · overlap) / n)))
 
-Spreading the windows (instead of snapping a last full tile to the edge) keeps the computed area
-close to ``(tile / (tile − overlap))²`` times the output area. An axis shorter than 32 pixels gets one
+Spreading the windows (instead of snapping a last full window to the edge) keeps the computed area
+close to ``(window / (window − overlap))²`` times the output area. An axis shorter than 32 pixels gets one
 32-pixel window reaching past the edge (the reader fills the outside as invalid).
 
 Blending. Inside an overlap of ``overlap`` pixels each window drops its outer ``margin = overlap // 4``
@@ -116,13 +116,13 @@ def _base_weight(size: int, margin: int, ramp: int, left: bool, right: bool) -> 
     return w
 
 
-def axis_plan(length: int, tile: int, overlap: int) -> AxisPlan:
+def axis_plan(length: int, window: int, overlap: int) -> AxisPlan:
     """Plan the windows along an axis of ``length`` pixels (see the module docstring)."""
-    check_tiling(tile, overlap)
+    check_tiling(window, overlap)
     if length < 1:
         raise InputError(f"cannot plan windows over an empty axis (length {length})")
-    n = max(1, math.ceil((length - overlap) / (tile - overlap)))
-    size = min(tile, _round_up(math.ceil((length + (n - 1) * overlap) / n)))
+    n = max(1, math.ceil((length - overlap) / (window - overlap)))
+    size = min(window, _round_up(math.ceil((length + (n - 1) * overlap) / n)))
     if n == 1:
         starts = [0]
     else:
@@ -134,7 +134,8 @@ def axis_plan(length: int, tile: int, overlap: int) -> AxisPlan:
     for s, b in zip(starts, base):
         total[s:s + size] += b
     if not np.all(total[:length] > 0):  # pragma: no cover - guarded by the size/overlap rules above
-        raise AssertionError(f"window plan leaves pixels uncovered (length {length}, tile {tile}, overlap {overlap})")
+        raise AssertionError(f"window plan leaves pixels uncovered (length {length}, window {window}, "
+                             f"overlap {overlap})")
     dense = np.zeros((n, total.size), dtype=np.float64)  # window × position
     for k, (s, b) in enumerate(zip(starts, base)):
         t = total[s:s + size]
@@ -205,21 +206,21 @@ class Plan:
         return result
 
 
-def plan_windows(height: int, width: int, tile: int = 512, overlap: int = 64) -> Plan:
+def plan_windows(height: int, width: int, window: int = 512, overlap: int = 64) -> Plan:
     """Plan the prediction windows over a ``height`` × ``width`` grid, grouped in window rows.
 
     Pure function of its arguments; window rows are independent given their :attr:`WindowRow.sources`.
 
     Args:
         height, width: grid size in pixels.
-        tile: largest window side (pixels, multiple of 32).
-        overlap: minimum overlap between neighbouring windows (pixels, ``0 ≤ overlap ≤ tile / 2``).
+        window: largest window side (pixels, multiple of 32).
+        overlap: minimum overlap between neighbouring windows (pixels, ``0 ≤ overlap ≤ window / 2``).
 
     Returns:
         A :class:`Plan`.
     """
-    rows = axis_plan(height, tile, overlap)
-    cols = axis_plan(width, tile, overlap)
+    rows = axis_plan(height, window, overlap)
+    cols = axis_plan(width, window, overlap)
     window_rows = []
     out_start = 0
     reach = [rows.reach(k) for k in range(len(rows.starts))]

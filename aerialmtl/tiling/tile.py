@@ -16,7 +16,8 @@ last. A run that fails (bad label codes, unreadable file) or is interrupted (Ctr
 before the swap removes its staging folder and leaves an earlier tile dataset in ``OUT`` as it was. The
 swap starts by writing a journal into the staging folder (:data:`SWAP_FILE`: the earlier set's files to
 remove); from then on it is rolled forward — by the interrupted run itself, or by the next run when the
-process was killed — so ``OUT`` holds either the earlier tile dataset or the new one, never half of each.
+process was killed — so ``OUT`` holds either the earlier tile dataset or the new one, never half of each
+(:mod:`aerialmtl.tiling.swap`; the input layers are opened by :mod:`aerialmtl.tiling.sources`).
 ``overwrite`` replaces the tile dataset an earlier run wrote (the files its ``dataset.yaml`` and
 ``manifest.csv`` list, :func:`aerialmtl.formats.tiles.owned_files`), never another file or folder; a
 ``train``/``val``/``test`` folder that no tile dataset lists is refused. The run holds the folder's lock
@@ -29,11 +30,8 @@ accumulated over valid pixels of the train split only (float64, merged patch by 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import datetime as _dt
-import json
 import math
-import os
 import shutil
 import warnings
 from collections.abc import Sequence
@@ -47,7 +45,7 @@ from rasterio.windows import Window
 
 from aerialmtl._version import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
-from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
+from aerialmtl.errors import AerialMTLError, InputError
 from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M
 from aerialmtl.formats.tiles import (
     DATASET_YAML,
@@ -57,20 +55,20 @@ from aerialmtl.formats.tiles import (
     STAGING_NAME,
     ManifestWriter,
     TileFolderInfo,
-    owned_files,
     patch_path,
     read_manifest,
 )
-from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions, reference_grid
+from aerialmtl.io.align import Grid, NdsmOptions, reference_grid
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import OutputFolder, atomic_write, staging_path
+from aerialmtl.io.outputs import OutputFolder, staging_path
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
-from aerialmtl.io.vector import VectorLabels
 from aerialmtl.progress import tqdm
 from aerialmtl.runtime import gdal_env
 from aerialmtl.tiling.grid import count_windows, tile_windows
+from aerialmtl.tiling.sources import TileSources
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
+from aerialmtl.tiling.swap import SWAP_FILE, claim, commit, finish_interrupted_swap, finish_swap
 
 
 @dataclass(frozen=True)
@@ -198,110 +196,6 @@ class _BandStats:
         return self.mean.tolist(), np.sqrt(self.m2 / self.n).tolist()
 
 
-def _claim(folder: OutputFolder, overwrite: bool) -> list[str] | None:
-    """Check that a tile dataset may be written into ``folder``; returns the earlier run's own files.
-
-    Raises:
-        OutputExistsError: a tile dataset (or part of one) is there and ``overwrite`` is false.
-        OutputError: a split folder is there that no tile dataset lists (never replaced).
-    """
-    names = (*SPLITS, MANIFEST_CSV, DATASET_YAML)
-    existing = folder.existing(names)
-    if not existing:
-        return []
-    owned = owned_files(folder.path)
-    foreign = [n for n in existing if n in SPLITS] if owned is None else []
-    if foreign:
-        raise OutputError(
-            f"tile folder '{folder.path}' holds {', '.join(foreign)} but no tile dataset (dataset.yaml with its "
-            "manifest.csv) lists them, so they were not written by `aerialmtl tile` (or by an unfinished run of an "
-            "older version) and are not replaced; move them away or choose another ‹out_dir›")
-    if not overwrite:
-        raise OutputExistsError(
-            f"output folder '{folder.path}' already holds {', '.join(existing)}; choose another ‹out_dir› or pass "
-            "‹overwrite=True› to replace the tile dataset")
-    return owned or []
-
-
-def _remove_dataset(out_dir: Path, owned: Sequence[str]) -> None:
-    """Remove the files of an earlier tile run (``owned``), dataset.yaml first, then emptied folders."""
-    for name in (DATASET_YAML, MANIFEST_CSV):  # first, so a half-replaced folder reads as unfinished
-        (out_dir / name).unlink(missing_ok=True)
-    parents: set[Path] = set()
-    for rel in owned:
-        path = out_dir / rel
-        path.unlink(missing_ok=True)
-        parents.update(p for p in path.parents if p != out_dir and out_dir in p.parents)
-    for folder in sorted(parents, key=lambda p: len(p.parts), reverse=True):
-        with contextlib.suppress(OSError):
-            folder.rmdir()  # only when empty: a user's file inside keeps it
-
-
-def _move_into(src: Path, dst: Path) -> None:
-    """Move ``src`` (a file or folder) to ``dst``, merging into a folder that is already there (a file replaces
-    the file of the same name).
-    """
-    if not dst.exists() or not src.is_dir():
-        os.replace(src, dst)
-        return
-    for child in src.iterdir():
-        _move_into(child, dst / child.name)
-    src.rmdir()
-
-
-#: The swap's journal inside the staging folder: written when the staged tile dataset is whole, it lists the
-#: earlier set's files to remove (those the new set does not replace); its presence means "roll forward".
-SWAP_FILE = "swap.json"
-
-
-def _commit(stage: Path, out_dir: Path, owned: Sequence[str], info: TileFolderInfo) -> None:
-    """Swap the staged tile dataset (patches, manifest) and ``info`` (its ``dataset.yaml``) into ``out_dir``,
-    replacing the earlier dataset (``owned``): journal first, then :func:`_finish_swap`.
-    """
-    dataclasses.replace(info, root=stage).write()
-    new = {p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file()}
-    journal = {"remove": sorted(set(owned) - new)}
-    with atomic_write(stage / SWAP_FILE) as tmp:
-        tmp.write_text(json.dumps(journal), encoding="utf-8")
-    _finish_swap(stage, out_dir)
-
-
-def _finish_swap(stage: Path, out_dir: Path) -> None:
-    """Carry out (or finish) the swap journaled in ``stage`` (:data:`SWAP_FILE`); every step can be repeated,
-    so an interrupted swap is finished by calling this again.
-    """
-    plan = json.loads((stage / SWAP_FILE).read_text(encoding="utf-8"))
-    if (stage / DATASET_YAML).exists():  # the earlier dataset.yaml first: a half-swapped folder reads unfinished
-        (out_dir / DATASET_YAML).unlink(missing_ok=True)
-    _remove_dataset(out_dir, [str(f) for f in plan.get("remove", [])])
-    for split in SPLITS:
-        if (stage / split).exists():
-            _move_into(stage / split, out_dir / split)
-    for name in (MANIFEST_CSV, DATASET_YAML):  # dataset.yaml last
-        if (stage / name).exists():
-            os.replace(stage / name, out_dir / name)
-    shutil.rmtree(stage)
-
-
-def finish_interrupted_swap(out_dir: Path) -> bool:
-    """Roll forward the swap a killed run left journaled in ``out_dir`` (call under the folder's lock);
-    returns whether there was one.
-    """
-    stage = staging_path(out_dir / STAGING_NAME)
-    if not (stage / SWAP_FILE).is_file():
-        return False
-    _finish_swap(stage, out_dir)
-    return True
-
-
-def _band_names(src: rasterio.io.DatasetReader, bands: Sequence[int]) -> list[str]:
-    names = []
-    for b in bands:
-        desc = src.descriptions[b - 1]
-        names.append(desc if desc else src.colorinterp[b - 1].name if src.colorinterp else f"band{b}")
-    return names
-
-
 def _fmt(v: float) -> str:
     """Map coordinates and heights for the manifest: exact enough to round-trip float32 and UTM metres."""
     return repr(round(float(v), 9))
@@ -382,29 +276,43 @@ def tile_dataset(
                 warnings.warn(f"tile folder '{out_dir}': a run was stopped while it replaced the tile dataset; its new "
                               "dataset was put in place first", UserWarning, stacklevel=2)
             folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
-            owned = _claim(folder, overwrite)
-            stage = staging_path(out_dir / STAGING_NAME)
-            stage.mkdir()
-            try:
-                result = _tile_loop(sources, assigner, grid, stage, options, progress)
-                check_not_empty(result, grid, size, options.min_valid)
-                result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
-                result.dataset_yaml = out_dir / DATASET_YAML
-                result.tasks = list(sources.tasks)
-                if assigner.block_size_m is not None:
-                    result.block_size_m = assigner.block_size_m
-                    result.block_patches = int(round(assigner.block_px[0] / stride))
-                info = _describe(sources, grid, options, assigner, result)
-                _commit(stage, out_dir, owned or [], info)
-            except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
-                if (stage / SWAP_FILE).is_file():  # stopped inside the swap: finish it, so the new set is whole
-                    with contextlib.suppress(Exception):
-                        _finish_swap(stage, out_dir)
-                shutil.rmtree(stage, ignore_errors=True)
-                if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError)
-                                                            or kind_of(exc, out_dir) is not None):
-                    raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
-                raise
+            owned = claim(folder, overwrite)
+            result = _write_staged(sources, assigner, grid, options, out_dir, owned or [], progress)
+    return result
+
+
+def _write_staged(
+    sources: TileSources, assigner: SplitAssigner, grid: Grid, options: TileOptions, out_dir: Path,
+    owned: Sequence[str], progress: bool,
+) -> TileResult:
+    """Write the tile dataset into a staging folder, then swap it into ``out_dir`` in place of ``owned``.
+
+    A failed or interrupted run removes its staging folder (finishing the swap first when it had begun), so
+    ``out_dir`` holds the earlier tile dataset or the new one; OS errors become
+    :class:`~aerialmtl.errors.OutputError` naming the tile folder.
+    """
+    stage = staging_path(out_dir / STAGING_NAME)
+    stage.mkdir()
+    try:
+        result = _tile_loop(sources, assigner, grid, stage, options, progress)
+        check_not_empty(result, grid, options.size, options.min_valid)
+        result.out_dir, result.manifest = out_dir, out_dir / MANIFEST_CSV
+        result.dataset_yaml = out_dir / DATASET_YAML
+        result.tasks = list(sources.tasks)
+        if assigner.block_size_m is not None:
+            result.block_size_m = assigner.block_size_m
+            result.block_patches = int(round(assigner.block_px[0] / options.step))
+        info = _describe(sources, grid, options, assigner, result)
+        commit(stage, out_dir, owned, info)
+    except BaseException as exc:  # a failed or interrupted run leaves no half dataset behind
+        if (stage / SWAP_FILE).is_file():  # stopped inside the swap: finish it, so the new set is whole
+            with contextlib.suppress(Exception):
+                finish_swap(stage, out_dir)
+        shutil.rmtree(stage, ignore_errors=True)
+        if not isinstance(exc, AerialMTLError) and (isinstance(exc, OSError)
+                                                    or kind_of(exc, out_dir) is not None):
+            raise output_error(exc, out_dir, "the tile folder", "‹out_dir›") from exc  # e.g. a full disk
+        raise
     return result
 
 
@@ -442,82 +350,6 @@ def _check_arguments(
         )
     count_windows(1, 1, options.size, options.step)  # validates size/stride
     return scheme
-
-
-class TileSources:
-    """Every input layer of a tile run, opened on the reference grid (a context manager).
-
-    Attributes:
-        image: the orthophoto bands (:class:`~aerialmtl.io.align.AlignedRaster`).
-        heights: heights above ground in metres, or ``None`` without a height layer.
-        labels: label codes (raster) or polygons (vector), or ``None`` without labels.
-        scheme: the class scheme of the labels.
-        tasks: ``("height", "classes")`` or the subset the layers allow.
-        paths: the input paths by role (for the provenance in ``dataset.yaml``).
-        band_names, dtype, height_units: what ``dataset.yaml`` records of the layers (kept after closing).
-
-    The constructor takes each layer :func:`tile_dataset` was given as a keyword of its own (12 parameters).
-    """
-
-    def __init__(
-        self, ortho: str | Path, grid: Grid, *, bands: Sequence[int] | None, dsm: str | Path | None,
-        dtm: str | Path | None, ndsm: str | Path | None, ndsm_options: NdsmOptions, labels: str | Path | None,
-        labels_vector: str | Path | None, class_field: str | None, scheme: ClassScheme | None,
-        ignore_unknown_codes: bool,
-    ) -> None:
-        self.scheme = scheme
-        self.on_unknown = "ignore" if ignore_unknown_codes else "error"
-        self.paths = {"ortho": ortho, "ndsm": ndsm, "dsm": dsm, "dtm": dtm, "labels": labels,
-                      "labels_vector": labels_vector}
-        self.class_field = class_field
-        self._opened: list[Any] = []
-        try:
-            self.image = self._open(AlignedRaster(ortho, grid, "image", bands=bands, role="orthophoto",
-                                                  bands_from="‹bands›"))
-            has_height = any(p is not None for p in (dsm, dtm, ndsm))
-            self.heights = (self._open(HeightSource(grid, ndsm=ndsm, dsm=dsm, dtm=dtm, options=ndsm_options))
-                            if has_height else None)
-            self.labels: AlignedRaster | VectorLabels | None = None
-            if labels is not None:
-                self.labels = self._open(AlignedRaster(labels, grid, "labels", bands=[1], role="labels"))
-            elif labels_vector is not None and scheme is not None:
-                self.labels = self._open(VectorLabels(labels_vector, grid, class_field or "", scheme,
-                                                      self.on_unknown))  # type: ignore[arg-type]
-        except BaseException:
-            self.close()
-            raise
-        self.tasks = (("height",) if self.heights is not None else ()) + (
-            ("classes",) if self.labels is not None else ())
-        #: one name per kept orthophoto band (its description, colour interpretation or ``bandN``)
-        self.band_names = _band_names(self.image.src, self.image.bands)
-        #: the orthophoto's band dtype (the image patches keep it)
-        self.dtype = str(self.image.src.dtypes[self.image.bands[0] - 1])
-        #: the unit each height layer was read in
-        self.height_units = self.heights.units() if self.heights is not None else {}
-
-    def read_classes(self, win: Window) -> np.ndarray:
-        """(h, w) uint8 class indices of ``win`` (``IGNORE_INDEX`` where unlabelled)."""
-        assert self.labels is not None and self.scheme is not None
-        if isinstance(self.labels, VectorLabels):
-            return self.labels.read(win)[0]
-        codes, valid = self.labels.read(win)
-        return self.scheme.remap(codes[0], valid=valid, on_unknown=self.on_unknown,  # type: ignore[arg-type]
-                                 source=f"labels '{self.labels.path}'")
-
-    def _open(self, layer: Any) -> Any:
-        self._opened.append(layer)
-        return layer
-
-    def close(self) -> None:
-        for layer in reversed(self._opened):
-            layer.close()
-        self._opened.clear()
-
-    def __enter__(self) -> TileSources:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def _describe(sources: TileSources, grid: Grid, options: TileOptions, assigner: SplitAssigner,

@@ -62,16 +62,19 @@ def check_run_folder(out_dir: str | Path, resume: bool = False, overwrite: bool 
 
     Raises:
         InputError: ``out_dir`` is a file; ``resume`` without ``last.pt``; ``resume`` with ``overwrite``
-            or ``init`` (``param`` names the option).
+            or ``init`` (``param`` names the option, or both options of a pair: ``"resume/init"``). The
+            one check of these pairs: :func:`train`, the CLI and
+            :func:`~aerialmtl.training.setup.prepare_training` rely on it.
         OutputExistsError: a run's files exist and neither ``resume`` nor ``overwrite`` is given.
         OutputInUseError: another process holds the folder's lock.
     """
     out_dir = Path(out_dir)
     if resume and overwrite:
-        raise InputError("‹resume› continues a run and ‹overwrite› deletes it; pass only one", param="resume")
+        raise InputError("‹resume› continues a run and ‹overwrite› deletes it; pass only one",
+                         param="resume/overwrite")
     if resume and init is not None:
         raise InputError("‹resume› continues the run's own weights; ‹init› starts a new run from a checkpoint; "
-                         "pass only one", param="resume")
+                         "pass only one", param="resume/init")
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"‹out_dir› '{out_dir}' is a file; pass a folder", param="out_dir")
     if out_dir.is_dir() and is_job_leader():  # another run writing there: say so before judging its files

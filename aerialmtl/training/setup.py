@@ -531,16 +531,16 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
         data_dir: tile folder (overrides ``cfg.data.dir``).
         out_dir: run folder (created on rank 0).
         resume: continue from ``out_dir/last.pt``.
-        init: start from the weights of this checkpoint (fine-tuning).
+        init: start from the weights of this checkpoint (fine-tuning); a new run only:
+            :func:`~aerialmtl.training.loop.check_run_folder` refuses it with ``resume`` before the run
+            folder is touched (:func:`~aerialmtl.training.loop.train` calls it first).
         progress: progress bars of the cache builds (rank 0 only).
         ctx: the process context (default: from torchrun's environment, one process without it).
 
     Raises:
-        ConfigError: ``resume`` with ``init``, no tile folder, a crop size the patches cannot give.
+        ConfigError: no tile folder, a crop size the patches cannot give.
         CheckpointError: a ``last.pt`` that cannot be resumed (names the file and the fix).
     """
-    if resume and init is not None:
-        raise ConfigError("init: a resumed run continues its own weights; pass init only when starting a run")
     owns_ctx = ctx is None
     if ctx is None:
         ctx = runtime.Torchrun.start(cfg.device, runtime.COLLECTIVE_TIMEOUT, ConfigError)

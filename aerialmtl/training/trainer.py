@@ -32,24 +32,27 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
-from aerialmtl.data.batches import prepare_batch
+from aerialmtl.data.batches import EpochOrder, prepare_batch
 from aerialmtl.errors import NonFiniteError
-from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M, first_nonfinite, height_slack, save_checkpoint
+from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M, ModelMeta, first_nonfinite, height_slack, save_checkpoint
 from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.training.averaging import WeightAverage
+from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.lr_schedule import lr_factor
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
 from aerialmtl.training.setup import TrainSetup
-from aerialmtl.training.state import rng_state
+from aerialmtl.training.state import TrainState, rng_state
 
 log = logging.getLogger(__name__)
 
@@ -171,29 +174,17 @@ class Trainer:
     def __init__(self, setup: TrainSetup, *, max_steps: int | None = None, max_time_s: float | None = None,
                  progress: bool = True) -> None:
         self.t0 = time.perf_counter()
+        #: what it trains with; the properties below read it (nothing of it is copied)
         self.setup = setup
-        cfg = self.cfg = setup.cfg
-        self.ctx, self.owns_ctx, self.device, self.precision = setup.ctx, setup.owns_ctx, setup.device, setup.precision
+        cfg = setup.cfg
         self.steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
         self.time_cap = max_time_s if max_time_s is not None else cfg.schedule.max_time_s
         self.progress = progress and self.ctx.is_main
-        self.run = setup.run
         self.paths = {n: self.run / n for n in RUN_FILES}
-        data = setup.data
-        self.info, self.model_cfg, self.meta = data.info, data.model_cfg, data.meta
-        self.cache_folder = data.cache_folder
-        self.tasks: tuple[str, ...] = data.tasks
-        self.k = data.k
-        self.model, self.weighting, self.optimizer = setup.parts.model, setup.parts.weighting, setup.parts.optimizer
+        #: the losses validation scores with (setup's; a test may swap it for one trainer)
         self.objective = setup.objective
-        self.state = setup.state
         #: step of the last checkpoint written whole (``last.pt``), or of the one resumed from
         self.saved_step: int | None = setup.saved_step
-        self.ddp = setup.ddp
-        loaders = setup.loaders
-        self.order, self.mean, self.std = loaders.order, loaders.mean, loaders.std
-        self.train_transform, self.eval_transform = loaders.train_transform, loaders.eval_transform
-        self.train_loader, self.val_loader = loaders.train_loader, loaders.val_loader
         if self.ctx.is_main:
             self.write_config(setup.data_dir if setup.data_dir is not None else cfg.data.dir)
         self.average: WeightAverage | None = None
@@ -213,6 +204,67 @@ class Trainer:
         self.best_step: int | None = None  # the validation that wrote best.pt in this call, and its metrics
         self.best_metrics: dict[str, float] = {}
 
+    # ---- what it trains with (read from the setup) --------------------------------------------------
+    @property
+    def cfg(self) -> TrainConfig:
+        """The training configuration."""
+        return self.setup.cfg
+
+    @property
+    def ctx(self) -> runtime.Torchrun:
+        """The process context (rank, world size, collectives)."""
+        return self.setup.ctx
+
+    @property
+    def device(self) -> torch.device:
+        """The training device."""
+        return self.setup.device
+
+    @property
+    def run(self) -> Path:
+        """The run folder."""
+        return self.setup.run
+
+    @property
+    def meta(self) -> ModelMeta:
+        """The checkpoint metadata of the model trained."""
+        return self.setup.data.meta
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        """The tasks trained (``height``, ``classes``)."""
+        return self.setup.data.tasks
+
+    @property
+    def k(self) -> int | None:
+        """The number of classes (``None`` without a classes task)."""
+        return self.setup.data.k
+
+    @property
+    def model(self) -> nn.Module:
+        """The model trained."""
+        return self.setup.parts.model
+
+    @property
+    def optimizer(self) -> torch.optim.Optimizer:
+        """The optimiser."""
+        return self.setup.parts.optimizer
+
+    @property
+    def state(self) -> TrainState:
+        """The counters (epoch, position, step, best score), advanced in place."""
+        return self.setup.state
+
+    @property
+    def order(self) -> EpochOrder:
+        """The run's batch order."""
+        return self.setup.loaders.order
+
+    @property
+    def val_loader(self) -> torch.utils.data.DataLoader[dict[str, Any]] | None:
+        """The validation batches (``None`` without a val split)."""
+        return self.setup.loaders.val_loader
+
     @property
     def height_slack(self) -> float:
         """The largest validation height MAE (m) a sane model of these heights reaches (:func:`height_slack`)."""
@@ -225,7 +277,7 @@ class Trainer:
         lr = self.cfg.optim.lr * lr_factor(self.state.step, self.planned_steps, sched.lr_schedule, sched.warmup_steps)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
-        total, losses = self.ddp(batch)
+        total, losses = self.setup.ddp(batch)
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         self.optimizer.step()
@@ -256,9 +308,10 @@ class Trainer:
         self.model.eval()
         sums = torch.zeros(len(self.tasks) + 1, dtype=torch.float64)
         hm, cm = HeightMeter(), ConfusionMeter(self.k or 2)
+        loaders = self.setup.loaders
         for raw in self.val_loader:
-            batch = prepare_batch(raw, self.eval_transform, self.mean, self.std, self.device)
-            with runtime.autocast(self.device, self.precision):
+            batch = prepare_batch(raw, loaders.eval_transform, loaders.mean, loaders.std, self.device)
+            with runtime.autocast(self.device, self.setup.precision):
                 out = self.model(batch["image"])
             losses = self.objective(out, batch, scoring=True)
             for i, t in enumerate(self.tasks):
@@ -389,7 +442,7 @@ class Trainer:
             if target == self.paths["last.pt"]:
                 self.saved_step = self.state.step
             return
-        state = {"optimizer": self.optimizer.state_dict(), "weighting": self.weighting.state_dict(),
+        state = {"optimizer": self.optimizer.state_dict(), "weighting": self.setup.parts.weighting.state_dict(),
                  **self.state.to_dict(self.order.global_batch), "rng": rngs[0], "rng_ranks": rngs,
                  "world_size": self.ctx.world, "global_batch": self.order.global_batch,
                  "config": self.cfg.to_dict()}
@@ -402,7 +455,7 @@ class Trainer:
     def write_config(self, data: str | Path | None) -> None:
         """``config.yaml``: the config with the model fields taken from the data and the absolute data dir."""
         resolved = self.cfg.to_dict()
-        resolved["model"] = {**to_dict(self.model_cfg), "sync_bn": self.cfg.model.sync_bn}
+        resolved["model"] = {**to_dict(self.setup.data.model_cfg), "sync_bn": self.cfg.model.sync_bn}
         resolved["data"]["dir"] = str(Path(data).resolve()) if data is not None else None
         with writing(self.paths["config.yaml"], "the run's config"):
             RunFolder(self.run).write_config(resolved)
@@ -447,11 +500,12 @@ class Trainer:
         self.model.train()
         bar = tqdm(total=total, initial=min(st.step, total), disable=not self.progress, desc="train", unit="step",
                    dynamic_ncols=True)
-        it = iter(self.train_loader) if stopped_by is None else None
+        loaders = self.setup.loaders
+        it = iter(loaders.train_loader) if stopped_by is None else None
         try:
             while stopped_by is None:
                 assert it is not None
-                batch = prepare_batch(next(it), self.train_transform, self.mean, self.std, self.device)
+                batch = prepare_batch(next(it), loaders.train_transform, loaders.mean, loaders.std, self.device)
                 total_loss, losses = self.train_step(batch)
                 st.step += 1
                 self.losses.add(st.step, total_loss, losses)
@@ -496,8 +550,9 @@ class Trainer:
 
         for name in ("best.pt", "last.pt"):
             if self.paths[name].exists():
-                c = calibrate_checkpoint(self.paths[name], self.info.root, mc=cal.mc_samples, method=cal.method,
-                                         cache_folder=self.cache_folder, device=self.device)
+                data = self.setup.data
+                c = calibrate_checkpoint(self.paths[name], data.info.root, mc=cal.mc_samples, method=cal.method,
+                                         cache_folder=data.cache_folder, device=self.device)
                 log.info("%s: %s", name, c.summary())
 
     def familiarize(self) -> None:
@@ -511,9 +566,10 @@ class Trainer:
 
         for name in ("best.pt", "last.pt"):
             if self.paths[name].exists():
-                d = familiarize_checkpoint(self.paths[name], self.info.root, levels=fam.levels, dims=fam.dims,
+                data = self.setup.data
+                d = familiarize_checkpoint(self.paths[name], data.info.root, levels=fam.levels, dims=fam.dims,
                                            method=fam.method, components=fam.components,
-                                           cache_folder=self.cache_folder, device=self.device)
+                                           cache_folder=data.cache_folder, device=self.device)
                 log.info("%s: %s", name, d.summary())
 
     def done_before_start(self) -> str | None:
@@ -527,7 +583,7 @@ class Trainer:
 
     def close(self) -> None:
         """Release the process group if this trainer created it."""
-        if self.owns_ctx:
+        if self.setup.owns_ctx:
             self.ctx.leave()
 
 
