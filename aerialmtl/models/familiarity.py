@@ -210,6 +210,56 @@ def _logsumexp(a: np.ndarray) -> np.ndarray:
     return np.asarray((top + np.log(np.exp(a - top).sum(1, keepdims=True)))[:, 0], np.float64)
 
 
+def _fit_gda(z: np.ndarray, labels: np.ndarray, need: int,
+             eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One Gaussian per label with at least ``need`` of the N×d rows ``z`` (the most frequent label if none has);
+    a rarer label's rows join the kept Gaussian whose mean is nearest to theirs. Returns weights, means and
+    the precisions' Cholesky factors (:func:`_gaussians`).
+    """
+    if labels.shape[0] != z.shape[0]:
+        raise ValueError(f"fit_density: {labels.shape[0]} labels for {z.shape[0]} feature rows")
+    values, counts = np.unique(labels, return_counts=True)
+    kept = values[counts >= need]
+    if kept.size == 0:
+        kept = values[[int(np.argmax(counts))]]
+    kept_means = np.stack([z[labels == v].mean(0) for v in kept])
+    index = {int(v): i for i, v in enumerate(kept)}
+    assign = np.empty(z.shape[0], np.int64)
+    for v in values:
+        rows = labels == v
+        if int(v) in index:
+            assign[rows] = index[int(v)]
+        else:  # a rare label joins the kept component whose mean is nearest to its own
+            mu = z[rows].mean(0)
+            assign[rows] = int(np.argmin(((kept_means - mu) ** 2).sum(1)))
+    return _gaussians(z, np.eye(kept.size)[assign], eps)
+
+
+def _fit_mixture(z: np.ndarray, k: int, eps: float, iterations: int,
+                 seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A ``k``-Gaussian mixture of the N×d rows ``z`` by EM from a k-means++ start (seeded); returns weights,
+    means and the precisions' Cholesky factors (:func:`_gaussians`).
+    """
+    rng = np.random.default_rng(seed)
+    centres = [z[rng.integers(z.shape[0])]]
+    for _ in range(1, k):  # k-means++
+        dist = np.min([((z - c) ** 2).sum(1) for c in centres], 0)
+        centres.append(z[rng.choice(z.shape[0], p=dist / dist.sum())])
+    assign = np.argmin(np.stack([((z - c) ** 2).sum(1) for c in centres], 1), 1)
+    resp = np.eye(k)[assign]
+    prev = -np.inf
+    for _ in range(iterations):
+        weights, means, chol = _gaussians(z, resp, eps)
+        lp = _log_prob(z, weights, means, chol)
+        total = _logsumexp(lp)
+        resp = np.exp(lp - total[:, None])
+        ll = float(total.mean())
+        if ll - prev < 1e-4:
+            break
+        prev = ll
+    return _gaussians(z, resp, eps)
+
+
 def fit_density(x: np.ndarray, levels: Sequence[int], stride: int, *, dims: int = 32,
                 labels: np.ndarray | None = None, components: int = 8, min_count: int | None = None,
                 reg: float = 1e-3, iterations: int = 100, seed: int = 0, source: str = "") -> FeatureDensity:
@@ -242,47 +292,12 @@ def fit_density(x: np.ndarray, levels: Sequence[int], stride: int, *, dims: int 
     z = xs @ basis.T
     eps = reg * float(z.var(0).mean()) + 1e-9
     if labels is not None:
-        labels = np.asarray(labels).reshape(-1)
-        if labels.shape[0] != z.shape[0]:
-            raise ValueError(f"fit_density: {labels.shape[0]} labels for {z.shape[0]} feature rows")
         need = min_count if min_count is not None else 2 * d
-        values, counts = np.unique(labels, return_counts=True)
-        kept = values[counts >= need]
-        if kept.size == 0:
-            kept = values[[int(np.argmax(counts))]]
-        kept_means = np.stack([z[labels == v].mean(0) for v in kept])
-        index = {int(v): i for i, v in enumerate(kept)}
-        assign = np.empty(z.shape[0], np.int64)
-        for v in values:
-            rows = labels == v
-            if int(v) in index:
-                assign[rows] = index[int(v)]
-            else:  # a rare label joins the kept component whose mean is nearest to its own
-                mu = z[rows].mean(0)
-                assign[rows] = int(np.argmin(((kept_means - mu) ** 2).sum(1)))
-        resp = np.eye(kept.size)[assign]
-        weights, means, chol = _gaussians(z, resp, eps)
+        weights, means, chol = _fit_gda(z, np.asarray(labels).reshape(-1), need, eps)
         method = "gda"
     else:
-        rng = np.random.default_rng(seed)
-        k = int(max(1, min(components, z.shape[0] // max(2, d))))
-        centres = [z[rng.integers(z.shape[0])]]
-        for _ in range(1, k):  # k-means++
-            dist = np.min([((z - c) ** 2).sum(1) for c in centres], 0)
-            centres.append(z[rng.choice(z.shape[0], p=dist / dist.sum())])
-        assign = np.argmin(np.stack([((z - c) ** 2).sum(1) for c in centres], 1), 1)
-        resp = np.eye(k)[assign]
-        prev = -np.inf
-        for _ in range(iterations):
-            weights, means, chol = _gaussians(z, resp, eps)
-            lp = _log_prob(z, weights, means, chol)
-            total = _logsumexp(lp)
-            resp = np.exp(lp - total[:, None])
-            ll = float(total.mean())
-            if ll - prev < 1e-4:
-                break
-            prev = ll
-        weights, means, chol = _gaussians(z, resp, eps)
+        weights, means, chol = _fit_mixture(z, int(max(1, min(components, z.shape[0] // max(2, d)))), eps,
+                                            iterations, seed)
         method = "em"
     nll = -_logsumexp(_log_prob(z, weights, means, chol))
     quantiles = np.quantile(nll, np.linspace(0.0, 1.0, QUANTILE_LEVELS))

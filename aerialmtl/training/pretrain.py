@@ -209,24 +209,14 @@ def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, 
                dynamic_ncols=True)
     try:
         for raw in loader:
-            batch = {k: v.to(device, non_blocking=True) for k, v in raw.items()}
-            batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
-            total, losses = step_module(batch)
-            parts.optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            parts.optimizer.step()
             step += 1
+            window.append(_train_step(step_module, parts.optimizer, raw, device, tasks))
             bar.update(1)
-            window.append([float(total.detach())] + [float(losses[t].detach()) for t in tasks])
             if not math.isfinite(window[-1][0]):
                 raise NonFiniteError(f"pretraining diverged at step {step} (loss {window[-1][0]}); last.pt keeps "
                                       f"step {step - step % settings.checkpoint_every}: lower optim.lr and resume")
             if step % every == 0 or step == settings.steps:
-                mean = [sum(col) / len(col) for col in zip(*window)]
-                logged = mean[0]
-                csv_log.write(kind="train", step=step, epoch=0, time_s=round(time.perf_counter() - t0, 3),
-                              lr=parts.optimizer.param_groups[0]["lr"], loss=mean[0],
-                              **{f"loss_{t}": v for t, v in zip(tasks, mean[1:])})
+                logged = _log_row(csv_log, step, time.perf_counter() - t0, parts.optimizer, tasks, window)
                 bar.set_postfix(loss=f"{logged:.4f}")
                 window = []
             if step % settings.checkpoint_every == 0 or step == settings.steps:
@@ -238,6 +228,28 @@ def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, 
     wall += time.perf_counter() - t_run
     start = _export(run, settings, cfg, step, wall, command)
     return PretrainResult(run, run / LAST_PT, start, step, time.perf_counter() - t0, wall, step - first, logged)
+
+
+def _train_step(step_module: torch.nn.Module, optimizer: torch.optim.Optimizer, raw: dict[str, torch.Tensor],
+                device: torch.device, tasks: tuple[str, ...]) -> list[float]:
+    """One optimisation step on a synthetic batch; returns its total and per-task losses."""
+    batch = {k: v.to(device, non_blocking=True) for k, v in raw.items()}
+    batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
+    total, losses = step_module(batch)
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    optimizer.step()
+    return [float(total.detach())] + [float(losses[t].detach()) for t in tasks]
+
+
+def _log_row(csv_log: CsvLog, step: int, seconds: float, optimizer: torch.optim.Optimizer, tasks: tuple[str, ...],
+             window: list[list[float]]) -> float:
+    """Write the ``train`` row of the steps in ``window``; returns their mean total loss."""
+    mean = [sum(col) / len(col) for col in zip(*window)]
+    csv_log.write(kind="train", step=step, epoch=0, time_s=round(seconds, 3), lr=optimizer.param_groups[0]["lr"],
+                  loss=mean[0], **{f"loss_{t}": v for t, v in zip(tasks, mean[1:])})
+    loss: float = mean[0]
+    return loss
 
 
 def _log(path: Path, resumed_at: int | None) -> CsvLog:

@@ -12,7 +12,8 @@ the fast scene source for pretraining.
 from aerialmtl.data.synth.city import CityPatch, sample_city
 from aerialmtl.data.synth.generate import MIN_SIZE, SYNTH_VERSION, CityResult, SynthResult, synthesize, synthesize_city
 from aerialmtl.data.synth.render import AMBIENT, render_ortho
-from aerialmtl.data.synth.scene import Scene, build_scene
+from aerialmtl.data.synth.scene import build_scene
+from aerialmtl.data.synth.scene_parts import Scene
 from aerialmtl.data.synth.shading import cast_shadows, hillshade, sun_vector
 from aerialmtl.data.synth.style import CityStyle, Imaging
 from aerialmtl.data.synth.textures import TexturePool

@@ -23,7 +23,8 @@ from shapely.geometry.polygon import orient
 from aerialmtl.classes import BUILTIN_DIR, ClassScheme
 from aerialmtl.data.synth.city import sample_city
 from aerialmtl.data.synth.render import render_ortho
-from aerialmtl.data.synth.scene import Scene, build_scene
+from aerialmtl.data.synth.scene import build_scene
+from aerialmtl.data.synth.scene_parts import Scene
 from aerialmtl.data.synth.style import CityStyle, Imaging
 from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.errors import InputError, OutputExistsError

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from aerialmtl.data.synth.scene import Scene
+from aerialmtl.data.synth.scene_parts import Scene
 from aerialmtl.data.synth.shading import cast_shadows, hillshade
 
 #: Fraction of flat-ground brightness that remains in shadow (sky light only).
