@@ -33,10 +33,11 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import click
 
-from aerialmtl import progress
+from aerialmtl import progress, stores
 from aerialmtl._version import __version__
 from aerialmtl.cli.bench import bench
 from aerialmtl.cli.buildings import buildings
+from aerialmtl.cli.cache import cache
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
 from aerialmtl.cli.export import export
@@ -113,7 +114,8 @@ def _prepared(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-for _command in (synth, tile, train, pretrain, predict, evaluate, buildings, export, qgis_plugin, demo, bench):
+for _command in (synth, tile, train, pretrain, predict, evaluate, buildings, export, qgis_plugin, demo, bench,
+                 cache):
     assert _command.name is not None and _command.callback is not None
     _command.callback = usage_errors(_command.name, _prepared(_command.name, _command.callback))
     cli.add_command(_command)
@@ -146,6 +148,7 @@ def main(argv: list[str] | None = None) -> None:
     global _quiet_libtiff
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
+    stores.reset_warnings()  # each command warns once about each store problem it meets
     with warnings.catch_warnings(), stop_signals():
         if not debug:
             warnings.showwarning = _show_warning

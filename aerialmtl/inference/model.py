@@ -119,13 +119,13 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
             digest: str | None = file_sha256(checkpoint)
         except OSError:  # read_model says what is wrong with the file
             digest = None
-        record = read_record(digest, root) if digest is not None else None
+        record = read_record(digest, root) if digest is not None and root is not None else None
         if digest is not None and record is not None:
             return CheckpointModel(checkpoint, digest, record), record.meta, str(checkpoint), digest
     model, meta, loaded = read_model(checkpoint)
     if warm:
         made = make_record(model, meta)
-        if made is not None:
+        if made is not None and root is not None:
             write_record(loaded, made, root)
     return model, meta, str(checkpoint), loaded
 
