@@ -72,7 +72,7 @@ class KernelStore(stores.Store):
         return True
 
     def _files(self) -> list[Path]:
-        """Numba's files in the folder (not the manifest, not staging files)."""
+        """The files numba wrote in the folder (not the manifest, not staging files)."""
         assert self.folder is not None
         try:
             names = os.listdir(self.folder)
