@@ -20,7 +20,8 @@ NaN, as there.
 numba compiles the kernel the first time it is used after an install (about 1 s) and keeps the machine code
 in the package's ``numba`` store (:mod:`aerialmtl.models.class_kernel_jit`, :mod:`aerialmtl.stores`), so
 later runs load it (0.4 s with the numba import); a damaged store is healed with a warning, and where it cannot
-be written the kernel is compiled in every process. The kernel runs in the calling thread (OpenVINO's streams hold the other cores).
+be written the kernel is compiled in every process. The kernel runs in the calling thread (OpenVINO's streams
+hold the other cores).
 """
 
 from __future__ import annotations
