@@ -18,7 +18,8 @@ from test_outputs import ONE_THREAD, _wait_for
 from test_robustness import PREDICT, assert_error, assert_ok, no_final_outputs, rgb
 
 from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.formats.prediction import PredictionFolder, input_fingerprint
+from aerialmtl.formats.prediction import PredictionFolder
+from aerialmtl.io.fingerprint import input_fingerprint
 from aerialmtl.io.outputs import LOCK_FILE
 
 run = run_cli
@@ -116,9 +117,10 @@ def test_a_layer_that_does_not_open_is_not_complete(tmp_path: Path, capsys, ckpt
 
 
 def test_remote_input_fingerprint_needs_no_stat() -> None:
-    fp = input_fingerprint("http://127.0.0.1:9/o.tif", 10, 20, [0.5, 0, 1, 0, -0.5, 2], "EPSG:32631")
-    assert fp == {"path": "/vsicurl/http://127.0.0.1:9/o.tif", "width": 10, "height": 20,
-                  "transform": [0.5, 0.0, 1.0, 0.0, -0.5, 2.0], "crs": "EPSG:32631"}
+    raster = {"width": 10, "height": 20, "transform": [0.5, 0.0, 1.0, 0.0, -0.5, 2.0], "crs": "EPSG:32631",
+              "nodata": [None]}
+    fp = input_fingerprint("http://127.0.0.1:9/o.tif", raster)
+    assert fp == {"path": "/vsicurl/http://127.0.0.1:9/o.tif", "raster": raster}
 
 
 @pytest.mark.slow

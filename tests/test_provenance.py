@@ -25,8 +25,8 @@ from test_remote import server  # noqa: F401 - the local HTTP server fixture
 from test_robustness import CRS, PREDICT, T05, no_final_outputs, rgb
 
 from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.formats.prediction import input_fingerprint
 from aerialmtl.inference.predict import Predictor, predict_raster
+from aerialmtl.io.fingerprint import input_fingerprint
 
 run = run_cli
 

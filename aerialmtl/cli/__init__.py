@@ -125,6 +125,10 @@ def _one_line(exc: BaseException, flags: dict[str, str] | None = None) -> str:
     """``exc`` as one line; aerialmtl errors with their parameters spelled as ``flags`` (options)."""
     text = exc.render(flags) if isinstance(exc, AerialMTLError) else str(exc)
     text = " ".join(text.split()) or exc.__class__.__name__
+    seen = exc.__cause__ or exc.__context__
+    while "See previous exception" in text and seen is not None:  # rasterio's own words point at GDAL's: show them
+        text = f"{text} ({' '.join(str(seen).split()) or seen.__class__.__name__})"
+        seen = seen.__cause__ or seen.__context__
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # one of several torchrun processes: say which
         text = f"[rank {os.environ.get('RANK', '?')}] {text}"
     return text

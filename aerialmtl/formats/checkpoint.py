@@ -41,7 +41,7 @@ import torch
 from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
-from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError
+from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, cause
 from aerialmtl.io.oserrors import output_error
 from aerialmtl.io.outputs import atomic_write
 from aerialmtl.models.calibration import Calibration
@@ -332,7 +332,7 @@ def read_checkpoint(path: str | Path,
             "(only weights and plain data are accepted); use a checkpoint written by `aerialmtl train`"
         ) from exc
     except (RuntimeError, EOFError, OSError, ValueError) as exc:
-        why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
+        why = cause(exc)
         raise CheckpointError(
             f"checkpoint '{path}' is corrupt or truncated ({why}); use another checkpoint (e.g. last.pt "
             "instead of best.pt) or retrain"
@@ -450,7 +450,7 @@ def read_model(path: str | Path,
         try:
             model.load_state_dict(state)  # type: ignore[arg-type]
         except (RuntimeError, KeyError, TypeError) as exc:  # pragma: no cover - caught by the check above
-            problem = " ".join(str(exc).split())[:200]
+            problem = cause(exc)
     if problem is not None:
         scheme = f", class scheme '{meta.classes.name}' ({meta.classes.num_classes} classes)" if meta.classes else ""
         raise CheckpointError(

@@ -43,7 +43,7 @@ from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, 
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.copy_paste import CopyPaster, build_object_bank
 from aerialmtl.data.transforms import Compose, build_eval_transform, build_train_transform
-from aerialmtl.errors import CheckpointError, ConfigError, OutputError
+from aerialmtl.errors import CheckpointError, ConfigError, OutputError, cause
 from aerialmtl.formats.checkpoint import (
     ModelMeta,
     check_same_data,
@@ -261,7 +261,7 @@ class Resumed:
 
 
 def _bad_state(path: Path, what: str, exc: BaseException | None) -> CheckpointError:
-    why = f" ({' '.join(str(exc).split())[:160] or exc.__class__.__name__})" if exc is not None else ""
+    why = f" ({cause(exc)})" if exc is not None else ""
     return CheckpointError(
         f"checkpoint '{path}' cannot be resumed: {what}{why}; it was not written by `aerialmtl train` as it is "
         "(edited or from another version): resume from an unedited last.pt, or start a new run (another "
