@@ -114,7 +114,7 @@ def test_a_vrt_fingerprint_covers_its_sources(tmp_path: Path, capsys, ckpts: tup
     vrt = _vrt(tmp_path / "o.vrt", src, 64, 64)
     fp = input_fingerprint(vrt)
     assert fp["sources"] == [{"path": str(src.resolve()), "size": src.stat().st_size,
-                              "mtime_ns": src.stat().st_mtime_ns}]
+                              "mtime_ns": src.stat().st_mtime_ns, "sidecars": {}}]
     out = tmp_path / "pred"
     _skip(capsys, vrt, ckpts[0], out)
     assert _skip(capsys, vrt, ckpts[0], out).endswith("(same model, settings, input)")
