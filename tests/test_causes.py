@@ -121,6 +121,21 @@ def test_a_stale_lock_the_user_cannot_replace_is_named_with_its_removal(whose: s
         subprocess.run(["rm", "-rf", str(shared)], check=False)
 
 
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_lock_file_that_is_no_file_is_refused_not_waited_on(kind: str, tmp_path: Path, ckpt: Path) -> None:
+    """A FIFO at the lock file's name blocked predict forever (found by the hostile pass, bench/hostile_part3.md)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = out / ".aerialmtl.lock"
+    os.mkfifo(lock) if kind == "fifo" else lock.mkdir()
+    ortho = write_raster(tmp_path / "o.tif", np.full((3, 32, 32), 100, np.uint8))
+    done = aerialmtl("predict", ortho, "--model", ckpt, "--out", out, *ARGS, timeout=300)  # a hang: TimeoutExpired
+    line = one_line(done.stderr)
+    assert done.returncode == 1 and not any(b in line for b in BAD), line
+    word = "a FIFO" if kind == "fifo" else "a folder"
+    assert f"the lock file '{lock}' is {word}, not a regular file" in line and "rm -r" in line
+
+
 # ---- GDAL's sentences are never cut ----------------------------------------------------------------------------
 def test_gdal_sentences_are_kept_whole() -> None:
     text = ("Free disk space available is 4096 bytes, whereas 67108864 are at least necessary. You can disable "

@@ -238,6 +238,20 @@ def _forget_locks_in_child() -> None:
 if hasattr(os, "register_at_fork"):  # POSIX
     os.register_at_fork(after_in_child=_forget_locks_in_child)
 
+def _special_kind(path: Path) -> str | None:
+    """``"a FIFO"``, ``"a folder"``, ... when ``path`` exists and is neither a regular file nor a link (else
+    ``None``).
+    """
+    try:
+        mode = os.lstat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISLNK(mode):
+        return None
+    return "a FIFO" if stat.S_ISFIFO(mode) else "a folder" if stat.S_ISDIR(mode) else \
+        "a socket" if stat.S_ISSOCK(mode) else "a device file"
+
+
 def _owner(uid: int) -> str:
     """``user name (uid N)`` of ``uid`` (the number alone where the account is unknown)."""
     try:
@@ -248,8 +262,9 @@ def _owner(uid: int) -> str:
         return f"uid {uid}"
 
 
-#: Flags of every open of a lock file: never through a symlink, never inherited by an exec'd program.
-_LOCK_OPEN_FLAGS = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+#: Flags of every open of a lock file: never through a symlink, never inherited by an exec'd program, never
+#: blocking (on a FIFO put at its name).
+_LOCK_OPEN_FLAGS = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NONBLOCK", 0)
 
 
 class FolderLock:
@@ -308,6 +323,11 @@ class FolderLock:
             raise OutputError(f"the lock file '{self.path}' is a symbolic link, which aerialmtl never writes (taking "
                               f"the lock through it would overwrite its target); delete the link, or choose another "
                               f"‹{self.option}›")
+        kind = _special_kind(self.path)
+        if kind is not None:  # opening a FIFO there would block forever; a folder cannot be locked
+            raise OutputError(f"the lock file '{self.path}' is {kind}, not a regular file, which aerialmtl never "
+                              f"makes; remove it (`rm -r {shlex.quote(str(self.path))}`) if nothing of yours needs it, "
+                              f"or choose another ‹{self.option}›")
         try:
             fd = self._acquire_flock() if fcntl is not None else self._acquire_exclusive()
         except OSError as exc:
