@@ -9,7 +9,9 @@ Usage::
 
     cfg = load_yaml_config("train.yaml", TrainConfig)      # or from_dict(TrainConfig, data)
 
-Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal[...]``, ``Optional[T]`` /
+Validation is pydantic's (the package's one validation system: the files aerialmtl writes, ``prediction.json``,
+the checkpoint's metadata, ``train_state`` and calibration, go through it too), in strict mode over the frozen
+dataclasses. Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal[...]``, ``Optional[T]`` /
 ``T | None``, ``list[T]``, ``tuple[T, ...]``, ``tuple[A, B]``, ``dict[str, T]``, nested dataclasses
 and ``Any``. Unknown keys, wrong types and bad enum values raise :class:`ConfigError` naming the
 key path (``train.optim.lr``) and the valid keys or choices. Floats must be finite (YAML's ``.nan`` and
@@ -20,16 +22,18 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
+import json
 import re
 import types
 import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
 import yaml
+from pydantic import ConfigDict, TypeAdapter, ValidationError
 
-from aerialmtl.errors import ConfigError
+from aerialmtl.errors import AerialMTLError, ConfigError
 
 T = TypeVar("T")
 
@@ -51,115 +55,151 @@ def _did_you_mean(value: Any, choices: list[str]) -> str:
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
-def _convert(tp: Any, value: Any, path: str) -> Any:
-    """Check ``value`` against the annotation ``tp`` and convert it (lists → tuples, dicts → dataclasses)."""
-    where = path or "<root>"
-    if tp is Any:
-        return value
-    origin = get_origin(tp)
-    args = get_args(tp)
-    if origin is Union or (hasattr(types, "UnionType") and origin is types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        non_none = [a for a in args if a is not type(None)]
-        errors = []
-        for a in non_none:
-            try:
-                return _convert(a, value, path)
-            except ConfigError as exc:  # try the next alternative
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if len(non_none) == 1 else
-                          f"{where}: got {value!r}; expected {' or '.join(_describe(a) for a in args)}")
-    if origin is Literal:
-        if value not in args:
-            raise ConfigError(f"{where}: got {value!r}; valid choices are {', '.join(repr(a) for a in args)}"
-                              + _did_you_mean(value, [str(a) for a in args]))
-        return value
+#: How every dataclass is validated (pydantic, the package's one validation system): no unknown keys, no type
+#: coercion beyond what YAML and JSON cannot say (a list for a tuple, a string for a path, an integer for a
+#: float), no NaN or infinity.
+_STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+
+
+def _configure(tp: Any, seen: set[Any]) -> None:
+    """Give every dataclass reachable from annotation ``tp`` the strict validation config (:data:`_STRICT`)."""
+    if tp in seen:
+        return
+    seen.add(tp)
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a mapping of keys for {tp.__name__}, got {value!r}")
-        return from_dict(tp, value, path)
-    if origin in (list, tuple) or tp in (list, tuple):
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
-            if len(value) != len(args):
-                raise ConfigError(f"{where}: expected a list of {len(args)} items, got {len(value)}")
-            return tuple(_convert(a, v, f"{path}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
-        item = args[0] if args else Any
-        items = [_convert(item, v, f"{path}[{i}]") for i, v in enumerate(value)]
-        return tuple(items) if (origin is tuple or tp is tuple) else items
-    if origin is dict or tp is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
-        vt = args[1] if len(args) == 2 else Any
-        return {k: _convert(vt, v, f"{path}.{k}") for k, v in value.items()}
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        if not math.isfinite(value):  # YAML's .nan / .inf: no setting of this package means them
-            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    if tp is Path:
-        if not isinstance(value, (str, Path)):
-            raise ConfigError(f"{where}: expected a file path, got {value!r}")
-        return Path(value)
-    if isinstance(tp, type) and not isinstance(value, tp):
-        raise ConfigError(f"{where}: expected {_describe(tp)}, got {value!r}")
+        if "__pydantic_config__" not in tp.__dict__:
+            tp.__pydantic_config__ = _STRICT  # type: ignore[attr-defined]
+        for hint in get_type_hints(tp).values():
+            _configure(hint, seen)
+        return
+    for arg in get_args(tp):
+        _configure(arg, seen)
+
+
+_ADAPTERS: dict[Any, TypeAdapter[Any]] = {}
+
+
+def _adapter(cls: type[T]) -> TypeAdapter[T]:
+    """The pydantic validator of dataclass ``cls`` (and every dataclass in it), made once."""
+    if cls not in _ADAPTERS:
+        _configure(cls, set())
+        _ADAPTERS[cls] = TypeAdapter(cls)
+    return _ADAPTERS[cls]
+
+
+def _jsonable(value: Any) -> Any:
+    """``value`` as JSON can carry it (paths as text, non-finite floats kept for the validator to refuse)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
     return value
 
 
+def _field_type(cls: Any, loc: Sequence[Any]) -> Any:
+    """The annotation found by following ``loc`` (field names, indexes) from dataclass ``cls`` (``None``: lost)."""
+    tp = cls
+    for key in loc:
+        while get_origin(tp) in (Union, types.UnionType):
+            args = [a for a in get_args(tp) if a is not type(None)]
+            tp = next((a for a in args if dataclasses.is_dataclass(a)), args[0] if args else None)
+        if dataclasses.is_dataclass(tp) and isinstance(key, str):
+            tp = get_type_hints(tp).get(key)
+        elif get_origin(tp) in (list, tuple, dict):
+            params = get_args(tp)
+            tp = params[-1] if get_origin(tp) is dict or (len(params) == 2 and params[1] is Ellipsis) \
+                or len(params) == 1 else params[key] if isinstance(key, int) and key < len(params) else None
+        elif not (isinstance(key, str) and get_origin(tp) in (Union, types.UnionType)):
+            return None
+    return tp
+
+
+_EXPECTED = {"float": "a number", "int": "an integer", "bool": "true or false", "string": "a string",
+             "dict": "a mapping", "list": "a list", "tuple": "a list", "dataclass": "a mapping", "path": "a file path",
+             "model": "a mapping"}
+
+
+def _message(cls: Any, err: Mapping[str, Any], path: str) -> str:
+    """One pydantic error as the package words it: the key path, what was given and what is valid."""
+    loc = [p for p in err.get("loc", ()) if not (isinstance(p, str) and (p.startswith("function-") or "[" in p))]
+    where = path
+    for key in loc:
+        where = f"{where}[{key}]" if isinstance(key, int) else f"{where}.{key}" if where else str(key)
+    kind, value = str(err.get("type", "")), err.get("input")
+    if kind in ("extra_forbidden", "unexpected_keyword_argument"):
+        owner = _field_type(cls, loc[:-1])
+        valid = sorted(f.name for f in dataclasses.fields(owner) if f.init) if dataclasses.is_dataclass(owner) else []
+        return (f"unknown key '{where}'; valid keys here are: {', '.join(valid)}"
+                + _did_you_mean(loc[-1], valid))
+    if kind in ("missing", "missing_argument"):
+        return f"missing required key '{where}'"
+    where = where or "<root>"
+    if kind == "literal_error":
+        choices = list(get_args(_field_type(cls, loc)) or ())
+        listed = ", ".join(repr(c) for c in choices) or str(err.get("ctx", {}).get("expected"))
+        return f"{where}: got {value!r}; valid choices are {listed}" + _did_you_mean(value, [str(c) for c in choices])
+    if kind == "finite_number":
+        return f"{where}: expected a finite number, got {value!r}"
+    if kind.endswith("_type") or kind.endswith("_parsing"):
+        word = _EXPECTED.get(kind.rsplit("_", 1)[0].replace("_", ""), kind.rsplit("_", 1)[0])
+        return f"{where}: expected {word}, got {value!r}"
+    if kind == "too_short" or kind == "too_long":
+        return f"{where}: expected a list of {len(get_args(_field_type(cls, loc)))} items, got {len(value or ())}"
+    return f"{where}: {err.get('msg', 'invalid')}, got {value!r}"
+
+
+def _strip_removed(tp: Any, data: Any, path: str) -> Any:
+    """``data`` without the keys a dataclass on its way lists in ``REMOVED_KEYS`` (key → why it is read and ignored),
+    one ``FutureWarning`` each, at every level.
+    """
+    while get_origin(tp) in (Union, types.UnionType):
+        tp = next((a for a in get_args(tp) if dataclasses.is_dataclass(a)), None)
+    if not (dataclasses.is_dataclass(tp) and isinstance(data, dict)):
+        return data
+    removed: dict[str, str] = getattr(tp, "REMOVED_KEYS", {})
+    out = {}
+    hints = get_type_hints(tp)
+    for key, value in data.items():
+        where = f"{path}.{key}" if path else str(key)
+        if key in removed:
+            warnings.warn(f"'{where}' is ignored: {removed[key]}; remove it from the file", FutureWarning,
+                          stacklevel=4)
+            continue
+        out[key] = _strip_removed(hints[key], value, where) if key in hints else value
+    return out
+
+
 def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
-    """Build dataclass ``cls`` from a plain mapping, validating every key and value.
+    """Build dataclass ``cls`` from a plain mapping, validating every key and value (pydantic, strict: see
+    :data:`_STRICT`; each dataclass's ``__post_init__`` checks its ranges).
 
     Args:
         cls: the dataclass type.
-        data: mapping from YAML (``None`` means all defaults).
+        data: mapping from YAML or a file aerialmtl wrote (``None`` means all defaults).
         path: key path of ``data`` inside the whole document, used in messages.
 
     Raises:
         ConfigError: unknown key, missing required key, wrong type or bad choice; the message names
-            the key path and the valid keys/choices.
+            the key path and the valid keys/choices. A ``__post_init__``'s own error (an
+            :class:`~aerialmtl.errors.AerialMTLError`) passes through as it was raised.
     """
     data = {} if data is None else data
     if not isinstance(data, dict):
         raise ConfigError(f"{path or '<root>'}: expected a mapping, got {data!r}")
-    removed: dict[str, str] = getattr(cls, "REMOVED_KEYS", {})  # key → why it is read and ignored
-    for key in [k for k in data if k in removed]:
-        warnings.warn(f"'{f'{path}.{key}' if path else key}' is ignored: {removed[key]}; remove it from the file",
-                      FutureWarning, stacklevel=3)
-        data = {k: v for k, v in data.items() if k != key}
-    hints = get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
-    unknown = [k for k in data if k not in fields]
-    if unknown:
-        key = f"{path}.{unknown[0]}" if path else str(unknown[0])
-        raise ConfigError(f"unknown key '{key}'; valid keys here are: {', '.join(sorted(fields))}"
-                          + _did_you_mean(unknown[0], list(fields)))
-    kwargs = {}
-    for name, f in fields.items():
-        sub = f"{path}.{name}" if path else name
-        if name in data:
-            kwargs[name] = _convert(hints[name], data[name], sub)
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise ConfigError(f"missing required key '{sub}'")
+    data = _strip_removed(cls, data, path)
     try:
-        return cls(**kwargs)
-    except (TypeError, ValueError) as exc:
-        if isinstance(exc, ConfigError):
-            raise
+        return _adapter(cls).validate_json(json.dumps(_jsonable(data), allow_nan=True))
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        inner = (first.get("ctx") or {}).get("error")
+        if isinstance(inner, AerialMTLError):  # raised by a __post_init__: already worded
+            raise inner from None
+        if isinstance(inner, (ValueError, TypeError)):
+            raise ConfigError(f"{path or cls.__name__}: {inner}") from exc
+        raise ConfigError(_message(cls, first, path)) from exc
+    except TypeError as exc:
         raise ConfigError(f"{path or cls.__name__}: {exc}") from exc
 
 

@@ -46,6 +46,31 @@ def render(message: str, flags: Mapping[str, str] | None = None) -> str:
     return PARAM_MARK.sub(spell, message)
 
 
+#: Where a sentence ends inside a message from a library (GDAL, OpenVINO, torch).
+_SENTENCE_END = re.compile(r"(?<=[.;!?])\s+")
+
+
+def cause(exc: BaseException | str | None, limit: int = 240) -> str:
+    """``exc``'s text on one line, for the parenthesis of a message, in whole sentences: as many of its sentences
+    as fit in ``limit`` characters, and always the first one whole (a library's sentence is never cut mid-word:
+    "You can disable this check by defining the CHECK_DISK_FREE_SPACE configuration option to FALSE." stays
+    whole). An exception with no text gives its class name.
+    """
+    if exc is None:
+        return ""
+    text = " ".join(str(exc).split())
+    if not text:
+        return exc.__class__.__name__ if isinstance(exc, BaseException) else ""
+    if len(text) <= limit:
+        return text
+    out = ""
+    for sentence in _SENTENCE_END.split(text):
+        if out and len(out) + 1 + len(sentence) > limit:
+            return out + " ..."
+        out = f"{out} {sentence}" if out else sentence
+    return out
+
+
 class AerialMTLError(Exception):
     """Root of all aerialmtl errors.
 
@@ -118,5 +143,5 @@ class PeerFailure(AerialMTLError, RuntimeError):
 
 __all__ = [
     "PARAM_MARK", "AerialMTLError", "AlignmentError", "CheckpointError", "ConfigError", "InputError", "LabelError",
-    "NonFiniteError", "OutputError", "OutputExistsError", "OutputInUseError", "PeerFailure", "render",
+    "NonFiniteError", "OutputError", "OutputExistsError", "OutputInUseError", "PeerFailure", "cause", "render",
 ]

@@ -43,7 +43,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from aerialmtl.errors import AerialMTLError, InputError, PeerFailure
+from aerialmtl.errors import AerialMTLError, InputError, PeerFailure, cause
 
 Precision = Literal["auto", "bf16", "fp32"]
 Resolved = Literal["bf16", "fp32"]
@@ -298,7 +298,7 @@ class CompileFallback:
 
 def _warn_compile_failed(exc: BaseException, what: str = "the model") -> None:
     """The one warning when ``torch.compile`` cannot be used."""
-    why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
+    why = cause(exc)
     warnings.warn(f"compile: torch.compile failed, torch.compile is not available here ({why}); running {what} "
                   "without it", UserWarning, stacklevel=3)
 
@@ -453,7 +453,7 @@ class Torchrun:
 
 def peer_failure(exc: BaseException) -> PeerFailure:
     """The :class:`~aerialmtl.errors.PeerFailure` of a collective that failed because a peer is gone."""
-    why = " ".join(str(exc).split())[:160] or exc.__class__.__name__
+    why = cause(exc)
     return PeerFailure(f"another process of this multi-process run failed or was stopped ({why}); its own message "
                        "or torchrun's summary says why. The last checkpoint in the run folder is whole: continue "
                        "with ‹resume=True›")

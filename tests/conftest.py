@@ -56,9 +56,10 @@ def pytest_report_header(config: pytest.Config) -> str:
 
 @pytest.fixture(autouse=True, scope="session")
 def _openvino_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """The OpenVINO engine's converted models go to a temporary folder, not the user's cache (subprocesses
-    inherit it)."""
+    """The package's stores (the OpenVINO engine's converted models, the numba kernel) go to a temporary folder,
+    not the user's cache (subprocesses inherit it)."""
     os.environ["AERIALMTL_OPENVINO_CACHE"] = str(tmp_path_factory.mktemp("openvino-cache"))
+    os.environ["AERIALMTL_CACHE"] = str(tmp_path_factory.mktemp("aerialmtl-cache"))
 
 
 @pytest.fixture

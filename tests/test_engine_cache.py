@@ -16,7 +16,7 @@ from helpers.rasters import write_raster
 from helpers.tmpfs import mount_tmpfs
 
 from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.inference.engine_cache import CorruptEntry, pack, unpack
+from aerialmtl.stores import CorruptEntry, pack, unpack
 
 pytest.importorskip("openvino")
 

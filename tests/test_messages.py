@@ -144,7 +144,7 @@ def test_a_server_dying_mid_read_is_named(tmp_path: Path, capsys, ckpt: Path, dy
     monkeypatch.setenv("GDAL_HTTP_MAX_RETRY", "0")
     out = tmp_path / "p"
     one_error_line(run(capsys, "predict", f"{url}/o.tif", "--model", ckpt, "--out", out, "--mc", "1", "--window", "256",
-                       "--quiet"), f"orthophoto '/vsicurl/{url}/o.tif' could not be read: the server stopped sending",
+                       "--quiet"), f"orthophoto '{url}/o.tif' could not be read after it was opened (GDAL: ",
                    "check the network and the server, then re-run")
     assert no_final_outputs(out)
 

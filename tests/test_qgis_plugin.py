@@ -56,16 +56,30 @@ def test_predict_command_line() -> None:
         "INPUT": "/data/ortho.tif", "MODEL": "/runs/a/best.pt", "MC": 8, "AOI": "", "ENGINE": "openvino",
         "PRECISION": "auto", "DEVICE": "cpu", "WINDOW": 512, "OVERLAP": 64.0, "PROBABILITIES": False,
         "NO_CALIBRATION": True, "RESCALE_INPUT": False, "OVERWRITE": True, "OUTPUT": "/maps/a"})
-    assert argv == ["/opt/bin/aerialmtl", "--progress", "json", "predict", "/data/ortho.tif",
+    assert argv == ["/opt/bin/aerialmtl", "--progress", "json", "predict",
                     "--model", "/runs/a/best.pt", "--mc", "8", "--engine", "openvino", "--precision", "auto",
                     "--device", "cpu", "--window", "512", "--overlap", "64", "--no-calibration", "--overwrite",
-                    "--out", "/maps/a"]
+                    "--out", "/maps/a", "--", "/data/ortho.tif"]
     # left empty: the command's own default (the model from AERIALMTL_MODEL, T from the model)
     assert command_line("aerialmtl", PREDICT, {"INPUT": "o.tif", "OUTPUT": "p"}) == [
-        "aerialmtl", "--progress", "json", "predict", "o.tif", "--out", "p"]
+        "aerialmtl", "--progress", "json", "predict", "--out", "p", "--", "o.tif"]
     assert command_line(["python", "-m", "aerialmtl"], ALGORITHMS["buildings"], {
         "INPUT": "p", "MIN_AREA": 2.5, "OUTPUT": "b.gpkg"}) == [
-        "python", "-m", "aerialmtl", "--progress", "json", "buildings", "p", "--min-area", "2.5", "--out", "b.gpkg"]
+        "python", "-m", "aerialmtl", "--progress", "json", "buildings", "--min-area", "2.5", "--out", "b.gpkg", "--",
+        "p"]
+
+
+@pytest.mark.parametrize("name", ["-x.tif", "--help", "-h"])
+def test_positional_paths_that_look_like_options_stay_paths(name: str, tmp_path: Path) -> None:
+    """A file the user named ``-x.tif`` or ``--help`` reaches the command as a path (after ``--``), not as an
+    option: the command says the file is missing, it does not print its help or "No such option"."""
+    from helpers.procs import aerialmtl, env
+
+    argv = command_line(["x"], PREDICT, {"INPUT": name, "MODEL": str(tmp_path / "m.pt"), "OUTPUT": "p"})
+    done = aerialmtl(*argv[1:], environ=env(), cwd=tmp_path, timeout=300)
+    text = " ".join((done.stdout + done.stderr).split())
+    assert done.returncode == 2, text  # a bad value of the ORTHOS argument: click's usage error
+    assert f"'{name}' does not exist" in text and "No such option" not in text and "Options:" not in text
 
 
 def test_command_line_refuses_missing_and_unknown_values() -> None:

@@ -33,10 +33,11 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import click
 
-from aerialmtl import progress
+from aerialmtl import progress, stores
 from aerialmtl._version import __version__
 from aerialmtl.cli.bench import bench
 from aerialmtl.cli.buildings import buildings
+from aerialmtl.cli.cache import cache
 from aerialmtl.cli.demo import demo
 from aerialmtl.cli.evaluate import evaluate
 from aerialmtl.cli.export import export
@@ -113,7 +114,8 @@ def _prepared(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-for _command in (synth, tile, train, pretrain, predict, evaluate, buildings, export, qgis_plugin, demo, bench):
+for _command in (synth, tile, train, pretrain, predict, evaluate, buildings, export, qgis_plugin, demo, bench,
+                 cache):
     assert _command.name is not None and _command.callback is not None
     _command.callback = usage_errors(_command.name, _prepared(_command.name, _command.callback))
     cli.add_command(_command)
@@ -123,6 +125,10 @@ def _one_line(exc: BaseException, flags: dict[str, str] | None = None) -> str:
     """``exc`` as one line; aerialmtl errors with their parameters spelled as ``flags`` (options)."""
     text = exc.render(flags) if isinstance(exc, AerialMTLError) else str(exc)
     text = " ".join(text.split()) or exc.__class__.__name__
+    seen = exc.__cause__ or exc.__context__
+    while "See previous exception" in text and seen is not None:  # rasterio's own words point at GDAL's: show them
+        text = f"{text} ({' '.join(str(seen).split()) or seen.__class__.__name__})"
+        seen = seen.__cause__ or seen.__context__
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # one of several torchrun processes: say which
         text = f"[rank {os.environ.get('RANK', '?')}] {text}"
     return text
@@ -146,6 +152,7 @@ def main(argv: list[str] | None = None) -> None:
     global _quiet_libtiff
     args = sys.argv[1:] if argv is None else argv
     debug = "--debug" in args
+    stores.reset_warnings()  # each command warns once about each store problem it meets
     with warnings.catch_warnings(), stop_signals():
         if not debug:
             warnings.showwarning = _show_warning

@@ -22,7 +22,7 @@ from rasterio.errors import RasterioError
 
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.data.types import Sample
-from aerialmtl.errors import InputError
+from aerialmtl.errors import InputError, cause
 from aerialmtl.formats.tiles import (
     MANIFEST_CSV,
     SPLITS,
@@ -85,7 +85,7 @@ def _reading(path: Path, root: Path) -> Iterator[None]:
         if "See previous exception" in why and exc.__cause__ is not None:
             why = " ".join(str(exc.__cause__).split())
         raise InputError(
-            f"patch '{path}' of the tile folder '{root}' cannot be read ({why[:160]}): the file is truncated or "
+            f"patch '{path}' of the tile folder '{root}' cannot be read ({cause(why)}): the file is truncated or "
             "damaged; re-run `aerialmtl tile ... --overwrite` to write the tile folder again"
         ) from exc
 

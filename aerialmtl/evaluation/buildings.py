@@ -29,7 +29,7 @@ from shapely.geometry import box, mapping, shape
 from shapely.strtree import STRtree
 
 from aerialmtl.buildings.extract import Building, BuildingOptions, iter_buildings
-from aerialmtl.errors import InputError
+from aerialmtl.errors import InputError, cause
 from aerialmtl.evaluation.uncertainty import spearman
 from aerialmtl.formats.buildings import read_footprints
 from aerialmtl.io.units import metres_per_unit
@@ -138,7 +138,7 @@ def _to_crs(geoms: Iterable[shapely.Geometry], src: CRS | None, dst: CRS, path: 
         return [shape(transform_geom(src, dst, mapping(g))) for g in geoms]
     except Exception as exc:  # PROJ errors (CPLE_AppDefinedError) for coordinates outside the source CRS
         raise InputError(f"{role} '{path}': its polygons cannot be reprojected to the prediction's CRS "
-                         f"({' '.join(str(exc).split())[:120]}); check the file's CRS") from exc
+                         f"({cause(exc)}); check the file's CRS") from exc
 
 
 def evaluate_buildings(

@@ -36,7 +36,7 @@ import numpy as np
 import shapely
 from rasterio.crs import CRS
 
-from aerialmtl.errors import InputError
+from aerialmtl.errors import InputError, cause
 
 #: Layer name inside the files.
 LAYER = "buildings"
@@ -148,7 +148,7 @@ def read_footprints(path: str | Path, role: str = "building footprints") -> tupl
         meta, _, wkb, values = pyogrio.raw.read(p)
     except Exception as exc:  # pyogrio raises its own DataSourceError / DataLayerError
         raise InputError(
-            f"{role} '{p}' cannot be read as a vector file ({' '.join(str(exc).split())[:160]}); pass a "
+            f"{role} '{p}' cannot be read as a vector file ({cause(exc)}); pass a "
             "GeoPackage or GeoJSON of polygons"
         ) from exc
     geoms = list(shapely.from_wkb(wkb)) if wkb is not None else []

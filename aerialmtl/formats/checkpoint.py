@@ -41,7 +41,7 @@ import torch
 from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
-from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError
+from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, cause
 from aerialmtl.io.oserrors import output_error
 from aerialmtl.io.outputs import atomic_write
 from aerialmtl.models.calibration import Calibration
@@ -124,6 +124,31 @@ class ModelMeta:
                                                   <= self.height_range[1] < math.inf):
             raise CheckpointError(f"checkpoint meta is invalid: height_range must be [low, high] metres with low ≤ "
                                   f"high, got {list(self.height_range)}")
+        if self.calibration is not None:
+            self._check_calibration(self.calibration)
+
+    def _check_calibration(self, cal: Calibration) -> None:
+        """Refuse a calibration whose spreads or heights no model trained on :attr:`height_range` can need: a
+        spread floor beyond the span of the heights trained on (σ = 1e30 m everywhere; :data:`SURFACE_HEIGHTS_M`
+        where the range was not recorded), calibrated heights outside :func:`plausible_heights`.
+        """
+        low, high = plausible_heights(self.height_range)
+        r = self.height_range if self.height_range is not None else SURFACE_HEIGHTS_M
+        span = max(r[1] - r[0], 1.0)
+        floors = [cal.std_floor, *cal.std_floors]
+        if any(f > span for f in floors):
+            raise CheckpointError(
+                f"checkpoint meta is invalid: calibration spread floors {floors} m exceed the {span:g} m span of "
+                f"{self._trained()} (a spread that large says nothing)")
+        if any(not low <= y <= high for y in cal.height_y):
+            raise CheckpointError(
+                f"checkpoint meta is invalid: calibrated heights {list(cal.height_y)} m leave the [{low:g}, {high:g}] "
+                f"m a model can predict from {self._trained()}")
+
+    def _trained(self) -> str:
+        """``heights of 0–45 m`` (or ``any surface`` where the trained range was not recorded), for messages."""
+        r = self.height_range
+        return "the heights of any surface" if r is None else f"the heights trained on ({r[0]:g}–{r[1]:g} m)"
 
     def to_dict(self) -> dict[str, Any]:
         """The metadata as plain types (stored in the checkpoint)."""
@@ -332,7 +357,7 @@ def read_checkpoint(path: str | Path,
             "(only weights and plain data are accepted); use a checkpoint written by `aerialmtl train`"
         ) from exc
     except (RuntimeError, EOFError, OSError, ValueError) as exc:
-        why = " ".join(str(exc).split())[:200] or exc.__class__.__name__
+        why = cause(exc)
         raise CheckpointError(
             f"checkpoint '{path}' is corrupt or truncated ({why}); use another checkpoint (e.g. last.pt "
             "instead of best.pt) or retrain"
@@ -354,7 +379,8 @@ def read_checkpoint(path: str | Path,
     try:
         meta = ModelMeta.from_dict(payload["meta"])
     except (ConfigError, KeyError, TypeError, ValueError) as exc:
-        raise CheckpointError(f"checkpoint '{path}' has invalid metadata: {exc}") from exc
+        raise CheckpointError(f"checkpoint '{path}' has invalid metadata: {exc}; it was not written by aerialmtl as it "
+                              "is (edited or damaged): use a checkpoint written by `aerialmtl train`") from exc
     state = payload.get("state_dict")
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise CheckpointError(
@@ -450,7 +476,7 @@ def read_model(path: str | Path,
         try:
             model.load_state_dict(state)  # type: ignore[arg-type]
         except (RuntimeError, KeyError, TypeError) as exc:  # pragma: no cover - caught by the check above
-            problem = " ".join(str(exc).split())[:200]
+            problem = cause(exc)
     if problem is not None:
         scheme = f", class scheme '{meta.classes.name}' ({meta.classes.num_classes} classes)" if meta.classes else ""
         raise CheckpointError(

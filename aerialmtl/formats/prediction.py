@@ -32,22 +32,23 @@ style ``<layer>.mosaic.qml``, so that a GIS opens one layer over all inputs, and
 A folder is complete for a run (:meth:`PredictionFolder.check`, :meth:`PredictionFolder.is_complete`) when
 ``prediction.json`` exists (the writer renames it into place last, so a run that stopped earlier leaves
 no complete-looking folder), every file it lists exists, each layer with the size it records
-(``file_sizes``; the styles and ``item.json`` may be edited) and as a raster of the recorded grid, and its
-``provenance`` matches the run at hand:
+(``file_sizes``; the styles and ``item.json`` may be edited) and as a raster of the recorded grid, its
+``provenance`` matches the run at hand, and each layer's bytes still have the SHA-256 recorded at commit
+(``file_sha256``: a disk error that zeroes a block keeps the size, not the checksum):
 
     provenance.checkpoint   SHA-256 of the checkpoint bytes that were loaded
                             (:func:`aerialmtl.formats.checkpoint.read_checkpoint`; of the weights and
                             metadata for a model given in memory)
     provenance.settings     what changes the maps: MC samples T, seed, precision, engine, the class
-                            probabilities layer, the AOI (:func:`file_fingerprint` of the GeoJSON),
-                            whether the checkpoint's calibration was applied, the linear map of
+                            probabilities layer, the AOI (:func:`~aerialmtl.io.fingerprint.file_fingerprint` of
+                            the GeoJSON), whether the checkpoint's calibration was applied, the linear map of
                             ``rescale_input`` (``input_rescale``, :mod:`aerialmtl.inference.sanity`)
-    provenance.input        :func:`input_fingerprint` of the orthophoto, taken when the run opens it and
-                            checked again before it commits (a file changed under the run is refused):
-                            resolved path, size and mtime (ns) of a local file, with every source of a
-                            VRT; for a remote or virtual path the GDAL path, raster size, transform and
-                            CRS, plus the ETag, Last-Modified and size the HTTP server gives, or the
-                            ``stat`` of a local archive (``/vsizip/``, ``/vsitar/``, ``/vsigzip/``)
+    provenance.input        :func:`~aerialmtl.io.fingerprint.input_fingerprint` of the orthophoto, taken when
+                            the run opens it and checked again before it commits (a file changed under the run
+                            is refused): the file, the sidecars GDAL reads beside it (world file, ``.prj``,
+                            ``.aux.xml``, ``.ovr``, ``.msk``), a VRT's sources, a server's or archive's
+                            validators, and the raster as GDAL presents it (size, geotransform, CRS, nodata),
+                            which ``--skip-existing`` compares with the input as it opens now
 
 Window size, overlap, batch size and device are not part of it: they change speed and memory, and the
 maps only within the blending of window seams. ``prediction.json`` is also the proof of what a run owns:
@@ -61,7 +62,6 @@ list, ``null``, wrong types) is "not a prediction folder of aerialmtl" (:class:`
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,7 +70,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
-from aerialmtl.errors import InputError
+from aerialmtl.errors import InputError, cause
 
 #: Layer names, in the order a prediction folder lists them (file ``<name>.tif``).
 HEIGHT = "height"
@@ -263,12 +263,24 @@ class GridInfo(BaseModel):
     gsd: float | None = None
 
 
+class Provenance(BaseModel):
+    """``prediction.json``'s ``provenance`` (module docstring): the checkpoint's fingerprint, the settings that
+    change the maps, the input's fingerprint (:func:`aerialmtl.io.fingerprint.input_fingerprint`).
+    """
+
+    model_config = ConfigDict(extra="allow")
+    checkpoint: str | None = None
+    settings: dict[str, Any] = {}
+    input: dict[str, Any] | None = None
+
+
 class PredictionInfo(BaseModel):
     """The schema of ``prediction.json`` (the fields readers rely on; the rest are kept as they are).
 
     Attributes:
         files: layer or file key → file name in the folder.
         file_sizes: file name → size in bytes when the run committed.
+        file_sha256: layer file name → SHA-256 (hex) of its bytes when the run committed.
         grid: the output grid.
         calibration: what calibration was applied (:meth:`Predictor.calibration_info
             <aerialmtl.inference.predict.Predictor.calibration_info>`).
@@ -278,9 +290,10 @@ class PredictionInfo(BaseModel):
     model_config = ConfigDict(extra="allow")
     files: dict[str, str]
     file_sizes: dict[str, int] = {}
+    file_sha256: dict[str, str] = {}
     grid: GridInfo | None = None
     calibration: dict[str, Any] | None = None
-    provenance: dict[str, Any] | None = None
+    provenance: Provenance | None = None
 
 
 class PredictionRecord(BaseModel):
@@ -305,7 +318,8 @@ class PredictionRecord(BaseModel):
         timings_s: seconds per stage (``read``, ``model``, ``stitch_write``, ``write``, ``strip_total``,
             ``cog``, ``total``).
         calibration: what calibration was applied; provenance: :data:`PROVENANCE_KEY` (module docstring).
-        created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes.
+        created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes;
+        file_sha256: layer file → SHA-256 (hex) of its bytes.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -341,6 +355,7 @@ class PredictionRecord(BaseModel):
     created: str | None = None
     files: dict[str, str] = {}
     file_sizes: dict[str, int] = {}
+    file_sha256: dict[str, str] = {}
 
     def to_json(self) -> str:
         """The file's text (2-space indented JSON, as every earlier version wrote it)."""
@@ -418,13 +433,15 @@ class PredictionFolder:
         names = [str(n) for n in files.values() if str(n) in ALL_FILES]
         return [*names, INFO_FILE] if names else []
 
-    def check(self, expected: Mapping[str, Any] | None = None) -> str | None:
+    def check(self, expected: Mapping[str, Any] | None = None, content: bool = True) -> str | None:
         """Why this folder is not a finished prediction of the run ``expected`` describes (``None``: it is).
 
         Args:
             expected: the ``provenance`` of the run at hand (:meth:`Predictor.provenance
                 <aerialmtl.inference.predict.Predictor.provenance>`); ``None`` checks only that a run finished
                 here and its files are whole.
+            content: also check each layer's bytes against the SHA-256 recorded at commit (``file_sha256``; about
+                1 s per GB read: bench/RESULTS.md); done last, once everything cheaper holds.
 
         Returns:
             ``None`` when complete, else a short reason for a summary (``"height.tif is truncated ..."``,
@@ -453,19 +470,26 @@ class PredictionFolder:
             problem = _layer_problem(path, grid) if key in LAYERS else None  # layers, not styles or STAC
             if problem:
                 return problem
-        if expected is None:
-            return None
-        recorded = info.get(PROVENANCE_KEY)
-        if not isinstance(recorded, dict):
-            return f"its {INFO_FILE} records no provenance (made by an older version)"
-        for key, what in (("checkpoint", "another model"), ("input", "another or a changed orthophoto")):
-            if recorded.get(key) != expected.get(key):
-                return f"it was made with {what}"
-        old, new = recorded.get("settings") or {}, expected.get("settings") or {}
-        changed = [f"{k} {old.get(k)!r} → {new.get(k)!r}" for k in sorted(set(old) | set(new))
-                   if old.get(k) != new.get(k)]
-        if changed:
-            return f"it was made with other settings ({', '.join(changed)})"
+        if expected is not None:
+            problem = _provenance_problem(info.get(PROVENANCE_KEY), expected)
+            if problem:
+                return problem
+        return self._content_problem(info) if content else None
+
+    def _content_problem(self, info: Mapping[str, Any]) -> str | None:
+        """Which layer's bytes differ from the SHA-256 recorded at commit (``None``: all match, or none recorded:
+        folders of earlier versions are checked by size only).
+        """
+        from aerialmtl.io.fingerprint import content_sha256
+
+        for name, digest in (info.get("file_sha256") or {}).items():
+            try:
+                now = content_sha256(self.path / str(name))
+            except OSError as exc:
+                return f"{name} cannot be read ({exc.strerror or exc})"
+            if now != digest:
+                return (f"{name} was damaged or changed after the run wrote it (its content does not match the "
+                        f"checksum in {INFO_FILE})")
         return None
 
     def is_complete(self, expected: Mapping[str, Any] | None = None) -> bool:
@@ -482,7 +506,7 @@ def _layer_problem(path: Path, grid: Mapping[str, Any]) -> str | None:
         with rasterio.open(path) as src:
             shape = (src.width, src.height)
     except (RasterioError, OSError) as exc:
-        return f"{path.name} does not open ({' '.join(str(exc).split())[:120]})"
+        return f"{path.name} does not open ({cause(exc)})"
     want = (grid.get("width"), grid.get("height"))
     if None not in want and shape != want:
         return f"{path.name} is {shape[0]}×{shape[1]} px, {INFO_FILE} says {want[0]}×{want[1]}"
@@ -494,120 +518,23 @@ def _layer_problem(path: Path, grid: Mapping[str, Any]) -> str | None:
 PROVENANCE_KEY = "provenance"
 
 
-def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
-    """Resolved path, size and mtime (ns) of a local file (``None`` for ``None``); the path alone otherwise."""
-    if path is None:
-        return None
-    from aerialmtl.io.paths import gdal_path, is_local
+def _provenance_problem(recorded: Any, expected: Mapping[str, Any]) -> str | None:
+    """Why the ``provenance`` recorded differs from the run's ``expected`` one, in a few words (``None``: same)."""
+    from aerialmtl.io.fingerprint import changed
 
-    if not is_local(path):
-        return {"path": gdal_path(path)}
-    st = os.stat(path)
-    return {"path": str(Path(path).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
-
-
-#: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
-VRT_DEPTH = 4
-#: Seconds :func:`http_validators` waits for a server's answer.
-HEAD_TIMEOUT = 20.0
-
-
-def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
-    """:func:`file_fingerprint` of every source a local VRT lists (``SourceFilename``, relative ones resolved
-    against the VRT's folder; VRTs inside followed ``depth`` levels), in document order without repeats.
-    """
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError):
-        return []
-    from aerialmtl.io.paths import is_local
-
-    out: list[dict[str, Any]] = []
-    seen: set[str] = set()
-    for el in root.iter("SourceFilename"):
-        name = (el.text or "").strip()
-        if not name or name in seen:
-            continue
-        seen.add(name)
-        if is_local(name) and el.get("relativeToVRT", "0") == "1":
-            name = str(Path(path).parent / name)
-        try:
-            fp = input_fingerprint(name, depth=depth - 1) if depth > 0 else file_fingerprint(name)
-        except OSError:
-            fp = {"path": name, "missing": True}
-        if fp is not None:
-            out.append(fp)
-    return out
-
-
-def http_validators(url: str) -> dict[str, Any] | None:
-    """What an HTTP(S) server says identifies the current version of ``url`` (one HEAD request): ``etag``,
-    ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S).
-    """
-    import urllib.error
-    import urllib.request
-
-    if url.startswith("/vsicurl/"):
-        url = url[len("/vsicurl/"):]
-    if not url.lower().startswith(("http://", "https://")):
-        return None
-    req = urllib.request.Request(url, method="HEAD")
-    try:
-        with urllib.request.urlopen(req, timeout=HEAD_TIMEOUT) as resp:  # noqa: S310 - http(s) only, checked above
-            headers = resp.headers
-    except (urllib.error.URLError, OSError, ValueError):
-        return None
-    size = headers.get("Content-Length")
-    return {"etag": headers.get("ETag"), "last_modified": headers.get("Last-Modified"),
-            "size": int(size) if size and size.isdigit() else None}
-
-
-def input_fingerprint(path: str | Path, width: int | None = None, height: int | None = None,
-                      transform: Sequence[float] | None = None, crs: str | None = None,
-                      depth: int = VRT_DEPTH) -> dict[str, Any]:
-    """The fingerprint of an orthophoto (see the module docstring): what says whether the bytes read are
-    still the same.
-
-    Args:
-        path: the orthophoto (a local file, a VRT, a URL or a GDAL ``/vsi...`` path).
-        width, height, transform, crs: its raster size and georeferencing (recorded for a non-local path).
-        depth: how many levels of VRTs inside VRTs are followed.
-
-    Returns:
-        For a local file, :func:`file_fingerprint` (plus ``sources``, each source's fingerprint, for a VRT);
-        otherwise the GDAL path, the raster's size and georeferencing, and ``server`` (the HTTP validators)
-        or ``archive`` (the local archive's :func:`file_fingerprint`).
-    """
-    from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
-
-    fp = file_fingerprint(path)
-    assert fp is not None
-    if is_local(path):
-        if str(path).lower().endswith(".vrt"):
-            fp["sources"] = vrt_sources(path, depth)
-        return fp
-    if width is not None and height is not None and transform is not None:
-        fp.update(width=int(width), height=int(height), transform=[float(v) for v in transform][:6], crs=str(crs))
-    text = gdal_path(path)
-    archive = local_archive(text)
-    if archive is not None:
-        fp["archive"] = file_fingerprint(archive)
-    elif not text.startswith(ARCHIVE_VSI):
-        server = http_validators(text)
-        if server is not None:
-            fp["server"] = server
-    return fp
-
-
-def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
-    """What differs between two fingerprints (:func:`input_fingerprint`) of one input (``None``: nothing)."""
-    if before == after:
-        return None
-    keys = [k for k in sorted(set(before) | set(after)) if before.get(k) != after.get(k)]
-    return ", ".join(f"{k} {before.get(k)!r} → {after.get(k)!r}" if k not in ("sources", "server", "archive")
-                     else f"its {k}" for k in keys)[:300]
+    if not isinstance(recorded, dict):
+        return f"its {INFO_FILE} records no provenance (made by an older version)"
+    if recorded.get("checkpoint") != expected.get("checkpoint"):
+        return "it was made with another model"
+    old_input, new_input = recorded.get("input"), expected.get("input")
+    if old_input != new_input:
+        what = changed(old_input, new_input) if isinstance(old_input, dict) and isinstance(new_input, dict) else None
+        return "it was made with another or a changed orthophoto" + (f" ({what})" if what else "")
+    old, new = recorded.get("settings") or {}, expected.get("settings") or {}
+    diff = [f"{k} {old.get(k)!r} → {new.get(k)!r}" for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+    if diff:
+        return f"it was made with other settings ({', '.join(diff)})"
+    return None
 
 
 __all__ = [
@@ -618,7 +545,6 @@ __all__ = [
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
     "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
-    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord", "changed",
-    "file_fingerprint",
-    "http_validators", "input_fingerprint", "parse_info", "vrt_sources",
+    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord", "Provenance",
+    "parse_info",
 ]

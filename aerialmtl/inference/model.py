@@ -52,13 +52,7 @@ from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
-from aerialmtl.formats.prediction import (
-    PROVENANCE_KEY,
-    LayerSpec,
-    file_fingerprint,
-    input_fingerprint,
-    prediction_layers,
-)
+from aerialmtl.formats.prediction import PROVENANCE_KEY, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.engine_choice import choose_engine
 from aerialmtl.inference.engines import Pending, openvino_available
@@ -70,6 +64,7 @@ from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, 
 from aerialmtl.inference.settings import PredictOptions, PredictSettings, Resolved, settings_of
 from aerialmtl.inference.stitch import Block, Stitcher
 from aerialmtl.inference.windows import Plan
+from aerialmtl.io.fingerprint import file_fingerprint, input_fingerprint
 from aerialmtl.models import class_kernel
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.progress import tqdm_auto as tqdm
@@ -119,13 +114,13 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
             digest: str | None = file_sha256(checkpoint)
         except OSError:  # read_model says what is wrong with the file
             digest = None
-        record = read_record(digest, root) if digest is not None else None
+        record = read_record(digest, root) if digest is not None and root is not None else None
         if digest is not None and record is not None:
             return CheckpointModel(checkpoint, digest, record), record.meta, str(checkpoint), digest
     model, meta, loaded = read_model(checkpoint)
     if warm:
         made = make_record(model, meta)
-        if made is not None:
+        if made is not None and root is not None:
             write_record(loaded, made, root)
     return model, meta, str(checkpoint), loaded
 
@@ -276,15 +271,14 @@ class Predictor:
 
     def provenance(self, src: OrthoInput) -> dict[str, Any]:
         """What makes the maps of ``src`` (``provenance`` in prediction.json, :mod:`aerialmtl.formats.prediction`)."""
-        native, s = src.native, self.settings
+        s = self.settings
         return {
             "checkpoint": self.fingerprint,
             "settings": {"mc_samples": self.mc, "tta": s.tta, "seed": s.seed, "precision": self.precision,
                          "engine": self.runner.engine.name, "probabilities": bool(s.probabilities),
                          "aoi": file_fingerprint(s.aoi), "calibration": self.calibration is not None,
                          "input_rescale": None if src.rescale is None else list(src.rescale)},
-            "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(
-                src.path, native.width, native.height, list(native.transform), native.crs.to_string()),
+            "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(src.path),
         }
 
     def record_settings(self, src: OrthoInput) -> dict[str, Any]:

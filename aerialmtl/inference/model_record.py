@@ -11,7 +11,8 @@ D3-Net and loading its state dict cost about a CPU second for the paper's DenseN
 * written by the run that loaded the checkpoint (:func:`write_record`), under
   ``<cache root>/records/<key>.record``, where the key hashes the checkpoint's SHA-256 (of its bytes), the
   aerialmtl version and :data:`RECORD_VERSION`; the entry carries its own checksum like every cache entry
-  (:func:`~aerialmtl.inference.engine_cache.pack`);
+  (:func:`~aerialmtl.stores.pack`) and is read under the stores' rule (:class:`~aerialmtl.stores.Store`: a
+  damaged, empty, foreign or non-regular record is removed with a warning and written again);
 * read by later runs after hashing the checkpoint's bytes (:func:`~aerialmtl.formats.checkpoint.file_sha256`):
   same bytes, same record.
   The record is trusted only for bytes that the run that wrote it loaded and checked (``read_checkpoint``
@@ -25,18 +26,15 @@ fingerprint, or the run stops (the file was replaced while it ran).
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aerialmtl._version import __version__
 from aerialmtl.errors import CheckpointError
-from aerialmtl.inference.engine_cache import CorruptEntry, pack, unpack
-from aerialmtl.io.outputs import atomic_write
+from aerialmtl.stores import Store
 
 if TYPE_CHECKING:
     from torch import nn
@@ -97,17 +95,21 @@ def read_record(digest: str, root: Path) -> ModelRecord | None:
     removed, and the run that loads the checkpoint writes it again).
     """
     path = record_path(digest, root)
-    try:
-        data = path.read_bytes()
-    except OSError:
+    store = _store(path)
+    found = store.read(path.name)
+    if found is None:
         return None
     try:
-        (payload,) = unpack(data)
+        (payload,) = found
         return ModelRecord.from_json(payload)
-    except (CorruptEntry, ValueError, KeyError, TypeError):
-        with contextlib.suppress(OSError):
-            path.unlink()
+    except (ValueError, KeyError, TypeError):
+        store.problem(path, "not a record of this version")
         return None
+
+
+def _store(path: Path) -> Store:
+    """The store of the records (the folder of ``path``)."""
+    return Store(path.parent, what="cached checkpoint record", env="AERIALMTL_OPENVINO_CACHE", kind="OpenVINO")
 
 
 def make_record(model: nn.Module, meta: ModelMeta) -> ModelRecord | None:
@@ -132,13 +134,10 @@ def make_record(model: nn.Module, meta: ModelMeta) -> ModelRecord | None:
 
 def write_record(digest: str, record: ModelRecord, root: Path) -> None:
     """Store ``record`` for fingerprint ``digest`` (whole, through a staging file). A folder that cannot be
-    written is skipped silently: the engine's cache warns about the same folder (one warning per run).
+    written is skipped with the stores' one warning per folder.
     """
     path = record_path(digest, root)
-    with contextlib.suppress(OSError):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_write(path, tag=f"partial.{os.getpid()}") as tmp:
-            tmp.write_bytes(pack([record.to_json()]))
+    _store(path).write(path.name, [record.to_json()])
 
 
 class CheckpointModel:

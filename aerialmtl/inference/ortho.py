@@ -20,10 +20,10 @@ from typing import Any
 from rasterio.enums import ColorInterp
 
 from aerialmtl.formats.checkpoint import ModelMeta
-from aerialmtl.formats.prediction import changed, input_fingerprint
 from aerialmtl.inference.sanity import check_input_values
 from aerialmtl.inference.windows import Plan, plan_windows
 from aerialmtl.io.align import Grid, check_bands, open_raster, ortho_grid, resampled_grid
+from aerialmtl.io.fingerprint import changed, input_fingerprint, raster_identity
 from aerialmtl.io.paths import is_local
 
 #: Relative GSD difference above which the orthophoto is resampled to the model's GSD.
@@ -50,8 +50,9 @@ class OrthoInput:
         plan: the window plan over ``grid``.
         rescale: ``(a, b)``: the model sees ``a·x + b`` for raw values x (``rescale_input``, see
             :mod:`aerialmtl.inference.sanity`); ``None``: the raw values.
-        fingerprint: :func:`~aerialmtl.formats.prediction.input_fingerprint`, taken before the file was first
-            read (``provenance.input``; checked again before the maps are committed, :meth:`changed`).
+        fingerprint: :func:`~aerialmtl.io.fingerprint.input_fingerprint`, of the file and its sidecars taken
+            before the file was first read, with the raster as GDAL presents it (``provenance.input``; checked
+            again before the maps are committed, :meth:`changed`).
     """
 
     path: str | Path
@@ -90,11 +91,11 @@ class OrthoInput:
             alpha = [i + 1 for i, ci in enumerate(src.colorinterp) if ci == ColorInterp.alpha]
             count = int(src.count)
             rescale = check_input_values(path, meta, rescale_input, dataset=src)
+            identity = raster_identity(src)
         unused = tuple(b for b in range(1, count + 1) if b not in meta.bands and b not in alpha[:1])
         resampled_from = native.gsd if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd else None
         grid = resampled_grid(native, meta.gsd) if resampled_from is not None else native
-        fingerprint = local if local is not None else input_fingerprint(
-            path, native.width, native.height, list(native.transform), native.crs.to_string())
+        fingerprint = {**local, "raster": identity} if local is not None else input_fingerprint(path, identity)
         return cls(path, native, grid, resampled_from, count, unused,
                    plan_windows(grid.height, grid.width, window, overlap), rescale=rescale, fingerprint=fingerprint)
 
@@ -102,9 +103,7 @@ class OrthoInput:
         """What changed in the input since it was opened (``None``: nothing; see :attr:`fingerprint`)."""
         if self.fingerprint is None:
             return None
-        native = self.native
-        now = input_fingerprint(self.path, native.width, native.height, list(native.transform),
-                                native.crs.to_string())
+        now = input_fingerprint(self.path, self.fingerprint.get("raster"))  # the files, not the raster again
         return changed(self.fingerprint, now)
 
     @property

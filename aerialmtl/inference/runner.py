@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from aerialmtl import runtime
+from aerialmtl.errors import cause
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.engines import (
     FALLBACK,
@@ -232,7 +233,7 @@ class ModelRunner:
                 raise
             label = engine_spec(self.engine.name).label
             warnings.warn(f"the {label} engine cannot run this model ({type(exc).__name__}: "
-                          f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); predicting with the torch engine "
+                          f"{cause(exc)}); predicting with the torch engine "
                           "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
             self.engine = fallback_engine(self.engine, self._setup)  # over the engine's folded copy
             return self._statistics(x, keys)

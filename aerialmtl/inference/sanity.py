@@ -32,12 +32,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from rasterio.errors import RasterioError
 from rasterio.io import DatasetReader
 from rasterio.windows import Window
 
 from aerialmtl.errors import CheckpointError, InputError, NonFiniteError
 from aerialmtl.formats.checkpoint import ModelMeta, plausible_heights, value_envelope
-from aerialmtl.io.align import open_raster
+from aerialmtl.io.align import open_raster, read_error
 from aerialmtl.models.mc_dropout import McStatistics
 
 #: windows per side and their side (pixels) of the orthophoto sample.
@@ -95,8 +96,11 @@ def sample_input(source: str | Path | DatasetReader, bands: Sequence[int]) -> In
     for r in rows:
         for c in cols:
             win = Window(c, r, w, h)
-            data = src.read(list(bands), window=win)
-            ok = np.all(src.read_masks(list(bands), window=win) > 0, axis=0)
+            try:
+                data = src.read(list(bands), window=win)
+                ok = np.all(src.read_masks(list(bands), window=win) > 0, axis=0)
+            except RasterioError as exc:  # a server that died after the header, a truncated file
+                raise read_error("orthophoto", src.name, exc) from exc
             if data.dtype.kind == "f":
                 ok &= np.all(np.isfinite(data), axis=0)
             values.append(data[:, ok].astype(np.float64))

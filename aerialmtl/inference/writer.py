@@ -33,7 +33,7 @@ import rasterio
 from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
-from aerialmtl.errors import OutputError
+from aerialmtl.errors import OutputError, cause
 from aerialmtl.formats.prediction import (
     INFO_FILE,
     ITEM_FILE,
@@ -44,6 +44,7 @@ from aerialmtl.formats.prediction import (
 from aerialmtl.inference.stitch import Block
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
+from aerialmtl.io.fingerprint import content_sha256
 from aerialmtl.io.oserrors import kind_of, output_error
 from aerialmtl.io.outputs import MERGE_VRT, STAGING, staging_path
 from aerialmtl.io.stats import BandStats, band_stats
@@ -89,7 +90,7 @@ def _writable_error(out_dir: Path, exc: BaseException) -> OutputError:
     if kind_of(exc, out_dir) is not None:  # a full disk or a read-only folder: said as every command says it
         return output_error(exc, out_dir, "the prediction folder", "‹out_dir›")
     return OutputError(
-        f"cannot write in output folder '{out_dir}' ({' '.join(str(exc).split())[:160]}); "
+        f"cannot write in output folder '{out_dir}' ({cause(exc)}); "
         "choose a writable ‹out_dir› with free space"
     )
 
@@ -267,7 +268,9 @@ class PredictionWriter:
                 "files": {n: p.name for n, (_, p) in partials.items()},
                 # the layers' sizes; the styles and item.json are the user's to edit (QGIS "Save as
                 # default", a STAC datetime) without making the folder look incomplete
-                "file_sizes": {p.name: tmp.stat().st_size for k, (tmp, p) in partials.items() if k not in extras}})
+                "file_sizes": {p.name: tmp.stat().st_size for k, (tmp, p) in partials.items() if k not in extras},
+                # and their content, which --skip-existing checks (a zeroed block keeps the size)
+                "file_sha256": {p.name: content_sha256(tmp) for k, (tmp, p) in partials.items() if k not in extras}})
             js = staging_path(self.out_dir / INFO_FILE)
             js.write_text(record.to_json(), encoding="utf-8")
             partials["prediction"] = (js, self.out_dir / INFO_FILE)

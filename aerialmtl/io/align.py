@@ -33,7 +33,7 @@ from rasterio.warp import transform_bounds
 from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
-from aerialmtl.errors import AlignmentError, InputError
+from aerialmtl.errors import AlignmentError, InputError, cause
 from aerialmtl.io.paths import (
     ARCHIVE_VSI,
     archive_parts,
@@ -156,14 +156,38 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
 
 
 def _gdal_message(exc: BaseException) -> str:
-    """GDAL's own words for a failed read (rasterio chains the CPLE error as the cause)."""
-    cause: BaseException | None = exc
-    while cause is not None:
-        text = " ".join(str(cause).split())
+    """GDAL's own words for a failed read, in whole sentences (rasterio chains the CPLE error as the cause, and says
+    only "Read failed. See previous exception for details." itself).
+    """
+    seen: BaseException | None = exc
+    while seen is not None:
+        text = " ".join(str(seen).split())
         if text and "See previous exception" not in text:
-            return text[:160]
-        cause = cause.__cause__ or cause.__context__
+            return cause(text)
+        seen = seen.__cause__ or seen.__context__
     return "read failed"
+
+
+def read_error(role: str, path: str | Path, exc: BaseException) -> InputError:
+    """The error to raise when reading pixels of an opened raster failed (``exc``): the path or URL, what failed
+    (GDAL's words and, for a URL, what the server answers when asked again: an HTTP status, a refused or closed
+    connection, a timeout) and the fix.
+    """
+    gpath = gdal_path(path)
+    why = _gdal_message(exc)
+    if is_remote(gpath):
+        server = probe_url(gpath)
+        now = (f"asked again, the server answers: {server}" if server else
+               "asked again, the server answers normally: the connection was dropped or timed out in between")
+        url = gpath[len("/vsicurl/"):] if gpath.startswith("/vsicurl/") else gpath
+        return InputError(
+            f"{role} '{url}' could not be read after it was opened (GDAL: {why}; {now}); check the network and the "
+            "server, then re-run (GDAL_HTTP_TIMEOUT and GDAL_HTTP_MAX_RETRY set how long and how often it retries)")
+    if str(path).lower().endswith(".vrt") and "No such file" in why:
+        return InputError(f"{role} '{path}' could not be read: a source file it lists is missing ({why}); restore "
+                          "it, or rebuild the VRT over the files you have (`gdalbuildvrt`)")
+    return InputError(f"{role} '{path}' could not be read ({why}); the file is probably truncated or corrupt: check "
+                      f"it with `gdalinfo -checksum {path}`, then re-download or re-export it")
 
 
 def check_bands(
@@ -385,23 +409,7 @@ class AlignedRaster:
                 if self.vrt is None and self.alpha_band is not None:
                     inner_mask &= self.reader.read(self.alpha_band, window=inner) > 0
             except RasterioError as exc:
-                if is_remote(gdal_path(self.path)):  # the server, not the file: a connection cut or timed out
-                    raise InputError(
-                        f"{self.role} '{self.path}' could not be read: the server stopped sending it or timed out "
-                        f"after the file was opened ({_gdal_message(exc)}); check the network and the server, then "
-                        "re-run (GDAL_HTTP_TIMEOUT and GDAL_HTTP_MAX_RETRY set how long and how often it retries)"
-                    ) from exc
-                why = _gdal_message(exc)
-                if str(self.path).lower().endswith(".vrt") and "No such file" in why:
-                    raise InputError(
-                        f"{self.role} '{self.path}' could not be read: a source file it lists is missing ({why}); "
-                        "restore it, or rebuild the VRT over the files you have (`gdalbuildvrt`)"
-                    ) from exc
-                raise InputError(
-                    f"{self.role} '{self.path}' could not be read ({why}); the file is probably "
-                    f"truncated or corrupt: check it with `gdalinfo -checksum {self.path}`, then re-download or "
-                    "re-export it"
-                ) from exc
+                raise read_error(self.role, self.path, exc) from exc
             mask[sl] = inner_mask
         if self.nodata is not None and not (isinstance(self.nodata, float) and math.isnan(self.nodata)):
             mask &= ~np.any(data == np.asarray(self.nodata).astype(data.dtype), axis=0)

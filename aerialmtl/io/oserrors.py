@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from aerialmtl.errors import AerialMTLError, OutputError
+from aerialmtl.errors import AerialMTLError, OutputError, cause
 
 #: errno values of a full device or an exceeded quota.
 NO_SPACE = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
@@ -89,7 +89,7 @@ def output_error(exc: BaseException, path: str | Path, what: str, option: str = 
             f"not allowed to write '{path}' ({what}): permission denied or a read-only file system; choose a "
             f"folder you can write ({option}) or fix its permissions"
         )
-    why = " ".join(str(getattr(exc, "strerror", None) or exc).split())[:200] or exc.__class__.__name__
+    why = cause(getattr(exc, "strerror", None) or exc)
     return OutputError(f"could not write '{path}' ({what}): {why}; check the disk and the folder, or choose "
                        f"another {option}")
 

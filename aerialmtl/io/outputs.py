@@ -35,7 +35,9 @@ import contextlib
 import datetime as _dt
 import json
 import os
+import shlex
 import socket
+import stat
 import warnings
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
@@ -236,8 +238,33 @@ def _forget_locks_in_child() -> None:
 if hasattr(os, "register_at_fork"):  # POSIX
     os.register_at_fork(after_in_child=_forget_locks_in_child)
 
-#: Flags of every open of a lock file: never through a symlink, never inherited by an exec'd program.
-_LOCK_OPEN_FLAGS = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+def _special_kind(path: Path) -> str | None:
+    """``"a FIFO"``, ``"a folder"``, ... when ``path`` exists and is neither a regular file nor a link (else
+    ``None``).
+    """
+    try:
+        mode = os.lstat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISLNK(mode):
+        return None
+    return "a FIFO" if stat.S_ISFIFO(mode) else "a folder" if stat.S_ISDIR(mode) else \
+        "a socket" if stat.S_ISSOCK(mode) else "a device file"
+
+
+def _owner(uid: int) -> str:
+    """``user name (uid N)`` of ``uid`` (the number alone where the account is unknown)."""
+    try:
+        import pwd
+
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except (ImportError, KeyError):
+        return f"uid {uid}"
+
+
+#: Flags of every open of a lock file: never through a symlink, never inherited by an exec'd program, never
+#: blocking (on a FIFO put at its name).
+_LOCK_OPEN_FLAGS = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NONBLOCK", 0)
 
 
 class FolderLock:
@@ -296,15 +323,61 @@ class FolderLock:
             raise OutputError(f"the lock file '{self.path}' is a symbolic link, which aerialmtl never writes (taking "
                               f"the lock through it would overwrite its target); delete the link, or choose another "
                               f"‹{self.option}›")
+        kind = _special_kind(self.path)
+        if kind is not None:  # opening a FIFO there would block forever; a folder cannot be locked
+            raise OutputError(f"the lock file '{self.path}' is {kind}, not a regular file, which aerialmtl never "
+                              f"makes; remove it (`rm -r {shlex.quote(str(self.path))}`) if nothing of yours needs it, "
+                              f"or choose another ‹{self.option}›")
         try:
             fd = self._acquire_flock() if fcntl is not None else self._acquire_exclusive()
         except OSError as exc:
             if isinstance(exc, OutputInUseError):
                 raise
-            raise OutputError(f"cannot create the lock file '{self.path}' ({exc.strerror or exc}); choose a "
-                              f"writable ‹{self.option}›") from exc
+            raise self._unwritable(exc) from exc
         _HELD[self._key] = [1, fd]
         return self
+
+    def _unwritable(self, exc: OSError) -> OutputError:
+        """The error for a lock file that cannot be created or replaced: a stale lock that this user may not replace
+        (their own read-only one, another user's in a shared folder) is named as stale, with the command that
+        removes it; otherwise the folder is not writable.
+        """
+        why = exc.strerror or str(exc)
+        try:
+            st = os.lstat(self.path)
+        except OSError:
+            st = None
+        if st is None or not stat.S_ISREG(st.st_mode):
+            return OutputError(f"cannot create the lock file '{self.path}' ({why}); choose a writable ‹{self.option}›")
+        owner = _owner(st.st_uid)
+        held = self._held_by_someone()
+        state = ("is held by a running process" if held else
+                 "is stale (no process holds it)" if held is False else "may be stale (it cannot be read to check)")
+        fix = (f"remove it with `rm -f {shlex.quote(str(self.path))}`" + (
+            f" (it belongs to {owner}: ask them, or an administrator, if you may not)"
+            if hasattr(os, "geteuid") and st.st_uid != os.geteuid() else "")
+            if not held else "wait for that run to finish")
+        return OutputError(
+            f"the lock file '{self.path}' left by an earlier run {state}, and you may not replace it ({why}; owned by "
+            f"{owner}, mode {stat.filemode(st.st_mode)}); {fix}, or choose another ‹{self.option}›")
+
+    def _held_by_someone(self) -> bool | None:
+        """Whether a process holds the lock now (``None``: the file cannot be opened to tell)."""
+        if fcntl is None:
+            return None
+        try:
+            fd = os.open(self.path, os.O_RDONLY | _LOCK_OPEN_FLAGS)
+        except OSError:
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        except OSError:
+            return None
+        finally:
+            os.close(fd)
+        return False
 
     def check_free(self) -> None:
         """Raise :class:`OutputInUseError` when another process holds the lock now (takes nothing).

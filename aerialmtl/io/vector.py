@@ -29,7 +29,7 @@ from shapely.geometry import box, mapping, shape
 from shapely.strtree import STRtree
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
-from aerialmtl.errors import AlignmentError, InputError, LabelError
+from aerialmtl.errors import AlignmentError, InputError, LabelError, cause
 
 #: CRS of GeoJSON without a ``crs`` member (RFC 7946).
 GEOJSON_DEFAULT_CRS = CRS.from_epsg(4326)
@@ -94,7 +94,7 @@ def load_geometries(
             g = shape(geom)
         except Exception as exc:  # shapely's errors for wrong nesting, missing coordinates, unknown types
             raise InputError(
-                f"{role} '{path}': feature {n} has an invalid geometry ({' '.join(str(exc).split())[:120]}); fix or "
+                f"{role} '{path}': feature {n} has an invalid geometry ({cause(exc)}); fix or "
                 "drop it, e.g. `ogr2ogr -makevalid out.geojson in.geojson`"
             ) from exc
         parsed.append((g, geom, feat))
@@ -108,7 +108,7 @@ def load_geometries(
             except Exception as exc:
                 raise InputError(
                     f"{role} '{path}': its polygons cannot be reprojected from {_crs_name(src_crs)} to "
-                    f"{_crs_name(dst_crs)} ({' '.join(str(exc).split())[:120]}); check its CRS"
+                    f"{_crs_name(dst_crs)} ({cause(exc)}); check its CRS"
                 ) from exc
         if not g.is_valid:
             g = shapely.make_valid(g)

@@ -97,8 +97,14 @@ class Calibration:
         if len(self.height_x) != len(self.height_y) or len(self.height_x) < 2:
             raise ValueError(f"Calibration: need ≥ 2 knots with as many x as y, got {len(self.height_x)} and "
                              f"{len(self.height_y)}")
+        if not all(math.isfinite(v) for v in (*self.height_x, *self.height_y, *self.std_edges)):
+            raise ValueError("Calibration: height_x, height_y and std_edges must be finite numbers of metres")
         if any(b <= a for a, b in zip(self.height_x, self.height_x[1:], strict=False)):
             raise ValueError("Calibration: height_x must be strictly increasing")
+        if any(b < a for a, b in zip(self.height_y, self.height_y[1:], strict=False)):
+            raise ValueError("Calibration: height_y must be non-decreasing (a height map keeps the order of heights)")
+        if any(b <= a for a, b in zip(self.std_edges, self.std_edges[1:], strict=False)):
+            raise ValueError(f"Calibration: std_edges must be strictly increasing, got {list(self.std_edges)}")
         if not (math.isfinite(self.std_scale) and self.std_scale >= 0):
             raise ValueError(f"Calibration: std_scale must be finite and ≥ 0, got {self.std_scale}")
         if not (math.isfinite(self.std_floor) and self.std_floor >= 0):

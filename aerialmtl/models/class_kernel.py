@@ -18,9 +18,10 @@ end). Against torch's path: probabilities within 1e-6 and entropies within 2e-6 
 NaN, as there.
 
 numba compiles the kernel the first time it is used after an install (about 1 s) and keeps the machine code
-in its cache (``__pycache__`` beside :mod:`aerialmtl.models.class_kernel_jit`, or numba's user cache when that
-is read-only), so later runs load it (0.4 s with the numba import); where neither can be written it compiles it
-in every process. The kernel runs in the calling thread (OpenVINO's streams hold the other cores).
+in the package's ``numba`` store (:mod:`aerialmtl.models.class_kernel_jit`, :mod:`aerialmtl.stores`), so
+later runs load it (0.4 s with the numba import); a damaged store is healed with a warning, and where it cannot
+be written the kernel is compiled in every process. The kernel runs in the calling thread (OpenVINO's streams
+hold the other cores).
 """
 
 from __future__ import annotations

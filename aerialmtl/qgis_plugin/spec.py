@@ -249,13 +249,14 @@ def command_line(executable: Sequence[str] | str, algorithm: Algorithm, values: 
         algorithm: what to run.
         values: parameter name → value, as QGIS resolved them (paths as strings). A missing or empty value
             passes nothing (the command's default, which a parameter with a default has too); a flag is passed
-            when True.
+            when True. Positional values come last, after ``--`` (a path may start with ``-``).
 
     Raises:
         ValueError: a required parameter has no value, or an ``enum`` value is not one of its choices.
     """
     argv = [executable] if isinstance(executable, str) else list(executable)
     argv += ["--progress", "json", algorithm.command]
+    positional: list[str] = []
     for p in algorithm.params:
         value = values.get(p.name)
         if value is None or value == "":
@@ -268,8 +269,12 @@ def command_line(executable: Sequence[str] | str, algorithm: Algorithm, values: 
             continue
         if p.kind == "enum" and value not in p.choices:
             raise ValueError(f"{algorithm.label}: '{p.label}' must be one of {', '.join(p.choices)}, got {value!r}")
-        argv += [_text(value)] if p.flag is None else [p.flag, _text(value)]
-    return argv
+        if p.flag is None:
+            positional.append(_text(value))
+        else:
+            argv += [p.flag, _text(value)]
+    # positional paths after "--": a file named "-x.tif" or "--help" is a path, never an option
+    return argv + (["--", *positional] if positional else [])
 
 
 #: The layers of a prediction folder the plugin adds, in the order of the group: (file, layer name).

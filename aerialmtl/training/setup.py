@@ -43,7 +43,7 @@ from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, 
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.copy_paste import CopyPaster, build_object_bank
 from aerialmtl.data.transforms import Compose, build_eval_transform, build_train_transform
-from aerialmtl.errors import CheckpointError, ConfigError, OutputError
+from aerialmtl.errors import CheckpointError, ConfigError, OutputError, cause
 from aerialmtl.formats.checkpoint import (
     ModelMeta,
     check_same_data,
@@ -66,7 +66,14 @@ from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.objective import Objective, class_weights
-from aerialmtl.training.state import TrainState, rank_seed, rng_state, seed_everything, set_rng_state
+from aerialmtl.training.state import (
+    TrainState,
+    rank_seed,
+    read_train_state,
+    rng_state,
+    seed_everything,
+    set_rng_state,
+)
 
 #: The trainer's logger (the messages of training, whichever module writes them).
 log = logging.getLogger("aerialmtl.training.trainer")
@@ -261,7 +268,7 @@ class Resumed:
 
 
 def _bad_state(path: Path, what: str, exc: BaseException | None) -> CheckpointError:
-    why = f" ({' '.join(str(exc).split())[:160] or exc.__class__.__name__})" if exc is not None else ""
+    why = f" ({cause(exc)})" if exc is not None else ""
     return CheckpointError(
         f"checkpoint '{path}' cannot be resumed: {what}{why}; it was not written by `aerialmtl train` as it is "
         "(edited or from another version): resume from an unedited last.pt, or start a new run (another "
@@ -328,6 +335,10 @@ def restore(path: Path, parts: ModelParts, data: TrainData, cfg: TrainConfig, ct
         )
     if not isinstance(ts, dict):
         raise _bad_state(path, "its training state is not a mapping", None)
+    try:
+        counters = read_train_state(ts)
+    except ValueError as exc:
+        raise _bad_state(path, "its counters are not of the form aerialmtl writes", exc) from exc
     raw = ts.get(RAW_WEIGHTS_KEY)  # optim.ema: the checkpoint's weights are the average, these the trained ones
     try:
         parts.model.load_state_dict(payload["state_dict"])
@@ -339,14 +350,14 @@ def restore(path: Path, parts: ModelParts, data: TrainData, cfg: TrainConfig, ct
     _load_optimizer(path, parts.optimizer, ts, cfg.optim)
     try:
         parts.weighting.load_state_dict(ts["weighting"])
-        old_global = int(ts.get("global_batch") or 0)
+        old_global = counters.global_batch or 0
         # a checkpoint written before the global batch was recorded: one process, this batch size
         state = TrainState.from_dict(ts, old_global or min(cfg.data.batch_size,
                                                             len(read_manifest(data.info.root, "train"))))
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise _bad_state(path, "its counters or task weighting are incomplete", exc) from exc
     ranks = ts.get("rng_ranks")
-    if ranks and int(ts.get("world_size", 1)) == ctx.world:
+    if ranks and counters.world_size == ctx.world:
         rng = ranks[ctx.rank]
     elif ctx.rank == 0:
         rng = ts.get("rng")

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from pydantic import BaseModel, ConfigDict, NonNegativeInt, PositiveInt, ValidationError
 
 
 def seed_everything(seed: int) -> None:
@@ -88,19 +89,53 @@ class TrainState:
 
     @classmethod
     def from_dict(cls, ts: dict[str, Any], global_batch: int) -> TrainState:
-        """Read a checkpoint's ``train_state`` (also one written before ``position`` existed, whose
-        ``batch_in_epoch`` counted batches of ``global_batch``). A non-finite ``best_score`` (older versions
-        let a diverged NaN validation become the best) reads as ``inf``: the next finite score is better.
+        """Read a checkpoint's ``train_state`` (validated by :class:`TrainStateFile`; also one written before
+        ``position`` existed, whose ``batch_in_epoch`` counted batches of ``global_batch``). A non-finite
+        ``best_score`` (older versions let a diverged NaN validation become the best) reads as ``inf``: the next
+        finite score is better.
+
+        Raises:
+            ValueError: not of the form ``aerialmtl train`` writes (a :class:`pydantic.ValidationError`).
         """
-        position = ts.get("position")
-        if position is None:
-            position = int(ts.get("batch_in_epoch", 0)) * global_batch
-        best = float(ts["best_score"])
-        if not math.isfinite(best):  # written by a version that let a diverged validation (NaN) be "best"
-            best = math.inf
-        return cls(step=int(ts["step"]), epoch=int(ts["epoch"]), position=int(position),
-                   best_score=best, ref_losses=ts.get("ref_losses"),
-                   since_best=int(ts.get("since_best", 0)))
+        rec = TrainStateFile.model_validate(ts)
+        position = rec.position if rec.position is not None else rec.batch_in_epoch * global_batch
+        best = rec.best_score if math.isfinite(rec.best_score) else math.inf
+        return cls(step=rec.step, epoch=rec.epoch, position=position, best_score=best, ref_losses=rec.ref_losses,
+                   since_best=rec.since_best)
 
 
-__all__ = ["TrainState", "seed_everything", "rng_state", "set_rng_state", "rank_seed"]
+class TrainStateFile(BaseModel):
+    """The schema of a checkpoint's ``train_state`` counters (the rest: optimizer, weighting and RNG states, are
+    checked by loading them): a count is an integer ≥ 0 (not "abc", not -1); any other shape is refused as not
+    written by ``aerialmtl train``.
+    """
+
+    model_config = ConfigDict(extra="allow", arbitrary_types_allowed=True)
+    step: NonNegativeInt
+    epoch: NonNegativeInt
+    position: NonNegativeInt | None = None
+    batch_in_epoch: NonNegativeInt = 0
+    best_score: float
+    ref_losses: dict[str, float] | None = None
+    since_best: NonNegativeInt = 0
+    global_batch: NonNegativeInt | None = None
+    world_size: PositiveInt = 1
+    rng_ranks: list[Any] | None = None
+
+
+def read_train_state(ts: Any) -> TrainStateFile:
+    """``ts`` validated as a checkpoint's ``train_state`` (:class:`TrainStateFile`).
+
+    Raises:
+        ValueError: not a mapping of that form; the message names the first bad key, its value and what it must be.
+    """
+    try:
+        return TrainStateFile.model_validate(ts)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err.get("loc", ())) or "train_state"
+        raise ValueError(f"train_state.{where}: {err.get('msg', 'invalid')}, got {err.get('input')!r}") from None
+
+
+__all__ = ["TrainState", "TrainStateFile", "rank_seed", "read_train_state", "rng_state", "seed_everything",
+           "set_rng_state"]

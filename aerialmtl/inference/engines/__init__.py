@@ -37,14 +37,15 @@ Precision: fp32, or bf16 (``INFERENCE_PRECISION_HINT``) on a CPU with native bf1
 (:func:`aerialmtl.runtime.resolve_precision`); the statistics are accumulated in float32 either way.
 
 Cache: converting the model takes seconds to a minute; the converted model (OpenVINO IR) and the compiled
-models (one per window shape and precision) are kept under ``$XDG_CACHE_HOME/aerialmtl/openvino/<fingerprint>``
-(default ``~/.cache``; ``AERIALMTL_OPENVINO_CACHE`` overrides the root), keyed by a fingerprint of the
-weights, the model configuration and the versions of aerialmtl and OpenVINO: a second run on the same
+models (one per window shape and precision) are kept in the ``openvino`` store, ``<store>/<fingerprint>``
+(:mod:`aerialmtl.stores`: in the platform's cache folder; ``AERIALMTL_OPENVINO_CACHE`` moves it), keyed by a
+fingerprint of the weights, the model configuration and the versions of aerialmtl and OpenVINO: a second run on the same
 checkpoint loads both instead of paying again. A warm run imports the compiled model without reading the IR,
 and does not load the torch model at all: the checkpoint's metadata, output names and dropout layers come from
 its record beside the cache (:mod:`aerialmtl.inference.model_record`). Every entry carries its checksum and is
-written whole (:mod:`aerialmtl.inference.engine_cache`): a corrupt entry is rebuilt with a warning, and a folder
-that cannot be written means a prediction without caching (one warning naming it), never a failed one.
+written whole (:mod:`aerialmtl.inference.engine_cache`): a corrupt or non-regular entry is rebuilt with a
+warning, and a folder (or temporary folder) that cannot be written means a prediction without caching (one
+warning naming it), never a failed one.
 """
 
 from __future__ import annotations

@@ -95,9 +95,10 @@ class OpenVINOEngine:
                 self.cache_dir = Path(cache_dir)
             elif weights_key is not None:  # the checkpoint's hash, computed once by the caller
                 key = hashlib.blake2b(f"{weights_key}|folded|{extra}".encode(), digest_size=12).hexdigest()
-                self.cache_dir = cache_root() / key
-            else:
-                self.cache_dir = cache_root() / fingerprint(resolve_model(model), extra)
+                root = cache_root()
+                self.cache_dir = None if root is None else root / key
+            elif (root := cache_root()) is not None:
+                self.cache_dir = root / fingerprint(resolve_model(model), extra)
         self.cache = EngineCache(self.cache_dir)
         self._models: dict[str, openvino.Model] = {}
         self._compiled: dict[tuple[str, int, int], _Requests] = {}
@@ -166,7 +167,9 @@ class OpenVINOEngine:
                 traced = torch.jit.trace(module.eval(), example, check_trace=False, strict=False)
             model = self.ov.convert_model(traced)
             if self.cache.enabled:
-                self.cache.write(f"{part}.ir", self._serialize(model))
+                ir = self.cache.serialise(lambda xml: self.ov.save_model(model, str(xml), compress_to_fp16=False))
+                if ir is not None:
+                    self.cache.write(f"{part}.ir", ir)
         self._models[part] = model
         return model
 
@@ -206,15 +209,6 @@ class OpenVINOEngine:
         hint = "bf16" if self.precision == "bf16" else "f32"
         return {"INFERENCE_PRECISION_HINT": hint, "INFERENCE_NUM_THREADS": self.threads.threads,
                 "NUM_STREAMS": self.threads.streams, "ENABLE_CPU_PINNING": False}
-
-    def _serialize(self, model: openvino.Model) -> list[bytes]:
-        """An IR's XML and weights as bytes (through a private temporary folder: OpenVINO writes files)."""
-        import tempfile
-
-        with tempfile.TemporaryDirectory(prefix="aerialmtl-ov-") as tmp:
-            xml = Path(tmp) / "model.xml"
-            self.ov.save_model(model, str(xml), compress_to_fp16=False)
-            return [xml.read_bytes(), xml.with_suffix(".bin").read_bytes()]
 
     def _import(self, name: str, config: dict[str, Any]) -> tuple[Any | None, np.ndarray | None]:
         """The compiled model of cache entry ``name`` and the bytes it was imported from, or ``(None, None)``

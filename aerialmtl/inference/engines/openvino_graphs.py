@@ -5,7 +5,6 @@ dropout masks), their outputs' layout, and the cache's location and key.
 from __future__ import annotations
 
 import hashlib
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -14,6 +13,7 @@ from torch import nn
 
 from aerialmtl.inference.model_record import CheckpointModel
 from aerialmtl.models.mc_dropout import _SEEDABLE
+from aerialmtl.stores import open_store_folder
 
 #: Side of the example input the model is converted with (any multiple of 32; small converts fast).
 CONVERT_SIZE = 64
@@ -30,12 +30,11 @@ GRAPH_OUTPUTS = "forward-decoder-classes-nhwc"
 
 
 
-def cache_root() -> Path:
-    """Root of the OpenVINO caches (see the module docstring)."""
-    if os.environ.get("AERIALMTL_OPENVINO_CACHE"):
-        return Path(os.environ["AERIALMTL_OPENVINO_CACHE"])
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "aerialmtl" / "openvino"
+def cache_root() -> Path | None:
+    """Root of the OpenVINO caches: the ``openvino`` store (:func:`aerialmtl.stores.store_folder`), or ``None``
+    (with one warning) where no folder can hold it.
+    """
+    return open_store_folder("openvino", "the converted OpenVINO model")
 
 
 def fingerprint(model: nn.Module, extra: str = "") -> str:
