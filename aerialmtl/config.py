@@ -192,7 +192,10 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
     try:
         return _adapter(cls).validate_json(json.dumps(_jsonable(data), allow_nan=True))
     except ValidationError as exc:
-        first = exc.errors()[0]
+        errors = exc.errors()
+        # a typo is both an unknown key and a missing one: name the typo first (with its "did you mean")
+        first = next((e for e in errors if e.get("type") in ("extra_forbidden", "unexpected_keyword_argument")),
+                     errors[0])
         inner = (first.get("ctx") or {}).get("error")
         if isinstance(inner, AerialMTLError):  # raised by a __post_init__: already worded
             raise inner from None
