@@ -128,3 +128,21 @@ def test_a_zeroed_block_in_a_layer_is_not_called_complete(tmp_path: Path, ckpt: 
     line = _run(capsys, ortho, ckpt, out)
     assert "recomputed" in line and "height.tif was damaged" in line, line
     assert PredictionFolder(out).check() is None
+
+
+def test_a_world_file_is_read_after_a_remote_input_in_the_same_process(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """The no-listing open of remote inputs must not hide a later local file's world file (predict_many takes
+    remote and local inputs in one process): GDAL's options for remote inputs stay out of its open of local files.
+    """
+    import os
+
+    from aerialmtl.io.align import open_raster
+    from aerialmtl.io.paths import REMOTE_OPEN_OPTIONS, configure_remote
+
+    for key in REMOTE_OPEN_OPTIONS:
+        monkeypatch.delenv(key, raising=False)
+    configure_remote()  # what opening an https:// input does
+    assert not set(REMOTE_OPEN_OPTIONS) & set(os.environ)
+    with open_raster(_world_tiff(tmp_path), "orthophoto") as src:
+        assert src.transform.c == pytest.approx(500000.0)  # the world file's centre origin, half a pixel west

@@ -16,6 +16,7 @@ source are invalid).
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,6 +37,7 @@ from rasterio.windows import transform as window_transform
 from aerialmtl.errors import AlignmentError, InputError, cause
 from aerialmtl.io.paths import (
     ARCHIVE_VSI,
+    REMOTE_OPEN_OPTIONS,
     archive_parts,
     configure_remote,
     gdal_path,
@@ -125,8 +127,9 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
     remote = is_remote(gpath)
     if remote:
         configure_remote()
+    opening = {k: v for k, v in REMOTE_OPEN_OPTIONS.items() if k not in os.environ} if remote else {}
     try:
-        with warnings.catch_warnings():  # a missing CRS/geotransform gets our own message (_check_georeferenced)
+        with warnings.catch_warnings(), rasterio.Env(**opening):  # a missing CRS/geotransform: our own message
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             return rasterio.open(gpath)
     except RasterioIOError as exc:

@@ -34,16 +34,14 @@ SCHEMES: dict[str, str] = {
 NETWORK_VSI = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsioss", "/vsiswift", "/vsiwebhdfs",
                "/vsihdfs")
 
-#: GDAL settings for remote inputs (applied unless the environment already sets them):
-#: no directory listing when a file is opened (one request instead of a listing of the whole prefix and
-#: probes for sidecar files); the tiles a window needs fetched one range after the other through GDAL's
+#: GDAL settings for remote inputs (applied unless the environment already sets them; the no-listing open is
+#: :data:`REMOTE_OPEN_OPTIONS`): the tiles a window needs fetched one range after the other through GDAL's
 #: download cache (``GDAL_HTTP_MULTIRANGE=SERIAL``; GDAL's default parallel multi-range reads bypass that
 #: cache, so the COG tiles two overlapping window rows share were downloaded twice: 28 MiB instead of
 #: 16 MiB for a 15 MiB COG, bench/RESULTS.md, remote inputs), in 1 MiB chunks, with a 128 MiB cache shared
 #: by the reader threads; neighbouring ranges merged into one request; and a few retries on the temporary
 #: HTTP errors (429, 502-504) object stores answer under load.
 REMOTE_GDAL_OPTIONS: dict[str, str] = {
-    "GDAL_DISABLE_READDIR_ON_OPEN": "EMPTY_DIR",
     "GDAL_HTTP_MULTIRANGE": "SERIAL",
     "CPL_VSIL_CURL_CACHE_SIZE": str(128 * 2**20),
     "VSI_CACHE": "TRUE",
@@ -175,6 +173,12 @@ def probe_url(path: str) -> str | None:
         return f"the server cannot be reached: {reason}"
 
 
+#: No directory listing when a remote file is opened (one request instead of a listing of the whole prefix and
+#: probes for sidecar files): set around the remote open only (:func:`aerialmtl.io.align.open_raster`), never in
+#: the environment, where it would hide a later local file's world file or .aux.xml in the same process.
+REMOTE_OPEN_OPTIONS: dict[str, str] = {"GDAL_DISABLE_READDIR_ON_OPEN": "EMPTY_DIR"}
+
+
 def configure_remote() -> None:
     """Apply :data:`REMOTE_GDAL_OPTIONS` for this process, keeping any the user set.
 
@@ -185,6 +189,7 @@ def configure_remote() -> None:
         os.environ.setdefault(key, value)
 
 
-__all__ = ["ARCHIVE_VSI", "NETWORK_VSI", "PROBE_TIMEOUT", "REMOTE_GDAL_OPTIONS", "SCHEMES", "archive_parts",
+__all__ = ["ARCHIVE_VSI", "NETWORK_VSI", "PROBE_TIMEOUT", "REMOTE_GDAL_OPTIONS", "REMOTE_OPEN_OPTIONS", "SCHEMES",
+           "archive_parts",
            "configure_remote", "gdal_path", "is_local", "is_remote", "local_archive", "probe_url", "raster_name",
            "raster_stem", "recorded_path"]
