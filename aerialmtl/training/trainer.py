@@ -341,7 +341,10 @@ class Trainer:
         """
         with self.averaged() as raw:
             self.raw_weights = raw
-            return self._validate_and_save()
+            try:
+                return self._validate_and_save()
+            finally:
+                self.raw_weights = None  # a copy of every weight: not kept between validations
 
     def _validate_and_save(self) -> bool:
         """:meth:`after_epoch_validation` with the weights to judge in the model."""
