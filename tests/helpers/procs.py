@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -19,6 +20,8 @@ OTHER_UID = 65534
 #: ``setpriv`` arguments that drop the capabilities by which root ignores file permissions (read, write, search,
 #: unlink in a sticky folder): root then meets permissions as the owner uid 0, like any user.
 NO_OVERRIDE = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner"]
+#: What a process run as another user must be able to import for the permission cases to mean anything.
+PROBE = "import click, numpy, rasterio, torch, aerialmtl.cli, aerialmtl.inference.jobs"
 
 
 @functools.cache
@@ -31,10 +34,15 @@ def unprivileged_prefix() -> tuple[list[str], int] | None:
     if not hasattr(os, "geteuid") or os.geteuid() != 0 or shutil.which("setpriv") is None:
         return None
     as_nobody = ["setpriv", f"--reuid={OTHER_UID}", f"--regid={OTHER_UID}", "--clear-groups"]
-    for prefix, foreign in ((as_nobody, 0), (NO_OVERRIDE, OTHER_UID)):
-        probe = subprocess.run([*prefix, sys.executable, "-c", "pass"], capture_output=True, timeout=60, check=False)
-        if probe.returncode == 0:
-            return prefix, foreign
+    # The probe imports what a predict run imports, with a HOME of its own as the tests give: an interpreter that
+    # starts is not enough (CI's site-packages may be unreadable to nobody while its python binary is not).
+    with tempfile.TemporaryDirectory(prefix="aerialmtl-probe-") as home:
+        os.chmod(home, 0o1777)
+        for prefix, foreign in ((as_nobody, 0), (NO_OVERRIDE, OTHER_UID)):
+            probe = subprocess.run([*prefix, sys.executable, "-c", PROBE], capture_output=True, timeout=120,
+                                   env=env(HOME=home), cwd=home, check=False)
+            if probe.returncode == 0:
+                return prefix, foreign
     return None
 
 
