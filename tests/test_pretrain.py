@@ -75,6 +75,27 @@ def test_interrupted_pretraining_resumes_to_the_same_weights(run: Path, tmp_path
     assert [r[1] for r in rows(part)] == ["1", "2", "3", "4"] and rows(part) == rows(run)
 
 
+def test_a_run_started_by_an_earlier_version_resumes_and_a_changed_value_refuses(tmp_path: Path) -> None:
+    """A pretraining run is long: one whose config predates a key added since (today's default fills it) or holds
+    a retired one resumes after an upgrade; a value changed since still refuses, naming the config."""
+    part = tmp_path / "part"
+    pretrain(tiny_cfg(), part, settings(2), progress=False)
+    payload = torch.load(part / LAST_PT, weights_only=False)
+    old = payload["train_state"]["config"]
+    added = next(k for k, v in old.items() if isinstance(v, dict) and k not in ("model", "data", "optim"))
+    old.pop(added)
+    old["predict"] = {"mc_samples": 30}  # a section an earlier version wrote
+    torch.save(payload, part / LAST_PT)
+    with pytest.warns(FutureWarning, match="predict"):
+        resumed = pretrain(tiny_cfg(), part, settings(3), resume=True, progress=False)
+    assert resumed.step == 3
+    payload = torch.load(part / LAST_PT, weights_only=False)
+    payload["train_state"]["config"]["optim"]["lr"] = 5e-4
+    torch.save(payload, part / LAST_PT)
+    with pytest.raises(CheckpointError, match="another config"):
+        pretrain(tiny_cfg(), part, settings(4), resume=True, progress=False)
+
+
 def test_the_start_is_small_weights_only_and_carded(run: Path) -> None:
     path = run / "tiny-start.pt"
     assert path.stat().st_size <= starts.MAX_BYTES

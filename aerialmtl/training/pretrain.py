@@ -269,7 +269,9 @@ def _restore(path: Path, parts: Any, cfg: TrainConfig,
     ts = payload.get("train_state") or {}
     try:
         saved = from_dict(PretrainSettings, {**ts["settings"], "steps": settings.steps})
-        if ts["config"] != cfg.to_dict():
+        # Read through today's schema: a key added since takes its default, a retired one is dropped (with its
+        # warning), so a run started by an earlier version resumes; a changed value still refuses.
+        if from_dict(TrainConfig, ts["config"]).to_dict() != cfg.to_dict():
             raise CheckpointError(f"checkpoint '{path}' was pretrained with another config; resume with the run's "
                                   f"{CONFIG_YAML} (the default with resume)")
         parts.model.load_state_dict(payload["state_dict"])
