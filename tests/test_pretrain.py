@@ -63,6 +63,9 @@ def test_interrupted_pretraining_resumes_to_the_same_weights(run: Path, tmp_path
     assert first.step == 2
     with pytest.raises(OutputExistsError, match="resume"):
         pretrain(tiny_cfg(), part, settings(4), progress=False)
+    payload = torch.load(part / LAST_PT, weights_only=False)
+    payload["train_state"]["wall_time_s"] = 1000.0  # as if the first part had run for 1000 s
+    torch.save(payload, part / LAST_PT)
     resumed = pretrain(tiny_cfg(), part, settings(4), resume=True, progress=False)
     assert (resumed.step, resumed.steps_this_call) == (4, 2)
     full, again = load_checkpoint(run / LAST_PT)[0], load_checkpoint(part / LAST_PT)[0]
@@ -73,6 +76,8 @@ def test_interrupted_pretraining_resumes_to_the_same_weights(run: Path, tmp_path
         return [ln.split(",")[:3] + ln.split(",")[4:8] for ln in (folder / "log.csv").read_text().splitlines()[1:]]
 
     assert [r[1] for r in rows(part)] == ["1", "2", "3", "4"] and rows(part) == rows(run)
+    times = [float(ln.split(",")[3]) for ln in (part / "log.csv").read_text().splitlines()[1:]]
+    assert times[1] < 1000 < times[2] <= times[3] <= resumed.wall_time_s  # the run's time: it goes on when resumed
 
 
 def test_a_run_started_by_an_earlier_version_resumes_and_a_changed_value_refuses(tmp_path: Path) -> None:

@@ -216,7 +216,7 @@ def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, 
                 raise NonFiniteError(f"pretraining diverged at step {step} (loss {window[-1][0]}); last.pt keeps "
                                       f"step {step - step % settings.checkpoint_every}: lower optim.lr and resume")
             if step % every == 0 or step == settings.steps:
-                logged = _log_row(csv_log, step, time.perf_counter() - t0, parts.optimizer, tasks, window)
+                logged = _log_row(csv_log, step, wall + time.perf_counter() - t_run, parts.optimizer, tasks, window)
                 bar.set_postfix(loss=f"{logged:.4f}")
                 window = []
             if step % settings.checkpoint_every == 0 or step == settings.steps:
