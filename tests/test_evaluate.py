@@ -126,6 +126,9 @@ def test_report_files_json_markdown_and_plots(tmp_path: Path) -> None:
     assert data["height"]["per_bin"][-1]["range_m"][1] is None  # open-ended last bin
     md = (tmp_path / "ev" / "report.md").read_text()
     assert "height MAE" in md and "mIoU" in md
+    strata = data["uncertainty"]["height_std"]["strata"]["bins"]  # per bin: ranks the misses? follows the height?
+    assert all("spearman_std_vs_predicted_height" in b for b in strata if b["n_pixels"])
+    assert "| Spearman | vs height |" in md
     pytest.importorskip("matplotlib")
     plots = {"report_sparsification.png", "report_confusion.png", "report_reliability.png",
              "report_height_reliability.png"}

@@ -142,6 +142,12 @@ def test_spread_strata_coverage_scores_and_ranking_per_bin() -> None:
     height_only = SpreadStrata((0, 1, 2, 5, 10, 20, math.inf), sample_cap=50_000)
     height_only.update(pred, 0.5 + pred * 0.0 + 1.0, ref)  # constant within a bin: no ranking at all
     assert all(math.isnan(b["spearman_std_vs_abs_error"]) for b in height_only.result()["bins"])
+    # the tutorial's old map: the spread is the predicted height rescaled; per bin it reads ~1 against the
+    # predicted height, while the true σ (drawn apart from the height) reads near 0 in the narrow bins
+    rescaled = SpreadStrata((0, 1, 2, 5, 10, 20, math.inf), sample_cap=50_000)
+    rescaled.update(pred, 1.09 * pred + 50.0, ref)
+    assert all(b["spearman_std_vs_predicted_height"] > 0.99 for b in rescaled.result()["bins"])
+    assert all(abs(b["spearman_std_vs_predicted_height"]) < 0.5 for b in res["bins"][:3])
     # closed forms against numerical integration of the CRPS (∫ (F(x) − 1{x ≥ y})² dx)
     from scipy import stats
 

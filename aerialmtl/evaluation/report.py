@@ -105,16 +105,19 @@ def markdown_summary(report: dict[str, Any]) -> str:
         lines += ["", "## Height spread per reference-height bin", "",
                   "±1σ / ±2σ: share of pixels whose error lies within one / two `height_std` (0.68 / 0.95 for a "
                   "Gaussian, 0.76 / 0.94 for a Laplace law); Spearman: rank correlation of `height_std` and |error| "
-                  "within the bin; NLL (Gaussian) and CRPS: proper scores, lower is better.", "",
-                  "| bin (m) | share | ±1σ | ±2σ | median std (m) | median abs error (m) | Spearman | NLL | "
-                  "CRPS (m) |", "|---|---|---|---|---|---|---|---|---|"]
+                  "within the bin (does the spread rank the misses?); vs height: its rank correlation with the "
+                  "predicted height within the bin (near 1: the spread there is the height map rescaled); NLL "
+                  "(Gaussian) and CRPS: proper scores, lower is better.", "",
+                  "| bin (m) | share | ±1σ | ±2σ | median std (m) | median abs error (m) | Spearman | vs height | "
+                  "NLL | CRPS (m) |", "|---|---|---|---|---|---|---|---|---|---|"]
         for b in strata["bins"]:
             lo, hi = b["range_m"]
             hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
             lines.append(f"| [{lo:g}, {hi_s}) | {_fmt(b.get('share'), pct=True)} | "
                          f"{_fmt(b.get('coverage_1sigma'), 2)} | {_fmt(b.get('coverage_2sigma'), 2)} | "
                          f"{_fmt(b.get('median_std_m'), 2)} | {_fmt(b.get('median_abs_error_m'), 2)} | "
-                         f"{_fmt(b.get('spearman_std_vs_abs_error'), 2)} | {_fmt(b.get('nll_gaussian'), 2)} | "
+                         f"{_fmt(b.get('spearman_std_vs_abs_error'), 2)} | "
+                         f"{_fmt(b.get('spearman_std_vs_predicted_height'), 2)} | {_fmt(b.get('nll_gaussian'), 2)} | "
                          f"{_fmt(b.get('crps_gaussian_m'), 2)} |")
     c = report.get("classes")
     if c:

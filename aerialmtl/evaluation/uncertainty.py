@@ -266,6 +266,7 @@ class SpreadStrata:
     layer's value, floored at ``min_std``). From a seeded uniform subsample of at most ``sample_cap`` pixels:
     the median std and median |error| per bin, Spearman(std, |error|) within each bin (does the spread rank
     the errors among pixels of similar height, which a spread that follows the predicted height alone cannot),
+    Spearman(std, predicted height) within each bin (near 1: the spread is the height map rescaled there),
     and the reliability curve (observed share of pixels inside the central Gaussian interval of each nominal
     probability in :data:`RELIABILITY_LEVELS`).
 
@@ -316,7 +317,7 @@ class SpreadStrata:
         for idx, ok in rows:
             for k in range(cols.shape[1]):
                 self.sums[:, k] += np.bincount(idx[ok], weights=cols[ok, k], minlength=self.sums.shape[0])
-        self.sample.add(abs_error=err, std=std, bin=b.astype(np.int64), label=lab)
+        self.sample.add(abs_error=err, std=std, pred=pred, bin=b.astype(np.int64), label=lab)
 
     def _row(self, k: int) -> dict[str, Any]:
         n, w1, w2, gn, ln, gc, lc = self.sums[k]
@@ -326,7 +327,7 @@ class SpreadStrata:
                 "nll_gaussian": gn / n, "nll_laplace": ln / n, "crps_gaussian_m": gc / n, "crps_laplace_m": lc / n}
 
     @staticmethod
-    def _sampled(err: np.ndarray, std: np.ndarray) -> dict[str, Any]:
+    def _sampled(err: np.ndarray, std: np.ndarray, pred: np.ndarray) -> dict[str, Any]:
         if err.size == 0:
             return {}
         sigma = np.maximum(std, 0.0)
@@ -336,7 +337,8 @@ class SpreadStrata:
         return {"median_abs_error_m": med_err, "median_std_m": med_std,
                 "median_std_over_median_abs_error": med_std / med_err if med_err > 0 else math.nan,
                 "mean_abs_error_m": float(err.mean()), "max_std_m": float(std.max()),
-                "spearman_std_vs_abs_error": spearman(std, err), "reliability_observed": rel}
+                "spearman_std_vs_abs_error": spearman(std, err),
+                "spearman_std_vs_predicted_height": spearman(std, pred), "reliability_observed": rel}
 
     def result(self) -> dict[str, Any]:
         """``bins`` (one dict per reference-height bin: ``range_m``, ``share``, the exact scores and the sampled
@@ -345,10 +347,10 @@ class SpreadStrata:
         """
         nb = len(self.edges) - 1
         if self.sample.total:
-            err, std = self.sample.get("abs_error"), self.sample.get("std")
+            err, std, pred = self.sample.get("abs_error"), self.sample.get("std"), self.sample.get("pred")
             bins_s, labels_s = self.sample.get("bin"), self.sample.get("label")
         else:
-            err = std = np.empty(0)
+            err = std = pred = np.empty(0)
             bins_s = labels_s = np.empty(0, np.int64)
         total = self.sums[:nb, 0].sum()
         bins = []
@@ -356,7 +358,7 @@ class SpreadStrata:
             sel = bins_s == k
             row = {"range_m": [float(self.edges[k]), float(self.edges[k + 1])],
                    "share": float(self.sums[k, 0] / total) if total else math.nan, **self._row(k),
-                   **self._sampled(err[sel], std[sel])}
+                   **self._sampled(err[sel], std[sel], pred[sel])}
             bins.append(row)
         out: dict[str, Any] = {"reliability_levels": list(RELIABILITY_LEVELS), "bins": bins,
                                "min_std_m": self.min_std}
@@ -365,7 +367,8 @@ class SpreadStrata:
             keys = ("nll_gaussian", "nll_laplace", "crps_gaussian_m", "crps_laplace_m")
             out.update({key: float(self.sums[:nb, 3 + i].sum() / n) for i, key in enumerate(keys)})
         if self.class_names:
-            out["classes"] = {name: {**self._row(nb + c), **self._sampled(err[labels_s == c], std[labels_s == c])}
+            out["classes"] = {name: {**self._row(nb + c), **self._sampled(err[labels_s == c], std[labels_s == c],
+                                                                          pred[labels_s == c])}
                               for c, name in enumerate(self.class_names)}
         return out
 
