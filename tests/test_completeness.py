@@ -89,6 +89,23 @@ def test_skip_existing_never_replaces_files_no_run_wrote(tmp_path: Path, capsys,
     assert (out / "height.tif").read_text() == "precious"
 
 
+def test_a_hand_edited_invalid_prediction_json_is_named_as_the_reason(tmp_path: Path, capsys,
+                                                                       ckpts: tuple[Path, Path]) -> None:
+    """A prediction.json no schema accepts owns nothing, so --skip-existing must refuse the folder; the refusal
+    says that the file is why (it said only 'already holds ...; pass --overwrite')."""
+    out = tmp_path / "pred"
+    ortho = rgb(tmp_path)
+    _predict(capsys, ortho, ckpts[0], out)
+    info = json.loads((out / "prediction.json").read_text())
+    info["file_sha256"] = ["not", "a", "mapping"]
+    (out / "prediction.json").write_text(json.dumps(info))
+    before = (out / "height.tif").read_bytes()
+    res = run(capsys, "predict", ortho, "--model", ckpts[0], "--out", out, *PREDICT, "--skip-existing")
+    assert_error(res, "already holds height.tif", "--overwrite", "--skip-existing could not tell them finished",
+                 "prediction.json")
+    assert (out / "height.tif").read_bytes() == before
+
+
 def test_a_users_style_or_stac_item_in_out_is_never_replaced_without_overwrite(
         tmp_path: Path, capsys, ckpts: tuple[Path, Path]) -> None:
     """height.qml (QGIS's 'save as default' style) and item.json are outputs too: a user's own are refused

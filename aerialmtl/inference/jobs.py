@@ -37,7 +37,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,7 +45,7 @@ import torch
 from typing_extensions import Unpack
 
 from aerialmtl import runtime
-from aerialmtl.errors import AerialMTLError, InputError, PeerFailure
+from aerialmtl.errors import AerialMTLError, InputError, OutputExistsError, PeerFailure
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.formats.prediction import (
     LAYERS,
@@ -312,9 +312,9 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
     shares, compute and commit (one :class:`~aerialmtl.inference.job.InputJob` per input or strip), mosaic.
     """
     done = JobResult(ranks=ranks)
-    todo, replace = _select(predictor, targets, policy.skip_existing, done)
+    todo, replace, kept = _select(predictor, targets, policy.skip_existing, done)
     if not policy.overwrite:  # once per input, before any work
-        _claim(predictor, targets, out, todo, replace, policy.option)
+        _claim(predictor, targets, out, todo, replace, kept, policy.option)
     if ranks.rank == 0:
         for k in todo:
             src = targets[k].src
@@ -347,12 +347,15 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
 
 
 def _select(predictor: Predictor, targets: Sequence[Target], skip_existing: bool,
-            done: JobResult) -> tuple[list[int], set[int]]:
-    """The inputs to compute, and those of them whose earlier, outdated outputs ``skip_existing`` recomputes
-    (their ``prediction.json`` proves every output there is that run's); the skipped ones go into ``done``.
+            done: JobResult) -> tuple[list[int], set[int], dict[int, str]]:
+    """The inputs to compute, those of them whose earlier, outdated outputs ``skip_existing`` recomputes
+    (their ``prediction.json`` proves every output there is that run's), and why ``skip_existing`` neither
+    skipped nor may replace the others' files (no readable ``prediction.json`` owns them); the skipped ones go
+    into ``done``.
     """
     todo = []
     replace: set[int] = set()
+    kept: dict[int, str] = {}
     files = folder_files(s.name for s in predictor.layers)  # layers, styles, item.json, prediction.json
     for k, t in enumerate(targets):
         if skip_existing:
@@ -367,18 +370,27 @@ def _select(predictor: Predictor, targets: Sequence[Target], skip_existing: bool
                 done.recomputed[t.ortho] = reason
                 if all(f in owned for f in files if (t.out / f).exists()):
                     replace.add(k)
+            else:
+                kept[k] = reason
         todo.append(k)
-    return todo, replace
+    return todo, replace, kept
 
 
 def _claim(predictor: Predictor, targets: Sequence[Target], out: Path, todo: Sequence[int],
-           replace: set[int], option: str) -> None:
+           replace: set[int], kept: Mapping[int, str], option: str) -> None:
     """Refuse existing outputs (without ``overwrite``): each input's, and with several inputs the mosaics and
-    ``collection.json`` (a user's own are never replaced silently).
+    ``collection.json`` (a user's own are never replaced silently); ``kept``: why ``skip_existing`` could not
+    use an input's folder, said with the refusal.
     """
     for k in todo:
         if k not in replace:
-            _job(predictor, targets[k], option=option).claim()
+            try:
+                _job(predictor, targets[k], option=option).claim()
+            except OutputExistsError as exc:
+                if k not in kept:
+                    raise
+                raise OutputExistsError(f"{exc.message} (‹skip_existing› could not tell them finished: {kept[k]})",
+                                        param=exc.param) from None
     if len(targets) > 1:
         owned = set(collection_files(out))
         prediction_folder(out, option).claim(
