@@ -117,6 +117,30 @@ def test_reference_in_other_crs_and_gsd_gives_known_mae(tmp_path: Path) -> None:
     assert rep["classes"] is None
 
 
+def test_the_unfamiliarity_layer_is_scored_against_the_errors_per_height_bin(tmp_path: Path) -> None:
+    """A user opens unfamiliarity.tif to find the misses: evaluate says whether it ranks the height errors
+    within each reference-height bin (here it is high exactly where the prediction is off by 2 m)."""
+    s = make_scene(tmp_path)
+    with rasterio.open(s["pred"] / "height.tif") as src:
+        height = src.read(1)
+    u = np.full(height.shape, 0.1, np.float32)
+    u[:8, :10] = 0.9  # where the offset is -2 m instead of +0.5 m
+    u += np.linspace(0, 0.01, u.size, dtype=np.float32).reshape(u.shape)  # no ties: every pixel ranked
+    u[height == NODATA] = NODATA
+    write_raster(s["pred"] / "unfamiliarity.tif", u, crs=PRED_CRS, transform=PRED_TF, nodata=NODATA)
+    out = tmp_path / "ev" / "report.json"
+    rep = evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=out)
+    un = rep["uncertainty"]["unfamiliarity"]
+    # 80 of 1240 pixels are off by 2 m: a two-level layer that flags exactly them reaches ρ ≈ 0.3
+    assert un["n_sampled"] == s["n_height"] and un["spearman_vs_abs_error"] > 0.2
+    assert [b["range_m"][0] for b in un["bins"]] == [b["range_m"][0] for b in rep["height"]["per_bin"]]
+    assert "## Unfamiliarity per reference-height bin" in (tmp_path / "ev" / "report.md").read_text()
+    flipped = np.where(u == NODATA, NODATA, 1.0 - u).astype(np.float32)  # high where the prediction is right
+    write_raster(s["pred"] / "unfamiliarity.tif", flipped, crs=PRED_CRS, transform=PRED_TF, nodata=NODATA)
+    rep = evaluate_prediction(s["pred"], height_ref=s["ndsm"], out=tmp_path / "ev2" / "report.json")
+    assert rep["uncertainty"]["unfamiliarity"]["spearman_vs_abs_error"] < -0.2
+
+
 def test_report_files_json_markdown_and_plots(tmp_path: Path) -> None:
     s = make_scene(tmp_path)
     out = tmp_path / "ev" / "report.json"

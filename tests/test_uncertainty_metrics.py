@@ -158,3 +158,27 @@ def test_spread_strata_coverage_scores_and_ranking_per_bin() -> None:
         integrand = (dist.cdf(x) - (x >= 3.5)) ** 2
         trapz = getattr(np, "trapezoid", None) or getattr(np, "trapz")  # noqa: B009 - numpy < 2 has only trapz
         assert value == pytest.approx(trapz(integrand, x), rel=1e-4)
+
+
+def test_unfamiliarity_scores_rank_the_errors_within_a_bin_not_the_height() -> None:
+    """A layer that follows the error ranks it within every bin; one that follows the predicted height ranks
+    the height (≈ 1) and says little of the errors inside a narrow bin."""
+    import math
+
+    from aerialmtl.evaluation.unfamiliarity import UnfamiliarityScores
+
+    rng = np.random.default_rng(5)
+    n = 100_000
+    ref = rng.uniform(0, 30, n)
+    pred = ref + rng.normal(0, 1, n) * rng.uniform(0.2, 3.0, n)
+    edges = (0, 1, 2, 5, 10, 20, math.inf)
+    follows_error = UnfamiliarityScores(edges, sample_cap=40_000)
+    follows_error.update(np.abs(pred - ref) / 20, pred, ref)
+    follows_height = UnfamiliarityScores(edges, sample_cap=40_000)
+    follows_height.update(1 / (1 + np.exp(-(pred - 15) / 5)), pred, ref)
+    e, h = follows_error.result(), follows_height.result()
+    assert e["n_sampled"] == 40_000 and len(e["bins"]) == 6
+    assert all(b["spearman_vs_abs_error"] > 0.99 for b in e["bins"])
+    assert all(b["spearman_vs_predicted_height"] > 0.99 for b in h["bins"])
+    assert all(abs(b["spearman_vs_abs_error"]) < 0.5 for b in h["bins"][2:])
+    assert UnfamiliarityScores(edges).result()["n_sampled"] == 0

@@ -45,6 +45,7 @@ from aerialmtl.evaluation.uncertainty import (
     sparsification,
     spearman,
 )
+from aerialmtl.evaluation.unfamiliarity import UnfamiliarityScores
 from aerialmtl.formats.prediction import (
     ALL_FILES,
     CLASS_ENTROPY,
@@ -56,6 +57,7 @@ from aerialmtl.formats.prediction import (
     HEIGHT,
     HEIGHT_STD,
     LAYERS,
+    UNFAMILIARITY,
     PredictionFolder,
     layer_filename,
     read_class_scheme_tag,
@@ -230,7 +232,7 @@ def _evaluate(pred_dir: Path, refs: _References, classes: str | Path | ClassSche
 
     opened: list[Any] = []
     try:
-        needed = ([HEIGHT, HEIGHT_STD] if do_height else []) + (
+        needed = ([HEIGHT, HEIGHT_STD, UNFAMILIARITY] if do_height else []) + (
             [CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES] if do_classes else []
         )
         srcs, grid = _open_prediction(files, needed, opened)
@@ -247,7 +249,7 @@ def _evaluate(pred_dir: Path, refs: _References, classes: str | Path | ClassSche
                 srcs[HEIGHT], srcs.get(HEIGHT_STD), reference,
                 HeightStats(options.height_threshold, options.height_bins, k if labels is not None else None,
                             names or None, sample_cap=options.sample_size, seed=options.seed),
-                options.sample_size, options.seed, options.min_std,
+                options.sample_size, options.seed, options.min_std, srcs.get(UNFAMILIARITY),
             )
         classes_eval = None
         if do_classes:
@@ -446,11 +448,16 @@ class HeightEvaluation:
         stats: the error accumulator (:class:`~aerialmtl.evaluation.metrics.HeightStats`).
         sample_size, seed: cap and seed of the subsample for the rank-based uncertainty metrics.
         min_std: floor of the standard deviation in the Gaussian NLL (metres).
+        unfamiliarity: the optional ``unfamiliarity`` layer (scored by :class:`UnfamiliarityScores`).
     """
 
     def __init__(self, pred: rasterio.io.DatasetReader, std: rasterio.io.DatasetReader | None,
-                 reference: HeightSource, stats: HeightStats, sample_size: int, seed: int, min_std: float) -> None:
+                 reference: HeightSource, stats: HeightStats, sample_size: int, seed: int, min_std: float,
+                 unfamiliarity: rasterio.io.DatasetReader | None = None) -> None:
         self.pred, self.std, self.reference, self.stats = pred, std, reference, stats
+        self.unfam = unfamiliarity
+        self.unfam_scores = (UnfamiliarityScores(stats.edges, sample_size, seed + 3) if unfamiliarity is not None
+                             else None)
         self.sample = Subsample(sample_size, seed + 1) if std is not None else None
         self.min_std = min_std
         names = getattr(stats, "class_names", None) if stats.num_classes is not None else None
@@ -465,6 +472,9 @@ class HeightEvaluation:
         hp, hp_valid = _read_float(self.pred, win)
         ref, ref_valid = self.reference.read(win)
         mask = self.stats.update(hp, ref, hp_valid & ref_valid, labels_idx)
+        if self.unfam is not None and self.unfam_scores is not None:
+            u, u_valid = _read_float(self.unfam, win)
+            self.unfam_scores.update(u[mask & u_valid], hp[mask & u_valid], ref[mask & u_valid])
         if self.sample is not None and self.std is not None:
             sd, sd_valid = _read_float(self.std, win)
             sel = mask & sd_valid
@@ -484,6 +494,8 @@ class HeightEvaluation:
         report["sampling"]["height_sampled"] = len(self.stats.sample)
         if self.stats.n == 0:
             notes.append("no pixel has both a predicted and a reference height: check that the files overlap")
+        if self.unfam_scores is not None:  # does the unfamiliarity layer flag the misses within a height bin
+            report["uncertainty"][UNFAMILIARITY] = self.unfam_scores.result()
         if self.sample is None:
             notes.append("no height_std.tif (prediction made with T = 1?): height uncertainty metrics skipped")
             return

@@ -119,6 +119,20 @@ def markdown_summary(report: dict[str, Any]) -> str:
                          f"{_fmt(b.get('spearman_std_vs_abs_error'), 2)} | "
                          f"{_fmt(b.get('spearman_std_vs_predicted_height'), 2)} | {_fmt(b.get('nll_gaussian'), 2)} | "
                          f"{_fmt(b.get('crps_gaussian_m'), 2)} |")
+    unfam = (report.get("uncertainty") or {}).get("unfamiliarity")
+    if unfam and unfam.get("bins"):
+        lines += ["", "## Unfamiliarity per reference-height bin", "",
+                  "Spearman of `unfamiliarity` with |height error| within the bin (does it flag the misses among "
+                  "pixels of similar height?) and with the predicted height (does it merely follow the height?); "
+                  f"overall Spearman with |error| {_fmt(unfam.get('spearman_vs_abs_error'), 2)}.", "",
+                  "| bin (m) | sampled px | median unfamiliarity | Spearman vs error | vs height |",
+                  "|---|---|---|---|---|"]
+        for b in unfam["bins"]:
+            lo, hi = b["range_m"]
+            hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
+            lines.append(f"| [{lo:g}, {hi_s}) | {b['n_sampled']} | {_fmt(b.get('median_unfamiliarity'), 2)} | "
+                         f"{_fmt(b.get('spearman_vs_abs_error'), 2)} | "
+                         f"{_fmt(b.get('spearman_vs_predicted_height'), 2)} |")
     c = report.get("classes")
     if c:
         lines += ["", "## Classes", "", "| class | IoU | F1 | reference px | predicted px |", "|---|---|---|---|---|"]
