@@ -197,6 +197,8 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     if args.val_block:  # the validation block predicted as the test block is: what may choose `--tta`
         blocks = res.setdefault("val_block", {})
         for key, views in (("raw", False), ("tta", True)):
+            if key not in args.val_views:
+                continue
             if key not in blocks or args.force:
                 vdir = rdir / f"study_valblock_{key}"
                 predict_raster(args.data / ORTHO, (model, meta), vdir, mc=args.mc, aoi=split_dir / "val.geojson",
@@ -340,6 +342,8 @@ def main() -> None:
     ap.add_argument("--tta", action="store_true", help="also the tta variant (8 views × T samples)")
     ap.add_argument("--val-block", action="store_true",
                     help="also predict the validation block (raw and --tta) and evaluate it like the test block")
+    ap.add_argument("--val-views", nargs="*", default=["raw", "tta"], choices=["raw", "tta"],
+                    help="with --val-block: which predictions of the validation block (tta costs 8x raw)")
     ap.add_argument("--redo", nargs="*", default=[], help="variants to compute again (e.g. cal legacy)")
     ap.add_argument("--table", action="store_true")
     ap.add_argument("--ensemble", nargs="+", metavar=("NAME", "MEMBER"),
