@@ -2,26 +2,19 @@
 # Issue 39 (as run for bench/RESULTS.md, paths of that session): the command's share of the model-alone speed at 8192², T = 1, default engine (this CPU: OpenVINO bf16).
 source /work/venv/bin/activate
 cd /work/main
-out=/work/runs/pair_native_t8
+out=${1:-/work/runs/pair_native_t8}   # a folder of bench/engine_pair.sh (full.pt)
 export AERIALMTL_CACHE=$out/cache
 echo "# load $(cut -d' ' -f1-3 /proc/loadavg) $(date -u +%T)"
 aerialmtl bench --models full --cases openvino/bf16 --window 736 --windows 3 --size 0 2>&1 | tail -15
-python - <<'P'
+python - "$out" <<'P'
 from pathlib import Path
 from aerialmtl.inference.cpu_bench import _synthetic_raster
-p = Path("/work/runs/pair_native_t8/r8192.tif")
+import sys
+p = Path(sys.argv[1]) / "r8192.tif"
 if not p.is_file():
     _synthetic_raster(p, 8192)
 P
-echo "# warm-up (one window) $(date -u +%T) load $(cut -d' ' -f1-3 /proc/loadavg)"
-python - <<'P'
-import json
-# an AOI of one window in the corner: fills the engine cache for the plan's window shape
-aoi = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, "geometry": {"type": "Polygon",
-       "coordinates": [[[500000, 5000000], [500300, 5000000], [500300, 4999700], [500000, 4999700], [500000, 5000000]]]}}]}
-json.dump(aoi, open("/work/runs/pair_native_t8/corner.geojson", "w"))
-P
-/usr/bin/time -f "%e s wall %U user %S sys %M KB" aerialmtl predict $out/r8192.tif --model $out/full.pt --mc 1 --quiet --overwrite --out $out/w8192 --aoi $out/corner.geojson 2>&1 | tail -2
+# (no warm-up: the run below includes OpenVINO's first compile of the plan's window shape)
 echo "# 8192² T=1 $(date -u +%T) load $(cut -d' ' -f1-3 /proc/loadavg)"
 /usr/bin/time -f "%e s wall %U user %S sys %M KB" aerialmtl predict $out/r8192.tif --model $out/full.pt --mc 1 --quiet --overwrite --out $out/p8192 2>&1 | tail -2
 echo "# end $(date -u +%T) load $(cut -d' ' -f1-3 /proc/loadavg)"
