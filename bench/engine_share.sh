@@ -1,8 +1,8 @@
 #!/bin/bash
-# Issue 39 (as run for bench/RESULTS.md, paths of that session): the command's share of the model-alone speed at 8192², T = 1, default engine (this CPU: OpenVINO bf16).
-source /work/venv/bin/activate
-cd /work/main
-out=${1:-/work/runs/pair_native_t8}   # a folder of bench/engine_pair.sh (full.pt)
+# Issue 39: the command's share of the model-alone speed at 8192², T = 1, default engine (this CPU: OpenVINO bf16).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out=$(realpath -m "$1")   # a folder bench/engine_pair.sh filled (full.pt); usage: bash bench/engine_share.sh OUT
 export AERIALMTL_CACHE=$out/cache
 echo "# load $(cut -d' ' -f1-3 /proc/loadavg) $(date -u +%T)"
 aerialmtl bench --models full --cases openvino/bf16 --window 736 --windows 3 --size 0 2>&1 | tail -15
