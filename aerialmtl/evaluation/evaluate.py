@@ -474,7 +474,8 @@ class HeightEvaluation:
         mask = self.stats.update(hp, ref, hp_valid & ref_valid, labels_idx)
         if self.unfam is not None and self.unfam_scores is not None:
             u, u_valid = _read_float(self.unfam, win)
-            self.unfam_scores.update(u[mask & u_valid], hp[mask & u_valid], ref[mask & u_valid])
+            sel = mask & u_valid
+            self.unfam_scores.update(u[sel], hp[sel], ref[sel])
         if self.sample is not None and self.std is not None:
             sd, sd_valid = _read_float(self.std, win)
             sel = mask & sd_valid

@@ -258,6 +258,13 @@ def _gaussian_quantile(p: float) -> float:
     return float(_SQRT2 * erfinv(p))
 
 
+def height_bins(edges: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Index of the reference-height bin of each value of ``ref`` (metres) among ``edges`` (increasing; the last
+    may be ``inf``): heights below the first edge count in the first bin, above the last in the last.
+    """
+    return np.clip(np.searchsorted(edges, ref, side="right") - 1, 0, len(edges) - 2)
+
+
 class SpreadStrata:
     """Is the height spread right where users look? Coverage, proper scores, medians and rank correlation of
     ``height_std`` per reference-height bin (and per class), accumulated window by window.
@@ -291,10 +298,6 @@ class SpreadStrata:
         self.sums = np.zeros((nb + nc, 7))
         self.sample = Subsample(sample_cap, seed)
 
-    def _bins(self, ref: np.ndarray) -> np.ndarray:
-        nb = len(self.edges) - 1
-        return np.clip(np.searchsorted(self.edges, ref, side="right") - 1, 0, nb - 1)
-
     def update(self, pred: np.ndarray, std: np.ndarray, ref: np.ndarray, labels: np.ndarray | None = None) -> None:
         """Add pixels: 1-D ``pred``, ``std``, ``ref`` (metres, finite) and optional reference class indices
         (values outside the classes are ignored for the per-class rows).
@@ -309,7 +312,7 @@ class SpreadStrata:
         l_nll, l_crps = laplace_terms(pred, std, ref, self.min_std)
         g_crps = crps_gaussian(pred, std, ref, self.min_std)
         cols = np.stack([np.ones_like(err), err <= sigma, err <= 2 * sigma, g_nll, l_nll, g_crps, l_crps], 1)
-        b = self._bins(ref)
+        b = height_bins(self.edges, ref)
         lab = np.asarray(labels).ravel().astype(np.int64) if labels is not None else np.full(b.size, -1)
         rows = [(b, np.ones(b.size, bool))]
         if self.class_names:
@@ -377,6 +380,7 @@ __all__ = [
     "RELIABILITY_LEVELS",
     "SpreadStrata",
     "crps_gaussian",
+    "height_bins",
     "laplace_terms",
     "CalibrationBins",
     "DEFAULT_ECE_BINS",

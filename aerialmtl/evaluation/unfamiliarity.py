@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from aerialmtl.evaluation.metrics import Subsample
-from aerialmtl.evaluation.uncertainty import spearman
+from aerialmtl.evaluation.uncertainty import height_bins, spearman
 
 
 class UnfamiliarityScores:
@@ -37,9 +37,7 @@ class UnfamiliarityScores:
         u, p, r = (np.asarray(a, np.float64).ravel() for a in (unfamiliarity, pred, ref))
         if u.size == 0:
             return
-        nb = len(self.edges) - 1
-        b = np.clip(np.searchsorted(self.edges, r, side="right") - 1, 0, nb - 1)
-        self.sample.add(u=u, abs_error=np.abs(p - r), pred=p, bin=b.astype(np.int64))
+        self.sample.add(u=u, abs_error=np.abs(p - r), pred=p, bin=height_bins(self.edges, r).astype(np.int64))
 
     def result(self) -> dict[str, Any]:
         """``n_sampled``, overall ``spearman_vs_abs_error``, and ``bins``: per reference-height bin ``range_m``,
