@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -26,12 +27,17 @@ import numpy as np
 
 from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "samples" / "autzen_west"
-BINS = (0.0, 1.0, 2.0, 5.0, 10.0, 20.0, math.inf)
-TALL_M = 2.0
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_data import DATA, DSM, DTM, TALL_M  # noqa: E402
+from uncertainty_study import BINS, _fmt_range  # noqa: E402
+
 #: where a run's raw predictions are (the unfamiliarity study's folder for runs trained before the layer existed)
 FOLDERS = {"test": ("study_raw_best", "unfam_pred_l2_d32_gda_auto"), "val": ("study_valblock_raw",)}
+
+
+def _evaluate(folder: Path) -> dict[str, Any]:
+    return evaluate_prediction(folder, dsm_ref=DATA / DSM, dtm_ref=DATA / DTM, out=None,
+                               options=EvaluateOptions(height_bins=BINS, plots=False))
 
 
 def _report(run: Path, block: str) -> dict[str, Any] | None:
@@ -41,14 +47,11 @@ def _report(run: Path, block: str) -> dict[str, Any] | None:
     folder = next((run / f for f in FOLDERS[block] if (run / f / "height.tif").is_file()), None)
     if folder is None:
         return None
-    rep = evaluate_prediction(folder, dsm_ref=DATA / "dsm_1m_utm.tif", dtm_ref=DATA / "dtm_1m_utm.tif", out=None,
-                              options=EvaluateOptions(height_bins=BINS, plots=False))
-    if block == "test" and "unfamiliarity" not in rep["uncertainty"]:  # trained before the layer: its own folder
-        extra = run / FOLDERS["test"][1]
-        if (extra / "unfamiliarity.tif").is_file():
-            other = evaluate_prediction(extra, dsm_ref=DATA / "dsm_1m_utm.tif", dtm_ref=DATA / "dtm_1m_utm.tif",
-                                        out=None, options=EvaluateOptions(height_bins=BINS, plots=False))
-            rep["uncertainty"]["unfamiliarity"] = other["uncertainty"]["unfamiliarity"]
+    rep = _evaluate(folder)
+    extra = run / FOLDERS["test"][1]
+    if block == "test" and "unfamiliarity" not in rep["uncertainty"] and (extra / "unfamiliarity.tif").is_file():
+        # trained before the layer existed: its unfamiliarity was predicted into a folder of its own
+        rep["uncertainty"]["unfamiliarity"] = _evaluate(extra)["uncertainty"]["unfamiliarity"]
     cache.write_text(json.dumps(rep, default=float))
     return dict(rep)
 
@@ -73,14 +76,6 @@ def _numbers(rep: dict[str, Any]) -> dict[str, Any]:
 def _mean(values: list[Any]) -> float:
     vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
     return float(np.mean(vals)) if vals else math.nan
-
-
-def _range(values: list[float], sign: bool = False) -> str:
-    vals = [v for v in values if v is not None and math.isfinite(v)]
-    if not vals:
-        return "n/a"
-    f = "{:+.2f}" if sign else "{:.2f}"
-    return f.format(np.mean(vals)) + ("" if len(vals) == 1 else f" ({f.format(min(vals))}–{f.format(max(vals))})")
 
 
 def _per_bin(rows: list[dict[str, Any]], key: str, sign: bool = True) -> str:
@@ -108,9 +103,10 @@ def table(out: Path, runs: list[str]) -> str:
             rows = blocks.get(block, [])
             if not rows:
                 continue
-            lines.append(f"| {arm} | {len(rows)} | {_range([r['mae'] for r in rows])} | "
-                         f"{_range([r['mae_tall'] for r in rows])} | {_range([r['bias_tall'] for r in rows], True)} | "
-                         f"{_range([r['crps'] for r in rows])} | {_per_bin(rows, 'bias_bin')} | "
+            lines.append(f"| {arm} | {len(rows)} | {_fmt_range([r['mae'] for r in rows])} | "
+                         f"{_fmt_range([r['mae_tall'] for r in rows])} | "
+                         f"{_fmt_range([r['bias_tall'] for r in rows], sign=True)} | "
+                         f"{_fmt_range([r['crps'] for r in rows])} | {_per_bin(rows, 'bias_bin')} | "
                          f"{_per_bin(rows, 'cov_bin', False)} | {_per_bin(rows, 'rho_bin')} | "
                          f"{_per_bin(rows, 'rho_h_bin')} | {_per_bin(rows, 'unfam_bin')} |")
         lines.append("")
