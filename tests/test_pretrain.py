@@ -3,6 +3,7 @@ NAME`, and predict saying that a start is not fine-tuned."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -16,10 +17,12 @@ from helpers.cli import run_cli
 from helpers.rasters import write_raster
 from helpers.tilefolder import write_tile_folder
 
+from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.data.synthetic_batches import SyntheticBatches, SyntheticStream
-from aerialmtl.errors import CheckpointError, OutputExistsError
+from aerialmtl.errors import CheckpointError, ConfigError, InputError, OutputExistsError
 from aerialmtl.formats import starts
 from aerialmtl.formats.checkpoint import load_checkpoint
+from aerialmtl.formats.tiles import read_manifest
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.loop import train
 from aerialmtl.training.pretrain import LAST_PT, PretrainSettings, pretrain
@@ -154,3 +157,60 @@ def test_predict_says_once_that_a_start_is_not_fine_tuned(run: Path, tmp_path: P
     code, out, err = run_cli(capsys, "predict", ortho, "--model", run / LAST_PT, "--out", tmp_path / "q", "--mc", 1,
                              "--engine", "torch", "--quiet")
     assert code == 0 and "pretrained start" in out + err  # the pretraining run's own checkpoint is not fine-tuned
+
+
+def _tiles_with_white_validation(root: Path) -> Path:
+    """A tile folder whose validation images are pure white on flat ground: a white texture can only come from them."""
+    write_tile_folder(root, counts={"train": 3, "val": 2, "test": 0}, invalid_corner=False)
+    import rasterio
+
+    for row in read_manifest(root, "val"):
+        with rasterio.open(root / row["image_path"], "r+") as dst:
+            dst.write(np.full((3, dst.height, dst.width), 255, np.uint8))
+        with rasterio.open(root / row["height_path"], "r+") as dst:
+            dst.write(np.zeros((1, dst.height, dst.width), np.float32))
+    return root
+
+
+def test_textures_come_from_the_training_ground_of_a_tile_folder(tmp_path: Path) -> None:
+    tiles = _tiles_with_white_validation(tmp_path / "tiles")
+    pool = TexturePool.from_tile_folder(tiles, max_patches=64)
+    assert pool.patches.shape[1:] == (3, 16, 16) and pool.gsd == 0.5
+    # the toy ground is red ≈ 60, green ≈ 80; buildings (red 180) and trees (green 180) stand above 0.5 m
+    assert pool.patches[:, 0].max() < 100 and pool.patches[:, 1].max() < 120
+    assert (pool.patches < 255).all()  # nothing of the validation split
+    again = TexturePool.from_tile_folder(tiles, max_patches=64)
+    assert np.array_equal(pool.patches, again.patches)  # seeded
+    write_tile_folder(tmp_path / "no_heights", tasks=("classes",))
+    with pytest.raises(InputError, match="no height patches"):
+        TexturePool.from_tile_folder(tmp_path / "no_heights")
+
+
+def test_textured_scenes_wear_the_users_ground_and_stay_a_function_of_seed_and_step(tmp_path: Path) -> None:
+    tiles = _tiles_with_white_validation(tmp_path / "tiles")
+    plain = SyntheticStream(seed=1, batch_size=2, patch_size=32, scene_size=64)
+    textured = dataclasses.replace(plain, textures=str(tiles), texture_share=1.0)
+    a = SyntheticBatches(textured, (127.0,) * 3, (128.0,) * 3, 4)
+    b = SyntheticBatches(textured, (127.0,) * 3, (128.0,) * 3, 4)
+    p = SyntheticBatches(plain, (127.0,) * 3, (128.0,) * 3, 4)
+    assert torch.equal(a[2]["image"], b[2]["image"])
+    assert not torch.equal(a[2]["image"], p[2]["image"])
+    assert torch.equal(a[2]["height"] > 1.0, p[2]["height"] > 1.0)  # the same city's structures, other surfaces
+    with pytest.raises(ConfigError, match="texture_share"):
+        dataclasses.replace(plain, texture_share=1.5)
+
+
+def test_pretrain_with_textures_records_them_in_the_card(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    tiles = _tiles_with_white_validation(tmp_path / "tiles")
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(tiny_cfg().to_dict()))
+    code, out, err = run_cli(capsys, "pretrain", "--out", tmp_path / "run", "--steps", 1, "--config", cfg,
+                             "--patch-size", 32, "--scene-size", 64, "--textures", tiles, "--name", "tex", "--quiet")
+    assert code == 0, err
+    card = yaml.safe_load((tmp_path / "run" / "tex.yaml").read_text())
+    real = card["trained_on"]["real_data"]
+    assert real["textures"] == str(tiles.resolve()) and real["split"] == "train" and len(real["fingerprint"]) == 64
+    assert "own licence" in card["meta"]["license"]
+    code, out, err = run_cli(capsys, "pretrain", "--out", tmp_path / "run2", "--steps", 1, "--config", cfg,
+                             "--textures", tmp_path / "nowhere", "--quiet")
+    assert code == 2 and "--textures" in err

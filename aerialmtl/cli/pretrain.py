@@ -37,6 +37,12 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
         help="Scenes a step's patches are cut from (patch i from scene i mod this).")
 @option("--scene-reuse", type=int, default=4, show_default=True,
         help="Consecutive steps that cut their patches from the same scenes (a scene costs about a quarter step).")
+@option("--textures", "textures", type=click.Path(file_okay=False, exists=True, path_type=Path), default=None,
+        help="Tile folder (from `aerialmtl tile`) whose training patches lend the look of their open ground (nDSM "
+             "≤ 0.5 m) to the synthetic roofs and ground: scenes restyled like your area, where a roof may look "
+             "exactly like your ground [default: the generator's own materials].")
+@option("--texture-share", type=float, default=0.5, show_default=True,
+        help="With --textures: probability that a surface wears one of your textures.")
 @option("--export-dtype", type=click.Choice(["float16", "float32"]), default="float16", show_default=True,
         help="Storage of the start's weights.")
 @option("--resume", is_flag=True, help="Continue the run in --out from its last.pt.")
@@ -46,7 +52,8 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
 @quiet_option()
 def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_every: int, name: str,
              seed: int | None, batch_size: int | None, workers: int | None, patch_size: int, scene_size: int,
-             gsd_range: tuple[float, float], scenes_per_step: int, scene_reuse: int, export_dtype: str,
+             gsd_range: tuple[float, float], scenes_per_step: int, scene_reuse: int, textures: Path | None,
+             texture_share: float, export_dtype: str,
              resume: bool, device: str | None, precision: str | None, overwrite: bool, quiet: bool) -> None:
     """Pretrain the small-area recipe's network on synthetic cities generated on the fly (nothing downloaded,
     nothing written but the run folder), then export a start that `aerialmtl train --init` fine-tunes.
@@ -79,7 +86,9 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
     settings = PretrainSettings(steps=steps, checkpoint_every=checkpoint_every, name=name, export_dtype=export_dtype,
                                 stream=SyntheticStream(patch_size=patch_size, scene_size=scene_size,
                                                        gsd_range=gsd_range, scenes_per_step=scenes_per_step,
-                                                       scene_reuse=scene_reuse))
+                                                       scene_reuse=scene_reuse,
+                                                       textures=None if textures is None else str(textures.resolve()),
+                                                       texture_share=texture_share))
     res = run_pretrain(cfg, out_dir, settings, resume=resume, overwrite=overwrite, progress=not quiet,
                        command=shlex.join(["aerialmtl", *sys.argv[1:]]))
     per_step = res.elapsed_s / res.steps_this_call if res.steps_this_call else float("nan")

@@ -21,6 +21,7 @@ import torch
 
 from aerialmtl.classes import ClassScheme
 from aerialmtl.data.dataset import normalise_batch
+from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.errors import ConfigError
 
 #: The class scheme of the synthetic scenes (:mod:`aerialmtl.resources.classes`).
@@ -42,15 +43,17 @@ class SyntheticScene:
     gsd: float
 
 
-def synthetic_scene(seed: int, index: int, size: int, gsd: float) -> SyntheticScene:
-    """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres).
+def synthetic_scene(seed: int, index: int, size: int, gsd: float,
+                    textures: TexturePool | None = None) -> SyntheticScene:
+    """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres), its surfaces
+    drawn in part with ``textures`` (the user's own ground) when given.
 
     The one function that asks the generator for a scene: switching generators changes only this body.
     """
     from aerialmtl.data.city_stream import city_seed
     from aerialmtl.data.synth.city import sample_city
 
-    city = sample_city(city_seed(seed, index), size, gsd)
+    city = sample_city(city_seed(seed, index), size, gsd, textures=textures)
     classes = ClassScheme.load(SCHEME_NAME).remap(city.classes, on_unknown="ignore").astype(np.uint8)
     return SyntheticScene(city.image, city.height.astype(np.float32), classes, gsd)
 
@@ -67,6 +70,9 @@ class SyntheticStream:
         gsd_range: ``(low, high)`` metres per pixel; each scene draws its GSD uniformly from it.
         scenes_per_step: scenes a step's patches come from (patch i from scene i mod this).
         scene_reuse: consecutive steps that cut from the same scenes.
+        textures: a tile folder (``aerialmtl tile``) whose training patches lend their open ground's look to
+            the scenes' surfaces (:meth:`TexturePool.from_tile_folder`); ``None``: the generator's own materials.
+        texture_share: probability that a surface is drawn with one of those textures.
     """
 
     seed: int = 0
@@ -76,6 +82,8 @@ class SyntheticStream:
     gsd_range: tuple[float, float] = (0.5, 1.0)
     scenes_per_step: int = 4
     scene_reuse: int = 4
+    textures: str | None = None
+    texture_share: float = 0.5
 
     def __post_init__(self) -> None:
         if self.patch_size < 32 or self.patch_size % 32:
@@ -88,6 +96,14 @@ class SyntheticStream:
         for name in ("batch_size", "scenes_per_step", "scene_reuse"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name}: must be ≥ 1, got {getattr(self, name)}")
+        if not 0.0 <= self.texture_share <= 1.0:
+            raise ConfigError(f"texture_share: must be a probability in [0, 1], got {self.texture_share}")
+
+    def texture_pool(self) -> TexturePool | None:
+        """The pool of :attr:`textures` (``None`` without one)."""
+        if self.textures is None:
+            return None
+        return TexturePool.from_tile_folder(self.textures, share=self.texture_share, seed=self.seed)
 
     def scene_of(self, step: int, i: int) -> int:
         """The index of the scene patch ``i`` of ``step`` is cut from."""
@@ -115,6 +131,7 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
     def __init__(self, stream: SyntheticStream, mean: tuple[float, ...], std: tuple[float, ...], length: int,
                  keep: int = 4) -> None:
         self.stream, self.length, self.keep = stream, length, max(keep, stream.scenes_per_step)
+        self.textures = stream.texture_pool()
         self.mean = torch.tensor(mean, dtype=torch.float32)
         self.std = torch.tensor(std, dtype=torch.float32)
         self._scenes: OrderedDict[int, SyntheticScene] = OrderedDict()
@@ -131,7 +148,7 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
             self._scenes.move_to_end(index)
             return self._scenes[index]
         s = self.stream
-        scene = synthetic_scene(s.seed, index, s.scene_size, s.scene_gsd(index))
+        scene = synthetic_scene(s.seed, index, s.scene_size, s.scene_gsd(index), self.textures)
         self._scenes[index] = scene
         while len(self._scenes) > self.keep:
             self._scenes.popitem(last=False)

