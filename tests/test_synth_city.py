@@ -167,3 +167,24 @@ def test_cli_writes_a_city(tmp_path) -> None:
         assert np.allclose(src.read(1), patch.height, atol=1e-4) and np.array_equal(lab.read(1), patch.classes)
     res = CliRunner().invoke(cli, ["synth", str(tmp_path / "t"), "--plain", "--size", "64"])
     assert res.exit_code == 2 and "--kind" in res.output
+
+
+def test_ground_roofs_sets_the_share_of_roofs_that_look_like_the_ground() -> None:
+    from aerialmtl.data.synth.city import build_city
+    from aerialmtl.data.synth.city_canvas import ASPHALT, CONCRETE, GRASS, GRAVEL, GREEN_ROOF, SOIL
+
+    def share(ground_roofs: float) -> float:
+        roof = ground = 0
+        for seed in range(4):
+            layout, textures = np.random.default_rng([seed, 1]), np.random.default_rng([seed, 2])
+            cv, _ = build_city(192, 0.5, layout, textures, None, ground_roofs)
+            building = cv.labels == BUILDING
+            roof += int(building.sum())
+            ground += int(np.isin(cv.material[building], [ASPHALT, CONCRETE, GRAVEL, SOIL, GRASS, GREEN_ROOF]).sum())
+        return ground / roof
+
+    assert share(0.0) == 0.0 < share(0.3) < share(0.65) < share(1.0)
+    a, b = sample_city(5, 96, 0.5), sample_city(5, 96, 0.5, CityStyle(ground_roofs=0.65))
+    assert np.array_equal(a.image, b.image) and np.array_equal(a.height, b.height)  # the default is today's generator
+    with pytest.raises(InputError, match="ground_roofs"):
+        CityStyle(ground_roofs=1.2)

@@ -44,16 +44,18 @@ class SyntheticScene:
 
 
 def synthetic_scene(seed: int, index: int, size: int, gsd: float,
-                    textures: TexturePool | None = None) -> SyntheticScene:
+                    textures: TexturePool | None = None, ground_roofs: float = 0.65) -> SyntheticScene:
     """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres), its surfaces
-    drawn in part with ``textures`` (the user's own ground) when given.
+    drawn in part with ``textures`` (the user's own ground) when given, ``ground_roofs`` of its flat roofs in a
+    ground material (:attr:`~aerialmtl.data.synth.style.CityStyle.ground_roofs`).
 
     The one function that asks the generator for a scene: switching generators changes only this body.
     """
     from aerialmtl.data.city_stream import city_seed
     from aerialmtl.data.synth.city import sample_city
+    from aerialmtl.data.synth.style import CityStyle
 
-    city = sample_city(city_seed(seed, index), size, gsd, textures=textures)
+    city = sample_city(city_seed(seed, index), size, gsd, CityStyle(ground_roofs=ground_roofs), textures=textures)
     classes = ClassScheme.load(SCHEME_NAME).remap(city.classes, on_unknown="ignore").astype(np.uint8)
     return SyntheticScene(city.image, city.height.astype(np.float32), classes, gsd)
 
@@ -73,6 +75,7 @@ class SyntheticStream:
         textures: a tile folder (``aerialmtl tile``) whose training patches lend their open ground's look to
             the scenes' surfaces (:meth:`TexturePool.from_tile_folder`); ``None``: the generator's own materials.
         texture_share: probability that a surface is drawn with one of those textures.
+        ground_roofs: probability that a flat roof is drawn in a ground material (the generator's default 0.65).
     """
 
     seed: int = 0
@@ -84,6 +87,7 @@ class SyntheticStream:
     scene_reuse: int = 4
     textures: str | None = None
     texture_share: float = 0.5
+    ground_roofs: float = 0.65
 
     def __post_init__(self) -> None:
         if self.patch_size < 32 or self.patch_size % 32:
@@ -96,8 +100,9 @@ class SyntheticStream:
         for name in ("batch_size", "scenes_per_step", "scene_reuse"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name}: must be ≥ 1, got {getattr(self, name)}")
-        if not 0.0 <= self.texture_share <= 1.0:
-            raise ConfigError(f"texture_share: must be a probability in [0, 1], got {self.texture_share}")
+        for name in ("texture_share", "ground_roofs"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name}: must be a probability in [0, 1], got {getattr(self, name)}")
 
     def texture_pool(self) -> TexturePool | None:
         """The pool of :attr:`textures` (``None`` without one)."""
@@ -148,7 +153,7 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
             self._scenes.move_to_end(index)
             return self._scenes[index]
         s = self.stream
-        scene = synthetic_scene(s.seed, index, s.scene_size, s.scene_gsd(index), self.textures)
+        scene = synthetic_scene(s.seed, index, s.scene_size, s.scene_gsd(index), self.textures, s.ground_roofs)
         self._scenes[index] = scene
         while len(self._scenes) > self.keep:
             self._scenes.popitem(last=False)

@@ -310,7 +310,7 @@ def _export(run: Path, settings: PretrainSettings, cfg: TrainConfig, step: int, 
             "real_data": _real_data(s),
             "scenes": {"size_px": s.scene_size, "gsd_range_m": list(s.gsd_range),
                        "count": ((max(step, 1) - 1) // s.scene_reuse + 1) * s.scenes_per_step,
-                       "reused_for_steps": s.scene_reuse},
+                       "reused_for_steps": s.scene_reuse, "ground_like_flat_roofs": s.ground_roofs},
             "classes": meta.classes.to_dict() if meta.classes is not None else None,
         },
         "pretrained_cfg": {  # the shape of timm's pretrained_cfg

@@ -136,7 +136,7 @@ def _streets(cv: CityCanvas, rng: np.random.Generator, lines_u: list[tuple[float
 
 
 def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: np.random.Generator,
-               texture: TextureFn | None = None) -> tuple[CityCanvas, dict[str, int]]:
+               texture: TextureFn | None = None, ground_roofs: float = 0.65) -> tuple[CityCanvas, dict[str, int]]:
     """Plan and draw a city on a ``size`` × ``size`` canvas of ``gsd`` metres.
 
     Args:
@@ -145,6 +145,7 @@ def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: 
         layout: generator of everything that sets heights and labels.
         texture_rng: generator of the user texture choices.
         texture: optional texture source for surfaces.
+        ground_roofs: probability that a flat roof is drawn in a ground material (:attr:`CityStyle.ground_roofs`).
 
     Returns:
         (canvas, counts of blocks per kind).
@@ -156,7 +157,7 @@ def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: 
     lines_v = _lines(layout, float(cv.v.min()), float(cv.v.max()))
     kerb = layout.uniform(1.5, 4.0)
     _streets(cv, layout, lines_u, lines_v, kerb)
-    blocks = Blocks(cv, layout, texture_rng, bumps)
+    blocks = Blocks(cv, layout, texture_rng, bumps, ground_roofs)
     names = list(KINDS)
     probs = np.array([KINDS[k][1] for k in names])
     stats = dict.fromkeys(names, 0)
@@ -287,8 +288,9 @@ def sample_city(seed: int, size: int = 256, gsd: float = 0.5, style: CityStyle |
     layout, imaging_rng, texture_rng = _streams(seed)
     pad = max(8, int(size) // 8)
     texture = None if textures is None else textures.source(gsd)
-    cv, _ = build_city(int(size) + 2 * pad, float(gsd), layout, texture_rng, texture)
-    imaging = (style or CityStyle()).draw(imaging_rng)
+    style = style or CityStyle()
+    cv, _ = build_city(int(size) + 2 * pad, float(gsd), layout, texture_rng, texture, style.ground_roofs)
+    imaging = style.draw(imaging_rng)
     radiance = render_city(cv, imaging, imaging_rng)
     crop = (slice(pad, pad + size), slice(pad, pad + size))
     image = finish_image(np.ascontiguousarray(radiance[:, crop[0], crop[1]]), imaging, imaging_rng)

@@ -61,8 +61,9 @@ class Blocks:
     """Draws block contents on ``canvas`` with the layout generator ``rng`` (textures from ``tex_rng``)."""
 
     def __init__(self, canvas: CityCanvas, rng: np.random.Generator, tex_rng: np.random.Generator,
-                 bumps: np.ndarray) -> None:
+                 bumps: np.ndarray, ground_roofs: float = 0.65) -> None:
         self.cv, self.rng, self.tex_rng, self.bumps = canvas, rng, tex_rng, bumps
+        self.ground_roofs = ground_roofs
 
     # ---- primitives ------------------------------------------------------------------------------
     def ground(self, u0: float, u1: float, v0: float, v1: float, g: Ground) -> None:
@@ -81,9 +82,9 @@ class Blocks:
     def flat_roof(self, yard: Ground) -> tuple[int, Rgb, bool]:
         """(material, colour, textured) of a flat roof; often the yard's own look or another ground's."""
         roll = self.rng.random()
-        if roll < 0.35:
+        if roll < self.ground_roofs * (0.35 / 0.65):
             return yard.material, jitter(self.rng, yard.rgb, 5.0), True
-        if roll < 0.65:
+        if roll < self.ground_roofs:
             mat, _, rgb = GROUND_LIKE[int(self.rng.integers(len(GROUND_LIKE)))]
             return (GREEN_ROOF if mat == GRASS else mat), jitter(self.rng, rgb, 8.0), True
         mat, rgb = ROOF_OTHER[int(self.rng.integers(len(ROOF_OTHER)))]

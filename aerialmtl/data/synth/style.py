@@ -75,6 +75,9 @@ class CityStyle:
         noise: sensor noise in DN.
         gamma: tone curve exponent.
         jpeg: probability of a JPEG round trip, and its quality range.
+        ground_roofs: probability that a flat roof is drawn in a ground material (asphalt, gravel, concrete,
+            soil; grass as a planted roof), 35/65 of those in its own yard's look: the roofs that look like the
+            ground around them. A share of what is drawn, not of the imaging.
     """
 
     sun_elevation: tuple[float, float] = (20.0, 70.0)
@@ -89,6 +92,7 @@ class CityStyle:
     gamma: tuple[float, float] = (0.8, 1.25)
     jpeg: float = 0.5
     jpeg_quality: tuple[int, int] = (40, 95)
+    ground_roofs: float = 0.65
 
     def __post_init__(self) -> None:
         _check_range("sun_elevation", *self.sun_elevation, 1.0, 90.0)
@@ -101,7 +105,7 @@ class CityStyle:
         _check_range("noise", *self.noise, 0.0, 50.0)
         _check_range("gamma", *self.gamma, 0.2, 5.0)
         _check_range("jpeg_quality", *self.jpeg_quality, 1, 95)
-        for name in ("true_ortho", "jpeg"):
+        for name in ("true_ortho", "jpeg", "ground_roofs"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise InputError(f"CityStyle.{name} is a probability in [0, 1], got {getattr(self, name)}",
                                  param=name)
