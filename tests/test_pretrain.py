@@ -208,8 +208,8 @@ def test_pretrain_with_textures_records_them_in_the_card(tmp_path: Path, capsys:
                              "--patch-size", 32, "--scene-size", 64, "--textures", tiles, "--name", "tex", "--quiet")
     assert code == 0, err
     card = yaml.safe_load((tmp_path / "run" / "tex.yaml").read_text())
-    real = card["trained_on"]["real_data"]
-    assert real["textures"] == str(tiles.resolve()) and real["split"] == "train" and len(real["fingerprint"]) == 64
+    real = card["trained_on"]["real_data"]["textures"]
+    assert real["folder"] == str(tiles.resolve()) and real["split"] == "train" and len(real["fingerprint"]) == 64
     assert "own licence" in card["meta"]["license"]
     code, out, err = run_cli(capsys, "pretrain", "--out", tmp_path / "run2", "--steps", 1, "--config", cfg,
                              "--textures", tmp_path / "nowhere", "--quiet")

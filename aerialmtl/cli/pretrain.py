@@ -43,6 +43,11 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
              "exactly like your ground [default: the generator's own materials].")
 @option("--texture-share", type=float, default=0.5, show_default=True,
         help="With --textures: probability that a surface wears one of your textures.")
+@option("--real", "real", type=click.Path(file_okay=False, exists=True, path_type=Path), default=None,
+        help="Tile folder (from `aerialmtl tile`) whose training patches (orthophoto and nDSM; not their labels) "
+             "fill --real-share of every batch beside the synthetic scenes [default: synthetic scenes only].")
+@option("--real-share", type=float, default=0.25, show_default=True,
+        help="With --real: share of each batch's patches that are real.")
 @option("--ground-roofs", type=float, default=0.65, show_default=True,
         help="Probability that a synthetic flat roof is drawn in a ground material (asphalt, gravel, concrete, "
              "planted): the roofs that look like the ground around them.")
@@ -56,7 +61,7 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
 def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_every: int, name: str,
              seed: int | None, batch_size: int | None, workers: int | None, patch_size: int, scene_size: int,
              gsd_range: tuple[float, float], scenes_per_step: int, scene_reuse: int, textures: Path | None,
-             texture_share: float, ground_roofs: float, export_dtype: str,
+             texture_share: float, real: Path | None, real_share: float, ground_roofs: float, export_dtype: str,
              resume: bool, device: str | None, precision: str | None, overwrite: bool, quiet: bool) -> None:
     """Pretrain the small-area recipe's network on synthetic cities generated on the fly (nothing downloaded,
     nothing written but the run folder), then export a start that `aerialmtl train --init` fine-tunes.
@@ -91,7 +96,9 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
                                                        gsd_range=gsd_range, scenes_per_step=scenes_per_step,
                                                        scene_reuse=scene_reuse,
                                                        textures=None if textures is None else str(textures.resolve()),
-                                                       texture_share=texture_share, ground_roofs=ground_roofs))
+                                                       texture_share=texture_share, ground_roofs=ground_roofs,
+                                                       real=None if real is None else str(real.resolve()),
+                                                       real_share=real_share))
     res = run_pretrain(cfg, out_dir, settings, resume=resume, overwrite=overwrite, progress=not quiet,
                        command=shlex.join(["aerialmtl", *sys.argv[1:]]))
     per_step = res.elapsed_s / res.steps_this_call if res.steps_this_call else float("nan")

@@ -15,14 +15,15 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from aerialmtl.classes import ClassScheme
+from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.data.dataset import normalise_batch
 from aerialmtl.data.synth.textures import TexturePool
-from aerialmtl.errors import ConfigError
+from aerialmtl.errors import ConfigError, InputError
 
 #: The class scheme of the synthetic scenes (:mod:`aerialmtl.resources.classes`).
 SCHEME_NAME = "synthetic"
@@ -61,6 +62,48 @@ def synthetic_scene(seed: int, index: int, size: int, gsd: float,
 
 
 @dataclass(frozen=True)
+class RealPatches:
+    """The training patches of a tile folder, whole, for mixing into synthetic batches: ``images`` uint8
+    (3, S, S) RGB each, ``heights`` float32 (S, S) metres with NaN where invalid (the image's nodata too),
+    ``valid`` bool (S, S) where the image is valid.
+    """
+
+    images: list[np.ndarray]
+    heights: list[np.ndarray]
+    valid: list[np.ndarray]
+
+    @classmethod
+    def from_tile_folder(cls, folder: str | Path, patch_size: int, split: str = "train") -> RealPatches:
+        """Read ``split``'s patches (8-bit RGB with heights; at least ``patch_size`` pixels a side).
+
+        Raises:
+            InputError: not such a tile folder, or no such patch.
+        """
+        from aerialmtl.data.dataset import read_raw_patch
+        from aerialmtl.formats.tiles import read_manifest, read_tile_info
+
+        root = Path(folder)
+        info = read_tile_info(root)
+        if info.num_bands < 3 or info.dtype not in (None, "uint8") or "height" not in info.tasks:
+            raise InputError(f"the tile folder '{root}' holds {info.num_bands}-band {info.dtype} patches with tasks "
+                             f"{list(info.tasks)}; real patches for pretraining need 8-bit RGB with heights (tile an "
+                             "8-bit RGB orthophoto with a DSM and DTM or an nDSM)", param="real")
+        if info.patch_size < patch_size:
+            raise InputError(f"the tile folder '{root}' has {info.patch_size} px patches, smaller than the "
+                             f"pretraining's {patch_size} px; pass --patch-size ≤ {info.patch_size}", param="real")
+        images, heights, valid = [], [], []
+        for row in read_manifest(root, split):
+            raw = read_raw_patch(root, row, info.num_bands, ("height",))
+            if raw.height is not None:
+                images.append(np.ascontiguousarray(raw.image[:3], np.uint8))
+                heights.append(raw.height)
+                valid.append(raw.image_valid)
+        if not images:
+            raise InputError(f"the tile folder '{root}' has no '{split}' patches", param="real")
+        return cls(images, heights, valid)
+
+
+@dataclass(frozen=True)
 class SyntheticStream:
     """What :class:`SyntheticBatches` cuts: scene size and GSD range, patches per step, scene reuse.
 
@@ -76,6 +119,10 @@ class SyntheticStream:
             the scenes' surfaces (:meth:`TexturePool.from_tile_folder`); ``None``: the generator's own materials.
         texture_share: probability that a surface is drawn with one of those textures.
         ground_roofs: probability that a flat roof is drawn in a ground material (the generator's default 0.65).
+        real: a tile folder whose training patches (orthophoto and nDSM; no labels: their classes are another
+            scheme's) fill ``real_share`` of every batch, cropped at random places, quarter turns and flips;
+            ``None``: synthetic scenes only.
+        real_share: share of a batch's patches taken from ``real`` (rounded; at least one when > 0).
     """
 
     seed: int = 0
@@ -88,6 +135,8 @@ class SyntheticStream:
     textures: str | None = None
     texture_share: float = 0.5
     ground_roofs: float = 0.65
+    real: str | None = None
+    real_share: float = 0.25
 
     def __post_init__(self) -> None:
         if self.patch_size < 32 or self.patch_size % 32:
@@ -100,9 +149,15 @@ class SyntheticStream:
         for name in ("batch_size", "scenes_per_step", "scene_reuse"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name}: must be ≥ 1, got {getattr(self, name)}")
-        for name in ("texture_share", "ground_roofs"):
+        for name in ("texture_share", "ground_roofs", "real_share"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name}: must be a probability in [0, 1], got {getattr(self, name)}")
+
+    def real_count(self) -> int:
+        """Patches of a batch taken from :attr:`real` (0 without it)."""
+        if self.real is None or self.real_share == 0:
+            return 0
+        return min(self.batch_size, max(1, round(self.real_share * self.batch_size)))
 
     def texture_pool(self) -> TexturePool | None:
         """The pool of :attr:`textures` (``None`` without one)."""
@@ -137,6 +192,8 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
                  keep: int = 4) -> None:
         self.stream, self.length, self.keep = stream, length, max(keep, stream.scenes_per_step)
         self.textures = stream.texture_pool()
+        self.real = (RealPatches.from_tile_folder(stream.real, stream.patch_size)
+                     if stream.real is not None and stream.real_count() else None)
         self.mean = torch.tensor(mean, dtype=torch.float32)
         self.std = torch.tensor(std, dtype=torch.float32)
         self._scenes: OrderedDict[int, SyntheticScene] = OrderedDict()
@@ -160,15 +217,27 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
         return scene
 
     def raw(self, step: int) -> dict[str, torch.Tensor]:
-        """The compact batch of ``step``: ``image`` uint8 (B, 3, P, P), ``height`` float32 (B, 1, P, P),
-        ``classes`` uint8 (B, P, P).
+        """The compact batch of ``step``: ``image`` uint8 (B, 3, P, P), ``height`` float32 (B, 1, P, P) (NaN where
+        unknown), ``classes`` uint8 (B, P, P), ``valid`` bool (B, P, P) where the image is valid; the first
+        :meth:`SyntheticStream.real_count` patches are real ones.
         """
         s, p = self.stream, self.stream.patch_size
-        images, heights, classes = [], [], []
+        images, heights, classes, valids = [], [], [], []
+        n_real = s.real_count()
         for i in range(s.batch_size):
-            scene = self.scene(s.scene_of(step, i))
-            rng = np.random.default_rng([s.seed, 0xBA7C, step, i])
-            side = scene.height.shape[0]
+            if i < n_real:
+                assert self.real is not None
+                pick = np.random.default_rng([s.seed, 0x4EA1, step, i])
+                j = int(pick.integers(len(self.real.images)))
+                shape = self.real.heights[j].shape
+                src = (self.real.images[j], self.real.heights[j], np.full(shape, IGNORE_INDEX, np.uint8),
+                       self.real.valid[j])
+                rng = pick
+            else:
+                scene = self.scene(s.scene_of(step, i))
+                src = (scene.image, scene.height, scene.classes, np.ones(scene.height.shape, bool))
+                rng = np.random.default_rng([s.seed, 0xBA7C, step, i])
+            side = src[1].shape[0]
             r, c = (int(v) for v in rng.integers(0, side - p + 1, 2))
             k, flip = int(rng.integers(0, 4)), bool(rng.integers(0, 2))
 
@@ -176,16 +245,16 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
                 out = np.rot90(a[..., r:r + p, c:c + p], k, axes=(-2, -1))
                 return np.ascontiguousarray(out[..., ::-1] if flip else out)
 
-            images.append(cut(scene.image))
-            heights.append(cut(scene.height)[None])
-            classes.append(cut(scene.classes))
+            images.append(cut(src[0]))
+            heights.append(cut(src[1])[None])
+            classes.append(cut(src[2]))
+            valids.append(cut(src[3]))
         return {"image": torch.from_numpy(np.stack(images)), "height": torch.from_numpy(np.stack(heights)),
-                "classes": torch.from_numpy(np.stack(classes))}
+                "classes": torch.from_numpy(np.stack(classes)), "valid": torch.from_numpy(np.stack(valids))}
 
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         raw = self.raw(step)
-        valid = torch.ones(raw["image"].shape[0], *raw["image"].shape[2:], dtype=torch.bool)
-        return normalise_batch(raw["image"], valid, self.mean, self.std, raw["height"], raw["classes"])
+        return normalise_batch(raw["image"], raw["valid"], self.mean, self.std, raw["height"], raw["classes"])
 
 
 __all__ = ["GENERATOR", "SCHEME_NAME", "SyntheticBatches", "SyntheticScene", "SyntheticStream", "synthetic_scene"]

@@ -285,17 +285,28 @@ def _restore(path: Path, parts: Any, cfg: TrainConfig,
 
 
 def _real_data(stream: SyntheticStream) -> str | dict[str, Any]:
-    """What the card says of real data: none, or the tile folder whose ground textures the scenes wore."""
-    if stream.textures is None:
+    """What the card says of real data: none, or the tile folders whose ground textures the scenes wore and whose
+    training patches were mixed into the batches.
+    """
+    if stream.textures is None and stream.real_count() == 0:
         return "none: no real orthophoto, height or label was seen"
     from aerialmtl.formats.tiles import read_manifest, read_tile_info, split_fingerprint
 
-    root = Path(stream.textures)
-    return {"textures": str(root.resolve()), "split": "train",
-            "fingerprint": split_fingerprint(read_tile_info(root), read_manifest(root, "train")),
-            "share": stream.texture_share,
-            "what": "16 px patches of the training split's orthophoto where its nDSM ≤ 0.5 m (open ground), laid on "
-                    "synthetic roofs and ground; no real height or label was seen"}
+    def folder(path: str) -> dict[str, str]:
+        root = Path(path)
+        return {"folder": str(root.resolve()), "split": "train",
+                "fingerprint": split_fingerprint(read_tile_info(root), read_manifest(root, "train"))}
+
+    out: dict[str, Any] = {}
+    if stream.textures is not None:
+        out["textures"] = {**folder(stream.textures), "share": stream.texture_share,
+                           "what": "16 px patches of the training split's orthophoto where its nDSM ≤ 0.5 m (open "
+                                   "ground), laid on synthetic roofs and ground"}
+    if stream.real is not None and stream.real_count():
+        out["patches"] = {**folder(stream.real), "per_batch": stream.real_count(),
+                          "what": "the training split's orthophoto and nDSM patches mixed into every batch (heights "
+                                  "only; their labels were not used)"}
+    return out
 
 
 def _export(run: Path, settings: PretrainSettings, cfg: TrainConfig, step: int, wall: float,
