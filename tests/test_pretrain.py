@@ -211,6 +211,29 @@ def test_pretrain_with_textures_records_them_in_the_card(tmp_path: Path, capsys:
     real = card["trained_on"]["real_data"]["textures"]
     assert real["folder"] == str(tiles.resolve()) and real["split"] == "train" and len(real["fingerprint"]) == 64
     assert "own licence" in card["meta"]["license"]
+    code, out, err = run_cli(capsys, "pretrain", "--out", tmp_path / "mixed", "--steps", 1, "--config", cfg,
+                             "--patch-size", 32, "--scene-size", 64, "--real", tiles, "--name", "mixed", "--quiet")
+    assert code == 0, err
+    real = yaml.safe_load((tmp_path / "mixed" / "mixed.yaml").read_text())["trained_on"]["real_data"]
+    assert set(real) == {"patches"} and real["patches"]["per_batch"] == 1  # a quarter of a batch of 2, at least 1
     code, out, err = run_cli(capsys, "pretrain", "--out", tmp_path / "run2", "--steps", 1, "--config", cfg,
                              "--textures", tmp_path / "nowhere", "--quiet")
     assert code == 2 and "--textures" in err
+
+
+def test_real_patches_fill_their_share_of_each_batch_with_heights_and_no_labels(tmp_path: Path) -> None:
+    tiles = write_tile_folder(tmp_path / "tiles", size=64, counts={"train": 3, "val": 1, "test": 0})
+    stream = SyntheticStream(seed=2, batch_size=4, patch_size=32, scene_size=64, real=str(tiles), real_share=0.5)
+    assert stream.real_count() == 2
+    a, b = SyntheticBatches(stream, (127.0,) * 3, (128.0,) * 3, 4), SyntheticBatches(stream, (127.0,) * 3,
+                                                                                      (128.0,) * 3, 4)
+    x = a[1]
+    assert all(torch.equal(x[k], b[1][k]) for k in x)  # a function of (seed, step)
+    real_heights = x["height"][:2][x["height_valid"][:2]]
+    assert set(real_heights.unique().tolist()) <= {0.0, 4.0, 8.0}  # the toy tiles' heights
+    assert (x["classes"][:2] == 255).all() and (x["classes"][2:] != 255).any()  # labels of the other scheme unused
+    assert not (x["height"][2:] == 4.0).all()
+    with pytest.raises(InputError, match="--patch-size"):
+        SyntheticBatches(dataclasses.replace(stream, patch_size=96, scene_size=96), (127.0,) * 3, (128.0,) * 3, 2)
+    plain = dataclasses.replace(stream, real=None)
+    assert plain.real_count() == 0
