@@ -182,7 +182,7 @@ def test_textures_come_from_the_training_ground_of_a_tile_folder(tmp_path: Path)
     again = TexturePool.from_tile_folder(tiles, max_patches=64)
     assert np.array_equal(pool.patches, again.patches)  # seeded
     write_tile_folder(tmp_path / "no_heights", tasks=("classes",))
-    with pytest.raises(InputError, match="no height patches"):
+    with pytest.raises(InputError, match="need 8-bit RGB patches with heights"):
         TexturePool.from_tile_folder(tmp_path / "no_heights")
 
 

@@ -124,6 +124,39 @@ def read_raw_patch(root: Path, row: dict[str, str], num_bands: int, tasks: Seque
     return patch
 
 
+def read_rgb_heights(root: str | Path, split: str, what: str, param: str,
+                     min_side: int = 0) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray], float]:
+    """The ``split`` patches of a tile folder as 8-bit RGB with heights, for ``what`` (named in errors, as is the
+    option ``param``).
+
+    Returns:
+        ``(images, heights, valid, gsd)``: uint8 (3, S, S) (the first three bands), float32 (S, S) metres with NaN
+        where invalid, bool (S, S) where the image is valid, one per patch; the folder's pixel size in metres.
+
+    Raises:
+        InputError: not a tile folder, not 8-bit RGB with heights, patches smaller than ``min_side`` pixels, or no
+            patch in ``split``.
+    """
+    root = Path(root)
+    info = read_tile_info(root)
+    if info.num_bands < 3 or info.dtype not in (None, "uint8") or "height" not in info.tasks:
+        raise InputError(f"the tile folder '{root}' holds {info.num_bands}-band {info.dtype} patches with tasks "
+                         f"{list(info.tasks)}; {what} need 8-bit RGB patches with heights (tile an 8-bit RGB "
+                         "orthophoto with a DSM and DTM, or an nDSM)", param=param)
+    if info.patch_size < min_side:
+        raise InputError(f"the tile folder '{root}' has {info.patch_size} px patches, smaller than the "
+                         f"{min_side} px {what} need; pass --patch-size ≤ {info.patch_size}", param=param)
+    images, heights, valid = [], [], []
+    for row in read_manifest(root, split):
+        raw = read_raw_patch(root, row, info.num_bands, ("height",))
+        images.append(np.ascontiguousarray(raw.image[:3], np.uint8))
+        heights.append(raw.height if raw.height is not None else np.full(raw.image_valid.shape, np.nan, np.float32))
+        valid.append(raw.image_valid)
+    if not images:
+        raise InputError(f"the tile folder '{root}' has no '{split}' patches for {what}", param=param)
+    return images, heights, valid, float(info.gsd)
+
+
 def normalise_batch(
     image: torch.Tensor,
     image_valid: torch.Tensor,
@@ -225,5 +258,5 @@ class PatchDataset(torch.utils.data.Dataset[Sample]):
         return self.transform(sample) if self.transform is not None else sample
 
 
-__all__ = ["PatchDataset", "RawPatch", "read_raw_patch", "normalise_batch", "TileFolderInfo", "read_tile_info",
-           "read_manifest", "class_pixel_counts", "TASKS", "SPLITS"]
+__all__ = ["PatchDataset", "RawPatch", "read_raw_patch", "read_rgb_heights", "normalise_batch", "TileFolderInfo",
+           "read_tile_info", "read_manifest", "class_pixel_counts", "TASKS", "SPLITS"]

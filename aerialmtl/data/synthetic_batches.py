@@ -23,7 +23,7 @@ import torch
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.data.dataset import normalise_batch
 from aerialmtl.data.synth.textures import TexturePool
-from aerialmtl.errors import ConfigError, InputError
+from aerialmtl.errors import ConfigError
 
 #: The class scheme of the synthetic scenes (:mod:`aerialmtl.resources.classes`).
 SCHEME_NAME = "synthetic"
@@ -79,27 +79,10 @@ class RealPatches:
         Raises:
             InputError: not such a tile folder, or no such patch.
         """
-        from aerialmtl.data.dataset import read_raw_patch
-        from aerialmtl.formats.tiles import read_manifest, read_tile_info
+        from aerialmtl.data.dataset import read_rgb_heights
 
-        root = Path(folder)
-        info = read_tile_info(root)
-        if info.num_bands < 3 or info.dtype not in (None, "uint8") or "height" not in info.tasks:
-            raise InputError(f"the tile folder '{root}' holds {info.num_bands}-band {info.dtype} patches with tasks "
-                             f"{list(info.tasks)}; real patches for pretraining need 8-bit RGB with heights (tile an "
-                             "8-bit RGB orthophoto with a DSM and DTM or an nDSM)", param="real")
-        if info.patch_size < patch_size:
-            raise InputError(f"the tile folder '{root}' has {info.patch_size} px patches, smaller than the "
-                             f"pretraining's {patch_size} px; pass --patch-size ≤ {info.patch_size}", param="real")
-        images, heights, valid = [], [], []
-        for row in read_manifest(root, split):
-            raw = read_raw_patch(root, row, info.num_bands, ("height",))
-            if raw.height is not None:
-                images.append(np.ascontiguousarray(raw.image[:3], np.uint8))
-                heights.append(raw.height)
-                valid.append(raw.image_valid)
-        if not images:
-            raise InputError(f"the tile folder '{root}' has no '{split}' patches", param="real")
+        images, heights, valid, _ = read_rgb_heights(folder, split, "real patches for pretraining", "real",
+                                                     min_side=patch_size)
         return cls(images, heights, valid)
 
 

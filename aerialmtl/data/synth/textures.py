@@ -107,28 +107,11 @@ class TexturePool:
             InputError: not a tile folder, patches that are not 8-bit with ≥ 3 bands or have no heights, or
                 no patch with open ground.
         """
-        from aerialmtl.data.dataset import read_raw_patch
-        from aerialmtl.formats.tiles import read_manifest, read_tile_info
+        from aerialmtl.data.dataset import read_rgb_heights
 
-        root = Path(folder)
-        info = read_tile_info(root)
-        if info.num_bands < 3 or (info.dtype is not None and info.dtype != "uint8"):
-            raise InputError(f"the tile folder '{root}' holds {info.num_bands}-band {info.dtype} patches; textures "
-                             "need 8-bit RGB patches (tile an 8-bit RGB orthophoto)", param="textures")
-        if "height" not in info.tasks:
-            raise InputError(f"the tile folder '{root}' has no height patches; textures are cut where the nDSM is "
-                             "near 0: tile it with a DSM and DTM (or an nDSM)", param="textures")
-        rows = read_manifest(root, split)
-        if not rows:
-            raise InputError(f"the tile folder '{root}' has no '{split}' patches", param="textures")
-        images, ndsms = [], []
-        for row in rows:
-            raw = read_raw_patch(root, row, info.num_bands, ("height",))
-            assert raw.height is not None
-            images.append(np.asarray(raw.image[:3], np.uint8))
-            ndsms.append(raw.height)
-        return cls._pick(images, ndsms, info.gsd, patch_px, max_height, max_patches, share, seed,
-                         f"of the {split} split of '{root}'")
+        images, ndsms, _, gsd = read_rgb_heights(folder, split, "textures", "textures")
+        return cls._pick(images, ndsms, gsd, patch_px, max_height, max_patches, share, seed,
+                         f"of the {split} split of '{folder}'")
 
     @classmethod
     def from_files(cls, ortho: str | Path, ndsm: str | Path, gsd: float | None = None, **kwargs: float) -> TexturePool:
