@@ -22,6 +22,7 @@ import torch
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.data.dataset import normalise_batch
+from aerialmtl.data.synth.city_canvas import GROUND_ROOFS
 from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.errors import ConfigError
 
@@ -45,7 +46,7 @@ class SyntheticScene:
 
 
 def synthetic_scene(seed: int, index: int, size: int, gsd: float,
-                    textures: TexturePool | None = None, ground_roofs: float = 0.65) -> SyntheticScene:
+                    textures: TexturePool | None = None, ground_roofs: float = GROUND_ROOFS) -> SyntheticScene:
     """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres), its surfaces
     drawn in part with ``textures`` (the user's own ground) when given, ``ground_roofs`` of its flat roofs in a
     ground material (:attr:`~aerialmtl.data.synth.style.CityStyle.ground_roofs`).
@@ -101,7 +102,8 @@ class SyntheticStream:
         textures: a tile folder (``aerialmtl tile``) whose training patches lend their open ground's look to
             the scenes' surfaces (:meth:`TexturePool.from_tile_folder`); ``None``: the generator's own materials.
         texture_share: probability that a surface is drawn with one of those textures.
-        ground_roofs: probability that a flat roof is drawn in a ground material (the generator's default 0.65).
+        ground_roofs: probability that a flat roof is drawn in a ground material (the generator's default
+            :data:`~aerialmtl.data.synth.city_canvas.GROUND_ROOFS`).
         real: a tile folder whose training patches (orthophoto and nDSM; no labels: their classes are another
             scheme's) fill ``real_share`` of every batch, cropped at random places, quarter turns and flips;
             ``None``: synthetic scenes only.
@@ -117,7 +119,7 @@ class SyntheticStream:
     scene_reuse: int = 4
     textures: str | None = None
     texture_share: float = 0.5
-    ground_roofs: float = 0.65
+    ground_roofs: float = GROUND_ROOFS
     real: str | None = None
     real_share: float = 0.25
 
@@ -210,12 +212,11 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
         for i in range(s.batch_size):
             if i < n_real:
                 assert self.real is not None
-                pick = np.random.default_rng([s.seed, 0x4EA1, step, i])
-                j = int(pick.integers(len(self.real.images)))
+                rng = np.random.default_rng([s.seed, 0x4EA1, step, i])
+                j = int(rng.integers(len(self.real.images)))
                 shape = self.real.heights[j].shape
                 src = (self.real.images[j], self.real.heights[j], np.full(shape, IGNORE_INDEX, np.uint8),
                        self.real.valid[j])
-                rng = pick
             else:
                 scene = self.scene(s.scene_of(step, i))
                 src = (scene.image, scene.height, scene.classes, np.ones(scene.height.shape, bool))

@@ -31,6 +31,7 @@ from aerialmtl.data.synth.city_canvas import (
     ASPHALT,
     CONCRETE,
     GRASS,
+    GROUND_ROOFS,
     MARKING,
     TEXTURE,
     WATER_M,
@@ -136,7 +137,8 @@ def _streets(cv: CityCanvas, rng: np.random.Generator, lines_u: list[tuple[float
 
 
 def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: np.random.Generator,
-               texture: TextureFn | None = None, ground_roofs: float = 0.65) -> tuple[CityCanvas, dict[str, int]]:
+               texture: TextureFn | None = None,
+               ground_roofs: float = GROUND_ROOFS) -> tuple[CityCanvas, dict[str, int]]:
     """Plan and draw a city on a ``size`` × ``size`` canvas of ``gsd`` metres.
 
     Args:

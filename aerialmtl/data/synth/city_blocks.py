@@ -25,6 +25,7 @@ from aerialmtl.data.synth.city_canvas import (
     GRAVEL,
     GREEN_ROOF,
     GROUND_LIKE,
+    GROUND_ROOFS,
     MARKING,
     METAL,
     ROOF_OTHER,
@@ -35,6 +36,7 @@ from aerialmtl.data.synth.city_canvas import (
     TREE_GREENS,
     TREE_MAX,
     WATER_M,
+    YARD_ROOFS,
     CityCanvas,
     Rgb,
     jitter,
@@ -61,7 +63,7 @@ class Blocks:
     """Draws block contents on ``canvas`` with the layout generator ``rng`` (textures from ``tex_rng``)."""
 
     def __init__(self, canvas: CityCanvas, rng: np.random.Generator, tex_rng: np.random.Generator,
-                 bumps: np.ndarray, ground_roofs: float = 0.65) -> None:
+                 bumps: np.ndarray, ground_roofs: float = GROUND_ROOFS) -> None:
         self.cv, self.rng, self.tex_rng, self.bumps = canvas, rng, tex_rng, bumps
         self.ground_roofs = ground_roofs
 
@@ -82,7 +84,7 @@ class Blocks:
     def flat_roof(self, yard: Ground) -> tuple[int, Rgb, bool]:
         """(material, colour, textured) of a flat roof; often the yard's own look or another ground's."""
         roll = self.rng.random()
-        if roll < self.ground_roofs * (0.35 / 0.65):
+        if roll < self.ground_roofs * (YARD_ROOFS / GROUND_ROOFS):
             return yard.material, jitter(self.rng, yard.rgb, 5.0), True
         if roll < self.ground_roofs:
             mat, _, rgb = GROUND_LIKE[int(self.rng.integers(len(GROUND_LIKE)))]

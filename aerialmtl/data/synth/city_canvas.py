@@ -34,6 +34,10 @@ GROUND_LIKE = (
     (GRAVEL, BARE_SOIL, (160, 150, 135)), (GRAVEL, BARE_SOIL, (132, 124, 112)),
     (GRASS, LOW_VEGETATION, (96, 128, 62)), (SOIL, BARE_SOIL, (150, 122, 88)),
 )
+#: probability that a flat roof is drawn in a ground material (:attr:`CityStyle.ground_roofs`' default) and, of all
+#: flat roofs at that default, the share drawn in their own yard's look (the rest of the ground-like ones in another
+#: ground's); another ``ground_roofs`` scales both alike
+GROUND_ROOFS, YARD_ROOFS = 0.65, 0.35
 #: roofs that do not look like ground
 ROOF_OTHER = ((MEMBRANE, (205, 205, 200)), (METAL, (150, 152, 156)), (DARK, (62, 62, 68)), (METAL, (110, 128, 140)),
               (MEMBRANE, (185, 180, 168)))

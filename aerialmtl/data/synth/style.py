@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from aerialmtl.data.synth.city_canvas import GROUND_ROOFS
 from aerialmtl.errors import InputError
 
 
@@ -92,7 +93,7 @@ class CityStyle:
     gamma: tuple[float, float] = (0.8, 1.25)
     jpeg: float = 0.5
     jpeg_quality: tuple[int, int] = (40, 95)
-    ground_roofs: float = 0.65
+    ground_roofs: float = GROUND_ROOFS
 
     def __post_init__(self) -> None:
         _check_range("sun_elevation", *self.sun_elevation, 1.0, 90.0)
