@@ -217,6 +217,10 @@ def test_pretrain_with_textures_records_them_in_the_card(tmp_path: Path, capsys:
     real = yaml.safe_load((tmp_path / "mixed" / "mixed.yaml").read_text())["trained_on"]["real_data"]
     assert set(real) == {"patches"} and real["patches"]["per_batch"] == 1  # a quarter of a batch of 2, at least 1
     assert "own licence" in yaml.safe_load((tmp_path / "mixed" / "mixed.yaml").read_text())["meta"]["license"]
+    code, out, err = run_cli(capsys, "pretrain", "--out", tmp_path / "run3", "--steps", 1, "--config", cfg,
+                             "--real-share", 0.5, "--quiet")
+    assert code == 2 and "--real-share applies to the tile folder of --real" in err  # not silently ignored
+    assert not (tmp_path / "run3").exists()
     code, out, err = run_cli(capsys, "pretrain", "--out", tmp_path / "run2", "--steps", 1, "--config", cfg,
                              "--textures", tmp_path / "nowhere", "--quiet")
     assert code == 2 and "--textures" in err

@@ -41,13 +41,13 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
         help="Tile folder (from `aerialmtl tile`) whose training patches lend the look of their open ground (nDSM "
              "≤ 0.5 m) to the synthetic roofs and ground: scenes restyled like your area, where a roof may look "
              "exactly like your ground [default: the generator's own materials].")
-@option("--texture-share", type=float, default=0.5, show_default=True,
-        help="With --textures: probability that a surface wears one of your textures.")
+@option("--texture-share", type=float, default=None,
+        help="With --textures: probability that a surface wears one of your textures [default: 0.5].")
 @option("--real", "real", type=click.Path(file_okay=False, exists=True, path_type=Path), default=None,
         help="Tile folder (from `aerialmtl tile`) whose training patches (orthophoto and nDSM; not their labels) "
              "fill --real-share of every batch beside the synthetic scenes [default: synthetic scenes only].")
-@option("--real-share", type=float, default=0.25, show_default=True,
-        help="With --real: share of each batch's patches that are real.")
+@option("--real-share", type=float, default=None,
+        help="With --real: share of each batch's patches that are real [default: 0.25].")
 @option("--ground-roofs", type=float, default=0.65, show_default=True,
         help="Probability that a synthetic flat roof is drawn in a ground material (asphalt, gravel, concrete, "
              "planted): the roofs that look like the ground around them.")
@@ -61,7 +61,8 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
 def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_every: int, name: str,
              seed: int | None, batch_size: int | None, workers: int | None, patch_size: int, scene_size: int,
              gsd_range: tuple[float, float], scenes_per_step: int, scene_reuse: int, textures: Path | None,
-             texture_share: float, real: Path | None, real_share: float, ground_roofs: float, export_dtype: str,
+             texture_share: float | None, real: Path | None, real_share: float | None, ground_roofs: float,
+             export_dtype: str,
              resume: bool, device: str | None, precision: str | None, overwrite: bool, quiet: bool) -> None:
     """Pretrain the small-area recipe's network on synthetic cities generated on the fly (nothing downloaded,
     nothing written but the run folder), then export a start that `aerialmtl train --init` fine-tunes.
@@ -81,6 +82,12 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
     if resume and overwrite:
         raise click.BadParameter("--resume continues a run and --overwrite starts it again; pass only one",
                                  param_hint="--resume/--overwrite")
+    for share, folder, names in ((texture_share, textures, ("--texture-share", "--textures")),
+                                 (real_share, real, ("--real-share", "--real"))):
+        if share is not None and folder is None:
+            raise click.BadParameter(f"{names[0]} applies to the tile folder of {names[1]}; pass {names[1]} TILES "
+                                     f"too, or leave {names[0]} out", param_hint=names[0])
+    stock = SyntheticStream()
     if config_path is None:
         config_path = out_dir / CONFIG_YAML if resume else DEFAULT_CONFIG
     cfg = load_train_config(config_path)
@@ -96,9 +103,11 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
                                                        gsd_range=gsd_range, scenes_per_step=scenes_per_step,
                                                        scene_reuse=scene_reuse,
                                                        textures=None if textures is None else str(textures.resolve()),
-                                                       texture_share=texture_share, ground_roofs=ground_roofs,
+                                                       texture_share=stock.texture_share if texture_share is None
+                                                       else texture_share, ground_roofs=ground_roofs,
                                                        real=None if real is None else str(real.resolve()),
-                                                       real_share=real_share))
+                                                       real_share=stock.real_share if real_share is None
+                                                       else real_share))
     res = run_pretrain(cfg, out_dir, settings, resume=resume, overwrite=overwrite, progress=not quiet,
                        command=shlex.join(["aerialmtl", *sys.argv[1:]]))
     per_step = res.elapsed_s / res.steps_this_call if res.steps_this_call else float("nan")
