@@ -1,0 +1,200 @@
+"""Host overhead of the training loop per step: ``aerialmtl train`` with a near-null model vs its bare step.
+
+The D3-Net is replaced by a near-null network (one 1×1 convolution from the bands to the outputs: a few
+dozen parameters), so what is left of a step's time is the loop around the model: the loader (patch cache
+gather, augmentation parameters, workers), the transfer to the device, the augmentation there, the losses,
+the optimiser, the weight average (``--ema``), the learning-rate schedule, the loss window, logging and the
+per-epoch checkpoints. The loop runs through :func:`aerialmtl.training.loop.train` (the library call behind
+``aerialmtl train``), on a tile folder of 320² patches cut from a synthetic town (made once under
+``--workdir``); its ms/step is read from the run's own ``log.csv`` (``time_s`` of the ``train`` rows, the
+first row excluded as warm-up).
+
+The bare step is the same near-null network's forward + losses + weighting + backward + Adam
+(:class:`~aerialmtl.training.setup.StepModule`) on one batch already on the device: what no loop can avoid.
+
+    python bench/train_overhead.py                       # batch 32, 320² patches, 2 workers, 60 steps
+    python bench/train_overhead.py --workers 0 --steps 40 --ema 0.99 --device cpu
+    python bench/train_overhead.py --profile             # cProfile of the loop's main process (top 25)
+
+Speed only: the run folder and its weights are thrown away.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+
+
+class NullNet(nn.Module):
+    """A 1×1 convolution from the input bands to every output D3-Net has for ``cfg`` (same keys and shapes)."""
+
+    def __init__(self, cfg: Any) -> None:
+        super().__init__()
+        self.tasks = tuple(cfg.tasks)
+        self.k = int(cfg.num_classes or 0) if "classes" in self.tasks else 0
+        self.aleatoric = bool(getattr(cfg, "aleatoric", False))
+        out = (2 if self.aleatoric else 1) * ("height" in self.tasks) + self.k
+        self.conv = nn.Conv2d(int(cfg.in_channels), out, 1)
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        y = self.conv(x)
+        out: dict[str, torch.Tensor] = {}
+        i = 0
+        if "height" in self.tasks:
+            out["height"] = y[:, :1]
+            i = 1
+            if self.aleatoric:
+                out["height_scale"] = nn.functional.softplus(y[:, 1:2]) + 1e-3
+                i = 2
+        if self.k:
+            out["classes"] = y[:, i:i + self.k]
+        return out
+
+
+def make_tiles(workdir: Path, town_px: int, stride: int) -> Path:
+    """A synthetic town of ``town_px``² at 0.25 m tiled into 320² patches at ``stride`` (train split only)."""
+    from aerialmtl.data.synth import synthesize
+    from aerialmtl.tiling.splits import SplitSpec
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
+
+    tiles = workdir / f"tiles_{town_px}_{stride}"
+    if (tiles / "dataset.yaml").is_file():
+        return tiles
+    town = synthesize(workdir / f"town_{town_px}", size=town_px, seed=3, gsd=0.25, overwrite=True)
+    tile_dataset(
+        town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, overwrite=True, progress=False,
+        options=TileOptions(size=320, stride=stride, splits=SplitSpec(block_size=160.0, ratios=(1.0, 0.0, 0.0),
+                                                                      seed=0)),
+    )
+    return tiles
+
+
+def config(args: argparse.Namespace, tiles: Path) -> Any:
+    from aerialmtl.training.config import load_train_config
+
+    cfg = load_train_config(ROOT / args.config)
+    return cfg.with_overrides(
+        model={"num_classes": None},
+        data={"batch_size": args.batch, "num_workers": args.workers, "dir": str(tiles)},
+        optim={"ema": args.ema},
+        schedule={"max_steps": args.steps, "epochs": 10_000, "log_every": args.log_every,
+                  "lr_schedule": args.lr_schedule, "warmup_steps": args.warmup},
+        calibration={"enabled": False}, familiarity={"enabled": False},
+        device=args.device, precision="fp32" if args.device == "cpu" else "auto", seed=0)
+
+
+def loop_ms(args: argparse.Namespace, tiles: Path) -> tuple[float, int, int]:
+    """ms/step of ``train`` with the near-null model (from log.csv), the steps timed, steps per epoch."""
+    import aerialmtl.models.d3net as d3net
+    from aerialmtl.training.loop import train
+
+    real = d3net.D3Net
+    d3net.D3Net = NullNet  # type: ignore[misc,assignment]
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            cfg = config(args, tiles)
+            run = Path(tmp) / "run"
+            if args.profile:
+                import cProfile
+                import pstats
+
+                prof = cProfile.Profile()
+                prof.enable()
+            result = train(cfg, out_dir=run, progress=False)
+            if args.profile:
+                prof.disable()
+                pstats.Stats(prof).sort_stats("cumulative").print_stats(25)
+            with open(run / "log.csv", newline="", encoding="utf-8") as fh:
+                rows = [r for r in csv.DictReader(fh) if r["kind"] == "train"]
+    finally:
+        d3net.D3Net = real  # type: ignore[misc]
+    (s0, t0), (s1, t1) = [(int(r["step"]), float(r["time_s"])) for r in (rows[0], rows[-1])]
+    from aerialmtl.formats.tiles import read_manifest
+
+    per_epoch = len(read_manifest(tiles, "train")) // args.batch
+    assert result.step == args.steps
+    return 1000 * (t1 - t0) / (s1 - s0), s1 - s0, per_epoch
+
+
+def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> float:
+    """ms/step of the near-null model's step alone on one batch already on the device."""
+    from aerialmtl.formats.tiles import TileFolderInfo
+    from aerialmtl.training.objective import Objective
+    from aerialmtl.training.setup import StepModule, build_optimizer
+    from aerialmtl.training.weighting import build_weighting
+
+    cfg = config(args, tiles)
+    info = TileFolderInfo.read(tiles)
+    k = info.classes.num_classes if info.classes is not None else None
+    model_cfg = cfg.model.resolve(info.num_bands, info.tasks, k)
+    device = torch.device("cuda" if args.device in ("cuda", "auto") and torch.cuda.is_available() else "cpu")
+    model = NullNet(model_cfg).to(device).to(memory_format=torch.channels_last)
+    weighting = build_weighting(cfg.weighting.method, list(model_cfg.tasks)).to(device)
+    opt = build_optimizer(cfg.optim, model, weighting)
+    step = StepModule(model, weighting, Objective(cfg, tuple(model_cfg.tasks), None), device, "fp32")
+    b, s = args.batch, 320
+    g = torch.Generator().manual_seed(0)
+    batch = {"image": torch.randn(b, info.num_bands, s, s, generator=g).to(device)
+             .contiguous(memory_format=torch.channels_last),
+             "height": (torch.rand(b, 1, s, s, generator=g) * 20).to(device),
+             "height_valid": torch.ones(b, 1, s, s, dtype=torch.bool, device=device)}
+    if k:
+        batch["classes"] = torch.randint(0, k, (b, s, s), generator=g).to(device)
+    times = []
+    for i in range(steps + 3):
+        t = time.perf_counter()
+        total, _ = step(batch)
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        if i >= 3:
+            times.append(time.perf_counter() - t)
+    return 1000 * sum(times) / len(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default="configs/d3net_dfc2018.yaml")
+    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--log-every", type=int, default=10)
+    ap.add_argument("--ema", type=float, default=None)
+    ap.add_argument("--lr-schedule", default="constant", choices=("constant", "cosine"))
+    ap.add_argument("--warmup", type=int, default=0)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--town", type=int, default=3072, help="synthetic town side (px); tiled 320 at --stride")
+    ap.add_argument("--stride", type=int, default=160)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--workdir", default=os.environ.get("AERIALMTL_BENCH_DIR", "/tmp/aerialmtl-bench"))
+    ap.add_argument("--profile", action="store_true", help="cProfile the loop's main process")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    tiles = make_tiles(Path(args.workdir), args.town, args.stride)
+    ms, timed, per_epoch = loop_ms(args, tiles)
+    bare = bare_ms(args, tiles, min(timed, 20))
+    load = " ".join(Path("/proc/loadavg").read_text().split()[:3]) if Path("/proc/loadavg").exists() else "?"
+    print(f"train loop, near-null model: {ms:.1f} ms/step over {timed} steps ({per_epoch} steps/epoch; batch "
+          f"{args.batch} of 320², {args.workers} workers, ema {args.ema}, {args.device}, torch threads "
+          f"{torch.get_num_threads()})")
+    print(f"bare step, near-null model:  {bare:.1f} ms/step")
+    print(f"loop overhead:               {ms - bare:.1f} ms/step   (load {load})")
+
+
+if __name__ == "__main__":
+    main()
