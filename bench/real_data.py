@@ -294,7 +294,7 @@ def mixed_view(tdir: Path, synth_tiles: Path, real_share: float) -> tuple[Path, 
 
 
 def pretrained_checkpoint(recipe: Recipe, args: argparse.Namespace) -> tuple[Path, dict[str, Any]]:
-    """Run (once, cached by its settings) the recipe's synthetic pretraining; returns ``best.pt`` and a record."""
+    """Run (once, cached by its settings) the recipe's synthetic pretraining; returns its start and a record."""
     from real_data_recipes import PretrainSettings, pretrain_synthetic
 
     p = dict(recipe.pretrain or {})
@@ -306,7 +306,7 @@ def pretrained_checkpoint(recipe: Recipe, args: argparse.Namespace) -> tuple[Pat
     pdir = args.out / key
     record_file = pdir / "pretrain.json"
     if record_file.is_file():
-        return pdir / "run" / "best.pt", json.loads(record_file.read_text())
+        return pdir / "run" / "synthetic-start.pt", json.loads(record_file.read_text())
     side = cfg.data.crop_size or settings.patch
     steps = max(1, round(budget * 1e6 / (cfg.data.batch_size * side * side)))
     cfg = cfg.with_overrides(data={"num_workers": args.workers}, schedule={"val_every": 1})
@@ -315,7 +315,7 @@ def pretrained_checkpoint(recipe: Recipe, args: argparse.Namespace) -> tuple[Pat
                              progress=not args.quiet, log=print)
     record = {"settings": asdict(settings), "config": config, "budget_mpx": budget, "steps": res.train.step,
               "train_s": res.train.elapsed_s, "total_s": time.perf_counter() - t0, "patches": res.patches,
-              "val": res.train.metrics, "load_start": load0, "load_end": os.getloadavg()}
+              "last_loss": res.train.loss, "load_start": load0, "load_end": os.getloadavg()}
     record_file.write_text(json.dumps(record, indent=1, default=float))
     return res.checkpoint, record
 

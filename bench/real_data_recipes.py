@@ -12,8 +12,9 @@ benchmark that tried them, rather than in the package.
   ``seed + 1``, ...) on a grid in one CRS with ``gap_px`` empty pixels between neighbours, and one mosaic
   VRT per layer, so that ``tile_dataset(ortho.vrt, ndsm=ndsm.vrt, labels=labels.vrt, ...)`` cuts them all
   in one pass (the orthophoto mosaic declares nodata 0; gaps at least a patch wide keep towns apart);
-* :func:`pretrain_synthetic` — corpus → tiles (block split, 90 % train / 10 % val) → a training run whose
-  ``best.pt`` starts a fine-tuning run on the real area (``train --init``).
+* :func:`pretrain_synthetic` — the product's pretraining (:func:`aerialmtl.training.pretrain.pretrain`: scenes made
+  on the fly at the real area's GSD) whose exported start begins a fine-tuning run on the real area
+  (``train --init``).
 """
 
 from __future__ import annotations
@@ -35,10 +36,8 @@ from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.tiles import HEIGHT_NODATA, read_manifest
 from aerialmtl.io.units import metres_per_unit
 from aerialmtl.io.vrt import mosaic_vrt
-from aerialmtl.tiling.splits import SplitSpec
-from aerialmtl.tiling.tile import TileOptions, tile_dataset
+from aerialmtl.training import pretrain as product_pretrain
 from aerialmtl.training.config import TrainConfig
-from aerialmtl.training.loop import TrainResult, train
 
 # ---- height-stratified sampling --------------------------------------------------------------------
 #: Largest slope ``a`` of the weights: a patch full of tall pixels is drawn at most this + 1 times as often.
@@ -246,13 +245,15 @@ class PretrainSettings:
 
 @dataclass(frozen=True)
 class PretrainResult:
-    """Where the corpus, tiles and run went; ``checkpoint`` is the run's ``best.pt``."""
+    """Where the run went; ``checkpoint`` is its exported start (``corpus`` and ``tiles``: the run folder, the
+    scenes are made on the fly; ``patches`` empty).
+    """
 
     out_dir: Path
     corpus: Path
     tiles: Path
     checkpoint: Path
-    train: TrainResult
+    train: product_pretrain.PretrainResult
     patches: dict[str, int]
 
 
@@ -267,7 +268,9 @@ def pretrain_synthetic(
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> PretrainResult:
-    """Synthesise ``settings.towns`` towns, tile them and train ``cfg`` on them from scratch.
+    """Pretrain ``cfg``'s network from scratch with the product's ``pretrain`` (``settings.towns``,
+    ``stride``, ``crs``, ``seed`` and ``val_fraction`` no longer apply: scenes of ``town_size`` px are made on the
+    fly; ``max_time_s`` is not a pretraining budget and is ignored).
 
     Args:
         out_dir: output folder (``corpus/``, ``tiles/``, ``run/``).
@@ -285,29 +288,16 @@ def pretrain_synthetic(
         OutputExistsError: ``out_dir`` holds a previous pretraining and ``overwrite`` is False.
         InputError, ConfigError: bad settings (messages name the parameter).
     """
+    from aerialmtl.data.synthetic_batches import SyntheticStream
+
     out = Path(out_dir)
     say = log or (lambda _msg: None)
-    run_dir = out / "run"
-    if run_dir.is_dir() and any(run_dir.iterdir()) and not overwrite:
-        raise OutputExistsError(f"'{out}' already holds a pretraining run; pass ‹overwrite=True› or choose another "
-                                "‹out_dir›")
     s = settings
-    say(f"synthesising {s.towns} towns of {s.town_size} px at {s.gsd:g} m")
-    corpus = synthesize_corpus(out / "corpus", towns=s.towns, size=s.town_size, gsd=s.gsd, seed=s.seed, crs=s.crs,
-                               gap_px=s.patch, overwrite=overwrite)
-    stride = s.stride or s.patch // 2
-    say(f"tiling into {s.patch}-px patches every {stride} px")
-    split = SplitSpec(method="blocks", block_size=s.town_size * s.gsd / 4,
-                      ratios=(1 - s.val_fraction, s.val_fraction, 0), seed=s.seed)
-    tiles = tile_dataset(
-        corpus.ortho, out / "tiles", ndsm=corpus.ndsm, labels=corpus.labels, classes=corpus.classes,
-        overwrite=overwrite, progress=progress, options=TileOptions(size=s.patch, stride=stride, splits=split),
-    )
-    say(f"training on {tiles.counts['train']} patches (val {tiles.counts['val']})")
-    if run_dir.is_dir() and overwrite:
-        for child in run_dir.iterdir():
-            if child.is_file():
-                child.unlink()
-    result = train(cfg, data_dir=out / "tiles", out_dir=run_dir, max_steps=max_steps, max_time_s=max_time_s,
-                   progress=progress)
-    return PretrainResult(out, corpus.out_dir, out / "tiles", result.best_checkpoint, result, dict(tiles.counts))
+    steps = max_steps or cfg.schedule.max_steps or 1
+    say(f"pretraining {steps} steps on {s.town_size}-px scenes at {s.gsd:g} m made on the fly (aerialmtl pretrain)")
+    stream = SyntheticStream(patch_size=s.patch, scene_size=s.town_size, gsd_range=(s.gsd, s.gsd))
+    cfg = cfg.with_overrides(schedule={"patience": None, "max_time_s": None})  # no validation split there
+    start = product_pretrain.PretrainSettings(steps=steps, name="synthetic-start", stream=stream)
+    result = product_pretrain.pretrain(cfg, out / "run", start, overwrite=overwrite, progress=progress)
+    return PretrainResult(out, out / "run", out / "run", result.start, result, {})
+
