@@ -16,6 +16,9 @@ The bare step is the same near-null network's forward + losses + weighting + bac
     python bench/train_overhead.py --workers 0 --steps 40 --ema 0.99 --device cpu
     python bench/train_overhead.py --profile             # cProfile of the loop's main process (top 25)
 
+It also prints the data path's CPU time per batch on one thread (what each DataLoader worker spends): on a CPU
+run the workers share the cores with the step, so that time is host overhead the loop cannot hide there.
+
 Speed only: the run folder and its weights are thrown away.
 """
 
@@ -166,6 +169,40 @@ def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> float:
     return 1000 * sum(times) / len(times)
 
 
+def data_parts_ms(args: argparse.Namespace, tiles: Path, batches: int = 5) -> dict[str, float]:
+    """CPU ms per batch of the data path's parts, one thread (what a DataLoader worker does on a CPU run):
+    gathering the patches out of the cache with their augmentation parameters, and finishing the batch
+    (flips/rot90, normalisation, jitter).
+    """
+    from aerialmtl.data.batches import CachedBatches, EpochOrder, prepare_batch
+    from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+    from aerialmtl.data.transforms import build_train_transform
+    from aerialmtl.formats.tiles import TileFolderInfo, cache_dir
+
+    cfg = config(args, tiles)
+    info = TileFolderInfo.read(tiles)
+    index = ensure_patch_cache(info, "train")
+    transform = build_train_transform(cfg.data.flips, cfg.data.rot90, cfg.data.jitter, cfg.data.crop_size)
+    mean, std = torch.tensor(info.mean), torch.tensor(info.std)
+    ds = CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks)
+    specs = EpochOrder(index.count, args.batch, 0).batches(0, 0, 0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    gather, finish = [], []
+    try:
+        for _ in range(batches):
+            spec = next(specs)
+            t = time.process_time()
+            raw = ds[spec]
+            t1 = time.process_time()
+            prepare_batch(raw, transform, mean, std, torch.device("cpu"))
+            gather.append(t1 - t)
+            finish.append(time.process_time() - t1)
+    finally:
+        torch.set_num_threads(threads)
+    return {"gather": 1000 * sorted(gather)[len(gather) // 2], "finish": 1000 * sorted(finish)[len(finish) // 2]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--config", default="configs/d3net_dfc2018.yaml")
@@ -194,6 +231,9 @@ def main() -> None:
           f"{torch.get_num_threads()})")
     print(f"bare step, near-null model:  {bare:.1f} ms/step")
     print(f"loop overhead:               {ms - bare:.1f} ms/step   (load {load})")
+    parts = data_parts_ms(args, tiles)
+    print(f"data path, CPU time per batch on one thread (a worker's share): gather {parts['gather']:.1f} ms, "
+          f"flips/rot90/normalise/jitter {parts['finish']:.1f} ms")
 
 
 if __name__ == "__main__":
