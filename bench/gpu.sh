@@ -5,8 +5,10 @@
 #   1. predict, full D3-Net (DenseNet-121, 20 classes, untrained), 8192² synthetic orthophoto, through the CLI,
 #      T = 1 and T = 30, end to end (wall time, prediction.json stage timings) against the model alone
 #      (bench/predict.py --speed on 2048², its model-only Mpx/s);
-#   2. training samples/s of the model step (bench/train.py: forward + backward + Adam, fp32 and bf16),
-#      eager and torch.compile;
+#   2. training: the real training loop (bench/train_loop.py: `aerialmtl train`'s library call, the paper config,
+#      batch 8, on a synthetic town tiled 320/160) — its samples/s, the model step alone at the same batch and
+#      precision, the GPU's busy share (nvidia-smi every 250 ms, over the training steps), memory, and the
+#      seconds of validation and calibration; and the model step under torch.compile (bench/train.py --compile);
 #   3. the GPU, driver, torch version and the load of the machine next to every number.
 # Each step has its own time limit so that the whole script ends within ~8 minutes; a step that runs out
 # of time is recorded as such. Run from the repository root: `bash bench/gpu.sh`.
@@ -68,8 +70,8 @@ step 60 "model alone: full D3-Net, 2048², T=1 (bench/predict.py --speed, precis
   "$PY" bench/predict.py --speed --size 2048 --precisions auto --tmp "$TMP"
 step 60 "predict 8192², T=1, end to end (CLI, --device cuda, defaults)" predict_case 1
 step 150 "predict 8192², T=30, end to end (CLI, --device cuda, defaults)" predict_case 30
-step 60 "train model step, eager: samples/s (bench/train.py, fp32 and bf16)" \
-  "$PY" bench/train.py --device cuda --steps 10 --full-steps 10
-step 90 "train model step, torch.compile: samples/s (bench/train.py --compile)" \
+step 140 "train loop vs model step alone, GPU busy share, memory (bench/train_loop.py, paper config, batch 8)" \
+  "$PY" bench/train_loop.py --device cuda --town 2048 --steps 200 --workdir "$TMP/trainloop"
+step 40 "train model step, torch.compile: samples/s (bench/train.py --compile)" \
   "$PY" bench/train.py --device cuda --steps 10 --full-steps 10 --compile
 echo "results: $OUT"

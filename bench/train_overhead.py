@@ -6,8 +6,9 @@ gather, augmentation parameters, workers), the transfer to the device, the augme
 the optimiser, the weight average (``--ema``), the learning-rate schedule, the loss window, logging and the
 per-epoch checkpoints. The loop runs through :func:`aerialmtl.training.loop.train` (the library call behind
 ``aerialmtl train``), on a tile folder of 320² patches cut from a synthetic town (made once under
-``--workdir``); its ms/step is read from the run's own ``log.csv`` (``time_s`` of the ``train`` rows, the
-first row excluded as warm-up).
+``--workdir``); its ms/step is timed between the starts of its steps (the first ``--warmup`` excluded), as wall
+time and as CPU time of the main process and its DataLoader workers (CPU time barely depends on what else runs
+on a shared machine; wall time does).
 
 The bare step is the same near-null network's forward + losses + weighting + backward + Adam
 (:class:`~aerialmtl.training.setup.StepModule`) on one batch already on the device: what no loop can avoid.
@@ -25,7 +26,6 @@ Speed only: the run folder and its weights are thrown away.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 import tempfile
@@ -98,41 +98,68 @@ def config(args: argparse.Namespace, tiles: Path) -> Any:
         device=args.device, precision="fp32" if args.device == "cpu" else "auto", seed=0)
 
 
-def loop_ms(args: argparse.Namespace, tiles: Path) -> tuple[float, int, int]:
-    """ms/step of ``train`` with the near-null model (from log.csv), the steps timed, steps per epoch."""
+def _children_cpu_s() -> float:
+    """CPU seconds (user + system) of this process's live children (the DataLoader workers), from /proc."""
+    import multiprocessing
+
+    ticks = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for child in multiprocessing.active_children():
+        try:
+            fields = Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / ticks
+    return total
+
+
+def loop_ms(args: argparse.Namespace, tiles: Path) -> tuple[float, float, int, int]:
+    """Wall and CPU (main process + workers) ms per step of ``train`` with the near-null model, over the steps
+    after the first ``--warmup``; the steps timed; steps per epoch.
+    """
     import aerialmtl.models.d3net as d3net
+    from aerialmtl.formats.tiles import read_manifest
     from aerialmtl.training.loop import train
 
-    real = d3net.D3Net
+    try:
+        from aerialmtl.training.steploop import StepLoop
+    except ImportError:  # before the shared loop (to measure an older version)
+        from aerialmtl.training.trainer import Trainer as StepLoop  # type: ignore[assignment]
+
+    real, real_step = d3net.D3Net, StepLoop.train_step
+    stamps: list[tuple[float, float]] = []
+
+    def stamped(self: Any, batch: dict[str, torch.Tensor]) -> Any:
+        stamps.append((time.perf_counter(), time.process_time() + _children_cpu_s()))
+        return real_step(self, batch)
+
     d3net.D3Net = NullNet  # type: ignore[misc,assignment]
+    StepLoop.train_step = stamped  # type: ignore[method-assign]
     try:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = config(args, tiles)
-            run = Path(tmp) / "run"
             if args.profile:
                 import cProfile
                 import pstats
 
                 prof = cProfile.Profile()
                 prof.enable()
-            result = train(cfg, out_dir=run, progress=False)
+            result = train(cfg, out_dir=Path(tmp) / "run", progress=False)
             if args.profile:
                 prof.disable()
-                pstats.Stats(prof).sort_stats("cumulative").print_stats(25)
-            with open(run / "log.csv", newline="", encoding="utf-8") as fh:
-                rows = [r for r in csv.DictReader(fh) if r["kind"] == "train"]
+                pstats.Stats(prof).sort_stats("tottime").print_stats(25)
     finally:
-        d3net.D3Net = real  # type: ignore[misc]
-    (s0, t0), (s1, t1) = [(int(r["step"]), float(r["time_s"])) for r in (rows[0], rows[-1])]
-    from aerialmtl.formats.tiles import read_manifest
-
-    per_epoch = len(read_manifest(tiles, "train")) // args.batch
+        d3net.D3Net, StepLoop.train_step = real, real_step  # type: ignore[misc,method-assign]
     assert result.step == args.steps
-    return 1000 * (t1 - t0) / (s1 - s0), s1 - s0, per_epoch
+    w = min(args.warmup, len(stamps) - 2)
+    n = len(stamps) - 1 - w
+    (t0, c0), (t1, c1) = stamps[w], stamps[-1]
+    per_epoch = len(read_manifest(tiles, "train")) // args.batch
+    return 1000 * (t1 - t0) / n, 1000 * (c1 - c0) / n, n, per_epoch
 
 
-def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> float:
-    """ms/step of the near-null model's step alone on one batch already on the device."""
+def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> tuple[float, float]:
+    """Wall and CPU ms/step of the near-null model's step alone on one batch already on the device."""
     from aerialmtl.formats.tiles import TileFolderInfo
     from aerialmtl.training.objective import Objective
     from aerialmtl.training.setup import StepModule, build_optimizer
@@ -155,9 +182,9 @@ def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> float:
              "height_valid": torch.ones(b, 1, s, s, dtype=torch.bool, device=device)}
     if k:
         batch["classes"] = torch.randint(0, k, (b, s, s), generator=g).to(device)
-    times = []
+    times, cpu = [], []
     for i in range(steps + 3):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         total, _ = step(batch)
         opt.zero_grad(set_to_none=True)
         total.backward()
@@ -166,7 +193,8 @@ def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> float:
             torch.cuda.synchronize()
         if i >= 3:
             times.append(time.perf_counter() - t)
-    return 1000 * sum(times) / len(times)
+            cpu.append(time.process_time() - c)
+    return 1000 * sum(times) / len(times), 1000 * sum(cpu) / len(cpu)
 
 
 def data_parts_ms(args: argparse.Namespace, tiles: Path, batches: int = 5) -> dict[str, float]:
@@ -210,6 +238,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--log-every", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=5, help="loop steps left out of the timing")
     ap.add_argument("--ema", type=float, default=None)
     ap.add_argument("--lr-schedule", default="constant", choices=("constant", "cosine"))
     ap.add_argument("--warmup", type=int, default=0)
@@ -223,14 +252,15 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     tiles = make_tiles(Path(args.workdir), args.town, args.stride)
-    ms, timed, per_epoch = loop_ms(args, tiles)
-    bare = bare_ms(args, tiles, min(timed, 20))
+    ms, cpu, timed, per_epoch = loop_ms(args, tiles)
+    bare, bare_cpu = bare_ms(args, tiles, min(timed, 20))
     load = " ".join(Path("/proc/loadavg").read_text().split()[:3]) if Path("/proc/loadavg").exists() else "?"
-    print(f"train loop, near-null model: {ms:.1f} ms/step over {timed} steps ({per_epoch} steps/epoch; batch "
-          f"{args.batch} of 320², {args.workers} workers, ema {args.ema}, {args.device}, torch threads "
-          f"{torch.get_num_threads()})")
-    print(f"bare step, near-null model:  {bare:.1f} ms/step")
-    print(f"loop overhead:               {ms - bare:.1f} ms/step   (load {load})")
+    print(f"train loop, near-null model: {ms:.1f} ms/step wall, {cpu:.1f} ms/step CPU (main + workers) over {timed} "
+          f"steps ({per_epoch} steps/epoch; batch {args.batch} of 320², {args.workers} workers, ema {args.ema}, "
+          f"{args.device}, torch threads {torch.get_num_threads()})")
+    print(f"bare step, near-null model:  {bare:.1f} ms/step wall, {bare_cpu:.1f} ms/step CPU")
+    print(f"loop overhead:               {ms - bare:.1f} ms/step wall, {cpu - bare_cpu:.1f} ms/step CPU   "
+          f"(load {load})")
     parts = data_parts_ms(args, tiles)
     print(f"data path, CPU time per batch on one thread (a worker's share): gather {parts['gather']:.1f} ms, "
           f"flips/rot90/normalise/jitter {parts['finish']:.1f} ms")
