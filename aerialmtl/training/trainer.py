@@ -383,10 +383,10 @@ class Trainer(StepLoop):
                    dynamic_ncols=True)
         loaders = self.setup.loaders
         it = iter(loaders.train_loader) if stopped_by is None else None
+        batches = None if it is None else (
+            prepare_batch(raw, loaders.train_transform, loaders.mean, loaders.std, self.device) for raw in it)
         try:
-            if it is not None and stopped_by is None:
-                batches = (prepare_batch(raw, loaders.train_transform, loaders.mean, loaders.std, self.device)
-                           for raw in it)
+            if batches is not None:
                 stopped_by = self.run_steps(batches, bar)
         except RuntimeError as exc:  # DDP's gradient all-reduce: a peer process is gone
             if self.ctx.distributed and runtime.is_peer_error(exc):
@@ -394,13 +394,14 @@ class Trainer(StepLoop):
             raise
         finally:
             bar.close()
-            del it
+            del batches, it  # the loader's workers end here, before the last validation
         if self.validated_at != st.step or not self.paths["last.pt"].exists():
             self.after_epoch_validation()
         if self.average is not None:  # the run is over: the model is its average, as in last.pt
             self.model.load_state_dict(self.average.shadow)
         self.calibrate()
         self.familiarize()
+        assert stopped_by is not None  # the loop ran until a reason, or there was one before it
         return TrainResult(run_dir=self.run, last_checkpoint=self.paths["last.pt"],
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
                            config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
