@@ -1,17 +1,28 @@
 """``aerialmtl pretrain``: train the small-area recipe's network on synthetic scenes made on the fly, and export
 the result as a pretrained start (:mod:`aerialmtl.formats.starts`) for ``train --init``.
 
+Pretraining is training on another stream of batches: it runs the same step and loop as ``aerialmtl train``
+(:class:`~aerialmtl.training.steploop.StepLoop`), so ``optim`` (``lr``, ``betas``, ``weight_decay``, ``ema``) and
+``schedule.lr_schedule``/``warmup_steps``/``log_every`` mean what they mean there (the cosine spans the run's
+``steps``), and a diverging run stops the same way. Keys it cannot apply are refused by name
+(:func:`check_config`).
+
 The network is the training config's (by default ``configs/small_area.yaml``: an ImageNet EfficientNet-Lite0
 encoder under the D3-Net decoder, an aleatoric height head), with both tasks, height and the ``synthetic``
 class scheme's land cover. Batches come from :class:`~aerialmtl.data.synthetic_batches.SyntheticBatches`
 (nothing is read from or written to disk but the run folder). The loss, task weighting and optimiser are the
-training config's; there is no validation split (the start is judged by fine-tuning from it).
+training config's; there is no validation split (the start is judged by fine-tuning from it). A network whose
+start would be too large to ship is refused before the first step.
 
 The run folder ``OUT`` holds ``last.pt`` (written every ``checkpoint_every`` steps and at the end, with the
-optimiser, the RNG state and the wall time so far), ``log.csv`` and ``config.yaml``; at the end it also holds
-the exported start ``NAME.pt`` and its card ``NAME.yaml``. A run stopped at any point continues with
-``resume=True`` from its last checkpoint and ends with exactly the weights an uninterrupted run ends with:
-each step's batch depends only on ``(seed, step)`` and the dropout masks' RNG state is saved.
+optimiser, the RNG state and the wall time so far; with ``optim.ema`` its weights are the average and the
+trained ones ride beside them, as in ``train``), ``log.csv`` and ``config.yaml``; at the end it also holds
+the exported start ``NAME.pt`` and its card ``NAME.yaml`` (the average, with ``optim.ema``). The run holds the
+folder's lock (the one ``train`` takes) throughout, and never replaces a file it did not write (a training
+run's checkpoints, a file of the user's at the start's paths; names of run or tile-folder files are refused).
+A run stopped at any point continues with ``resume=True`` from its last checkpoint and ends with exactly the
+weights an uninterrupted run ends with: each step's batch depends only on ``(seed, step)``, the learning rate
+only on the step, and the dropout masks' RNG state is saved.
 """
 
 from __future__ import annotations
