@@ -6,7 +6,7 @@ gather, augmentation parameters, workers), the transfer to the device, the augme
 the optimiser, the weight average (``--ema``), the learning-rate schedule, the loss window, logging and the
 per-epoch checkpoints. The loop runs through :func:`aerialmtl.training.loop.train` (the library call behind
 ``aerialmtl train``), on a tile folder of 320² patches cut from a synthetic town (made once under
-``--workdir``); its ms/step is timed between the starts of its steps (the first ``--warmup`` excluded), as wall
+``--workdir``); its ms/step is timed between the starts of its steps (the first ``--skip`` excluded), as wall
 time and as CPU time of the main process and its DataLoader workers (CPU time barely depends on what else runs
 on a shared machine; wall time does).
 
@@ -115,7 +115,7 @@ def _children_cpu_s() -> float:
 
 def loop_ms(args: argparse.Namespace, tiles: Path) -> tuple[float, float, int, int]:
     """Wall and CPU (main process + workers) ms per step of ``train`` with the near-null model, over the steps
-    after the first ``--warmup``; the steps timed; steps per epoch.
+    after the first ``--skip``; the steps timed; steps per epoch.
     """
     import aerialmtl.models.d3net as d3net
     from aerialmtl.formats.tiles import read_manifest
@@ -151,7 +151,7 @@ def loop_ms(args: argparse.Namespace, tiles: Path) -> tuple[float, float, int, i
     finally:
         d3net.D3Net, StepLoop.train_step = real, real_step  # type: ignore[misc,method-assign]
     assert result.step == args.steps
-    w = min(args.warmup, len(stamps) - 2)
+    w = min(args.skip, len(stamps) - 2)
     n = len(stamps) - 1 - w
     (t0, c0), (t1, c1) = stamps[w], stamps[-1]
     per_epoch = len(read_manifest(tiles, "train")) // args.batch
@@ -238,7 +238,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--log-every", type=int, default=10)
-    ap.add_argument("--warmup", type=int, default=5, help="loop steps left out of the timing")
+    ap.add_argument("--skip", type=int, default=5, help="first loop steps left out of the timing")
     ap.add_argument("--ema", type=float, default=None)
     ap.add_argument("--lr-schedule", default="constant", choices=("constant", "cosine"))
     ap.add_argument("--warmup", type=int, default=0)
