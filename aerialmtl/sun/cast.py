@@ -96,7 +96,7 @@ def shadow_surface_sweep(surface: np.ndarray, gsd: float, azimuth_deg: float, el
 
 
 def _limited_occluder(z: np.ndarray, gsd: float, sun: Sun, max_length_m: float) -> np.ndarray:
-    """Highest ``Z(p + d·u) − d·|u|·gsd·tan(E)`` over ``1 ≤ d·|u|·gsd ≤ max_length_m`` (−inf where none); (..., H, W)."""
+    """Highest ``Z(p + d·u) − d·|u|·gsd·tan(E)`` over ``d·|u|·gsd ≤ max_length_m`` (−inf where none); (..., H, W)."""
     rows_dom, step, slope = sun_steps(sun.azimuth_deg)
     per_step = gsd * math.hypot(1.0, slope)
     n = int(max_length_m // per_step)
