@@ -9,6 +9,22 @@ only (:func:`fuse_heights`). Angles: azimuth towards the sun, clockwise from gri
 """
 
 from aerialmtl.sun.cast import cast_shadow_mask
+from aerialmtl.sun.colour import ShadowModel, shadow_score
+from aerialmtl.sun.fit import SunFit, fit_sun, fit_sun_patches
+from aerialmtl.sun.fusion import fuse_heights
+from aerialmtl.sun.heights import ShadowHeights, ShadowObject, shadow_heights
 from aerialmtl.sun.position import Sun
 
-__all__ = ["Sun", "cast_shadow_mask"]
+__all__ = [
+    "ShadowHeights",
+    "ShadowModel",
+    "ShadowObject",
+    "Sun",
+    "SunFit",
+    "cast_shadow_mask",
+    "fit_sun",
+    "fit_sun_patches",
+    "fuse_heights",
+    "shadow_heights",
+    "shadow_score",
+]
