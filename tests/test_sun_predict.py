@@ -225,3 +225,29 @@ def test_parse_sun_reads_the_three_forms() -> None:
     assert parse_sun("135,42.5") == (135.0, 42.5) and parse_sun("360,10") == (0.0, 10.0)
     with pytest.raises(InputError, match="elevation 0° is outside"):
         parse_sun("10,0")
+
+
+def test_a_mosaic_of_flights_with_different_suns_is_refused_naming_them(tmp_path: Path) -> None:
+    """A VRT joining orthophotos flown at different times gets no single sun: `--sun auto` refuses it, naming the
+    files and their times, and says how to predict them (one by one, each with its own sun)."""
+    from rasterio.transform import from_origin
+
+    parts = []
+    for name, stamp, x0 in (("a.tif", "2019:06:21 16:45:00", 492000.0), ("b.tif", "2019:07:02 10:00:00", 492100.0)):
+        path = tmp_path / name
+        with rasterio.open(path, "w", driver="GTiff", width=100, height=100, count=3, dtype="uint8",
+                           crs="EPSG:32610", transform=from_origin(x0, 4878000.0, 1.0, 1.0)) as dst:
+            dst.write(np.full((3, 100, 100), 90, np.uint8))
+            dst.update_tags(TIFFTAG_DATETIME=stamp)
+        parts.append(str(path))
+    from aerialmtl.io.vrt import mosaic_vrt
+
+    vrt = tmp_path / "mosaic.vrt"
+    mosaic_vrt(vrt, parts)
+    with rasterio.open(vrt) as src:
+        grid = Grid(src.crs, src.transform, src.width, src.height)
+    with pytest.raises(InputError, match=r"joins orthophotos flown at different times \(a.tif 2019:06:21 16:45:00, "
+                       r"b.tif 2019:07:02 10:00:00\).*one by one"):
+        choose_sun("auto", None, vrt, grid, {}, None)
+    assert choose_sun("auto", "2019-06-21T16:45:00Z", vrt, grid, {}, None).on  # a time given: the user's word
+    assert not choose_sun("none", None, vrt, grid, {}, None).on

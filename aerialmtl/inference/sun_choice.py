@@ -127,10 +127,49 @@ def acquisition_time(path: str | Path, tags: dict[str, str]) -> tuple[str, str, 
                 when = (a + (b - a) / 2).isoformat()
             if isinstance(when, str) and when:
                 return when, f"STAC datetime ({item.name})", has_zone(when)
-    tiff = tags.get("TIFFTAG_DATETIME")
+    tiff = tags.get("TIFFTAG_DATETIME") or _mosaic_time(path)
     if tiff:
         return tiff, "TIFF DateTime", has_zone(tiff)
     return None
+
+
+#: Source orthophotos of one mosaic whose acquisition times differ by more than this (seconds) are different
+#: flights: their suns differ, and one sun for the mosaic would be wrong on part of it.
+SAME_FLIGHT_S = 3 * 3600
+
+
+def _mosaic_time(path: str | Path) -> str | None:
+    """The common TIFF ``DateTime`` of the sources of a VRT mosaic ``path``, or ``None`` (not a VRT, no times).
+
+    Raises:
+        InputError: the sources were flown at different times (names them; the fix: predict them one by one, or
+            ``--sun none``).
+    """
+    if not str(path).lower().endswith(".vrt"):
+        return None
+    import rasterio
+
+    try:
+        with rasterio.open(str(path)) as src:
+            files = [f for f in src.files if not f.lower().endswith(".vrt")]
+        times = {}
+        for f in files:
+            with rasterio.open(f) as part:
+                stamp = part.tags().get("TIFFTAG_DATETIME")
+            if stamp:
+                times[f] = stamp
+    except rasterio.errors.RasterioError:
+        return None
+    if not times:
+        return None
+    parsed = {f: parse_time(t, f) for f, t in times.items()}
+    first, last = min(parsed.values()), max(parsed.values())
+    if (last - first).total_seconds() > SAME_FLIGHT_S:
+        named = ", ".join(f"{Path(f).name} {t}" for f, t in sorted(times.items()))
+        raise InputError(f"--sun auto: the mosaic '{path}' joins orthophotos flown at different times ({named}): "
+                         "their suns differ; predict them one by one (aerialmtl predict a.tif b.tif ...), each with "
+                         "its own sun, or pass --sun none", param="sun")
+    return next(iter(times.values()))
 
 
 def _centre(grid: Grid) -> tuple[float, float]:
