@@ -28,9 +28,12 @@ def unit_rgb(rgb: np.ndarray) -> np.ndarray:
     a = np.asarray(rgb)
     if a.ndim != 3 or a.shape[0] != 3:
         raise InputError(f"‹rgb› must be a (3, H, W) image, got shape {a.shape}")
+    out: np.ndarray
     if np.issubdtype(a.dtype, np.integer):
-        return (a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
-    return a.astype(np.float32, copy=False)
+        out = (a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
+    else:
+        out = a.astype(np.float32, copy=False)
+    return out
 
 
 def shadow_score(rgb: np.ndarray) -> np.ndarray:
@@ -50,18 +53,37 @@ def shadow_score(rgb: np.ndarray) -> np.ndarray:
     return result
 
 
-def colour_features(rgb: np.ndarray, gsd_m: float, context_m: float) -> np.ndarray:
-    """float32 (6, H, W) features of :class:`ShadowModel`: log-brightness L, blue and red chromaticity, L minus
-    its mean over ``context_m`` metres (darker than the surroundings), L², L × blue chromaticity.
+#: Neighbourhoods (metres) the brightness is compared with: its mean over each (darker than the surroundings)
+#: and, for the first two, its maximum (darker than the lit edge next to it).
+MEAN_CONTEXTS_M = (2.0, 6.0, 12.0, 40.0)
+PEAK_CONTEXTS_M = (2.0, 6.0)
+#: Name of the feature set below, stored with a model so that a model of another set is refused.
+FEATURES = "colour-v1"
+N_FEATURES = 6 + len(MEAN_CONTEXTS_M) + len(PEAK_CONTEXTS_M)
+
+
+def _window(metres: float, gsd_m: float) -> int:
+    return max(3, int(round(metres / gsd_m)) | 1)
+
+
+def colour_features(rgb: np.ndarray, gsd_m: float) -> np.ndarray:
+    """float32 (12, H, W) features of :class:`ShadowModel`.
+
+    Log-brightness L, blue and red chromaticity, saturation, L², L × blue chromaticity, L minus its mean over
+    each of :data:`MEAN_CONTEXTS_M` and L minus its maximum over each of :data:`PEAK_CONTEXTS_M` (windows in
+    metres, so ``gsd_m`` matters).
     """
     x = unit_rgb(rgb)
     total = x.sum(0) + np.float32(_EPS)
     lum = np.log(x.mean(0) + np.float32(0.02))
     cb = x[2] / total - np.float32(1 / 3)
     cr = x[0] / total - np.float32(1 / 3)
-    size = max(3, int(round(context_m / gsd_m)) | 1)
-    local = lum - ndimage.uniform_filter(lum, size=size, mode="reflect")
-    return np.stack([lum, cb, cr, local, lum * lum, lum * cb]).astype(np.float32)
+    top = x.max(0)
+    sat = (top - x.min(0)) / (top + np.float32(0.02))
+    feats = [lum, cb, cr, sat, lum * lum, lum * cb]
+    feats += [lum - ndimage.uniform_filter(lum, size=_window(m, gsd_m), mode="reflect") for m in MEAN_CONTEXTS_M]
+    feats += [lum - ndimage.maximum_filter(lum, size=_window(m, gsd_m), mode="reflect") for m in PEAK_CONTEXTS_M]
+    return np.stack(feats).astype(np.float32)
 
 
 @dataclass
@@ -70,19 +92,23 @@ class ShadowModel:
     cast shadows of the area's reference heights at its sun (labels, not a threshold).
 
     Attributes:
-        gsd_m: pixel size the model was fitted at (the context window is in metres).
-        context_m: side of the neighbourhood the brightness is compared with, metres.
-        mean, scale: per-feature standardisation (6 values each).
-        weights: 7 logistic weights (intercept first); empty before :meth:`fit`.
+        gsd_m: pixel size the model was fitted at (the neighbourhoods are in metres).
+        features: name of the feature set (:data:`FEATURES`).
+        mean, scale: per-feature standardisation (:data:`N_FEATURES` values each).
+        weights: logistic weights, intercept first; empty before :meth:`fit`.
         shadow_share: share of the fitted pixels in cast shadow.
+        threshold: the probability from which a pixel is called shadow: the one with the best F1 score against
+            the cast shadows on the fitted pixels. Colour alone is ambiguous, so calibrated probabilities rarely
+            pass 0.5 where a shadow is; pass it to :func:`~aerialmtl.sun.shadow_heights` (``threshold=``).
     """
 
     gsd_m: float = 0.0
-    context_m: float = 12.0
+    features: str = FEATURES
     mean: list[float] = field(default_factory=list)
     scale: list[float] = field(default_factory=list)
     weights: list[float] = field(default_factory=list)
     shadow_share: float = 0.0
+    threshold: float = 0.5
 
     #: pixels used for the fit at most (a fixed-seed random subset beyond)
     MAX_PIXELS = 300_000
@@ -106,7 +132,7 @@ class ShadowModel:
         feats, labels = [], []
         for im, h, ok in as_patches(rgb, height, valid):
             mask = cast_shadow_mask(h, gsd_m, sun)
-            f = colour_features(im, gsd_m, self.context_m)
+            f = colour_features(im, gsd_m)
             feats.append(f[:, ok])
             labels.append(mask[ok])
         x = np.concatenate(feats, axis=1).T.astype(np.float64)
@@ -122,14 +148,22 @@ class ShadowModel:
                              f"({sun}): nothing to learn what a shadow looks like from")
         mean, scale = x.mean(0), x.std(0) + 1e-6
         self.mean, self.scale = mean.tolist(), scale.tolist()
-        self.weights = _logistic((x - mean) / scale, y, l2).tolist()
+        w = _logistic((x - mean) / scale, y, l2)
+        self.weights = w.tolist()
+        p = 1.0 / (1.0 + np.exp(-np.clip(w[0] + ((x - mean) / scale) @ w[1:], -40, 40)))
+        self.threshold = _best_f1_threshold(p, y > 0.5)
         return self
+
+    def shadow_mask(self, rgb: np.ndarray, gsd_m: float | None = None) -> np.ndarray:
+        """The shadow pixels, bool (H, W): :meth:`predict_proba` ≥ :attr:`threshold`."""
+        mask: np.ndarray = self.predict_proba(rgb, gsd_m) >= np.float32(self.threshold)
+        return mask
 
     def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None) -> np.ndarray:
         """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's)."""
         if not self.weights:
             raise InputError("this ShadowModel is not fitted: call fit() first")
-        f = colour_features(rgb, gsd_m or self.gsd_m, self.context_m).astype(np.float64)
+        f = colour_features(rgb, gsd_m or self.gsd_m).astype(np.float64)
         w = np.asarray(self.weights)
         z = w[0] + np.tensordot(w[1:] / np.asarray(self.scale), f - np.asarray(self.mean)[:, None, None], axes=1)
         out: np.ndarray = (1.0 / (1.0 + np.exp(-np.clip(z, -40, 40)))).astype(np.float32)
@@ -137,22 +171,38 @@ class ShadowModel:
 
     def to_dict(self) -> dict[str, object]:
         """Plain JSON/YAML types (floats and lists of floats)."""
-        return {"gsd_m": self.gsd_m, "context_m": self.context_m, "mean": list(self.mean),
-                "scale": list(self.scale), "weights": list(self.weights), "shadow_share": self.shadow_share}
+        return {"gsd_m": self.gsd_m, "features": self.features, "mean": list(self.mean),
+                "scale": list(self.scale), "weights": list(self.weights), "shadow_share": self.shadow_share,
+                "threshold": self.threshold}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, object]) -> ShadowModel:
         """Inverse of :meth:`to_dict`."""
         try:
-            m = cls(gsd_m=float(d["gsd_m"]), context_m=float(d["context_m"]),  # type: ignore[arg-type]
+            m = cls(gsd_m=float(d["gsd_m"]), features=str(d["features"]),  # type: ignore[arg-type]
                     mean=[float(v) for v in d["mean"]], scale=[float(v) for v in d["scale"]],  # type: ignore[attr-defined]
                     weights=[float(v) for v in d["weights"]],  # type: ignore[attr-defined]
-                    shadow_share=float(d["shadow_share"]))  # type: ignore[arg-type]
+                    shadow_share=float(d["shadow_share"]),  # type: ignore[arg-type]
+                    threshold=float(d.get("threshold", 0.5)))  # type: ignore[arg-type]
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"not a shadow model record ({exc!r}); keys {sorted(d)}") from exc
-        if m.weights and not (len(m.weights) == len(m.mean) + 1 == len(m.scale) + 1):
+        if m.features != FEATURES:
+            raise InputError(f"shadow model record of feature set {m.features!r}; this version computes {FEATURES!r}")
+        if m.weights and not (len(m.weights) == N_FEATURES + 1 == len(m.mean) + 1 == len(m.scale) + 1):
             raise InputError(f"shadow model record: {len(m.weights)} weights for {len(m.mean)} features")
         return m
+
+
+def _best_f1_threshold(p: np.ndarray, y: np.ndarray) -> float:
+    """The probability threshold (0.02 steps) with the best F1 score of ``p ≥ t`` against ``y``."""
+    best_t, best_f1 = 0.5, -1.0
+    for t in np.arange(0.02, 0.99, 0.02):
+        called = p >= t
+        tp = float((called & y).sum())
+        f1 = 2 * tp / (float(called.sum()) + float(y.sum())) if called.any() else 0.0
+        if f1 > best_f1:
+            best_t, best_f1 = float(round(t, 2)), f1
+    return best_t
 
 
 def _logistic(x: np.ndarray, y: np.ndarray, l2: float) -> np.ndarray:
