@@ -58,6 +58,8 @@ def test_no_shadows_no_sun() -> None:
     p = city(1, 130.0, 40.0, size=128)
     flat = fit_sun(p.image, np.zeros_like(p.height), p.gsd)  # heights that cast nothing
     assert not flat.clear and flat.sun is None and "no shadow" in flat.reason
+    grey = fit_sun(np.full_like(p.image, 128), p.height, p.gsd)  # overcast at its worst: no contrast at all
+    assert not grey.clear and grey.sun is None and "no contrast" in grey.reason
     zenith = city(1, 0.0, 88.0, size=128)  # the sun almost overhead: shadows under the objects
     fit = fit_sun(zenith.image, zenith.height, zenith.gsd)
     assert not fit.clear and fit.sun is None and fit.reason.startswith("no sun fitted"), fit.reason
