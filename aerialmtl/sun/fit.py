@@ -12,7 +12,7 @@ direction explains the shadows as well, 1 = nothing else explains them at all. A
 ``r* ≥ min_score``, sharpness ≥ ``min_sharpness`` and the elevation is not at the edge of the searched range.
 
 Limits: any city's heights correlate a little with any city's image. On 128–256 px synthetic patches, the heights
-of another patch reached r = 0.13–0.35, and 2 of 9 such mismatched pairs still gave a "clear" (wrong) sun; a
+of another patch reached r = 0.13–0.35, and 4 of 9 such mismatched pairs still gave a "clear" (wrong) sun; a
 null from the same heights flipped was tried and dropped (grid-like layouts are nearly symmetric: flipped heights
 scored 0.55 against 0.57 for the right ones). Larger areas lower the chance correlation; the fit is meant for
 an orthophoto and the heights of the same area.
