@@ -128,8 +128,9 @@ def test_shadow_heights_within_15_percent_of_the_truth() -> None:
 
 def test_shadow_heights_from_the_image_with_a_learnt_shadow_model() -> None:
     """End to end from the image: a shadow model fitted on two other scenes under the same sun, runs measured
-    from the occluder the height map locates. Today's level (pooled over the five scenes): median |error| ≈ 21 %,
-    median signed error ≈ −2 %; held to ≤ 30 % and ±10 %."""
+    from the occluder the height map locates, the shadow threshold chosen on the training scenes' own heights.
+    Today's level (pooled over the five scenes): median |error| ≈ 16 %, median signed error ≈ 0 %; held to ≤ 25 %
+    and ±10 %."""
     errors = []
     for seed, azimuth, elevation in [(13, 130.0, 40.0), (16, 250.0, 55.0), (17, 130.0, 40.0), (18, 60.0, 35.0),
                                      (19, 200.0, 50.0)]:
@@ -141,7 +142,7 @@ def test_shadow_heights_from_the_image_with_a_learnt_shadow_model() -> None:
         sh = shadow_heights(model.predict_proba(p.image), p.gsd, sun, objects, height=p.height,
                             threshold=model.threshold)
         errors += [o.height_m / float(np.median(p.height[objects == o.label])) - 1 for o in sh.objects if o.measured]
-    assert np.median(np.abs(errors)) <= 0.30, np.median(np.abs(errors))
+    assert np.median(np.abs(errors)) <= 0.25, np.median(np.abs(errors))
     assert abs(np.median(errors)) <= 0.10, np.median(errors)
 
 

@@ -8,6 +8,7 @@ roofs that the heights say are lit are not called shadows.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -15,8 +16,9 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from aerialmtl.errors import InputError
-from aerialmtl.sun._patches import ArrayOrList, as_patches
+from aerialmtl.sun._patches import ArrayOrList, Patch, as_patches
 from aerialmtl.sun.cast import cast_shadow_mask
+from aerialmtl.sun.heights import shadow_heights
 from aerialmtl.sun.position import Sun
 
 #: Added to the channel sum before chromaticities (0–1 scale per channel), so black pixels get no colour.
@@ -60,6 +62,8 @@ PEAK_CONTEXTS_M = (2.0, 6.0)
 #: Name of the feature set below, stored with a model so that a model of another set is refused.
 FEATURES = "colour-v1"
 N_FEATURES = 6 + len(MEAN_CONTEXTS_M) + len(PEAK_CONTEXTS_M)
+#: Measured objects needed to choose the threshold from heights.
+MIN_CALIBRATION_OBJECTS = 10
 
 
 def _window(metres: float, gsd_m: float) -> int:
@@ -97,9 +101,13 @@ class ShadowModel:
         mean, scale: per-feature standardisation (:data:`N_FEATURES` values each).
         weights: logistic weights, intercept first; empty before :meth:`fit`.
         shadow_share: share of the fitted pixels in cast shadow.
-        threshold: the probability from which a pixel is called shadow: the one with the best F1 score against
-            the cast shadows on the fitted pixels. Colour alone is ambiguous, so calibrated probabilities rarely
-            pass 0.5 where a shadow is; pass it to :func:`~aerialmtl.sun.shadow_heights` (``threshold=``).
+        threshold: the probability from which a pixel is called shadow; pass it to
+            :func:`~aerialmtl.sun.shadow_heights` (``threshold=``). Colour alone is ambiguous, so calibrated
+            probabilities rarely pass 0.5 where a shadow is. Chosen on the fitted area (``threshold_by``): where
+            the shadow heights of its own objects come out unbiased against its reference heights (``"heights"``;
+            median ratio nearest 1, needs :data:`MIN_CALIBRATION_OBJECTS` measured objects, else F1), or with the
+            best F1 score of the shadow mask against the cast shadows (``"f1"``).
+        threshold_by: how :attr:`threshold` was chosen: ``"heights"``, ``"f1"`` or ``"default"``.
     """
 
     gsd_m: float = 0.0
@@ -109,18 +117,20 @@ class ShadowModel:
     weights: list[float] = field(default_factory=list)
     shadow_share: float = 0.0
     threshold: float = 0.5
+    threshold_by: str = "default"
 
     #: pixels used for the fit at most (a fixed-seed random subset beyond)
     MAX_PIXELS = 300_000
 
     def fit(self, rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, sun: Sun,
-            valid: ArrayOrList | None = None, l2: float = 1e-3) -> ShadowModel:
+            valid: ArrayOrList | None = None, l2: float = 1e-3, threshold_by: str = "heights") -> ShadowModel:
         """Fit on one patch or a list of patches (see :func:`aerialmtl.sun.fit_sun` for the forms).
 
         Args:
             rgb: (3, H, W) image(s); height: float (H, W) reference heights above ground in metres (NaN invalid).
             gsd_m: pixel size in metres. sun: the area's sun. valid: optional bool (H, W) mask(s).
             l2: ridge penalty on the standardised weights.
+            threshold_by: ``"heights"`` or ``"f1"`` (see :attr:`threshold`).
 
         Returns:
             self.
@@ -128,9 +138,12 @@ class ShadowModel:
         Raises:
             InputError: no valid pixels, or the heights cast no shadow (or nothing but shadow) at ``sun``.
         """
+        if threshold_by not in ("heights", "f1"):
+            raise InputError(f"‹threshold_by› must be 'heights' or 'f1', got {threshold_by!r}", param="threshold_by")
         self.gsd_m = float(gsd_m)
         feats, labels = [], []
-        for im, h, ok in as_patches(rgb, height, valid):
+        patches = as_patches(rgb, height, valid)
+        for im, h, ok in patches:
             mask = cast_shadow_mask(h, gsd_m, sun)
             f = colour_features(im, gsd_m)
             feats.append(f[:, ok])
@@ -151,8 +164,42 @@ class ShadowModel:
         w = _logistic((x - mean) / scale, y, l2)
         self.weights = w.tolist()
         p = 1.0 / (1.0 + np.exp(-np.clip(w[0] + ((x - mean) / scale) @ w[1:], -40, 40)))
-        self.threshold = _best_f1_threshold(p, y > 0.5)
+        self.threshold, self.threshold_by = _best_f1_threshold(p, y > 0.5), "f1"
+        if threshold_by == "heights":
+            t = self._unbiased_threshold(patches, sun)
+            if t is not None:
+                self.threshold, self.threshold_by = t, "heights"
         return self
+
+    def _unbiased_threshold(self, patches: list[Patch], sun: Sun) -> float | None:
+        """The threshold (0.04–0.5) at which the shadow heights of the patches' own objects (heights ≥ 2 m,
+        ≥ 20 m²) have a median ratio to their median reference height nearest 1; ``None`` with too few objects.
+        """
+        cases = []
+        for im, h, ok in patches:
+            labels, n = ndimage.label(np.nan_to_num(h) >= 2.0)
+            if n == 0:
+                continue
+            sizes = np.bincount(labels.ravel()) * self.gsd_m ** 2
+            keep = sizes >= 20.0
+            keep[0] = False
+            labels = np.where(keep[labels], labels, 0)
+            ref = np.zeros(len(sizes))
+            idx = np.nonzero(keep)[0]
+            ref[idx] = ndimage.median(np.nan_to_num(h), labels, index=idx)
+            prob = np.where(ok, self.predict_proba(im), np.float32(np.nan)).astype(np.float32)
+            cases.append((prob, h, labels, ref))
+        best: tuple[float, float] | None = None
+        for t in np.arange(0.04, 0.51, 0.02):
+            ratios = []
+            for prob, h, labels, ref in cases:
+                sh = shadow_heights(prob, self.gsd_m, sun, labels, height=h, threshold=float(t))
+                ratios += [o.height_m / ref[o.label] for o in sh.objects if o.measured and ref[o.label] > 0]
+            if len(ratios) >= MIN_CALIBRATION_OBJECTS:
+                miss = abs(math.log(float(np.median(ratios))))
+                if best is None or miss < best[0]:
+                    best = (miss, float(round(t, 2)))
+        return None if best is None else best[1]
 
     def shadow_mask(self, rgb: np.ndarray, gsd_m: float | None = None) -> np.ndarray:
         """The shadow pixels, bool (H, W): :meth:`predict_proba` ≥ :attr:`threshold`."""
@@ -173,7 +220,7 @@ class ShadowModel:
         """Plain JSON/YAML types (floats and lists of floats)."""
         return {"gsd_m": self.gsd_m, "features": self.features, "mean": list(self.mean),
                 "scale": list(self.scale), "weights": list(self.weights), "shadow_share": self.shadow_share,
-                "threshold": self.threshold}
+                "threshold": self.threshold, "threshold_by": self.threshold_by}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, object]) -> ShadowModel:
@@ -183,7 +230,8 @@ class ShadowModel:
                     mean=[float(v) for v in d["mean"]], scale=[float(v) for v in d["scale"]],  # type: ignore[attr-defined]
                     weights=[float(v) for v in d["weights"]],  # type: ignore[attr-defined]
                     shadow_share=float(d["shadow_share"]),  # type: ignore[arg-type]
-                    threshold=float(d.get("threshold", 0.5)))  # type: ignore[arg-type]
+                    threshold=float(d.get("threshold", 0.5)),  # type: ignore[arg-type]
+                    threshold_by=str(d.get("threshold_by", "default")))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"not a shadow model record ({exc!r}); keys {sorted(d)}") from exc
         if m.features != FEATURES:
