@@ -122,6 +122,7 @@ def main() -> None:
     sun = fit.sun or fit.best
     assert sun is not None
     model = ShadowModel().fit(rgb, h, grid.gsd, sun, ok & blocks["train"])
+    print(f"shadow model: threshold {model.threshold} (chosen by {model.threshold_by} on the training block)")
     result: dict[str, Any] = {"gsd_m": grid.gsd, "shape": [grid.height, grid.width], "fit": fit.to_dict(),
                               "fit_seconds": t_fit, "model": model.to_dict(), "cpu": cpu_model(),
                               "load_start": load0, "blocks": {}}
