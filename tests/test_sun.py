@@ -204,3 +204,18 @@ def test_fusion_keeps_network_values_exactly_where_no_shadow_height() -> None:
     fh, fs = fuse_heights(height, std, none, objects)  # type: ignore[arg-type]
     np.testing.assert_array_equal(fh, height)
     np.testing.assert_array_equal(fs, std)
+
+
+def test_soft_cast_shadow_tends_to_the_hard_mask_and_has_gradients() -> None:
+    torch = pytest.importorskip("torch")
+    from aerialmtl.sun.soft import soft_cast_shadow
+
+    p = city(1, 130.0, 40.0, size=96)
+    sun = Sun(130.0, 40.0)
+    hard = cast_shadow_mask(p.height, p.gsd, sun, max_length_m=30.0)
+    h = torch.tensor(p.height, requires_grad=True)
+    soft = soft_cast_shadow(h, p.gsd, sun, max_length_m=30.0, temperature_m=0.05)
+    agree = ((soft.detach().numpy() > 0.5) == hard).mean()
+    assert agree > 0.98, agree
+    soft.sum().backward()
+    assert h.grad is not None and torch.isfinite(h.grad).all() and h.grad.abs().sum() > 0
