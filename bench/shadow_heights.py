@@ -93,11 +93,14 @@ def measure_block(rgb: np.ndarray, h: np.ndarray, ok: np.ndarray, block: np.ndar
     located = shadow_heights(prob, gsd, sun, objects, height=href, threshold=model.threshold)
     cast = np.where(inside, cast_shadow_mask(h, gsd, sun)[sl], np.nan).astype(np.float32)
     exact = shadow_heights(cast, gsd, sun, objects, height=href)
-    ref = ndimage.median(href, objects, index=np.arange(1, objects.max() + 1))
+    index = np.arange(1, objects.max() + 1)
+    ref = ndimage.median(href, objects, index=index)
+    top = ndimage.labeled_comprehension(href, objects, index, lambda v: np.percentile(v, 95), float, np.nan)
     rows = []
-    for o_e, o_l, o_x, r in zip(edge.objects, located.objects, exact.objects, np.atleast_1d(ref)):
-        rows.append({"label": o_e.label, "ref": float(r), "edge": o_e.height_m, "located": o_l.height_m,
-                     "exact": o_x.height_m, "std": o_l.std_m})
+    for o_e, o_l, o_x, r, t in zip(edge.objects, located.objects, exact.objects, np.atleast_1d(ref),
+                                   np.atleast_1d(top)):
+        rows.append({"label": o_e.label, "ref": float(r), "ref95": float(t), "edge": o_e.height_m,
+                     "located": o_l.height_m, "exact": o_x.height_m, "std": o_l.std_m})
     return rows
 
 
@@ -136,6 +139,14 @@ def main() -> None:
             for b in result["blocks"][name][way]:
                 print(f"| {way} | {b['bin']} | {b['objects']} | {b['measured']} | {b['share']:.2f} | "
                       f"{b['median_ratio']:.2f} | {b['mae']:.2f} | {b['bias']:+.2f} |")
+        tall = [r for r in rows if r["ref95"] >= 20.0]
+        for way in WAYS:
+            got = [r for r in tall if math.isfinite(r[way])]
+            ratios = [r[way] / r["ref95"] for r in got]
+            print(f"\nobjects whose 95th percentile reference height is ≥ 20 m: {len(tall)}, {way}: {len(got)} measured"
+                  + (f", median shadow / 95th percentile {np.median(ratios):.2f}, shadow / median "
+                     f"{np.median([r[way] / r['ref'] for r in got]):.2f}" if got else ""), end="")
+        print()
     result["load_end"] = os.getloadavg()
     print(f"\nsun fit {t_fit:.1f} s on {grid.width} × {grid.height} px; {result['cpu']}; load {load0} → "
           f"{result['load_end']}")
