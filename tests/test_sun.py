@@ -102,6 +102,23 @@ def test_shadow_score_and_model_find_the_cast_shadows() -> None:
         assert np.median(v[truth]) > np.percentile(v[~truth], 75)
 
 
+def test_learnt_shadow_model_does_not_call_lit_water_shadow() -> None:
+    """Water is darker and bluer than shadow (the fixed score ranks it above the shadows); the model fitted on
+    scenes with water, against their cast shadows, learns it is not shadow."""
+    sun = Sun(130.0, 40.0)
+    train = [city(s, 130.0, 40.0) for s in (1, 2, 3)]  # seed 3 is a quarter water
+    model = ShadowModel().fit([p.image for p in train], [p.height for p in train], 0.5, sun)
+    p = city(8, 130.0, 40.0)
+    cast = cast_shadow_mask(p.height, p.gsd, sun)
+    water = (p.classes == 6) & ~cast
+    shade = cast & (p.height < 0.5)
+    assert water.sum() > 1000 and shade.sum() > 1000
+    score = shadow_score(p.image)
+    assert np.median(score[water]) > np.median(score[shade])  # a threshold on the score would take the water
+    called = model.predict_proba(p.image) >= model.threshold
+    assert called[water].mean() < 0.1 and called[shade].mean() > 0.5
+
+
 def _truth_errors(seed: int, sun: Sun) -> tuple[ShadowHeights, list[float]]:
     p = city(seed, sun.azimuth_deg, sun.elevation_deg, size=256)
     objects, _ = ndimage.label(p.height >= 2.0)
