@@ -8,7 +8,6 @@ roofs that the heights say are lit are not called shadows.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -104,9 +103,9 @@ class ShadowModel:
         threshold: the probability from which a pixel is called shadow; pass it to
             :func:`~aerialmtl.sun.shadow_heights` (``threshold=``). Colour alone is ambiguous, so calibrated
             probabilities rarely pass 0.5 where a shadow is. Chosen on the fitted area (``threshold_by``): where
-            the shadow heights of its own objects come out unbiased against its reference heights (``"heights"``;
-            median ratio nearest 1, needs :data:`MIN_CALIBRATION_OBJECTS` measured objects, else F1), or with the
-            best F1 score of the shadow mask against the cast shadows (``"f1"``).
+            the shadow heights of its own objects are closest to its reference heights (``"heights"``: smallest
+            median |log(shadow / reference)|, needs :data:`MIN_CALIBRATION_OBJECTS` measured objects, else F1), or
+            with the best F1 score of the shadow mask against the cast shadows (``"f1"``).
         threshold_by: how :attr:`threshold` was chosen: ``"heights"``, ``"f1"`` or ``"default"``.
     """
 
@@ -166,14 +165,15 @@ class ShadowModel:
         p = 1.0 / (1.0 + np.exp(-np.clip(w[0] + ((x - mean) / scale) @ w[1:], -40, 40)))
         self.threshold, self.threshold_by = _best_f1_threshold(p, y > 0.5), "f1"
         if threshold_by == "heights":
-            t = self._unbiased_threshold(patches, sun)
+            t = self._heights_threshold(patches, sun)
             if t is not None:
                 self.threshold, self.threshold_by = t, "heights"
         return self
 
-    def _unbiased_threshold(self, patches: list[Patch], sun: Sun) -> float | None:
+    def _heights_threshold(self, patches: list[Patch], sun: Sun) -> float | None:
         """The threshold (0.04–0.5) at which the shadow heights of the patches' own objects (heights ≥ 2 m,
-        ≥ 20 m²) have a median ratio to their median reference height nearest 1; ``None`` with too few objects.
+        ≥ 20 m²) are closest to their median reference heights (smallest median |log ratio|); ``None`` with too
+        few objects.
         """
         cases = []
         for im, h, ok in patches:
@@ -196,7 +196,7 @@ class ShadowModel:
                 sh = shadow_heights(prob, self.gsd_m, sun, labels, height=h, threshold=float(t))
                 ratios += [o.height_m / ref[o.label] for o in sh.objects if o.measured and ref[o.label] > 0]
             if len(ratios) >= MIN_CALIBRATION_OBJECTS:
-                miss = abs(math.log(float(np.median(ratios))))
+                miss = float(np.median(np.abs(np.log(np.maximum(ratios, 1e-3)))))
                 if best is None or miss < best[0]:
                     best = (miss, float(round(t, 2)))
         return None if best is None else best[1]
