@@ -19,8 +19,8 @@ def as_patches(rgb: ArrayOrList, height: ArrayOrList, valid: ArrayOrList | None 
     ``valid`` (default: all) is and-ed with the height being finite.
     """
     single = isinstance(rgb, np.ndarray) and rgb.ndim == 3
-    rgbs = [rgb] if single else list(rgb)  # type: ignore[list-item]
-    heights = [height] if single else list(height)  # type: ignore[list-item]
+    rgbs = [rgb] if single else list(rgb)
+    heights = [height] if single else list(height)
     valids: list[np.ndarray | None] = ([None] * len(rgbs) if valid is None
                                        else [valid] if single else list(valid))  # type: ignore[list-item]
     if not len(rgbs) == len(heights) == len(valids):
