@@ -296,6 +296,11 @@ class PredictionInfo(BaseModel):
     provenance: Provenance | None = None
 
 
+#: The settings ``prediction.json`` also holds at its top level, as it did before its ``settings`` mapping (readers
+#: rely on them; ``mc_samples`` is the setting ``mc``). A new setting is recorded in ``settings`` only.
+RECORD_KEYS = ("tta", "seed", "window", "overlap", "batch_size", "precision", "engine", "threads", "device", "compile")
+
+
 class PredictionRecord(BaseModel):
     """What a run writes to ``prediction.json``, once, when it commits (field order = the file's key order).
 
@@ -317,6 +322,8 @@ class PredictionRecord(BaseModel):
         windows_total, windows_computed, overlap_factor, plan_overlap_factor: the window plan and the work.
         timings_s: seconds per stage (``read``, ``model``, ``stitch_write``, ``write``, ``strip_total``,
             ``cog``, ``total``).
+        settings: every setting of the run (the fields of :class:`~aerialmtl.inference.settings.PredictSettings`),
+            with what ``auto`` and the defaults resolved to.
         calibration: what calibration was applied; provenance: :data:`PROVENANCE_KEY` (module docstring).
         created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes;
         file_sha256: layer file → SHA-256 (hex) of its bytes.
@@ -341,6 +348,7 @@ class PredictionRecord(BaseModel):
     device: str
     compile: bool
     processes: int
+    settings: dict[str, Any] = {}
     aoi: str | None
     grid: GridInfo
     resampled_from_gsd: float | None
@@ -545,6 +553,7 @@ __all__ = [
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
     "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
-    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord", "Provenance",
+    "PROVENANCE_KEY", "RECORD_KEYS", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord",
+    "Provenance",
     "parse_info",
 ]

@@ -40,9 +40,9 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
-from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError, OutputExistsError, PeerFailure
@@ -60,7 +60,7 @@ from aerialmtl.formats.stac import collection_files, write_collection
 from aerialmtl.inference.job import InputJob, PredictResult, StripResult, prediction_folder
 from aerialmtl.inference.model import Predictor
 from aerialmtl.inference.ortho import OrthoInput
-from aerialmtl.inference.settings import PredictOptions, PredictSettings, settings_of
+from aerialmtl.inference.settings import PredictSettings, settings_of
 from aerialmtl.inference.windows import Plan
 from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
@@ -164,8 +164,8 @@ Checkpoint = str | Path | tuple[torch.nn.Module, ModelMeta] | Predictor
 
 
 def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Path,
-                   settings: PredictSettings | None = None, *, overwrite: bool = False,
-                   **options: Unpack[PredictOptions]) -> PredictResult:
+                   settings: PredictSettings | None = None, *, overwrite: bool = False, progress: bool = True,
+                   **options: Any) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto: the one-input case
     of :func:`predict_many`.
 
@@ -177,8 +177,10 @@ def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Pat
         out_dir: the prediction folder (see :mod:`aerialmtl.formats.prediction`).
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`).
         overwrite: replace existing outputs instead of raising.
-        options: the settings as keywords (``mc=16, precision="fp32", aoi=..., progress=False``, ...:
-            :class:`~aerialmtl.inference.settings.PredictOptions`), applied over ``settings``.
+        progress: show progress bars.
+        options: the settings as keywords named like the fields of
+            :class:`~aerialmtl.inference.settings.PredictSettings` (``mc=16, precision="fp32", aoi=...``), applied
+            over ``settings``.
 
     Returns:
         A :class:`~aerialmtl.inference.job.PredictResult`.
@@ -188,7 +190,7 @@ def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Pat
         InputError / AlignmentError / CheckpointError: unusable inputs (messages name the fix).
     """
     settings = _settings(checkpoint, settings, options)
-    policy = _Policy(overwrite, False, settings.progress, None, "out_dir")
+    policy = _Policy(overwrite, False, progress, None, "out_dir")
     return _predict([ortho], checkpoint, out_dir, settings, policy).results[0]
 
 
@@ -201,7 +203,8 @@ def predict_many(
     overwrite: bool = False,
     skip_existing: bool = False,
     on_result: Callable[[PredictResult], None] | None = None,
-    **options: Unpack[PredictOptions],
+    progress: bool = True,
+    **options: Any,
 ) -> JobResult:
     """Predict every orthophoto of ``orthos``; see the module docstring.
 
@@ -211,11 +214,12 @@ def predict_many(
             for :func:`predict_raster`).
         out: prediction folder (one input) or parent folder (several).
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`; the AOI applies
-            to every input, progress bars show on rank 0 only).
+            to every input).
         overwrite: replace existing outputs.
         skip_existing: skip inputs whose prediction folder is complete.
         on_result: called with each input's result as soon as it is committed.
-        options: the settings as keywords (:class:`~aerialmtl.inference.settings.PredictOptions`), applied over
+        progress: show progress bars (on rank 0 only).
+        options: the settings as keywords named like its fields (as for :func:`predict_raster`), applied over
             ``settings``.
 
     Returns:
@@ -227,7 +231,7 @@ def predict_many(
     """
     settings = _settings(checkpoint, settings, options)
     return _predict(orthos, checkpoint, out, settings,
-                    _Policy(overwrite, skip_existing, settings.progress, on_result, "out"))
+                    _Policy(overwrite, skip_existing, progress, on_result, "out"))
 
 
 def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Path, settings: PredictSettings,
@@ -254,7 +258,7 @@ def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Pa
         ranks.leave()
 
 
-def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options: PredictOptions) -> PredictSettings:
+def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options: dict[str, Any]) -> PredictSettings:
     """The run's settings: ``settings`` with ``options``, or a given :class:`Predictor`'s own.
 
     Raises:

@@ -48,11 +48,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
-from aerialmtl.formats.prediction import PROVENANCE_KEY, LayerSpec, prediction_layers
+from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.engine_choice import choose_engine
 from aerialmtl.inference.engines import Pending, openvino_available
@@ -61,7 +60,7 @@ from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
-from aerialmtl.inference.settings import PredictOptions, PredictSettings, Resolved, settings_of
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings, settings_of
 from aerialmtl.inference.stitch import Block, Stitcher
 from aerialmtl.inference.windows import Plan
 from aerialmtl.io.fingerprint import file_fingerprint, input_fingerprint
@@ -138,15 +137,18 @@ class Predictor:
         checkpoint: checkpoint path, or ``(model, meta)`` already loaded.
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`; default: its
             defaults).
-        options: the Python API's keywords, one per field of the settings
-            (:class:`~aerialmtl.inference.settings.PredictOptions`), applied over ``settings``.
+        checkpoint_name: the checkpoint's name in ``prediction.json`` and in messages (default: its path, or
+            ``<in-memory model>``).
+        options: the Python API's keywords, one per field of the settings (named like them), applied over
+            ``settings`` (:meth:`~aerialmtl.inference.settings.PredictSettings.with_options`).
 
     What ``auto`` and the defaults resolve to is :attr:`resolved` (and, one by one, :attr:`device`,
     :attr:`engine`, :attr:`precision`, :attr:`threads`, :attr:`mc`).
     """
 
     def __init__(self, checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta],
-                 settings: PredictSettings | None = None, **options: Unpack[PredictOptions]) -> None:
+                 settings: PredictSettings | None = None, *, checkpoint_name: str | None = None,
+                 **options: Any) -> None:
         self.settings = s = settings_of(settings, options)
         self.device = runtime.resolve_device(s.device)
         #: Inference threads and streams (:func:`aerialmtl.runtime.resolve_threads`).
@@ -164,7 +166,7 @@ class Predictor:
         if s.compile and self.engine != "torch":
             warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
                           UserWarning, stacklevel=2)
-        self.checkpoint_name = s.checkpoint_name or name
+        self.checkpoint_name = checkpoint_name or name
         self._checkpoint = checkpoint
         self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
         self.mc = s.mc if s.mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
@@ -173,7 +175,7 @@ class Predictor:
         self.calibration = self.meta.calibration if s.calibration else None
         self.calibration_available = self.meta.calibration is not None
         #: What the settings resolved to.
-        self.resolved = Resolved(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.resolved = ResolvedSettings(self.device, self.engine, self.precision, self.threads, self.mc)
         # the checkpoint hashed once: provenance and the OpenVINO cache's key
         weights_key = self.fingerprint if self.engine == "openvino" else None
         self.runner = ModelRunner(model, self.meta, s, self.resolved, weights_key)
@@ -272,12 +274,11 @@ class Predictor:
     def provenance(self, src: OrthoInput) -> dict[str, Any]:
         """What makes the maps of ``src`` (``provenance`` in prediction.json, :mod:`aerialmtl.formats.prediction`)."""
         s = self.settings
+        settings = s.provenance(self._ran_as(), aoi=file_fingerprint(s.aoi), calibration=self.calibration is not None,
+                                input_rescale=None if src.rescale is None else list(src.rescale))
         return {
             "checkpoint": self.fingerprint,
-            "settings": {"mc_samples": self.mc, "tta": s.tta, "seed": s.seed, "precision": self.precision,
-                         "engine": self.runner.engine.name, "probabilities": bool(s.probabilities),
-                         "aoi": file_fingerprint(s.aoi), "calibration": self.calibration is not None,
-                         "input_rescale": None if src.rescale is None else list(src.rescale)},
+            "settings": settings,
             "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(src.path),
         }
 
@@ -287,15 +288,21 @@ class Predictor:
         settings with what they resolved to (:meth:`PredictSettings.record
         <aerialmtl.inference.settings.PredictSettings.record>`).
         """
-        resolved = dataclasses.replace(self.resolved, engine=self.runner.engine.name)  # torch if auto fell back
+        settings = self.settings.record(self._ran_as(), self.resolved_batch_size(src.plan))
         return {
             "checkpoint": self.checkpoint_name,
             "model": model_summary(self.meta),
-            **self.settings.record(resolved, self.resolved_batch_size(src.plan)),
+            **{k: v for k, v in settings.items() if k in RECORD_KEYS},
+            "mc_samples": settings["mc"],
+            "settings": settings,
             "engine_choice": self.choice.as_dict(),
             "calibration": self.calibration_info(),
             PROVENANCE_KEY: self.provenance(src),
         }
+
+    def _ran_as(self) -> ResolvedSettings:
+        """What the settings resolved to, with the engine that ran (``torch`` if ``auto`` fell back)."""
+        return dataclasses.replace(self.resolved, engine=self.runner.engine.name)
 
     def calibration_info(self) -> dict[str, Any]:
         """``prediction.json``'s ``calibration``: whether the checkpoint's calibration was applied, and which."""

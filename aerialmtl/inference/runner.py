@@ -42,7 +42,7 @@ from aerialmtl.inference.engines import (
     fallback_engine,
 )
 from aerialmtl.inference.model_record import CheckpointModel
-from aerialmtl.inference.settings import PredictSettings, Resolved
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 from aerialmtl.models.mc_dropout import McStatistics
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
@@ -164,7 +164,7 @@ class ModelRunner:
     """
 
     def __init__(self, model: nn.Module | CheckpointModel, meta: ModelMeta, settings: PredictSettings,
-                 resolved: Resolved, weights_key: str | None = None) -> None:
+                 resolved: ResolvedSettings, weights_key: str | None = None) -> None:
         self.settings, self.resolved = settings, resolved
         self.device = resolved.device
         self.precision = resolved.precision
@@ -232,9 +232,10 @@ class ModelRunner:
             if not (first and self.fallback and self.engine.name != FALLBACK):
                 raise
             label = engine_spec(self.engine.name).label
+            fallback = engine_spec(FALLBACK)
             warnings.warn(f"the {label} engine cannot run this model ({type(exc).__name__}: "
-                          f"{cause(exc)}); predicting with the torch engine "
-                          "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
+                          f"{cause(exc)}); predicting with the {fallback.label} engine "
+                          f"instead (pass --engine {FALLBACK} to choose it directly)", UserWarning, stacklevel=2)
             self.engine = fallback_engine(self.engine, self._setup)  # over the engine's folded copy
             return self._statistics(x, keys)
 

@@ -13,7 +13,7 @@ from torch import nn
 
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.model_record import CheckpointModel
-from aerialmtl.inference.settings import PredictSettings, Resolved
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 from aerialmtl.models.mc_dropout import McStatistics
 
 
@@ -35,7 +35,7 @@ class EngineSetup:
     model: nn.Module | CheckpointModel
     meta: ModelMeta
     settings: PredictSettings
-    resolved: Resolved
+    resolved: ResolvedSettings
     weights_key: str | None = None
 
     @property
