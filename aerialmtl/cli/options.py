@@ -99,8 +99,9 @@ def raster_argument(name: str, library: str | Sequence[str] = (), **kwargs: Any)
 
 # ---- outputs ---------------------------------------------------------------------------------------
 class OutputPath(click.Path):
-    """A local output path (``click.Path`` → ``pathlib.Path``); a URL or a GDAL ``/vsi...`` path is refused before
-    ``pathlib`` folds ``s3://b/x`` into a local folder ``s3:/b/x``.
+    """A local output path (``click.Path`` → ``pathlib.Path``).
+
+    A URL or a GDAL ``/vsi...`` path is refused before ``pathlib`` folds ``s3://b/x`` into a local folder ``s3:/b/x``.
     """
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
@@ -154,8 +155,10 @@ def compile_option(dest: str = "compile_") -> Decorator[Any]:
 
 
 class EngineName(click.Choice):  # type: ignore[type-arg]  # generic only in click's stubs
-    """``auto`` or a name of the engine registry (:data:`aerialmtl.inference.engines.ENGINES`), read when the choices
-    are first shown or checked: the registry imports torch, which the command line loads only when it needs it.
+    """``auto`` or a name of the engine registry (:data:`aerialmtl.inference.engines.ENGINES`).
+
+    The names are read when the choices are first shown or checked: the registry imports torch, which the command
+    line loads only when it needs it.
     """
 
     name = "engine"
@@ -197,8 +200,10 @@ def command_flags(command: click.Command) -> dict[str, str]:
 
 
 def values_for(names: Iterable[Any], values: dict[str, Any]) -> dict[str, Any]:
-    """The values of the running command's options (``values``: what click passed, by parameter name) for the
-    library parameters ``names`` (names, or dataclass fields), found as :func:`command_flags` finds them.
+    """The values of the running command's options for the library parameters ``names``.
+
+    ``values``: what click passed, by parameter name; ``names``: names, or dataclass fields; each found as
+    :func:`command_flags` finds them.
 
     Raises:
         TypeError: a name no option of the command stands for (the command lacks an option: a programming error).

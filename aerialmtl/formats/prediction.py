@@ -1,5 +1,6 @@
-"""The prediction folder: what ``aerialmtl predict`` writes and ``evaluate``, the maps notebook and
-``buildings`` read.
+"""The prediction folder: what ``aerialmtl predict`` writes.
+
+``evaluate``, the maps notebook and ``buildings`` read it.
 
 One folder per orthophoto, all layers Cloud-Optimized GeoTIFFs on one grid (the orthophoto's, at the
 model's GSD)::
@@ -119,9 +120,11 @@ ALL_FILES = (tuple(layer_filename(n) for n in LAYERS) + tuple(style_filename(n) 
 
 
 def folder_files(names: Iterable[str]) -> list[str]:
-    """Every file a prediction folder with layers ``names`` holds: the layers, their QGIS styles, the STAC
-    item and ``prediction.json`` (last). A run claims all of them before writing, so that a user's own
-    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``.
+    """Every file a prediction folder with layers ``names`` holds.
+
+    The layers, their QGIS styles, the STAC item and ``prediction.json`` (last). A run claims all of them before
+    writing, so that a user's own ``height.qml`` or ``item.json`` in ``--out`` is never replaced without
+    ``--overwrite``.
     """
     names = list(names)
     return ([layer_filename(n) for n in names] + [style_filename(n) for n in names] + [ITEM_FILE, INFO_FILE])
@@ -138,8 +141,9 @@ def mosaic_style_filename(name: str) -> str:
 
 
 def mosaic_files(names: Iterable[str]) -> list[str]:
-    """Every file a run over several inputs writes beside their folders for layers ``names``: each layer's VRT
-    mosaic and its QGIS style, and the STAC ``collection.json``.
+    """Every file a run over several inputs writes beside their folders for layers ``names``.
+
+    Each layer's VRT mosaic and its QGIS style, and the STAC ``collection.json``.
     """
     names = list(names)
     return [mosaic_filename(n) for n in names] + [mosaic_style_filename(n) for n in names] + [COLLECTION_FILE]
@@ -264,8 +268,10 @@ class GridInfo(BaseModel):
 
 
 class Provenance(BaseModel):
-    """``prediction.json``'s ``provenance`` (module docstring): the checkpoint's fingerprint, the settings that
-    change the maps, the input's fingerprint (:func:`aerialmtl.io.fingerprint.input_fingerprint`).
+    """``prediction.json``'s ``provenance`` (module docstring).
+
+    The checkpoint's fingerprint, the settings that change the maps, the input's fingerprint
+    (:func:`aerialmtl.io.fingerprint.input_fingerprint`).
     """
 
     model_config = ConfigDict(extra="allow")
@@ -485,8 +491,9 @@ class PredictionFolder:
         return self._content_problem(info) if content else None
 
     def _content_problem(self, info: Mapping[str, Any]) -> str | None:
-        """Which layer's bytes differ from the SHA-256 recorded at commit (``None``: all match, or none recorded:
-        folders of earlier versions are checked by size only).
+        """Which layer's bytes differ from the SHA-256 recorded at commit.
+
+        ``None``: all match, or none recorded (folders of earlier versions are checked by size only).
         """
         from aerialmtl.io.fingerprint import content_sha256
 

@@ -166,8 +166,9 @@ Checkpoint = str | Path | tuple[torch.nn.Module, ModelMeta] | Predictor
 def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Path,
                    settings: PredictSettings | None = None, *, overwrite: bool = False, progress: bool = True,
                    **options: Any) -> PredictResult:
-    """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto: the one-input case
-    of :func:`predict_many`.
+    """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
+
+    The one-input case of :func:`predict_many`.
 
     Args:
         ortho: orthophoto GeoTIFF (any size; read window by window), a URL or a GDAL path.
@@ -236,8 +237,9 @@ def predict_many(
 
 def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Path, settings: PredictSettings,
              policy: _Policy) -> JobResult:
-    """:func:`predict_many` and :func:`predict_raster`: load the model on this rank's device, read every input's
-    header, hold the output folders, run.
+    """Run :func:`predict_many` or :func:`predict_raster`.
+
+    Load the model on this rank's device, read every input's header, hold the output folders, run.
     """
     ranks = runtime.Torchrun.from_env()
     targets = targets_for(orthos, out, policy.option)
@@ -286,8 +288,10 @@ class _Policy:
 
 def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: runtime.Torchrun,
                   aoi: str | Path | None, option: str) -> None:
-    """Take the job's output folders (:class:`~aerialmtl.io.outputs.OutputFolder`: every input's prediction
-    folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error.
+    """Take the job's output folders on rank 0, for the whole job; every rank raises rank 0's error.
+
+    The folders (:class:`~aerialmtl.io.outputs.OutputFolder`) are every input's prediction folder, and ``out`` with
+    several inputs.
     """
     error: BaseException | None = None
     if ranks.rank == 0:
@@ -312,8 +316,10 @@ def _job(predictor: Predictor, t: Target, overwrite: bool = False, option: str =
 
 def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun,
          policy: _Policy) -> JobResult:
-    """:func:`predict_many` once the folders are held: choose the inputs, claim their outputs, plan the ranks'
-    shares, compute and commit (one :class:`~aerialmtl.inference.job.InputJob` per input or strip), mosaic.
+    """Run :func:`predict_many` once the folders are held.
+
+    Choose the inputs, claim their outputs, plan the ranks' shares, compute and commit (one
+    :class:`~aerialmtl.inference.job.InputJob` per input or strip), mosaic.
     """
     done = JobResult(ranks=ranks)
     todo, replace, kept = _select(predictor, targets, policy.skip_existing, done)
@@ -352,10 +358,11 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
 
 def _select(predictor: Predictor, targets: Sequence[Target], skip_existing: bool,
             done: JobResult) -> tuple[list[int], set[int], dict[int, str]]:
-    """The inputs to compute, those of them whose earlier, outdated outputs ``skip_existing`` recomputes
-    (their ``prediction.json`` proves every output there is that run's), and why ``skip_existing`` neither
-    skipped nor may replace the others' files (no readable ``prediction.json`` owns them); the skipped ones go
-    into ``done``.
+    """The inputs to compute, those ``skip_existing`` recomputes, and why it kept the others' files.
+
+    Recomputed: those whose earlier, outdated outputs ``skip_existing`` replaces (their ``prediction.json`` proves
+    every output there is that run's); kept: why ``skip_existing`` neither skipped nor may replace the others' files
+    (no readable ``prediction.json`` owns them). The skipped ones go into ``done``.
     """
     todo = []
     replace: set[int] = set()
@@ -382,9 +389,10 @@ def _select(predictor: Predictor, targets: Sequence[Target], skip_existing: bool
 
 def _claim(predictor: Predictor, targets: Sequence[Target], out: Path, todo: Sequence[int],
            replace: set[int], kept: Mapping[int, str], option: str) -> None:
-    """Refuse existing outputs (without ``overwrite``): each input's, and with several inputs the mosaics and
-    ``collection.json`` (a user's own are never replaced silently); ``kept``: why ``skip_existing`` could not
-    use an input's folder, said with the refusal.
+    """Refuse existing outputs (without ``overwrite``).
+
+    Each input's, and with several inputs the mosaics and ``collection.json`` (a user's own are never replaced
+    silently); ``kept``: why ``skip_existing`` could not use an input's folder, said with the refusal.
     """
     for k in todo:
         if k not in replace:
@@ -416,8 +424,9 @@ def _shares(targets: Sequence[Target], todo: Sequence[int], ranks: runtime.Torch
 def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Share], shared: set[int],
              replace: set[int], ranks: runtime.Torchrun, policy: _Policy,
              committed: Callable[[PredictResult], None]) -> list[tuple[str, int, str]]:
-    """Compute this rank's shares and commit what it owns: a whole input at once, a shared one (its first
-    strip here) once every rank's strips are in; ``committed`` gets each result.
+    """Compute this rank's shares and commit what it owns; ``committed`` gets each result.
+
+    A whole input at once, a shared one (its first strip here) once every rank's strips are in.
 
     Returns:
         every rank's failures, ``(input, rank, message)`` (in one process the first failure is raised instead).
@@ -475,8 +484,10 @@ def _one_line(exc: BaseException) -> str:
 
 
 def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) -> dict[str, Path]:
-    """One VRT per layer over every input's folder (:func:`~aerialmtl.formats.prediction.mosaic_filename`),
-    each with its QGIS style, and the STAC ``collection.json`` linking the inputs' items and the mosaics.
+    """One VRT per layer over every input's folder, and the STAC collection.
+
+    Each mosaic (:func:`~aerialmtl.formats.prediction.mosaic_filename`) has its QGIS style; ``collection.json``
+    links the inputs' items and the mosaics.
 
     A mosaic an earlier run here wrote (its ``collection.json`` lists it) of a layer this run does not make
     (e.g. ``height_std`` after ``--mc 1``) is removed with its style: it would point at layers that are gone.

@@ -91,8 +91,10 @@ class StripResult:
 
 def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool = False
           ) -> tuple[torch.nn.Module | CheckpointModel, ModelMeta, str, str | None]:
-    """``(model, meta, name, fingerprint)``; the fingerprint is that of the checkpoint bytes loaded (``None`` for a
-    model given in memory: computed from its weights when needed).
+    """``(model, meta, name, fingerprint)`` of ``checkpoint``.
+
+    The fingerprint is that of the checkpoint bytes loaded (``None`` for a model given in memory: computed from its
+    weights when needed).
 
     With ``warm`` (a run that may use the OpenVINO engine), a checkpoint file whose record is beside the engine
     cache (:mod:`aerialmtl.inference.model_record`) is not loaded: its bytes are hashed, and the model is a
@@ -204,8 +206,9 @@ class Predictor:
 
     # ---- inputs -----------------------------------------------------------------------------------
     def open(self, ortho: str | Path | OrthoInput, warn: bool = True) -> OrthoInput:
-        """Read the header of ``ortho`` and a sample of its values once
-        (:meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>`); an :class:`OrthoInput` is
+        """Read the header of ``ortho`` and a sample of its values once.
+
+        :meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>` reads them; an :class:`OrthoInput` is
         returned as it is.
 
         Args:
@@ -238,8 +241,9 @@ class Predictor:
     # ---- computing --------------------------------------------------------------------------------
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
                 progress: bool = True) -> StripResult:
-        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan (inside the settings'
-        AOI); each finished block goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
+        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan (inside the settings' AOI).
+
+        Each finished block goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
 
         The window rows before ``start`` that reach into it
         (:attr:`~aerialmtl.inference.windows.WindowRow.sources`) are computed too, so a strip gives exactly
@@ -263,8 +267,10 @@ class Predictor:
     # ---- run information --------------------------------------------------------------------------
     @property
     def fingerprint(self) -> str:
-        """The model's fingerprint: SHA-256 of the checkpoint bytes that were loaded
-        (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the weights of a model given in memory.
+        """The model's fingerprint (SHA-256).
+
+        Of the checkpoint bytes that were loaded (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the
+        weights of a model given in memory.
         """
         if self._fingerprint is None:
             assert isinstance(self._checkpoint, tuple)
@@ -283,8 +289,9 @@ class Predictor:
         }
 
     def record_settings(self, src: OrthoInput) -> dict[str, Any]:
-        """The model's and the settings' fields of ``src``'s ``prediction.json``
-        (:class:`~aerialmtl.formats.prediction.PredictionRecord`; the job adds the input's and the run's): the
+        """The model's and the settings' fields of ``src``'s ``prediction.json``.
+
+        See :class:`~aerialmtl.formats.prediction.PredictionRecord` (the job adds the input's and the run's): the
         settings with what they resolved to (:meth:`PredictSettings.record
         <aerialmtl.inference.settings.PredictSettings.record>`).
         """
@@ -329,9 +336,11 @@ class Predictor:
 
 
 class _StripLoop:
-    """The window loop of :meth:`Predictor.compute`: windows read → batches submitted to the engine (up to
+    """The window loop of :meth:`Predictor.compute`, with the stage times.
+
+    Windows read → batches submitted to the engine (up to
     :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked and stitched → blocks
-    to ``write``; with the stage times.
+    to ``write``.
     """
 
     def __init__(self, predictor: Predictor, src: OrthoInput, stitcher: Stitcher, write: Callable[[Block], None],
@@ -397,8 +406,9 @@ class _StripLoop:
         self.flush(windows, stats, valid)
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
-        """Hand ``windows`` (with their statistics, in order, for those with data) to the stitcher and the
-        finished blocks to ``write``.
+        """Hand ``windows`` to the stitcher and the finished blocks to ``write``.
+
+        ``stats`` holds the statistics of the windows with data, in order.
         """
         t0 = time.perf_counter()
         n = 0

@@ -130,8 +130,9 @@ class PredictSettings:
         return dataclasses.replace(self, **options)
 
     def _values(self, resolved: ResolvedSettings) -> dict[str, Any]:
-        """Every field's value as JSON, a value that ``auto`` or a default resolved replaced by what it resolved to
-        (the fields of ``resolved`` are named like the settings they resolve).
+        """Every field's value as JSON, with what ``auto`` or a default resolved to in its place.
+
+        The fields of ``resolved`` are named like the settings they resolve.
         """
         values: dict[str, Any] = {}
         for f in dataclasses.fields(self):
@@ -140,15 +141,18 @@ class PredictSettings:
         return values
 
     def record(self, resolved: ResolvedSettings, batch_size: int) -> dict[str, Any]:
-        """``prediction.json``'s ``settings``: every field, with what ``auto`` and the defaults resolved to
-        (``resolved``) and the batch size used (``batch_size``, resolved per window size).
+        """``prediction.json``'s ``settings``: every field, resolved.
+
+        ``resolved``: what ``auto`` and the defaults resolved to; ``batch_size``: the batch size used (resolved per
+        window size).
         """
         return {**self._values(resolved), "batch_size": batch_size}
 
     def provenance(self, resolved: ResolvedSettings, **recorded: Any) -> dict[str, Any]:
-        """``provenance.settings`` of ``prediction.json``: the fields that change the maps (all but the
-        :func:`speed_only` ones), resolved, ``mc`` under its recorded name ``mc_samples``; ``recorded`` replaces or
-        adds values the model knows better (the AOI's fingerprint, whether calibration was applied, ...).
+        """``provenance.settings`` of ``prediction.json``: the fields that change the maps, resolved.
+
+        All fields but the :func:`speed_only` ones, ``mc`` under its recorded name ``mc_samples``; ``recorded``
+        replaces or adds values the model knows better (the AOI's fingerprint, whether calibration was applied, ...).
         """
         values = self._values(resolved)
         kept = {f.name: values[f.name] for f in dataclasses.fields(self) if f.metadata.get("maps", True)}
@@ -172,8 +176,9 @@ def settings_of(settings: PredictSettings | None, options: dict[str, Any]) -> Pr
 
 @dataclass(frozen=True)
 class ResolvedSettings:
-    """What :class:`PredictSettings`' ``auto`` values and defaults resolved to for one model on this machine; each
-    field is named like the setting it resolves.
+    """What the ``auto`` values and defaults of :class:`PredictSettings` resolved to for one model on this machine.
+
+    Each field is named like the setting it resolves.
 
     Attributes:
         device: where the model runs.

@@ -1,5 +1,7 @@
-"""The interface of the engines: :class:`Engine`, what :meth:`Engine.submit` returns (:class:`Pending`), and
-what an engine is built from (:class:`EngineSetup`).
+"""The interface of the engines.
+
+:class:`Engine`, what :meth:`Engine.submit` returns (:class:`Pending`), and what an engine is built from
+(:class:`EngineSetup`).
 """
 
 from __future__ import annotations
@@ -45,9 +47,10 @@ class EngineSetup:
 
 
 class Engine(Protocol):
-    """What runs the model in prediction: the one interface of every engine (``torch``:
-    :class:`~aerialmtl.inference.engines.torch_engine.TorchEngine`, ``openvino``:
-    :class:`~aerialmtl.inference.engines.openvino_engine.OpenVINOEngine`).
+    """What runs the model in prediction: the one interface of every engine.
+
+    ``torch``: :class:`~aerialmtl.inference.engines.torch_engine.TorchEngine`, ``openvino``:
+    :class:`~aerialmtl.inference.engines.openvino_engine.OpenVINOEngine`.
 
     The runner (:class:`~aerialmtl.inference.runner.ModelRunner`) uses these members only; it never asks
     which class it holds. A new engine implements them in a module of its own and is one entry of
@@ -64,14 +67,16 @@ class Engine(Protocol):
 
     @property
     def net(self) -> nn.Module:
-        """A torch module that computes what the engine computes, for measuring the memory of one window
-        (:func:`~aerialmtl.inference.runner.auto_batch_size` on CUDA).
+        """A torch module that computes what the engine computes.
+
+        For measuring the memory of one window (:func:`~aerialmtl.inference.runner.auto_batch_size` on CUDA).
         """
         ...
 
     def ahead(self, samples: int) -> int:
-        """Batches a caller may keep submitted (:meth:`submit`) ahead of the one it stitches, at ``samples``
-        MC samples: 0 for an engine that computes synchronously.
+        """Batches a caller may keep submitted (:meth:`submit`) ahead of the one it stitches.
+
+        At ``samples`` MC samples; 0 for an engine that computes synchronously.
         """
         ...
 
@@ -94,8 +99,9 @@ class Engine(Protocol):
 
     def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                sample_batch: int) -> Pending:
-        """Start :meth:`statistics` of a batch; ``.result()`` of the returned :class:`Pending` gives them (an
-        engine that runs synchronously returns them computed, as :class:`Done`).
+        """Start :meth:`statistics` of a batch; ``.result()`` of the returned :class:`Pending` gives them.
+
+        An engine that runs synchronously returns them computed, as :class:`Done`.
         """
         ...
 
