@@ -22,7 +22,9 @@ import torch
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.data.dataset import normalise_batch
+from aerialmtl.data.synth.city import sample_city
 from aerialmtl.data.synth.city_canvas import GROUND_ROOFS
+from aerialmtl.data.synth.style import CityStyle
 from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.errors import ConfigError
 
@@ -45,6 +47,11 @@ class SyntheticScene:
     gsd: float
 
 
+def city_seed(seed: int, index: int) -> int:
+    """The city seed of scene ``index`` of the stream ``seed`` (a 63-bit int, well mixed)."""
+    return int(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(index)]).generate_state(2, np.uint64)[0] >> 1)
+
+
 def synthetic_scene(seed: int, index: int, size: int, gsd: float,
                     textures: TexturePool | None = None, ground_roofs: float = GROUND_ROOFS) -> SyntheticScene:
     """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres), its surfaces
@@ -53,10 +60,6 @@ def synthetic_scene(seed: int, index: int, size: int, gsd: float,
 
     The one function that asks the generator for a scene: switching generators changes only this body.
     """
-    from aerialmtl.data.city_stream import city_seed
-    from aerialmtl.data.synth.city import sample_city
-    from aerialmtl.data.synth.style import CityStyle
-
     city = sample_city(city_seed(seed, index), size, gsd, CityStyle(ground_roofs=ground_roofs), textures=textures)
     classes = ClassScheme.load(SCHEME_NAME).remap(city.classes, on_unknown="ignore").astype(np.uint8)
     return SyntheticScene(city.image, city.height.astype(np.float32), classes, gsd)
@@ -241,4 +244,5 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
         return normalise_batch(raw["image"], raw["valid"], self.mean, self.std, raw["height"], raw["classes"])
 
 
-__all__ = ["GENERATOR", "SCHEME_NAME", "SyntheticBatches", "SyntheticScene", "SyntheticStream", "synthetic_scene"]
+__all__ = ["GENERATOR", "SCHEME_NAME", "SyntheticBatches", "SyntheticScene", "SyntheticStream", "city_seed",
+           "synthetic_scene"]
