@@ -26,6 +26,7 @@ from typing import Any, TypeVar
 import click
 
 from aerialmtl.errors import PARAM_MARK, AerialMTLError, ConfigError, InputError
+from aerialmtl.inference.engine_names import ENGINE_MODULES
 from aerialmtl.io.paths import gdal_path, is_local
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -155,10 +156,10 @@ def compile_option(dest: str = "compile_") -> Decorator[Any]:
 
 
 class EngineName(click.Choice):  # type: ignore[type-arg]  # generic only in click's stubs
-    """``auto`` or a name of the engine registry (:data:`aerialmtl.inference.engines.ENGINES`).
+    """``auto`` or a name of the engine registry (:data:`aerialmtl.inference.engine_names.ENGINE_MODULES`).
 
-    The names are read when the choices are first shown or checked: the registry imports torch, which the command
-    line loads only when it needs it.
+    The names are read from that table (which imports no engine, so no torch) each time the choices are shown or
+    checked.
     """
 
     name = "engine"
@@ -169,9 +170,7 @@ class EngineName(click.Choice):  # type: ignore[type-arg]  # generic only in cli
     @property
     def choices(self) -> tuple[str, ...]:
         """``auto`` and the registry's engines."""
-        from aerialmtl.inference.engines.registry import ENGINES
-
-        return ("auto", *ENGINES)
+        return ("auto", *ENGINE_MODULES)
 
     @choices.setter
     def choices(self, value: Sequence[str]) -> None:

@@ -1,8 +1,8 @@
 """A third engine for the tests, written as docs/CONTRACTS.md says an engine is added: this one module (a class with
 the :class:`~aerialmtl.inference.engines.base.Engine` members, a function building it from an ``EngineSetup``, one
-saying why it cannot run somewhere) plus one :class:`~aerialmtl.inference.engines.registry.EngineSpec` entry
-(:data:`SPEC`, which a test puts into ``ENGINES``). It computes with the torch engine's model and counts the windows
-it was given, so a test can tell that it, and not another engine, made the maps.
+saying why it cannot run somewhere, and its :data:`SPEC`) plus one entry naming this module in
+``aerialmtl.inference.engine_names.ENGINE_MODULES``, which a test adds. It computes with the torch engine's model and
+counts the windows it was given, so a test can tell that it, and not another engine, made the maps.
 """
 
 from __future__ import annotations
@@ -66,5 +66,5 @@ def counting_unusable(device: torch.device, model: nn.Module | CheckpointModel) 
     return None
 
 
-#: The one registry entry.
+#: The engine's entry of the registry.
 SPEC = EngineSpec(NAME, "counting", build_counting, counting_unusable)

@@ -17,7 +17,8 @@ that can run the model on the device: ``openvino`` on a CPU when OpenVINO is ins
 The package: :mod:`~aerialmtl.inference.engines.base` (the :class:`Engine` protocol, what an engine is built
 from), :mod:`~aerialmtl.inference.engines.registry` (the engines by name, ``auto``, the fallback), one module
 per engine (:mod:`~aerialmtl.inference.engines.torch_engine`, :mod:`~aerialmtl.inference.engines.openvino_engine`
-with its graphs and requests beside it). Adding an engine is one module and one registry entry.
+with its graphs and requests beside it). Adding an engine is one module (with its ``SPEC``) and one entry in
+:data:`~aerialmtl.inference.engine_names.ENGINE_MODULES`.
 
 Both engines give the runner (:class:`~aerialmtl.inference.runner.ModelRunner`) per-window statistics
 through the same code: T = 1 is one forward pass (height, softmax of the logits); T > 1 runs the encoder

@@ -13,6 +13,7 @@ from typing import Protocol
 import torch
 from torch import nn
 
+from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.model_record import CheckpointModel
 from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
@@ -107,6 +108,26 @@ class Engine(Protocol):
 
 
 
+@dataclass(frozen=True)
+class EngineSpec:
+    """One engine of the registry: its module's ``SPEC`` (:mod:`aerialmtl.inference.engine_names`).
+
+    Attributes:
+        name: the ``engine`` value that selects it (recorded in ``prediction.json``).
+        label: how messages spell it (``OpenVINO``).
+        build: setup → the engine.
+        unusable: (device, model) → why the engine cannot run that model there (the error to raise), or ``None``.
+        over: (model another engine prepared, setup) → the engine over that model, not compiled; what ``auto``'s
+            fallback builds (needed of :data:`~aerialmtl.inference.engine_names.FALLBACK` only).
+    """
+
+    name: str
+    label: str
+    build: Callable[[EngineSetup], Engine]
+    unusable: Callable[[torch.device, nn.Module | CheckpointModel], InputError | None]
+    over: Callable[[nn.Module, EngineSetup], Engine] | None = None
+
+
 class Pending(Protocol):
     """Statistics of a batch being computed; :meth:`result` waits for them."""
 
@@ -139,4 +160,4 @@ class Deferred:
 
 
 
-__all__ = ["Deferred", "Done", "Engine", "EngineSetup", "Pending"]
+__all__ = ["Deferred", "Done", "Engine", "EngineSetup", "EngineSpec", "Pending"]

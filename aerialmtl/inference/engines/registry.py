@@ -1,62 +1,54 @@
-"""The engines by name: one :class:`EngineSpec` each in :data:`ENGINES`, shaped like the encoder registry
-(:mod:`aerialmtl.models.encoders`).
+"""The engines by name: :data:`ENGINES`, one :class:`~aerialmtl.inference.engines.base.EngineSpec` each, shaped
+like the encoder registry (:mod:`aerialmtl.models.encoders`).
 
-Adding an engine is one module of its own (a class with the :class:`~aerialmtl.inference.engines.base.Engine`
-members, a function that builds it from an :class:`~aerialmtl.inference.engines.base.EngineSetup`, and one that
-says why it cannot run somewhere) and one entry here, nothing else: ``predict --engine`` and the QGIS dialog
-offer the names of :data:`ENGINES` (read from here), and tests/test_engines.py predicts with a fake third engine
-registered so. The order of :data:`ENGINES` is ``auto``'s preference: :func:`resolve_engine` (the one resolver of
-``auto`` against the registry; :func:`~aerialmtl.inference.engine_choice.choose_engine` adds the measured table on
-top of it) takes the first engine that can run the model on the device; an engine appended after
-:data:`FALLBACK` (which runs anything, anywhere) is never picked by ``auto``.
+The names and their order are :data:`~aerialmtl.inference.engine_names.ENGINE_MODULES` (a table that imports no
+engine, so the command line reads it without torch); each engine's entry is its module's ``SPEC``, imported when
+first asked for. Adding an engine is one module of its own (a class with the
+:class:`~aerialmtl.inference.engines.base.Engine` members, a function that builds it from an
+:class:`~aerialmtl.inference.engines.base.EngineSetup`, one that says why it cannot run somewhere, and its
+``SPEC``) and one entry in that table, nothing else: ``predict --engine`` offers the names of the table, and
+tests/test_engine_registry.py predicts with a fake third engine added so. The order is ``auto``'s preference:
+:func:`resolve_engine` (the one resolver of ``auto`` against the registry;
+:func:`~aerialmtl.inference.engine_choice.choose_engine` adds the measured table on top of it) takes the first
+engine that can run the model on the device; an engine after :data:`FALLBACK` (which runs anything, anywhere) is
+never picked by ``auto``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import importlib
+from collections.abc import Iterator, Mapping
 
 import torch
 from torch import nn
 
 from aerialmtl.errors import InputError
-from aerialmtl.inference.engines.base import Engine, EngineSetup
-from aerialmtl.inference.engines.openvino_engine import build_openvino, openvino_unusable
-from aerialmtl.inference.engines.torch_engine import build_torch, torch_over
+from aerialmtl.inference.engine_names import ENGINE_MODULES, FALLBACK
+from aerialmtl.inference.engines.base import Engine, EngineSetup, EngineSpec
 from aerialmtl.inference.model_record import CheckpointModel
 
 
-@dataclass(frozen=True)
-class EngineSpec:
-    """One engine of the registry.
+class _Registry(Mapping[str, EngineSpec]):
+    """Name → :class:`EngineSpec`, read from :data:`~aerialmtl.inference.engine_names.ENGINE_MODULES`.
 
-    Attributes:
-        name: the ``engine`` value that selects it (recorded in ``prediction.json``).
-        label: how messages spell it (``OpenVINO``).
-        build: setup → the engine.
-        unusable: (device, model) → why the engine cannot run that model there (the error to raise), or ``None``.
-        over: (model another engine prepared, setup) → the engine over that model, not compiled; what ``auto``'s
-            fallback builds (needed of :data:`FALLBACK` only).
+    The names in its order, each the ``SPEC`` of its module.
     """
 
-    name: str
-    label: str
-    build: Callable[[EngineSetup], Engine]
-    unusable: Callable[[torch.device, nn.Module | CheckpointModel], InputError | None]
-    over: Callable[[nn.Module, EngineSetup], Engine] | None = None
+    def __getitem__(self, name: str) -> EngineSpec:
+        spec = importlib.import_module(ENGINE_MODULES[name]).SPEC
+        if not isinstance(spec, EngineSpec) or spec.name != name:
+            raise TypeError(f"{ENGINE_MODULES[name]}.SPEC must be the EngineSpec of engine {name!r}, got {spec!r}")
+        return spec
 
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(ENGINE_MODULES))
 
-def _always_usable(device: torch.device, model: nn.Module | CheckpointModel) -> InputError | None:
-    return None
+    def __len__(self) -> int:
+        return len(ENGINE_MODULES)
 
 
 #: Name → engine, in ``auto``'s order of preference (the module docstring).
-ENGINES: dict[str, EngineSpec] = {
-    "openvino": EngineSpec("openvino", "OpenVINO", build_openvino, openvino_unusable),
-    "torch": EngineSpec("torch", "torch", build_torch, _always_usable, over=torch_over),
-}
-#: The engine ``auto`` falls back to when the one it chose fails on the first batch (runs anything, anywhere).
-FALLBACK = "torch"
+ENGINES: Mapping[str, EngineSpec] = _Registry()
 
 
 def engine_spec(name: str) -> EngineSpec:
@@ -71,7 +63,9 @@ def engine_spec(name: str) -> EngineSpec:
 
 
 def resolve_engine(engine: str, device: torch.device, model: nn.Module | CheckpointModel) -> str:
-    """``auto`` → the first engine of :data:`ENGINES` that can run ``model`` on ``device`` (``openvino`` on a CPU
+    """The engine that runs ``model`` on ``device`` for the option ``engine``.
+
+    ``auto`` → the first engine of :data:`ENGINES` that can run ``model`` on ``device`` (``openvino`` on a CPU
     where it is installed and ``model`` is a D3-Net, else ``torch``); a named engine → itself, once it can run
     ``model`` on ``device``.
 

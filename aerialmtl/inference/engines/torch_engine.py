@@ -9,8 +9,9 @@ import torch
 from torch import nn
 
 from aerialmtl import runtime
-from aerialmtl.inference.engines.base import Done, EngineSetup, Pending
-from aerialmtl.inference.model_record import resolve_model
+from aerialmtl.errors import InputError
+from aerialmtl.inference.engines.base import Done, EngineSetup, EngineSpec, Pending
+from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.models.d3net import inference_model
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
@@ -115,4 +116,11 @@ def torch_over(model: nn.Module, setup: EngineSetup) -> TorchEngine:
                        density=setup.meta.familiarity)
 
 
-__all__ = ["TorchEngine", "build_torch", "compile_model", "torch_over"]
+def _always_usable(device: torch.device, model: nn.Module | CheckpointModel) -> InputError | None:
+    return None
+
+
+#: The torch engine's entry of the registry (:mod:`aerialmtl.inference.engine_names`): runs anything, anywhere.
+SPEC = EngineSpec("torch", "torch", build_torch, _always_usable, over=torch_over)
+
+__all__ = ["SPEC", "TorchEngine", "build_torch", "compile_model", "torch_over"]
