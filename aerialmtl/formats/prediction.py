@@ -72,6 +72,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, cause
+from aerialmtl.io.fingerprint import changed, content_sha256
 
 #: Layer names, in the order a prediction folder lists them (file ``<name>.tif``).
 HEIGHT = "height"
@@ -495,8 +496,6 @@ class PredictionFolder:
 
         ``None``: all match, or none recorded (folders of earlier versions are checked by size only).
         """
-        from aerialmtl.io.fingerprint import content_sha256
-
         for name, digest in (info.get("file_sha256") or {}).items():
             try:
                 now = content_sha256(self.path / str(name))
@@ -535,8 +534,6 @@ PROVENANCE_KEY = "provenance"
 
 def _provenance_problem(recorded: Any, expected: Mapping[str, Any]) -> str | None:
     """Why the ``provenance`` recorded differs from the run's ``expected`` one, in a few words (``None``: same)."""
-    from aerialmtl.io.fingerprint import changed
-
     if not isinstance(recorded, dict):
         return f"its {INFO_FILE} records no provenance (made by an older version)"
     if recorded.get("checkpoint") != expected.get("checkpoint"):

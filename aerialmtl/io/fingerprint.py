@@ -32,6 +32,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
+
 #: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
 VRT_DEPTH = 4
 #: Seconds :func:`http_validators` waits for a server's answer.
@@ -63,7 +65,6 @@ def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
     """Resolved path, size and mtime (ns) of a local file (``None`` for ``None``); the GDAL path alone otherwise."""
     if path is None:
         return None
-    from aerialmtl.io.paths import gdal_path, is_local
 
     if not is_local(path):
         return {"path": gdal_path(path)}
@@ -128,7 +129,6 @@ def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError):
         return []
-    from aerialmtl.io.paths import is_local
 
     out: list[dict[str, Any]] = []
     seen: set[str] = set()
@@ -187,8 +187,6 @@ def input_fingerprint(path: str | Path, raster: Mapping[str, Any] | None = None,
         GDAL path and ``server`` (the HTTP validators) or ``archive`` (the local archive's
         :func:`file_fingerprint`); with ``raster`` when given.
     """
-    from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
-
     fp = file_fingerprint(path)
     assert fp is not None
     if is_local(path):
