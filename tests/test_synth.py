@@ -10,6 +10,7 @@ import pytest
 import rasterio
 import yaml
 from click.testing import CliRunner
+from helpers import pins
 from rasterio.enums import ColorInterp
 from scipy import ndimage
 
@@ -19,7 +20,6 @@ from aerialmtl.cli.options import flags_for
 from aerialmtl.data.synth import SYNTH_VERSION, cast_shadows, hillshade, synthesize
 from aerialmtl.errors import InputError, OutputExistsError
 from aerialmtl.formats.tiles import HEIGHT_NODATA
-from helpers import pins
 
 RASTERS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "labels.tif")
 BARE, ROAD, BUILDING, TREE, LOWVEG, WATER = 1, 2, 3, 4, 5, 6

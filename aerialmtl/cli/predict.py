@@ -128,6 +128,17 @@ def _say_if_start(model: Path) -> None:
         help="Bound on the pixels decoded per model call with MC dropout (bounds memory, not results) "
              "[default: by device].")
 @option("--reader-threads", type=int, default=2, show_default=True, help="Background threads reading windows.")
+@option("--sun", default="auto", show_default=True,
+        help="The sun for the shadow layers (shadow.tif, shadow_height.tif): auto = from the acquisition time and "
+             "place (--acquired, a STAC item NAME.json beside the orthophoto, or its TIFF DateTime), else the sun "
+             "fitted on the training area for an orthophoto of the same flight, else off; AZ,EL in degrees "
+             "(azimuth clockwise from true north, elevation); none = off (maps as without the feature).")
+@option("--acquired", default=None,
+        help="Acquisition time of the orthophoto(s), ISO 8601 (e.g. 2019-06-21T16:45:00Z; no zone = UTC), for "
+             "--sun auto.")
+@option("--shadow-fusion/--no-shadow-fusion", "shadow_fusion", default=False, show_default=True,
+        help="Move the heights of objects the network finds towards the heights their shadows measure, weighted "
+             "by both spreads (never outside an object); the disagreement widens height_std.")
 @overwrite_option()
 @option("--skip-existing", is_flag=True,
         help="Skip inputs whose prediction folder is complete for this run (same model, settings and input, "

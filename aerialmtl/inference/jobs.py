@@ -165,7 +165,7 @@ Checkpoint = str | Path | tuple[torch.nn.Module, ModelMeta] | Predictor
 
 def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Path,
                    settings: PredictSettings | None = None, *, overwrite: bool = False, progress: bool = True,
-                   **options: Any) -> PredictResult:
+                   checkpoint_name: str | None = None, **options: Any) -> PredictResult:
     """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
 
     The one-input case of :func:`predict_many`.
@@ -179,6 +179,8 @@ def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Pat
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`).
         overwrite: replace existing outputs instead of raising.
         progress: show progress bars.
+        checkpoint_name: the checkpoint's name in ``prediction.json`` and messages (default: its path, or
+            ``<in-memory model>``).
         options: the settings as keywords named like the fields of
             :class:`~aerialmtl.inference.settings.PredictSettings` (``mc=16, precision="fp32", aoi=...``), applied
             over ``settings``.
@@ -190,9 +192,9 @@ def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Pat
         OutputExistsError: outputs exist and ``overwrite`` is false.
         InputError / AlignmentError / CheckpointError: unusable inputs (messages name the fix).
     """
-    settings = _settings(checkpoint, settings, options)
+    settings = _settings(checkpoint, settings, options, checkpoint_name)
     policy = _Policy(overwrite, False, progress, None, "out_dir")
-    return _predict([ortho], checkpoint, out_dir, settings, policy).results[0]
+    return _predict([ortho], checkpoint, out_dir, settings, policy, checkpoint_name).results[0]
 
 
 def predict_many(
@@ -205,6 +207,7 @@ def predict_many(
     skip_existing: bool = False,
     on_result: Callable[[PredictResult], None] | None = None,
     progress: bool = True,
+    checkpoint_name: str | None = None,
     **options: Any,
 ) -> JobResult:
     """Predict every orthophoto of ``orthos``; see the module docstring.
@@ -220,6 +223,7 @@ def predict_many(
         skip_existing: skip inputs whose prediction folder is complete.
         on_result: called with each input's result as soon as it is committed.
         progress: show progress bars (on rank 0 only).
+        checkpoint_name: the checkpoint's name in ``prediction.json`` and messages (as for :func:`predict_raster`).
         options: the settings as keywords named like its fields (as for :func:`predict_raster`), applied over
             ``settings``.
 
@@ -230,13 +234,13 @@ def predict_many(
         OutputExistsError: an input's outputs exist (neither ``overwrite`` nor ``skip_existing``).
         PeerFailure: an input failed on another rank (distributed runs).
     """
-    settings = _settings(checkpoint, settings, options)
+    settings = _settings(checkpoint, settings, options, checkpoint_name)
     return _predict(orthos, checkpoint, out, settings,
-                    _Policy(overwrite, skip_existing, progress, on_result, "out"))
+                    _Policy(overwrite, skip_existing, progress, on_result, "out"), checkpoint_name)
 
 
 def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Path, settings: PredictSettings,
-             policy: _Policy) -> JobResult:
+             policy: _Policy, checkpoint_name: str | None = None) -> JobResult:
     """Run :func:`predict_many` or :func:`predict_raster`.
 
     Load the model on this rank's device, read every input's header, hold the output folders, run.
@@ -247,7 +251,8 @@ def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Pa
         predictor = checkpoint
     else:
         device = ranks.resolve_device(settings.device)
-        predictor = Predictor(checkpoint, dataclasses.replace(settings, device=str(device)))
+        predictor = Predictor(checkpoint, dataclasses.replace(settings, device=str(device)),
+                              checkpoint_name=checkpoint_name)
     with runtime.gdal_env("predict"):
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = predictor.open(t.ortho, warn=False)
@@ -260,16 +265,18 @@ def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Pa
         ranks.leave()
 
 
-def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options: dict[str, Any]) -> PredictSettings:
+def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options: dict[str, Any],
+              checkpoint_name: str | None = None) -> PredictSettings:
     """The run's settings: ``settings`` with ``options``, or a given :class:`Predictor`'s own.
 
     Raises:
-        InputError: a :class:`Predictor` and settings too (they would not apply to it).
+        InputError: a :class:`Predictor` and settings or a name too (they would not apply to it).
     """
     if not isinstance(checkpoint, Predictor):
         return settings_of(settings, options)
-    if settings is not None or options:
-        given = "settings" if settings is not None else ", ".join(map(str, options))
+    if settings is not None or options or checkpoint_name is not None:
+        given = ("settings" if settings is not None else "checkpoint_name" if checkpoint_name is not None
+                 else ", ".join(map(str, options)))
         raise InputError(f"a Predictor predicts with its own settings; pass them to Predictor(...) instead of "
                          f"here (got {given})")
     return checkpoint.settings

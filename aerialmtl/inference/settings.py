@@ -30,7 +30,9 @@ import torch
 
 from aerialmtl import runtime
 from aerialmtl.errors import InputError
+from aerialmtl.inference.sun_choice import parse_sun
 from aerialmtl.inference.windows import check_tiling
+from aerialmtl.sun.solar_position import parse_time
 
 BatchSize = int | Literal["auto"]
 
@@ -38,6 +40,11 @@ BatchSize = int | Literal["auto"]
 def speed_only(default: Any) -> Any:
     """A field that changes speed or memory, not the maps (not in ``provenance.settings``; the module docstring)."""
     return field(default=default, metadata={"maps": False})
+
+
+def shadow_setting(default: Any) -> Any:
+    """A field that changes the maps only when the shadow features run (in ``provenance.settings`` only then)."""
+    return field(default=default, metadata={"maps": "shadows"})
 
 
 @dataclass(frozen=True)
@@ -73,6 +80,14 @@ class PredictSettings:
         max_decode_pixels: bound on the pixels decoded per model call with MC dropout (bounds memory, not
             results); ``None``: :data:`~aerialmtl.inference.runner.DECODE_PIXELS` of the device.
         reader_threads: background threads reading windows.
+        sun: the sun for the shadow features (:mod:`aerialmtl.inference.sun_choice`): ``"auto"`` (the
+            acquisition time and place, else the training fit for an orthophoto of the same flight, else off),
+            ``"none"`` (off: the maps of a model without them, to the bit), or ``"AZ,EL"`` in degrees (azimuth
+            clockwise from true north, elevation above the horizon).
+        acquired: the orthophoto's acquisition time (ISO 8601; without a zone read as UTC) for ``sun="auto"``.
+        shadow_fusion: fuse the heights measured from shadows into the height map and its spread, inside the
+            network's objects (:mod:`aerialmtl.inference.shadows`); the ``shadow`` and ``shadow_height`` layers
+            are written whenever the sun is known, fused or not.
     """
 
     mc: int | None = None
@@ -92,6 +107,9 @@ class PredictSettings:
     seed: int = 0
     max_decode_pixels: int | None = speed_only(None)
     reader_threads: int = speed_only(2)
+    sun: str = shadow_setting("auto")
+    acquired: str | None = shadow_setting(None)
+    shadow_fusion: bool = shadow_setting(False)
 
     def __post_init__(self) -> None:
         check_tiling(self.window, self.overlap)
@@ -106,6 +124,9 @@ class PredictSettings:
         if self.reader_threads < 1:
             raise InputError(f"reader_threads must be ≥ 1 background thread, got {self.reader_threads!r}; pass e.g. 2")
         runtime.resolve_threads(self.threads)  # a bad value fails here, naming ‹threads›
+        parse_sun(self.sun)  # a bad --sun or --acquired fails here, naming it
+        if self.acquired is not None:
+            parse_time(self.acquired)
 
     def with_options(self, **options: Any) -> PredictSettings:
         """These settings with ``options`` (keywords named like the fields) replaced, validated again.
@@ -148,14 +169,16 @@ class PredictSettings:
         """
         return {**self._values(resolved), "batch_size": batch_size}
 
-    def provenance(self, resolved: ResolvedSettings, **recorded: Any) -> dict[str, Any]:
+    def provenance(self, resolved: ResolvedSettings, shadows: bool = False, **recorded: Any) -> dict[str, Any]:
         """``provenance.settings`` of ``prediction.json``: the fields that change the maps, resolved.
 
-        All fields but the :func:`speed_only` ones, ``mc`` under its recorded name ``mc_samples``; ``recorded``
-        replaces or adds values the model knows better (the AOI's fingerprint, whether calibration was applied, ...).
+        All fields but the :func:`speed_only` ones (and the :func:`shadow_setting` ones unless the shadow features
+        ran: ``shadows``), ``mc`` under its recorded name ``mc_samples``; ``recorded`` replaces or adds values the
+        model knows better (the AOI's fingerprint, whether calibration was applied, ...).
         """
         values = self._values(resolved)
-        kept = {f.name: values[f.name] for f in dataclasses.fields(self) if f.metadata.get("maps", True)}
+        maps = {True, "shadows"} if shadows else {True}
+        kept = {f.name: values[f.name] for f in dataclasses.fields(self) if f.metadata.get("maps", True) in maps}
         kept["mc_samples"] = kept.pop("mc")
         return {**kept, **recorded}
 
@@ -195,4 +218,4 @@ class ResolvedSettings:
     mc: int
 
 
-__all__ = ["BatchSize", "PredictSettings", "ResolvedSettings", "settings_of", "speed_only"]
+__all__ = ["BatchSize", "PredictSettings", "ResolvedSettings", "settings_of", "shadow_setting", "speed_only"]

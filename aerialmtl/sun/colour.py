@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, optimize
 
 from aerialmtl.errors import InputError
 from aerialmtl.sun._patches import ArrayOrList, as_patches
@@ -52,7 +52,8 @@ def shadow_score(rgb: np.ndarray) -> np.ndarray:
 
 def colour_features(rgb: np.ndarray, gsd_m: float, context_m: float) -> np.ndarray:
     """float32 (6, H, W) features of :class:`ShadowModel`: log-brightness L, blue and red chromaticity, L minus
-    its mean over ``context_m`` metres (darker than the surroundings), L², L × blue chromaticity."""
+    its mean over ``context_m`` metres (darker than the surroundings), L², L × blue chromaticity.
+    """
     x = unit_rgb(rgb)
     total = x.sum(0) + np.float32(_EPS)
     lum = np.log(x.mean(0) + np.float32(0.02))
@@ -154,20 +155,25 @@ class ShadowModel:
         return m
 
 
-def _logistic(x: np.ndarray, y: np.ndarray, l2: float, iters: int = 30) -> np.ndarray:
-    """Weights (intercept first) of an L2-penalised logistic regression by Newton's method; x (n, k), y (n,) 0/1."""
+def _logistic(x: np.ndarray, y: np.ndarray, l2: float) -> np.ndarray:
+    """Weights (intercept first) of an L2-penalised logistic regression (L-BFGS on the mean log-loss);
+    x (n, k) standardised features, y (n,) 0/1.
+    """
     n, k = x.shape
     a = np.hstack([np.ones((n, 1)), x])
-    w = np.zeros(k + 1)
-    w[0] = np.log(y.mean() / (1 - y.mean()))
-    pen = np.full(k + 1, l2 * n)
+    pen = np.full(k + 1, l2)
     pen[0] = 0.0
-    for _ in range(iters):
-        p = 1.0 / (1.0 + np.exp(-np.clip(a @ w, -40, 40)))
-        grad = a.T @ (p - y) + pen * w
-        hess = (a * (p * (1 - p))[:, None]).T @ a + np.diag(pen) + 1e-9 * np.eye(k + 1)
-        step = np.linalg.solve(hess, grad)
-        w -= step
-        if np.abs(step).max() < 1e-7:
-            break
-    return w
+
+    def loss(w: np.ndarray) -> tuple[float, np.ndarray]:
+        z = a @ w
+        # log(1 + e^z) − y·z, computed stably
+        value = float(np.mean(np.logaddexp(0.0, z) - y * z) + 0.5 * np.sum(pen * w * w))
+        p = 0.5 * (1.0 + np.tanh(0.5 * z))
+        grad = a.T @ (p - y) / n + pen * w
+        return value, grad
+
+    w0 = np.zeros(k + 1)
+    w0[0] = np.log(y.mean() / (1 - y.mean()))
+    res = optimize.minimize(loss, w0, jac=True, method="L-BFGS-B", options={"maxiter": 500})
+    weights: np.ndarray = res.x
+    return weights

@@ -30,7 +30,7 @@ from aerialmtl.sun.position import Sun
 GROUND_M = 0.5
 #: Defaults of a clear fit: the least correlation and the least sharpness.
 MIN_SCORE = 0.1
-MIN_SHARPNESS = 0.15
+MIN_SHARPNESS = 0.08
 #: Azimuth distance (degrees) of the alternative the sharpness compares with.
 SHARPNESS_AWAY_DEG = 30.0
 
@@ -83,7 +83,8 @@ def _num(v: float) -> float | None:
 
 class _Objective:
     """Correlation of the shadow score with the cast-shadow mask over ground pixels, for any sun; patches of one
-    shape are stacked so that one sweep casts the shadows of all of them."""
+    shape are stacked so that one sweep casts the shadows of all of them.
+    """
 
     def __init__(self, rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, valid: ArrayOrList | None,
                  ground_m: float) -> None:

@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from aerialmtl.errors import InputError
 from aerialmtl.sun.cast import line_offsets, sun_steps
@@ -121,8 +122,40 @@ def shadow_runs(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun:
     return lab, length, ok, np.stack([r, c], axis=1)
 
 
+def occluder_steps(height: np.ndarray, objects: np.ndarray, rc: np.ndarray, lab: np.ndarray, sun: Sun,
+                   q: float, max_steps: int) -> np.ndarray:
+    """Steps from each edge pixel towards the sun, inside its own object, to the pixel whose sun ray reaches
+    furthest: ``argmax_j h(p + j·u) − j·q`` (``q`` = height per step of shadow). 0 on a flat roof (the edge casts
+    the shadow's end), near the top of a crown. int (n,).
+    """
+    h, w = objects.shape
+    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
+    cross = line_offsets(max_steps + 2, slope)
+    r, c = rc[:, 0], rc[:, 1]
+    best = np.nan_to_num(height[r, c].astype(np.float64), nan=-np.inf)
+    arg = np.zeros(len(r), np.int64)
+    alive = np.ones(len(r), bool)
+    for j in range(1, max_steps + 1):
+        idx = np.nonzero(alive)[0]
+        if len(idx) == 0:
+            break
+        dr, dc = (step * j, int(cross[j])) if rows_dom else (int(cross[j]), step * j)
+        rr, cc = r[idx] + dr, c[idx] + dc
+        inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+        same = np.zeros(len(idx), bool)
+        same[inside] = objects[rr[inside], cc[inside]] == lab[idx[inside]]
+        alive[idx[~same]] = False
+        idx, rr, cc = idx[same], rr[same], cc[same]
+        val = np.nan_to_num(height[rr, cc].astype(np.float64), nan=-np.inf) - j * q
+        better = val > best[idx]
+        best[idx[better]] = val[better]
+        arg[idx[better]] = j
+    return arg
+
+
 def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.ndarray, *,
-                   threshold: float = 0.5, min_runs: int = 3, max_height_m: float = 150.0,
+                   height: np.ndarray | None = None, threshold: float = 0.5, smooth_px: int = 3,
+                   min_runs: int = 3, max_height_m: float = 150.0,
                    elevation_sd_deg: float = 3.0) -> ShadowHeights:
     """Per-object heights from the shadow runs next to them.
 
@@ -131,7 +164,12 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
         gsd_m: pixel size in metres.
         sun: the sun the image was taken under.
         objects: int (H, W) object labels, 0 = no object (e.g. connected components of heights ≥ 2 m).
+        height: optional float (H, W) heights (e.g. the network's, even if biased) used only to *locate* what
+            casts each run's end: the run is measured from the pixel of the object, sun-ward of its edge, whose
+            sun ray reaches furthest (:func:`occluder_steps`), not from the edge; a crown's edge is lower than
+            its top, so edge runs underestimate crowns. ``None``: from the edge.
         threshold: probability from which a pixel is shadow.
+        smooth_px: side of the median filter applied to the shadow mask (lone pixels would cut runs); 1 = none.
         min_runs: an object needs this many measured runs to get a height.
         max_height_m: runs longer than this height allows are not measurements.
         elevation_sd_deg: uncertainty of the sun's elevation, degrees (it scales every height of the area).
@@ -157,11 +195,18 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
         p = prob.astype(np.float32, copy=False)
         known = np.isfinite(p)
         shadow = known & (p >= threshold)
+    if smooth_px > 1:
+        shadow = ndimage.median_filter(shadow, size=int(smooth_px), mode="nearest") & known
     _, _, slope = sun_steps(sun.azimuth_deg)
     per_step = gsd_m * math.hypot(1.0, slope)
     q = per_step * sun.tan_elevation
     max_steps = max(1, int(math.ceil(max_height_m / q)))
-    lab, length, ok, _ = shadow_runs(shadow, known, labels, sun, max_steps)
+    lab, length, ok, rc = shadow_runs(shadow, known, labels, sun, max_steps)
+    if height is not None:
+        hmap = np.asarray(height, dtype=np.float32)
+        if hmap.shape != labels.shape:
+            raise InputError(f"‹height› must be (H, W) like ‹objects›, got {hmap.shape} and {labels.shape}")
+        length = length + np.where(ok, occluder_steps(hmap, labels, rc, lab, sun, q, max_steps), 0)
     e = math.tan(math.radians(min(sun.elevation_deg + elevation_sd_deg, 89.9))) / sun.tan_elevation - 1.0
     all_labels = np.unique(labels[labels != 0])
     n_edges = dict(zip(*np.unique(lab, return_counts=True)))

@@ -58,7 +58,7 @@ from aerialmtl.models.calibration import (  # noqa: E402
 from aerialmtl.training.calibrate import patch_folds, validation_pixels  # noqa: E402
 from experiments.common.autzen import DATA, DSM, DTM, ORTHO, TALL_M, cpu_model
 from experiments.common.study import fmt_range as _fmt_range
-from experiments.real_data.run import constant_prediction, train_mean
+from experiments.real_data.run import constant_prediction, evaluate_dir, train_mean
 
 BINS = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
 
@@ -207,8 +207,6 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     if "baseline_train_mean" not in res:
         mean = train_mean(pdir / layer_filename(HEIGHT), args.data, split_dir / "train.geojson")
         bdir = constant_prediction(pdir, mean, rdir / "study_baseline_train_mean")
-        from real_data import evaluate_dir
-
         res["baseline_train_mean"] = {"value_m": mean, **evaluate_dir(bdir, args.data,
                                                                       rdir / "study_report_baseline.json")}
     res["eval"] = {"seconds": time.perf_counter() - t0, "load": [load0, os.getloadavg()], "cpu": cpu_model(),
