@@ -37,8 +37,10 @@ GENERATOR = ("aerialmtl.data.synth.city.sample_city (synthetic cities: towers, h
 
 @dataclass(frozen=True)
 class SyntheticScene:
-    """One scene: ``image`` uint8 (3, H, W) RGB, ``height`` float32 (H, W) metres above ground, ``classes``
-    uint8 (H, W) class indices of the ``synthetic`` scheme (255 unlabelled), ``gsd`` metres per pixel.
+    """One synthetic scene with its references.
+
+    ``image`` uint8 (3, H, W) RGB, ``height`` float32 (H, W) metres above ground, ``classes`` uint8 (H, W) class
+    indices of the ``synthetic`` scheme (255 unlabelled), ``gsd`` metres per pixel.
     """
 
     image: np.ndarray
@@ -54,9 +56,10 @@ def city_seed(seed: int, index: int) -> int:
 
 def synthetic_scene(seed: int, index: int, size: int, gsd: float,
                     textures: TexturePool | None = None, ground_roofs: float = GROUND_ROOFS) -> SyntheticScene:
-    """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres), its surfaces
-    drawn in part with ``textures`` (the user's own ground) when given, ``ground_roofs`` of its flat roofs in a
-    ground material (:attr:`~aerialmtl.data.synth.style.CityStyle.ground_roofs`).
+    """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres).
+
+    Its surfaces are drawn in part with ``textures`` (the user's own ground) when given, ``ground_roofs`` of its
+    flat roofs in a ground material (:attr:`~aerialmtl.data.synth.style.CityStyle.ground_roofs`).
 
     The one function that asks the generator for a scene: switching generators changes only this body.
     """
@@ -67,9 +70,10 @@ def synthetic_scene(seed: int, index: int, size: int, gsd: float,
 
 @dataclass(frozen=True)
 class RealPatches:
-    """The training patches of a tile folder, whole, for mixing into synthetic batches: ``images`` uint8
-    (3, S, S) RGB each, ``heights`` float32 (S, S) metres with NaN where invalid (the image's nodata too),
-    ``valid`` bool (S, S) where the image is valid.
+    """The training patches of a tile folder, whole, for mixing into synthetic batches.
+
+    ``images`` uint8 (3, S, S) RGB each, ``heights`` float32 (S, S) metres with NaN where invalid (the image's
+    nodata too), ``valid`` bool (S, S) where the image is valid.
     """
 
     images: list[np.ndarray]
@@ -205,8 +209,10 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
         return scene
 
     def raw(self, step: int) -> dict[str, torch.Tensor]:
-        """The compact batch of ``step``: ``image`` uint8 (B, 3, P, P), ``height`` float32 (B, 1, P, P) (NaN where
-        unknown), ``classes`` uint8 (B, P, P), ``valid`` bool (B, P, P) where the image is valid; the first
+        """The compact batch of ``step``.
+
+        ``image`` uint8 (B, 3, P, P), ``height`` float32 (B, 1, P, P) (NaN where unknown), ``classes`` uint8
+        (B, P, P), ``valid`` bool (B, P, P) where the image is valid; the first
         :meth:`SyntheticStream.real_count` patches are real ones.
         """
         s, p = self.stream, self.stream.patch_size

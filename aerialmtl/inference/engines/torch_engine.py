@@ -18,8 +18,9 @@ from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass
 
 
 class _Compiled(nn.Module):
-    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC) with the
-    fallback of :class:`aerialmtl.runtime.CompileFallback`.
+    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC).
+
+    With the fallback of :class:`aerialmtl.runtime.CompileFallback`.
 
     The decoder stays eager under MC dropout: its per-window seeded masks are drawn by Python hooks.
     """
@@ -101,8 +102,9 @@ class TorchEngine:
 
 
 def build_torch(setup: EngineSetup) -> TorchEngine:
-    """The torch engine of ``setup``: the model prepared (:func:`~aerialmtl.models.d3net.inference_model`),
-    compiled with ``settings.compile``.
+    """The torch engine of ``setup``.
+
+    The model prepared (:func:`~aerialmtl.models.d3net.inference_model`), compiled with ``settings.compile``.
     """
     device = setup.resolved.device
     prepared = inference_model(resolve_model(setup.model), device)
