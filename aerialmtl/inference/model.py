@@ -54,8 +54,8 @@ from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.engine_choice import choose_engine
-from aerialmtl.inference.engines import Pending, openvino_available
-from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.inference.engines import Pending, cache_root, openvino_available
+from aerialmtl.inference.model_record import CheckpointModel, make_record, read_record, resolve_model, write_record
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
@@ -106,12 +106,9 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
-    from aerialmtl.formats.checkpoint import file_sha256, read_model
+    from aerialmtl.formats.checkpoint import file_sha256, read_model  # looked up here: tests stop a load by patching it
 
     if warm:
-        from aerialmtl.inference.engines import cache_root
-        from aerialmtl.inference.model_record import make_record, read_record, write_record
-
         root = cache_root()
         try:
             digest: str | None = file_sha256(checkpoint)
