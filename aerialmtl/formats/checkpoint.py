@@ -133,8 +133,9 @@ class ModelMeta:
             self._check_calibration(self.calibration)
 
     def _check_calibration(self, cal: Calibration) -> None:
-        """Refuse a calibration whose spreads or heights no model trained on :attr:`height_range` can need: a
-        spread floor beyond the span of the heights trained on (σ = 1e30 m everywhere; :data:`SURFACE_HEIGHTS_M`
+        """Refuse a calibration whose spreads or heights no model trained on :attr:`height_range` can need.
+
+        A spread floor beyond the span of the heights trained on (σ = 1e30 m everywhere; :data:`SURFACE_HEIGHTS_M`
         where the range was not recorded), calibrated heights outside :func:`plausible_heights`.
         """
         low, high = plausible_heights(self.height_range)
@@ -175,8 +176,9 @@ DIVERGED_MARGIN_M = 100.0
 
 
 def height_slack(height_range: tuple[float, float] | None) -> float:
-    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches: the largest
-    plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``).
+    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches.
+
+    The largest plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``).
     """
     if height_range is None:
         return SURFACE_HEIGHTS_M[1] - SURFACE_HEIGHTS_M[0]
@@ -184,8 +186,9 @@ def height_slack(height_range: tuple[float, float] | None) -> float:
 
 
 def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, float]:
-    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict (:func:`height_slack` beyond
-    it); :data:`SURFACE_HEIGHTS_M` when the range was not recorded.
+    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict.
+
+    :func:`height_slack` beyond it; :data:`SURFACE_HEIGHTS_M` when the range was not recorded.
     """
     if height_range is None:
         return SURFACE_HEIGHTS_M
@@ -194,8 +197,10 @@ def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, 
 
 
 def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:
-    """``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an
-    integer ``dtype``: where nearly all values of images with these per-band statistics lie.
+    """Where nearly all values of images with these per-band statistics lie.
+
+    ``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an integer
+    ``dtype``.
     """
     lo = min(m - 3.0 * s for m, s in zip(mean, std))
     hi = max(m + 3.0 * s for m, s in zip(mean, std))
@@ -223,8 +228,9 @@ def first_nonfinite(tensors: Any) -> str | None:
 
 
 def _os_error(exc: BaseException) -> OSError | None:
-    """The ``OSError`` behind ``exc`` (torch.save reports a full disk as a RuntimeError raised while
-    handling the file object's OSError).
+    """The ``OSError`` behind ``exc``.
+
+    torch.save reports a full disk as a RuntimeError raised while handling the file object's OSError.
     """
     seen: BaseException | None = exc
     for _ in range(8):
@@ -259,8 +265,9 @@ def save_checkpoint(
     meta: ModelMeta,
     train_state: dict[str, Any] | None = None,
 ) -> None:
-    """Write a checkpoint atomically (staging file ``.NAME.partial`` in the same folder, then rename;
-    :mod:`aerialmtl.io.outputs`).
+    """Write a checkpoint atomically.
+
+    A staging file ``.NAME.partial`` in the same folder, then a rename (:mod:`aerialmtl.io.outputs`).
 
     Raises:
         NonFiniteError: a weight holds NaN or ±inf (a diverged model is never written; the file at

@@ -20,7 +20,7 @@ from aerialmtl import runtime
 from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.inference.engine_cache import EngineCache
-from aerialmtl.inference.engines.base import Deferred, EngineSetup, Pending
+from aerialmtl.inference.engines.base import Deferred, EngineSetup, EngineSpec, Pending
 from aerialmtl.inference.engines.openvino_graphs import (
     CONVERT_SIZE,
     GRAPH_OUTPUTS,
@@ -401,4 +401,7 @@ def build_openvino(setup: EngineSetup) -> OpenVINOEngine:
                           density=setup.meta.familiarity)
 
 
-__all__ = ["OPENVINO_INSTALL", "OpenVINOEngine", "build_openvino", "openvino_available", "openvino_unusable"]
+#: The OpenVINO engine's entry of the registry (:mod:`aerialmtl.inference.engine_names`).
+SPEC = EngineSpec("openvino", "OpenVINO", build_openvino, openvino_unusable)
+
+__all__ = ["OPENVINO_INSTALL", "SPEC", "OpenVINOEngine", "build_openvino", "openvino_available", "openvino_unusable"]

@@ -1,5 +1,7 @@
-"""Turn bench/hostile_part3.py's JSON lines into the table of bench/hostile_part3.md (command, what happened, the
-automatic verdict). Usage: ``python bench/hostile_part3_md.py RESULTS.jsonl > table.md``.
+"""Turn experiments/hostile_part3/run.py's JSON lines into the table of experiments/hostile_part3/README.md
+(command, what happened, the automatic verdict).
+
+Usage: ``python -m experiments.hostile_part3.to_md RESULTS.jsonl > table.md``.
 
 Automatic verdict: ``FAIL`` for a hang (the case passed its timeout), "Error: unexpected", a traceback, "Aborted"
 or an exit status other than 0, 1 and 2; otherwise ``ok``. Whether the outcome is the *right* one (exit 0 with a
@@ -24,6 +26,9 @@ def verdict(rec: dict) -> str:
 
 def main() -> None:
     """Print the table."""
+    if len(sys.argv) != 2 or sys.argv[1] in ("-h", "--help"):
+        print(__doc__)
+        return
     rows = [json.loads(line) for line in open(sys.argv[1], encoding="utf-8") if line.strip()]
     print("| # | case | command (env) | exit | s | what it said (last line) | verdict |")
     print("|---|---|---|---|---|---|---|")

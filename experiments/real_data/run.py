@@ -22,9 +22,9 @@ Fixed protocol (issue 12, part 3):
 
 Usage::
 
-    python bench/real_data.py --list                        # the recipes
-    nice -n 10 python bench/real_data.py --recipe scratch    # one recipe; prints a Markdown row
-    python bench/real_data.py --table                       # every result so far as a Markdown table
+    python -m experiments.real_data.run --list                        # the recipes
+    nice -n 10 python -m experiments.real_data.run --recipe scratch    # one recipe; prints a Markdown row
+    python -m experiments.real_data.run --table                       # every result so far as a Markdown table
 
 Every run writes ``OUT/runs/<name>/result.json`` (settings, counts, training time, metrics, the CPU
 model and the load average at start and end). The training budget is **megapixels of patches processed**
@@ -41,9 +41,7 @@ import inspect
 import json
 import math
 import os
-import platform
 import shutil
-import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -65,32 +63,28 @@ from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import TrainConfig, load_train_config
 from aerialmtl.training.loop import train
+from experiments.common.autzen import (
+    DATA,
+    DEFAULT_SPLIT,
+    DSM,
+    DTM,
+    GAP_M,
+    ORTHO,
+    ROOT,
+    SPLITS,
+    TALL_M,
+    cpu_model,
+)
+from experiments.real_data.recipes import (
+    PretrainSettings,
+    pretrain_synthetic,
+    repeat_counts,
+    stratified_weights,
+    tall_shares,
+)
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "samples" / "autzen_west"  # samples/README.md
-ORTHO, DSM, DTM = "ortho_1ft.tif", "dsm_1m_utm.tif", "dtm_1m_utm.tif"
-
-#: Bands along the north–south axis, as fractions of the orthophoto's extent from its north edge. The
-#: held-out test block is the same in both. ``south-val`` (the first protocol) validates on the southern
-#: 20 %: river and forest, 16 % of its pixels ≥ 2 m against 28 % in the train bands, so validation prefers
-#: models that keep everything low. ``middle-val`` validates on the 20 % band whose height distribution is
-#: closest to the rest (mean 3.1 m and 23 % ≥ 2 m against 3.8 m and 25 %; chosen from the reference heights
-#: of the train and val region only) and trains on the bands on either side of it.
-SPLITS: dict[str, dict[str, list[tuple[float, float]]]] = {
-    "south-val": {"test": [(0.0, 0.25)], "train": [(0.25, 0.80)], "val": [(0.80, 1.0)]},
-    "middle-val": {"test": [(0.0, 0.25)], "train": [(0.25, 0.45), (0.65, 1.0)], "val": [(0.45, 0.65)]},
-    # Cross-fit folds of middle-val's training block (bench/crossfit_study.py): each trains on two of its
-    # three bands, validates on the same band as middle-val, and its "test" is the held-out band, whose
-    # prediction gives out-of-fold errors. The real test block (north 25 %) is in none of them.
-    "cv3-a": {"test": [(0.25, 0.45)], "train": [(0.65, 1.0)], "val": [(0.45, 0.65)]},
-    "cv3-b": {"test": [(0.65, 0.825)], "train": [(0.25, 0.45), (0.825, 1.0)], "val": [(0.45, 0.65)]},
-    "cv3-c": {"test": [(0.825, 1.0)], "train": [(0.25, 0.45), (0.65, 0.825)], "val": [(0.45, 0.65)]},
-}
-DEFAULT_SPLIT = "middle-val"
-#: Metres left unused on each side of an inner block edge (between test/train and train/val).
-GAP_M = 10.0
-#: Reference-height threshold (metres) of the "tall pixels" MAE.
-TALL_M = 2.0
+__all__ = ["DATA", "DEFAULT_SPLIT", "DSM", "DTM", "GAP_M", "ORTHO", "SPLITS", "TALL_M", "constant_prediction",
+           "cpu_model", "evaluate_dir", "train_mean"]
 
 
 # ---- split ---------------------------------------------------------------------------------------
@@ -135,7 +129,7 @@ class Recipe:
             ``config``), at the recipe's GSD; the real-area training starts from its ``best.pt``.
         zero_shot: evaluate the pretrained model as it is, without training on the real area.
         stratify: height-stratified sampling: the share of tall (≥ 2 m) pixels per drawn patch to reach
-            (:func:`real_data_recipes.stratified_weights`), applied as whole repeats of train patches in a
+            (:func:`experiments.real_data.recipes.stratified_weights`), applied as whole repeats of train patches in a
             manifest view.
         mix: train on the synthetic pretraining tiles and the real ones together, real patches repeated so
             that they make about this share of every epoch (validation: real patches only).
@@ -198,17 +192,6 @@ def _parse_set(items: list[str]) -> dict[str, Any]:
 
 
 # ---- helpers -------------------------------------------------------------------------------------
-def cpu_model() -> str:
-    try:
-        text = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return platform.processor() or "unknown CPU"
-    fields = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
-    name = fields.get("Model name", "?").strip()
-    return f"{name} (family {fields.get('CPU family', '?').strip()}, model {fields.get('Model', '?').strip()}), " \
-           f"{os.cpu_count()} cores"
-
-
 def tiles_for(recipe: Recipe, data: Path, split: dict[str, Path], out: Path,
               split_name: str) -> tuple[Path, dict[str, Any]]:
     """Tile folder of the split and the recipe's (GSD, size, stride), made once and reused."""
@@ -247,9 +230,8 @@ def manifest_view(tdir: Path, vdir: Path, rows: list[dict[str, str]], links: dic
 
 
 def oversampled_view(tdir: Path, target: float) -> tuple[Path, dict[str, Any]]:
-    """A tile folder that repeats train patches by :func:`real_data_recipes.repeat_counts` of their
+    """A tile folder that repeats train patches by :func:`experiments.real_data.recipes.repeat_counts` of their
     stratified weights (symlinks to ``tdir``'s patches; val and test rows unchanged)."""
-    from real_data_recipes import repeat_counts, stratified_weights, tall_shares
 
     vdir = tdir.with_name(f"{tdir.name}_strat{target:g}")
     shares = tall_shares(tdir, "train", TALL_M)
@@ -295,7 +277,6 @@ def mixed_view(tdir: Path, synth_tiles: Path, real_share: float) -> tuple[Path, 
 
 def pretrained_checkpoint(recipe: Recipe, args: argparse.Namespace) -> tuple[Path, dict[str, Any]]:
     """Run (once, cached by its settings) the recipe's synthetic pretraining; returns ``best.pt`` and a record."""
-    from real_data_recipes import PretrainSettings, pretrain_synthetic
 
     p = dict(recipe.pretrain or {})
     budget = float(p.pop("budget_mpx"))
@@ -689,7 +670,7 @@ def main() -> None:
     ap.add_argument("--split", choices=sorted(SPLITS), default=DEFAULT_SPLIT,
                     help="where validation is (the test block is the same): see SPLITS")
     ap.add_argument("--data", type=Path, default=DATA)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "real_data")
+    ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "out" / "real_data")
     ap.add_argument("--snapshots", help="comma-separated steps at which to keep snap_<step>.pt (last) and "
                     "best_<step>.pt (best so far) for learning curves")
     ap.add_argument("--no-eval", action="store_true", help="train only (evaluate later with --evaluate)")

@@ -1,6 +1,6 @@
 """Issue 36 part 4: does a feature-density ``unfamiliarity`` rank the height errors inside each height bin?
 
-For runs of ``bench/real_data.py`` on ``autzen_west``'s fixed split (``--out`` the same folder), with the
+For runs of ``experiments/real_data/run.py`` on ``autzen_west``'s fixed split (``--out`` the same folder), with the
 checkpoint validation chose (``best.pt``):
 
 1. ``--dump``: predicts the validation and test blocks raw (T = 16, seed 0, calibration off:
@@ -24,8 +24,8 @@ checkpoint validation chose (``best.pt``):
 ``--table`` prints the mean over runs as Markdown. Validation chooses; the test block is reported.
 Usage::
 
-    python bench/unfamiliarity_study.py --out /work/study_h36u --runs al_b0_s0 --dump --variants --table
-    python bench/unfamiliarity_study.py --out /work/study_h36u --runs al_b0_s0 --final l3_d32_gda
+    python -m experiments.unfamiliarity.run --out /work/study_h36u --runs al_b0_s0 --dump --variants --table
+    python -m experiments.unfamiliarity.run --out /work/study_h36u --runs al_b0_s0 --final l3_d32_gda
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ import json
 import math
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -46,10 +45,6 @@ import rasterio
 import torch
 from scipy import optimize, stats
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_data import DATA, ORTHO, cpu_model  # noqa: E402
-from spread_diagnosis import load  # noqa: E402
-
 from aerialmtl.evaluation.uncertainty import crps_gaussian, gaussian_nll_terms  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model, save_checkpoint  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
@@ -57,6 +52,8 @@ from aerialmtl.io.align import AlignedRaster, grid_of  # noqa: E402
 from aerialmtl.models.d3net import pad_to_multiple  # noqa: E402
 from aerialmtl.models.familiarity import fit_density  # noqa: E402
 from aerialmtl.training.familiarity import HEIGHT_BINS_M, familiarize_checkpoint, feature_pixels  # noqa: E402
+from experiments.common.autzen import DATA, ORTHO, cpu_model
+from experiments.spread_diagnosis.run import load
 
 BINS = ((0.0, 1.0), (1.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 LEVELS = (1, 2, 3, 4)

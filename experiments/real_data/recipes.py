@@ -1,4 +1,4 @@
-"""Experiment code of ``bench/real_data.py``: height-stratified sampling, a corpus of many synthetic towns
+"""Experiment code of ``experiments/real_data/run.py``: height-stratified sampling, a corpus of many synthetic towns
 and synthetic pretraining.
 
 These recipes were measured on ``autzen_west`` (bench/RESULTS.md, "Learning from a small real area") and

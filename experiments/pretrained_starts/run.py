@@ -2,34 +2,32 @@
 fine-tuned with the recipe, on ``autzen_west``'s fixed split (``middle-val``); validation chooses, the held-out
 test block reports.
 
-It reads what ``bench/real_data.py`` (training) and ``bench/uncertainty_study.py --val-block`` (the raw
+It reads what ``experiments/real_data`` (training) and ``experiments/uncertainty --val-block`` (the raw
 predictions of the test and validation blocks, T = 16) left in ``OUT/runs/<run>/``, evaluates those raw
 predictions once more with today's ``evaluate`` (cached as ``study36_{test,val}.json``: it adds, per reference-height
 bin, Spearman(height_std, predicted height) and the unfamiliarity layer's ranks), and prints one Markdown table per
-block with the mean (range) over the seeds of each arm (the run name without ``_s<seed>``).
+block with the mean (range) over the seeds of each arm (the run name without ``_s<seed>``), through the shared study
+runner (:mod:`experiments.common.study`: validation chooses, the test block reports).
 
 Usage::
 
-    python bench/study36.py --out /work/study_h36u --runs al_b0_s0 al_b0_s1 al_b0_s2 cp_s0 cp_s1 cp_s2 \\
-        ft_s0 ft_s1 ft_s2 ft5k_s0 ft5k_s1 ft5k_s2
+    python -m experiments.pretrained_starts.run --out /work/study_h36u \\
+        --runs al_b0_s0 al_b0_s1 al_b0_s2 cp_s0 cp_s1 cp_s2 ft_s0 ft_s1 ft_s2 ft5k_s0 ft5k_s1 ft5k_s2
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
-import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_data import DATA, DSM, DTM, TALL_M  # noqa: E402
-from uncertainty_study import BINS, _fmt_range  # noqa: E402
+from experiments.common import study
+from experiments.common.autzen import DATA, DSM, DTM, TALL_M
+from experiments.common.study import fmt_range as _fmt_range
+from experiments.common.study import per_bin as _study_per_bin
+from experiments.uncertainty.run import BINS
 
 #: where a run's raw predictions are (the unfamiliarity study's folder for runs trained before the layer existed)
 FOLDERS = {"test": ("study_raw_best", "unfam_pred_l2_d32_gda_auto"), "val": ("study_valblock_raw",)}
@@ -73,49 +71,41 @@ def _numbers(rep: dict[str, Any]) -> dict[str, Any]:
             "unfam_bin": [b.get("spearman_vs_abs_error") for b in unfam.get("bins", [])] or [None] * len(h["per_bin"])}
 
 
-def _mean(values: list[Any]) -> float:
-    vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
-    return float(np.mean(vals)) if vals else math.nan
-
-
 def _per_bin(rows: list[dict[str, Any]], key: str, sign: bool = True) -> str:
-    f = "{:+.2f}" if sign else "{:.2f}"
-    return " / ".join("n/a" if math.isnan(m := _mean([r[key][k] for r in rows])) else f.format(m)
-                      for k in range(len(BINS) - 1))
+    return _study_per_bin(rows, key, sign, bins=len(BINS) - 1)  # BINS here are the edges
+
+
+COLUMNS = [("seeds", "---", lambda rows: str(len(rows))),
+           ("MAE", "---", lambda rows: _fmt_range([r["mae"] for r in rows])),
+           ("MAE ≥ 2 m", "---", lambda rows: _fmt_range([r["mae_tall"] for r in rows])),
+           ("bias ≥ 2 m", "---", lambda rows: _fmt_range([r["bias_tall"] for r in rows], sign=True)),
+           ("CRPS", "---", lambda rows: _fmt_range([r["crps"] for r in rows])),
+           ("bias per bin", "---", lambda rows: _per_bin(rows, "bias_bin")),
+           ("±1σ per bin", "---", lambda rows: _per_bin(rows, "cov_bin", False)),
+           ("Spearman(std, \\|err\\|) per bin", "---", lambda rows: _per_bin(rows, "rho_bin")),
+           ("Spearman(std, predicted h) per bin", "---", lambda rows: _per_bin(rows, "rho_h_bin")),
+           ("Spearman(unfamiliarity, \\|err\\|) per bin", "---", lambda rows: _per_bin(rows, "unfam_bin"))]
 
 
 def table(out: Path, runs: list[str]) -> str:
-    arms: dict[str, dict[str, list[dict[str, Any]]]] = {}
-    for name in runs:
-        run = out / "runs" / name
-        arm = name.rsplit("_s", 1)[0]
-        for block in ("val", "test"):
-            rep = _report(run, block)
-            if rep is not None:
-                arms.setdefault(arm, {}).setdefault(block, []).append(_numbers(rep))
-    lines = []
-    for block, title in (("val", "validation block (chooses)"), ("test", "held-out test block (reports)")):
-        lines += [f"**{title}** — per bin: 0–1 / 1–2 / 2–5 / 5–10 / 10–20 / ≥ 20 m", "",
-                  "| arm | seeds | MAE | MAE ≥ 2 m | bias ≥ 2 m | CRPS | bias per bin | ±1σ per bin | "
-                  "Spearman(std, \\|err\\|) per bin | Spearman(std, predicted h) per bin | "
-                  "Spearman(unfamiliarity, \\|err\\|) per bin |", "|---|---|---|---|---|---|---|---|---|---|---|"]
-        for arm, blocks in arms.items():
-            rows = blocks.get(block, [])
-            if not rows:
-                continue
-            lines.append(f"| {arm} | {len(rows)} | {_fmt_range([r['mae'] for r in rows])} | "
-                         f"{_fmt_range([r['mae_tall'] for r in rows])} | "
-                         f"{_fmt_range([r['bias_tall'] for r in rows], sign=True)} | "
-                         f"{_fmt_range([r['crps'] for r in rows])} | {_per_bin(rows, 'bias_bin')} | "
-                         f"{_per_bin(rows, 'cov_bin', False)} | {_per_bin(rows, 'rho_bin')} | "
-                         f"{_per_bin(rows, 'rho_h_bin')} | {_per_bin(rows, 'unfam_bin')} |")
-        lines.append("")
-    return "\n".join(lines)
+    """The arms are the run names without ``_s<seed>``; validation (MAE ≥ 2 m) chooses, the test block reports."""
+    arms = {name.rsplit("_s", 1)[0]: name.rsplit("_s", 1)[0] for name in runs}
+
+    def score(run: str, _: str, arm: str) -> dict[str, Any] | None:
+        if run.rsplit("_s", 1)[0] != arm:
+            return None
+        reports = {block: _report(out / "runs" / run, block) for block in study.BLOCKS}
+        return {block: _numbers(rep) for block, rep in reports.items() if rep is not None}
+
+    results = study.run_arms(arms, runs, score)
+    chosen = study.choose(results, "mae_tall")
+    return (f"validation (MAE ≥ 2 m) chooses: {chosen}; per bin: 0–1 / 1–2 / 2–5 / 5–10 / 10–20 / ≥ 20 m\n\n"
+            + study.table(results, COLUMNS, chosen))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, required=True, help="the bench/real_data.py --out folder")
+    ap.add_argument("--out", type=Path, required=True, help="the experiments/real_data --out folder")
     ap.add_argument("--runs", nargs="+", required=True)
     args = ap.parse_args()
     print(table(args.out, args.runs))

@@ -1,10 +1,13 @@
 """The hostile pass of issue 40 (part 3): each case run as a user runs it, ``python -m aerialmtl ...`` in a new
 process, around the stores, sidecars, remote inputs, schemas, locks and the QGIS provider.
 
-Usage: ``PYTHONPATH=. nice -n 10 python bench/hostile_part3.py WORKDIR > bench/hostile_part3.jsonl``; one JSON line
-per case: name, command, exit status, seconds, the last lines of stderr/stdout, and the automatic checks (no
-"Error: unexpected", no traceback, no "Aborted", no hang: a case that passes its timeout is a hang). The verdicts
-in bench/hostile_part3.md are read from these lines.
+Usage (from the repository root)::
+
+    PYTHONPATH=. nice -n 10 python -m experiments.hostile_part3.run WORKDIR > experiments/hostile_part3/results.jsonl
+
+One JSON line per case: name, command, exit status, seconds, the last lines of stderr/stdout, and the automatic
+checks (no "Error: unexpected", no traceback, no "Aborted", no hang: a case that passes its timeout is a hang). The
+verdicts in experiments/hostile_part3/README.md are read from these lines.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import numpy as np
 import rasterio
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from helpers.models import tiny_d3net  # noqa: E402
@@ -74,6 +77,9 @@ def fresh(name: str) -> Path:
 
 
 def main() -> None:  # noqa: C901, PLR0915 - one list of cases, read top to bottom
+    if set(sys.argv[1:]) & {"-h", "--help"}:
+        print(__doc__)
+        return
     shutil.rmtree(W, ignore_errors=True)
     W.mkdir(parents=True)
     os.chmod(W, 0o777)

@@ -4,7 +4,7 @@ Every earlier arm learnt its spread from the training block's own errors, where 
 the spread followed the predicted height and ranked the tall misses backwards. Here the spread
 is learnt from errors the model makes on areas it did **not** train on:
 
-1. ``bench/real_data.py --split cv3-a|cv3-b|cv3-c`` trains the recipe three times, each on two of the training
+1. ``experiments/real_data/run.py --split cv3-a|cv3-b|cv3-c`` trains the recipe three times, each on two of the training
    block's three bands (same validation band, same budget); each fold model predicts its held-out band (raw,
    T = 16: ``OUT/runs/<fold run>/cf_oof``). Together they give out-of-fold maps of the whole training block.
 2. The recipe's own models (``al_b0_s<seed>``, trained on the whole training block) predict the validation band
@@ -16,11 +16,11 @@ is learnt from errors the model makes on areas it did **not** train on:
    learnt the held-out bands' own buildings from their colours and doubled the validation MAE, 2.28 → 4.63 m.)
 4. The recipe's maps, with the error model's spread, are scored on the validation band (what may
    choose) and the test block (reported only), with ``aerialmtl evaluate``'s per-bin numbers
-   (``bench/uncertainty_study.py``'s ``evaluate``): ``OUT/runs/<base run>/crossfit.json``; ``--table`` prints them.
+   (``experiments/uncertainty/run.py``'s ``evaluate``): ``OUT/runs/<base run>/crossfit.json``; ``--table`` prints them.
 
 Nothing here ships unless it is measured better on validation. Usage::
 
-    python bench/crossfit_study.py --out /work/study --seeds 0 1 2 --table
+    python -m experiments.crossfit.run --out /work/study --seeds 0 1 2 --table
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -40,14 +39,12 @@ from rasterio.enums import Resampling
 from rasterio.vrt import WarpedVRT
 from scipy import ndimage
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_data import DATA, ORTHO, cpu_model  # noqa: E402
-from spread_diagnosis import load, neighbourhood  # noqa: E402
-from uncertainty_study import _write_like, evaluate  # noqa: E402
-
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.formats.prediction import FLOAT_NODATA  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
+from experiments.common.autzen import DATA, ORTHO, cpu_model
+from experiments.spread_diagnosis.run import load, neighbourhood
+from experiments.uncertainty.run import _write_like, evaluate
 
 FOLDS = ("cv3a", "cv3b", "cv3c")
 FOLD_SPLIT = {"cv3a": "cv3-a", "cv3b": "cv3-b", "cv3c": "cv3-c"}
@@ -252,7 +249,7 @@ def table(out: Path, base: str) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, required=True, help="the bench/real_data.py --out folder")
+    ap.add_argument("--out", type=Path, required=True, help="the experiments/real_data/run.py --out folder")
     ap.add_argument("--seeds", type=int, nargs="*", default=[], help="seeds whose fold and base runs to study")
     ap.add_argument("--base", default="al_b0", help="the recipe's run name without _s<seed>")
     ap.add_argument("--table", action="store_true", help="print every studied seed as Markdown")

@@ -1,6 +1,6 @@
 """Issue 28's study: is the height spread right per height range on ``autzen_west``'s held-out block?
 
-For each training run of ``bench/real_data.py`` (same fixed split, tiles, budget; ``--out`` the same folder),
+For each training run of ``experiments/real_data/run.py`` (same fixed split, tiles, budget; ``--out`` the same folder),
 this script takes the checkpoint validation chose (``best.pt``) and evaluates on the **test block** (never used
 to choose anything):
 
@@ -25,8 +25,8 @@ bin, Gaussian NLL and CRPS, the largest std. Results go to ``OUT/runs/<run>/stud
 
 Usage::
 
-    python bench/uncertainty_study.py --out /work/study --runs lite0_in_s0 al_b0_s0 --mc 16
-    python bench/uncertainty_study.py --out /work/study --table
+    python -m experiments.uncertainty.run --out /work/study --runs lite0_in_s0 al_b0_s0 --mc 16
+    python -m experiments.uncertainty.run --out /work/study --table
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ import dataclasses
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -44,9 +43,6 @@ from typing import Any
 import numpy as np
 import rasterio
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_data import DATA, DSM, DTM, ORTHO, TALL_M, constant_prediction, cpu_model, train_mean  # noqa: E402
 
 from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
@@ -60,6 +56,9 @@ from aerialmtl.models.calibration import (  # noqa: E402
     fit_spread_crps,
 )
 from aerialmtl.training.calibrate import patch_folds, validation_pixels  # noqa: E402
+from experiments.common.autzen import DATA, DSM, DTM, ORTHO, TALL_M, cpu_model
+from experiments.common.study import fmt_range as _fmt_range
+from experiments.real_data.run import constant_prediction, evaluate_dir, train_mean
 
 BINS = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
 
@@ -208,8 +207,6 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     if "baseline_train_mean" not in res:
         mean = train_mean(pdir / layer_filename(HEIGHT), args.data, split_dir / "train.geojson")
         bdir = constant_prediction(pdir, mean, rdir / "study_baseline_train_mean")
-        from real_data import evaluate_dir
-
         res["baseline_train_mean"] = {"value_m": mean, **evaluate_dir(bdir, args.data,
                                                                       rdir / "study_report_baseline.json")}
     res["eval"] = {"seconds": time.perf_counter() - t0, "load": [load0, os.getloadavg()], "cpu": cpu_model(),
@@ -277,15 +274,6 @@ def ensemble_run(name: str, members: list[str], args: argparse.Namespace) -> dic
     return res
 
 
-def _fmt_range(vals: list[float], digits: int = 2, sign: bool = False) -> str:
-    vals = [v for v in vals if v is not None and math.isfinite(v)]
-    if not vals:
-        return "n/a"
-    f = f"{{:+.{digits}f}}" if sign else f"{{:.{digits}f}}"
-    mean = f.format(float(np.mean(vals)))
-    return mean if len(vals) == 1 else f"{mean} ({f.format(min(vals))}–{f.format(max(vals))})"
-
-
 def table(out: Path) -> str:
     """Markdown: per arm (runs grouped without their ``_s<seed>``) and variant, mean (range) over seeds."""
     arms: dict[str, list[dict[str, Any]]] = {}
@@ -332,7 +320,7 @@ def table(out: Path) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, required=True, help="the bench/real_data.py --out folder")
+    ap.add_argument("--out", type=Path, required=True, help="the experiments/real_data/run.py --out folder")
     ap.add_argument("--runs", nargs="*", default=[])
     ap.add_argument("--checkpoint", default="best.pt")
     ap.add_argument("--mc", type=int, default=16)

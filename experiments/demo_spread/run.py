@@ -3,7 +3,7 @@
 Runs the demo (:func:`aerialmtl.demo.run_demo`) once per environment, each in its own process, and prints
 the test town's height MAE, RMSE, class OA and mIoU per environment, their range, and the wall time:
 
-    python bench/demo_spread.py --out /tmp/spread --env native2 native1 avx2-2 avx2-1 [--ema 0.99 ...]
+    python -m experiments.demo_spread.run --out /tmp/spread --env native2 native1 avx2-2 avx2-1 [--ema 0.99 ...]
 
 Environments (the CPU here is emulated downwards, never upwards):
   native2 / native1   this CPU, 2 / 1 threads (OMP_NUM_THREADS)

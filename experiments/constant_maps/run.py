@@ -6,7 +6,7 @@ prints the prediction's MAE, MAE and bias on pixels ≥ 2 m, and the MAE of thre
 the reference's median (the best constant under L1) and its mean. The constants are the reference's own (an
 oracle a model cannot know), so they are a bar, not an arm. Usage::
 
-    python bench/constant_maps.py --pred alone/autzen --dsm samples/autzen_west/dsm_1m_utm.tif \\
+    python -m experiments.constant_maps.run --pred alone/autzen --dsm samples/autzen_west/dsm_1m_utm.tif \\
         --dtm samples/autzen_west/dtm_1m_utm.tif
 """
 

@@ -1,11 +1,12 @@
 """What the demo's weight average (``optim.ema``) adds to its training: one update per step and one swap
 in and out per validation, timed on the demo's small D3-Net (``d3net_small_synth``, 6 classes, 3 bands).
 
-    python bench/ema_cost.py            # prints seconds per update/swap and their total over the demo
+    python -m experiments.ema_cost.run            # prints seconds per update/swap and their total over the demo
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import time
 
@@ -18,6 +19,7 @@ from aerialmtl.training.config import load_train_config
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     torch.set_num_threads(2)
     cfg = load_train_config(builtin_config(DEMO_CONFIG))
     model = D3Net(cfg.model.resolve(3, ("height", "classes"), 6))

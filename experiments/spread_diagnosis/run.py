@@ -1,7 +1,7 @@
 """Issue 28's third stage: what the height spread is made of, and a neighbourhood spread fitted on validation.
 
-For runs of ``bench/real_data.py`` already studied by ``bench/uncertainty_study.py`` (their raw test-block maps in
-``OUT/runs/<run>/study_raw_best``), this script
+For runs of ``experiments/real_data/run.py`` already studied by ``experiments/uncertainty/run.py`` (their raw
+test-block maps in ``OUT/runs/<run>/study_raw_best``), this script
 
 1. predicts the **validation band** the same way (raw, T = 16; ``study_val_raw``) and both blocks with the Laplace
    scale forced to its floor (``study_epi_val``, ``study_epi_raw_best``: ``height_std`` = the MC part alone;
@@ -15,15 +15,14 @@ For runs of ``bench/real_data.py`` already studied by ``bench/uncertainty_study.
 
 Nothing here ships: it is the analysis behind bench/RESULTS.md ("Third stage"). Usage::
 
-    python bench/spread_diagnosis.py --out /work/study --runs al_b0_s0 al_b0_s1 al_b0_s2 --diagnose --fit --table
+    python -m experiments.spread_diagnosis.run --out /work/study --runs al_b0_s0 al_b0_s1 al_b0_s2 \\
+        --diagnose --fit --table
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -33,16 +32,13 @@ import rasterio
 import torch
 from scipy import ndimage, optimize, stats
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_data import DATA, DSM, DTM, ORTHO  # noqa: E402
-
 import aerialmtl.models.d3net as d3net  # noqa: E402
-from aerialmtl.evaluation.uncertainty import crps_gaussian, gaussian_nll_terms  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
 from aerialmtl.io.align import HeightSource, grid_of  # noqa: E402
+from experiments.common.autzen import DATA, DSM, DTM, ORTHO
+from experiments.common.study import BINS, crps, nll
 
-BINS = ((0.0, 1.0), (1.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 #: the spread models: which of (a·s, c·d_r, e·μ, f) take part
 TERMS = {"s": (1, 0, 0, 1), "s+d": (1, 1, 0, 1), "s+d+h": (1, 1, 1, 1)}
 RADII = (3, 6, 10, 16)
@@ -92,16 +88,6 @@ def neighbourhood(h: np.ndarray, r: int) -> np.ndarray:
     """Highest predicted height within ``r`` pixels (a (2r+1)² square) minus the pixel's own, ≥ 0."""
     hh = np.where(np.isfinite(h), h, -1e9)
     return np.maximum(ndimage.maximum_filter(hh, size=2 * r + 1) - hh, 0.0)
-
-
-def crps(err: np.ndarray, sig: np.ndarray) -> np.ndarray:
-    """Gaussian CRPS (metres) of absolute errors ``err`` under spreads ``sig`` (the evaluation's, σ floored)."""
-    return crps_gaussian(err, sig, np.zeros_like(err))
-
-
-def nll(err: np.ndarray, sig: np.ndarray) -> np.ndarray:
-    """Gaussian negative log-likelihood (nats; the evaluation's, σ floored)."""
-    return gaussian_nll_terms(err, sig, np.zeros_like(err))
 
 
 def sigma(p: np.ndarray, s: np.ndarray, d: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -211,7 +197,7 @@ def table(out: Path, runs: list[str]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, required=True, help="the bench/real_data.py --out folder")
+    ap.add_argument("--out", type=Path, required=True, help="the experiments/real_data/run.py --out folder")
     ap.add_argument("--runs", nargs="+", required=True)
     ap.add_argument("--diagnose", action="store_true")
     ap.add_argument("--fit", action="store_true")

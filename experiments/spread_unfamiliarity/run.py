@@ -1,7 +1,7 @@
 """Issue 36 part 4: may the unfamiliarity layer be folded into the height spread? (post hoc, validation fits)
 
-For runs of ``bench/real_data.py`` whose validation and test blocks were predicted raw (T = 16) with the
-unfamiliarity layer (``bench/uncertainty_study.py --val-block``; for runs trained before the layer, the folders
+For runs of ``experiments/real_data/run.py`` whose validation and test blocks were predicted raw (T = 16) with the
+unfamiliarity layer (``experiments/uncertainty/run.py --val-block``; for runs trained before the layer, the folders
 named in :data:`FOLDERS`' second entries), this script fits on the **validation block** a spread per range of the
 predicted height (the calibration's ranges, :data:`aerialmtl.models.calibration.SPREAD_EDGES`)::
 
@@ -9,16 +9,17 @@ predicted height (the calibration's ranges, :data:`aerialmtl.models.calibration.
 
 by the mean Gaussian CRPS or NLL of that range's pixels, and scores it on the **test block**: CRPS, NLL, and per
 reference-height bin the ±1σ coverage, Spearman(σ, |error|) and Spearman(σ, predicted height). Nothing here ships
-unless the validation says so: it is the analysis behind bench/RESULTS.md ("eighth stage"). Usage::
+unless the validation says so: it is the analysis behind bench/results/pretraining.md ("eighth stage"). Arms are data
+(:data:`ARMS`), run by the shared study runner (:mod:`experiments.common.study`). Usage::
 
-    python bench/spread_unfamiliarity.py --out /work/study_h36u --runs al_b0_s0 al_b0_s1 al_b0_s2
+    python -m experiments.spread_unfamiliarity.run --out /work/study_h36u --runs al_b0_s0 al_b0_s1 al_b0_s2
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,11 +28,10 @@ import numpy as np
 import rasterio
 from scipy import optimize, stats
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from spread_diagnosis import BINS, crps, nll, reference_on  # noqa: E402
-from study36 import _mean  # noqa: E402
-
-from aerialmtl.models.calibration import SPREAD_EDGES  # noqa: E402
+from aerialmtl.models.calibration import SPREAD_EDGES
+from experiments.common import study
+from experiments.common.study import BINS, crps, mean, nll
+from experiments.spread_diagnosis.run import reference_on
 
 #: (validation, test) folders of a run, first found wins (the second: runs trained before the layer existed)
 FOLDERS = {"val": ("study_valblock_raw", "valblock_unfam"), "test": ("study_raw_best", "unfam_pred_l2_d32_gda_auto")}
@@ -119,7 +119,9 @@ def scores(maps: Maps, sig: np.ndarray) -> dict[str, Any]:
     return out
 
 
+@functools.cache
 def study_run(run: Path) -> dict[str, Any] | None:
+    """Every arm of one run: fitted on its validation block, scored on both (cached in ``spread_unfam.json``)."""
     cache = run / "spread_unfam.json"
     if cache.is_file():
         return dict(json.loads(cache.read_text()))
@@ -139,21 +141,17 @@ def study_run(run: Path) -> dict[str, Any] | None:
     return res
 
 
-def table(results: dict[str, dict[str, Any]]) -> str:
-    lines = ["| spread | block | CRPS | NLL | ±1σ per bin | Spearman(σ, \\|err\\|) per bin "
-             "| Spearman(σ, predicted h) per bin |",
-             "|---|---|---|---|---|---|---|"]
-    for arm in ARMS:
-        for block in ("val", "test"):
-            rows = [r[arm][block] for r in results.values()]
+def _bins(key: str) -> Callable[[list[dict[str, Any]]], str]:
+    def cell(rows: list[dict[str, Any]]) -> str:
+        return " / ".join(f"{mean([r[key][i] for r in rows]):+.2f}".replace("+", "" if key == "cov" else "+")
+                          for i in range(len(BINS)))
+    return cell
 
-            def col(key: str, rows: list[dict[str, Any]] = rows) -> str:
-                return " / ".join(f"{_mean([r[key][i] for r in rows]):+.2f}".replace("+", "" if key == "cov" else "+")
-                                  for i in range(len(BINS)))
 
-            lines.append(f"| {arm} | {block} | {_mean([r['crps'] for r in rows]):.3f} | "
-                         f"{_mean([r['nll'] for r in rows]):.2f} | {col('cov')} | {col('rho')} | {col('rho_h')} |")
-    return "\n".join(lines)
+COLUMNS = [("CRPS", "---", lambda rows: f"{mean(r['crps'] for r in rows):.3f}"),
+           ("NLL", "---", lambda rows: f"{mean(r['nll'] for r in rows):.2f}"),
+           ("±1σ per bin", "---", _bins("cov")), ("Spearman(σ, \\|err\\|) per bin", "---", _bins("rho")),
+           ("Spearman(σ, predicted h) per bin", "---", _bins("rho_h"))]
 
 
 def main() -> None:
@@ -161,9 +159,16 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--runs", nargs="+", required=True)
     args = ap.parse_args()
-    results = {name: r for name in args.runs if (r := study_run(args.out / "runs" / name)) is not None}
-    print(f"runs: {', '.join(results)} (mean over them; bins 0–1 / 1–2 / 2–5 / 5–10 / 10–20 / ≥ 20 m)")
-    print(table(results))
+
+    def score(run: str, arm: str, _: Any) -> dict[str, Any] | None:
+        res = study_run(args.out / "runs" / run)
+        return None if res is None else res[arm]
+
+    results = study.run_arms(ARMS, args.runs, score)
+    chosen = study.choose(results, "crps")  # the validation block's mean CRPS decides
+    print(f"runs: {', '.join(args.runs)} (mean over them; bins 0–1 / 1–2 / 2–5 / 5–10 / 10–20 / ≥ 20 m); "
+          f"validation (CRPS) chooses: {chosen}")
+    print(study.table(results, COLUMNS, chosen))
 
 
 if __name__ == "__main__":
