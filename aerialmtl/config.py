@@ -151,8 +151,9 @@ def _message(cls: Any, err: Mapping[str, Any], path: str) -> str:
 
 
 def _strip_removed(tp: Any, data: Any, path: str) -> Any:
-    """``data`` without the keys a dataclass on its way lists in ``REMOVED_KEYS`` (key → why it is read and ignored),
-    one ``FutureWarning`` each, at every level.
+    """``data`` without the keys a dataclass on its way lists in ``REMOVED_KEYS``, at every level.
+
+    ``REMOVED_KEYS``: key → why it is read and ignored; one ``FutureWarning`` each.
     """
     while get_origin(tp) in (Union, types.UnionType):
         tp = next((a for a in get_args(tp) if dataclasses.is_dataclass(a)), None)
@@ -172,8 +173,9 @@ def _strip_removed(tp: Any, data: Any, path: str) -> Any:
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
-    """Build dataclass ``cls`` from a plain mapping, validating every key and value (pydantic, strict: see
-    :data:`_STRICT`; each dataclass's ``__post_init__`` checks its ranges).
+    """Build dataclass ``cls`` from a plain mapping, validating every key and value.
+
+    pydantic, strict (see :data:`_STRICT`); each dataclass's ``__post_init__`` checks its ranges.
 
     Args:
         cls: the dataclass type.
@@ -220,8 +222,9 @@ def to_dict(obj: Any) -> Any:
 
 
 class _Loader(yaml.SafeLoader):
-    """PyYAML's safe loader reading floats as YAML 1.2 does: ``1e-4`` and ``1e3`` are numbers (YAML 1.1, which
-    PyYAML follows, wants a dot and a signed exponent, so ``lr: 1e-4`` would be the string ``'1e-4'``).
+    """PyYAML's safe loader reading floats as YAML 1.2 does: ``1e-4`` and ``1e3`` are numbers.
+
+    YAML 1.1, which PyYAML follows, wants a dot and a signed exponent, so ``lr: 1e-4`` would be the string ``'1e-4'``).
     """
 
 

@@ -99,6 +99,20 @@ def resolve_device(device: str, local_rank: int = 0, error: type[AerialMTLError]
 
 
 # ---- precision ----------------------------------------------------------------------------------
+#: ``ONEDNN_MAX_CPU_ISA`` values (upper case) that leave oneDNN (in torch and OpenVINO) without bf16 kernels, or
+#: without AMX: a CPU capped so computes as one without those units, whatever its flags say.
+_NO_BF16_ISAS = ("SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX2_VNNI_2", "AVX512_CORE", "AVX512_CORE_VNNI")
+_NO_AMX_ISAS = ("AVX512_CORE_BF16", "AVX10_1_512", "AVX512_CORE_FP16")
+
+
+def _capped_away() -> set[str]:
+    """The bf16 flags that ``ONEDNN_MAX_CPU_ISA`` (an emulated smaller CPU) takes away."""
+    cap = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    if cap in _NO_BF16_ISAS:
+        return {"amx_bf16", "avx512_bf16"}
+    return {"amx_bf16"} if cap in _NO_AMX_ISAS else set()
+
+
 @functools.lru_cache(maxsize=1)
 def cpu_bf16_flags() -> tuple[str, ...]:
     """The native-bf16 CPU flags of this machine (:data:`BF16_CPU_FLAGS` found in ``/proc/cpuinfo``).
@@ -107,7 +121,8 @@ def cpu_bf16_flags() -> tuple[str, ...]:
     (``BF16`` in its optimisation capabilities), when it is installed. The environment variable
     :data:`CPU_FLAGS_ENV` replaces the probe (a comma- or space-separated list; empty = no native bf16):
     the test suite runs every CPU kind's path through it (``pytest --cpu-kind amx|avx512bf16|none``), and
-    a user can keep ``auto`` off bf16 with ``AERIALMTL_CPU_BF16_FLAGS=``.
+    a user can keep ``auto`` off bf16 with ``AERIALMTL_CPU_BF16_FLAGS=``. A ``ONEDNN_MAX_CPU_ISA`` cap below
+    bf16 (or below AMX) takes those flags away: oneDNN then has no such kernels.
     """
     forced = os.environ.get(CPU_FLAGS_ENV)
     if forced is not None:
@@ -119,7 +134,7 @@ def cpu_bf16_flags() -> tuple[str, ...]:
             if line.startswith("flags"):
                 flags.update(line.split(":", 1)[-1].split())
                 break
-        return tuple(f for f in BF16_CPU_FLAGS if f in flags)
+        return tuple(f for f in BF16_CPU_FLAGS if f in flags - _capped_away())
     try:  # pragma: no cover - not Linux
         ov = import_openvino()
         caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")

@@ -140,13 +140,13 @@ def test_engines_are_listed_once_and_built_by_name() -> None:
     from aerialmtl import runtime
     from aerialmtl.cli.predict import predict
     from aerialmtl.inference.engines import ENGINES, EngineSetup, build_engine
-    from aerialmtl.inference.settings import PredictSettings, Resolved
+    from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 
     choice = next(p.type for p in predict.params if p.name == "engine")
     assert isinstance(choice, click.Choice) and tuple(choice.choices) == ("auto", *ENGINES)
     model, meta = tiny_d3net()
     for name in ENGINES:
-        resolved = Resolved(torch.device("cpu"), name, "fp32", runtime.resolve_threads(), 1)
+        resolved = ResolvedSettings(torch.device("cpu"), name, "fp32", runtime.resolve_threads(), 1)
         engine = build_engine(EngineSetup(model, meta, PredictSettings(), resolved))
         assert engine.name == name and isinstance(engine.model, torch.nn.Module)
         assert isinstance(engine.net, torch.nn.Module) and engine.ahead(4) == 0

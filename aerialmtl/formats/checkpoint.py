@@ -16,6 +16,7 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
         "normalization": "dataset",  # or "encoder": mean/std are the pretrained encoder's input scaling
         "calibration": {...} | None, # height knots + std scale fitted on validation (models.calibration)
         "familiarity": {...} | None, # encoder-feature density of the train split (models.familiarity)
+        "sun": {...} | None,         # the training area's sun and shadow classifier (training.sun)
         "input_dtype": "uint8",      # data type of the training images (None: not recorded)
         "input_range": [lo, hi],     # their value range (value_envelope of the train statistics)
       },
@@ -48,6 +49,7 @@ from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.signals import deferred
+from aerialmtl.sun.record import TrainingSun
 
 FORMAT = "aerialmtl-checkpoint"
 FORMAT_VERSION = 1
@@ -89,6 +91,9 @@ class ModelMeta:
     #: scenes only, a start for fine-tuning (``train --init``), not a map of anywhere; ``None``: trained on its
     #: tile folder (a fine-tuned run's checkpoints are ``None`` again). Predict says so, and records it.
     start: str | None = None
+    #: the training area's sun and shadow classifier, fitted after training (``predict --sun auto`` uses them for
+    #: an orthophoto of the same flight); ``None`` for checkpoints without one (:mod:`aerialmtl.training.sun`).
+    sun: TrainingSun | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels
@@ -128,8 +133,9 @@ class ModelMeta:
             self._check_calibration(self.calibration)
 
     def _check_calibration(self, cal: Calibration) -> None:
-        """Refuse a calibration whose spreads or heights no model trained on :attr:`height_range` can need: a
-        spread floor beyond the span of the heights trained on (σ = 1e30 m everywhere; :data:`SURFACE_HEIGHTS_M`
+        """Refuse a calibration whose spreads or heights no model trained on :attr:`height_range` can need.
+
+        A spread floor beyond the span of the heights trained on (σ = 1e30 m everywhere; :data:`SURFACE_HEIGHTS_M`
         where the range was not recorded), calibrated heights outside :func:`plausible_heights`.
         """
         low, high = plausible_heights(self.height_range)
@@ -170,8 +176,9 @@ DIVERGED_MARGIN_M = 100.0
 
 
 def height_slack(height_range: tuple[float, float] | None) -> float:
-    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches: the largest
-    plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``).
+    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches.
+
+    The largest plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``).
     """
     if height_range is None:
         return SURFACE_HEIGHTS_M[1] - SURFACE_HEIGHTS_M[0]
@@ -179,8 +186,9 @@ def height_slack(height_range: tuple[float, float] | None) -> float:
 
 
 def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, float]:
-    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict (:func:`height_slack` beyond
-    it); :data:`SURFACE_HEIGHTS_M` when the range was not recorded.
+    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict.
+
+    :func:`height_slack` beyond it; :data:`SURFACE_HEIGHTS_M` when the range was not recorded.
     """
     if height_range is None:
         return SURFACE_HEIGHTS_M
@@ -189,8 +197,10 @@ def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, 
 
 
 def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:
-    """``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an
-    integer ``dtype``: where nearly all values of images with these per-band statistics lie.
+    """Where nearly all values of images with these per-band statistics lie.
+
+    ``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an integer
+    ``dtype``.
     """
     lo = min(m - 3.0 * s for m, s in zip(mean, std))
     hi = max(m + 3.0 * s for m, s in zip(mean, std))
@@ -218,8 +228,9 @@ def first_nonfinite(tensors: Any) -> str | None:
 
 
 def _os_error(exc: BaseException) -> OSError | None:
-    """The ``OSError`` behind ``exc`` (torch.save reports a full disk as a RuntimeError raised while
-    handling the file object's OSError).
+    """The ``OSError`` behind ``exc``.
+
+    torch.save reports a full disk as a RuntimeError raised while handling the file object's OSError.
     """
     seen: BaseException | None = exc
     for _ in range(8):
@@ -254,8 +265,9 @@ def save_checkpoint(
     meta: ModelMeta,
     train_state: dict[str, Any] | None = None,
 ) -> None:
-    """Write a checkpoint atomically (staging file ``.NAME.partial`` in the same folder, then rename;
-    :mod:`aerialmtl.io.outputs`).
+    """Write a checkpoint atomically.
+
+    A staging file ``.NAME.partial`` in the same folder, then a rename (:mod:`aerialmtl.io.outputs`).
 
     Raises:
         NonFiniteError: a weight holds NaN or ±inf (a diverged model is never written; the file at

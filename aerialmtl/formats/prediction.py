@@ -1,5 +1,6 @@
-"""The prediction folder: what ``aerialmtl predict`` writes and ``evaluate``, the maps notebook and
-``buildings`` read.
+"""The prediction folder: what ``aerialmtl predict`` writes.
+
+``evaluate``, the maps notebook and ``buildings`` read it.
 
 One folder per orthophoto, all layers Cloud-Optimized GeoTIFFs on one grid (the orthophoto's, at the
 model's GSD)::
@@ -71,6 +72,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, cause
+from aerialmtl.io.fingerprint import changed, content_sha256
 
 #: Layer names, in the order a prediction folder lists them (file ``<name>.tif``).
 HEIGHT = "height"
@@ -80,10 +82,14 @@ CLASS_ENTROPY = "class_entropy"
 CLASS_MUTUAL_INFO = "class_mutual_info"
 CLASS_PROBABILITIES = "class_probabilities"
 UNFAMILIARITY = "unfamiliarity"
-LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES, UNFAMILIARITY)
+SHADOW = "shadow"
+SHADOW_HEIGHT = "shadow_height"
+LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES, UNFAMILIARITY, SHADOW,
+          SHADOW_HEIGHT)
 
-#: Unit of each float layer (``class_probabilities``: none; ``unfamiliarity``: a share, 0–1, no unit).
-LAYER_UNITS = {HEIGHT: "m", HEIGHT_STD: "m", CLASS_ENTROPY: "nats", CLASS_MUTUAL_INFO: "nats", UNFAMILIARITY: ""}
+#: Unit of each float layer (``class_probabilities``: none; ``unfamiliarity`` and ``shadow``: 0–1, no unit).
+LAYER_UNITS = {HEIGHT: "m", HEIGHT_STD: "m", CLASS_ENTROPY: "nats", CLASS_MUTUAL_INFO: "nats", UNFAMILIARITY: "",
+               SHADOW: "", SHADOW_HEIGHT: "m"}
 
 #: The run-information file.
 INFO_FILE = "prediction.json"
@@ -119,9 +125,11 @@ ALL_FILES = (tuple(layer_filename(n) for n in LAYERS) + tuple(style_filename(n) 
 
 
 def folder_files(names: Iterable[str]) -> list[str]:
-    """Every file a prediction folder with layers ``names`` holds: the layers, their QGIS styles, the STAC
-    item and ``prediction.json`` (last). A run claims all of them before writing, so that a user's own
-    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``.
+    """Every file a prediction folder with layers ``names`` holds.
+
+    The layers, their QGIS styles, the STAC item and ``prediction.json`` (last). A run claims all of them before
+    writing, so that a user's own ``height.qml`` or ``item.json`` in ``--out`` is never replaced without
+    ``--overwrite``.
     """
     names = list(names)
     return ([layer_filename(n) for n in names] + [style_filename(n) for n in names] + [ITEM_FILE, INFO_FILE])
@@ -138,8 +146,9 @@ def mosaic_style_filename(name: str) -> str:
 
 
 def mosaic_files(names: Iterable[str]) -> list[str]:
-    """Every file a run over several inputs writes beside their folders for layers ``names``: each layer's VRT
-    mosaic and its QGIS style, and the STAC ``collection.json``.
+    """Every file a run over several inputs writes beside their folders for layers ``names``.
+
+    Each layer's VRT mosaic and its QGIS style, and the STAC ``collection.json``.
     """
     names = list(names)
     return [mosaic_filename(n) for n in names] + [mosaic_style_filename(n) for n in names] + [COLLECTION_FILE]
@@ -179,7 +188,7 @@ class LayerSpec:
 
 def prediction_layers(
     tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False, aleatoric: bool = False,
-    tta: bool = False, unfamiliarity: bool = False,
+    tta: bool = False, unfamiliarity: bool = False, shadows: bool = False,
 ) -> tuple[LayerSpec, ...]:
     """The layers a prediction writes, in :data:`LAYERS` order.
 
@@ -193,6 +202,8 @@ def prediction_layers(
             spread (MC dropout and the aleatoric scale).
         tta: test-time augmentation (8 views): uncertainty layers at any T.
         unfamiliarity: the checkpoint holds a feature density: the ``unfamiliarity`` layer (any T).
+        shadows: the shadow features run (a sun and the checkpoint's shadow classifier): the ``shadow`` and
+            ``shadow_height`` layers (:mod:`aerialmtl.inference.shadows`).
     """
     specs: list[LayerSpec] = []
     unc = mc > 1 or tta
@@ -228,6 +239,12 @@ def prediction_layers(
         specs.append(LayerSpec(UNFAMILIARITY, 1, "float32", FLOAT_NODATA,
                                ("unfamiliarity: share of training pixels more familiar to the model (0-1)",),
                                (LAYER_UNITS[UNFAMILIARITY],)))
+    if shadows and HEIGHT in tasks:
+        specs.append(LayerSpec(SHADOW, 1, "float32", FLOAT_NODATA, ("probability of cast shadow (0-1)",),
+                               (LAYER_UNITS[SHADOW],)))
+        specs.append(LayerSpec(SHADOW_HEIGHT, 1, "float32", FLOAT_NODATA,
+                               ("height of the object measured from its shadow (nodata: not measurable)",),
+                               (LAYER_UNITS[SHADOW_HEIGHT],)))
     return tuple(specs)
 
 
@@ -264,8 +281,10 @@ class GridInfo(BaseModel):
 
 
 class Provenance(BaseModel):
-    """``prediction.json``'s ``provenance`` (module docstring): the checkpoint's fingerprint, the settings that
-    change the maps, the input's fingerprint (:func:`aerialmtl.io.fingerprint.input_fingerprint`).
+    """``prediction.json``'s ``provenance`` (module docstring).
+
+    The checkpoint's fingerprint, the settings that change the maps, the input's fingerprint
+    (:func:`aerialmtl.io.fingerprint.input_fingerprint`).
     """
 
     model_config = ConfigDict(extra="allow")
@@ -296,6 +315,12 @@ class PredictionInfo(BaseModel):
     provenance: Provenance | None = None
 
 
+#: The settings ``prediction.json`` also holds at its top level, as it did before its ``settings`` mapping (readers
+#: rely on them; ``mc_samples`` is the setting ``mc``). A new setting is recorded in ``settings`` only.
+RECORD_KEYS = ("tta", "seed", "window", "overlap", "batch_size", "precision", "engine", "threads", "device", "compile",
+               "shadow_fusion")
+
+
 class PredictionRecord(BaseModel):
     """What a run writes to ``prediction.json``, once, when it commits (field order = the file's key order).
 
@@ -317,7 +342,12 @@ class PredictionRecord(BaseModel):
         windows_total, windows_computed, overlap_factor, plan_overlap_factor: the window plan and the work.
         timings_s: seconds per stage (``read``, ``model``, ``stitch_write``, ``write``, ``strip_total``,
             ``cog``, ``total``).
+        settings: every setting of the run (the fields of :class:`~aerialmtl.inference.settings.PredictSettings`),
+            with what ``auto`` and the defaults resolved to.
         calibration: what calibration was applied; provenance: :data:`PROVENANCE_KEY` (module docstring).
+        sun_setting, shadow_fusion: ``--sun`` and ``--shadow-fusion`` as given; ``sun``: the sun the shadow
+            layers used and its source (:meth:`aerialmtl.inference.sun_choice.SunChoice.record`), ``None`` when
+            the run had no shadow features.
         created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes;
         file_sha256: layer file → SHA-256 (hex) of its bytes.
     """
@@ -341,6 +371,7 @@ class PredictionRecord(BaseModel):
     device: str
     compile: bool
     processes: int
+    settings: dict[str, Any] = {}
     aoi: str | None
     grid: GridInfo
     resampled_from_gsd: float | None
@@ -351,6 +382,9 @@ class PredictionRecord(BaseModel):
     plan_overlap_factor: float
     timings_s: dict[str, float]
     calibration: dict[str, Any]
+    sun_setting: str = "auto"
+    shadow_fusion: bool = False
+    sun: dict[str, Any] | None = None
     provenance: dict[str, Any]
     created: str | None = None
     files: dict[str, str] = {}
@@ -477,11 +511,10 @@ class PredictionFolder:
         return self._content_problem(info) if content else None
 
     def _content_problem(self, info: Mapping[str, Any]) -> str | None:
-        """Which layer's bytes differ from the SHA-256 recorded at commit (``None``: all match, or none recorded:
-        folders of earlier versions are checked by size only).
-        """
-        from aerialmtl.io.fingerprint import content_sha256
+        """Which layer's bytes differ from the SHA-256 recorded at commit.
 
+        ``None``: all match, or none recorded (folders of earlier versions are checked by size only).
+        """
         for name, digest in (info.get("file_sha256") or {}).items():
             try:
                 now = content_sha256(self.path / str(name))
@@ -520,8 +553,6 @@ PROVENANCE_KEY = "provenance"
 
 def _provenance_problem(recorded: Any, expected: Mapping[str, Any]) -> str | None:
     """Why the ``provenance`` recorded differs from the run's ``expected`` one, in a few words (``None``: same)."""
-    from aerialmtl.io.fingerprint import changed
-
     if not isinstance(recorded, dict):
         return f"its {INFO_FILE} records no provenance (made by an older version)"
     if recorded.get("checkpoint") != expected.get("checkpoint"):
@@ -540,11 +571,14 @@ def _provenance_problem(recorded: Any, expected: Mapping[str, Any]) -> str | Non
 __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
     "CLASS_SCHEME_TAG", "COLLECTION_FILE", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "ITEM_FILE", "LAYERS",
+    "SHADOW",
+    "SHADOW_HEIGHT",
     "UNFAMILIARITY",
     "LAYER_UNITS",
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
     "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
-    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord", "Provenance",
+    "PROVENANCE_KEY", "RECORD_KEYS", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord",
+    "Provenance",
     "parse_info",
 ]

@@ -11,7 +11,8 @@ A STAC catalogue, a data cube or a STAC browser indexes aerialmtl outputs throug
   statistics); the classification extension on ``classes.tif`` (class index, name, colour hint, and
   the nodata value as a nodata class); the QGIS styles (role ``style``) and ``prediction.json`` (role
   ``metadata``) as assets too. The model is described in plain properties under ``aerialmtl:``
-  (architecture, tasks, input bands and normalisation, class names, GSD, MC samples, checkpoint):
+  (architecture, tasks, input bands and normalisation, class names, GSD, MC samples, checkpoint), and every
+  predict setting of the run as ``prediction.json`` records it (``aerialmtl:settings``):
   the machine-learning-model extension describes a model *asset*, which a prediction folder does not
   hold. ``datetime`` is when the prediction was made (aerialmtl does not know the orthophoto's
   acquisition time; edit it in if you do), also given as ``created``.
@@ -37,6 +38,7 @@ import pystac
 from pystac.extensions.classification import Classification, ClassificationExtension
 from pystac.extensions.projection import ProjectionExtension
 from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Sampling, Statistics
+from pystac.extensions.view import ViewExtension
 from rasterio.warp import transform as warp_transform
 
 from aerialmtl.errors import InputError
@@ -165,9 +167,16 @@ def build_item(folder: str | Path, grid: Grid, specs: Sequence[LayerSpec], info:
         value = info.get(key, info.get("tile")) if key == "window" else info.get(key)  # "tile": earlier folders'
         if value is not None:
             props[PREFIX + key] = value
+    if info.get("settings"):  # every predict setting, as prediction.json records it
+        props[PREFIX + "settings"] = info["settings"]
     item = pystac.Item(id=folder.name, geometry=geometry, bbox=_bbox(geometry), datetime=created,
                        properties=props)
     item.common_metadata.gsd = grid.gsd
+    sun = info.get("sun")
+    if isinstance(sun, Mapping) and sun.get("azimuth_deg") is not None and sun.get("elevation_deg") is not None:
+        view = ViewExtension.ext(item, add_if_missing=True)  # the sun the shadow features used (true north)
+        view.sun_azimuth = float(sun["azimuth_deg"])
+        view.sun_elevation = float(sun["elevation_deg"])
 
     proj = ProjectionExtension.ext(item, add_if_missing=True)
     epsg = grid.crs.to_epsg()

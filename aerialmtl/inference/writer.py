@@ -41,6 +41,8 @@ from aerialmtl.formats.prediction import (
     PredictionRecord,
     style_filename,
 )
+from aerialmtl.formats.qgis_style import layer_style, write_style
+from aerialmtl.formats.stac import build_item, write_json
 from aerialmtl.inference.stitch import Block
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
@@ -48,6 +50,7 @@ from aerialmtl.io.fingerprint import content_sha256
 from aerialmtl.io.oserrors import kind_of, output_error
 from aerialmtl.io.outputs import MERGE_VRT, STAGING, staging_path
 from aerialmtl.io.stats import BandStats, band_stats
+from aerialmtl.io.vrt import mosaic_vrt
 
 #: Blocks queued for the writer thread at most (the model waits beyond; memory stays bounded).
 MAX_PENDING_BLOCKS = 4
@@ -208,8 +211,6 @@ class PredictionWriter:
             strips: first rows of the other strips of a distributed run (their staging files, written
                 by other processes, are joined with this writer's through a VRT).
         """
-        from aerialmtl.io.vrt import mosaic_vrt
-
         merged: list[Path] = []
         try:
             self.finish()
@@ -295,9 +296,6 @@ class PredictionWriter:
         Returns:
             key → (partial path, final path): ``<layer>_style`` and ``item``.
         """
-        from aerialmtl.formats.qgis_style import layer_style, write_style
-        from aerialmtl.formats.stac import build_item, write_json
-
         out: dict[str, tuple[Path, Path]] = {}
         for name, spec in self.specs.items():
             qml = staging_path(self.out_dir / style_filename(name))

@@ -1,5 +1,6 @@
-"""Fingerprints of what GDAL reads: whether an input is still the one a run read, and whether a file's bytes are
-still those written.
+"""Fingerprints of what GDAL reads.
+
+Whether an input is still the one a run read, and whether a file's bytes are still those written.
 
 An orthophoto is more than its file: GDAL also reads files beside it that change what the raster means, and a
 fingerprint that left them out would call a folder complete after its input moved 100 km (a new world file) or
@@ -30,6 +31,8 @@ import stat
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
 
 #: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
 VRT_DEPTH = 4
@@ -62,7 +65,6 @@ def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
     """Resolved path, size and mtime (ns) of a local file (``None`` for ``None``); the GDAL path alone otherwise."""
     if path is None:
         return None
-    from aerialmtl.io.paths import gdal_path, is_local
 
     if not is_local(path):
         return {"path": gdal_path(path)}
@@ -106,8 +108,10 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
 
 
 def raster_identity(src: Any) -> dict[str, Any]:
-    """What GDAL makes of an open raster ``src`` (a rasterio dataset): size (px), geotransform, CRS, nodata per
-    band (as text: NaN is no JSON number). The same file and sidecars always give the same identity.
+    """What GDAL makes of an open raster ``src`` (a rasterio dataset).
+
+    Size (px), geotransform, CRS, nodata per band (as text: NaN is no JSON number). The same file and sidecars
+    always give the same identity.
     """
     crs = src.crs.to_string() if src.crs is not None else None
     return {"width": int(src.width), "height": int(src.height), "transform": [float(v) for v in src.transform][:6],
@@ -115,8 +119,9 @@ def raster_identity(src: Any) -> dict[str, Any]:
 
 
 def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
-    """:func:`input_fingerprint` of every source a local VRT lists (``SourceFilename``, relative ones resolved
-    against the VRT's folder; VRTs inside followed ``depth`` levels), in document order without repeats.
+    """:func:`input_fingerprint` of every source a local VRT lists, in document order without repeats.
+
+    ``SourceFilename``, relative ones resolved against the VRT's folder; VRTs inside followed ``depth`` levels.
     """
     import xml.etree.ElementTree as ET
 
@@ -124,7 +129,6 @@ def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError):
         return []
-    from aerialmtl.io.paths import is_local
 
     out: list[dict[str, Any]] = []
     seen: set[str] = set()
@@ -145,8 +149,9 @@ def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]
 
 
 def http_validators(url: str) -> dict[str, Any] | None:
-    """What an HTTP(S) server says identifies the current version of ``url`` (one HEAD request): ``etag``,
-    ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S).
+    """What an HTTP(S) server says identifies the current version of ``url`` (one HEAD request).
+
+    ``etag``, ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S).
     """
     import urllib.error
     import urllib.request
@@ -168,8 +173,9 @@ def http_validators(url: str) -> dict[str, Any] | None:
 
 def input_fingerprint(path: str | Path, raster: Mapping[str, Any] | None = None,
                       depth: int = VRT_DEPTH) -> dict[str, Any]:
-    """The fingerprint of an orthophoto (see the module docstring): what says whether what GDAL reads is still the
-    same.
+    """The fingerprint of an orthophoto: what says whether what GDAL reads is still the same.
+
+    See the module docstring.
 
     Args:
         path: the orthophoto (a local file, a VRT, a URL or a GDAL ``/vsi...`` path).
@@ -181,8 +187,6 @@ def input_fingerprint(path: str | Path, raster: Mapping[str, Any] | None = None,
         GDAL path and ``server`` (the HTTP validators) or ``archive`` (the local archive's
         :func:`file_fingerprint`); with ``raster`` when given.
     """
-    from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
-
     fp = file_fingerprint(path)
     assert fp is not None
     if is_local(path):
@@ -204,8 +208,9 @@ def input_fingerprint(path: str | Path, raster: Mapping[str, Any] | None = None,
 
 
 def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
-    """What differs between two fingerprints (:func:`input_fingerprint`) of one input (``None``: nothing), e.g.
-    ``"sidecar o.tfw changed"``, ``"raster.transform [...] → [...]"``.
+    """What differs between two fingerprints (:func:`input_fingerprint`) of one input (``None``: nothing).
+
+    For example ``"sidecar o.tfw changed"``, ``"raster.transform [...] → [...]"``.
     """
     if before == after:
         return None
