@@ -5,8 +5,8 @@ Runs :func:`aerialmtl.training.loop.train` (what ``aerialmtl train`` runs) with 
 tiled 320/160 (made once under ``--workdir``), and reports:
 
 * the loop's samples/s over its training steps (the first ``--warmup`` steps excluded; validations, checkpoints
-  and epoch ends included, as a user sees them), and the seconds spent in validation, calibration and the
-  feature density (timed around the trainer's methods);
+  and epoch ends included, as a user sees them), and the seconds spent in validation, calibration, the
+  feature density and the sun fit (timed around the trainer's methods);
 * the model step alone at the same batch, precision and memory format (forward, losses, weighting, backward,
   optimiser on one batch already on the device), and the ratio loop / step;
 * on a CUDA GPU: its utilisation sampled by ``nvidia-smi`` every 250 ms (mean over the training steps, and
@@ -74,8 +74,10 @@ class GpuSampler:
 
 
 def timed(cls: Any, name: str, into: dict[str, float]) -> None:
-    """Wrap ``cls.name`` so that the seconds spent in it add up in ``into[name]``."""
-    real = getattr(cls, name)
+    """Wrap ``cls.name`` (if it has one) so that the seconds spent in it add up in ``into[name]``."""
+    real = getattr(cls, name, None)
+    if real is None:
+        return
 
     def wrapper(self: Any, *args: Any, **kwargs: Any) -> Any:
         if torch.cuda.is_available():
@@ -98,7 +100,7 @@ def loop(args: argparse.Namespace, cfg: Any, tiles: Path, sampler: GpuSampler) -
     from aerialmtl.training.trainer import Trainer
 
     spent: dict[str, float] = {}
-    for name in ("validate", "calibrate", "familiarize"):
+    for name in ("validate", "calibrate", "familiarize", "fit_sun"):
         timed(Trainer, name, spent)
     stamps: list[float] = []
     real_step = StepLoop.train_step
