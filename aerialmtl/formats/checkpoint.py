@@ -312,16 +312,12 @@ def bytes_fingerprint(data: bytes) -> str:
 
 
 def file_sha256(path: str | Path) -> str:
-    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory)."""
-    import hashlib
+    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory; a FIFO or device
+    there is an ``OSError``, never waited on: :func:`aerialmtl.io.fingerprint.content_sha256`).
+    """
+    from aerialmtl.io.fingerprint import content_sha256
 
-    h = hashlib.sha256()
-    buf = bytearray(1 << 20)
-    view = memoryview(buf)
-    with open(path, "rb", buffering=0) as f:
-        while n := f.readinto(buf):
-            h.update(view[:n])
-    return f"sha256:{h.hexdigest()}"
+    return f"sha256:{content_sha256(path)}"
 
 
 def read_checkpoint(path: str | Path,
@@ -331,11 +327,17 @@ def read_checkpoint(path: str | Path,
     The file is read once into memory and parsed from there, so the fingerprint describes the weights in
     use even when the file is replaced meanwhile (a training run writing a new ``best.pt``).
     """
+    from aerialmtl.stores import open_regular, special_kind
+
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO would block the read forever, a folder fail it
+        raise CheckpointError(f"checkpoint '{path}' is {special_kind(path.stat().st_mode)}, not a regular file; pass "
+                              "the best.pt or last.pt of a training run")
     if not path.is_file():
         raise CheckpointError(f"checkpoint '{path}' does not exist; pass the best.pt or last.pt of a training run")
     try:
-        data = path.read_bytes()
+        with open(open_regular(path, follow_links=True), "rb") as fh:  # replaced by a FIFO since: an error
+            data = fh.read()
     except OSError as exc:
         raise CheckpointError(f"checkpoint '{path}' cannot be read ({exc.strerror or exc}); check its permissions, "
                               "or pass another checkpoint") from exc

@@ -31,6 +31,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from aerialmtl.stores import open_regular, special_kind
+
 #: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
 VRT_DEPTH = 4
 #: Seconds :func:`http_validators` waits for a server's answer.
@@ -47,12 +49,13 @@ def content_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
     """The SHA-256 (hex) of the bytes of file ``path``, read in ``chunk``-byte pieces (not held in memory).
 
     Raises:
-        OSError: it cannot be read.
+        OSError: it cannot be read, or it is not a regular file (a FIFO, a device: never waited on or read
+            without end; :func:`aerialmtl.stores.open_regular`).
     """
     h = hashlib.sha256()
     buf = bytearray(chunk)
     view = memoryview(buf)
-    with open(path, "rb", buffering=0) as f:
+    with os.fdopen(open_regular(path, follow_links=True), "rb", buffering=0) as f:  # a FIFO there: an error, no hang
         while n := f.readinto(buf):
             h.update(view[:n])
     return h.hexdigest()
@@ -103,6 +106,22 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
         except OSError as exc:
             out[side.name] = {"size": st.st_size, "unreadable": exc.strerror or str(exc)}
     return out
+
+
+def blocking_file(path: str | Path) -> tuple[Path, str] | None:
+    """The first of local raster ``path`` and the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) that
+    is a FIFO, a socket or a device (links followed), and what it is; ``None`` when there is none. GDAL opens those
+    without a timeout and would wait on a FIFO forever, so a raster with one is not opened
+    (:func:`aerialmtl.io.align.open_raster`). A folder at a sidecar's name is not one (GDAL reads nothing there).
+    """
+    for p in (Path(path), *sidecar_paths(path)):
+        try:
+            mode = os.stat(p).st_mode
+        except OSError:
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            return p, special_kind(mode)
+    return None
 
 
 def raster_identity(src: Any) -> dict[str, Any]:
@@ -229,6 +248,6 @@ def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
     return ", ".join(parts)
 
 
-__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH", "changed",
+__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH", "blocking_file", "changed",
            "content_sha256", "file_fingerprint", "http_validators", "input_fingerprint", "raster_identity",
            "sidecar_paths", "sidecars", "vrt_sources"]

