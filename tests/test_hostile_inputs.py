@@ -132,3 +132,93 @@ def test_absurd_thread_counts_are_the_cpu_count_with_one_warning(how: str, input
                      "thread(s)"], err
     info = json.loads((tmp_path / "p" / "prediction.json").read_text())
     assert info["threads"]["threads"] == cpus
+
+
+# ---- bombs ------------------------------------------------------------------------------------------------------
+def _yaml_bomb(path: Path, self_reference: bool = False) -> Path:
+    """A YAML file of a few hundred bytes that stands for 10⁹ values through aliases of aliases (or refers to
+    itself)."""
+    if self_reference:
+        path.write_text("model: &a\n  growth_rate: 4\n  more: *a\n")
+        return path
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 10)]
+    lines.append("model: {growth_rate: *a9}")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("self_reference", [False, True])
+def test_a_yaml_alias_bomb_is_refused_before_it_is_built(self_reference: bool, inputs, tmp_path: Path) -> None:
+    from aerialmtl.config import MAX_YAML_VALUES
+
+    config = _yaml_bomb(tmp_path / "train.yaml", self_reference)
+    assert config.stat().st_size < 2048
+    started = time.monotonic()
+    done = aerialmtl("train", "--data", tmp_path / "no-tiles", "--config", config, "--out", tmp_path / "run",
+                     environ=env(), timeout=HANG)
+    line = _error_line(done)
+    assert f"config file '{config}' expands to more than {MAX_YAML_VALUES:,} values" in line, line
+    assert "write the values out" in line
+    assert time.monotonic() - started < HANG
+    assert not (tmp_path / "run").exists()
+
+
+def test_yaml_aliases_a_config_uses_are_read() -> None:
+    """Aliases stay usable: a block written once and used a few times is a normal configuration."""
+    import tempfile
+
+    from aerialmtl.config import read_yaml
+
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as fh:
+        fh.write("base: &b {lr: 1.0e-4, betas: [0.9, 0.99]}\nfirst: *b\nsecond: *b\n")
+    try:
+        data = read_yaml(fh.name)
+    finally:
+        os.unlink(fh.name)
+    assert data["first"] == data["second"] == {"lr": 1e-4, "betas": [0.9, 0.99]}
+
+
+def _pickle_bomb(path: Path, cycle: bool = False) -> Path:
+    """A checkpoint of a few KB whose metadata is 10²⁴ values through shared lists (or a list holding itself)."""
+    import torch
+
+    if cycle:
+        bomb: list = []
+        bomb.append(bomb)
+    else:
+        bomb = list(range(100))
+        for _ in range(11):
+            bomb = [bomb] * 100
+    torch.save({"format": "aerialmtl-checkpoint", "format_version": 1, "meta": {"model": bomb}, "state_dict": {}},
+               path)
+    return path
+
+
+@pytest.mark.parametrize("cycle", [False, True])
+def test_a_pickle_bomb_checkpoint_is_refused_at_once(cycle: bool, inputs, tmp_path: Path) -> None:
+    from aerialmtl.formats.checkpoint import MAX_CHECKPOINT_VALUES
+
+    _, ortho = inputs
+    ckpt = _pickle_bomb(tmp_path / "bomb.pt", cycle)
+    assert ckpt.stat().st_size < 64 * 1024
+    done = aerialmtl("predict", ortho, "--model", ckpt, "--out", tmp_path / "p", *PREDICT, environ=env(),
+                     timeout=HANG)
+    line = _error_line(done)
+    assert f"checkpoint '{ckpt}' holds more than {MAX_CHECKPOINT_VALUES:,} values" in line, line
+    assert "use a checkpoint written by `aerialmtl train`" in line
+    assert not (tmp_path / "p").exists()
+
+
+def test_counting_a_payload_is_fast_and_exact() -> None:
+    from aerialmtl.formats.checkpoint import expanded_values
+
+    shared = [1, 2]
+    assert expanded_values([shared, shared, (shared,)]) == 11  # the outer list, twice 3, the tuple's 1 + 3
+    assert expanded_values({"x": [shared, shared]}) == 1 + 1 + 7
+    bomb: list = [0]
+    for _ in range(60):
+        bomb = [bomb, bomb]
+    started = time.monotonic()
+    assert expanded_values(bomb, limit=1000) == 1001
+    assert time.monotonic() - started < 1.0

@@ -320,6 +320,58 @@ def file_sha256(path: str | Path) -> str:
     return f"sha256:{content_sha256(path)}"
 
 
+#: Values (containers, scalars, tensors) a checkpoint's payload may hold once shared references are expanded: the
+#: paper's DenseNet-121 with its Adam state holds about 5,400 (a tensor is one). A pickle can refer to one list
+#: many times, so a 4 KB file can stand for 10²⁴ values: torch builds it in no time (shared), but any walk of it
+#: (validation, a copy) would run out of memory or time. Such a payload is refused before anything walks it.
+MAX_CHECKPOINT_VALUES = 5_000_000
+
+
+def expanded_values(obj: Any, limit: int = MAX_CHECKPOINT_VALUES) -> int:
+    """The values of ``obj`` (dicts, lists, tuples, sets and what they hold) counted as a walk of the tree would
+    meet them, shared references counted each time (``limit + 1`` stands for "more", and for a structure that
+    contains itself). Linear in the distinct objects: the count of each is kept.
+    """
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+    todo: list[tuple[Any, bool]] = [(obj, False)]
+    keep: list[Any] = []  # the objects whose ids are keys, alive until the end (ids are not reused meanwhile)
+
+    def parts(x: Any) -> list[Any]:
+        if isinstance(x, dict):
+            return [v for pair in x.items() for v in pair]
+        if isinstance(x, (list, tuple, set, frozenset)):
+            return list(x)
+        return []
+
+    while todo:
+        x, done = todo.pop()
+        key = id(x)
+        if done:
+            total = 1 + sum(sizes.get(id(c), 1) for c in parts(x))
+            sizes[key] = min(total, limit + 1)
+            on_path.discard(key)
+            continue
+        if key in sizes:
+            continue
+        inner = parts(x)
+        if not inner:
+            sizes[key] = 1
+            keep.append(x)
+            continue
+        if key in on_path:
+            return limit + 1
+        on_path.add(key)
+        keep.append(x)
+        todo.append((x, True))
+        for c in inner:
+            if id(c) in on_path:
+                return limit + 1
+            if id(c) not in sizes:
+                todo.append((c, False))
+    return sizes[id(obj)]
+
+
 def read_checkpoint(path: str | Path,
                     map_location: str | torch.device = "cpu") -> tuple[dict[str, Any], ModelMeta, str]:
     """:func:`load_checkpoint`, plus the fingerprint (:func:`bytes_fingerprint`) of the very bytes it parsed.
@@ -364,6 +416,11 @@ def read_checkpoint(path: str | Path,
             f"checkpoint '{path}' is corrupt or truncated ({why}); use another checkpoint (e.g. last.pt "
             "instead of best.pt) or retrain"
         ) from exc
+    if expanded_values(payload) > MAX_CHECKPOINT_VALUES:
+        raise CheckpointError(
+            f"checkpoint '{path}' holds more than {MAX_CHECKPOINT_VALUES:,} values once its shared references are "
+            "expanded (lists that refer to lists, a pickle bomb; or a structure that contains itself): refused before "
+            "reading it; no checkpoint aerialmtl writes comes near; use a checkpoint written by `aerialmtl train`")
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(
             f"checkpoint '{path}' is not an aerialmtl checkpoint (no '{FORMAT}' marker); "
