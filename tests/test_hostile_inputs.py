@@ -222,3 +222,97 @@ def test_counting_a_payload_is_fast_and_exact() -> None:
     started = time.monotonic()
     assert expanded_values(bomb, limit=1000) == 1001
     assert time.monotonic() - started < 1.0
+
+
+# ---- the feature density and the weights of a checkpoint ---------------------------------------------------------
+@pytest.fixture(scope="module")
+def with_density(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny checkpoint with a density fitted on 6-channel features of encoder level 1 (stride 4)."""
+    import dataclasses
+
+    from aerialmtl.models.familiarity import fit_density
+
+    model, meta = tiny_d3net()
+    dens = fit_density(np.random.default_rng(5).normal(size=(400, 6)), (1,), 4, dims=3, components=2)
+    path = tmp_path_factory.mktemp("density") / "m.pt"
+    save_checkpoint(path, model, dataclasses.replace(meta, familiarity=dens))
+    return path
+
+
+def _edited(src: Path, dst: Path, edit) -> Path:
+    """A copy of checkpoint ``src`` with its payload changed by ``edit`` (what a damaged or hand-edited file is)."""
+    import torch
+
+    payload = torch.load(src, weights_only=True)
+    edit(payload)
+    torch.save(payload, dst)
+    return dst
+
+
+def _density(**changes: object):
+    def edit(payload: dict) -> None:
+        payload["meta"]["familiarity"].update(changes)
+    return edit
+
+
+DAMAGED_DENSITIES = {
+    "a level the model lacks": (_density(levels=[7]), "encoder levels [7]"),
+    "a repeated level": (_density(levels=[1, 1]), "encoder levels [1, 1]"),
+    "another level's width": (_density(levels=[2]), "reads 6 channels at encoder levels [2], where the model has 5"),
+    "zero weights": (_density(weights=[0.0, 0.0]), "mixture weights [0, 0], which must be > 0 and sum to 1"),
+    "negative weights": (_density(weights=[1.5, -0.5]), "mixture weights [1.5, -0.5]"),
+    "weights not summing to 1": (_density(weights=[0.2, 0.2]), "mixture weights [0.2, 0.2]"),
+    "constant quantiles": (_density(quantiles=[3.0] * 201), "a quantile table without spread"),
+    "a zero basis": (_density(basis=[[0.0] * 6] * 3), "a basis whose rows are not orthonormal"),
+    "a negative precision diagonal": (
+        lambda p: p["meta"]["familiarity"]["precision_chol"].__setitem__(
+            0, [-v for v in p["meta"]["familiarity"]["precision_chol"][0]]),
+        "precision factors that are not lower triangular with a positive diagonal"),
+    "values beyond float32": (_density(centre=[1e300] * 6), "values beyond float32"),
+    "a NaN": (_density(centre=[float("nan")] * 6), "familiarity.centre[0]: expected a finite number, got nan"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED_DENSITIES))
+def test_a_damaged_feature_density_is_refused_before_any_map(case: str, with_density: Path, inputs, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    """Refused, not a NaN or constant unfamiliarity layer in a folder called complete (decided: the density is
+    part of what the checkpoint says; a damaged one means an edited or damaged file, as damaged weights do)."""
+    edit, needle = DAMAGED_DENSITIES[case]
+    ckpt = _edited(with_density, tmp_path / "bad.pt", edit)
+    code, _, err = run_cli(capsys, "predict", inputs[1], "--model", ckpt, "--out", tmp_path / "p", *PREDICT)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 1 and len(lines) == 1 and lines[0].startswith("Error: "), err
+    assert f"checkpoint '{ckpt}'" in lines[0] and needle in lines[0], lines[0]
+    assert "use the checkpoint as `train` wrote it" in lines[0] or "use a checkpoint written by" in lines[0], lines[0]
+    assert not (tmp_path / "p").exists()
+
+
+def test_a_sound_density_still_writes_a_finite_varied_layer(with_density: Path, inputs, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture) -> None:
+    code, _, err = run_cli(capsys, "predict", inputs[1], "--model", with_density, "--out", tmp_path / "p", *PREDICT)
+    assert code == 0, err
+    with rasterio.open(tmp_path / "p" / "unfamiliarity.tif") as src:
+        u = src.read(1)
+    assert np.isfinite(u).all() and 0 <= u.min() < u.max() <= 1
+
+
+@pytest.mark.parametrize("dtype", ["int8", "bool", "float16"])
+def test_float_weights_of_another_kind_are_refused_naming_the_tensor(dtype: str, inputs, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture) -> None:
+    import torch
+
+    key = "encoder.features.conv0.weight"
+
+    def edit(payload: dict) -> None:
+        payload["state_dict"][key] = payload["state_dict"][key].to(getattr(torch, dtype))
+
+    ckpt = _edited(inputs[0], tmp_path / f"{dtype}.pt", edit)
+    code, _, err = run_cli(capsys, "predict", inputs[1], "--model", ckpt, "--out", tmp_path / "p", *PREDICT)
+    if dtype == "float16":  # a float of another width (a start stored as float16) is cast, not refused
+        assert code == 0, err
+        return
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 1 and len(lines) == 1, err
+    assert f"checkpoint '{ckpt}': tensor '{key}' is stored as {dtype}, where the model's is float32" in lines[0]
+    assert not (tmp_path / "p").exists()

@@ -502,9 +502,27 @@ def _state_dict_mismatch(expected: dict[str, torch.Tensor], got: Any) -> str | N
         if not isinstance(val, torch.Tensor) or tuple(val.shape) != tuple(ref.shape):
             shape = list(val.shape) if isinstance(val, torch.Tensor) else type(val).__name__
             return f"tensor '{key}' has shape {shape}, the model needs {list(ref.shape)}"
+
     extra = [k for k in got if k not in expected]
     if extra:
         return f"unexpected tensor '{extra[0]}'"
+    return None
+
+
+def wrong_dtype(expected: dict[str, torch.Tensor], got: dict[str, torch.Tensor]) -> str | None:
+    """The first tensor of ``got`` stored as another kind of number than the model's (``expected``) has: a float
+    weight as an integer or ``bool`` (``int8`` weights would be cast silently into other maps), an integer counter
+    as a float, anything complex; ``None`` when there is none. A float of another width (a ``float16`` start) is
+    the same kind, cast exactly enough.
+    """
+    for key, ref in expected.items():
+        val = got.get(key)
+        if not isinstance(val, torch.Tensor):
+            continue
+        if val.is_floating_point() != ref.is_floating_point() or val.is_complex() or \
+                (val.dtype == torch.bool) != (ref.dtype == torch.bool):
+            return (f"tensor '{key}' is stored as {str(val.dtype).replace('torch.', '')}, where the model's is "
+                    f"{str(ref.dtype).replace('torch.', '')}")
     return None
 
 
@@ -536,6 +554,21 @@ def read_model(path: str | Path,
             model.load_state_dict(state)  # type: ignore[arg-type]
         except (RuntimeError, KeyError, TypeError) as exc:  # pragma: no cover - caught by the check above
             problem = cause(exc)
+    if problem is None:
+        wrong = wrong_dtype(model.state_dict(), state)  # type: ignore[arg-type]
+        if wrong is not None:
+            raise CheckpointError(
+                f"checkpoint '{path}': {wrong} (quantised or edited: loading would cast it silently into other "
+                "maps); use the checkpoint as `train` wrote it")
+    if problem is None and meta.familiarity is not None:
+        from aerialmtl.models.encoders import feature_channels
+
+        density_problem = meta.familiarity.check_widths(feature_channels(model.encoder))
+        if density_problem is not None:
+            raise CheckpointError(
+                f"checkpoint '{path}': {density_problem} (no fit writes that: the file was edited or mixes runs, and "
+                "its unfamiliarity layer would be garbage); use the checkpoint as `train` wrote it, or refit the "
+                "density (aerialmtl.training.familiarity.familiarize_checkpoint)")
     if problem is not None:
         scheme = f", class scheme '{meta.classes.name}' ({meta.classes.num_classes} classes)" if meta.classes else ""
         raise CheckpointError(
