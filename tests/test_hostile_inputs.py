@@ -316,3 +316,29 @@ def test_float_weights_of_another_kind_are_refused_naming_the_tensor(dtype: str,
     assert code == 1 and len(lines) == 1, err
     assert f"checkpoint '{ckpt}': tensor '{key}' is stored as {dtype}, where the model's is float32" in lines[0]
     assert not (tmp_path / "p").exists()
+
+
+# ---- what held keeps holding ------------------------------------------------------------------------------------
+def test_skip_existing_recomputes_when_a_mask_sidecar_appears(inputs, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture) -> None:
+    """A regular sidecar is still read and fingerprinted (only FIFOs, sockets and devices are refused): an external
+    mask that appears after a run makes --skip-existing recompute, and GDAL applies it."""
+    ckpt, ortho = inputs
+    shutil.copy(ortho, tmp_path / "o.tif")
+    args = ("predict", tmp_path / "o.tif", "--model", ckpt, "--out", tmp_path / "p", "--skip-existing", *PREDICT[:-1])
+    code, out, err = run_cli(capsys, *args)
+    assert code == 0, err
+    code, out, err = run_cli(capsys, *args)
+    assert code == 0 and "skipped" in out + err, out + err
+    with rasterio.open(tmp_path / "o.tif") as src:
+        profile = {**src.profile, "count": 1, "dtype": "uint8", "nodata": None}
+    mask = np.full((40, 56), 255, np.uint8)
+    mask[:, :20] = 0  # the left 20 columns masked out
+    with rasterio.open(tmp_path / "o.tif.msk", "w", **profile) as dst:
+        dst.write(mask, 1)
+    code, out, err = run_cli(capsys, *args)
+    said = one_line(out + err)
+    assert code == 0 and "recomputed" in said and "o.tif.msk appeared" in said, said
+    with rasterio.open(tmp_path / "p" / "height.tif") as src:
+        heights = src.read(1, masked=True)
+    assert heights.mask[:, :16].all() and not heights.mask[:, 30:].all()

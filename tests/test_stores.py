@@ -381,3 +381,29 @@ def test_numba_store_heals_only_numba_files(warm: tuple[Path, np.ndarray], input
     cleared = aerialmtl("cache", "clear", "--store", "numba", environ=e)
     assert cleared.returncode == 0 and "left 1 other file(s)" in cleared.stdout, cleared.stdout + cleared.stderr
     assert sorted(p.name for p in (cache / "numba").iterdir()) == ["notes.txt"]
+
+
+def test_two_predicts_filling_a_tiny_store_at_once_both_complete_with_the_same_maps(ov_warm, inputs,
+                                                                                  shared: Path) -> None:
+    """A store of 0 MiB: every write of either run evicts the other's entries (only entries: a user's file there
+    stays). Both runs complete, with the maps of a run on a warm cache (fp32 tolerance of the engine tests)."""
+    import subprocess
+    import sys
+
+    _, reference = ov_warm
+    cache = shared / "tiny-shared"
+    (cache / "openvino").mkdir(parents=True)
+    (cache / "openvino" / "mosaic.tif").write_bytes(b"mine" * 1000)
+    ckpt, ortho = inputs
+    e = env(AERIALMTL_CACHE=str(cache), AERIALMTL_OPENVINO_CACHE=str(cache / "openvino"), AERIALMTL_CACHE_LIMIT_MB="0")
+    runs = [subprocess.Popen([sys.executable, "-m", "aerialmtl", "predict", ortho, "--model", ckpt, "--out",
+                              shared / f"tiny-out-{n}", "--mc", "2", "--window", "32", "--overlap", "8", "--engine",
+                              "openvino"], env=e, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            for n in range(2)]
+    for run in runs:
+        _, err = run.communicate(timeout=900)
+        assert run.returncode == 0, err
+        assert not any(b in err for b in BAD), err
+    for n in range(2):
+        np.testing.assert_allclose(_heights(shared / f"tiny-out-{n}"), reference, rtol=0, atol=1e-4)
+    assert (cache / "openvino" / "mosaic.tif").read_bytes() == b"mine" * 1000
