@@ -172,7 +172,7 @@ def raise_if_blocking(path: str | Path, role: str = "raster") -> None:
     if found is None:
         return
     bad, kind = found
-    what = "it" if bad == Path(path) else f"'{bad}' beside it, which GDAL reads with it,"
+    what = "it" if bad == Path(path) else f"'{bad}', which GDAL reads with it,"
     raise InputError(f"{role} '{path}' cannot be opened: {what} is {kind}, not a regular file (GDAL would wait on it "
                      f"forever); remove '{bad}' or replace it with the file it should be")
 

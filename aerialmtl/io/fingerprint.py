@@ -108,11 +108,12 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
     return out
 
 
-def blocking_file(path: str | Path) -> tuple[Path, str] | None:
-    """The first of local raster ``path`` and the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) that
-    is a FIFO, a socket or a device (links followed), and what it is; ``None`` when there is none. GDAL opens those
-    without a timeout and would wait on a FIFO forever, so a raster with one is not opened
-    (:func:`aerialmtl.io.align.open_raster`). A folder at a sidecar's name is not one (GDAL reads nothing there).
+def blocking_file(path: str | Path, depth: int = VRT_DEPTH) -> tuple[Path, str] | None:
+    """The first of local raster ``path``, the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) and,
+    for a VRT, the files it lists (``depth`` levels) that is a FIFO, a socket or a device (links followed), and
+    what it is; ``None`` when there is none. GDAL opens those without a timeout and would wait on a FIFO forever,
+    so a raster with one is not opened (:func:`aerialmtl.io.align.open_raster`). A folder at a sidecar's name is
+    not one (GDAL reads nothing there).
     """
     for p in (Path(path), *sidecar_paths(path)):
         try:
@@ -121,6 +122,13 @@ def blocking_file(path: str | Path) -> tuple[Path, str] | None:
             continue
         if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
             return p, special_kind(mode)
+    if str(path).lower().endswith(".vrt") and depth > 0:  # and the files a VRT lists, which GDAL opens as it reads
+        from aerialmtl.io.paths import is_local
+
+        for name in _vrt_source_names(path):
+            found = blocking_file(name, depth - 1) if is_local(name) else None
+            if found is not None:
+                return found
     return None
 
 
@@ -133,27 +141,35 @@ def raster_identity(src: Any) -> dict[str, Any]:
             "crs": crs, "nodata": [None if v is None else repr(float(v)) for v in src.nodatavals]}
 
 
+def _vrt_source_names(path: str | Path) -> list[str]:
+    """The sources local VRT ``path`` lists (``SourceFilename``; relative ones resolved against its folder), in
+    document order without repeats; ``[]`` when it cannot be read (a FIFO there is not waited on).
+    """
+    import xml.etree.ElementTree as ET
+
+    from aerialmtl.io.paths import is_local
+
+    try:
+        with os.fdopen(open_regular(path, follow_links=True), "rb") as fh:
+            root = ET.parse(fh).getroot()
+    except (OSError, ET.ParseError):
+        return []
+    out: list[str] = []
+    for el in root.iter("SourceFilename"):
+        name = (el.text or "").strip()
+        if is_local(name) and el.get("relativeToVRT", "0") == "1":
+            name = str(Path(path).parent / name)
+        if name and name not in out:
+            out.append(name)
+    return out
+
+
 def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
     """:func:`input_fingerprint` of every source a local VRT lists (``SourceFilename``, relative ones resolved
     against the VRT's folder; VRTs inside followed ``depth`` levels), in document order without repeats.
     """
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError):
-        return []
-    from aerialmtl.io.paths import is_local
-
     out: list[dict[str, Any]] = []
-    seen: set[str] = set()
-    for el in root.iter("SourceFilename"):
-        name = (el.text or "").strip()
-        if not name or name in seen:
-            continue
-        seen.add(name)
-        if is_local(name) and el.get("relativeToVRT", "0") == "1":
-            name = str(Path(path).parent / name)
+    for name in _vrt_source_names(path):
         try:
             fp = input_fingerprint(name, depth=depth - 1) if depth > 0 else file_fingerprint(name)
         except OSError:
