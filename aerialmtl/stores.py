@@ -555,7 +555,8 @@ def _staging(path: Path) -> bool:
 def evict(limit: int | None = None, keep: Path | None = None) -> list[Entry]:
     """Remove least recently used entries until the stores' entries hold at most ``limit`` bytes (default
     :func:`size_limit`); ``keep`` and files being written (staging files) are never removed, nor is any file that
-    is not an entry (:func:`owned_files`). Returns what was removed, and says so in one warning.
+    is not an entry (:func:`owned_files`). Returns what was removed; the first eviction of a command says what it
+    removed in one warning.
     """
     try:
         limit = size_limit() if limit is None else limit
@@ -574,12 +575,14 @@ def evict(limit: int | None = None, keep: Path | None = None) -> list[Entry]:
             e.path.unlink()
             total -= e.size
             removed.append(e)
-    if removed:
+    if removed and "evicted" not in _WARNED:  # once per command: a tiny limit evicts at every write
+        _WARNED.add("evicted")
         listed = ", ".join(f"'{e.path}'" for e in removed[:3]) + (", ..." if len(removed) > 3 else "")
         warn_once(f"the aerialmtl caches held more than their limit of {limit / 2**20:.1f} MiB ({LIMIT_ENV}): removed "
                   f"{len(removed)} least recently used entr{'y' if len(removed) == 1 else 'ies'} of their own "
                   f"({sum(e.size for e in removed) / 2**20:.1f} MiB: {listed}), rebuilt when needed; other files "
-                  f"in their folders are never removed. Raise {LIMIT_ENV} to keep more", stacklevel=4)
+                  f"in their folders are never removed. Raise {LIMIT_ENV} to keep more (said once per command)",
+                  stacklevel=4)
     return removed
 
 

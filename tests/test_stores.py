@@ -268,6 +268,7 @@ def test_stores_evict_least_recently_used_beyond_the_size_limit(tmp_path: Path,
         store.write("d", block)  # 4 × 300 KiB > 1 MiB: the least recently used ("b") goes
     assert sorted(p.name for p in store.folder.iterdir()) == ["a", "c", "d"]
     monkeypatch.setenv("AERIALMTL_CACHE_LIMIT_MB", "0")
+    stores.reset_warnings()  # a command says it once: the next command again
     with pytest.warns(UserWarning, match="removed 3 least recently used entries"):
         store.write("e", block)  # the entry just written stays, even alone beyond the limit
     assert sorted(p.name for p in store.folder.iterdir()) == ["e"]
