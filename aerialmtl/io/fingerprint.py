@@ -172,13 +172,6 @@ def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]
 
     ``SourceFilename``, relative ones resolved against the VRT's folder; VRTs inside followed ``depth`` levels.
     """
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError):
-        return []
-
     out: list[dict[str, Any]] = []
     for name in _vrt_source_names(path):
         try:
