@@ -44,6 +44,7 @@ import torch.distributed as dist
 from torch import nn
 
 from aerialmtl.errors import AerialMTLError, InputError, PeerFailure, cause
+from aerialmtl.stores import warn_once
 
 Precision = Literal["auto", "bf16", "fp32"]
 Resolved = Literal["bf16", "fp32"]
@@ -259,10 +260,19 @@ def _threads_value(value: int | str, param: str) -> int | None:
     return number
 
 
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the system says, else the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def resolve_threads(threads: int | str | None = "auto") -> CpuThreads:
     """The inference threads of this process: ``threads`` (an option), else :data:`THREADS_ENV`, else
     torch's own count (``torch.get_num_threads()``: the cores this process may run on, or
-    ``OMP_NUM_THREADS`` as torchrun sets it); split into ``min(threads, MAX_STREAMS)`` streams.
+    ``OMP_NUM_THREADS`` as torchrun sets it); a number given beyond :func:`usable_cpus` is that count, with one
+    warning; split into ``min(threads, MAX_STREAMS)`` streams.
 
     Raises:
         InputError: a value that is not a positive number or ``auto`` (naming the option or variable).
@@ -275,6 +285,11 @@ def resolve_threads(threads: int | str | None = "auto") -> CpuThreads:
         source = "env"
     if n is None:
         n, source = max(1, torch.get_num_threads()), "auto"
+    cpus = usable_cpus()
+    if source != "auto" and n > cpus:  # more threads than CPUs only wait on each other; a million cannot start
+        where = f"{THREADS_ENV}={n}" if source == "env" else f"--threads {n}"
+        warn_once(f"{where} is more than the {cpus} CPU(s) this process may use; using {cpus} thread(s)")
+        n = cpus
     return CpuThreads(n, min(n, MAX_STREAMS), source)
 
 
@@ -510,4 +525,4 @@ def gdal_env(command: Literal["tile", "buildings", "predict"], **options: Any) -
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "MAX_STREAMS", "SHARE_TIMEOUT", "THREADS_ENV",
            "CompileFallback", "CpuThreads", "GDAL_CACHE_BYTES", "Precision", "Resolved", "Torchrun", "autocast",
            "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "is_peer_error", "native_bf16", "peer_failure",
-           "resolve_device", "resolve_precision", "resolve_threads"]
+           "resolve_device", "resolve_precision", "resolve_threads", "usable_cpus"]

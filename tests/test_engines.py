@@ -173,10 +173,12 @@ def test_missing_openvino_is_a_one_line_error(monkeypatch: pytest.MonkeyPatch, t
 
 
 @pytest.mark.parametrize("mc", [1, 3])
-def test_streams_give_the_maps_of_one_stream(tmp_path: Path, rng: np.random.Generator, mc: int) -> None:
+def test_streams_give_the_maps_of_one_stream(tmp_path: Path, rng: np.random.Generator, mc: int,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """Windows (T = 1) and MC samples (T = 3) run in parallel streams, kept in flight while earlier ones are
     stitched: the maps are those of one stream and of the torch engine (fp32; 1e-4 m / 1e-4 nats as the
     fp32 equality above: streams of other widths may sum in another order)."""
+    monkeypatch.setattr(runtime, "usable_cpus", lambda: 4)  # three streams even on a 2-core machine
     model, meta = tiny_d3net()
     img = rng.integers(1, 256, size=(3, 150, 110)).astype(np.uint8)
     img[:, 100:, :40] = 0  # an empty window among computed ones

@@ -497,6 +497,10 @@ class PredictionFolder:
         for key, name in files.items():
             path = self.path / str(name)
             if not path.is_file():
+                if path.exists():  # a FIFO or a folder at a layer's name: never opened
+                    from aerialmtl.stores import special_kind
+
+                    return f"{name} is {special_kind(path.stat().st_mode)}, not a regular file"
                 return f"{name} is missing"
             size = sizes.get(str(name))
             if size is not None and path.stat().st_size != size:
@@ -515,9 +519,12 @@ class PredictionFolder:
 
         ``None``: all match, or none recorded (folders of earlier versions are checked by size only).
         """
+        listed = {str(n) for n in (info.get("files") or {}).values()}
         for name, digest in (info.get("file_sha256") or {}).items():
+            if str(name) not in listed:  # only its own layers: never a path elsewhere ('../x', '/dev/zero')
+                return f"its {INFO_FILE} lists a checksum of '{name}', which is none of its files"
             try:
-                now = content_sha256(self.path / str(name))
+                now = content_sha256(self.path / str(name))  # a FIFO there: an OSError, not a wait
             except OSError as exc:
                 return f"{name} cannot be read ({exc.strerror or exc})"
             if now != digest:
@@ -535,6 +542,11 @@ def _layer_problem(path: Path, grid: Mapping[str, Any]) -> str | None:
     import rasterio
     from rasterio.errors import RasterioError
 
+    from aerialmtl.io.fingerprint import blocking_file
+
+    found = blocking_file(path)  # a FIFO among its sidecars: GDAL would wait on it forever
+    if found is not None:
+        return f"'{found[0].name}' beside {path.name} is {found[1]}, not a regular file"
     try:
         with rasterio.open(path) as src:
             shape = (src.width, src.height)

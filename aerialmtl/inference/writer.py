@@ -60,11 +60,10 @@ COG_LEVEL: int | None = 1
 
 
 def cog_threads() -> int:
-    """Threads for COG compression: the CPUs this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    """Threads for COG compression: the CPUs this process may use (:func:`aerialmtl.runtime.usable_cpus`)."""
+    from aerialmtl.runtime import usable_cpus
+
+    return usable_cpus()
 
 
 def _staging_tag(row_start: int | None) -> str:

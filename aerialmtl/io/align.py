@@ -35,6 +35,7 @@ from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError, cause
+from aerialmtl.io.fingerprint import blocking_file
 from aerialmtl.io.paths import (
     ARCHIVE_VSI,
     REMOTE_OPEN_OPTIONS,
@@ -125,6 +126,8 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
     gpath = gdal_path(path)
     if is_local(gpath) and not Path(gpath).exists():
         raise InputError(f"{role} '{gpath}' does not exist; check the path")
+    if is_local(gpath):
+        raise_if_blocking(gpath, role)
     remote = is_remote(gpath)
     if remote:
         configure_remote()
@@ -157,6 +160,22 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
             f"{role} '{gpath}' cannot be read as a raster ({' '.join(str(exc).split())}); "
             "is it a complete GeoTIFF? re-download or re-export it"
         ) from exc
+
+
+def raise_if_blocking(path: str | Path, role: str = "raster") -> None:
+    """Refuse local raster ``path`` when it or a sidecar GDAL reads with it is a FIFO, a socket or a device
+    (:func:`~aerialmtl.io.fingerprint.blocking_file`): GDAL would wait on it forever.
+
+    Raises:
+        InputError: naming the file, what it is, and the fix.
+    """
+    found = blocking_file(path)
+    if found is None:
+        return
+    bad, kind = found
+    what = "it" if bad == Path(path) else f"'{bad}', which GDAL reads with it,"
+    raise InputError(f"{role} '{path}' cannot be opened: {what} is {kind}, not a regular file (GDAL would wait on it "
+                     f"forever); remove '{bad}' or replace it with the file it should be")
 
 
 def _gdal_message(exc: BaseException) -> str:

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
+from aerialmtl.stores import open_regular, special_kind
 
 #: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
 VRT_DEPTH = 4
@@ -50,12 +51,13 @@ def content_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
     """The SHA-256 (hex) of the bytes of file ``path``, read in ``chunk``-byte pieces (not held in memory).
 
     Raises:
-        OSError: it cannot be read.
+        OSError: it cannot be read, or it is not a regular file (a FIFO, a device: never waited on or read
+            without end; :func:`aerialmtl.stores.open_regular`).
     """
     h = hashlib.sha256()
     buf = bytearray(chunk)
     view = memoryview(buf)
-    with open(path, "rb", buffering=0) as f:
+    with os.fdopen(open_regular(path, follow_links=True), "rb", buffering=0) as f:  # a FIFO there: an error, no hang
         while n := f.readinto(buf):
             h.update(view[:n])
     return h.hexdigest()
@@ -107,6 +109,30 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
     return out
 
 
+def blocking_file(path: str | Path, depth: int = VRT_DEPTH) -> tuple[Path, str] | None:
+    """The first of local raster ``path``, the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) and,
+    for a VRT, the files it lists (``depth`` levels) that is a FIFO, a socket or a device (links followed), and
+    what it is; ``None`` when there is none. GDAL opens those without a timeout and would wait on a FIFO forever,
+    so a raster with one is not opened (:func:`aerialmtl.io.align.open_raster`). A folder at a sidecar's name is
+    not one (GDAL reads nothing there).
+    """
+    for p in (Path(path), *sidecar_paths(path)):
+        try:
+            mode = os.stat(p).st_mode
+        except OSError:
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            return p, special_kind(mode)
+    if str(path).lower().endswith(".vrt") and depth > 0:  # and the files a VRT lists, which GDAL opens as it reads
+        from aerialmtl.io.paths import is_local
+
+        for name in _vrt_source_names(path):
+            found = blocking_file(name, depth - 1) if is_local(name) else None
+            if found is not None:
+                return found
+    return None
+
+
 def raster_identity(src: Any) -> dict[str, Any]:
     """What GDAL makes of an open raster ``src`` (a rasterio dataset).
 
@@ -118,27 +144,36 @@ def raster_identity(src: Any) -> dict[str, Any]:
             "crs": crs, "nodata": [None if v is None else repr(float(v)) for v in src.nodatavals]}
 
 
+def _vrt_source_names(path: str | Path) -> list[str]:
+    """The sources local VRT ``path`` lists (``SourceFilename``; relative ones resolved against its folder), in
+    document order without repeats; ``[]`` when it cannot be read (a FIFO there is not waited on).
+    """
+    import xml.etree.ElementTree as ET
+
+    from aerialmtl.io.paths import is_local
+
+    try:
+        with os.fdopen(open_regular(path, follow_links=True), "rb") as fh:
+            root = ET.parse(fh).getroot()
+    except (OSError, ET.ParseError):
+        return []
+    out: list[str] = []
+    for el in root.iter("SourceFilename"):
+        name = (el.text or "").strip()
+        if is_local(name) and el.get("relativeToVRT", "0") == "1":
+            name = str(Path(path).parent / name)
+        if name and name not in out:
+            out.append(name)
+    return out
+
+
 def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
     """:func:`input_fingerprint` of every source a local VRT lists, in document order without repeats.
 
     ``SourceFilename``, relative ones resolved against the VRT's folder; VRTs inside followed ``depth`` levels.
     """
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError):
-        return []
-
     out: list[dict[str, Any]] = []
-    seen: set[str] = set()
-    for el in root.iter("SourceFilename"):
-        name = (el.text or "").strip()
-        if not name or name in seen:
-            continue
-        seen.add(name)
-        if is_local(name) and el.get("relativeToVRT", "0") == "1":
-            name = str(Path(path).parent / name)
+    for name in _vrt_source_names(path):
         try:
             fp = input_fingerprint(name, depth=depth - 1) if depth > 0 else file_fingerprint(name)
         except OSError:
@@ -234,6 +269,6 @@ def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
     return ", ".join(parts)
 
 
-__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH", "changed",
+__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH", "blocking_file", "changed",
            "content_sha256", "file_fingerprint", "http_validators", "input_fingerprint", "raster_identity",
            "sidecar_paths", "sidecars", "vrt_sources"]

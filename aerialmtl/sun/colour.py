@@ -28,7 +28,7 @@ def unit_rgb(rgb: np.ndarray) -> np.ndarray:
     """float32 (3, H, W) in 0–1 from uint8/uint16 (divided by the dtype's maximum) or float (taken as 0–1)."""
     a = np.asarray(rgb)
     if a.ndim != 3 or a.shape[0] != 3:
-        raise InputError(f"‹rgb› must be a (3, H, W) image, got shape {a.shape}")
+        raise InputError(f"'rgb' must be a (3, H, W) image, got shape {a.shape}")
     out: np.ndarray
     if np.issubdtype(a.dtype, np.integer):
         out = (a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
@@ -138,7 +138,7 @@ class ShadowModel:
             InputError: no valid pixels, or the heights cast no shadow (or nothing but shadow) at ``sun``.
         """
         if threshold_by not in ("heights", "f1"):
-            raise InputError(f"‹threshold_by› must be 'heights' or 'f1', got {threshold_by!r}", param="threshold_by")
+            raise InputError(f"'threshold_by' must be 'heights' or 'f1', got {threshold_by!r}", param="threshold_by")
         self.gsd_m = float(gsd_m)
         feats, labels = [], []
         patches = as_patches(rgb, height, valid)
@@ -150,7 +150,7 @@ class ShadowModel:
         x = np.concatenate(feats, axis=1).T.astype(np.float64)
         y = np.concatenate(labels).astype(np.float64)
         if len(y) == 0:
-            raise InputError("‹valid› leaves no pixel to fit the shadow model on")
+            raise InputError("'valid' leaves no pixel to fit the shadow model on")
         if len(y) > self.MAX_PIXELS:
             pick = np.random.default_rng(0).choice(len(y), self.MAX_PIXELS, replace=False)
             x, y = x[pick], y[pick]

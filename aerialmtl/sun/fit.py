@@ -163,7 +163,7 @@ def fit_sun(rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, valid: ArrayOrL
     """
     lo, hi = elevation_range
     if not 0.0 < lo < hi < 90.0:
-        raise InputError(f"‹elevation_range› must be (lo, hi) with 0 < lo < hi < 90 degrees, got {elevation_range}",
+        raise InputError(f"'elevation_range' must be (lo, hi) with 0 < lo < hi < 90 degrees, got {elevation_range}",
                          param="elevation_range")
     f = _Objective(rgb, height, gsd_m, valid, ground_m)
     if f.n > 0 and f.var <= 1e-12 * f.n:

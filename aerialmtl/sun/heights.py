@@ -190,10 +190,10 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
     prob = np.asarray(shadow_prob)
     labels = np.asarray(objects)
     if prob.shape != labels.shape or prob.ndim != 2:
-        raise InputError(f"‹shadow_prob› and ‹objects› must be (H, W) rasters of one shape, got {prob.shape} and "
+        raise InputError(f"'shadow_prob' and 'objects' must be (H, W) rasters of one shape, got {prob.shape} and "
                          f"{labels.shape}")
     if not np.issubdtype(labels.dtype, np.integer):
-        raise InputError(f"‹objects› must hold integer labels (0 = no object), got dtype {labels.dtype}")
+        raise InputError(f"'objects' must hold integer labels (0 = no object), got dtype {labels.dtype}")
     if prob.dtype == bool:
         shadow, known = prob, np.ones(prob.shape, bool)
     else:
@@ -210,7 +210,7 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
     if height is not None:
         hmap = np.asarray(height, dtype=np.float32)
         if hmap.shape != labels.shape:
-            raise InputError(f"‹height› must be (H, W) like ‹objects›, got {hmap.shape} and {labels.shape}")
+            raise InputError(f"'height' must be (H, W) like 'objects', got {hmap.shape} and {labels.shape}")
         length = length + np.where(ok, occluder_steps(hmap, labels, rc, lab, sun, q, max_steps), 0)
     e = math.tan(math.radians(min(sun.elevation_deg + elevation_sd_deg, 89.9))) / sun.tan_elevation - 1.0
     all_labels = np.unique(labels[labels != 0])
