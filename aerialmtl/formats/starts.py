@@ -128,8 +128,8 @@ def foreign_files(folder: str | Path, name: str) -> list[Path]:
     card = card_path(pt)
     if os.path.lexists(card):
         try:
-            plain = card.is_file() and not card.is_symlink()
-            data = yaml.safe_load(card.read_text(encoding="utf-8")) if plain else None
+            plain = card.is_file() and not card.is_symlink()  # never opens a FIFO or follows a link
+            data = read_card(pt) if plain else None  # the bounded YAML reader
         except (OSError, ValueError, yaml.YAMLError):
             data = None
         if not (isinstance(data, dict) and data.get("format") == CARD_FORMAT and data.get("name") == name):
