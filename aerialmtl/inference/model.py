@@ -16,8 +16,9 @@ A strip is read → model → stitch → write, each stage overlapping the other
    background threads, a few windows ahead;
 2. :class:`~aerialmtl.inference.runner.ModelRunner` normalises them on the device and runs the model in
    batches of windows of one window row (plain forward for T = 1, MC dropout for T > 1);
-3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device and hands
-   back finished blocks in their output dtypes, following one output schema
+3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device, in a thread of
+   its own while the model computes the next batches, and hands back finished blocks in their output dtypes,
+   following one output schema
    (:func:`~aerialmtl.formats.prediction.prediction_layers`);
 4. the job's :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files
    in a background thread; at the commit it converts every layer to a COG (the layers in parallel, each
@@ -39,10 +40,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
+import threading
 import time
 import warnings
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,7 +57,7 @@ from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import PROVENANCE_KEY, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
-from aerialmtl.inference.engine_choice import choose_engine
+from aerialmtl.inference.engine_choice import choose_engine, cold_cache_choice
 from aerialmtl.inference.engines import Pending, openvino_available
 from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.inference.ortho import OrthoInput
@@ -166,6 +169,7 @@ class Predictor:
                           UserWarning, stacklevel=2)
         self.checkpoint_name = s.checkpoint_name or name
         self._checkpoint = checkpoint
+        self._loaded = model  # as loaded: the torch engine is built from it if a cold cache turns auto to torch
         self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
         self.mc = s.mc if s.mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
         if s.calibration:
@@ -232,6 +236,28 @@ class Predictor:
             self._batch[key] = auto_batch_size(lambda: self.runner.net, self.meta.model.in_channels, *key,
                                                self.device, self.precision)
         return self._batch[key]
+
+    def fit_engine(self, srcs: Sequence[OrthoInput]) -> None:
+        """With ``engine: auto``, the choice for the job of predicting ``srcs`` once its size is known: OpenVINO on a
+        cold cache gives way to the torch engine when compiling first would make the job slower than torch
+        (:func:`~aerialmtl.inference.engine_choice.cold_cache_choice`, which :attr:`choice` then says). Called by
+        the jobs (:mod:`aerialmtl.inference.jobs`) before anything is computed.
+        """
+        cached = getattr(self.runner.engine, "cached", None)
+        if self.settings.engine != "auto" or not srcs or not callable(cached):
+            return
+        shapes = {(src.plan.rows.size, src.plan.cols.size) for src in srcs}
+        warm = all(cached(h, w, self.mc) for h, w in shapes)
+        work = sum(src.plan.num_windows * src.plan.rows.size * src.plan.cols.size for src in srcs) / 1e6
+        passes = self.mc * (8 if self.settings.tta else 1)
+        choice = cold_cache_choice(self.choice, self.settings.precision, self.device, work, passes, warm)
+        if choice is self.choice:
+            return
+        self.choice = choice
+        self.engine, self.precision = choice.engine, choice.precision
+        self.resolved = Resolved(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.runner = ModelRunner(resolve_model(self._loaded), self.meta, self.settings, self.resolved)
+        self._batch.clear()
 
     # ---- computing --------------------------------------------------------------------------------
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
@@ -323,8 +349,8 @@ class Predictor:
 
 class _StripLoop:
     """The window loop of :meth:`Predictor.compute`: windows read → batches submitted to the engine (up to
-    :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked and stitched → blocks
-    to ``write``; with the stage times.
+    :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked → stitched, and blocks
+    handed to ``write``, in :class:`_StitchStage`'s thread; with the stage times.
     """
 
     def __init__(self, predictor: Predictor, src: OrthoInput, stitcher: Stitcher, write: Callable[[Block], None],
@@ -338,30 +364,39 @@ class _StripLoop:
         # batches submitted to the engine, oldest first: (windows in plan order, pending statistics, validity)
         self.queue: deque[tuple[list[ReadWindow], Pending | None, torch.Tensor | None]] = deque()
         self.todo_rows = todo_rows
+        self.stage: _StitchStage | None = None
         self.bar = tqdm(total=len(todo_rows) * self.n_cols, unit="win", desc=src.name, disable=not progress,
                         dynamic_ncols=True)
 
     def run(self) -> None:
-        """Compute the window rows ``todo_rows`` of the plan."""
+        """Compute the window rows ``todo_rows`` of the plan: this thread reads, submits and collects the model's
+        batches while :class:`_StitchStage` stitches and writes the finished ones in a thread of its own.
+        """
         p, src, todo_rows = self.p, self.src, self.todo_rows
         aoi_mask = Aoi(p.settings.aoi, src.grid) if p.settings.aoi is not None else None
         depth = max(4, 2 * self.batch_size)  # windows read ahead: a batch being computed and the next one
         reader = WindowReader(src, list(p.meta.bands), todo_rows, aoi_mask, threads=p.settings.reader_threads,
                               depth=depth, pin=p.device.type == "cuda")
-        with reader:
-            waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
-            for win in reader:
-                waiting.append(win)
-                todo = [w for w in waiting if w.data is not None]
-                if len(todo) < self.batch_size and win.j != self.n_cols - 1:
-                    continue
-                self.submit(waiting, todo)
-                waiting = []
-                while len(self.queue) > self.runner.in_flight:
+        self.stage = stage = _StitchStage(self)
+        try:
+            with reader:
+                waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
+                for win in reader:
+                    waiting.append(win)
+                    todo = [w for w in waiting if w.data is not None]
+                    if len(todo) < self.batch_size and win.j != self.n_cols - 1:
+                        continue
+                    self.submit(waiting, todo)
+                    waiting = []
+                    while len(self.queue) > self.runner.in_flight:
+                        self.finish_oldest()
+                while self.queue:
                     self.finish_oldest()
-            while self.queue:
-                self.finish_oldest()
-            self.timings["read"] = reader.seconds_reading
+                self.timings["read"] = reader.seconds_reading
+            stage.finish()
+        finally:
+            stage.stop()
+        self.timings["stitch_write"] = stage.seconds  # in its own thread: overlaps ``model``
 
     def submit(self, windows: list[ReadWindow], todo: list[ReadWindow]) -> None:
         """Queue ``windows``, starting the statistics of those with data (``todo``) on the engine."""
@@ -377,7 +412,7 @@ class _StripLoop:
         self.computed += len(todo)
 
     def finish_oldest(self) -> None:
-        """Wait for the oldest batch's statistics, check them, and stitch its windows."""
+        """Wait for the oldest batch's statistics, check them, and hand its windows to the stitch stage."""
         windows, pending, valid = self.queue.popleft()
         stats = None
         if pending is not None:
@@ -387,13 +422,13 @@ class _StripLoop:
             check_finite_outputs(stats, valid, self.p.checkpoint_name)
             check_height_range(stats, valid, self.p.checkpoint_name, self.p.meta)
             self.timings["model"] += time.perf_counter() - t0
-        self.flush(windows, stats, valid)
+        assert self.stage is not None
+        self.stage.put((windows, stats, valid))
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
         """Hand ``windows`` (with their statistics, in order, for those with data) to the stitcher and the
-        finished blocks to ``write``.
+        finished blocks to ``write`` (in :class:`_StitchStage`'s thread).
         """
-        t0 = time.perf_counter()
         n = 0
         for w in windows:
             if w.data is None:
@@ -405,7 +440,80 @@ class _StripLoop:
             for block in blocks:
                 self.write(block)
         self.bar.update(len(windows))
-        self.timings["stitch_write"] += time.perf_counter() - t0
+
+
+#: Batches of checked statistics waiting for the stitch stage at most (each holds its windows' statistics:
+#: ~80 MiB per 1024² window with 20 classes); the model loop waits beyond.
+STITCH_QUEUE = 2
+_END = None
+
+
+class _StitchStage:
+    """The stitch stage of a strip in a thread of its own: batches of checked statistics, in plan order, are
+    stitched (:meth:`_StripLoop.flush`) and their finished blocks handed to the writer while the model loop
+    reads, submits and collects the next batches (torch and GDAL release Python's GIL while they work).
+
+    An error here (a block the writer refused, a stitching error) is raised in the model loop at its next
+    :meth:`put` or at :meth:`finish`; :meth:`stop` (always called, also on Ctrl-C) ends the thread before the
+    job aborts the writer.
+    """
+
+    def __init__(self, loop: _StripLoop) -> None:
+        self.loop = loop
+        self.seconds = 0.0  # busy stitching and writing
+        self.error: BaseException | None = None
+        self._queue: queue.Queue[tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None] | None] = \
+            queue.Queue(maxsize=STITCH_QUEUE)
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._work, name="aerialmtl-stitch", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _END:
+                return
+            if self.error is not None or self._cancel.is_set():
+                continue  # drained: the model loop raises the error or has stopped
+            t0 = time.perf_counter()
+            try:
+                self.loop.flush(*item)
+            except BaseException as exc:  # raised in the model loop
+                self.error = exc
+            self.seconds += time.perf_counter() - t0
+
+    def _raise(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+    def put(self, item: tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None]) -> None:
+        """Queue a batch (waits while :data:`STITCH_QUEUE` are queued); raises an earlier batch's error."""
+        while True:
+            self._raise()
+            try:
+                self._queue.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def finish(self) -> None:
+        """Wait until every queued batch is stitched and written to the writer; raises their error."""
+        self._queue.put(_END)
+        self._thread.join()
+        self._raise()
+
+    def stop(self) -> None:
+        """End the thread (the batches still queued are dropped); returns once it has ended."""
+        if not self._thread.is_alive():
+            return
+        self._cancel.set()
+        while self._thread.is_alive():
+            try:
+                self._queue.put(_END, timeout=0.1)
+                break
+            except queue.Full:
+                continue
+        self._thread.join()
 
 
 __all__ = ["DEFAULT_MC_SAMPLES", "Predictor", "StripResult"]
