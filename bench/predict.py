@@ -349,7 +349,8 @@ def _pipeline_run(root: Path, src: Path, ckpt: Path, out: Path, size: int, sampl
            "--mc", str(samples), "--quiet", "--overwrite", *extra]
     load_before = load_avg()
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # run from ``root``: ``python -m`` puts the working directory first on sys.path, before PYTHONPATH
+    proc = subprocess.Popen(cmd, env=env, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     stdout, stderr = proc.stdout.read(), proc.stderr.read()  # type: ignore[union-attr]
