@@ -16,8 +16,9 @@ A strip is read → model → stitch → write, each stage overlapping the other
    background threads, a few windows ahead;
 2. :class:`~aerialmtl.inference.runner.ModelRunner` normalises them on the device and runs the model in
    batches of windows of one window row (plain forward for T = 1, MC dropout for T > 1);
-3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device, in a thread of
-   its own while the model computes the next batches, and hands back finished blocks in their output dtypes,
+3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device (in a thread of
+   its own while the model computes the next batches, on a GPU or a host of 4 cores or more) and hands back
+   finished blocks in their output dtypes,
    following one output schema
    (:func:`~aerialmtl.formats.prediction.prediction_layers`);
 4. the job's :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files
@@ -40,6 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import queue
 import threading
 import time
@@ -370,14 +372,15 @@ class _StripLoop:
 
     def run(self) -> None:
         """Compute the window rows ``todo_rows`` of the plan: this thread reads, submits and collects the model's
-        batches while :class:`_StitchStage` stitches and writes the finished ones in a thread of its own.
+        batches while :class:`_StitchStage` stitches and writes the finished ones, in a thread of its own on a GPU
+        or a host of :data:`STITCH_THREAD_CORES` cores or more (:func:`stitch_in_thread`).
         """
         p, src, todo_rows = self.p, self.src, self.todo_rows
         aoi_mask = Aoi(p.settings.aoi, src.grid) if p.settings.aoi is not None else None
         depth = max(4, 2 * self.batch_size)  # windows read ahead: a batch being computed and the next one
         reader = WindowReader(src, list(p.meta.bands), todo_rows, aoi_mask, threads=p.settings.reader_threads,
                               depth=depth, pin=p.device.type == "cuda")
-        self.stage = stage = _StitchStage(self)
+        self.stage = stage = _StitchStage(self, stitch_in_thread(p.device))
         try:
             with reader:
                 waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
@@ -445,7 +448,25 @@ class _StripLoop:
 #: Batches of checked statistics waiting for the stitch stage at most (each holds its windows' statistics:
 #: ~80 MiB per 1024² window with 20 classes); the model loop waits beyond.
 STITCH_QUEUE = 2
+#: Host cores from which a CPU run stitches in a thread of its own (a CUDA run always does: the host then only
+#: feeds the device). On 2 cores shared with other work the thread gained nothing and cost 8 % more CPU time and
+#: ~180 MiB (near-null pipeline, 8192², T = 1, load 15; issue 46), so fewer cores stitch in the model loop.
+STITCH_THREAD_CORES = 4
 _END = None
+
+
+def stitch_in_thread(device: torch.device, cores: int | None = None) -> bool:
+    """Whether a strip on ``device`` stitches in a thread of its own (:data:`STITCH_THREAD_CORES`); ``cores``:
+    the host cores this process may use (default: its CPU affinity).
+    """
+    if device.type == "cuda":
+        return True
+    if cores is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # pragma: no cover - not Linux
+            cores = os.cpu_count() or 1
+    return cores >= STITCH_THREAD_CORES
 
 
 class _StitchStage:
@@ -458,7 +479,7 @@ class _StitchStage:
     job aborts the writer.
     """
 
-    def __init__(self, loop: _StripLoop) -> None:
+    def __init__(self, loop: _StripLoop, threaded: bool = True) -> None:
         self.loop = loop
         self.seconds = 0.0  # busy stitching and writing
         self.error: BaseException | None = None
@@ -466,7 +487,9 @@ class _StitchStage:
             queue.Queue(maxsize=STITCH_QUEUE)
         self._cancel = threading.Event()
         self._thread = threading.Thread(target=self._work, name="aerialmtl-stitch", daemon=True)
-        self._thread.start()
+        self.threaded = threaded
+        if threaded:
+            self._thread.start()
 
     def _work(self) -> None:
         while True:
@@ -487,7 +510,14 @@ class _StitchStage:
             raise self.error
 
     def put(self, item: tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None]) -> None:
-        """Queue a batch (waits while :data:`STITCH_QUEUE` are queued); raises an earlier batch's error."""
+        """Queue a batch (waits while :data:`STITCH_QUEUE` are queued); raises an earlier batch's error. Without
+        a thread (:func:`stitch_in_thread`), the batch is stitched here.
+        """
+        if not self.threaded:
+            t0 = time.perf_counter()
+            self.loop.flush(*item)
+            self.seconds += time.perf_counter() - t0
+            return
         while True:
             self._raise()
             try:
@@ -498,6 +528,8 @@ class _StitchStage:
 
     def finish(self) -> None:
         """Wait until every queued batch is stitched and written to the writer; raises their error."""
+        if not self.threaded:
+            return
         self._queue.put(_END)
         self._thread.join()
         self._raise()
@@ -516,4 +548,4 @@ class _StitchStage:
         self._thread.join()
 
 
-__all__ = ["DEFAULT_MC_SAMPLES", "Predictor", "StripResult"]
+__all__ = ["DEFAULT_MC_SAMPLES", "STITCH_THREAD_CORES", "Predictor", "StripResult", "stitch_in_thread"]
