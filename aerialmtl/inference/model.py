@@ -18,8 +18,7 @@ A strip is read → model → stitch → write, each stage overlapping the other
    batches of windows of one window row (plain forward for T = 1, MC dropout for T > 1);
 3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device (in a thread of
    its own while the model computes the next batches, on a GPU or a host of 4 cores or more) and hands back
-   finished blocks in their output dtypes,
-   following one output schema
+   finished blocks in their output dtypes, following one output schema
    (:func:`~aerialmtl.formats.prediction.prediction_layers`);
 4. the job's :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files
    in a background thread; at the commit it converts every layer to a COG (the layers in parallel, each
