@@ -390,7 +390,7 @@ def bench_model_alone(size: int = 1024, reps: int = 2) -> list[dict]:
     """The full model alone on one ``size``² window per engine and precision: seconds, Mpx/s, GFLOP/s."""
     from aerialmtl import runtime
     from aerialmtl.inference.runner import ModelRunner
-    from aerialmtl.inference.settings import PredictSettings, Resolved
+    from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 
     model, meta = make_model("full")
     flops = model_flops_per_px(model, 256)
@@ -401,7 +401,7 @@ def bench_model_alone(size: int = 1024, reps: int = 2) -> list[dict]:
     out = []
     for engine, precision in cases:
         settings = PredictSettings(mc=1, precision=precision, engine=engine)  # type: ignore[arg-type]
-        resolved = Resolved(torch.device("cpu"), engine, precision, runtime.resolve_threads(), 1)  # type: ignore[arg-type]
+        resolved = ResolvedSettings(torch.device("cpu"), engine, precision, runtime.resolve_threads(), 1)  # type: ignore[arg-type]
         runner = ModelRunner(model, meta, settings, resolved)
         runner(x, [0])  # conversion, compilation, warm-up
         best = float("inf")

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 import yaml
 
+from aerialmtl.config import read_yaml
 from aerialmtl.errors import CheckpointError
 from aerialmtl.formats.checkpoint import file_sha256, load_checkpoint
 from aerialmtl.io.outputs import atomic_write, write_text_atomic
@@ -76,7 +77,7 @@ def read_card(start: str | Path) -> dict[str, Any]:
     path = card_path(start)
     if not path.is_file():
         return {}
-    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    data = read_yaml(path)  # refuses an alias bomb before building it (:data:`aerialmtl.config.MAX_YAML_VALUES`)
     return data if isinstance(data, dict) else {}
 
 

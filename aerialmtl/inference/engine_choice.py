@@ -18,8 +18,11 @@ that ran the full D3-Net fastest end to end while keeping its outputs within :da
 and says where, when and at what load it measured. A kind without a measurement keeps the rule that held
 before the table (OpenVINO where it is installed, bf16 where the CPU has it natively), and says so.
 
-:func:`choose_engine` is the one place ``auto`` is resolved for prediction; it returns the choice with its
-reason, which ``prediction.json`` records (``engine_choice``). An explicit ``--engine openvino`` on a kind where
+:func:`choose_engine` is what prediction calls: the registry's resolver
+(:func:`~aerialmtl.inference.engines.registry.resolve_engine`, the one owner of ``auto``: the first registered
+engine that can run the model here) says what can run, and this table, where it has the CPU's kind, picks
+among those what ran fastest. It returns the choice with its reason, which ``prediction.json`` records
+(``engine_choice``). An explicit ``--engine openvino`` on a kind where
 it was measured slower than torch runs as asked, with one warning per process.
 
 The probe can be replaced: :data:`CPU_KIND_ENV` names a kind outright (tests: ``pytest --cpu-kind``), and the

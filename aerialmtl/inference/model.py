@@ -52,20 +52,19 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
-from aerialmtl.formats.prediction import PROVENANCE_KEY, LayerSpec, prediction_layers
+from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference.engine_choice import choose_engine, cold_cache_choice
-from aerialmtl.inference.engines import Pending, openvino_available
-from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.inference.engines import Pending, cache_root, openvino_available
+from aerialmtl.inference.model_record import CheckpointModel, make_record, read_record, resolve_model, write_record
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
-from aerialmtl.inference.settings import PredictOptions, PredictSettings, Resolved, settings_of
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings, settings_of
 from aerialmtl.inference.shadows import ShadowStep
 from aerialmtl.inference.stitch import Block, Stitcher
 from aerialmtl.inference.sun_choice import SunChoice, choose_sun
@@ -98,8 +97,10 @@ class StripResult:
 
 def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool = False
           ) -> tuple[torch.nn.Module | CheckpointModel, ModelMeta, str, str | None]:
-    """``(model, meta, name, fingerprint)``; the fingerprint is that of the checkpoint bytes loaded (``None`` for a
-    model given in memory: computed from its weights when needed).
+    """``(model, meta, name, fingerprint)`` of ``checkpoint``.
+
+    The fingerprint is that of the checkpoint bytes loaded (``None`` for a model given in memory: computed from its
+    weights when needed).
 
     With ``warm`` (a run that may use the OpenVINO engine), a checkpoint file whose record is beside the engine
     cache (:mod:`aerialmtl.inference.model_record`) is not loaded: its bytes are hashed, and the model is a
@@ -109,12 +110,9 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
-    from aerialmtl.formats.checkpoint import file_sha256, read_model
+    from aerialmtl.formats.checkpoint import file_sha256, read_model  # looked up here: tests stop a load by patching it
 
     if warm:
-        from aerialmtl.inference.engines import cache_root
-        from aerialmtl.inference.model_record import make_record, read_record, write_record
-
         root = cache_root()
         try:
             digest: str | None = file_sha256(checkpoint)
@@ -144,15 +142,18 @@ class Predictor:
         checkpoint: checkpoint path, or ``(model, meta)`` already loaded.
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`; default: its
             defaults).
-        options: the Python API's keywords, one per field of the settings
-            (:class:`~aerialmtl.inference.settings.PredictOptions`), applied over ``settings``.
+        checkpoint_name: the checkpoint's name in ``prediction.json`` and in messages (default: its path, or
+            ``<in-memory model>``).
+        options: the Python API's keywords, one per field of the settings (named like them), applied over
+            ``settings`` (:meth:`~aerialmtl.inference.settings.PredictSettings.with_options`).
 
     What ``auto`` and the defaults resolve to is :attr:`resolved` (and, one by one, :attr:`device`,
     :attr:`engine`, :attr:`precision`, :attr:`threads`, :attr:`mc`).
     """
 
     def __init__(self, checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta],
-                 settings: PredictSettings | None = None, **options: Unpack[PredictOptions]) -> None:
+                 settings: PredictSettings | None = None, *, checkpoint_name: str | None = None,
+                 **options: Any) -> None:
         self.settings = s = settings_of(settings, options)
         self.device = runtime.resolve_device(s.device)
         #: Inference threads and streams (:func:`aerialmtl.runtime.resolve_threads`).
@@ -170,7 +171,7 @@ class Predictor:
         if s.compile and self.engine != "torch":
             warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
                           UserWarning, stacklevel=2)
-        self.checkpoint_name = s.checkpoint_name or name
+        self.checkpoint_name = checkpoint_name or name
         self._checkpoint = checkpoint
         self._loaded = model  # as loaded: the torch engine is built from it if a cold cache turns auto to torch
         self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
@@ -180,7 +181,7 @@ class Predictor:
         self.calibration = self.meta.calibration if s.calibration else None
         self.calibration_available = self.meta.calibration is not None
         #: What the settings resolved to.
-        self.resolved = Resolved(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.resolved = ResolvedSettings(self.device, self.engine, self.precision, self.threads, self.mc)
         # the checkpoint hashed once: provenance and the OpenVINO cache's key
         weights_key = self.fingerprint if self.engine == "openvino" else None
         self.runner = ModelRunner(model, self.meta, s, self.resolved, weights_key)
@@ -251,8 +252,9 @@ class Predictor:
 
     # ---- inputs -----------------------------------------------------------------------------------
     def open(self, ortho: str | Path | OrthoInput, warn: bool = True) -> OrthoInput:
-        """Read the header of ``ortho`` and a sample of its values once
-        (:meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>`); an :class:`OrthoInput` is
+        """Read the header of ``ortho`` and a sample of its values once.
+
+        :meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>` reads them; an :class:`OrthoInput` is
         returned as it is.
 
         Args:
@@ -300,15 +302,16 @@ class Predictor:
             return
         self.choice = choice
         self.engine, self.precision = choice.engine, choice.precision
-        self.resolved = Resolved(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.resolved = ResolvedSettings(self.device, self.engine, self.precision, self.threads, self.mc)
         self.runner = ModelRunner(resolve_model(self._loaded), self.meta, self.settings, self.resolved)
         self._batch.clear()
 
     # ---- computing --------------------------------------------------------------------------------
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
                 progress: bool = True) -> StripResult:
-        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan (inside the settings'
-        AOI); each finished block goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
+        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan (inside the settings' AOI).
+
+        Each finished block goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
 
         The window rows before ``start`` that reach into it
         (:attr:`~aerialmtl.inference.windows.WindowRow.sources`) are computed too, so a strip gives exactly
@@ -332,8 +335,10 @@ class Predictor:
     # ---- run information --------------------------------------------------------------------------
     @property
     def fingerprint(self) -> str:
-        """The model's fingerprint: SHA-256 of the checkpoint bytes that were loaded
-        (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the weights of a model given in memory.
+        """The model's fingerprint (SHA-256).
+
+        Of the checkpoint bytes that were loaded (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the
+        weights of a model given in memory.
         """
         if self._fingerprint is None:
             assert isinstance(self._checkpoint, tuple)
@@ -343,33 +348,39 @@ class Predictor:
     def provenance(self, src: OrthoInput) -> dict[str, Any]:
         """What makes the maps of ``src`` (``provenance`` in prediction.json, :mod:`aerialmtl.formats.prediction`)."""
         s = self.settings
+        settings = s.provenance(self._ran_as(), shadows=self.shadows is not None, aoi=file_fingerprint(s.aoi),
+                                calibration=self.calibration is not None,
+                                input_rescale=None if src.rescale is None else list(src.rescale))
         return {
             "checkpoint": self.fingerprint,
-            "settings": {"mc_samples": self.mc, "tta": s.tta, "seed": s.seed, "precision": self.precision,
-                         "engine": self.runner.engine.name, "probabilities": bool(s.probabilities),
-                         "aoi": file_fingerprint(s.aoi), "calibration": self.calibration is not None,
-                         "input_rescale": None if src.rescale is None else list(src.rescale),
-                         **({"sun": s.sun, "acquired": s.acquired, "shadow_fusion": s.shadow_fusion}
-                            if self.shadows is not None else {})},
+            "settings": settings,
             "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(src.path),
         }
 
     def record_settings(self, src: OrthoInput) -> dict[str, Any]:
-        """The model's and the settings' fields of ``src``'s ``prediction.json``
-        (:class:`~aerialmtl.formats.prediction.PredictionRecord`; the job adds the input's and the run's): the
+        """The model's and the settings' fields of ``src``'s ``prediction.json``.
+
+        See :class:`~aerialmtl.formats.prediction.PredictionRecord` (the job adds the input's and the run's): the
         settings with what they resolved to (:meth:`PredictSettings.record
         <aerialmtl.inference.settings.PredictSettings.record>`).
         """
-        resolved = dataclasses.replace(self.resolved, engine=self.runner.engine.name)  # torch if auto fell back
+        settings = self.settings.record(self._ran_as(), self.resolved_batch_size(src.plan))
         return {
             "checkpoint": self.checkpoint_name,
             "model": model_summary(self.meta),
-            **self.settings.record(resolved, self.resolved_batch_size(src.plan)),
+            **{k: v for k, v in settings.items() if k in RECORD_KEYS},
+            "mc_samples": settings["mc"],
+            "sun_setting": settings["sun"],
+            "settings": settings,
             "engine_choice": self.choice.as_dict(),
             "calibration": self.calibration_info(),
             **({"sun": choice.record()} if (choice := self.sun_for(src)) is not None else {}),
             PROVENANCE_KEY: self.provenance(src),
         }
+
+    def _ran_as(self) -> ResolvedSettings:
+        """What the settings resolved to, with the engine that ran (``torch`` if ``auto`` fell back)."""
+        return dataclasses.replace(self.resolved, engine=self.runner.engine.name)
 
     def calibration_info(self) -> dict[str, Any]:
         """``prediction.json``'s ``calibration``: whether the checkpoint's calibration was applied, and which."""
@@ -396,9 +407,11 @@ class Predictor:
 
 
 class _StripLoop:
-    """The window loop of :meth:`Predictor.compute`: windows read → batches submitted to the engine (up to
+    """The window loop of :meth:`Predictor.compute`, with the stage times.
+
+    Windows read → batches submitted to the engine (up to
     :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked → stitched, and blocks
-    handed to ``write``, in :class:`_StitchStage`'s thread; with the stage times.
+    handed to ``write``, by :class:`_StitchStage` (in a thread of its own: :func:`stitch_in_thread`).
     """
 
     def __init__(self, predictor: Predictor, src: OrthoInput, stitcher: Stitcher, write: Callable[[Block], None],
@@ -499,8 +512,9 @@ class _StripLoop:
         self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
-        """Hand ``windows`` (with their statistics, in order, for those with data) to the stitcher and the
-        finished blocks to ``write`` (in :class:`_StitchStage`'s thread).
+        """Hand ``windows`` to the stitcher and the finished blocks to ``write`` (by :class:`_StitchStage`).
+
+        ``stats`` holds the statistics of the windows with data, in order.
         """
         n = 0
         for w in windows:
