@@ -66,8 +66,8 @@ class PredictResult:
         overlap_factor: pixels computed / output pixels (computed windows only).
         plan_overlap_factor: the same if every window were computed.
         megapixels_per_s: output megapixels per second of total time.
-        timings: seconds per stage (``read`` and ``write`` run in background threads and overlap the
-            others; ``model``, ``stitch_write`` (stitching plus waiting for the writer), ``strip_total``
+        timings: seconds per stage (``read``, ``stitch_write`` and ``write`` run in threads of their own and
+            overlap the others; ``model``, ``stitch_write`` (stitching plus waiting for the writer), ``strip_total``
             (the slowest strip, or the whole raster), ``cog`` (the conversion to COGs), ``total`` (up to the
             end of the conversion; ``prediction.json`` records these same numbers).
         ortho: the orthophoto.

@@ -16,8 +16,9 @@ A strip is read → model → stitch → write, each stage overlapping the other
    background threads, a few windows ahead;
 2. :class:`~aerialmtl.inference.runner.ModelRunner` normalises them on the device and runs the model in
    batches of windows of one window row (plain forward for T = 1, MC dropout for T > 1);
-3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device and hands
-   back finished blocks in their output dtypes, following one output schema
+3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device (in a thread of
+   its own while the model computes the next batches, on a GPU or a host of 4 cores or more) and hands back
+   finished blocks in their output dtypes, following one output schema
    (:func:`~aerialmtl.formats.prediction.prediction_layers`);
 4. the job's :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files
    in a background thread; at the commit it converts every layer to a COG (the layers in parallel, each
@@ -39,10 +40,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import queue
+import threading
 import time
 import warnings
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,7 +57,7 @@ from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
-from aerialmtl.inference.engine_choice import choose_engine
+from aerialmtl.inference.engine_choice import choose_engine, cold_cache_choice
 from aerialmtl.inference.engines import Pending, cache_root, openvino_available
 from aerialmtl.inference.model_record import CheckpointModel, make_record, read_record, resolve_model, write_record
 from aerialmtl.inference.ortho import OrthoInput
@@ -169,6 +173,7 @@ class Predictor:
                           UserWarning, stacklevel=2)
         self.checkpoint_name = checkpoint_name or name
         self._checkpoint = checkpoint
+        self._loaded = model  # as loaded: the torch engine is built from it if a cold cache turns auto to torch
         self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
         self.mc = s.mc if s.mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
         if s.calibration:
@@ -279,6 +284,28 @@ class Predictor:
                                                self.device, self.precision)
         return self._batch[key]
 
+    def fit_engine(self, srcs: Sequence[OrthoInput]) -> None:
+        """With ``engine: auto``, the choice for the job of predicting ``srcs`` once its size is known: OpenVINO on a
+        cold cache gives way to the torch engine when compiling first would make the job slower than torch
+        (:func:`~aerialmtl.inference.engine_choice.cold_cache_choice`, which :attr:`choice` then says). Called by
+        the jobs (:mod:`aerialmtl.inference.jobs`) before anything is computed.
+        """
+        cached = getattr(self.runner.engine, "cached", None)
+        if self.settings.engine != "auto" or not srcs or not callable(cached):
+            return
+        shapes = {(src.plan.rows.size, src.plan.cols.size) for src in srcs}
+        warm = all(cached(h, w, self.mc) for h, w in shapes)
+        work = sum(src.plan.num_windows * src.plan.rows.size * src.plan.cols.size for src in srcs) / 1e6
+        passes = self.mc * (8 if self.settings.tta else 1)
+        choice = cold_cache_choice(self.choice, self.settings.precision, self.device, work, passes, warm)
+        if choice is self.choice:
+            return
+        self.choice = choice
+        self.engine, self.precision = choice.engine, choice.precision
+        self.resolved = ResolvedSettings(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.runner = ModelRunner(resolve_model(self._loaded), self.meta, self.settings, self.resolved)
+        self._batch.clear()
+
     # ---- computing --------------------------------------------------------------------------------
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
                 progress: bool = True) -> StripResult:
@@ -383,8 +410,8 @@ class _StripLoop:
     """The window loop of :meth:`Predictor.compute`, with the stage times.
 
     Windows read → batches submitted to the engine (up to
-    :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked and stitched → blocks
-    to ``write``.
+    :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked → stitched, and blocks
+    handed to ``write``, by :class:`_StitchStage` (in a thread of its own: :func:`stitch_in_thread`).
     """
 
     def __init__(self, predictor: Predictor, src: OrthoInput, stitcher: Stitcher, write: Callable[[Block], None],
@@ -398,30 +425,40 @@ class _StripLoop:
         # batches submitted to the engine, oldest first: (windows in plan order, pending statistics, validity)
         self.queue: deque[tuple[list[ReadWindow], Pending | None, torch.Tensor | None]] = deque()
         self.todo_rows = todo_rows
+        self.stage: _StitchStage | None = None
         self.bar = tqdm(total=len(todo_rows) * self.n_cols, unit="win", desc=src.name, disable=not progress,
                         dynamic_ncols=True)
 
     def run(self) -> None:
-        """Compute the window rows ``todo_rows`` of the plan."""
+        """Compute the window rows ``todo_rows`` of the plan: this thread reads, submits and collects the model's
+        batches while :class:`_StitchStage` stitches and writes the finished ones, in a thread of its own on a GPU
+        or a host of :data:`STITCH_THREAD_CORES` cores or more (:func:`stitch_in_thread`).
+        """
         p, src, todo_rows = self.p, self.src, self.todo_rows
         aoi_mask = Aoi(p.settings.aoi, src.grid) if p.settings.aoi is not None else None
         depth = max(4, 2 * self.batch_size)  # windows read ahead: a batch being computed and the next one
         reader = WindowReader(src, list(p.meta.bands), todo_rows, aoi_mask, threads=p.settings.reader_threads,
                               depth=depth, pin=p.device.type == "cuda")
-        with reader:
-            waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
-            for win in reader:
-                waiting.append(win)
-                todo = [w for w in waiting if w.data is not None]
-                if len(todo) < self.batch_size and win.j != self.n_cols - 1:
-                    continue
-                self.submit(waiting, todo)
-                waiting = []
-                while len(self.queue) > self.runner.in_flight:
+        self.stage = stage = _StitchStage(self, stitch_in_thread(p.device))
+        try:
+            with reader:
+                waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
+                for win in reader:
+                    waiting.append(win)
+                    todo = [w for w in waiting if w.data is not None]
+                    if len(todo) < self.batch_size and win.j != self.n_cols - 1:
+                        continue
+                    self.submit(waiting, todo)
+                    waiting = []
+                    while len(self.queue) > self.runner.in_flight:
+                        self.finish_oldest()
+                while self.queue:
                     self.finish_oldest()
-            while self.queue:
-                self.finish_oldest()
-            self.timings["read"] = reader.seconds_reading
+                self.timings["read"] = reader.seconds_reading
+            stage.finish()
+        finally:
+            stage.stop()
+        self.timings["stitch_write"] = stage.seconds  # in its own thread: overlaps ``model``
 
     def submit(self, windows: list[ReadWindow], todo: list[ReadWindow]) -> None:
         """Queue ``windows``, starting the statistics of those with data (``todo``) on the engine."""
@@ -437,7 +474,7 @@ class _StripLoop:
         self.computed += len(todo)
 
     def finish_oldest(self) -> None:
-        """Wait for the oldest batch's statistics, check them, and stitch its windows."""
+        """Wait for the oldest batch's statistics, check them, and hand its windows to the stitch stage."""
         windows, pending, valid = self.queue.popleft()
         stats = None
         if pending is not None:
@@ -449,7 +486,8 @@ class _StripLoop:
             self.timings["model"] += time.perf_counter() - t0
             if self.p.shadows is not None:
                 self.shadows(windows, stats, valid)
-        self.flush(windows, stats, valid)
+        assert self.stage is not None
+        self.stage.put((windows, stats, valid))
 
     def shadows(self, windows: list[ReadWindow], stats: McStatistics, valid: torch.Tensor) -> None:
         """The shadow layers (and fusion) of the batch's computed windows (:mod:`aerialmtl.inference.shadows`)."""
@@ -474,11 +512,10 @@ class _StripLoop:
         self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
-        """Hand ``windows`` to the stitcher and the finished blocks to ``write``.
+        """Hand ``windows`` to the stitcher and the finished blocks to ``write`` (by :class:`_StitchStage`).
 
         ``stats`` holds the statistics of the windows with data, in order.
         """
-        t0 = time.perf_counter()
         n = 0
         for w in windows:
             if w.data is None:
@@ -490,7 +527,109 @@ class _StripLoop:
             for block in blocks:
                 self.write(block)
         self.bar.update(len(windows))
-        self.timings["stitch_write"] += time.perf_counter() - t0
 
 
-__all__ = ["DEFAULT_MC_SAMPLES", "Predictor", "StripResult"]
+#: Batches of checked statistics waiting for the stitch stage at most (each holds its windows' statistics:
+#: ~80 MiB per 1024² window with 20 classes); the model loop waits beyond.
+STITCH_QUEUE = 2
+#: Host cores from which a CPU run stitches in a thread of its own (a CUDA run always does: the host then only
+#: feeds the device). On 2 cores shared with other work the thread gained nothing and cost 8 % more CPU time and
+#: ~180 MiB (near-null pipeline, 8192², T = 1, load 15; issue 46), so fewer cores stitch in the model loop.
+STITCH_THREAD_CORES = 4
+_END = None
+
+
+def stitch_in_thread(device: torch.device, cores: int | None = None) -> bool:
+    """Whether a strip on ``device`` stitches in a thread of its own (:data:`STITCH_THREAD_CORES`); ``cores``:
+    the host cores this process may use (default: its CPU affinity).
+    """
+    if device.type == "cuda":
+        return True
+    if cores is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # pragma: no cover - not Linux
+            cores = os.cpu_count() or 1
+    return cores >= STITCH_THREAD_CORES
+
+
+class _StitchStage:
+    """The stitch stage of a strip in a thread of its own: batches of checked statistics, in plan order, are
+    stitched (:meth:`_StripLoop.flush`) and their finished blocks handed to the writer while the model loop
+    reads, submits and collects the next batches (torch and GDAL release Python's GIL while they work).
+
+    An error here (a block the writer refused, a stitching error) is raised in the model loop at its next
+    :meth:`put` or at :meth:`finish`; :meth:`stop` (always called, also on Ctrl-C) ends the thread before the
+    job aborts the writer.
+    """
+
+    def __init__(self, loop: _StripLoop, threaded: bool = True) -> None:
+        self.loop = loop
+        self.seconds = 0.0  # busy stitching and writing
+        self.error: BaseException | None = None
+        self._queue: queue.Queue[tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None] | None] = \
+            queue.Queue(maxsize=STITCH_QUEUE)
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._work, name="aerialmtl-stitch", daemon=True)
+        self.threaded = threaded
+        if threaded:
+            self._thread.start()
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _END:
+                return
+            if self.error is not None or self._cancel.is_set():
+                continue  # drained: the model loop raises the error or has stopped
+            t0 = time.perf_counter()
+            try:
+                self.loop.flush(*item)
+            except BaseException as exc:  # raised in the model loop
+                self.error = exc
+            self.seconds += time.perf_counter() - t0
+
+    def _raise(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+    def put(self, item: tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None]) -> None:
+        """Queue a batch (waits while :data:`STITCH_QUEUE` are queued); raises an earlier batch's error. Without
+        a thread (:func:`stitch_in_thread`), the batch is stitched here.
+        """
+        if not self.threaded:
+            t0 = time.perf_counter()
+            self.loop.flush(*item)
+            self.seconds += time.perf_counter() - t0
+            return
+        while True:
+            self._raise()
+            try:
+                self._queue.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def finish(self) -> None:
+        """Wait until every queued batch is stitched and written to the writer; raises their error."""
+        if not self.threaded:
+            return
+        self._queue.put(_END)
+        self._thread.join()
+        self._raise()
+
+    def stop(self) -> None:
+        """End the thread (the batches still queued are dropped); returns once it has ended."""
+        if not self._thread.is_alive():
+            return
+        self._cancel.set()
+        while self._thread.is_alive():
+            try:
+                self._queue.put(_END, timeout=0.1)
+                break
+            except queue.Full:
+                continue
+        self._thread.join()
+
+
+__all__ = ["DEFAULT_MC_SAMPLES", "STITCH_THREAD_CORES", "Predictor", "StripResult", "stitch_in_thread"]

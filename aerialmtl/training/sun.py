@@ -130,7 +130,9 @@ def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
     except InputError as exc:
         return TrainingSun(clear=False, reason=f"no shadow model: {exc}", score=fit.score, sharpness=fit.sharpness,
                            **base)  # type: ignore[arg-type]
-    reason = fit.reason
+    reason = (f"sun fitted: azimuth {true_az:.1f}° from true north ({fit.sun.azimuth_deg:.1f}° on the training "
+              f"grid), elevation {fit.sun.elevation_deg:.1f}° (correlation {fit.score:.2f}, sharpness "
+              f"{fit.sharpness:.2f})")
     acquired, time_sun = None, None
     stamp = _acquired(TileFolderInfo.read(data_dir))
     if stamp:

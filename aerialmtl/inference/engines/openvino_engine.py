@@ -186,13 +186,26 @@ class OpenVINOEngine:
         with self._lock:
             if key not in self._compiled:
                 config = self.compile_config()
-                hint, n = config["INFERENCE_PRECISION_HINT"], self.threads
-                name = f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.{self._cpu_tag()}.blob"
+                name = self._entry_name(part, h, w)
                 compiled, blob = self._import(name, config)
                 if compiled is None:
                     compiled = self._compile(self._shaped(part, h, w), name, config)
                 self._compiled[key] = _Requests(compiled, self.threads.streams, keep=blob)
             return self._compiled[key]
+
+    def _entry_name(self, part: str, h: int, w: int) -> str:
+        """The cache entry of ``part`` compiled for ``h × w`` windows at this precision, threads, streams and CPU."""
+        hint, n = self.compile_config()["INFERENCE_PRECISION_HINT"], self.threads
+        return f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.{self._cpu_tag()}.blob"
+
+    def cached(self, h: int, w: int, samples: int) -> bool:
+        """Whether every graph that ``h × w`` windows at ``samples`` MC samples run is compiled in the cache (a
+        run without them converts and compiles first: :func:`~aerialmtl.inference.engine_choice.cold_start_pays`).
+        """
+        parts = {"forward"} if samples == 1 else {"encode", "decode"}
+        if self.density is not None:
+            parts.add("encode")
+        return self.cache.enabled and all(self.cache.path(self._entry_name(p, h, w)).is_file() for p in parts)
 
     def _cpu_tag(self) -> str:
         """A short tag of the CPU a compiled model is for: its name as OpenVINO reports it and the oneDNN ISA cap.
