@@ -210,10 +210,18 @@ class ShadowModel:
         """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's)."""
         if not self.weights:
             raise InputError("this ShadowModel is not fitted: call fit() first")
-        f = colour_features(rgb, gsd_m or self.gsd_m).astype(np.float64)
-        w = np.asarray(self.weights)
-        z = w[0] + np.tensordot(w[1:] / np.asarray(self.scale), f - np.asarray(self.mean)[:, None, None], axes=1)
-        out: np.ndarray = (1.0 / (1.0 + np.exp(-np.clip(z, -40, 40)))).astype(np.float32)
+        f = colour_features(rgb, gsd_m or self.gsd_m)
+        # the standardisation folded into the weights once, then one float32 pass per feature (predict runs this on
+        # every window: a float64 (12, H, W) temporary was 100 MB per 1024² window)
+        a = np.asarray(self.weights[1:], np.float64) / np.asarray(self.scale, np.float64)
+        z = np.full(f.shape[1:], self.weights[0] - float(a @ np.asarray(self.mean, np.float64)), np.float32)
+        for k, ak in enumerate(a.astype(np.float32)):
+            z += ak * f[k]
+        np.clip(z, -40.0, 40.0, out=z)
+        np.negative(z, out=z)
+        np.exp(z, out=z)
+        z += np.float32(1.0)
+        out: np.ndarray = np.reciprocal(z, out=z)
         return out
 
     def to_dict(self) -> dict[str, object]:

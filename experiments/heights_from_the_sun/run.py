@@ -150,6 +150,8 @@ def shadow_objects(pred: Path) -> dict[str, Any]:
         sh = src.read(1)
         sh = np.where(sh == src.nodata, np.nan, sh)
     ref = _reference_on(pred / "height.tif")
+    with rasterio.open(pred / "height.tif") as src:
+        ref = np.where(src.read(1) == src.nodata, np.nan, ref)  # the block's pixels only (--aoi: nodata elsewhere)
     labels, n = ndimage.label(np.nan_to_num(ref) >= 2.0)
     rows = []
     for k in range(1, n + 1):
