@@ -214,7 +214,7 @@ def table(out: Path, seeds: list[int]) -> str:
         objs = [shadow_objects(p) for s in seeds
                 if (p := out / "pred" / f"shadows_{block}_s{s}").joinpath("shadow_height.tif").is_file()]
         if objs:
-            lines += [f"shadow heights per reference object ({title.split(' (')[0]}, {len(objs)} seeds): "
+            lines += [f"shadow heights per reference object ({title.split(' (')[0]}, {len(objs)} seeds):", "",
                       "| bin | objects | measured | median error | MAE | median relative error |",
                       "|---|---|---|---|---|---|"]
             for key in objs[0]:
