@@ -107,6 +107,10 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
         if calibration is not None:  # what validation kept, and why (predict applies exactly this)
             click.echo(f"calibration of best.pt (its scores: best.pt on the same validation patches, mean of "
                        f"{cfg.calibration.mc_samples} MC-dropout samples): {calibration.summary()}")
+            if calibration.unsupported:  # the one thing a small or unlucky split must be told plainly
+                click.echo(f"warning: calibration: {calibration.unsupported}; to calibrate these heights give "
+                           "validation taller areas (aerialmtl tile --split-block, --split-ratios or --split-aoi)",
+                           err=True)
     click.echo(f"last checkpoint: {result.last_checkpoint}")
     click.echo(f"log: {result.log_path}")
 
