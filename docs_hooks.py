@@ -108,9 +108,15 @@ def problems(html: str) -> list[str]:
 FIGURES_DIR = "images/built"
 #: The synthetic towns of the site's pictures: the demo's pipeline and network (``aerialmtl demo``), smaller
 #: towns (pixels of 0.25 m) and a short training, validated once at its end.
-DOCS_TOWN = {"train_size": 512, "test_size": 320, "patch": 128, "stride": 64, "steps": 120, "mc": 8}
+DOCS_TOWN = {"train_size": 384, "test_size": 256, "patch": 64, "stride": 32, "steps": 80, "mc": 8}
 #: The small-area recipe on samples/autzen_west, shortened for the site: patches, stride, steps, MC samples.
-DOCS_AREA = {"size": 128, "stride": 64, "steps": 100, "mc": 8}
+DOCS_AREA = {"size": 64, "stride": 32, "steps": 80, "mc": 8}
+#: The figures :func:`site_figures` makes.
+FIGURE_NAMES = ("demo_maps.png", "demo_overview.png", "qgis_layers.png", "area_maps.png",
+                "area_height_reliability.png", "area_sparsification.png")
+#: A folder to keep the figures in between builds (``mkdocs serve`` while writing, a second build): when it
+#: holds all of :data:`FIGURE_NAMES` they are read from it instead of made again. Unset: made every build.
+FIGURES_CACHE_ENV = "AERIALMTL_DOCS_FIGURES"
 #: ``PYTHONWARNINGS`` of the notebook's kernel (see the module docstring).
 NOTEBOOK_WARNINGS = "ignore:no building pixel in:UserWarning"
 SAMPLE = REPO / "samples" / "autzen_west"
@@ -323,6 +329,9 @@ def area_figures(work: Path) -> dict[str, bytes]:
 
 def site_figures() -> dict[str, bytes]:
     """The figures of :data:`FIGURES_DIR`, made once per process (``mkdocs serve`` rebuilds reuse them)."""
+    cache = Path(os.environ[FIGURES_CACHE_ENV]) if os.environ.get(FIGURES_CACHE_ENV) else None
+    if not _FIGURES and cache is not None and all((cache / n).is_file() for n in FIGURE_NAMES):
+        _FIGURES.update({n: (cache / n).read_bytes() for n in FIGURE_NAMES})
     if not _FIGURES:
         import logging
         import time
@@ -335,6 +344,10 @@ def site_figures() -> dict[str, bytes]:
                 t = time.perf_counter()
                 _FIGURES.update(make(Path(tmp) / name))
                 log.info("docs figures: %s in %.0f s", RUN_NOTES.get(name, name), time.perf_counter() - t)
+        if cache is not None:
+            cache.mkdir(parents=True, exist_ok=True)
+            for n, data in _FIGURES.items():
+                (cache / n).write_bytes(data)
     return dict(_FIGURES)
 
 
