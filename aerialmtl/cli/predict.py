@@ -122,6 +122,17 @@ def _say_if_start(model: Path) -> None:
 @option("--rescale-input", is_flag=True,
         help="When an orthophoto's values do not look like the training images' (e.g. 16-bit on an 8-bit model), "
              "map them linearly onto the training range (mean ± 3 std of a sample) instead of refusing it.")
+@option("--sun", default="auto", show_default=True,
+        help="The sun for the shadow layers (shadow.tif, shadow_height.tif): auto = from the acquisition time and "
+             "place (--acquired, a STAC item NAME.json beside the orthophoto, or its TIFF DateTime), else the sun "
+             "fitted on the training area for an orthophoto of the same flight, else off; AZ,EL in degrees "
+             "(azimuth clockwise from true north, elevation); none = off (maps as without the feature).")
+@option("--acquired", default=None,
+        help="Acquisition time of the orthophoto(s), ISO 8601 (e.g. 2019-06-21T16:45:00Z; no zone = UTC), for "
+             "--sun auto.")
+@option("--shadow-fusion/--no-shadow-fusion", "shadow_fusion", default=False, show_default=True,
+        help="Move the heights of objects the network finds towards the heights their shadows measure, weighted "
+             "by both spreads (never outside an object); the disagreement widens height_std.")
 @overwrite_option()
 @option("--skip-existing", is_flag=True,
         help="Skip inputs whose prediction folder is complete for this run (same model, settings and input, "
@@ -131,7 +142,8 @@ def predict(
     orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, window: int, overlap: int,
     batch_size: str, engine: str, threads: str, precision: Precision, device: str, compile_: bool, aoi: Path | None,
     probabilities: bool, rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool,
-    no_calibration: bool = False, tta: bool = False, tile_alias: int | None = None,
+    no_calibration: bool = False, tta: bool = False, tile_alias: int | None = None, sun: str = "auto",
+    acquired: str | None = None, shadow_fusion: bool = False,
 ) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
 
@@ -158,8 +170,8 @@ def predict(
     settings = PredictSettings(
         mc=mc, window=window, overlap=overlap, batch_size=_batch_size(batch_size), precision=precision,
         device=device, engine=engine, threads=threads, aoi=aoi, probabilities=probabilities,
-        calibration=not no_calibration, rescale_input=rescale_input, tta=tta, compile=compile_,
-        checkpoint_name=str(model), progress=not quiet)
+        calibration=not no_calibration, rescale_input=rescale_input, tta=tta, compile=compile_, sun=sun,
+        acquired=acquired, shadow_fusion=shadow_fusion, checkpoint_name=str(model), progress=not quiet)
 
     def report(res: PredictResult) -> None:
         t = res.timings

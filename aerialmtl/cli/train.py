@@ -103,7 +103,8 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     if Path(result.best_checkpoint).is_file():
         from aerialmtl.formats.checkpoint import load_checkpoint
 
-        calibration = load_checkpoint(result.best_checkpoint)[1].calibration
+        best_meta = load_checkpoint(result.best_checkpoint)[1]
+        calibration = best_meta.calibration
         if calibration is not None:  # what validation kept, and why (predict applies exactly this)
             click.echo(f"calibration of best.pt (its scores: best.pt on the same validation patches, mean of "
                        f"{cfg.calibration.mc_samples} MC-dropout samples): {calibration.summary()}")
@@ -111,6 +112,9 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
                 click.echo(f"warning: calibration: {calibration.unsupported}; to calibrate these heights give "
                            "validation taller areas (aerialmtl tile --split-block, --split-ratios or --split-aoi)",
                            err=True)
+        if best_meta.sun is not None:  # the training area's sun (predict --sun auto uses it for the same flight)
+            click.echo(f"training area's {best_meta.sun.summary()}" + (
+                "" if best_meta.sun.clear else "; predict writes no shadow layers"))
     click.echo(f"last checkpoint: {result.last_checkpoint}")
     click.echo(f"log: {result.log_path}")
 

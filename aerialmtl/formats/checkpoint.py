@@ -16,6 +16,7 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
         "normalization": "dataset",  # or "encoder": mean/std are the pretrained encoder's input scaling
         "calibration": {...} | None, # height knots + std scale fitted on validation (models.calibration)
         "familiarity": {...} | None, # encoder-feature density of the train split (models.familiarity)
+        "sun": {...} | None,         # the training area's sun and shadow classifier (training.sun)
         "input_dtype": "uint8",      # data type of the training images (None: not recorded)
         "input_range": [lo, hi],     # their value range (value_envelope of the train statistics)
       },
@@ -48,6 +49,7 @@ from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.signals import deferred
+from aerialmtl.sun.record import TrainingSun
 
 FORMAT = "aerialmtl-checkpoint"
 FORMAT_VERSION = 1
@@ -89,6 +91,9 @@ class ModelMeta:
     #: scenes only, a start for fine-tuning (``train --init``), not a map of anywhere; ``None``: trained on its
     #: tile folder (a fine-tuned run's checkpoints are ``None`` again). Predict says so, and records it.
     start: str | None = None
+    #: the training area's sun and shadow classifier, fitted after training (``predict --sun auto`` uses them for
+    #: an orthophoto of the same flight); ``None`` for checkpoints without one (:mod:`aerialmtl.training.sun`).
+    sun: TrainingSun | None = None
 
     def __post_init__(self) -> None:
         n = self.model.in_channels

@@ -80,10 +80,14 @@ CLASS_ENTROPY = "class_entropy"
 CLASS_MUTUAL_INFO = "class_mutual_info"
 CLASS_PROBABILITIES = "class_probabilities"
 UNFAMILIARITY = "unfamiliarity"
-LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES, UNFAMILIARITY)
+SHADOW = "shadow"
+SHADOW_HEIGHT = "shadow_height"
+LAYERS = (HEIGHT, HEIGHT_STD, CLASSES, CLASS_ENTROPY, CLASS_MUTUAL_INFO, CLASS_PROBABILITIES, UNFAMILIARITY, SHADOW,
+          SHADOW_HEIGHT)
 
-#: Unit of each float layer (``class_probabilities``: none; ``unfamiliarity``: a share, 0–1, no unit).
-LAYER_UNITS = {HEIGHT: "m", HEIGHT_STD: "m", CLASS_ENTROPY: "nats", CLASS_MUTUAL_INFO: "nats", UNFAMILIARITY: ""}
+#: Unit of each float layer (``class_probabilities``: none; ``unfamiliarity`` and ``shadow``: 0–1, no unit).
+LAYER_UNITS = {HEIGHT: "m", HEIGHT_STD: "m", CLASS_ENTROPY: "nats", CLASS_MUTUAL_INFO: "nats", UNFAMILIARITY: "",
+               SHADOW: "", SHADOW_HEIGHT: "m"}
 
 #: The run-information file.
 INFO_FILE = "prediction.json"
@@ -179,7 +183,7 @@ class LayerSpec:
 
 def prediction_layers(
     tasks: Sequence[str], classes: ClassScheme | None, mc: int, probabilities: bool = False, aleatoric: bool = False,
-    tta: bool = False, unfamiliarity: bool = False,
+    tta: bool = False, unfamiliarity: bool = False, shadows: bool = False,
 ) -> tuple[LayerSpec, ...]:
     """The layers a prediction writes, in :data:`LAYERS` order.
 
@@ -193,6 +197,8 @@ def prediction_layers(
             spread (MC dropout and the aleatoric scale).
         tta: test-time augmentation (8 views): uncertainty layers at any T.
         unfamiliarity: the checkpoint holds a feature density: the ``unfamiliarity`` layer (any T).
+        shadows: the shadow features run (a sun and the checkpoint's shadow classifier): the ``shadow`` and
+            ``shadow_height`` layers (:mod:`aerialmtl.inference.shadows`).
     """
     specs: list[LayerSpec] = []
     unc = mc > 1 or tta
@@ -228,6 +234,12 @@ def prediction_layers(
         specs.append(LayerSpec(UNFAMILIARITY, 1, "float32", FLOAT_NODATA,
                                ("unfamiliarity: share of training pixels more familiar to the model (0-1)",),
                                (LAYER_UNITS[UNFAMILIARITY],)))
+    if shadows and HEIGHT in tasks:
+        specs.append(LayerSpec(SHADOW, 1, "float32", FLOAT_NODATA, ("probability of cast shadow (0-1)",),
+                               (LAYER_UNITS[SHADOW],)))
+        specs.append(LayerSpec(SHADOW_HEIGHT, 1, "float32", FLOAT_NODATA,
+                               ("height of the object measured from its shadow (nodata: not measurable)",),
+                               (LAYER_UNITS[SHADOW_HEIGHT],)))
     return tuple(specs)
 
 
@@ -318,6 +330,9 @@ class PredictionRecord(BaseModel):
         timings_s: seconds per stage (``read``, ``model``, ``stitch_write``, ``write``, ``strip_total``,
             ``cog``, ``total``).
         calibration: what calibration was applied; provenance: :data:`PROVENANCE_KEY` (module docstring).
+        sun_setting, shadow_fusion: ``--sun`` and ``--shadow-fusion`` as given; ``sun``: the sun the shadow
+            layers used and its source (:meth:`aerialmtl.inference.sun_choice.SunChoice.record`), ``None`` when
+            the run had no shadow features.
         created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes;
         file_sha256: layer file → SHA-256 (hex) of its bytes.
     """
@@ -351,6 +366,9 @@ class PredictionRecord(BaseModel):
     plan_overlap_factor: float
     timings_s: dict[str, float]
     calibration: dict[str, Any]
+    sun_setting: str = "auto"
+    shadow_fusion: bool = False
+    sun: dict[str, Any] | None = None
     provenance: dict[str, Any]
     created: str | None = None
     files: dict[str, str] = {}
@@ -540,6 +558,8 @@ def _provenance_problem(recorded: Any, expected: Mapping[str, Any]) -> str | Non
 __all__ = [
     "ALL_FILES", "CLASSES", "CLASS_ENTROPY", "CLASS_MUTUAL_INFO", "CLASS_NODATA", "CLASS_PROBABILITIES",
     "CLASS_SCHEME_TAG", "COLLECTION_FILE", "FLOAT_NODATA", "HEIGHT", "HEIGHT_STD", "INFO_FILE", "ITEM_FILE", "LAYERS",
+    "SHADOW",
+    "SHADOW_HEIGHT",
     "UNFAMILIARITY",
     "LAYER_UNITS",
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",

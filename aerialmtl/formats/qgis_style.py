@@ -38,6 +38,8 @@ from aerialmtl.formats.prediction import (
     CLASSES,
     HEIGHT,
     HEIGHT_STD,
+    SHADOW,
+    SHADOW_HEIGHT,
     UNFAMILIARITY,
     LayerSpec,
 )
@@ -61,12 +63,15 @@ VIRIDIS = Ramp("viridis", ("#440154", "#3b528b", "#21918c", "#5ec962", "#fde725"
 MAGMA = Ramp("magma", ("#000004", "#51127c", "#b73779", "#fc8961", "#fcfdbf"))
 YLORRD = Ramp("YlOrRd", ("#ffffb2", "#fecc5c", "#fd8d3c", "#f03b20", "#bd0026"))
 BLUES = Ramp("Blues", ("#eff3ff", "#bdd7e7", "#6baed6", "#3182bd", "#08519c"))
+#: Light (sunlit) to dark (shadow), ColorBrewer's Greys.
+GREYS = Ramp("Greys", ("#f7f7f7", "#cccccc", "#969696", "#636363", "#252525"))
 
 #: The ramp of each continuous layer.
 RAMPS: dict[str, Ramp] = {HEIGHT: VIRIDIS, HEIGHT_STD: YLORRD, CLASS_ENTROPY: MAGMA, CLASS_MUTUAL_INFO: MAGMA,
-                          CLASS_PROBABILITIES: BLUES, UNFAMILIARITY: MAGMA}
+                          CLASS_PROBABILITIES: BLUES, UNFAMILIARITY: MAGMA, SHADOW: GREYS, SHADOW_HEIGHT: VIRIDIS}
 #: Layers styled over a fixed range (their values are shares, 0..1) instead of 0..p98.
-FIXED_RANGES: dict[str, tuple[float, float]] = {CLASS_PROBABILITIES: (0.0, 1.0), UNFAMILIARITY: (0.0, 1.0)}
+FIXED_RANGES: dict[str, tuple[float, float]] = {CLASS_PROBABILITIES: (0.0, 1.0), UNFAMILIARITY: (0.0, 1.0),
+                                                SHADOW: (0.0, 1.0)}
 
 #: The top of the ramp when a layer has no valid pixel (nothing to scale to).
 FALLBACK_MAX = 1.0

@@ -37,6 +37,7 @@ import pystac
 from pystac.extensions.classification import Classification, ClassificationExtension
 from pystac.extensions.projection import ProjectionExtension
 from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Sampling, Statistics
+from pystac.extensions.view import ViewExtension
 from rasterio.warp import transform as warp_transform
 
 from aerialmtl.errors import InputError
@@ -168,6 +169,11 @@ def build_item(folder: str | Path, grid: Grid, specs: Sequence[LayerSpec], info:
     item = pystac.Item(id=folder.name, geometry=geometry, bbox=_bbox(geometry), datetime=created,
                        properties=props)
     item.common_metadata.gsd = grid.gsd
+    sun = info.get("sun")
+    if isinstance(sun, Mapping) and sun.get("azimuth_deg") is not None and sun.get("elevation_deg") is not None:
+        view = ViewExtension.ext(item, add_if_missing=True)  # the sun the shadow features used (true north)
+        view.sun_azimuth = float(sun["azimuth_deg"])
+        view.sun_elevation = float(sun["elevation_deg"])
 
     proj = ProjectionExtension.ext(item, add_if_missing=True)
     epsg = grid.crs.to_epsg()

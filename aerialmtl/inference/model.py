@@ -62,7 +62,9 @@ from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
 from aerialmtl.inference.settings import PredictOptions, PredictSettings, Resolved, settings_of
+from aerialmtl.inference.shadows import ShadowStep
 from aerialmtl.inference.stitch import Block, Stitcher
+from aerialmtl.inference.sun_choice import SunChoice, choose_sun
 from aerialmtl.inference.windows import Plan
 from aerialmtl.io.fingerprint import file_fingerprint, input_fingerprint
 from aerialmtl.models import class_kernel
@@ -179,10 +181,14 @@ class Predictor:
         self.runner = ModelRunner(model, self.meta, s, self.resolved, weights_key)
         tasks = tuple(self.meta.model.tasks)
         self.num_classes = self.meta.classes.num_classes if self.meta.classes is not None and "classes" in tasks else 0
+        #: The shadow features (:mod:`aerialmtl.inference.shadows`), ``None`` when off for the whole run.
+        self.shadows = self._shadow_step()
+        self._suns: dict[str, SunChoice] = {}
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
         self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, s.probabilities,
                                                                  aleatoric=self.meta.model.aleatoric, tta=s.tta,
-                                                                 unfamiliarity=self.meta.familiarity is not None)
+                                                                 unfamiliarity=self.meta.familiarity is not None,
+                                                                 shadows=self.shadows is not None)
         if self.meta.familiarity is None:  # said once per run (and in prediction.json's model summary)
             log.info("%s holds no feature density: no unfamiliarity layer (a model trained with this version "
                      "fits one after training)", self.checkpoint_name)
@@ -194,6 +200,44 @@ class Predictor:
     def aoi(self) -> str | Path | None:
         """The AOI of the settings (windows outside it are not computed)."""
         return self.settings.aoi
+
+    def _shadow_step(self) -> ShadowStep | None:
+        """The shadow features of this run: on unless ``--sun none``, for a height model whose checkpoint holds
+        the training area's shadow classifier (``meta.sun``; fitted by ``train`` since this version).
+        """
+        s, sun = self.settings, self.meta.sun
+        if s.sun == "none" or "height" not in self.meta.model.tasks:
+            return None
+        if sun is None or sun.shadow_model is None:
+            why = ("holds no sun fit (trained before this version: `aerialmtl train` fits one)" if sun is None else
+                   f"has no shadow classifier: {sun.reason}")
+            if s.sun != "auto" or s.shadow_fusion:
+                warnings.warn(f"--sun {s.sun}: {self.checkpoint_name} {why}; no shadow layers", UserWarning,
+                              stacklevel=3)
+            return None
+        from aerialmtl.sun import ShadowModel
+
+        return ShadowStep(ShadowModel.from_dict(sun.shadow_model), self.meta.gsd, s.shadow_fusion)
+
+    def sun_for(self, src: OrthoInput) -> SunChoice | None:
+        """The sun of ``src`` (:func:`~aerialmtl.inference.sun_choice.choose_sun`; chosen once per input and said
+        once), or ``None`` when the shadow features are off for the run.
+        """
+        if self.shadows is None:
+            return None
+        key = str(src.path)
+        if key not in self._suns:
+            import rasterio
+
+            with rasterio.open(str(src.path)) as ds:
+                tags = ds.tags()
+            choice = choose_sun(self.settings.sun, self.settings.acquired, src.path, src.grid, tags, self.meta.sun)
+            self._suns[key] = choice
+            if choice.on:
+                log.info("%s: %s", src.name, choice.note)
+            else:
+                warnings.warn(f"{src.name}: no shadow features: {choice.note}", UserWarning, stacklevel=2)
+        return self._suns[key]
 
     @property
     def model(self) -> torch.nn.Module:
@@ -277,7 +321,9 @@ class Predictor:
             "settings": {"mc_samples": self.mc, "tta": s.tta, "seed": s.seed, "precision": self.precision,
                          "engine": self.runner.engine.name, "probabilities": bool(s.probabilities),
                          "aoi": file_fingerprint(s.aoi), "calibration": self.calibration is not None,
-                         "input_rescale": None if src.rescale is None else list(src.rescale)},
+                         "input_rescale": None if src.rescale is None else list(src.rescale),
+                         **({"sun": s.sun, "acquired": s.acquired, "shadow_fusion": s.shadow_fusion}
+                            if self.shadows is not None else {})},
             "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(src.path),
         }
 
@@ -294,6 +340,7 @@ class Predictor:
             **self.settings.record(resolved, self.resolved_batch_size(src.plan)),
             "engine_choice": self.choice.as_dict(),
             "calibration": self.calibration_info(),
+            **({"sun": choice.record()} if (choice := self.sun_for(src)) is not None else {}),
             PROVENANCE_KEY: self.provenance(src),
         }
 
@@ -387,7 +434,31 @@ class _StripLoop:
             check_finite_outputs(stats, valid, self.p.checkpoint_name)
             check_height_range(stats, valid, self.p.checkpoint_name, self.p.meta)
             self.timings["model"] += time.perf_counter() - t0
+            if self.p.shadows is not None:
+                self.shadows(windows, stats, valid)
         self.flush(windows, stats, valid)
+
+    def shadows(self, windows: list[ReadWindow], stats: McStatistics, valid: torch.Tensor) -> None:
+        """The shadow layers (and fusion) of the batch's computed windows (:mod:`aerialmtl.inference.shadows`)."""
+        t0 = time.perf_counter()
+        choice = self.p.sun_for(self.src)
+        sun = None
+        if choice is not None and choice.on:
+            from aerialmtl.sun import Sun
+
+            assert choice.grid_azimuth_deg is not None and choice.elevation_deg is not None
+            sun = Sun(choice.grid_azimuth_deg % 360.0, choice.elevation_deg)
+        rgb = []
+        for w in windows:
+            if w.data is not None:
+                data = w.data.numpy() if isinstance(w.data, torch.Tensor) else w.data
+                if self.src.rescale is not None:  # the values the model (and the shadow classifier) trained on
+                    a, b = self.src.rescale
+                    data = (data.astype("float32") * a + b).clip(0, 255)
+                rgb.append(data[:3])
+        assert self.p.shadows is not None
+        self.p.shadows.apply(stats, rgb, valid, sun)
+        self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
         """Hand ``windows`` (with their statistics, in order, for those with data) to the stitcher and the

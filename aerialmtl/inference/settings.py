@@ -26,7 +26,9 @@ from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.errors import InputError
+from aerialmtl.inference.sun_choice import parse_sun
 from aerialmtl.inference.windows import check_tiling
+from aerialmtl.sun.solar_position import parse_time
 
 BatchSize = int | Literal["auto"]
 
@@ -60,6 +62,14 @@ class PredictSettings:
         max_decode_pixels: bound on the pixels decoded per model call with MC dropout (bounds memory, not
             results); ``None``: :data:`~aerialmtl.inference.runner.DECODE_PIXELS` of the device.
         reader_threads: background threads reading windows.
+        sun: the sun for the shadow features (:mod:`aerialmtl.inference.sun_choice`): ``"auto"`` (the
+            acquisition time and place, else the training fit for an orthophoto of the same flight, else off),
+            ``"none"`` (off: the maps of a model without them, to the bit), or ``"AZ,EL"`` in degrees (azimuth
+            clockwise from true north, elevation above the horizon).
+        acquired: the orthophoto's acquisition time (ISO 8601; without a zone read as UTC) for ``sun="auto"``.
+        shadow_fusion: fuse the heights measured from shadows into the height map and its spread, inside the
+            network's objects (:mod:`aerialmtl.inference.shadows`); the ``shadow`` and ``shadow_height`` layers
+            are written whenever the sun is known, fused or not.
         checkpoint_name: the checkpoint's name in ``prediction.json`` (default: its path, or
             ``<in-memory model>``).
         progress: progress bars.
@@ -82,6 +92,9 @@ class PredictSettings:
     seed: int = 0
     max_decode_pixels: int | None = None
     reader_threads: int = 2
+    sun: str = "auto"
+    acquired: str | None = None
+    shadow_fusion: bool = False
     checkpoint_name: str | None = None
     progress: bool = True
 
@@ -98,6 +111,9 @@ class PredictSettings:
         if self.reader_threads < 1:
             raise InputError(f"reader_threads must be ≥ 1 background thread, got {self.reader_threads!r}; pass e.g. 2")
         runtime.resolve_threads(self.threads)  # a bad value fails here, naming ‹threads›
+        parse_sun(self.sun)  # a bad --sun or --acquired fails here, naming it
+        if self.acquired is not None:
+            parse_time(self.acquired)
 
     def with_options(self, **options: Unpack[PredictOptions]) -> PredictSettings:
         """These settings with ``options`` (the keywords of :class:`PredictOptions`) replaced, validated again.
@@ -130,6 +146,8 @@ class PredictSettings:
             "threads": resolved.threads.as_dict() if resolved.device.type == "cpu" else None,
             "device": str(resolved.device),
             "compile": self.compile,
+            "sun_setting": self.sun,
+            "shadow_fusion": self.shadow_fusion,
         }
 
 
@@ -156,6 +174,9 @@ class PredictOptions(TypedDict, total=False):
     seed: int
     max_decode_pixels: int | None
     reader_threads: int
+    sun: str
+    acquired: str | None
+    shadow_fusion: bool
     checkpoint_name: str | None
     progress: bool
 

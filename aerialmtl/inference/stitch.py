@@ -26,7 +26,10 @@ Blended statistics (:class:`~aerialmtl.models.mc_dropout.McStatistics` of each w
   probabilities), ``class_probabilities``;
 * ``mean_entropy`` (mean per-sample entropy) → ``class_mutual_info = clip(entropy − blended mean
   entropy, 0, entropy)``, so ``0 ≤ MI ≤ entropy ≤ log K`` holds exactly in the blended result;
-* ``unfamiliarity`` (0–1) → ``unfamiliarity`` (weighted mean, so it stays in 0–1).
+* ``unfamiliarity`` (0–1) → ``unfamiliarity`` (weighted mean, so it stays in 0–1);
+* ``shadow`` → ``shadow`` (weighted mean over the windows that knew the sun, ``shadow_on``; nodata where none
+  did) and ``shadow_height`` (weighted mean over the windows that measured it, ``shadow_weight``; nodata where
+  none did), from :mod:`aerialmtl.inference.shadows`.
 
 Every sum is formed in window order with one rounding per product and per addition, so any
 implementation that adds the same products in the same order (e.g. a whole-raster reference in numpy)
@@ -49,6 +52,8 @@ from aerialmtl.formats.prediction import (
     CLASSES,
     HEIGHT,
     HEIGHT_STD,
+    SHADOW,
+    SHADOW_HEIGHT,
     UNFAMILIARITY,
     LayerSpec,
 )
@@ -61,7 +66,8 @@ CHUNK_ELEMENTS = 1 << 20
 #: Largest carry held in memory (bytes); a larger one goes to a temporary file (see the module docstring).
 CARRY_IN_MEMORY = 32 << 20
 
-_QUANTITIES = ("height_mean", "height_std", "probs", "mean_entropy", "unfamiliarity")
+_QUANTITIES = ("height_mean", "height_std", "probs", "mean_entropy", "unfamiliarity", "shadow", "shadow_on",
+               "shadow_height", "shadow_weight")
 
 
 @dataclass
@@ -92,6 +98,10 @@ def _quantities(names: set[str]) -> tuple[str, ...]:
         need.append("mean_entropy")
     if UNFAMILIARITY in names:
         need.append("unfamiliarity")
+    if SHADOW in names:
+        need.extend(("shadow", "shadow_on"))
+    if SHADOW_HEIGHT in names:
+        need.extend(("shadow_height", "shadow_weight"))
     return tuple(need)
 
 
@@ -339,6 +349,13 @@ class Stitcher:
                 values[HEIGHT] = self.calibration.height_torch(raw_height)
         if UNFAMILIARITY in specs:
             values[UNFAMILIARITY] = (acc["unfamiliarity"][rs, cs] / safe).clamp_(0.0, 1.0)
+        for layer, value, weight in ((SHADOW, "shadow", "shadow_on"),
+                                     (SHADOW_HEIGHT, "shadow_height", "shadow_weight")):
+            if layer in specs:  # its own weight: nodata where no window knew the sun / measured the object
+                part = acc[weight][rs, cs]
+                none = part <= 0
+                ratio = acc[value][rs, cs] / torch.where(none, torch.ones_like(part), part)
+                values[layer] = torch.where(none, torch.full_like(ratio, specs[layer].nodata), ratio)
         if "probs" not in acc:
             return values
         probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)

@@ -163,6 +163,10 @@ class McStatistics:
         unfamiliarity: B×H×W in [0, 1], from the encoder's features and the checkpoint's feature density
             (:meth:`FeatureDensity.unfamiliarity <aerialmtl.models.familiarity.FeatureDensity.unfamiliarity>`);
             ``None`` without a density.
+        shadow, shadow_on, shadow_height, shadow_weight: B×H×W, set after the model by the shadow features
+            (:mod:`aerialmtl.inference.shadows`): the probability of cast shadow where the sun is known
+            (``shadow_on`` 1 there, else 0), the shadow-measured height times ``shadow_weight`` (1 where measured,
+            else 0); ``None`` without the feature.
     """
 
     height_mean: torch.Tensor | None = None
@@ -171,6 +175,10 @@ class McStatistics:
     mean_entropy: torch.Tensor | None = None
     height_aleatoric: torch.Tensor | None = None
     unfamiliarity: torch.Tensor | None = None
+    shadow: torch.Tensor | None = None
+    shadow_on: torch.Tensor | None = None
+    shadow_height: torch.Tensor | None = None
+    shadow_weight: torch.Tensor | None = None
 
     def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> McStatistics:
         """A copy with ``fn`` applied to every statistic present (e.g. one window of a batch, a view undone)."""

@@ -121,6 +121,12 @@ PREDICT = Algorithm(
               default=False, advanced=True),
         Param("RESCALE_INPUT", "--rescale-input", "bool",
               "Rescale an orthophoto whose values differ from the training images'", default=False, advanced=True),
+        Param("SUN", "--sun", "string", "Sun for the shadow layers: auto, none, or AZIMUTH,ELEVATION (degrees, "
+              "azimuth from true north)", default="auto", advanced=True),
+        Param("ACQUIRED", "--acquired", "string", "Acquisition time, ISO 8601 (e.g. 2019-06-21T16:45:00Z) "
+              "[empty: from a STAC item or the TIFF DateTime]", optional=True, advanced=True),
+        Param("SHADOW_FUSION", "--shadow-fusion", "bool",
+              "Fuse the heights measured from shadows into the objects' heights", default=False, advanced=True),
         _OVERWRITE,
         Param("OUTPUT", "--out", "folder_out", "Prediction folder"),
     ),
@@ -288,6 +294,8 @@ PREDICTION_LAYERS: tuple[tuple[str, str], ...] = (
     ("class_mutual_info.tif", "class mutual information (nats)"),
     ("class_probabilities.tif", "class probabilities"),
     ("unfamiliarity.tif", "unfamiliarity (0-1)"),
+    ("shadow.tif", "cast shadow (0-1)"),
+    ("shadow_height.tif", "height from shadows (m)"),
 )
 
 #: Name of the provider setting that holds the ``aerialmtl`` program.

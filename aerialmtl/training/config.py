@@ -19,6 +19,7 @@ the key path (``optim.lr``) and the valid keys/choices::
     compile: false        # torch.compile the model (falls back to eager with a warning if it fails)
     calibration: {enabled: true, method: isotonic, mc_samples: 16}   # fitted on val after training
     familiarity: {enabled: true, levels: [2], dims: 32, method: gda}  # feature density fitted on train
+    sun: {enabled: true}          # the training area's sun and shadow classifier, fitted on train (predict --sun)
 
 Relative ``data.dir`` paths are resolved against the current working directory. With several processes
 (``torchrun``), ``data.batch_size`` is per process: a step uses ``batch_size × processes`` patches.
@@ -332,6 +333,19 @@ class FamiliaritySection:
 
 
 @dataclass(frozen=True)
+class SunSection:
+    """The training area's sun and shadow classifier, fitted on the train split at the end of training
+    (:mod:`aerialmtl.training.sun`); ``predict --sun`` writes the ``shadow`` and ``shadow_height`` layers from them.
+
+    Attributes:
+        enabled: fit them and store them in ``best.pt`` and ``last.pt`` (a tile folder without heights or
+            8-bit RGB patches fits nothing, with one line saying so).
+    """
+
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """The whole training configuration (see the module docstring for the YAML layout)."""
 
@@ -347,6 +361,7 @@ class TrainConfig:
     compile: bool = False
     calibration: CalibrationSection = field(default_factory=CalibrationSection)
     familiarity: FamiliaritySection = field(default_factory=FamiliaritySection)
+    sun: SunSection = field(default_factory=SunSection)
     #: Keys of earlier configs (and of the configs stored in earlier checkpoints) read and ignored, with a warning:
     #: ``predict`` held ``mc_samples``, which nothing read; ``predict --mc`` and
     #: :class:`~aerialmtl.inference.settings.PredictSettings` decide T (30 with dropout).

@@ -536,6 +536,7 @@ class Trainer:
             self.model.load_state_dict(self.average.shadow)
         self.calibrate()
         self.familiarize()
+        self.fit_sun()
         return TrainResult(run_dir=self.run, last_checkpoint=self.paths["last.pt"],
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
                            config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
@@ -574,6 +575,25 @@ class Trainer:
                                            method=fam.method, components=fam.components,
                                            cache_folder=data.cache_folder, device=self.device)
                 log.info("%s: %s", name, d.summary())
+
+    def fit_sun(self) -> None:
+        """Fit the training area's sun and shadow classifier and store them in best.pt and last.pt (rank 0; see
+        :mod:`aerialmtl.training.sun`); one line says the sun, or why there is none.
+        """
+        if not (self.cfg.sun.enabled and self.ctx.is_main and "height" in self.tasks):
+            return
+        from aerialmtl.errors import InputError
+        from aerialmtl.training.sun import fit_training_sun, store_sun
+
+        try:
+            sun = fit_training_sun(self.setup.data.info.root)
+        except InputError as exc:
+            log.info("no sun fitted: %s", exc)
+            return
+        for name in ("best.pt", "last.pt"):
+            if self.paths[name].exists():
+                store_sun(self.paths[name], sun)
+        log.info("%s", sun.summary())
 
     def done_before_start(self) -> str | None:
         """Stop reason of a resumed run that has nothing left to do (no time check: it has not started)."""

@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from aerialmtl.sun.cast import shadow_surface_sweep
+
 
 def sun_vector(azimuth: float, elevation: float) -> tuple[float, float, float]:
     """Unit vector pointing *towards* the sun as (east, north, up)."""
@@ -48,12 +50,6 @@ def hillshade(surface: np.ndarray, gsd: float, azimuth: float, elevation: float,
     return result
 
 
-def _digital_line_offsets(n: int, slope: float) -> np.ndarray:
-    """Integer cross-axis offset of a digital line with ``slope`` at positions ``0..n-1``."""
-    result: np.ndarray = np.floor(np.arange(n) * slope + 0.5).astype(np.int64)
-    return result
-
-
 def cast_shadows(surface: np.ndarray, gsd: float, azimuth: float, elevation: float,
                  tolerance: float = 0.05) -> np.ndarray:
     """Pixels that the sun cannot see because something between them and the sun is tall enough.
@@ -62,7 +58,8 @@ def cast_shadows(surface: np.ndarray, gsd: float, azimuth: float, elevation: flo
     over the pixels ``p + d·u`` on the digital line from ``p`` towards the sun (``u`` the horizontal
     sun direction). The maximum is not taken over every ``d`` explicitly: the "shadow surface"
     ``S(p) = max(Z(p), S(p + u) − |u|·gsd·tan(elevation))`` is swept once across the raster from the
-    sun-side edge, which is equivalent and costs O(H·W) whatever the object heights.
+    sun-side edge, which is equivalent and costs O(H·W) whatever the object heights
+    (:func:`aerialmtl.sun.cast.shadow_surface_sweep`, shared with the heights-from-shadows code).
 
     Args:
         surface: float (H, W) heights in metres (DSM).
@@ -80,43 +77,5 @@ def cast_shadows(surface: np.ndarray, gsd: float, azimuth: float, elevation: flo
         raise ValueError(f"sun elevation must be in (0, 90] degrees, got {elevation}")
     if elevation >= 89.999:
         return np.zeros(z.shape, dtype=bool)
-    az = math.radians(azimuth)
-    d_row, d_col = -math.cos(az), math.sin(az)  # one step towards the sun in (row, col)
-    transposed = abs(d_row) > abs(d_col)
-    if transposed:  # sweep along the dominant axis, which must be axis 1 → put it on axis 0 instead
-        z = z.T
-        d_row, d_col = d_col, d_row
-    # Now |d_col| ≥ |d_row|: each step moves one column towards the sun and `slope` rows.
-    # Sweep along columns; work on the transpose so that a column is a contiguous row.
-    zt = np.ascontiguousarray(z.T)  # (W, H): zt[c] is column c
-    n_cols, n_rows = zt.shape
-    step_c = 1 if d_col > 0 else -1
-    slope = d_row / abs(d_col)
-    drop = gsd * math.tan(math.radians(elevation)) * math.hypot(1.0, slope)
-    offsets = _digital_line_offsets(n_cols, slope * step_c)  # row of the line through (0, 0) at column c
-    shadow_surface = np.empty_like(zt)
-    order = range(n_cols - 1, -1, -1) if step_c > 0 else range(n_cols)
-    prev = None
-    prev_c = -1
-    neg = np.float32(-np.inf)
-    shifted = np.empty(n_rows, dtype=np.float32)
-    for c in order:
-        if prev is None:
-            shadow_surface[c] = zt[c]
-        else:
-            # upstream pixel of row r at column c is row r + delta at column prev_c
-            delta = int(offsets[prev_c] - offsets[c])
-            if delta == 0:
-                shifted[:] = prev
-            elif delta > 0:
-                shifted[: n_rows - delta] = prev[delta:]
-                shifted[n_rows - delta:] = neg
-            else:
-                shifted[-delta:] = prev[: n_rows + delta]
-                shifted[: -delta] = neg
-            np.maximum(zt[c], shifted - np.float32(drop), out=shadow_surface[c])
-        prev = shadow_surface[c]
-        prev_c = c
-    shadow = (shadow_surface - zt) > tolerance
-    shadow = shadow.T
-    return np.ascontiguousarray(shadow.T if transposed else shadow)
+    shadow: np.ndarray = (shadow_surface_sweep(z, gsd, azimuth, elevation) - z) > tolerance
+    return shadow

@@ -1,0 +1,30 @@
+"""Heights from the sun: shadow geometry that needs no training data.
+
+An object of height ``h`` casts a shadow ``h / tan(elevation)`` long away from the sun's azimuth, and the
+sun is one pair of numbers for a whole flight. This package (numpy and scipy only) casts shadows from known
+heights (:func:`cast_shadow_mask`), scores how shadow-like pixels look (:func:`shadow_score`,
+:class:`ShadowModel`), fits the sun on an area with reference heights (:func:`fit_sun`), measures heights
+from shadow runs next to objects (:func:`shadow_heights`) and fuses them into a height map inside objects
+only (:func:`fuse_heights`). Angles: azimuth towards the sun, clockwise from grid north; rasters north-up.
+"""
+
+from aerialmtl.sun.cast import cast_shadow_mask
+from aerialmtl.sun.colour import ShadowModel, shadow_score
+from aerialmtl.sun.fit import SunFit, fit_sun, fit_sun_patches
+from aerialmtl.sun.fusion import fuse_heights
+from aerialmtl.sun.heights import ShadowHeights, ShadowObject, shadow_heights
+from aerialmtl.sun.position import Sun
+
+__all__ = [
+    "ShadowHeights",
+    "ShadowModel",
+    "ShadowObject",
+    "Sun",
+    "SunFit",
+    "cast_shadow_mask",
+    "fit_sun",
+    "fit_sun_patches",
+    "fuse_heights",
+    "shadow_heights",
+    "shadow_score",
+]

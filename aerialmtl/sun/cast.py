@@ -1,0 +1,147 @@
+"""Cast shadows from known heights: which pixels the sun cannot see.
+
+A pixel ``p`` is in shadow when, marching towards the sun along the digital line ``p + d·u`` (``u`` the
+horizontal step towards the sun, ``d = 1, 2, ...``), some height ``h(p + d·u) − d·|u|·gsd·tan(elevation)`` rises
+above ``h(p) + tol``. Rasters are north-up (row 0 north); see :mod:`aerialmtl.sun.position` for the angles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from aerialmtl.sun.position import Sun
+
+
+def line_offsets(n: int, slope: float) -> np.ndarray:
+    """int64 (n,): integer cross-axis offset of a digital line with ``slope`` at positions ``0..n-1``."""
+    result: np.ndarray = np.floor(np.arange(n) * slope + 0.5).astype(np.int64)
+    return result
+
+
+def sun_steps(azimuth_deg: float) -> tuple[bool, int, float]:
+    """How to walk towards the sun one pixel at a time along the dominant axis.
+
+    Returns:
+        ``(rows_dominant, step, slope)``: whether the walk moves one row per step (else one column), the sign of
+        that move (+1 / −1), and the move along the other axis per step (|slope| ≤ 1, signed).
+    """
+    az = math.radians(azimuth_deg)
+    d_row, d_col = -math.cos(az), math.sin(az)
+    if abs(d_row) > abs(d_col):
+        return True, 1 if d_row > 0 else -1, d_col / abs(d_row)
+    return False, 1 if d_col > 0 else -1, d_row / abs(d_col)
+
+
+def shadow_surface_sweep(surface: np.ndarray, gsd: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """The "shadow surface" ``S(p) = max(Z(p), S(p + u) − |u|·gsd·tan(elevation))`` swept once from the sun-side edge.
+
+    ``S(p) − Z(p)`` is how far the highest occluder towards the sun rises above ``p``'s sun ray; this is the
+    O(pixels) form of the running maximum over every distance (no length limit).
+
+    Args:
+        surface: float (H, W) or a stack (N, H, W) of heights in metres (each (H, W) swept on its own).
+        gsd: pixel size in metres.
+        azimuth_deg: degrees clockwise from grid north (any value; taken modulo 360).
+        elevation_deg: degrees above the horizon, 0 < elevation < 90.
+
+    Returns:
+        float32 array of the input's shape: the shadow surface in metres.
+    """
+    z = np.asarray(surface, dtype=np.float32)
+    flat = z.ndim == 2
+    z3 = z[None] if flat else z
+    az = math.radians(azimuth_deg)
+    d_row, d_col = -math.cos(az), math.sin(az)  # one step towards the sun in (row, col)
+    transposed = abs(d_row) > abs(d_col)
+    if transposed:  # sweep along the dominant axis, which must be the column axis → swap rows and columns
+        z3 = z3.transpose(0, 2, 1)
+        d_row, d_col = d_col, d_row
+    # Now |d_col| ≥ |d_row|: each step moves one column towards the sun and `slope` rows.
+    zt = np.ascontiguousarray(z3.transpose(2, 0, 1))  # (W, N, H): zt[c] holds column c of every raster
+    n_cols, _, n_rows = zt.shape
+    step_c = 1 if d_col > 0 else -1
+    slope = d_row / abs(d_col)
+    drop = np.float32(gsd * math.tan(math.radians(elevation_deg)) * math.hypot(1.0, slope))
+    offsets = line_offsets(n_cols, slope * step_c)  # row of the line through (0, 0) at column c
+    surf = np.empty_like(zt)
+    order = range(n_cols - 1, -1, -1) if step_c > 0 else range(n_cols)
+    prev: np.ndarray | None = None
+    prev_c = -1
+    neg = np.float32(-np.inf)
+    shifted = np.empty(zt.shape[1:], dtype=np.float32)
+    for c in order:
+        if prev is None:
+            surf[c] = zt[c]
+        else:
+            # upstream pixel of row r at column c is row r + delta at column prev_c
+            delta = int(offsets[prev_c] - offsets[c])
+            if delta == 0:
+                shifted[:] = prev
+            elif delta > 0:
+                shifted[:, : n_rows - delta] = prev[:, delta:]
+                shifted[:, n_rows - delta:] = neg
+            else:
+                shifted[:, -delta:] = prev[:, : n_rows + delta]
+                shifted[:, : -delta] = neg
+            np.maximum(zt[c], shifted - drop, out=surf[c])
+        prev = surf[c]
+        prev_c = c
+    out = surf.transpose(1, 2, 0)  # (N, H', W')
+    if transposed:
+        out = out.transpose(0, 2, 1)
+    out = np.ascontiguousarray(out)
+    return out[0] if flat else out
+
+
+def _limited_occluder(z: np.ndarray, gsd: float, sun: Sun, max_length_m: float) -> np.ndarray:
+    """Highest ``Z(p + d·u) − d·|u|·gsd·tan(E)`` over ``d·|u|·gsd ≤ max_length_m`` (−inf where none); (..., H, W)."""
+    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
+    per_step = gsd * math.hypot(1.0, slope)
+    n = int(max_length_m // per_step)
+    h, w = z.shape[-2:]
+    best = np.full(z.shape, -np.inf, dtype=np.float32)
+    cross = line_offsets(n + 1, slope)
+    drop = per_step * sun.tan_elevation
+    for d in range(1, n + 1):
+        dr, dc = (step * d, int(cross[d])) if rows_dom else (int(cross[d]), step * d)
+        if abs(dr) >= h or abs(dc) >= w:
+            break
+        src = z[..., max(dr, 0): h + min(dr, 0), max(dc, 0): w + min(dc, 0)]
+        dst = best[..., max(-dr, 0): h + min(-dr, 0), max(-dc, 0): w + min(-dc, 0)]
+        np.maximum(dst, src - np.float32(d * drop), out=dst)
+    return best
+
+
+def cast_shadow_mask(height: np.ndarray, gsd_m: float, sun: Sun, tol_m: float = 0.3,
+                     max_length_m: float | None = None) -> np.ndarray:
+    """Pixels in the cast shadow of the heights at ``sun``.
+
+    Args:
+        height: float (H, W) (or a stack (N, H, W)) heights in metres (an nDSM; a DSM works too). NaN counts as
+            a height no occluder rises above and which occludes nothing.
+        gsd_m: pixel size in metres.
+        sun: the sun.
+        tol_m: metres by which an occluder must rise above the pixel's sun ray (ignores surface noise).
+        max_length_m: only occluders within this horizontal distance (metres) count; ``None``: any distance
+            (one sweep, O(pixels)); a limit costs O(pixels × length / gsd).
+
+    Returns:
+        bool array of ``height``'s shape, True in shadow (also the self-shadow of surfaces steeper than the
+        sun). Only objects inside the raster cast shadows.
+    """
+    z = np.asarray(height, dtype=np.float32)
+    nan = np.isnan(z)
+    if nan.any():
+        z = np.where(nan, np.float32(-np.inf), z)
+    if max_length_m is None:
+        surf = shadow_surface_sweep(z, gsd_m, sun.azimuth_deg, sun.elevation_deg)
+        with np.errstate(invalid="ignore"):
+            shadow = (surf - z) > np.float32(tol_m)
+    else:
+        occ = _limited_occluder(z, gsd_m, sun, float(max_length_m))
+        with np.errstate(invalid="ignore"):
+            shadow = (occ - z) > np.float32(tol_m)
+    shadow &= ~nan
+    return shadow

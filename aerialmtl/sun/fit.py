@@ -1,0 +1,199 @@
+"""Fit the sun on an area with reference heights: the (azimuth, elevation) whose cast shadows best match the image.
+
+Objective: Pearson correlation, over ground pixels (reference height < ``ground_m``), between the image's
+:func:`~aerialmtl.sun.colour.shadow_score` and the cast-shadow mask of the heights at a candidate sun
+(a point-biserial correlation). Rank (AUC) and best-threshold-overlap objectives were dropped: they prefer
+very small or very large masks (design note ``heights-from-shadows``). Search: a coarse grid (10° azimuth ×
+5° elevation), then 2° × 1° and 0.5° × 0.25° grids around the best point.
+
+**Sharpness** = ``(r* − r30) / r*``, where ``r*`` is the correlation at the optimum and ``r30`` the best
+correlation of the coarse grid at azimuths 30° or more from the optimum (any elevation): 0 = another
+direction explains the shadows as well, 1 = nothing else explains them at all. A fit is **clear** when
+``r* ≥ min_score``, sharpness ≥ ``min_sharpness`` and the elevation is not at the edge of the searched range.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from aerialmtl.errors import InputError
+from aerialmtl.sun._patches import ArrayOrList, as_patches
+from aerialmtl.sun.cast import cast_shadow_mask
+from aerialmtl.sun.colour import shadow_score
+from aerialmtl.sun.position import Sun
+
+#: Reference heights below this (metres) are ground where the correlation is taken.
+GROUND_M = 0.5
+#: Defaults of a clear fit: the least correlation and the least sharpness.
+MIN_SCORE = 0.1
+MIN_SHARPNESS = 0.08
+#: Azimuth distance (degrees) of the alternative the sharpness compares with.
+SHARPNESS_AWAY_DEG = 30.0
+
+
+@dataclass(frozen=True)
+class SunFit:
+    """The outcome of :func:`fit_sun`.
+
+    Attributes:
+        sun: the fitted sun, or ``None`` when there is no clear optimum (the feature must switch off).
+        score: correlation at the optimum (−1…1; NaN when no sun casts any shadow on ground).
+        sharpness: ``(r* − r30) / r*`` (see the module docstring), 0…1 (NaN when undefined).
+        clear: whether the optimum is clear (``sun`` is then set).
+        reason: one line for the user: the sun and how sharp, or why none.
+        best: the optimum even when it is not clear (diagnostics), ``None`` when nothing cast a shadow.
+    """
+
+    sun: Sun | None
+    score: float
+    sharpness: float
+    clear: bool
+    reason: str
+    best: Sun | None = None
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain JSON/YAML types (suns as dicts or ``None``, NaN as ``None``)."""
+        return {"sun": None if self.sun is None else self.sun.to_dict(), "score": _num(self.score),
+                "sharpness": _num(self.sharpness), "clear": bool(self.clear), "reason": str(self.reason),
+                "best": None if self.best is None else self.best.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, object]) -> SunFit:
+        """Inverse of :meth:`to_dict`."""
+        def sun(v: object) -> Sun | None:
+            return None if v is None else Sun.from_dict(v)  # type: ignore[arg-type]
+
+        def num(v: object) -> float:
+            return math.nan if v is None else float(v)  # type: ignore[arg-type]
+
+        try:
+            return cls(sun=sun(d["sun"]), score=num(d["score"]), sharpness=num(d["sharpness"]),
+                       clear=bool(d["clear"]), reason=str(d["reason"]), best=sun(d.get("best")))
+        except KeyError as exc:
+            raise InputError(f"not a sun-fit record: missing {exc}; keys {sorted(d)}") from exc
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+class _Objective:
+    """Correlation of the shadow score with the cast-shadow mask over ground pixels, for any sun; patches of one
+    shape are stacked so that one sweep casts the shadows of all of them.
+    """
+
+    def __init__(self, rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, valid: ArrayOrList | None,
+                 ground_m: float) -> None:
+        self.gsd = float(gsd_m)
+        groups: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+        n = s1 = s2 = 0.0
+        for im, h, ok in as_patches(rgb, height, valid):
+            s = shadow_score(im).astype(np.float64)
+            ground = ok & (h < ground_m)
+            groups.setdefault(h.shape, []).append((h, s, ground))
+            n += float(ground.sum())
+            s1 += float(s[ground].sum())
+            s2 += float((s[ground] ** 2).sum())
+        self.stacks = [(np.stack([h for h, _, _ in g]), np.stack([np.where(gr, s, 0.0) for _, s, gr in g]),
+                        np.stack([gr for _, _, gr in g])) for g in groups.values()]
+        self.n, self.s1 = n, s1
+        self.var = s2 - s1 * s1 / n if n > 0 else 0.0
+        self.cache: dict[tuple[float, float], float] = {}
+
+    def __call__(self, az: float, el: float) -> float:
+        key = (round(az % 360.0, 4), round(el, 4))
+        if key not in self.cache:
+            self.cache[key] = self._corr(Sun(*key))
+        return self.cache[key]
+
+    def _corr(self, sun: Sun) -> float:
+        m1 = sm = 0.0
+        for h, s, ground in self.stacks:
+            mask = cast_shadow_mask(h, self.gsd, sun) & ground
+            m1 += float(mask.sum())
+            sm += float(s[mask].sum())
+        var_m = m1 - m1 * m1 / self.n if self.n > 0 else 0.0
+        if var_m <= 0 or self.var <= 0:
+            return math.nan
+        return (sm - self.s1 * m1 / self.n) / math.sqrt(self.var * var_m)
+
+
+def _grid(f: _Objective, azs: Sequence[float], els: Sequence[float]) -> tuple[float, float, float]:
+    best = (-math.inf, 0.0, 0.0)
+    for el in els:
+        for az in azs:
+            r = f(az, el)
+            if math.isfinite(r) and r > best[0]:
+                best = (r, az % 360.0, el)
+    return best
+
+
+def _span(centre: float, half: float, step: float, lo: float = -math.inf, hi: float = math.inf) -> list[float]:
+    k = int(round(half / step))
+    return [v for v in (centre + i * step for i in range(-k, k + 1)) if lo <= v <= hi]
+
+
+def fit_sun(rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, valid: ArrayOrList | None = None, *,
+            elevation_range: tuple[float, float] = (10.0, 80.0), min_score: float = MIN_SCORE,
+            min_sharpness: float = MIN_SHARPNESS, ground_m: float = GROUND_M) -> SunFit:
+    """Fit the sun on an area whose heights above ground are known.
+
+    Args:
+        rgb: (3, H, W) image (uint8 or float 0–1), or a sequence of such patches.
+        height: float (H, W) reference heights above ground in metres (NaN = invalid), or a sequence (one per
+            patch, same shapes as the images).
+        gsd_m: pixel size in metres (every patch).
+        valid: optional bool (H, W) mask(s) of usable pixels (and-ed with finite heights).
+        elevation_range: elevations searched, degrees; an optimum at either end is not clear.
+        min_score, min_sharpness: what makes a fit clear (module docstring).
+        ground_m: heights below this are ground pixels, where the correlation is taken.
+
+    Returns:
+        :class:`SunFit`; ``sun`` is ``None`` unless the optimum is clear.
+    """
+    lo, hi = elevation_range
+    if not 0.0 < lo < hi < 90.0:
+        raise InputError(f"‹elevation_range› must be (lo, hi) with 0 < lo < hi < 90 degrees, got {elevation_range}",
+                         param="elevation_range")
+    f = _Objective(rgb, height, gsd_m, valid, ground_m)
+    coarse_az = [10.0 * i for i in range(36)]
+    coarse_el = _span((lo + hi) / 2, (hi - lo) / 2, 5.0, lo, hi) or [lo, hi]
+    r0, az0, el0 = _grid(f, coarse_az, coarse_el)
+    if not math.isfinite(r0):
+        return SunFit(None, math.nan, math.nan, False, "no sun fitted: the heights cast no shadow on ground pixels "
+                      "at any sun (a flat area, or no valid ground pixels)")
+    r1, az1, el1 = _grid(f, _span(az0, 10.0, 2.0), _span(el0, 5.0, 1.0, lo, hi))
+    r, az, el = _grid(f, _span(az1, 2.0, 0.5), _span(el1, 1.0, 0.25, lo, hi))
+    best = Sun(round(az % 360.0, 4), el)
+    far = [v for (a, _), v in f.cache.items()
+           if math.isfinite(v) and abs((a - best.azimuth_deg + 180.0) % 360.0 - 180.0) >= SHARPNESS_AWAY_DEG]
+    r_far = max(far) if far else -math.inf
+    sharp = (r - r_far) / r if r > 0 and math.isfinite(r_far) else (1.0 if r > 0 else 0.0)
+    at_edge = el <= lo + 0.5 or el >= hi - 0.5
+    desc = (f"best azimuth {best.azimuth_deg:.0f}°, elevation {best.elevation_deg:.0f}° scores r = {r:.2f}, "
+            f"the best sun {SHARPNESS_AWAY_DEG:.0f}° or more of azimuth away {r_far:.2f} (sharpness {sharp:.2f})")
+    if r < min_score:
+        reason = (f"no sun fitted: the image's shadows do not follow the heights ({desc}, under {min_score}): "
+                  "overcast light, a mosaic of flights, or heights that do not match the image")
+    elif sharp < min_sharpness:
+        reason = (f"no sun fitted: no clear optimum ({desc}, under {min_sharpness}): a sun near the zenith, "
+                  "or too few shadows")
+    elif at_edge:
+        reason = (f"no sun fitted: the optimum lies at the edge of the searched elevations {lo:g}–{hi:g}° ({desc})")
+    else:
+        return SunFit(best, r, sharp, True, f"sun fitted: azimuth {best.azimuth_deg:.0f}°, elevation "
+                      f"{best.elevation_deg:.0f}° (r = {r:.2f}; sharp: the best sun {SHARPNESS_AWAY_DEG:.0f}° or "
+                      f"more of azimuth away scores {r_far:.2f}, sharpness {sharp:.2f})", best)
+    return SunFit(None, r, sharp, False, reason, best)
+
+
+def fit_sun_patches(patches: Sequence[tuple[np.ndarray, ...]], gsd_m: float, **options: object) -> SunFit:
+    """:func:`fit_sun` on a sequence of ``(rgb, height)`` or ``(rgb, height, valid)`` tuples."""
+    rgbs = [p[0] for p in patches]
+    heights = [p[1] for p in patches]
+    valids = [p[2] if len(p) > 2 else np.ones(np.shape(p[1]), bool) for p in patches]
+    return fit_sun(rgbs, heights, gsd_m, valids, **options)  # type: ignore[arg-type]

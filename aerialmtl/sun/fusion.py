@@ -1,0 +1,63 @@
+"""Fuse shadow heights into a height map, inside objects only, weighted by both spreads."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from aerialmtl.errors import InputError
+from aerialmtl.sun.heights import ShadowHeights
+
+#: Least shadow spread used as a weight, metres (a zero spread would override the network entirely).
+MIN_SHADOW_STD_M = 0.1
+
+
+def fuse_heights(height: np.ndarray, std: np.ndarray, shadow: ShadowHeights,
+                 objects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Move each measured object's heights towards its shadow height, in proportion to the two spreads.
+
+    Per object with a shadow height ``hs ± ss``: ``h_obj`` = median network height over the object; each pixel
+    ``p`` gets the shadow's estimate of it under the object's own shape, ``hs_p = hs · h(p) / h_obj`` (spread
+    ``ss_p = ss · h(p) / h_obj``), and the inverse-variance mean of ``h(p) ± s(p)`` and ``hs_p ± ss_p``, with
+    weights ``w = 1 / s²``: ``h_f = (w1·h + w2·hs_p) / (w1 + w2)``. Its spread is the spread of that two-part
+    mixture, ``s_f² = 1 / (w1 + w2) + w1·w2·(h − hs_p)² / (w1 + w2)²``: it grows with the disagreement.
+
+    Args:
+        height: float (H, W) network heights, metres (NaN = nodata).
+        std: float (H, W) their spread, metres.
+        shadow: :func:`~aerialmtl.sun.shadow_heights` of the same objects.
+        objects: int (H, W) object labels (0 = none), those given to :func:`~aerialmtl.sun.shadow_heights`.
+
+    Returns:
+        ``(height, std)`` float32 (H, W). Pixels outside objects, in objects without a shadow height, and where
+        the height or spread is NaN or the spread ≤ 0 keep the network's values exactly.
+    """
+    h = np.asarray(height, dtype=np.float32)
+    s = np.asarray(std, dtype=np.float32)
+    labels = np.asarray(objects)
+    if not h.shape == s.shape == labels.shape == shadow.height.shape:
+        raise InputError(f"‹height›, ‹std›, ‹objects› and the shadow heights must share one (H, W) shape, got "
+                         f"{h.shape}, {s.shape}, {labels.shape} and {shadow.height.shape}")
+    out_h, out_s = h.copy(), s.copy()
+    hs_all, ss_all = shadow.height, shadow.std
+    use = (labels != 0) & np.isfinite(hs_all) & np.isfinite(ss_all) & np.isfinite(h) & np.isfinite(s) & (s > 0)
+    if not use.any():
+        return out_h, out_s
+    lab = labels[use]
+    hp, sp = h[use].astype(np.float64), s[use].astype(np.float64)
+    hs, ss = hs_all[use].astype(np.float64), np.maximum(ss_all[use].astype(np.float64), MIN_SHADOW_STD_M)
+    order = np.argsort(lab, kind="stable")
+    uniq, first = np.unique(lab[order], return_index=True)
+    bounds = np.append(first, len(order))
+    h_obj = np.empty(len(lab))
+    for i in range(len(uniq)):
+        idx = order[bounds[i]: bounds[i + 1]]
+        h_obj[idx] = np.median(hp[idx])
+    ok = h_obj > 0
+    ratio = np.where(ok, hp / np.where(ok, h_obj, 1.0), 1.0)
+    hs_p, ss_p = hs * ratio, np.maximum(ss * ratio, MIN_SHADOW_STD_M)
+    w1, w2 = 1.0 / sp ** 2, 1.0 / ss_p ** 2
+    fused = (w1 * hp + w2 * hs_p) / (w1 + w2)
+    var = 1.0 / (w1 + w2) + w1 * w2 * (hp - hs_p) ** 2 / (w1 + w2) ** 2
+    out_h[use] = np.where(ok, fused, hp).astype(np.float32)
+    out_s[use] = np.where(ok, np.sqrt(var), sp).astype(np.float32)
+    return out_h, out_s

@@ -1,0 +1,98 @@
+"""The sun from the acquisition time and place, in the raster's grid.
+
+The position comes from pvlib's implementation of NREL's Solar Position Algorithm (Reda & Andreas 2004;
+±0.0003° over the years −2000 to 6000), imported only when a time is known. Angles follow the STAC *view*
+extension: ``view:sun_azimuth`` clockwise from **true** north, ``view:sun_elevation`` above the horizon. Shadows
+are cast on the raster's grid, whose north (the rows' up) differs from true north by the projection's grid
+convergence (up to a few degrees at the edge of a UTM zone; :func:`grid_convergence_deg`); :func:`to_grid`
+turns one into the other.
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime, timezone
+
+from aerialmtl.errors import InputError
+
+#: Below this elevation (degrees) shadows are too long and too dim to measure: the feature is off.
+MIN_ELEVATION_DEG = 5.0
+
+
+def parse_time(text: str, what: str = "--acquired") -> datetime:
+    """An ISO 8601 time (``2019-06-21T16:45:00Z``, ``2019-06-21 09:45-07:00``; a date alone is not enough) or a
+    TIFF ``DateTime`` (``2019:06:21 16:45:00``, which has no time zone) → an aware UTC datetime.
+
+    A time without a zone is read as UTC; the caller says so where it matters (:func:`has_zone`).
+
+    Raises:
+        InputError: not a time of day (names ``what``, the value and the expected form).
+    """
+    raw = text.strip()
+    candidate = raw
+    if len(raw) >= 19 and raw[4] == ":" and raw[7] == ":":  # TIFF DateTime "YYYY:MM:DD HH:MM:SS"
+        candidate = raw[:4] + "-" + raw[5:7] + "-" + raw[8:]
+    candidate = candidate.replace("Z", "+00:00").replace("z", "+00:00")
+    try:
+        when = datetime.fromisoformat(candidate)
+    except ValueError:
+        when = None
+    if when is None or len(candidate) <= 10:
+        raise InputError(f"{what}: {text!r} is not a time of day; give the acquisition time as ISO 8601, e.g. "
+                         "2019-06-21T16:45:00Z (UTC) or 2019-06-21T09:45:00-07:00", param="acquired")
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=timezone.utc)
+    return when.astimezone(timezone.utc)
+
+
+def has_zone(text: str) -> bool:
+    """Whether time ``text`` names its time zone (``Z`` or an offset); TIFF ``DateTime`` never does."""
+    t = text.strip()
+    return t.endswith(("Z", "z")) or (len(t) > 19 and t[-6] in "+-" and t[-3] == ":")
+
+
+def sun_position(when: datetime, lon: float, lat: float) -> tuple[float, float]:
+    """``(azimuth, elevation)`` in degrees of the sun seen from (``lon``, ``lat``, WGS 84 degrees) at ``when``:
+    azimuth clockwise from true north in [0, 360), elevation above the horizon with atmospheric refraction.
+    """
+    import pandas as pd
+    from pvlib import solarposition
+
+    stamp = pd.DatetimeIndex([when.astimezone(timezone.utc)])
+    pos = solarposition.get_solarposition(stamp, lat, lon, method="nrel_numpy")
+    return float(pos["azimuth"].iloc[0]) % 360.0, float(pos["apparent_elevation"].iloc[0])
+
+
+def grid_convergence_deg(crs: object, x: float, y: float) -> float:
+    """Azimuth of true north on the grid of ``crs`` at map point (``x``, ``y``), degrees clockwise from the
+    grid's north: 0 where the grid follows the meridian, negative east of a UTM zone's central meridian (true
+    north leans west of the grid's there).
+    """
+    from rasterio.crs import CRS
+    from rasterio.warp import transform
+
+    src = CRS.from_user_input(crs)
+    if src.is_geographic:
+        return 0.0
+    (lon,), (lat,) = transform(src, "EPSG:4326", [x], [y])
+    step = 1e-4 if lat < 89.9 else -1e-4
+    (x2,), (y2,) = transform("EPSG:4326", src, [lon], [lat + step])
+    angle = math.degrees(math.atan2(x2 - x, y2 - y))
+    return angle if step > 0 else angle + 180.0
+
+
+def to_grid(azimuth_true_deg: float, convergence_deg: float) -> float:
+    """A true-north azimuth as an azimuth clockwise from the grid's north (see :func:`grid_convergence_deg`)."""
+    return (azimuth_true_deg + convergence_deg) % 360.0
+
+
+def lonlat(crs: object, x: float, y: float) -> tuple[float, float]:
+    """WGS 84 ``(lon, lat)`` of map point (``x``, ``y``) in ``crs``."""
+    from rasterio.warp import transform
+
+    (lon,), (lat,) = transform(crs, "EPSG:4326", [x], [y])
+    return float(lon), float(lat)
+
+
+__all__ = ["MIN_ELEVATION_DEG", "grid_convergence_deg", "has_zone", "lonlat", "parse_time", "sun_position",
+           "to_grid"]

@@ -1,0 +1,173 @@
+"""The training area's sun, fitted after training and stored in the checkpoint (``meta.sun``).
+
+In a sunlit orthophoto an object of height h casts a shadow h / tan(elevation) long away from the sun, and the
+sun is one pair of angles for a whole flight. After training, :func:`sun_checkpoint` pieces the tile folder's
+training patches back into one mosaic (orthophoto and reference heights on the tile grid), fits the sun on it
+(:func:`aerialmtl.sun.fit_sun`: the sun whose cast shadows best follow how shadow-like the ground looks), fits
+the area's shadow classifier at that sun (:class:`aerialmtl.sun.ShadowModel`: the cast shadows of the reference
+heights are its labels, so water and dark roofs are learnt not to be shadows) and stores both with the
+training area's footprint (:class:`~aerialmtl.sun.record.TrainingSun`). ``predict --sun auto`` uses them for an
+orthophoto of the same flight (:mod:`aerialmtl.inference.sun_choice`). A fit without a clear optimum
+(overcast, a sun near the zenith, no tall structures) is stored as such and switches the feature off.
+Training patches only: no validation or test pixel takes part.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import rasterio
+
+from aerialmtl.data.dataset import read_raw_patch
+from aerialmtl.errors import InputError
+from aerialmtl.formats.checkpoint import load_checkpoint, load_model, save_checkpoint
+from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
+from aerialmtl.sun import ShadowModel, fit_sun
+from aerialmtl.sun.record import TrainingSun
+from aerialmtl.sun.solar_position import grid_convergence_deg, lonlat, parse_time, sun_position
+
+log = logging.getLogger(__name__)
+
+#: The largest training mosaic pieced together for the fit (pixels); a larger area is fitted on a sample of
+#: its patches (shadows clipped at patch edges then count as noise).
+MAX_MOSAIC_PIXELS = 64_000_000
+#: Patches fitted on at most when the mosaic would be larger (a seeded sample).
+MAX_PATCHES = 2000
+
+
+@dataclasses.dataclass
+class AreaImage:
+    """The training split as one mosaic: ``rgb`` uint8 (3, H, W), ``height`` float32 (H, W) metres (NaN
+    invalid), ``valid`` bool (H, W); ``crs`` and ``bounds`` (left, bottom, right, top) of the area; ``gsd`` m/px.
+    Several mosaics (a list) when the area is too large for one.
+    """
+
+    rgb: list[np.ndarray]
+    height: list[np.ndarray]
+    valid: list[np.ndarray]
+    gsd: float
+    crs: str | None
+    bounds: tuple[float, float, float, float] | None
+
+
+def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
+    """The ``split`` patches of tile folder ``data_dir`` pieced together on the tile grid (see :class:`AreaImage`).
+
+    Raises:
+        InputError: not 8-bit RGB patches with heights, or no patch in ``split``.
+    """
+    root = Path(data_dir)
+    info = TileFolderInfo.read(root)
+    if info.num_bands < 3 or info.dtype not in (None, "uint8") or "height" not in info.tasks:
+        raise InputError(f"sun: the tile folder '{root}' holds {info.num_bands}-band {info.dtype} patches with "
+                         f"tasks {list(info.tasks)}; the sun is fitted on 8-bit RGB patches with heights")
+    rows = read_manifest(root, split)
+    if not rows:
+        raise InputError(f"sun: the tile folder '{root}' has no '{split}' patches")
+    cols = [int(r["col_off"]) for r in rows]
+    rws = [int(r["row_off"]) for r in rows]
+    c0, r0 = min(cols), min(rws)
+    w = max(c + int(r["width"]) for c, r in zip(cols, rows)) - c0
+    h = max(q + int(r["height"]) for q, r in zip(rws, rows)) - r0
+    left = min(float(r["left"]) for r in rows)
+    bottom = min(float(r["bottom"]) for r in rows)
+    right = max(float(r["right"]) for r in rows)
+    top = max(float(r["top"]) for r in rows)
+    area = AreaImage([], [], [], float(info.gsd), info.crs, (left, bottom, right, top))
+    if w * h <= MAX_MOSAIC_PIXELS:
+        rgb = np.zeros((3, h, w), np.uint8)
+        height = np.full((h, w), np.nan, np.float32)
+        valid = np.zeros((h, w), bool)
+        for row, c, q in zip(rows, cols, rws):
+            p = read_raw_patch(root, row, info.num_bands, ("height",))
+            s = np.s_[q - r0:q - r0 + p.image.shape[1], c - c0:c - c0 + p.image.shape[2]]
+            rgb[:, s[0], s[1]] = p.image[:3]
+            if p.height is not None:
+                height[s] = p.height
+            valid[s] |= p.image_valid
+        area.rgb, area.height, area.valid = [rgb], [height], [valid]
+    else:
+        pick = np.random.default_rng(0).permutation(len(rows))[:MAX_PATCHES]
+        for i in sorted(pick):
+            p = read_raw_patch(root, rows[i], info.num_bands, ("height",))
+            area.rgb.append(np.ascontiguousarray(p.image[:3], np.uint8))
+            area.height.append(p.height if p.height is not None else np.full(p.image_valid.shape, np.nan, np.float32))
+            area.valid.append(p.image_valid)
+    return area
+
+
+def _acquired(info: TileFolderInfo) -> str | None:
+    """The training orthophoto's TIFF ``DateTime`` (as written), where the file is still there and has one."""
+    path = info.provenance.get("ortho")
+    if not path or not Path(str(path)).is_file():
+        return None
+    try:
+        with rasterio.open(str(path)) as src:
+            stamp = src.tags().get("TIFFTAG_DATETIME")
+        return str(stamp) if stamp else None
+    except rasterio.errors.RasterioError:
+        return None
+
+
+def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
+    """Fit the sun and the shadow classifier on ``data_dir``'s ``split`` (see the module docstring)."""
+    area = training_area(data_dir, split)
+    fit = fit_sun(area.rgb, area.height, area.gsd, area.valid)
+    base = {"crs": area.crs, "bounds": area.bounds}
+    if not fit.clear or fit.sun is None or area.crs is None or area.bounds is None:
+        return TrainingSun(clear=False, reason=fit.reason, score=_finite(fit.score), sharpness=_finite(fit.sharpness),
+                           **base)  # type: ignore[arg-type]
+    x = (area.bounds[0] + area.bounds[2]) / 2.0
+    y = (area.bounds[1] + area.bounds[3]) / 2.0
+    convergence = grid_convergence_deg(area.crs, x, y)
+    true_az = (fit.sun.azimuth_deg - convergence) % 360.0
+    try:
+        shadows = ShadowModel().fit(area.rgb, area.height, area.gsd, fit.sun, area.valid)
+        model = shadows.to_dict()
+    except InputError as exc:
+        return TrainingSun(clear=False, reason=f"no shadow model: {exc}", score=fit.score, sharpness=fit.sharpness,
+                           **base)  # type: ignore[arg-type]
+    reason = fit.reason
+    acquired, time_sun = None, None
+    stamp = _acquired(TileFolderInfo.read(data_dir))
+    if stamp:
+        try:
+            when = parse_time(stamp, "the training orthophoto's DateTime")
+            lon, lat = lonlat(area.crs, x, y)
+            time_sun = sun_position(when, lon, lat)
+            acquired = when.isoformat().replace("+00:00", "Z")
+            d = max(abs((time_sun[0] - true_az + 180.0) % 360.0 - 180.0), abs(time_sun[1] - fit.sun.elevation_deg))
+            if d > 10.0:
+                log.warning("the training orthophoto's DateTime %s gives a sun (azimuth %.1f°, elevation %.1f°) %.0f° "
+                            "from the one its shadows show (azimuth %.1f°, elevation %.1f°): the fit is kept (a "
+                            "DateTime is often when the file was written)", acquired, *time_sun, d, true_az,
+                            fit.sun.elevation_deg)
+        except InputError:
+            pass
+    return TrainingSun(clear=True, reason=reason, azimuth_deg=round(true_az, 4), elevation_deg=fit.sun.elevation_deg,
+                       grid_azimuth_deg=fit.sun.azimuth_deg, score=fit.score, sharpness=fit.sharpness,
+                       acquired=acquired, time_sun=time_sun, shadow_model=model, **base)  # type: ignore[arg-type]
+
+
+def _finite(v: float) -> float:
+    return float(v) if np.isfinite(v) else 0.0
+
+
+def store_sun(path: str | Path, sun: TrainingSun, out: str | Path | None = None) -> None:
+    """Store ``sun`` in checkpoint ``path`` (or write the checkpoint with it to ``out``); weights unchanged."""
+    payload, meta = load_checkpoint(path)
+    model, _ = load_model(path)
+    save_checkpoint(out or path, model, dataclasses.replace(meta, sun=sun), payload.get("train_state"))
+
+
+def sun_checkpoint(path: str | Path, data_dir: str | Path, out: str | Path | None = None) -> TrainingSun:
+    """Fit the training area's sun (:func:`fit_training_sun`) and store it in checkpoint ``path`` (or ``out``)."""
+    sun = fit_training_sun(data_dir)
+    store_sun(path, sun, out)
+    return sun
+
+
+__all__ = ["AreaImage", "fit_training_sun", "store_sun", "sun_checkpoint", "training_area"]
