@@ -108,7 +108,7 @@ def problems(html: str) -> list[str]:
 FIGURES_DIR = "images/built"
 #: The synthetic towns of the site's pictures: the demo's pipeline and network (``aerialmtl demo``), smaller
 #: towns (pixels of 0.25 m) and a short training, validated once at its end.
-DOCS_TOWN = {"train_size": 384, "test_size": 256, "patch": 64, "stride": 32, "steps": 80, "mc": 8}
+DOCS_TOWN = {"train_size": 384, "test_size": 256, "patch": 64, "stride": 32, "steps": 100, "mc": 8}
 #: The small-area recipe on samples/autzen_west, shortened for the site: patches, stride, steps, MC samples.
 DOCS_AREA = {"size": 64, "stride": 32, "steps": 80, "mc": 8}
 #: The figures :func:`site_figures` makes.
@@ -149,7 +149,7 @@ def products_figure(pred_dir: Path, ortho: Path, title: str, crop_to_valid: bool
     import rasterio
     from rasterio.enums import Resampling
 
-    from aerialmtl.evaluation.maps import add_class_legend, add_colorbar, layer_cmap, load_prediction_maps
+    from aerialmtl.evaluation.maps import layer_cmap, load_prediction_maps
     from aerialmtl.formats.prediction import UNFAMILIARITY, PredictionFolder
 
     maps = load_prediction_maps(pred_dir, ortho=ortho, max_side=900)
@@ -167,8 +167,9 @@ def products_figure(pred_dir: Path, ortho: Path, title: str, crop_to_valid: bool
     crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1)) if crop_to_valid else \
         (slice(None), slice(None))
     h, w = maps.layers["height"][crop].shape
-    side = 3.2
-    fig, axes = plt.subplots(1, len(panels), figsize=(side * 1.32 * len(panels), side * h / w + 0.6))
+    side = 3.0
+    fig, axes = plt.subplots(1, len(panels), figsize=(side * 1.2 * len(panels), side * h / w + 1.3),
+                             layout="constrained")
     for ax, (name, data, key) in zip(axes, panels, strict=True):
         ax.set_axis_off()
         ax.set_title(name, fontsize=10)
@@ -181,31 +182,35 @@ def products_figure(pred_dir: Path, ortho: Path, title: str, crop_to_valid: bool
             k = maps.scheme.num_classes
             ax.imshow(np.ma.masked_greater_equal(data[crop], k), interpolation="nearest", vmin=-0.5, vmax=k - 0.5,
                       cmap=ListedColormap(np.array(maps.scheme.colors, float) / 255))
-            add_class_legend(ax, maps.scheme, fontsize=7)
+            from matplotlib.patches import Patch
+
+            ax.legend(handles=[Patch(facecolor=np.array(c) / 255, edgecolor="k", label=n)
+                               for c, n in zip(maps.scheme.colors, maps.scheme.names, strict=True)],
+                      loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2, fontsize=7, frameon=False)
         else:
             vals = data[np.isfinite(data)]
             vmax = float(np.percentile(vals, 99)) if vals.size else 1.0
             im = ax.imshow(np.ma.masked_invalid(data[crop]), cmap=layer_cmap(key), vmin=0, vmax=vmax or 1.0,
                            interpolation="nearest")
-            add_colorbar(ax, im, key, label="higher = less like training" if key == UNFAMILIARITY else name)
+            bar = fig.colorbar(im, ax=ax, orientation="horizontal", fraction=0.05, pad=0.03)
+            bar.set_label("higher = less like training" if key == UNFAMILIARITY else name, fontsize=8)
+            bar.ax.tick_params(labelsize=7)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
     return fig
 
 
 def _short_training(tiles: Path, out: Path, steps: int) -> Any:
-    """The demo's network and recipe (:data:`aerialmtl.demo.DemoSettings`), trained ``steps`` steps on ``tiles``
-    with one validation at the end and no calibration (too few validation patches to fit one).
+    """The demo's network (``aerialmtl demo``'s built-in config), trained ``steps`` steps on ``tiles`` at a constant
+    learning rate, without the demo's weight average (over so few steps it would keep the first, untrained
+    weights), with one validation at the end and no calibration (too few validation patches to fit one).
     """
-    from aerialmtl.demo import DEMO_CONFIG, DemoSettings, builtin_config
+    from aerialmtl.demo import DEMO_CONFIG, builtin_config
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.loop import train
 
-    d = DemoSettings()
     cfg = load_train_config(builtin_config(DEMO_CONFIG)).with_overrides(
-        data={"num_workers": 0}, calibration={"enabled": False}, seed=0, optim={"lr": d.lr, "ema": d.ema},
-        schedule={"max_time_s": None, "max_steps": steps, "val_every": 10_000, "lr_schedule": d.lr_schedule,
-                  "warmup_steps": min(d.warmup_steps, steps // 4)})
+        data={"num_workers": 0}, calibration={"enabled": False}, seed=0, optim={"lr": 2e-3, "ema": None},
+        schedule={"max_time_s": None, "max_steps": steps, "val_every": 10_000, "lr_schedule": "constant"})
     return train(cfg, data_dir=tiles, out_dir=out, max_steps=steps, progress=False)
 
 
@@ -235,7 +240,7 @@ def styled_figure(pred_dir: Path, title: str) -> Any:
 
     names = [n for n in ("height", "height_std", "classes", "class_entropy", "unfamiliarity")
              if (pred_dir / f"{n}.tif").exists() and (pred_dir / f"{n}.qml").exists()]
-    fig, axes = plt.subplots(1, len(names), figsize=(3.3 * len(names), 3.6))
+    fig, axes = plt.subplots(1, len(names), figsize=(3.0 * len(names), 4.0), layout="constrained")
     for ax, name in zip(np.atleast_1d(axes), names, strict=True):
         values, colors, labels = _qml_colors(pred_dir / f"{name}.qml")
         with rasterio.open(pred_dir / f"{name}.tif") as src:
@@ -257,7 +262,6 @@ def styled_figure(pred_dir: Path, title: str) -> Any:
         ax.set_title(f"{name}.tif", fontsize=9)
         ax.set_axis_off()
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
     return fig
 
 
