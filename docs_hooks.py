@@ -167,10 +167,15 @@ def products_figure(pred_dir: Path, ortho: Path, title: str, crop_to_valid: bool
     crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1)) if crop_to_valid else \
         (slice(None), slice(None))
     h, w = maps.layers["height"][crop].shape
-    side = 3.0
-    fig, axes = plt.subplots(1, len(panels), figsize=(side * 1.2 * len(panels), side * h / w + 1.3),
-                             layout="constrained")
-    for ax, (name, data, key) in zip(axes, panels, strict=True):
+    cols = 3 if len(panels) > 4 else 2  # two rows: panels wide enough to read in the text column
+    rows = -(-len(panels) // cols)
+    side = 3.6
+    fig, grid = plt.subplots(rows, cols, figsize=(side * cols, rows * (side * h / w + 0.9) + 0.4),
+                             layout="constrained", squeeze=False)
+    axes = grid.ravel()
+    for ax in axes[len(panels):]:
+        ax.set_axis_off()
+    for ax, (name, data, key) in zip(axes, panels, strict=False):
         ax.set_axis_off()
         ax.set_title(name, fontsize=10)
         if key == "":
@@ -186,7 +191,7 @@ def products_figure(pred_dir: Path, ortho: Path, title: str, crop_to_valid: bool
 
             ax.legend(handles=[Patch(facecolor=np.array(c) / 255, edgecolor="k", label=n)
                                for c, n in zip(maps.scheme.colors, maps.scheme.names, strict=True)],
-                      loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2, fontsize=7, frameon=False)
+                      loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
         else:
             vals = data[np.isfinite(data)]
             vmax = float(np.percentile(vals, 99)) if vals.size else 1.0
