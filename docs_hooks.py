@@ -296,8 +296,8 @@ def town_figures(out: Path) -> dict[str, bytes]:
     scores = (f"height MAE {report['height']['mae']:.2f} m, classes OA "
               f"{report['classes']['overall_accuracy']:.2f}")
     RUN_NOTES["town"] = f"synthetic town, {t['steps']} steps: {scores}"
-    title = (f"aerialmtl predict on a synthetic test town ({t['test_size']} × {t['test_size']} px of 0.25 m; "
-             f"the demo's network after {t['steps']} training steps, T = {t['mc']}): {scores}")
+    title = (f"a synthetic test town, {t['test_size']} × {t['test_size']} px of 0.25 m: {scores}\n"
+             f"the demo's network after {t['steps']} training steps, T = {t['mc']} MC-dropout samples")
     overview = preview_figure(test.ortho, pred, test.ndsm, test.labels)
     return {"demo_maps.png": _png(products_figure(pred, test.ortho, title), 72),
             "demo_overview.png": _png(overview, 48),
@@ -329,9 +329,8 @@ def area_figures(work: Path) -> dict[str, bytes]:
     h = report["height"]
     RUN_NOTES["area"] = (f"autzen_west, {a['steps']} steps: held-out block height MAE {h['mae']:.2f} m, "
                          f"RMSE {h['rmse']:.2f} m ({h['n_pixels']} px)")
-    title = (f"the held-out block of samples/autzen_west at 1 m: the demo's small network with the recipe's "
-             f"aleatoric head after {a['steps']} training steps (the recipe: 600 steps of a larger network)\n"
-             f"height MAE {h['mae']:.2f} m against the lidar")
+    title = (f"samples/autzen_west, the held-out block at 1 m: height MAE {h['mae']:.2f} m against the lidar\n"
+             f"the demo's small network with the recipe's aleatoric head, {a['steps']} training steps")
     figures = {"area_maps.png": _png(products_figure(pred, ortho, title, crop_to_valid=True), 72)}
     for name in ("report_height_reliability.png", "report_sparsification.png"):
         if (work / "eval" / name).exists():
