@@ -151,8 +151,9 @@ def _message(cls: Any, err: Mapping[str, Any], path: str) -> str:
 
 
 def _strip_removed(tp: Any, data: Any, path: str) -> Any:
-    """``data`` without the keys a dataclass on its way lists in ``REMOVED_KEYS`` (key → why it is read and ignored),
-    one ``FutureWarning`` each, at every level.
+    """``data`` without the keys a dataclass on its way lists in ``REMOVED_KEYS``, at every level.
+
+    ``REMOVED_KEYS``: key → why it is read and ignored; one ``FutureWarning`` each.
     """
     while get_origin(tp) in (Union, types.UnionType):
         tp = next((a for a in get_args(tp) if dataclasses.is_dataclass(a)), None)
@@ -172,8 +173,9 @@ def _strip_removed(tp: Any, data: Any, path: str) -> Any:
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
-    """Build dataclass ``cls`` from a plain mapping, validating every key and value (pydantic, strict: see
-    :data:`_STRICT`; each dataclass's ``__post_init__`` checks its ranges).
+    """Build dataclass ``cls`` from a plain mapping, validating every key and value.
+
+    pydantic, strict (see :data:`_STRICT`); each dataclass's ``__post_init__`` checks its ranges.
 
     Args:
         cls: the dataclass type.
@@ -220,8 +222,9 @@ def to_dict(obj: Any) -> Any:
 
 
 class _Loader(yaml.SafeLoader):
-    """PyYAML's safe loader reading floats as YAML 1.2 does: ``1e-4`` and ``1e3`` are numbers (YAML 1.1, which
-    PyYAML follows, wants a dot and a signed exponent, so ``lr: 1e-4`` would be the string ``'1e-4'``).
+    """PyYAML's safe loader reading floats as YAML 1.2 does: ``1e-4`` and ``1e3`` are numbers.
+
+    YAML 1.1, which PyYAML follows, wants a dot and a signed exponent, so ``lr: 1e-4`` would be the string ``'1e-4'``).
     """
 
 
@@ -232,16 +235,69 @@ _Loader.add_implicit_resolver(
 )
 
 
+#: Values (scalars, lists and mappings) a YAML file may hold once its aliases are expanded: a configuration has a
+#: few hundred, a tile folder's ``dataset.yaml`` a few thousand. Aliases of aliases (``&a [*b, *b, ...]``, the
+#: "billion laughs") stay small as a file and as PyYAML's graph, but every walk of the tree (validation, a
+#: copy, a comparison) would visit 10⁹ values: such a file is refused before it is built.
+MAX_YAML_VALUES = 1_000_000
+
+
+def _expanded_values(node: yaml.Node, sizes: dict[int, int], open_: set[int]) -> int:
+    """The values under ``node`` once every alias is expanded (:data:`MAX_YAML_VALUES` + 1 stands for "more";
+    a node that contains itself counts as more).
+    """
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if key in open_:
+        return MAX_YAML_VALUES + 1
+    total = 1
+    if isinstance(node, (yaml.SequenceNode, yaml.MappingNode)):
+        open_.add(key)
+        children = node.value if isinstance(node, yaml.SequenceNode) else [n for pair in node.value for n in pair]
+        for child in children:
+            total += _expanded_values(child, sizes, open_)
+            if total > MAX_YAML_VALUES:
+                total = MAX_YAML_VALUES + 1
+                break
+        open_.discard(key)
+    sizes[key] = total
+    return total
+
+
 def read_yaml(path: str | Path) -> Any:
-    """Parse a YAML file with a message naming the file on failure."""
+    """Parse a YAML file with a message naming the file on failure.
+
+    Raises:
+        ConfigError: missing, not YAML, nested too deeply, or more than :data:`MAX_YAML_VALUES` values once its
+            aliases are expanded (refused before the tree is built).
+    """
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file '{p}' does not exist; pass the path of a YAML file")
     try:
         with p.open("r", encoding="utf-8") as fh:
-            return yaml.load(fh, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+            loader = _Loader(fh)
+            try:
+                node = loader.get_single_node()
+                if node is None:
+                    return None
+                if _expanded_values(node, {}, set()) > MAX_YAML_VALUES:
+                    raise ConfigError(
+                        f"config file '{p}' expands to more than {MAX_YAML_VALUES:,} values through its YAML aliases "
+                        "(*name): refused before reading it (an alias bomb, or a file that refers to itself); write "
+                        "the values out, with fewer aliases")
+                return loader.construct_document(node)
+            finally:
+                loader.dispose()
     except yaml.YAMLError as exc:
         raise ConfigError(f"config file '{p}' is not valid YAML: {exc}") from exc
+    except RecursionError:
+        raise ConfigError(f"config file '{p}' nests lists or mappings too deeply to be a configuration; write it "
+                          "flatter") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config file '{p}' is not UTF-8 text ({exc.reason} at byte {exc.start}); save it as "
+                          "UTF-8") from None
 
 
 def load_yaml_config(path: str | Path, cls: type[T]) -> T:
@@ -253,4 +309,4 @@ def load_yaml_config(path: str | Path, cls: type[T]) -> T:
         raise ConfigError(f"{path}: {exc}") from exc
 
 
-__all__ = ["from_dict", "to_dict", "read_yaml", "load_yaml_config"]
+__all__ = ["MAX_YAML_VALUES", "from_dict", "load_yaml_config", "read_yaml", "to_dict"]

@@ -16,8 +16,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from aerialmtl.classes import IGNORE_INDEX
+from aerialmtl.data.synth import synthesize
 from aerialmtl.errors import OutputExistsError
+from aerialmtl.evaluation.evaluate import evaluate_prediction
+from aerialmtl.evaluation.maps import add_class_legend, add_colorbar, layer_cmap
+from aerialmtl.formats.prediction import (
+    CLASS_ENTROPY,
+    CLASS_MUTUAL_INFO,
+    CLASSES,
+    HEIGHT,
+    HEIGHT_STD,
+    LAYER_UNITS,
+    PredictionFolder,
+)
+from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.outputs import OutputFolder, atomic_write, write_text_atomic
+from aerialmtl.tiling.splits import SplitSpec
+from aerialmtl.tiling.tile import TileOptions, tile_dataset
+from aerialmtl.training.config import load_train_config
+from aerialmtl.training.loop import train
 
 #: Built-in configuration used by the demo.
 DEMO_CONFIG = "d3net_small_synth"
@@ -117,14 +135,6 @@ def run_demo(
 def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[[str], None],
               progress: bool) -> DemoResult:
     """:func:`run_demo` once the demo folder is held."""
-    from aerialmtl.data.synth import synthesize
-    from aerialmtl.evaluation.evaluate import evaluate_prediction
-    from aerialmtl.inference.predict import predict_raster
-    from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import TileOptions, tile_dataset
-    from aerialmtl.training.config import load_train_config
-    from aerialmtl.training.loop import train
-
     res = DemoResult(out)
     s = settings
     t0 = time.perf_counter()
@@ -223,17 +233,6 @@ def preview_figure(ortho: Path, pred_dir: Path, height_ref: Path | None, labels_
     import numpy as np
     import rasterio
 
-    from aerialmtl.classes import IGNORE_INDEX
-    from aerialmtl.evaluation.maps import add_class_legend, add_colorbar, layer_cmap
-    from aerialmtl.formats.prediction import (
-        CLASS_ENTROPY,
-        CLASS_MUTUAL_INFO,
-        CLASSES,
-        HEIGHT,
-        HEIGHT_STD,
-        LAYER_UNITS,
-        PredictionFolder,
-    )
 
     pred = PredictionFolder(pred_dir)
 

@@ -51,10 +51,11 @@ _SENTENCE_END = re.compile(r"(?<=[.;!?])\s+")
 
 
 def cause(exc: BaseException | str | None, limit: int = 240) -> str:
-    """``exc``'s text on one line, for the parenthesis of a message, in whole sentences: as many of its sentences
-    as fit in ``limit`` characters, and always the first one whole (a library's sentence is never cut mid-word:
-    "You can disable this check by defining the CHECK_DISK_FREE_SPACE configuration option to FALSE." stays
-    whole). An exception with no text gives its class name.
+    """``exc``'s text on one line, for the parenthesis of a message, in whole sentences.
+
+    As many of its sentences as fit in ``limit`` characters, and always the first one whole (a library's sentence
+    is never cut mid-word: "You can disable this check by defining the CHECK_DISK_FREE_SPACE configuration option
+    to FALSE." stays whole). An exception with no text gives its class name.
     """
     if exc is None:
         return ""
@@ -118,8 +119,10 @@ class CheckpointError(AerialMTLError, ValueError):
 
 
 class NonFiniteError(AerialMTLError, FloatingPointError):
-    """Numbers that can only be garbage: a diverged training (NaN/inf loss or score), a checkpoint with
-    NaN/inf weights, or a model that gives NaN/inf for valid inputs.
+    """Numbers that can only be garbage.
+
+    A diverged training (NaN/inf loss or score), a checkpoint with NaN/inf weights, or a model that gives NaN/inf
+    for valid inputs.
     """
 
 
@@ -136,8 +139,9 @@ class OutputInUseError(OutputError):
 
 
 class PeerFailure(AerialMTLError, RuntimeError):
-    """Another process of a multi-process (torchrun) run failed or was stopped, or an input failed on
-    another rank; the message names the process or the input and the cause.
+    """Another process of a multi-process (torchrun) run failed or was stopped, or an input failed on another rank.
+
+    The message names the process or the input and the cause.
     """
 
 

@@ -44,6 +44,7 @@ import torch.distributed as dist
 from torch import nn
 
 from aerialmtl.errors import AerialMTLError, InputError, PeerFailure, cause
+from aerialmtl.stores import warn_once
 
 Precision = Literal["auto", "bf16", "fp32"]
 Resolved = Literal["bf16", "fp32"]
@@ -99,6 +100,20 @@ def resolve_device(device: str, local_rank: int = 0, error: type[AerialMTLError]
 
 
 # ---- precision ----------------------------------------------------------------------------------
+#: ``ONEDNN_MAX_CPU_ISA`` values (upper case) that leave oneDNN (in torch and OpenVINO) without bf16 kernels, or
+#: without AMX: a CPU capped so computes as one without those units, whatever its flags say.
+_NO_BF16_ISAS = ("SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX2_VNNI_2", "AVX512_CORE", "AVX512_CORE_VNNI")
+_NO_AMX_ISAS = ("AVX512_CORE_BF16", "AVX10_1_512", "AVX512_CORE_FP16")
+
+
+def _capped_away() -> set[str]:
+    """The bf16 flags that ``ONEDNN_MAX_CPU_ISA`` (an emulated smaller CPU) takes away."""
+    cap = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+    if cap in _NO_BF16_ISAS:
+        return {"amx_bf16", "avx512_bf16"}
+    return {"amx_bf16"} if cap in _NO_AMX_ISAS else set()
+
+
 @functools.lru_cache(maxsize=1)
 def cpu_bf16_flags() -> tuple[str, ...]:
     """The native-bf16 CPU flags of this machine (:data:`BF16_CPU_FLAGS` found in ``/proc/cpuinfo``).
@@ -107,7 +122,8 @@ def cpu_bf16_flags() -> tuple[str, ...]:
     (``BF16`` in its optimisation capabilities), when it is installed. The environment variable
     :data:`CPU_FLAGS_ENV` replaces the probe (a comma- or space-separated list; empty = no native bf16):
     the test suite runs every CPU kind's path through it (``pytest --cpu-kind amx|avx512bf16|none``), and
-    a user can keep ``auto`` off bf16 with ``AERIALMTL_CPU_BF16_FLAGS=``.
+    a user can keep ``auto`` off bf16 with ``AERIALMTL_CPU_BF16_FLAGS=``. A ``ONEDNN_MAX_CPU_ISA`` cap below
+    bf16 (or below AMX) takes those flags away: oneDNN then has no such kernels.
     """
     forced = os.environ.get(CPU_FLAGS_ENV)
     if forced is not None:
@@ -119,7 +135,7 @@ def cpu_bf16_flags() -> tuple[str, ...]:
             if line.startswith("flags"):
                 flags.update(line.split(":", 1)[-1].split())
                 break
-        return tuple(f for f in BF16_CPU_FLAGS if f in flags)
+        return tuple(f for f in BF16_CPU_FLAGS if f in flags - _capped_away())
     try:  # pragma: no cover - not Linux
         ov = import_openvino()
         caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
@@ -244,10 +260,19 @@ def _threads_value(value: int | str, param: str) -> int | None:
     return number
 
 
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the system says, else the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def resolve_threads(threads: int | str | None = "auto") -> CpuThreads:
     """The inference threads of this process: ``threads`` (an option), else :data:`THREADS_ENV`, else
     torch's own count (``torch.get_num_threads()``: the cores this process may run on, or
-    ``OMP_NUM_THREADS`` as torchrun sets it); split into ``min(threads, MAX_STREAMS)`` streams.
+    ``OMP_NUM_THREADS`` as torchrun sets it); a number given beyond :func:`usable_cpus` is that count, with one
+    warning; split into ``min(threads, MAX_STREAMS)`` streams.
 
     Raises:
         InputError: a value that is not a positive number or ``auto`` (naming the option or variable).
@@ -260,6 +285,11 @@ def resolve_threads(threads: int | str | None = "auto") -> CpuThreads:
         source = "env"
     if n is None:
         n, source = max(1, torch.get_num_threads()), "auto"
+    cpus = usable_cpus()
+    if source != "auto" and n > cpus:  # more threads than CPUs only wait on each other; a million cannot start
+        where = f"{THREADS_ENV}={n}" if source == "env" else f"--threads {n}"
+        warn_once(f"{where} is more than the {cpus} CPU(s) this process may use; using {cpus} thread(s)")
+        n = cpus
     return CpuThreads(n, min(n, MAX_STREAMS), source)
 
 
@@ -495,4 +525,4 @@ def gdal_env(command: Literal["tile", "buildings", "predict"], **options: Any) -
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "MAX_STREAMS", "SHARE_TIMEOUT", "THREADS_ENV",
            "CompileFallback", "CpuThreads", "GDAL_CACHE_BYTES", "Precision", "Resolved", "Torchrun", "autocast",
            "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "is_peer_error", "native_bf16", "peer_failure",
-           "resolve_device", "resolve_precision", "resolve_threads"]
+           "resolve_device", "resolve_precision", "resolve_threads", "usable_cpus"]

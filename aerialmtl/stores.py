@@ -26,16 +26,24 @@ folder at the file system's root.
 
 Each case gives one warning naming the path and the fix.
 
-**Size.** The stores together hold at most :func:`size_limit` bytes (``AERIALMTL_CACHE_LIMIT_MB``, default
-:data:`DEFAULT_LIMIT_MB` MiB). After a write brings the total above it, entries are removed least recently used
-first (reading an entry counts as a use: its modification time is set to now) until the total is at most the
-limit; the entry just written is kept even where it alone exceeds the limit. ``aerialmtl cache list`` shows the
-stores and ``aerialmtl cache clear`` empties them (:func:`list_stores`, :func:`clear_stores`).
+**A store owns only what it wrote** (:func:`owned_files`). Its entries are the files that start with
+:data:`MAGIC` (every entry is written by :func:`pack`) and the files its :data:`MANIFEST` entry records beside
+it (numba's machine code), at most :data:`ENTRY_DEPTH` levels below its folder. Anything else there — a user's
+``mosaic.tif`` in a folder that ``AERIALMTL_OPENVINO_CACHE`` points at — is neither counted, evicted nor
+cleared.
+
+**Size.** The stores' entries together hold at most :func:`size_limit` bytes (``AERIALMTL_CACHE_LIMIT_MB``,
+default :data:`DEFAULT_LIMIT_MB` MiB). After a write brings the total above it, entries are removed least
+recently used first (reading an entry counts as a use: its modification time is set to now) until the total is
+at most the limit, with one warning naming what went; the entry just written and files being written are kept
+even where they alone exceed the limit. ``aerialmtl cache list`` shows the stores and ``aerialmtl cache clear``
+empties them (:func:`list_stores`, :func:`clear_stores`), both saying how many other files they left alone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import stat
@@ -57,6 +65,9 @@ DEFAULT_LIMIT_MB = 2048
 #: The stores, by name (the folder under :func:`cache_home`).
 STORES = ("openvino", "numba")
 
+#: The entry recording the SHA-256 of the files a store wrote in another format beside it (numba's machine code):
+#: those files are the store's too (:func:`recorded_names`).
+MANIFEST = "manifest"
 #: First bytes of every entry (the format's name and version).
 MAGIC = b"AERIALMTL-OV-CACHE 1\n"
 _HEADER = struct.Struct("<32sI")  # SHA-256 of the payload, number of sections
@@ -223,9 +234,7 @@ def entry_problem(path: Path) -> str | None:
     if stat.S_ISLNK(st.st_mode):
         return "a symbolic link, which aerialmtl never writes"
     if not stat.S_ISREG(st.st_mode):
-        kind = "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a folder" if stat.S_ISDIR(st.st_mode) else \
-            "a socket" if stat.S_ISSOCK(st.st_mode) else "a device or other special file"
-        return f"{kind}, not a regular file"
+        return f"{special_kind(st.st_mode)}, not a regular file"
     if hasattr(os, "geteuid") and st.st_uid != os.geteuid():
         return f"owned by another user (uid {st.st_uid}), so it is not trusted"
     if st.st_size == 0:
@@ -233,24 +242,62 @@ def entry_problem(path: Path) -> str | None:
     return None
 
 
+def open_regular(path: str | Path, follow_links: bool = False) -> int:
+    """A read-only descriptor of regular file ``path``, opened without blocking (a FIFO, a device or a socket at
+    its name would block the open or every read) and, unless ``follow_links``, not through a symbolic link. The one
+    way aerialmtl opens a file that someone else may have put in place: store entries, an input's sidecars, the
+    layers a ``prediction.json`` lists.
+
+    Raises:
+        FileNotFoundError: it is missing.
+        OSError: it cannot be opened, or it is not a regular file (the message names it and what it is).
+    """
+    flags = _OPEN_FLAGS if not follow_links else _OPEN_FLAGS & ~getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise
+    except OSError as exc:  # a socket (ENXIO), a link under O_NOFOLLOW (ELOOP): say what is there
+        with contextlib.suppress(OSError):
+            mode = (os.stat if follow_links else os.lstat)(path).st_mode
+            if not stat.S_ISREG(mode):
+                raise OSError(errno.EINVAL, f"'{path}' is {special_kind(mode)}, not a regular file") from exc
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise OSError(errno.EINVAL, f"'{path}' is {special_kind(st.st_mode)}, not a regular file")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)  # a regular file: reads never block on it, and buffered reads want this
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def special_kind(mode: int) -> str:
+    """What a file of ``st_mode`` ``mode`` that is not a regular file is, in words (``"a FIFO"``, ...)."""
+    return "a FIFO" if stat.S_ISFIFO(mode) else "a folder" if stat.S_ISDIR(mode) else \
+        "a socket" if stat.S_ISSOCK(mode) else "a symbolic link" if stat.S_ISLNK(mode) else \
+        "a device or other special file"
+
+
 def read_file(path: Path) -> bytearray | None:
-    """The bytes of regular file ``path`` (opened without following a link and without blocking on a FIFO),
+    """The bytes of regular file ``path`` (:func:`open_regular`: not through a link, not blocking on a FIFO),
     or ``None`` when it is missing.
 
     Raises:
         OSError: it cannot be read, or it is not a regular file after all (replaced between look and open).
     """
     try:
-        fd = os.open(path, _OPEN_FLAGS)
+        fd = open_regular(path)
     except FileNotFoundError:
         return None
     with os.fdopen(fd, "rb", buffering=0) as f:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise OSError(f"'{path}' is not a regular file")
-        data = bytearray(st.st_size)
+        size = os.fstat(fd).st_size
+        data = bytearray(size)
         got = f.readinto(data)
-    if got is not None and got != st.st_size:  # the file changed size under us: the checksum says so
+    if got is not None and got != size:  # the file changed size under us: the checksum says so
         del data[got:]
     return data
 
@@ -411,30 +458,105 @@ def store_folders() -> dict[str, Path]:
         return {}
 
 
+def is_entry(path: Path) -> bool:
+    """Whether ``path`` is an entry a store wrote: a regular file of this user that starts with :data:`MAGIC`
+    (read without blocking, never through a link). A user's own file in a store's folder is not one.
+    """
+    if entry_problem(path) is not None:
+        return False
+    try:
+        fd = open_regular(path)
+    except OSError:
+        return False
+    with os.fdopen(fd, "rb", buffering=0) as f:
+        return f.read(len(MAGIC)) == MAGIC
+
+
+def recorded_names(folder: Path) -> frozenset[str]:
+    """The names of the files in ``folder`` that a store wrote in another format than its entries (numba's
+    machine code), as its :data:`MANIFEST` entry records them; empty without a valid one.
+    """
+    import json
+
+    path = folder / MANIFEST
+    if not is_entry(path):
+        return frozenset()
+    try:
+        data = read_file(path)
+        (section,) = unpack(bytes(data or b""))
+        table = json.loads(section)
+    except (OSError, ValueError):
+        return frozenset()
+    if not isinstance(table, dict):
+        return frozenset()
+    return frozenset(str(n) for n in table if isinstance(n, str) and "/" not in n and n != MANIFEST)
+
+
+#: How deep below a store's folder its entries lie (``openvino/<model>/<part>.ir``, ``openvino/records/...``,
+#: ``numba/<file>``): nothing deeper is looked at, so a store pointed at a project folder never walks it.
+ENTRY_DEPTH = 2
+
+
+def _candidates(folder: Path, depth: int = ENTRY_DEPTH) -> Iterator[Path]:
+    """The files (not folders, links not followed) at most ``depth`` levels below ``folder``."""
+    try:
+        with os.scandir(folder) as it:
+            found = list(it)
+    except OSError:
+        return
+    for item in sorted(found, key=lambda e: e.name):
+        try:
+            is_dir = item.is_dir(follow_symlinks=False)
+        except OSError:
+            continue
+        if is_dir:
+            if depth > 1:
+                yield from _candidates(Path(item.path), depth - 1)
+        else:
+            yield Path(item.path)
+
+
+def owned_files(folder: Path) -> tuple[list[Path], list[Path]]:
+    """``(owned, other)``: the files at most :data:`ENTRY_DEPTH` levels below store folder ``folder`` that the
+    store wrote (:func:`is_entry`, or a name its :data:`MANIFEST` records beside it) and every other one (a user's
+    files: never counted, never removed).
+    """
+    owned: list[Path] = []
+    other: list[Path] = []
+    recorded: dict[Path, frozenset[str]] = {}
+    for path in _candidates(folder):
+        if path.parent not in recorded:
+            recorded[path.parent] = recorded_names(path.parent)
+        mine = is_entry(path) or (path.name in recorded[path.parent] and entry_problem(path) is None)
+        (owned if mine else other).append(path)
+    return owned, other
+
+
 def entries(names: Sequence[str] = STORES) -> list[Entry]:
-    """The regular files of stores ``names``, oldest use first (links, FIFOs and folders are not entries)."""
+    """The entries of stores ``names`` (:func:`owned_files`), oldest use first; a user's files in a store's folder
+    are not entries.
+    """
     out: list[Entry] = []
     for name, folder in store_folders().items():
         if name not in names:
             continue
-        for path in _walk(folder):
+        for path in owned_files(folder)[0]:
             with contextlib.suppress(OSError):
                 st = os.lstat(path)
-                if stat.S_ISREG(st.st_mode):
-                    out.append(Entry(name, path, st.st_size, st.st_mtime))
+                out.append(Entry(name, path, st.st_size, st.st_mtime))
     return sorted(out, key=lambda e: e.used)
 
 
-def _walk(folder: Path) -> Iterator[Path]:
-    """Every path below ``folder`` (links not followed; unreadable folders skipped)."""
-    for root, dirs, files in os.walk(folder, onerror=None, followlinks=False):
-        for name in files + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
-            yield Path(root) / name
+def _staging(path: Path) -> bool:
+    """Whether ``path`` is a store's staging file (``.NAME.partial.PID``: another process may be writing it)."""
+    return path.name.startswith(".") and ".partial." in path.name
 
 
 def evict(limit: int | None = None, keep: Path | None = None) -> list[Entry]:
-    """Remove least recently used entries until the stores hold at most ``limit`` bytes (default
-    :func:`size_limit`); ``keep`` is never removed. Returns what was removed.
+    """Remove least recently used entries until the stores' entries hold at most ``limit`` bytes (default
+    :func:`size_limit`); ``keep`` and files being written (staging files) are never removed, nor is any file that
+    is not an entry (:func:`owned_files`). Returns what was removed; the first eviction of a command says what it
+    removed in one warning.
     """
     try:
         limit = size_limit() if limit is None else limit
@@ -447,51 +569,68 @@ def evict(limit: int | None = None, keep: Path | None = None) -> list[Entry]:
     for e in found:
         if total <= limit:
             break
-        if keep is not None and e.path == keep:
+        if (keep is not None and e.path == keep) or _staging(e.path):
             continue
         with contextlib.suppress(OSError):
             e.path.unlink()
             total -= e.size
             removed.append(e)
+    if removed and "evicted" not in _WARNED:  # once per command: a tiny limit evicts at every write
+        _WARNED.add("evicted")
+        listed = ", ".join(f"'{e.path}'" for e in removed[:3]) + (", ..." if len(removed) > 3 else "")
+        warn_once(f"the aerialmtl caches held more than their limit of {limit / 2**20:.1f} MiB ({LIMIT_ENV}): removed "
+                  f"{len(removed)} least recently used entr{'y' if len(removed) == 1 else 'ies'} of their own "
+                  f"({sum(e.size for e in removed) / 2**20:.1f} MiB: {listed}), rebuilt when needed; other files "
+                  f"in their folders are never removed. Raise {LIMIT_ENV} to keep more (said once per command)",
+                  stacklevel=4)
     return removed
 
 
-def list_stores() -> list[tuple[str, Path, int, int]]:
-    """``(store, folder, files, bytes)`` of each store (folders that do not exist yet with 0 files).
+def list_stores() -> list[tuple[str, Path, int, int, int]]:
+    """``(store, folder, entries, bytes, other files)`` of each store (folders that do not exist yet with 0
+    entries); other files are those in a store's folder that no store wrote (:func:`owned_files`).
 
     Raises:
         NoCacheHome: see :func:`cache_home`.
     """
-    folders = {name: store_folder(name) for name in STORES}
-    found = entries()
-    return [(name, folder, sum(1 for e in found if e.store == name), sum(e.size for e in found if e.store == name))
-            for name, folder in folders.items()]
+    out = []
+    for name in STORES:
+        folder = store_folder(name)
+        owned, other = owned_files(folder)
+        size = 0
+        for path in owned:
+            with contextlib.suppress(OSError):
+                size += os.lstat(path).st_size
+        out.append((name, folder, len(owned), size, len(other)))
+    return out
 
 
-def clear_stores(names: Sequence[str] = STORES) -> tuple[int, int]:
-    """Remove every entry of stores ``names`` (and the folders they leave empty): ``(files, bytes)`` removed.
+def clear_stores(names: Sequence[str] = STORES) -> tuple[int, int, int]:
+    """Remove every entry of stores ``names`` (:func:`owned_files`) and the folders that leaves empty:
+    ``(files, bytes, other files left)``. A user's files in a store's folder stay, and are counted as left.
 
     Raises:
         NoCacheHome: see :func:`cache_home`.
         OSError: an entry cannot be removed (the message names it).
     """
     folders = {name: store_folder(name) for name in names}
-    files = size = 0
+    files = size = left = 0
     for folder in folders.values():
-        for path in sorted(_walk(folder), reverse=True):
+        owned, other = owned_files(folder)
+        left += len(other)
+        for path in owned:
             st = os.lstat(path)
-            if stat.S_ISDIR(st.st_mode):
-                continue
             path.unlink()
-            files, size = files + 1, size + (st.st_size if stat.S_ISREG(st.st_mode) else 0)
-        for root, dirs, _ in sorted(os.walk(folder), reverse=True):
-            for d in dirs:
+            files, size = files + 1, size + st.st_size
+        for parent in sorted({p.parent for p in owned}, key=lambda p: len(p.parts), reverse=True):
+            if parent != folder:
                 with contextlib.suppress(OSError):
-                    os.rmdir(os.path.join(root, d))
-    return files, size
+                    parent.rmdir()  # only when empty: a folder with a user's file stays
+    return files, size, left
 
 
-__all__ = ["DEFAULT_LIMIT_MB", "LIMIT_ENV", "MAGIC", "OPENVINO_ENV", "ROOT_ENV", "STORES", "CorruptEntry", "Entry",
-           "NoCacheHome", "Store", "cache_home", "checked", "clear_stores", "entries", "entry_problem", "evict",
-           "list_stores", "open_store_folder", "pack", "read_file", "remove_entry", "reset_warnings", "sections_of",
-           "size_limit", "store_folder", "store_folders", "unpack", "warn_once"]
+__all__ = ["DEFAULT_LIMIT_MB", "ENTRY_DEPTH", "LIMIT_ENV", "MAGIC", "MANIFEST", "OPENVINO_ENV", "ROOT_ENV", "STORES",
+           "CorruptEntry", "Entry", "NoCacheHome", "Store", "cache_home", "checked", "clear_stores", "entries",
+           "entry_problem", "evict", "is_entry", "list_stores", "open_regular", "open_store_folder", "owned_files",
+           "pack", "read_file", "recorded_names", "remove_entry", "reset_warnings", "sections_of", "size_limit",
+           "special_kind", "store_folder", "store_folders", "unpack", "warn_once"]

@@ -24,7 +24,9 @@ Parts (select with flags; each can run alone):
   ``--pipeline-head-bias drawn`` gives the heads' convolutions the non-zero biases any trained head has
   (normal, std 0.5, seed 1); ``zero`` (the default, as in the earlier sessions) keeps their initial zeros,
   with which OpenVINO (2026.4, bf16) reorders the decoder's class planes with a slow reference kernel that a
-  trained model does not meet (bench/RESULTS.md, issue 27, third session).
+  trained model does not meet (bench/RESULTS.md, issue 27, third session). ``--pipeline-against ROOT`` runs
+  each case ``--pipeline-pairs`` times here and in another checkout (``git worktree add /tmp/base main``), in
+  turn, with CPU seconds, and compares the layers of the last pair (bytes and decoded pixels): before/after.
 
 * ``--engines``: the full D3-Net (DenseNet-121, 20 classes, untrained weights) saved as a checkpoint,
   then ``python -m aerialmtl predict`` in a subprocess on a synthetic ``--size``² raster for each T of
@@ -51,6 +53,7 @@ Usage::
     python bench/predict.py --engines --size 2048 --engine-mc 1,8
     python bench/predict.py --speed --components --baseline --rss
     python bench/predict.py --pipeline --pipeline-cases 8192:1,4096:30
+    python bench/predict.py --pipeline --pipeline-cases 8192:1 --pipeline-head-bias drawn --pipeline-against /tmp/base
     python bench/predict.py --startup --tmp DIR
     python bench/predict.py --shared-cpu --size 2048 --busy 0,1,3 --tmp DIR
     python bench/predict.py --alone --size 2048 --tmp DIR
@@ -295,8 +298,11 @@ def cpu_name() -> str:
 
 
 def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, cache: Path,
-                   head_bias: str = "zero") -> dict:
-    """Rasters are kept in ``cache`` (``--tmp``) between invocations; outputs go to ``tmp``."""
+                   head_bias: str = "zero", against: Path | None = None, pairs: int = 1) -> dict:
+    """Rasters are kept in ``cache`` (``--tmp``) between invocations; outputs go to ``tmp``. With ``against``
+    (another checkout's root, e.g. main's), each case runs ``pairs`` times as this checkout then that one, back
+    to back, and the layers of the last pair are compared (byte for byte, and their decoded pixels).
+    """
     from aerialmtl.formats.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
@@ -314,40 +320,77 @@ def bench_pipeline(cases: list[tuple[int, int]], extra: list[str], tmp: Path, ca
                 assert bias is not None
                 bias.copy_(torch.randn(tuple(bias.shape), generator=gen) * 0.5)
     save_checkpoint(ckpt, model, meta)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    here = Path(__file__).resolve().parents[1]
+    sides = [("this", here)] + ([("against", against.resolve())] if against is not None else [])
     runs = []
     for size, samples in cases:
         src = cache / f"pipe_{size}.tif"
         if not src.exists():
             synthetic_raster(src, size, size)
-        out = tmp / f"pipe_out_{size}_{samples}"
-        cmd = [sys.executable, "-m", "aerialmtl", "predict", str(src), "--model", str(ckpt), "--out", str(out),
-               "--mc", str(samples), "--quiet", "--overwrite", *extra]
-        load_before = load_avg()
-        t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        stdout, stderr = proc.stdout.read(), proc.stderr.read()  # type: ignore[union-attr]
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        if proc.returncode != 0:
-            raise RuntimeError(f"predict failed ({proc.returncode}): {stderr.strip()[-2000:]}")
-        info = json.loads((out / "prediction.json").read_text())
-        runs.append({"size": size, "T": samples, "wall_s": round(wall, 2), "mpx_per_s": size * size / 1e6 / wall,
-                     "peak_rss_mb": round(usage.ru_maxrss / 1024), "timings_s": info.get("timings_s"),
-                     "cli_extra": extra, "load_avg_before": load_before, "load_avg_after": load_avg(),
-                     "stdout": stdout.strip().splitlines()[-1:]})
-        print(json.dumps(runs[-1]), flush=True)
+        for rep in range(pairs if against is not None else 1):
+            for label, root in sides:
+                out = tmp / f"pipe_out_{size}_{samples}_{label}"
+                runs.append({"code": label, "root": str(root), "rep": rep,
+                             **_pipeline_run(root, src, ckpt, out, size, samples, extra)})
+                print(json.dumps(runs[-1]), flush=True)
+        if against is not None:
+            same = _same_layers(tmp / f"pipe_out_{size}_{samples}_this", tmp / f"pipe_out_{size}_{samples}_against")
+            runs.append({"size": size, "T": samples, "layers_this_vs_against": same})
+            print(json.dumps(runs[-1]), flush=True)
     return {"part": "pipeline", "model": "near-null D3-Net (growth 1, blocks 1-1-1-1, 2 stem, bn_size 1, 20 classes)",
             "head_bias": head_bias,
             "cpu": cpu_name(), "runs": runs}
+
+
+def _pipeline_run(root: Path, src: Path, ckpt: Path, out: Path, size: int, samples: int, extra: list[str]) -> dict:
+    """One ``python -m aerialmtl predict`` of the code at ``root``: wall, CPU seconds, peak RSS, stage timings."""
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    cmd = [sys.executable, "-m", "aerialmtl", "predict", str(src), "--model", str(ckpt), "--out", str(out),
+           "--mc", str(samples), "--quiet", "--overwrite", *extra]
+    load_before = load_avg()
+    t0 = time.perf_counter()
+    # run from ``root``: ``python -m`` puts the working directory first on sys.path, before PYTHONPATH
+    proc = subprocess.Popen(cmd, env=env, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    stdout, stderr = proc.stdout.read(), proc.stderr.read()  # type: ignore[union-attr]
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"predict failed ({proc.returncode}): {stderr.strip()[-2000:]}")
+    info = json.loads((out / "prediction.json").read_text())
+    return {"size": size, "T": samples, "wall_s": round(wall, 2), "mpx_per_s": size * size / 1e6 / wall,
+            "cpu_s": round(usage.ru_utime + usage.ru_stime, 1), "peak_rss_mb": round(usage.ru_maxrss / 1024),
+            "timings_s": info.get("timings_s"), "engine": info.get("engine"), "precision": info.get("precision"),
+            "cli_extra": extra, "load_avg_before": load_before, "load_avg_after": load_avg(),
+            "stdout": stdout.strip().splitlines()[-1:]}
+
+
+def _same_layers(a: Path, b: Path) -> dict:
+    """Per layer of two prediction folders: whether the files are byte-identical, and the largest difference of
+    their decoded pixels (0 when equal).
+    """
+    import hashlib
+
+    out = {}
+    files = json.loads((a / "prediction.json").read_text())["files"]
+    for name, fname in files.items():
+        if not fname.endswith(".tif"):
+            continue
+        fa, fb = a / fname, b / fname
+        same_bytes = hashlib.sha256(fa.read_bytes()).digest() == hashlib.sha256(fb.read_bytes()).digest()
+        with rasterio.open(fa) as x, rasterio.open(fb) as y:
+            da, db = x.read(), y.read()
+        diff = float(np.nanmax(np.abs(da.astype(np.float64) - db.astype(np.float64)))) if da.size else 0.0
+        out[name] = {"bytes_equal": same_bytes, "pixels_equal": bool(np.array_equal(da, db, equal_nan=True)),
+                     "max_abs_diff": diff}
+    return out
 
 
 def bench_model_alone(size: int = 1024, reps: int = 2) -> list[dict]:
     """The full model alone on one ``size``² window per engine and precision: seconds, Mpx/s, GFLOP/s."""
     from aerialmtl import runtime
     from aerialmtl.inference.runner import ModelRunner
-    from aerialmtl.inference.settings import PredictSettings, Resolved
+    from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 
     model, meta = make_model("full")
     flops = model_flops_per_px(model, 256)
@@ -358,7 +401,7 @@ def bench_model_alone(size: int = 1024, reps: int = 2) -> list[dict]:
     out = []
     for engine, precision in cases:
         settings = PredictSettings(mc=1, precision=precision, engine=engine)  # type: ignore[arg-type]
-        resolved = Resolved(torch.device("cpu"), engine, precision, runtime.resolve_threads(), 1)  # type: ignore[arg-type]
+        resolved = ResolvedSettings(torch.device("cpu"), engine, precision, runtime.resolve_threads(), 1)  # type: ignore[arg-type]
         runner = ModelRunner(model, meta, settings, resolved)
         runner(x, [0])  # conversion, compilation, warm-up
         best = float("inf")
@@ -547,6 +590,9 @@ def main() -> None:
     ap.add_argument("--pipeline-cases", default="8192:1,4096:30", help="comma list of SIZE:T")
     ap.add_argument("--pipeline-args", default="", help="extra predict CLI flags, space separated")
     ap.add_argument("--pipeline-head-bias", choices=["zero", "drawn"], default="zero")
+    ap.add_argument("--pipeline-against", default=None,
+                    help="another checkout's root (e.g. main's): run each case there and here in turn")
+    ap.add_argument("--pipeline-pairs", type=int, default=2, help="pairs with --pipeline-against")
     ap.add_argument("--engines", action="store_true")
     ap.add_argument("--engine-mc", default="1,8", help="comma list of T (engines part)")
     ap.add_argument("--startup", action="store_true")
@@ -579,7 +625,9 @@ def main() -> None:
         if args.pipeline:
             cases = [(int(a), int(b)) for a, b in (c.split(":") for c in args.pipeline_cases.split(","))]
             cache = Path(args.tmp) if args.tmp else tmp
-            result = bench_pipeline(cases, args.pipeline_args.split(), tmp, cache, args.pipeline_head_bias)
+            against = Path(args.pipeline_against) if args.pipeline_against else None
+            result = bench_pipeline(cases, args.pipeline_args.split(), tmp, cache, args.pipeline_head_bias, against,
+                                    args.pipeline_pairs)
             print(json.dumps(result), flush=True)
         if args.startup:
             cache = Path(args.tmp) if args.tmp else tmp

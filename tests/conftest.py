@@ -36,6 +36,7 @@ def pytest_configure(config: pytest.Config) -> None:
     from aerialmtl import runtime
     from aerialmtl.inference import engine_choice
 
+    _private_stores(config)
     kind = config.getoption("--cpu-kind")
     if kind is not None:
         os.environ[runtime.CPU_FLAGS_ENV] = CPU_KINDS[kind]
@@ -91,12 +92,18 @@ def pytest_report_header(config: pytest.Config) -> str:
     return f"aerialmtl CPU probe: native bf16 flags {runtime.cpu_bf16_flags() or 'none'}, kind {cpu_kind()}"
 
 
-@pytest.fixture(autouse=True, scope="session")
-def _openvino_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+def _private_stores(config: pytest.Config) -> None:
     """The package's stores (the OpenVINO engine's converted models, the numba kernel) go to a temporary folder,
-    not the user's cache (subprocesses inherit it)."""
-    os.environ["AERIALMTL_OPENVINO_CACHE"] = str(tmp_path_factory.mktemp("openvino-cache"))
-    os.environ["AERIALMTL_CACHE"] = str(tmp_path_factory.mktemp("aerialmtl-cache"))
+    not the user's cache. Set before any test module is imported, so that the environments test modules copy
+    at import for their subprocesses (e.g. ``test_outputs.ONE_THREAD``) carry them too: a subprocess that ran on
+    the user's cache met entries compiled for another CPU kind (under ``.ci/as-cpu``) and warned."""
+    import shutil
+    import tempfile
+
+    root = tempfile.mkdtemp(prefix="aerialmtl-test-stores-")
+    os.environ["AERIALMTL_OPENVINO_CACHE"] = os.path.join(root, "openvino-cache")
+    os.environ["AERIALMTL_CACHE"] = os.path.join(root, "aerialmtl-cache")
+    config.add_cleanup(lambda: shutil.rmtree(root, ignore_errors=True))
 
 
 @pytest.fixture

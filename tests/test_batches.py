@@ -189,3 +189,25 @@ def test_read_only_tile_folder_trains_with_the_cache_elsewhere(tiles: Path, tmp_
     with pytest.warns(UserWarning, match=r"data\.cache_dir: the tile folder .* is not writable; caching .*xdg"):
         res = train(cfg, tiles, tmp_path / "run", max_steps=1, progress=False)
     assert res.step == 1 and list((tmp_path / "xdg" / "aerialmtl").glob("*/train.json"))
+
+
+@pytest.mark.parametrize("shape", [(5, 5), (4, 6)])
+def test_flips_then_rotations_move_each_sample_once_to_the_same_pixels(shape: tuple[int, int]) -> None:
+    """Every flip/quarter-turn combination, applied as one move per sample, gives exactly the pixels of the
+    flip and the rotation applied one after the other (the speed-up must not change a batch)."""
+    from aerialmtl.data.transforms import RandomFlip, RandomRot90, stack_params
+
+    h, w = shape
+    combos = [(a, b, k) for a in (False, True) for b in (False, True) for k in ((0, 1, 2, 3) if h == w else (0, 2))]
+    n = len(combos)
+    batch = {"image": torch.arange(n * 3 * h * w, dtype=torch.int32).reshape(n, 3, h, w).to(torch.uint8),
+             "height": torch.randn(n, 1, h, w), "classes": torch.randint(0, 6, (n, h, w), dtype=torch.uint8)}
+    params = stack_params([{"0.h": torch.tensor(a), "0.v": torch.tensor(b), "1.k": torch.tensor(k)}
+                           for a, b, k in combos])
+    pipeline = build_train_transform(flips=True, rot90=True, jitter=False)
+    assert [type(t) for t in pipeline.transforms] == [RandomFlip, RandomRot90]
+    fused = pipeline.apply(batch, params, stages=("permute",))
+    flipped = pipeline.transforms[0].apply(batch, {"h": params["0.h"], "v": params["0.v"]})
+    one_by_one = pipeline.transforms[1].apply(flipped, {"k": params["1.k"]})
+    for key in batch:
+        assert fused[key].shape == one_by_one[key].shape and torch.equal(fused[key], one_by_one[key]), key

@@ -123,7 +123,8 @@ def test_a_stale_lock_the_user_cannot_replace_is_named_with_its_removal(whose: s
 
 @pytest.mark.parametrize("kind", ["fifo", "folder"])
 def test_a_lock_file_that_is_no_file_is_refused_not_waited_on(kind: str, tmp_path: Path, ckpt: Path) -> None:
-    """A FIFO at the lock file's name blocked predict forever (found by the hostile pass, bench/hostile_part3.md)."""
+    """A FIFO at the lock file's name blocked predict forever (found by the hostile pass,
+    experiments/hostile_part3/README.md)."""
     out = tmp_path / "out"
     out.mkdir()
     lock = out / ".aerialmtl.lock"

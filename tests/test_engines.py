@@ -140,13 +140,13 @@ def test_engines_are_listed_once_and_built_by_name() -> None:
     from aerialmtl import runtime
     from aerialmtl.cli.predict import predict
     from aerialmtl.inference.engines import ENGINES, EngineSetup, build_engine
-    from aerialmtl.inference.settings import PredictSettings, Resolved
+    from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 
     choice = next(p.type for p in predict.params if p.name == "engine")
     assert isinstance(choice, click.Choice) and tuple(choice.choices) == ("auto", *ENGINES)
     model, meta = tiny_d3net()
     for name in ENGINES:
-        resolved = Resolved(torch.device("cpu"), name, "fp32", runtime.resolve_threads(), 1)
+        resolved = ResolvedSettings(torch.device("cpu"), name, "fp32", runtime.resolve_threads(), 1)
         engine = build_engine(EngineSetup(model, meta, PredictSettings(), resolved))
         assert engine.name == name and isinstance(engine.model, torch.nn.Module)
         assert isinstance(engine.net, torch.nn.Module) and engine.ahead(4) == 0
@@ -173,10 +173,12 @@ def test_missing_openvino_is_a_one_line_error(monkeypatch: pytest.MonkeyPatch, t
 
 
 @pytest.mark.parametrize("mc", [1, 3])
-def test_streams_give_the_maps_of_one_stream(tmp_path: Path, rng: np.random.Generator, mc: int) -> None:
+def test_streams_give_the_maps_of_one_stream(tmp_path: Path, rng: np.random.Generator, mc: int,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """Windows (T = 1) and MC samples (T = 3) run in parallel streams, kept in flight while earlier ones are
     stitched: the maps are those of one stream and of the torch engine (fp32; 1e-4 m / 1e-4 nats as the
     fp32 equality above: streams of other widths may sum in another order)."""
+    monkeypatch.setattr(runtime, "usable_cpus", lambda: 4)  # three streams even on a 2-core machine
     model, meta = tiny_d3net()
     img = rng.integers(1, 256, size=(3, 150, 110)).astype(np.uint8)
     img[:, 100:, :40] = 0  # an empty window among computed ones

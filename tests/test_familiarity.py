@@ -60,7 +60,7 @@ def _meta() -> ModelMeta:
 
 def test_a_damaged_density_is_refused_with_the_fix() -> None:
     dens = fit_density(np.random.default_rng(1).normal(size=(200, 4)), (0,), 1, dims=2)
-    with pytest.raises(CheckpointError, match="refit it"):
+    with pytest.raises(CheckpointError, match="refit the density"):
         dataclasses.replace(dens, quantiles=tuple(reversed(dens.quantiles)))
     with pytest.raises(CheckpointError, match="basis"):
         dataclasses.replace(dens, basis=dens.basis[:1] + ((1.0,),))

@@ -357,3 +357,50 @@ def test_several_inputs_mosaic_and_skip_existing(tmp_path: Path, rng: np.random.
     assert (out / "t1" / "height.tif").stat().st_mtime_ns == stamp and (out / "t2" / "height.tif").exists()
     r = CliRunner().invoke(cli, args)  # without --skip-existing or --overwrite: refused before any work
     assert r.exit_code == 1 and "--overwrite" in r.exception.render(flags_for("predict"))
+
+
+@pytest.mark.parametrize("mc", [1, 3])
+def test_stitching_in_a_thread_of_its_own_writes_the_same_maps(ortho: Path, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch, mc: int) -> None:
+    """The stitch stage in its own thread (a GPU, or a host of 4 cores or more) and in the model loop (fewer
+    cores) give byte-identical layers: the windows reach the stitcher in the same order.
+    """
+    from aerialmtl.inference import model as model_mod
+
+    assert model_mod.stitch_in_thread(torch.device("cpu"), 2) is False
+    assert model_mod.stitch_in_thread(torch.device("cpu"), 16) is True
+    assert model_mod.stitch_in_thread(torch.device("cuda")) is True
+    files = {}
+    for cores in (1, 10**6):  # threaded, then in the model loop
+        monkeypatch.setattr(model_mod, "STITCH_THREAD_CORES", cores)
+        res = predict_raster(ortho, tiny_d3net(), tmp_path / f"p{cores}", mc=mc, window=64, overlap=16,
+                             batch_size=2, progress=False)
+        files[cores] = {n: p.read_bytes() for n, p in res.files.items() if p.suffix == ".tif"}
+    assert files[1].keys() == files[10**6].keys() and len(files[1]) >= 2
+    for name in files[1]:
+        assert files[1][name] == files[10**6][name], name
+
+
+def test_a_failure_in_the_stitch_thread_fails_the_run_and_ends_the_thread(ortho: Path, tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    import threading
+
+    from aerialmtl.inference import model as model_mod
+    from aerialmtl.inference.stitch import Stitcher
+
+    monkeypatch.setattr(model_mod, "STITCH_THREAD_CORES", 1)
+    calls = {"n": 0}
+    add = Stitcher.add
+
+    def failing_add(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("injected stitch failure")
+        return add(self, *args, **kwargs)
+
+    monkeypatch.setattr(Stitcher, "add", failing_add)
+    out = tmp_path / "p"
+    with pytest.raises(RuntimeError, match="injected stitch failure"):
+        predict_raster(ortho, tiny_d3net(), out, mc=1, window=32, overlap=0, batch_size=1, progress=False)
+    assert not out.exists() or list(out.iterdir()) == []  # no final file, no hidden file
+    assert not [t for t in threading.enumerate() if t.name == "aerialmtl-stitch"]

@@ -3,6 +3,7 @@ NAME`, and predict saying that a start is not fine-tuned."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import shutil
@@ -16,16 +17,22 @@ from affine import Affine
 from helpers.cli import run_cli
 from helpers.rasters import write_raster
 from helpers.tilefolder import write_tile_folder
+from test_sanity import one_error_line
 
 from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.data.synthetic_batches import SyntheticBatches, SyntheticStream
-from aerialmtl.errors import CheckpointError, ConfigError, InputError, OutputExistsError
+from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFiniteError, OutputExistsError
 from aerialmtl.formats import starts
 from aerialmtl.formats.checkpoint import load_checkpoint
 from aerialmtl.formats.tiles import read_manifest
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.loop import train
+from aerialmtl.training.lr_schedule import lr_factor
+from aerialmtl.training.objective import Objective
 from aerialmtl.training.pretrain import LAST_PT, PretrainSettings, pretrain
+from aerialmtl.training.steploop import StepLoop
+
+ROOT = Path(__file__).resolve().parents[1]
 
 TINY_MODEL = {"growth_rate": 8, "block_config": [2, 2, 2, 2], "num_init_features": 16, "bn_size": 2,
               "aleatoric": True}
@@ -242,3 +249,157 @@ def test_real_patches_fill_their_share_of_each_batch_with_heights_and_no_labels(
         SyntheticBatches(dataclasses.replace(stream, patch_size=96, scene_size=96), (127.0,) * 3, (128.0,) * 3, 2)
     plain = dataclasses.replace(stream, real=None)
     assert plain.real_count() == 0
+
+
+# ---- one training loop: pretraining applies every step key as train does (issue 47) -----------------------
+def test_pretrain_applies_the_weight_average_and_the_cosine_schedule(tmp_path: Path) -> None:
+    """optim.ema and a warmed-up cosine mean in pretrain what they mean in train: the log's lr follows the schedule,
+    last.pt and the exported start hold the average, and an interrupted run resumes to the same start."""
+    cfg = tiny_cfg().with_overrides(optim={"lr": 1e-3, "ema": 0.5},
+                                    schedule={"lr_schedule": "cosine", "warmup_steps": 2})
+    full = pretrain(cfg, tmp_path / "full", settings(6), progress=False)
+    with (tmp_path / "full" / "log.csv").open() as fh:
+        rows = [r for r in csv.DictReader(fh) if r["kind"] == "train"]
+    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5, 6]
+    expected = [1e-3 * lr_factor(s, 6, "cosine", 2) for s in range(6)]  # the row of step s + 1: the rate it used
+    assert [float(r["lr"]) for r in rows] == pytest.approx(expected, rel=1e-9)
+    assert expected[0] < expected[1] == expected[2] == 1e-3 > expected[3] > expected[5] > 0
+    payload = load_checkpoint(full.last_checkpoint)[0]
+    averaged, raw = payload["state_dict"], payload["train_state"]["raw_weights"]
+    moved = [k for k, v in raw.items() if v.is_floating_point() and not torch.equal(v, averaged[k])]
+    assert moved, "last.pt holds the trained weights, not their average"
+    start = torch.load(full.start, weights_only=True)["state_dict"]
+    for k in moved:  # the start is the average (stored as float16)
+        assert torch.equal(start[k], averaged[k].half()), k
+    part = tmp_path / "part"
+    pretrain(cfg, part, settings(3), progress=False)
+    again = pretrain(cfg, part, settings(6), resume=True, progress=False)
+    resumed = load_checkpoint(again.last_checkpoint)[0]
+    for k, v in averaged.items():
+        assert torch.equal(v, resumed["state_dict"][k]), k
+    assert torch.equal(torch.load(again.start, weights_only=True)["state_dict"][moved[0]], start[moved[0]])
+
+
+@pytest.mark.parametrize(("section", "value", "key"), [
+    ("schedule", {"patience": 3}, "schedule.patience"),
+    ("schedule", {"max_time_s": 60.0}, "schedule.max_time_s"),
+    ("data", {"copy_paste": {"prob": 0.5}}, "data.copy_paste.prob"),
+])
+def test_keys_pretraining_cannot_apply_are_refused_by_name(tmp_path: Path, section: str, value: dict,
+                                                           key: str) -> None:
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        pretrain(tiny_cfg().with_overrides(**{section: value}), tmp_path / "run", settings(2), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_diverging_pretraining_stops_like_train_and_keeps_the_last_good_checkpoint(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    run = tmp_path / "run"
+    pretrain(tiny_cfg(), run, settings(2), progress=False)
+    good = torch.load(run / LAST_PT, weights_only=False)["state_dict"]
+    real = Objective.__call__
+
+    def poisoned(self: Objective, out: dict, batch: dict, scoring: bool = False) -> dict:
+        return {t: v * float("nan") for t, v in real(self, out, batch, scoring).items()}
+
+    monkeypatch.setattr(Objective, "__call__", poisoned)
+    with pytest.raises(NonFiniteError, match=r"training diverged at step 3: the loss is nan .*keeps step 2"):
+        pretrain(tiny_cfg(), run, settings(4), resume=True, progress=False)
+    kept = torch.load(run / LAST_PT, weights_only=False)["state_dict"]
+    assert all(torch.equal(v, kept[k]) for k, v in good.items())
+
+
+def test_the_paper_network_is_refused_before_the_first_step_when_its_start_cannot_be_exported(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The DenseNet-121 D3-Net (24.7 M weights, 47 MiB in float16) is larger than a start may be: said at once."""
+    paper = TrainConfig.from_dict({**yaml.safe_load((ROOT / "configs" / "d3net_dfc2018.yaml").read_text()),
+                                   "device": "cpu"}).with_overrides(model={"num_classes": None},
+                                                                    data={"batch_size": 1, "num_workers": 0})
+
+    def no_step(*args: object) -> None:
+        raise AssertionError("a step ran before the export was checked")
+
+    monkeypatch.setattr(StepLoop, "train_step", no_step)
+    with pytest.raises(CheckpointError, match=r"would be 4\d\.\d MiB, more than the 30 MiB"):
+        pretrain(paper, tmp_path / "run", settings(2), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+# ---- a folder's own files and its lock (issue 49) -----------------------------------------------------------
+@pytest.mark.parametrize("name", ["last", "config", "log", "best", "dataset"])
+def test_a_start_name_that_is_a_run_or_tile_folder_file_is_refused(name: str) -> None:
+    with pytest.raises(InputError, match=f"name '{name}' would write the start over a run's or a tile folder's"):
+        PretrainSettings(steps=1, name=name)
+
+
+def test_pretrain_never_replaces_a_file_it_did_not_write(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(tiny_cfg().to_dict()))
+    tiles = write_tile_folder(tmp_path / "tiles", size=64, counts={"train": 4})
+    manifest = (tiles / "dataset.yaml").read_bytes()
+    base = ("pretrain", "--steps", 1, "--config", cfg, "--patch-size", 32, "--scene-size", 64, "--quiet")
+    for extra, needle, code in ((("--out", tiles, "--real", tiles, "--name", "dataset"), "start over", 2),
+                                (("--out", tiles, "--name", "dataset"), "would write the start over", 2),
+                                (("--out", tiles, "--real", tiles, "--name", "mine"), "is the input", 2)):
+        one_error_line(run_cli(capsys, *base, *extra), needle, code=code)
+    assert (tiles / "dataset.yaml").read_bytes() == manifest and not (tiles / "mine.pt").exists()
+    # a file of the user's at the start's path: refused before any step, kept
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.yaml").write_text("my: notes\n")
+    one_error_line(run_cli(capsys, *base, "--out", mine, "--name", "notes"), "notes.yaml", "not a start",
+                   "pass another --name")
+    assert (mine / "notes.yaml").read_text() == "my: notes\n" and not (mine / LAST_PT).exists()
+    # a training run's folder: its checkpoints are not pretraining's to replace, even with --overwrite
+    trained = tmp_path / "trained"
+    trained.mkdir()
+    (trained / "best.pt").write_bytes(b"a training run's")
+    one_error_line(run_cli(capsys, *base, "--out", trained, "--overwrite"), "best.pt", "aerialmtl train")
+    assert (trained / "best.pt").read_bytes() == b"a training run's" and not (trained / LAST_PT).exists()
+    # the same start name again in its own run folder is replaced (the run is started again)
+    assert run_cli(capsys, *base, "--out", tmp_path / "again", "--name", "s")[0] == 0
+    assert run_cli(capsys, *base, "--out", tmp_path / "again", "--name", "s", "--overwrite")[0] == 0
+
+
+def test_a_running_job_holds_the_folder_against_pretrain(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Two pretrain runs into one folder, or pretrain --overwrite into a running train --resume: the second
+    is refused naming the first, and nothing of the folder changes."""
+    from test_outputs import _hold_lock
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(tiny_cfg().to_dict()))
+    run = tmp_path / "run"
+    base = ("pretrain", "--steps", 1, "--config", cfg, "--patch-size", 32, "--scene-size", 64, "--quiet",
+            "--out", run)
+    assert run_cli(capsys, *base)[0] == 0
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    for command, extra in (("pretrain", ("--resume", "--steps", 2)), ("train", ("--overwrite",))):
+        holder = _hold_lock(run, command)
+        try:
+            one_error_line(run_cli(capsys, *base, *extra), f"in use by aerialmtl {command} (PID {holder.pid} ",
+                           "wait for it to finish")
+        finally:
+            holder.kill()
+            holder.wait()
+        assert {p.name: p.read_bytes() for p in run.iterdir() if p.name in before} == before
+
+
+@pytest.mark.parametrize("damage", ["utf16", "step"])
+def test_resume_with_a_damaged_log_names_the_file_and_the_fix(tmp_path: Path, damage: str) -> None:
+    run = tmp_path / "run"
+    pretrain(tiny_cfg(), run, settings(2), progress=False)
+    log = run / "log.csv"
+    text = log.read_text(encoding="utf-8")
+    if damage == "utf16":
+        log.write_text(text, encoding="utf-16")
+        match = r"log\.csv' is not UTF-8 text .*save it as UTF-8, or move it away"
+    else:
+        lines = text.splitlines(keepends=True)
+        lines[2] = lines[2].replace(",2,", ",two,", 1)
+        log.write_text("".join(lines), encoding="utf-8")
+        match = r"log\.csv' line 3: step 'two' is not a number; .*move .* away"
+    with pytest.raises(InputError, match=match):
+        pretrain(tiny_cfg(), run, settings(3), resume=True, progress=False)
+    log.unlink()  # the fix the message names: the resumed run starts a new log
+    assert pretrain(tiny_cfg(), run, settings(3), resume=True, progress=False).step == 3
+    assert [ln.split(",")[1] for ln in log.read_text().splitlines()[1:]] == ["3"]

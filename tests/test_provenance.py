@@ -65,11 +65,11 @@ def test_the_checkpoint_hash_is_that_of_the_bytes_loaded(tmp_path: Path, capsys,
     """`train` replacing RUN/best.pt while predict runs: the maps are recorded as the old model's."""
     best = tmp_path / "best.pt"
     shutil.copy(ckpts[0], best)
-    predictor = Predictor(best, mc=2, window=32, overlap=0, precision="fp32", engine="torch", progress=False)
+    predictor = Predictor(best, mc=2, window=32, overlap=0, precision="fp32", engine="torch")
     shutil.copy(ckpts[1], tmp_path / ".best.pt.partial")
     os.replace(tmp_path / ".best.pt.partial", best)  # as save_checkpoint replaces it
     ortho, out = rgb(tmp_path), tmp_path / "pred"
-    predict_raster(ortho, predictor, out)  # the model loaded above
+    predict_raster(ortho, predictor, out, progress=False)  # the model loaded above
     assert _provenance(out)["checkpoint"] == _sha(ckpts[0]) != _sha(best)
     assert _skip(capsys, ortho, best, out).endswith("it was made with another model")  # not kept for good
     assert _provenance(out)["checkpoint"] == _sha(best)

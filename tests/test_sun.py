@@ -58,6 +58,8 @@ def test_no_shadows_no_sun() -> None:
     p = city(1, 130.0, 40.0, size=128)
     flat = fit_sun(p.image, np.zeros_like(p.height), p.gsd)  # heights that cast nothing
     assert not flat.clear and flat.sun is None and "no shadow" in flat.reason
+    grey = fit_sun(np.full_like(p.image, 128), p.height, p.gsd)  # overcast at its worst: no contrast at all
+    assert not grey.clear and grey.sun is None and "no contrast" in grey.reason
     zenith = city(1, 0.0, 88.0, size=128)  # the sun almost overhead: shadows under the objects
     fit = fit_sun(zenith.image, zenith.height, zenith.gsd)
     assert not fit.clear and fit.sun is None and fit.reason.startswith("no sun fitted"), fit.reason
@@ -100,6 +102,23 @@ def test_shadow_score_and_model_find_the_cast_shadows() -> None:
         assert np.median(v[truth]) > np.percentile(v[~truth], 75)
 
 
+def test_learnt_shadow_model_does_not_call_lit_water_shadow() -> None:
+    """Water is darker and bluer than shadow (the fixed score ranks it above the shadows); the model fitted on
+    scenes with water, against their cast shadows, learns it is not shadow."""
+    sun = Sun(130.0, 40.0)
+    train = [city(s, 130.0, 40.0) for s in (1, 2, 3)]  # seed 3 is a quarter water
+    model = ShadowModel().fit([p.image for p in train], [p.height for p in train], 0.5, sun)
+    p = city(8, 130.0, 40.0)
+    cast = cast_shadow_mask(p.height, p.gsd, sun)
+    water = (p.classes == 6) & ~cast
+    shade = cast & (p.height < 0.5)
+    assert water.sum() > 1000 and shade.sum() > 1000
+    score = shadow_score(p.image)
+    assert np.median(score[water]) > np.median(score[shade])  # a threshold on the score would take the water
+    called = model.predict_proba(p.image) >= model.threshold
+    assert called[water].mean() < 0.1 and called[shade].mean() > 0.5
+
+
 def _truth_errors(seed: int, sun: Sun) -> tuple[ShadowHeights, list[float]]:
     p = city(seed, sun.azimuth_deg, sun.elevation_deg, size=256)
     objects, _ = ndimage.label(p.height >= 2.0)
@@ -122,6 +141,26 @@ def test_shadow_heights_within_15_percent_of_the_truth() -> None:
         assert (np.isfinite(sh.std) == measured).all() and (sh.std[measured] > 0).all()
     assert np.median(errors) <= 0.15, np.median(errors)
     assert min(shares) >= 0.5, shares  # share of objects measured, as the record reports it
+
+
+def test_shadow_heights_from_the_image_with_a_learnt_shadow_model() -> None:
+    """End to end from the image: a shadow model fitted on two other scenes under the same sun, runs measured
+    from the occluder the height map locates, the shadow threshold chosen on the training scenes' own heights.
+    Today's level (pooled over the five scenes): median |error| ≈ 16 %, median signed error ≈ 0 %; held to ≤ 25 %
+    and ±10 %."""
+    errors = []
+    for seed, azimuth, elevation in [(13, 130.0, 40.0), (16, 250.0, 55.0), (17, 130.0, 40.0), (18, 60.0, 35.0),
+                                     (19, 200.0, 50.0)]:
+        sun = Sun(azimuth, elevation)
+        train = [city(s, azimuth, elevation, size=192) for s in (1, 2, 3)]
+        model = ShadowModel().fit([p.image for p in train], [p.height for p in train], 0.5, sun)
+        p = city(seed, azimuth, elevation, size=256)
+        objects, _ = ndimage.label(p.height >= 2.0)
+        sh = shadow_heights(model.predict_proba(p.image), p.gsd, sun, objects, height=p.height,
+                            threshold=model.threshold)
+        errors += [o.height_m / float(np.median(p.height[objects == o.label])) - 1 for o in sh.objects if o.measured]
+    assert np.median(np.abs(errors)) <= 0.25, np.median(np.abs(errors))
+    assert abs(np.median(errors)) <= 0.10, np.median(errors)
 
 
 def test_runs_clipped_by_the_edge_or_ending_on_another_object_are_not_measurements() -> None:
@@ -182,3 +221,18 @@ def test_fusion_keeps_network_values_exactly_where_no_shadow_height() -> None:
     fh, fs = fuse_heights(height, std, none, objects)  # type: ignore[arg-type]
     np.testing.assert_array_equal(fh, height)
     np.testing.assert_array_equal(fs, std)
+
+
+def test_soft_cast_shadow_tends_to_the_hard_mask_and_has_gradients() -> None:
+    torch = pytest.importorskip("torch")
+    from aerialmtl.sun.soft import soft_cast_shadow
+
+    p = city(1, 130.0, 40.0, size=96)
+    sun = Sun(130.0, 40.0)
+    hard = cast_shadow_mask(p.height, p.gsd, sun, max_length_m=30.0)
+    h = torch.tensor(p.height, requires_grad=True)
+    soft = soft_cast_shadow(h, p.gsd, sun, max_length_m=30.0, temperature_m=0.05)
+    agree = ((soft.detach().numpy() > 0.5) == hard).mean()
+    assert agree > 0.98, agree
+    soft.sum().backward()
+    assert h.grad is not None and torch.isfinite(h.grad).all() and h.grad.abs().sum() > 0

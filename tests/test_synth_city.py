@@ -6,15 +6,14 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
-from aerialmtl.data.city_stream import CityStream, CityStreamOptions, city_sample, city_seed
 from aerialmtl.data.synth import CityStyle, TexturePool, sample_city
 from aerialmtl.data.synth.city import render_city
 from aerialmtl.data.synth.city_canvas import CityCanvas
 from aerialmtl.data.synth.relief import relief_displacement
 from aerialmtl.data.synth.scene import BUILDING
 from aerialmtl.data.synth.style import Imaging
+from aerialmtl.data.synthetic_batches import city_seed, synthetic_scene
 from aerialmtl.errors import InputError
 
 BARE, ROAD, TREE, LOWVEG, WATER = 1, 2, 4, 5, 6
@@ -134,20 +133,18 @@ def test_texture_pool_cuts_only_near_ground_patches() -> None:
         TexturePool.from_arrays(image, np.full((128, 128), 5.0, np.float32), gsd=0.5)
 
 
-def test_city_sample_has_the_training_sample_format() -> None:
-    opts = CityStreamOptions(seed=3, size=48, gsd=(0.5, 0.5))
-    s = city_sample(2, opts)
-    assert s["image"].shape == (3, 48, 48) and s["image"].dtype == torch.float32
-    assert s["height"].shape == (1, 48, 48) and s["height_valid"].all()
-    assert s["classes"].dtype == torch.int64 and int(s["classes"].max()) <= 5
+def test_a_stream_scene_is_the_city_of_its_seed_in_the_synthetic_scheme() -> None:
+    """Scene ``index`` of stream ``seed`` is the city of ``city_seed(seed, index)``, its classes the synthetic
+    scheme's indices (the city's codes 1..6 → 0..5), whatever else was drawn before it."""
+    seeds = {city_seed(3, i) for i in range(50)} | {city_seed(4, i) for i in range(50)}
+    assert len(seeds) == 100 and all(0 <= s < 2**63 for s in seeds)  # distinct, 63-bit
+    scene = synthetic_scene(3, 2, 48, 0.5)
     raw = sample_city(city_seed(3, 2), 48, 0.5)
-    assert torch.allclose(s["image"], (torch.from_numpy(raw.image).float() - 127) / 128)
-    assert torch.equal(s["classes"], torch.from_numpy(raw.classes).long() - 1)
-    loader = torch.utils.data.DataLoader(CityStream(opts, length=4), batch_size=None, num_workers=0)
-    ids = [b["patch_id"] for b in loader]
-    assert ids == ["city-3-0", "city-3-1", "city-3-2", "city-3-3"]
-    with pytest.raises(InputError, match="gsd"):
-        CityStreamOptions(gsd=(1.0, 0.5))
+    assert scene.image.shape == (3, 48, 48) and scene.image.dtype == np.uint8 and scene.gsd == 0.5
+    np.testing.assert_array_equal(scene.image, raw.image)
+    np.testing.assert_array_equal(scene.height, raw.height.astype(np.float32))
+    np.testing.assert_array_equal(scene.classes, raw.classes.astype(np.int64) - 1)
+    np.testing.assert_array_equal(synthetic_scene(3, 2, 48, 0.5).image, scene.image)  # a pure function
 
 
 def test_cli_writes_a_city(tmp_path) -> None:

@@ -22,22 +22,25 @@ def cache(action: str, names: tuple[str, ...]) -> None:
     numba     the compiled MC class kernel
     Everything is rebuilt when needed: clearing only makes the next run slower. The stores live in the
     platform's cache folder (AERIALMTL_CACHE moves them) and hold at most AERIALMTL_CACHE_LIMIT_MB MiB
-    together (least recently used entries go first).
+    together (least recently used entries go first). Only files aerialmtl wrote are counted or removed:
+    a folder of yours that a store is pointed at keeps its files.
     """
     from aerialmtl.stores import clear_stores, list_stores, size_limit
 
     chosen = names or STORES
     if action == "clear":
-        files, size = clear_stores(chosen)
-        click.echo(f"removed {files} file(s), {size / 2**20:.1f} MiB, from the {', '.join(chosen)} store(s)")
+        files, size, left = clear_stores(chosen)
+        kept = f"; left {left} other file(s) there, which aerialmtl did not write" if left else ""
+        click.echo(f"removed {files} file(s), {size / 2**20:.1f} MiB, from the {', '.join(chosen)} store(s){kept}")
         return
     try:
         limit = f"{size_limit() / 2**20:.0f} MiB"
     except ValueError as exc:
         limit = f"{DEFAULT_LIMIT_MB} MiB ({exc})"
     total = 0
-    for name, folder, files, size in list_stores():
+    for name, folder, files, size, other in list_stores():
         if name in chosen:
             total += size
-            click.echo(f"{name:<9} {files:>5} file(s) {size / 2**20:>9.1f} MiB  {folder}")
+            extra = f" (and {other} other file(s), not aerialmtl's: never counted or removed)" if other else ""
+            click.echo(f"{name:<9} {files:>5} file(s) {size / 2**20:>9.1f} MiB  {folder}{extra}")
     click.echo(f"total {total / 2**20:.1f} MiB of at most {limit} ({LIMIT_ENV}; move the stores with {ROOT_ENV})")

@@ -19,13 +19,14 @@ CLI does not validate again what the library already checks.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 import click
 
 from aerialmtl.errors import PARAM_MARK, AerialMTLError, ConfigError, InputError
+from aerialmtl.inference.engine_names import ENGINE_MODULES
 from aerialmtl.io.paths import gdal_path, is_local
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -99,8 +100,9 @@ def raster_argument(name: str, library: str | Sequence[str] = (), **kwargs: Any)
 
 # ---- outputs ---------------------------------------------------------------------------------------
 class OutputPath(click.Path):
-    """A local output path (``click.Path`` → ``pathlib.Path``); a URL or a GDAL ``/vsi...`` path is refused before
-    ``pathlib`` folds ``s3://b/x`` into a local folder ``s3:/b/x``.
+    """A local output path (``click.Path`` → ``pathlib.Path``).
+
+    A URL or a GDAL ``/vsi...`` path is refused before ``pathlib`` folds ``s3://b/x`` into a local folder ``s3:/b/x``.
     """
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
@@ -153,6 +155,28 @@ def compile_option(dest: str = "compile_") -> Decorator[Any]:
                   help="torch.compile the model (a warning and the plain model where compiling is unavailable).")
 
 
+class EngineName(click.Choice):  # type: ignore[type-arg]  # generic only in click's stubs
+    """``auto`` or a name of the engine registry (:data:`aerialmtl.inference.engine_names.ENGINE_MODULES`).
+
+    The names are read from that table (which imports no engine, so no torch) each time the choices are shown or
+    checked.
+    """
+
+    name = "engine"
+
+    def __init__(self) -> None:
+        super().__init__(("auto",))
+
+    @property
+    def choices(self) -> tuple[str, ...]:
+        """``auto`` and the registry's engines."""
+        return ("auto", *ENGINE_MODULES)
+
+    @choices.setter
+    def choices(self, value: Sequence[str]) -> None:
+        """The registry decides; click's own assignment is ignored."""
+
+
 # ---- the parameter → option table, derived from the commands -------------------------------------------
 def _spelling(param: click.Parameter) -> str:
     """How the command line shows ``param``: its long option (``--tile``) or its metavar (``ORTHOS``)."""
@@ -172,6 +196,24 @@ def command_flags(command: click.Command) -> dict[str, str]:
         for name in (param.name, *getattr(param, "library", ())):
             table.setdefault(name, spelled)
     return table
+
+
+def values_for(names: Iterable[Any], values: dict[str, Any]) -> dict[str, Any]:
+    """The values of the running command's options for the library parameters ``names``.
+
+    ``values``: what click passed, by parameter name; ``names``: names, or dataclass fields; each found as
+    :func:`command_flags` finds them.
+
+    Raises:
+        TypeError: a name no option of the command stands for (the command lacks an option: a programming error).
+    """
+    params = click.get_current_context().command.params
+    source = {n: p.name for p in params if p.name is not None for n in (p.name, *getattr(p, "library", ()))}
+    wanted = [getattr(n, "name", n) for n in names]
+    missing = [n for n in wanted if n not in source]
+    if missing:
+        raise TypeError(f"the command has no option for {', '.join(missing)}: add one (docs/CONTRACTS.md)")
+    return {n: values[source[n]] for n in wanted}
 
 
 def _commands() -> dict[str, click.Command]:
@@ -241,7 +283,8 @@ def usage_errors(command: str, callback: F) -> F:
 
 
 __all__ = [
-    "DEVICES", "PRECISIONS", "RASTER", "LibraryArgument", "LibraryOption", "OutputPath", "RasterPath", "argument",
-    "command_flags", "common_flags", "compile_option", "device_option", "flags_for", "option", "output_path",
-    "overwrite_option", "precision_option", "quiet_option", "raster_argument", "raster_option", "usage_errors",
+    "DEVICES", "PRECISIONS", "RASTER", "EngineName", "LibraryArgument", "LibraryOption", "OutputPath", "RasterPath",
+    "argument", "command_flags", "common_flags", "compile_option", "device_option", "flags_for", "option",
+    "output_path", "overwrite_option", "precision_option", "quiet_option", "raster_argument", "raster_option",
+    "usage_errors", "values_for",
 ]

@@ -6,14 +6,16 @@ A thin command over :func:`aerialmtl.inference.jobs.predict_many` (one process, 
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, cast
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import click
 
 from aerialmtl.cli.options import (
+    EngineName,
     compile_option,
     device_option,
     option,
@@ -22,13 +24,13 @@ from aerialmtl.cli.options import (
     precision_option,
     quiet_option,
     raster_argument,
+    values_for,
 )
 from aerialmtl.errors import CheckpointError, InputError
 from aerialmtl.io.paths import is_local, raster_name, raster_stem
 
 if TYPE_CHECKING:
     from aerialmtl.inference.job import PredictResult
-    from aerialmtl.runtime import Precision
 
 #: Environment variable naming the default checkpoint of `aerialmtl predict`.
 MODEL_ENV = "AERIALMTL_MODEL"
@@ -55,7 +57,7 @@ def default_out(orthos: tuple[str, ...]) -> Path:
 
 
 
-def _batch_size(value: str) -> int | Literal["auto"]:
+def _batch_size(ctx: click.Context, param: click.Parameter, value: str) -> int | Literal["auto"]:
     """``auto`` or a number (the library checks the value)."""
     if value == "auto":
         return "auto"
@@ -96,13 +98,11 @@ def _say_if_start(model: Path) -> None:
 @option("--tile", "tile_alias", type=int, default=None, hidden=True, help="Deprecated name of --window.")
 @option("--overlap", type=int, default=64, show_default=True,
         help="Minimum overlap between neighbouring windows (pixels), blended seamlessly.")
-@option("--batch-size", "batch_size", default="auto", show_default=True,
+@option("--batch-size", "batch_size", default="auto", show_default=True, callback=_batch_size,
         help="Windows per model call, or 'auto' (from the free GPU memory; 1 on a CPU).")
-# the names of aerialmtl.inference.engines.ENGINES (not imported here: it imports torch; tests/test_engines.py
-# checks the two agree)
-@option("--engine", type=click.Choice(["auto", "torch", "openvino"]), default="auto", show_default=True,
-        help="What runs the model: auto = OpenVINO on a CPU when installed (faster, most with bf16), torch "
-             "otherwise (and on CUDA).")
+@option("--engine", type=EngineName(), default="auto", show_default=True,
+        help="What runs the model: auto = the engine measured fastest on this kind of CPU (OpenVINO where it is "
+             "installed and was not measured slower), torch otherwise (and on CUDA).")
 @option("--threads", "threads", default="auto", show_default=True,
         help="Inference threads on a CPU: a number, or auto = the AERIALMTL_THREADS environment variable if set, "
              "else the cores torch sees. OpenVINO splits them into streams that each run their own window, which "
@@ -114,7 +114,7 @@ def _say_if_start(model: Path) -> None:
 @option("--aoi", type=click.Path(dir_okay=False, path_type=Path), default=None,
         help="GeoJSON polygons: compute only there, nodata elsewhere.")
 @option("--probabilities", is_flag=True, help="Also write class_probabilities.tif (K float32 bands).")
-@option("--no-calibration", "no_calibration", is_flag=True, library="calibration",
+@option("--no-calibration", "calibration", is_flag=True, flag_value=False, default=True,
         help="Do not apply the checkpoint's calibration (height map and spread factor fitted on validation).")
 @option("--tta", is_flag=True,
         help="Test-time augmentation: also run every window flipped and rotated (8 views) and combine them like "
@@ -122,6 +122,12 @@ def _say_if_start(model: Path) -> None:
 @option("--rescale-input", is_flag=True,
         help="When an orthophoto's values do not look like the training images' (e.g. 16-bit on an 8-bit model), "
              "map them linearly onto the training range (mean ± 3 std of a sample) instead of refusing it.")
+@option("--seed", type=int, default=0, show_default=True,
+        help="Base seed of the per-window MC-dropout masks: the same seed gives the same maps.")
+@option("--max-decode-pixels", type=int, default=None,
+        help="Bound on the pixels decoded per model call with MC dropout (bounds memory, not results) "
+             "[default: by device].")
+@option("--reader-threads", type=int, default=2, show_default=True, help="Background threads reading windows.")
 @option("--sun", default="auto", show_default=True,
         help="The sun for the shadow layers (shadow.tif, shadow_height.tif): auto = from the acquisition time and "
              "place (--acquired, a STAC item NAME.json beside the orthophoto, or its TIFF DateTime), else the sun "
@@ -138,21 +144,17 @@ def _say_if_start(model: Path) -> None:
         help="Skip inputs whose prediction folder is complete for this run (same model, settings and input, "
              "every layer whole); recompute the others, saying why (resume a job).")
 @quiet_option()
-def predict(
-    orthos: tuple[str, ...], model: Path | None, out: Path | None, mc: int | None, window: int, overlap: int,
-    batch_size: str, engine: str, threads: str, precision: Precision, device: str, compile_: bool, aoi: Path | None,
-    probabilities: bool, rescale_input: bool, overwrite: bool, skip_existing: bool, quiet: bool,
-    no_calibration: bool = False, tta: bool = False, tile_alias: int | None = None, sun: str = "auto",
-    acquired: str | None = None, shadow_fusion: bool = False,
-) -> None:
+def predict(orthos: tuple[str, ...], model: Path | None, out: Path | None, overwrite: bool, skip_existing: bool,
+            quiet: bool, tile_alias: int | None = None, **options: Any) -> None:
     """Predict ORTHO [ORTHO...] into Cloud-Optimized GeoTIFFs (height, classes, uncertainties).
 
     ORTHO is a GeoTIFF, a VRT, a URL (https://, s3://) or a GDAL /vsi... path. With AERIALMTL_MODEL set,
     `aerialmtl predict ortho.tif` writes ortho_aerialmtl/ beside ortho.tif.
     \f
 
-    One parameter per command-line option: click passes each option to the command; the settings are built
-    once (:class:`~aerialmtl.inference.settings.PredictSettings`) and travel unchanged to the engine.
+    One option per field of :class:`~aerialmtl.inference.settings.PredictSettings`, found by name (the option's
+    own or its ``library=`` name; a field without its option fails here and in tests/test_predict_settings.py):
+    click passes them in ``options``; the settings are built once and travel unchanged to the engine.
     """
     from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.settings import PredictSettings
@@ -160,18 +162,14 @@ def predict(
     if tile_alias is not None:  # "tile" names the training patches of a tile folder only
         warnings.warn("--tile is deprecated for predict: pass --window (the side of the prediction window)",
                       FutureWarning, stacklevel=1)
-        window = tile_alias
+        options["window"] = tile_alias
     if model is None:
         raise InputError(f"no model given: pass --model RUN/best.pt, or set {MODEL_ENV}=RUN/best.pt once for every "
                          "`aerialmtl predict`")
     default = out is None
     if out is None:
         out = default_out(orthos)
-    settings = PredictSettings(
-        mc=mc, window=window, overlap=overlap, batch_size=_batch_size(batch_size), precision=precision,
-        device=device, engine=engine, threads=threads, aoi=aoi, probabilities=probabilities,
-        calibration=not no_calibration, rescale_input=rescale_input, tta=tta, compile=compile_, sun=sun,
-        acquired=acquired, shadow_fusion=shadow_fusion, checkpoint_name=str(model), progress=not quiet)
+    settings = PredictSettings(**values_for(dataclasses.fields(PredictSettings), options))
 
     def report(res: PredictResult) -> None:
         t = res.timings
@@ -186,7 +184,7 @@ def predict(
     try:
         _say_if_start(model)
         job = predict_many(orthos, model, out, settings, overwrite=overwrite, skip_existing=skip_existing,
-                           on_result=report)
+                           on_result=report, progress=not quiet)
     except CheckpointError as exc:  # a model the user did not type here: say where it came from
         source = click.get_current_context().get_parameter_source("model")
         if source is not click.core.ParameterSource.ENVIRONMENT:

@@ -22,10 +22,12 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "configs" /
              "NAME.pt with its model card NAME.yaml.")
 @option("--steps", type=int, required=True, help="Optimisation steps in total (a resumed run continues to it).")
 @option("--config", "config_path", library="config", type=click.Path(dir_okay=False, path_type=Path),
-        help="Training YAML whose model, loss, optimiser and data.batch_size are used [default: the small-area "
-             "recipe, configs/small_area.yaml; with --resume, OUT/config.yaml].")
+        help="Training YAML whose model, loss, optimiser (optim.ema too), schedule.lr_schedule/warmup_steps/log_every "
+             "and data.batch_size are used as train uses them [default: the small-area recipe, "
+             "configs/small_area.yaml; with --resume, OUT/config.yaml].")
 @option("--checkpoint-every", type=int, default=500, show_default=True, help="Write last.pt every this many steps.")
-@option("--name", default="synthcity-lite0", show_default=True, help="Name of the exported start (NAME.pt).")
+@option("--name", default="synthcity-lite0", show_default=True,
+        help="Name of the exported start (NAME.pt); not the name of a run or tile folder file (last, best, config...).")
 @option("--seed", type=int, default=None, help="Overrides the config's seed (the scenes and the weights).")
 @option("--batch-size", type=int, default=None, help="Overrides data.batch_size (patches per step).")
 @option("--workers", type=int, default=None, help="Overrides data.num_workers (processes making scenes).")

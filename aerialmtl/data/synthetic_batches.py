@@ -22,7 +22,9 @@ import torch
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.data.dataset import normalise_batch
+from aerialmtl.data.synth.city import sample_city
 from aerialmtl.data.synth.city_canvas import GROUND_ROOFS
+from aerialmtl.data.synth.style import CityStyle
 from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.errors import ConfigError
 
@@ -35,8 +37,10 @@ GENERATOR = ("aerialmtl.data.synth.city.sample_city (synthetic cities: towers, h
 
 @dataclass(frozen=True)
 class SyntheticScene:
-    """One scene: ``image`` uint8 (3, H, W) RGB, ``height`` float32 (H, W) metres above ground, ``classes``
-    uint8 (H, W) class indices of the ``synthetic`` scheme (255 unlabelled), ``gsd`` metres per pixel.
+    """One synthetic scene with its references.
+
+    ``image`` uint8 (3, H, W) RGB, ``height`` float32 (H, W) metres above ground, ``classes`` uint8 (H, W) class
+    indices of the ``synthetic`` scheme (255 unlabelled), ``gsd`` metres per pixel.
     """
 
     image: np.ndarray
@@ -45,18 +49,20 @@ class SyntheticScene:
     gsd: float
 
 
+def city_seed(seed: int, index: int) -> int:
+    """The city seed of scene ``index`` of the stream ``seed`` (a 63-bit int, well mixed)."""
+    return int(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(index)]).generate_state(2, np.uint64)[0] >> 1)
+
+
 def synthetic_scene(seed: int, index: int, size: int, gsd: float,
                     textures: TexturePool | None = None, ground_roofs: float = GROUND_ROOFS) -> SyntheticScene:
-    """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres), its surfaces
-    drawn in part with ``textures`` (the user's own ground) when given, ``ground_roofs`` of its flat roofs in a
-    ground material (:attr:`~aerialmtl.data.synth.style.CityStyle.ground_roofs`).
+    """Scene ``index`` of the stream seeded ``seed`` (``size`` × ``size`` pixels of ``gsd`` metres).
+
+    Its surfaces are drawn in part with ``textures`` (the user's own ground) when given, ``ground_roofs`` of its
+    flat roofs in a ground material (:attr:`~aerialmtl.data.synth.style.CityStyle.ground_roofs`).
 
     The one function that asks the generator for a scene: switching generators changes only this body.
     """
-    from aerialmtl.data.city_stream import city_seed
-    from aerialmtl.data.synth.city import sample_city
-    from aerialmtl.data.synth.style import CityStyle
-
     city = sample_city(city_seed(seed, index), size, gsd, CityStyle(ground_roofs=ground_roofs), textures=textures)
     classes = ClassScheme.load(SCHEME_NAME).remap(city.classes, on_unknown="ignore").astype(np.uint8)
     return SyntheticScene(city.image, city.height.astype(np.float32), classes, gsd)
@@ -64,9 +70,10 @@ def synthetic_scene(seed: int, index: int, size: int, gsd: float,
 
 @dataclass(frozen=True)
 class RealPatches:
-    """The training patches of a tile folder, whole, for mixing into synthetic batches: ``images`` uint8
-    (3, S, S) RGB each, ``heights`` float32 (S, S) metres with NaN where invalid (the image's nodata too),
-    ``valid`` bool (S, S) where the image is valid.
+    """The training patches of a tile folder, whole, for mixing into synthetic batches.
+
+    ``images`` uint8 (3, S, S) RGB each, ``heights`` float32 (S, S) metres with NaN where invalid (the image's
+    nodata too), ``valid`` bool (S, S) where the image is valid.
     """
 
     images: list[np.ndarray]
@@ -202,8 +209,10 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
         return scene
 
     def raw(self, step: int) -> dict[str, torch.Tensor]:
-        """The compact batch of ``step``: ``image`` uint8 (B, 3, P, P), ``height`` float32 (B, 1, P, P) (NaN where
-        unknown), ``classes`` uint8 (B, P, P), ``valid`` bool (B, P, P) where the image is valid; the first
+        """The compact batch of ``step``.
+
+        ``image`` uint8 (B, 3, P, P), ``height`` float32 (B, 1, P, P) (NaN where unknown), ``classes`` uint8
+        (B, P, P), ``valid`` bool (B, P, P) where the image is valid; the first
         :meth:`SyntheticStream.real_count` patches are real ones.
         """
         s, p = self.stream, self.stream.patch_size
@@ -241,4 +250,5 @@ class SyntheticBatches(torch.utils.data.Dataset[dict[str, torch.Tensor]]):
         return normalise_batch(raw["image"], raw["valid"], self.mean, self.std, raw["height"], raw["classes"])
 
 
-__all__ = ["GENERATOR", "SCHEME_NAME", "SyntheticBatches", "SyntheticScene", "SyntheticStream", "synthetic_scene"]
+__all__ = ["GENERATOR", "SCHEME_NAME", "SyntheticBatches", "SyntheticScene", "SyntheticStream", "city_seed",
+           "synthetic_scene"]

@@ -110,6 +110,33 @@ def _per_sample(batch: Batch, ops: list[Callable[[torch.Tensor], torch.Tensor] |
     return _map_spatial(batch, lambda t: torch.stack([t[i] if op is None else op(t[i]) for i, op in enumerate(ops)]))
 
 
+#: A flip/rotation of the last two axes as ``(transpose, flipped axes)``: ``x.transpose(-2, -1)`` if ``transpose``,
+#: then ``flip`` of those axes. Every combination of flips and quarter turns is one such move.
+Move = tuple[bool, frozenset[int]]
+_ROT90_MOVES: dict[int, Move] = {0: (False, frozenset()), 1: (True, frozenset({-2})), 2: (False, frozenset({-2, -1})),
+                                 3: (True, frozenset({-1}))}
+
+
+def _then(first: Move, second: Move) -> Move:
+    """The move ``second ∘ first`` (a transpose turns the flips before it into flips of the other axis)."""
+    flips = frozenset(-3 - d for d in first[1]) if second[0] else first[1]
+    return first[0] != second[0], flips ^ second[1]
+
+
+def _move_op(move: Move) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    """The function of ``move`` on one sample's (…, H, W) tensor; ``None`` for the identity."""
+    transpose, flips = move
+    if not transpose and not flips:
+        return None
+    dims = tuple(sorted(flips))
+
+    def op(x: torch.Tensor) -> torch.Tensor:
+        y = x.transpose(-2, -1) if transpose else x
+        return torch.flip(y, dims=dims) if dims else y
+
+    return op
+
+
 class RandomFlip(BatchTransform):
     """Flip left-right and/or up-down, each with probability ``p``.
 
@@ -135,6 +162,10 @@ class RandomFlip(BatchTransform):
 
         return _per_sample(batch, [op(h, v) for h, v in zip(params["h"].tolist(), params["v"].tolist())])
 
+    def moves(self, params: Params) -> list[Move]:
+        """Each sample's flip as a :data:`Move`."""
+        return [(False, frozenset((-2,) * v + (-1,) * h)) for h, v in zip(params["h"].tolist(), params["v"].tolist())]
+
 
 class RandomRot90(BatchTransform):
     """Rotate by k·90° counter-clockwise, k uniform in {0, 1, 2, 3}.
@@ -158,6 +189,12 @@ class RandomRot90(BatchTransform):
             return (lambda x: torch.rot90(x, k, dims=(-2, -1))) if k else None
 
         return _per_sample(batch, [op(k) for k in params["k"].tolist()])
+
+    def moves(self, params: Params) -> list[Move]:
+        """Each sample's quarter turns as a :data:`Move` (as ``torch.rot90``: k = 1 flips the columns, then
+        transposes).
+        """
+        return [_ROT90_MOVES[k % 4] for k in params["k"].tolist()]
 
 
 class _Crop(BatchTransform):
@@ -299,11 +336,35 @@ class Compose(BatchTransform):
         return None
 
     def apply(self, batch: Batch, params: Params, stages: Sequence[str] = ("load", "permute", "value")) -> Batch:
-        """Apply the transforms of ``stages`` (e.g. without ``"load"`` when crops were cut while reading)."""
+        """Apply the transforms of ``stages`` (e.g. without ``"load"`` when crops were cut while reading).
+
+        Consecutive flips and rotations move each sample once (their composition, :data:`Move`): one copy of
+        each layer instead of one per transform, and the same pixels.
+        """
+        moving: list[int] = []
         for i, t in enumerate(self.transforms):
-            if t.stage in stages:
-                batch = t.apply(batch, self._params(params, i))
-        return batch
+            if t.stage not in stages:
+                continue
+            if isinstance(t, (RandomFlip, RandomRot90)):
+                moving.append(i)
+                continue
+            batch = self._move(batch, params, moving)
+            moving = []
+            batch = t.apply(batch, self._params(params, i))
+        return self._move(batch, params, moving)
+
+    def _move(self, batch: Batch, params: Params, indices: list[int]) -> Batch:
+        """Apply the flips/rotations at ``indices`` (consecutive in the pipeline) as one move per sample."""
+        if len(indices) < 2:
+            return self.transforms[indices[0]].apply(batch, self._params(params, indices[0])) if indices else batch
+        moves: list[Move] | None = None
+        for i in indices:
+            t = self.transforms[i]
+            assert isinstance(t, (RandomFlip, RandomRot90))
+            step = t.moves(self._params(params, i))
+            moves = step if moves is None else [_then(a, b) for a, b in zip(moves, step)]
+        assert moves is not None
+        return _per_sample(batch, [_move_op(m) for m in moves])
 
     def __call__(self, sample: Sample, generator: torch.Generator | None = None) -> Sample:
         """Apply every transform to one sample, in order."""

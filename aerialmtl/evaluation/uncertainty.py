@@ -139,8 +139,9 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
 
 
 class CalibrationBins:
-    """Streaming reliability statistics: per confidence bin, the pixel count, summed confidence and
-    summed correctness. Equal-width bins on [0, 1]; confidence 1 falls in the last bin.
+    """Streaming reliability statistics: per confidence bin, the pixel count, summed confidence and correctness.
+
+    Equal-width bins on [0, 1]; confidence 1 falls in the last bin.
 
     Args:
         n_bins: number of bins (default 15).
@@ -231,9 +232,10 @@ def _erf(x: np.ndarray) -> np.ndarray:
 
 
 def crps_gaussian(mean: np.ndarray, std: np.ndarray, ref: np.ndarray, min_std: float = DEFAULT_MIN_STD) -> np.ndarray:
-    """Per-pixel CRPS (metres) of N(``mean``, σ²), σ = max(``std``, ``min_std``), at ``ref`` (closed form,
-    Gneiting & Raftery 2007): ``σ·[z(2Φ(z) − 1) + 2φ(z) − 1/√π]``, z = (ref − mean)/σ. A proper score: lower
-    is better, and it reduces to |error| for a spread of 0.
+    """Per-pixel CRPS (metres) of N(``mean``, σ²), σ = max(``std``, ``min_std``), at ``ref``.
+
+    Closed form (Gneiting & Raftery 2007): ``σ·[z(2Φ(z) − 1) + 2φ(z) − 1/√π]``, z = (ref − mean)/σ. A proper
+    score: lower is better, and it reduces to |error| for a spread of 0.
     """
     sigma = np.maximum(np.asarray(std, np.float64), min_std)
     z = (np.asarray(ref, np.float64) - np.asarray(mean, np.float64)) / sigma
@@ -244,7 +246,8 @@ def crps_gaussian(mean: np.ndarray, std: np.ndarray, ref: np.ndarray, min_std: f
 
 def laplace_terms(mean: np.ndarray, std: np.ndarray, ref: np.ndarray,
                   min_std: float = DEFAULT_MIN_STD) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel NLL (nats) and CRPS (metres) of ``ref`` under the Laplace law of the same standard deviation,
+    """Per-pixel NLL (nats) and CRPS (metres) of ``ref`` under the Laplace law of the same standard deviation.
+
     b = σ/√2, σ = max(``std``, ``min_std``): NLL ``log 2b + |e|/b``, CRPS ``|e| + b·exp(−|e|/b) − 3b/4``.
     """
     b = np.maximum(np.asarray(std, np.float64), min_std) / _SQRT2
@@ -259,15 +262,19 @@ def _gaussian_quantile(p: float) -> float:
 
 
 def height_bins(edges: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Index of the reference-height bin of each value of ``ref`` (metres) among ``edges`` (increasing; the last
-    may be ``inf``): heights below the first edge count in the first bin, above the last in the last.
+    """Index of the reference-height bin of each value of ``ref`` (metres) among ``edges``.
+
+    ``edges`` increase; the last may be ``inf``. Heights below the first edge count in the first bin, above the
+    last in the last.
     """
     return np.clip(np.searchsorted(edges, ref, side="right") - 1, 0, len(edges) - 2)
 
 
 class SpreadStrata:
-    """Is the height spread right where users look? Coverage, proper scores, medians and rank correlation of
-    ``height_std`` per reference-height bin (and per class), accumulated window by window.
+    """Is the height spread right where users look?
+
+    Coverage, proper scores, medians and rank correlation of ``height_std`` per reference-height bin (and per
+    class), accumulated window by window.
 
     Exact sums per stratum: pixels, pixels within ±1σ and ±2σ, Gaussian and Laplace NLL and CRPS (σ = the
     layer's value, floored at ``min_std``). From a seeded uniform subsample of at most ``sample_cap`` pixels:
@@ -299,8 +306,9 @@ class SpreadStrata:
         self.sample = Subsample(sample_cap, seed)
 
     def update(self, pred: np.ndarray, std: np.ndarray, ref: np.ndarray, labels: np.ndarray | None = None) -> None:
-        """Add pixels: 1-D ``pred``, ``std``, ``ref`` (metres, finite) and optional reference class indices
-        (values outside the classes are ignored for the per-class rows).
+        """Add pixels: 1-D ``pred``, ``std``, ``ref`` (metres, finite) and optional reference class indices.
+
+        Values outside the classes are ignored for the per-class rows.
         """
         pred, std, ref = (np.asarray(a, np.float64).ravel() for a in (pred, std, ref))
         if pred.size == 0:
@@ -344,7 +352,9 @@ class SpreadStrata:
                 "spearman_std_vs_predicted_height": spearman(std, pred), "reliability_observed": rel}
 
     def result(self) -> dict[str, Any]:
-        """``bins`` (one dict per reference-height bin: ``range_m``, ``share``, the exact scores and the sampled
+        """The scores per reference-height bin, per class and overall.
+
+        ``bins`` (one dict per reference-height bin: ``range_m``, ``share``, the exact scores and the sampled
         medians, Spearman and reliability), ``classes`` (the same per class, when given),
         ``reliability_levels`` and the overall scores.
         """

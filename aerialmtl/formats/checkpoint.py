@@ -133,8 +133,9 @@ class ModelMeta:
             self._check_calibration(self.calibration)
 
     def _check_calibration(self, cal: Calibration) -> None:
-        """Refuse a calibration whose spreads or heights no model trained on :attr:`height_range` can need: a
-        spread floor beyond the span of the heights trained on (σ = 1e30 m everywhere; :data:`SURFACE_HEIGHTS_M`
+        """Refuse a calibration whose spreads or heights no model trained on :attr:`height_range` can need.
+
+        A spread floor beyond the span of the heights trained on (σ = 1e30 m everywhere; :data:`SURFACE_HEIGHTS_M`
         where the range was not recorded), calibrated heights outside :func:`plausible_heights`.
         """
         low, high = plausible_heights(self.height_range)
@@ -175,8 +176,9 @@ DIVERGED_MARGIN_M = 100.0
 
 
 def height_slack(height_range: tuple[float, float] | None) -> float:
-    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches: the largest
-    plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``).
+    """Metres beyond the trained heights (:attr:`ModelMeta.height_range`) that no sane model reaches.
+
+    The largest plausible height error (``DIVERGED_SPAN_FACTOR`` × span + ``DIVERGED_MARGIN_M``).
     """
     if height_range is None:
         return SURFACE_HEIGHTS_M[1] - SURFACE_HEIGHTS_M[0]
@@ -184,8 +186,9 @@ def height_slack(height_range: tuple[float, float] | None) -> float:
 
 
 def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, float]:
-    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict (:func:`height_slack` beyond
-    it); :data:`SURFACE_HEIGHTS_M` when the range was not recorded.
+    """``(low, high)`` metres a model trained on ``height_range`` can sanely predict.
+
+    :func:`height_slack` beyond it; :data:`SURFACE_HEIGHTS_M` when the range was not recorded.
     """
     if height_range is None:
         return SURFACE_HEIGHTS_M
@@ -194,8 +197,10 @@ def plausible_heights(height_range: tuple[float, float] | None) -> tuple[float, 
 
 
 def value_envelope(mean: Sequence[float], std: Sequence[float], dtype: str | None) -> tuple[float, float]:
-    """``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an
-    integer ``dtype``: where nearly all values of images with these per-band statistics lie.
+    """Where nearly all values of images with these per-band statistics lie.
+
+    ``(min_b(mean_b − 3 std_b), max_b(mean_b + 3 std_b))`` over bands b, clipped to the range of an integer
+    ``dtype``.
     """
     lo = min(m - 3.0 * s for m, s in zip(mean, std))
     hi = max(m + 3.0 * s for m, s in zip(mean, std))
@@ -223,8 +228,9 @@ def first_nonfinite(tensors: Any) -> str | None:
 
 
 def _os_error(exc: BaseException) -> OSError | None:
-    """The ``OSError`` behind ``exc`` (torch.save reports a full disk as a RuntimeError raised while
-    handling the file object's OSError).
+    """The ``OSError`` behind ``exc``.
+
+    torch.save reports a full disk as a RuntimeError raised while handling the file object's OSError.
     """
     seen: BaseException | None = exc
     for _ in range(8):
@@ -259,8 +265,9 @@ def save_checkpoint(
     meta: ModelMeta,
     train_state: dict[str, Any] | None = None,
 ) -> None:
-    """Write a checkpoint atomically (staging file ``.NAME.partial`` in the same folder, then rename;
-    :mod:`aerialmtl.io.outputs`).
+    """Write a checkpoint atomically.
+
+    A staging file ``.NAME.partial`` in the same folder, then a rename (:mod:`aerialmtl.io.outputs`).
 
     Raises:
         NonFiniteError: a weight holds NaN or ±inf (a diverged model is never written; the file at
@@ -317,16 +324,64 @@ def bytes_fingerprint(data: bytes) -> str:
 
 
 def file_sha256(path: str | Path) -> str:
-    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory)."""
-    import hashlib
+    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory; a FIFO or device
+    there is an ``OSError``, never waited on: :func:`aerialmtl.io.fingerprint.content_sha256`).
+    """
+    from aerialmtl.io.fingerprint import content_sha256
 
-    h = hashlib.sha256()
-    buf = bytearray(1 << 20)
-    view = memoryview(buf)
-    with open(path, "rb", buffering=0) as f:
-        while n := f.readinto(buf):
-            h.update(view[:n])
-    return f"sha256:{h.hexdigest()}"
+    return f"sha256:{content_sha256(path)}"
+
+
+#: Values (containers, scalars, tensors) a checkpoint's payload may hold once shared references are expanded: the
+#: paper's DenseNet-121 with its Adam state holds about 5,400 (a tensor is one). A pickle can refer to one list
+#: many times, so a 4 KB file can stand for 10²⁴ values: torch builds it in no time (shared), but any walk of it
+#: (validation, a copy) would run out of memory or time. Such a payload is refused before anything walks it.
+MAX_CHECKPOINT_VALUES = 5_000_000
+
+
+def expanded_values(obj: Any, limit: int = MAX_CHECKPOINT_VALUES) -> int:
+    """The values of ``obj`` (dicts, lists, tuples, sets and what they hold) counted as a walk of the tree would
+    meet them, shared references counted each time (``limit + 1`` stands for "more", and for a structure that
+    contains itself). Linear in the distinct objects: the count of each is kept.
+    """
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+    todo: list[tuple[Any, bool]] = [(obj, False)]
+    keep: list[Any] = []  # the objects whose ids are keys, alive until the end (ids are not reused meanwhile)
+
+    def parts(x: Any) -> list[Any]:
+        if isinstance(x, dict):
+            return [v for pair in x.items() for v in pair]
+        if isinstance(x, (list, tuple, set, frozenset)):
+            return list(x)
+        return []
+
+    while todo:
+        x, done = todo.pop()
+        key = id(x)
+        if done:
+            total = 1 + sum(sizes.get(id(c), 1) for c in parts(x))
+            sizes[key] = min(total, limit + 1)
+            on_path.discard(key)
+            continue
+        if key in sizes:
+            continue
+        inner = parts(x)
+        if not inner:
+            sizes[key] = 1
+            keep.append(x)
+            continue
+        if key in on_path:
+            return limit + 1
+        on_path.add(key)
+        keep.append(x)
+        todo.append((x, True))
+        for c in inner:
+            if id(c) in on_path:
+                return limit + 1
+            if id(c) not in sizes:
+                todo.append((c, False))
+    return sizes[id(obj)]
 
 
 def read_checkpoint(path: str | Path,
@@ -336,11 +391,17 @@ def read_checkpoint(path: str | Path,
     The file is read once into memory and parsed from there, so the fingerprint describes the weights in
     use even when the file is replaced meanwhile (a training run writing a new ``best.pt``).
     """
+    from aerialmtl.stores import open_regular, special_kind
+
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO would block the read forever, a folder fail it
+        raise CheckpointError(f"checkpoint '{path}' is {special_kind(path.stat().st_mode)}, not a regular file; pass "
+                              "the best.pt or last.pt of a training run")
     if not path.is_file():
         raise CheckpointError(f"checkpoint '{path}' does not exist; pass the best.pt or last.pt of a training run")
     try:
-        data = path.read_bytes()
+        with open(open_regular(path, follow_links=True), "rb") as fh:  # replaced by a FIFO since: an error
+            data = fh.read()
     except OSError as exc:
         raise CheckpointError(f"checkpoint '{path}' cannot be read ({exc.strerror or exc}); check its permissions, "
                               "or pass another checkpoint") from exc
@@ -367,6 +428,11 @@ def read_checkpoint(path: str | Path,
             f"checkpoint '{path}' is corrupt or truncated ({why}); use another checkpoint (e.g. last.pt "
             "instead of best.pt) or retrain"
         ) from exc
+    if expanded_values(payload) > MAX_CHECKPOINT_VALUES:
+        raise CheckpointError(
+            f"checkpoint '{path}' holds more than {MAX_CHECKPOINT_VALUES:,} values once its shared references are "
+            "expanded (lists that refer to lists, a pickle bomb; or a structure that contains itself): refused before "
+            "reading it; no checkpoint aerialmtl writes comes near; use a checkpoint written by `aerialmtl train`")
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(
             f"checkpoint '{path}' is not an aerialmtl checkpoint (no '{FORMAT}' marker); "
@@ -448,9 +514,27 @@ def _state_dict_mismatch(expected: dict[str, torch.Tensor], got: Any) -> str | N
         if not isinstance(val, torch.Tensor) or tuple(val.shape) != tuple(ref.shape):
             shape = list(val.shape) if isinstance(val, torch.Tensor) else type(val).__name__
             return f"tensor '{key}' has shape {shape}, the model needs {list(ref.shape)}"
+
     extra = [k for k in got if k not in expected]
     if extra:
         return f"unexpected tensor '{extra[0]}'"
+    return None
+
+
+def wrong_dtype(expected: dict[str, torch.Tensor], got: dict[str, torch.Tensor]) -> str | None:
+    """The first tensor of ``got`` stored as another kind of number than the model's (``expected``) has: a float
+    weight as an integer or ``bool`` (``int8`` weights would be cast silently into other maps), an integer counter
+    as a float, anything complex; ``None`` when there is none. A float of another width (a ``float16`` start) is
+    the same kind, cast exactly enough.
+    """
+    for key, ref in expected.items():
+        val = got.get(key)
+        if not isinstance(val, torch.Tensor):
+            continue
+        if val.is_floating_point() != ref.is_floating_point() or val.is_complex() or \
+                (val.dtype == torch.bool) != (ref.dtype == torch.bool):
+            return (f"tensor '{key}' is stored as {str(val.dtype).replace('torch.', '')}, where the model's is "
+                    f"{str(ref.dtype).replace('torch.', '')}")
     return None
 
 
@@ -482,6 +566,21 @@ def read_model(path: str | Path,
             model.load_state_dict(state)  # type: ignore[arg-type]
         except (RuntimeError, KeyError, TypeError) as exc:  # pragma: no cover - caught by the check above
             problem = cause(exc)
+    if problem is None:
+        wrong = wrong_dtype(model.state_dict(), state)  # type: ignore[arg-type]
+        if wrong is not None:
+            raise CheckpointError(
+                f"checkpoint '{path}': {wrong} (quantised or edited: loading would cast it silently into other "
+                "maps); use the checkpoint as `train` wrote it")
+    if problem is None and meta.familiarity is not None:
+        from aerialmtl.models.encoders import feature_channels
+
+        density_problem = meta.familiarity.check_widths(feature_channels(model.encoder))
+        if density_problem is not None:
+            raise CheckpointError(
+                f"checkpoint '{path}': {density_problem} (no fit writes that: the file was edited or mixes runs, and "
+                "its unfamiliarity layer would be garbage); use the checkpoint as `train` wrote it, or refit the "
+                "density (aerialmtl.training.familiarity.familiarize_checkpoint)")
     if problem is not None:
         scheme = f", class scheme '{meta.classes.name}' ({meta.classes.num_classes} classes)" if meta.classes else ""
         raise CheckpointError(

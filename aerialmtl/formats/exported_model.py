@@ -49,8 +49,10 @@ MODEL_TYPES = {"height": "Regressor", HEIGHT_STD_OUTPUT: "Regressor", "classes":
 
 
 def model_tasks(meta: ModelMeta) -> tuple[str, ...]:
-    """The checkpoint's exportable outputs in order: ``height``, ``height_std`` (a model with an aleatoric
-    height head: its one-pass spread √2·b in metres), ``classes``.
+    """The checkpoint's exportable outputs in order.
+
+    ``height``, ``height_std`` (a model with an aleatoric height head: its one-pass spread √2·b in metres),
+    ``classes``.
     """
     out: list[str] = []
     for t in ("height", "classes"):
@@ -62,8 +64,9 @@ def model_tasks(meta: ModelMeta) -> tuple[str, ...]:
 
 
 def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibrated: bool = False) -> dict[str, str]:
-    """The metadata of an export (see the module table), every value JSON-encoded; ``calibrated``: the graph
-    applies the checkpoint's height calibration.
+    """The metadata of an export (see the module table), every value JSON-encoded.
+
+    ``calibrated``: the graph applies the checkpoint's height calibration.
     """
     outputs = model_tasks(meta) if task == "all" else (task,)
     k = meta.classes.num_classes if meta.classes is not None else 0
@@ -115,8 +118,10 @@ def export_metadata(meta: ModelMeta, task: str, tile: int, overlap: int, calibra
 
 
 def deepness_input_problem(meta: ModelMeta) -> str | None:
-    """Why Deepness would feed this model wrong values, or ``None``: it reads 8-bit images only (0-255,
-    scaled to 0-1 before its standardisation), so a model trained on other data types gets other values.
+    """Why Deepness would feed this model wrong values, or ``None``.
+
+    It reads 8-bit images only (0-255, scaled to 0-1 before its standardisation), so a model trained on other data
+    types gets other values.
     """
     if meta.input_dtype is None or meta.input_dtype == "uint8":
         return None

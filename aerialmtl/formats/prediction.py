@@ -1,5 +1,6 @@
-"""The prediction folder: what ``aerialmtl predict`` writes and ``evaluate``, the maps notebook and
-``buildings`` read.
+"""The prediction folder: what ``aerialmtl predict`` writes.
+
+``evaluate``, the maps notebook and ``buildings`` read it.
 
 One folder per orthophoto, all layers Cloud-Optimized GeoTIFFs on one grid (the orthophoto's, at the
 model's GSD)::
@@ -71,6 +72,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, cause
+from aerialmtl.io.fingerprint import changed, content_sha256
 
 #: Layer names, in the order a prediction folder lists them (file ``<name>.tif``).
 HEIGHT = "height"
@@ -123,9 +125,11 @@ ALL_FILES = (tuple(layer_filename(n) for n in LAYERS) + tuple(style_filename(n) 
 
 
 def folder_files(names: Iterable[str]) -> list[str]:
-    """Every file a prediction folder with layers ``names`` holds: the layers, their QGIS styles, the STAC
-    item and ``prediction.json`` (last). A run claims all of them before writing, so that a user's own
-    ``height.qml`` or ``item.json`` in ``--out`` is never replaced without ``--overwrite``.
+    """Every file a prediction folder with layers ``names`` holds.
+
+    The layers, their QGIS styles, the STAC item and ``prediction.json`` (last). A run claims all of them before
+    writing, so that a user's own ``height.qml`` or ``item.json`` in ``--out`` is never replaced without
+    ``--overwrite``.
     """
     names = list(names)
     return ([layer_filename(n) for n in names] + [style_filename(n) for n in names] + [ITEM_FILE, INFO_FILE])
@@ -142,8 +146,9 @@ def mosaic_style_filename(name: str) -> str:
 
 
 def mosaic_files(names: Iterable[str]) -> list[str]:
-    """Every file a run over several inputs writes beside their folders for layers ``names``: each layer's VRT
-    mosaic and its QGIS style, and the STAC ``collection.json``.
+    """Every file a run over several inputs writes beside their folders for layers ``names``.
+
+    Each layer's VRT mosaic and its QGIS style, and the STAC ``collection.json``.
     """
     names = list(names)
     return [mosaic_filename(n) for n in names] + [mosaic_style_filename(n) for n in names] + [COLLECTION_FILE]
@@ -276,8 +281,10 @@ class GridInfo(BaseModel):
 
 
 class Provenance(BaseModel):
-    """``prediction.json``'s ``provenance`` (module docstring): the checkpoint's fingerprint, the settings that
-    change the maps, the input's fingerprint (:func:`aerialmtl.io.fingerprint.input_fingerprint`).
+    """``prediction.json``'s ``provenance`` (module docstring).
+
+    The checkpoint's fingerprint, the settings that change the maps, the input's fingerprint
+    (:func:`aerialmtl.io.fingerprint.input_fingerprint`).
     """
 
     model_config = ConfigDict(extra="allow")
@@ -308,6 +315,12 @@ class PredictionInfo(BaseModel):
     provenance: Provenance | None = None
 
 
+#: The settings ``prediction.json`` also holds at its top level, as it did before its ``settings`` mapping (readers
+#: rely on them; ``mc_samples`` is the setting ``mc``). A new setting is recorded in ``settings`` only.
+RECORD_KEYS = ("tta", "seed", "window", "overlap", "batch_size", "precision", "engine", "threads", "device", "compile",
+               "shadow_fusion")
+
+
 class PredictionRecord(BaseModel):
     """What a run writes to ``prediction.json``, once, when it commits (field order = the file's key order).
 
@@ -329,6 +342,8 @@ class PredictionRecord(BaseModel):
         windows_total, windows_computed, overlap_factor, plan_overlap_factor: the window plan and the work.
         timings_s: seconds per stage (``read``, ``model``, ``stitch_write``, ``write``, ``strip_total``,
             ``cog``, ``total``).
+        settings: every setting of the run (the fields of :class:`~aerialmtl.inference.settings.PredictSettings`),
+            with what ``auto`` and the defaults resolved to.
         calibration: what calibration was applied; provenance: :data:`PROVENANCE_KEY` (module docstring).
         sun_setting, shadow_fusion: ``--sun`` and ``--shadow-fusion`` as given; ``sun``: the sun the shadow
             layers used and its source (:meth:`aerialmtl.inference.sun_choice.SunChoice.record`), ``None`` when
@@ -356,6 +371,7 @@ class PredictionRecord(BaseModel):
     device: str
     compile: bool
     processes: int
+    settings: dict[str, Any] = {}
     aoi: str | None
     grid: GridInfo
     resampled_from_gsd: float | None
@@ -481,6 +497,10 @@ class PredictionFolder:
         for key, name in files.items():
             path = self.path / str(name)
             if not path.is_file():
+                if path.exists():  # a FIFO or a folder at a layer's name: never opened
+                    from aerialmtl.stores import special_kind
+
+                    return f"{name} is {special_kind(path.stat().st_mode)}, not a regular file"
                 return f"{name} is missing"
             size = sizes.get(str(name))
             if size is not None and path.stat().st_size != size:
@@ -495,14 +515,16 @@ class PredictionFolder:
         return self._content_problem(info) if content else None
 
     def _content_problem(self, info: Mapping[str, Any]) -> str | None:
-        """Which layer's bytes differ from the SHA-256 recorded at commit (``None``: all match, or none recorded:
-        folders of earlier versions are checked by size only).
-        """
-        from aerialmtl.io.fingerprint import content_sha256
+        """Which layer's bytes differ from the SHA-256 recorded at commit.
 
+        ``None``: all match, or none recorded (folders of earlier versions are checked by size only).
+        """
+        listed = {str(n) for n in (info.get("files") or {}).values()}
         for name, digest in (info.get("file_sha256") or {}).items():
+            if str(name) not in listed:  # only its own layers: never a path elsewhere ('../x', '/dev/zero')
+                return f"its {INFO_FILE} lists a checksum of '{name}', which is none of its files"
             try:
-                now = content_sha256(self.path / str(name))
+                now = content_sha256(self.path / str(name))  # a FIFO there: an OSError, not a wait
             except OSError as exc:
                 return f"{name} cannot be read ({exc.strerror or exc})"
             if now != digest:
@@ -520,6 +542,11 @@ def _layer_problem(path: Path, grid: Mapping[str, Any]) -> str | None:
     import rasterio
     from rasterio.errors import RasterioError
 
+    from aerialmtl.io.fingerprint import blocking_file
+
+    found = blocking_file(path)  # a FIFO among its sidecars: GDAL would wait on it forever
+    if found is not None:
+        return f"'{found[0].name}' beside {path.name} is {found[1]}, not a regular file"
     try:
         with rasterio.open(path) as src:
             shape = (src.width, src.height)
@@ -538,8 +565,6 @@ PROVENANCE_KEY = "provenance"
 
 def _provenance_problem(recorded: Any, expected: Mapping[str, Any]) -> str | None:
     """Why the ``provenance`` recorded differs from the run's ``expected`` one, in a few words (``None``: same)."""
-    from aerialmtl.io.fingerprint import changed
-
     if not isinstance(recorded, dict):
         return f"its {INFO_FILE} records no provenance (made by an older version)"
     if recorded.get("checkpoint") != expected.get("checkpoint"):
@@ -565,6 +590,7 @@ __all__ = [
     "LayerSpec", "PredictionFolder", "folder_files", "layer_filename", "mosaic_files", "mosaic_filename",
     "mosaic_style_filename",
     "prediction_layers", "read_class_scheme_tag", "style_filename",
-    "PROVENANCE_KEY", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord", "Provenance",
+    "PROVENANCE_KEY", "RECORD_KEYS", "GridInfo", "NotAPredictionFolder", "PredictionInfo", "PredictionRecord",
+    "Provenance",
     "parse_info",
 ]

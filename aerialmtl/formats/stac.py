@@ -11,7 +11,8 @@ A STAC catalogue, a data cube or a STAC browser indexes aerialmtl outputs throug
   statistics); the classification extension on ``classes.tif`` (class index, name, colour hint, and
   the nodata value as a nodata class); the QGIS styles (role ``style``) and ``prediction.json`` (role
   ``metadata``) as assets too. The model is described in plain properties under ``aerialmtl:``
-  (architecture, tasks, input bands and normalisation, class names, GSD, MC samples, checkpoint):
+  (architecture, tasks, input bands and normalisation, class names, GSD, MC samples, checkpoint), and every
+  predict setting of the run as ``prediction.json`` records it (``aerialmtl:settings``):
   the machine-learning-model extension describes a model *asset*, which a prediction folder does not
   hold. ``datetime`` is when the prediction was made (aerialmtl does not know the orthophoto's
   acquisition time; edit it in if you do), also given as ``created``.
@@ -166,6 +167,8 @@ def build_item(folder: str | Path, grid: Grid, specs: Sequence[LayerSpec], info:
         value = info.get(key, info.get("tile")) if key == "window" else info.get(key)  # "tile": earlier folders'
         if value is not None:
             props[PREFIX + key] = value
+    if info.get("settings"):  # every predict setting, as prediction.json records it
+        props[PREFIX + "settings"] = info["settings"]
     item = pystac.Item(id=folder.name, geometry=geometry, bbox=_bbox(geometry), datetime=created,
                        properties=props)
     item.common_metadata.gsd = grid.gsd

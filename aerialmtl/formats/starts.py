@@ -18,12 +18,14 @@ Shipped starts live in :data:`STARTS_DIR` (``aerialmtl/resources/starts/``, pack
 from __future__ import annotations
 
 import io
+import os
 from pathlib import Path
 from typing import Any
 
 import torch
 import yaml
 
+from aerialmtl.config import read_yaml
 from aerialmtl.errors import CheckpointError
 from aerialmtl.formats.checkpoint import file_sha256, load_checkpoint
 from aerialmtl.io.outputs import atomic_write, write_text_atomic
@@ -76,8 +78,63 @@ def read_card(start: str | Path) -> dict[str, Any]:
     path = card_path(start)
     if not path.is_file():
         return {}
-    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    data = read_yaml(path)  # refuses an alias bomb before building it (:data:`aerialmtl.config.MAX_YAML_VALUES`)
     return data if isinstance(data, dict) else {}
+
+
+def _serialised(state: dict[str, torch.Tensor], dtype: torch.dtype) -> int:
+    """Bytes of ``state`` saved with its floating-point tensors in ``dtype``."""
+    buf = io.BytesIO()
+    torch.save({k: (v.to(dtype) if v.is_floating_point() else v).contiguous() for k, v in state.items()}, buf)
+    return buf.tell()
+
+
+def _too_large(out: Path, size: int) -> CheckpointError:
+    return CheckpointError(f"start '{out}' would be {size / 2**20:.1f} MiB, more than the "
+                           f"{MAX_BYTES / 2**20:.0f} MiB the package ships; export with float16 weights or a "
+                           "smaller model")
+
+
+def check_exportable(state: dict[str, torch.Tensor], out: str | Path, dtype: torch.dtype = torch.float16) -> None:
+    """Refuse, before any training, weights whose start would exceed :data:`MAX_BYTES` (what :func:`export_start`
+    refuses at the end).
+
+    Args:
+        state: the model's ``state_dict``.
+        out: the start file it would be exported to (named in the message).
+        dtype: storage type of floating-point weights.
+
+    Raises:
+        CheckpointError: the weights alone are larger than :data:`MAX_BYTES` (names the size and the fix).
+    """
+    size = _serialised(state, dtype)
+    if size > MAX_BYTES:
+        raise _too_large(Path(out), size)
+
+
+def foreign_files(folder: str | Path, name: str) -> list[Path]:
+    """The files at start ``name``'s two paths in ``folder`` (``NAME.pt``, ``NAME.yaml``) that are not a start of
+    that name and its card: what exporting there would replace without having written it.
+    """
+    pt = Path(folder) / f"{name}{START_SUFFIX}"
+    found = []
+    if os.path.lexists(pt):
+        try:
+            ours = pt.is_file() and not pt.is_symlink() and load_checkpoint(pt)[1].start == name
+        except (CheckpointError, OSError, ValueError, KeyError, RuntimeError):
+            ours = False
+        if not ours:
+            found.append(pt)
+    card = card_path(pt)
+    if os.path.lexists(card):
+        try:
+            plain = card.is_file() and not card.is_symlink()  # never opens a FIFO or follows a link
+            data = read_card(pt) if plain else None  # the bounded YAML reader
+        except (OSError, ValueError, yaml.YAMLError):
+            data = None
+        if not (isinstance(data, dict) and data.get("format") == CARD_FORMAT and data.get("name") == name):
+            found.append(card)
+    return found
 
 
 def export_start(checkpoint: str | Path, out: str | Path, name: str, card: dict[str, Any],
@@ -110,9 +167,7 @@ def export_start(checkpoint: str | Path, out: str | Path, name: str, card: dict[
     buf = io.BytesIO()
     torch.save(start, buf)
     if buf.tell() > MAX_BYTES:
-        raise CheckpointError(f"start '{out}' would be {buf.tell() / 2**20:.1f} MiB, more than the "
-                              f"{MAX_BYTES / 2**20:.0f} MiB the package ships; export with float16 weights or a "
-                              "smaller model")
+        raise _too_large(out, buf.tell())
     with atomic_write(out) as tmp:
         tmp.write_bytes(buf.getvalue())
     full = {"format": CARD_FORMAT, "name": name, "file": out.name, "sha256": file_sha256(out),
@@ -122,5 +177,6 @@ def export_start(checkpoint: str | Path, out: str | Path, name: str, card: dict[
     return out
 
 
-__all__ = ["CARD_FORMAT", "INTENDED_USE", "MAX_BYTES", "STARTS_DIR", "card_path", "export_start", "read_card",
+__all__ = ["CARD_FORMAT", "INTENDED_USE", "MAX_BYTES", "STARTS_DIR", "card_path", "check_exportable", "export_start",
+           "foreign_files", "read_card",
            "resolve_start", "shipped_starts"]

@@ -180,12 +180,12 @@ def _model_alone(model: Any, meta: Any, engine: str, precision: str, settings: B
 
     from aerialmtl import runtime
     from aerialmtl.inference.runner import ModelRunner
-    from aerialmtl.inference.settings import PredictSettings, Resolved
+    from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 
     threads = runtime.resolve_threads(settings.threads)
     asked = PredictSettings(engine=engine, precision=precision, mc=1, threads=settings.threads)  # type: ignore[arg-type]
-    runner = ModelRunner(model, meta, asked, Resolved(torch.device("cpu"), engine, precision,  # type: ignore[arg-type]
-                                                      threads, 1))
+    runner = ModelRunner(model, meta, asked, ResolvedSettings(torch.device("cpu"), engine, precision,  # type: ignore[arg-type]
+                                                              threads, 1))
     maps = _maps(runner(x, [0]))  # conversion or compilation, warm-up
     pending: deque[Any] = deque()
     t0 = time.perf_counter()

@@ -62,8 +62,10 @@ Task = Literal["all", "height", "height_std", "classes"]
 FORMATS: tuple[str, ...] = ("onnx", "openvino")
 TASKS: tuple[str, ...] = ("all", "height", "height_std", "classes")
 class ExportHead(nn.Module):
-    """The exported computation: the model's deterministic forward, class logits turned into probabilities,
-    heights through the checkpoint's calibration (when given) as ``aerialmtl predict`` applies it.
+    """The exported computation: the model's deterministic forward.
+
+    Class logits turned into probabilities, heights through the checkpoint's calibration (when given) as
+    ``aerialmtl predict`` applies it.
 
     ``forward(image)``: ``N×C×S×S`` standardised image → a tuple in the order of ``tasks``:
     height ``N×1×S×S`` (metres) and/or class probabilities ``N×K×S×S``.
@@ -90,8 +92,9 @@ class ExportHead(nn.Module):
             self.register_buffer("start", y[:1].reshape(1, 1, 1, 1))
 
     def calibrate(self, h: torch.Tensor) -> torch.Tensor:
-        """:meth:`~aerialmtl.models.calibration.Calibration.height` with ops every ONNX runtime has (a sum of
-        clamped segments instead of a search): ``y_0`` below the first knot, slope 1 beyond the last, ≥ 0.
+        """:meth:`~aerialmtl.models.calibration.Calibration.height` with ops every ONNX runtime has.
+
+        A sum of clamped segments instead of a search): ``y_0`` below the first knot, slope 1 beyond the last, ≥ 0.
         """
         segments = (torch.minimum(torch.maximum(h, self.lo), self.hi) - self.lo) * self.slope
         beyond = torch.relu(h - self.hi[:, -1:])
@@ -113,8 +116,10 @@ class ExportHead(nn.Module):
 
 @dataclass(frozen=True)
 class ExportResult:
-    """What :func:`export_model` wrote: ``files`` (the model file first; an IR's weights ``.bin`` after it),
-    the ``outputs`` in graph order, the tile size and the metadata.
+    """What :func:`export_model` wrote.
+
+    ``files`` (the model file first; an IR's weights ``.bin`` after it), the ``outputs`` in graph order, the tile
+    size and the metadata.
     """
 
     files: tuple[Path, ...]
@@ -250,8 +255,9 @@ def export_model(
 
 
 def _check_arguments(out: Path, format: str, task: str, tile: int, overlap: int) -> None:
-    """Refuse a bad ``format``/``task``/``tile``/``overlap`` or an ``out`` without the format's extension
-    (:class:`~aerialmtl.errors.InputError` naming the argument), before the checkpoint is read.
+    """Refuse a bad ``format``/``task``/``tile``/``overlap`` or an ``out`` without the format's extension.
+
+    An :class:`~aerialmtl.errors.InputError` naming the argument, before the checkpoint is read.
     """
     if format not in FORMATS:
         raise InputError(f"‹format› must be one of {', '.join(FORMATS)}, got {format!r}", param="format")
@@ -271,8 +277,9 @@ def _check_arguments(out: Path, format: str, task: str, tile: int, overlap: int)
 
 def _write_files(model: nn.Module, meta: ModelMeta, files: tuple[Path, ...], format: str, task: str, tile: int,
                  calibration: bool, metadata: dict[str, str]) -> tuple[str, ...]:
-    """Export the graph, cut it to ``task`` and write it as ``format`` with ``metadata`` to ``files`` (the
-    ``.onnx``, or the ``.xml`` and its ``.bin``), staged beside them and renamed whole; returns its outputs.
+    """Export the graph, cut it to ``task`` and write it as ``format`` with ``metadata``; returns its outputs.
+
+    To ``files`` (the ``.onnx``, or the ``.xml`` and its ``.bin``), staged beside them and renamed whole.
 
     Raises:
         OutputError: the folder is in use or cannot be written.

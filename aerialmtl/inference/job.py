@@ -45,8 +45,9 @@ from aerialmtl.io.outputs import OutputFolder, make_output_dir
 
 
 def prediction_folder(out_dir: str | Path, option: str = "out_dir") -> OutputFolder:
-    """``out_dir`` as :mod:`aerialmtl.io.outputs` owns it: its claim (existing outputs refused without
-    ``overwrite``) and the removal of a killed run's hidden files.
+    """``out_dir`` as :mod:`aerialmtl.io.outputs` owns it.
+
+    Its claim (existing outputs refused without ``overwrite``) and the removal of a killed run's hidden files.
 
     The lock is not taken here: the job holds it (:class:`~aerialmtl.io.outputs.OutputFolder` entered).
     """
@@ -65,8 +66,8 @@ class PredictResult:
         overlap_factor: pixels computed / output pixels (computed windows only).
         plan_overlap_factor: the same if every window were computed.
         megapixels_per_s: output megapixels per second of total time.
-        timings: seconds per stage (``read`` and ``write`` run in background threads and overlap the
-            others; ``model``, ``stitch_write`` (stitching plus waiting for the writer), ``strip_total``
+        timings: seconds per stage (``read``, ``stitch_write`` and ``write`` run in threads of their own and
+            overlap the others; ``model``, ``stitch_write`` (stitching plus waiting for the writer), ``strip_total``
             (the slowest strip, or the whole raster), ``cog`` (the conversion to COGs), ``total`` (up to the
             end of the conversion; ``prediction.json`` records these same numbers).
         ortho: the orthophoto.
@@ -193,8 +194,10 @@ class InputJob:
         return PredictionWriter(self.out, self.src.grid, self.model.layers, rows=rows)
 
     def _after_abort(self, whole: bool) -> None:
-        """After a writer's abort: the whole input's hidden files, and the folder if this job created it and it
-        is empty (a strip leaves the others' files: other processes may still be writing theirs).
+        """Clean up after a writer's abort.
+
+        The whole input's hidden files, and the folder if this job created it and it is empty (a strip leaves the
+        others' files: other processes may still be writing theirs).
         """
         if whole:
             self.clean()
@@ -212,9 +215,10 @@ class InputJob:
         self._after_abort(True)
 
     def _replace_earlier(self, produced: list[str]) -> None:
-        """With ``overwrite``: an earlier run's layers this run does not produce are stale; those its
-        ``prediction.json`` lists (it proves they are its own) are removed, ``prediction.json`` first (never a
-        complete-looking mix).
+        """With ``overwrite``, remove an earlier run's layers this run does not produce.
+
+        Those its ``prediction.json`` lists (it proves they are its own) are removed, ``prediction.json`` first
+        (never a complete-looking mix).
         """
         if not self.overwrite:
             return
@@ -224,8 +228,9 @@ class InputJob:
 
     def commit(self, strips: Sequence[StripResult], *, processes: int = 1,
                started: float | None = None) -> PredictResult:
-        """Join the strips (this job's first one among them) into the final COGs and ``prediction.json``;
-        aborts if that fails.
+        """Join the strips (this job's first one among them) into the final COGs and ``prediction.json``.
+
+        Aborts if that fails.
 
         Args:
             strips: every strip of the input, from every rank.

@@ -40,9 +40,9 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
-from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.errors import AerialMTLError, InputError, OutputExistsError, PeerFailure
@@ -60,7 +60,7 @@ from aerialmtl.formats.stac import collection_files, write_collection
 from aerialmtl.inference.job import InputJob, PredictResult, StripResult, prediction_folder
 from aerialmtl.inference.model import Predictor
 from aerialmtl.inference.ortho import OrthoInput
-from aerialmtl.inference.settings import PredictOptions, PredictSettings, settings_of
+from aerialmtl.inference.settings import PredictSettings, settings_of
 from aerialmtl.inference.windows import Plan
 from aerialmtl.io.outputs import OutputFolder, check_local_output, check_not_input
 from aerialmtl.io.paths import gdal_path, raster_stem
@@ -164,10 +164,11 @@ Checkpoint = str | Path | tuple[torch.nn.Module, ModelMeta] | Predictor
 
 
 def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Path,
-                   settings: PredictSettings | None = None, *, overwrite: bool = False,
-                   **options: Unpack[PredictOptions]) -> PredictResult:
-    """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto: the one-input case
-    of :func:`predict_many`.
+                   settings: PredictSettings | None = None, *, overwrite: bool = False, progress: bool = True,
+                   checkpoint_name: str | None = None, **options: Any) -> PredictResult:
+    """Predict height and land cover (with MC-dropout uncertainty) over a whole orthophoto.
+
+    The one-input case of :func:`predict_many`.
 
     Args:
         ortho: orthophoto GeoTIFF (any size; read window by window), a URL or a GDAL path.
@@ -177,8 +178,12 @@ def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Pat
         out_dir: the prediction folder (see :mod:`aerialmtl.formats.prediction`).
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`).
         overwrite: replace existing outputs instead of raising.
-        options: the settings as keywords (``mc=16, precision="fp32", aoi=..., progress=False``, ...:
-            :class:`~aerialmtl.inference.settings.PredictOptions`), applied over ``settings``.
+        progress: show progress bars.
+        checkpoint_name: the checkpoint's name in ``prediction.json`` and messages (default: its path, or
+            ``<in-memory model>``).
+        options: the settings as keywords named like the fields of
+            :class:`~aerialmtl.inference.settings.PredictSettings` (``mc=16, precision="fp32", aoi=...``), applied
+            over ``settings``.
 
     Returns:
         A :class:`~aerialmtl.inference.job.PredictResult`.
@@ -187,9 +192,9 @@ def predict_raster(ortho: str | Path, checkpoint: Checkpoint, out_dir: str | Pat
         OutputExistsError: outputs exist and ``overwrite`` is false.
         InputError / AlignmentError / CheckpointError: unusable inputs (messages name the fix).
     """
-    settings = _settings(checkpoint, settings, options)
-    policy = _Policy(overwrite, False, settings.progress, None, "out_dir")
-    return _predict([ortho], checkpoint, out_dir, settings, policy).results[0]
+    settings = _settings(checkpoint, settings, options, checkpoint_name)
+    policy = _Policy(overwrite, False, progress, None, "out_dir")
+    return _predict([ortho], checkpoint, out_dir, settings, policy, checkpoint_name).results[0]
 
 
 def predict_many(
@@ -201,7 +206,9 @@ def predict_many(
     overwrite: bool = False,
     skip_existing: bool = False,
     on_result: Callable[[PredictResult], None] | None = None,
-    **options: Unpack[PredictOptions],
+    progress: bool = True,
+    checkpoint_name: str | None = None,
+    **options: Any,
 ) -> JobResult:
     """Predict every orthophoto of ``orthos``; see the module docstring.
 
@@ -211,11 +218,13 @@ def predict_many(
             for :func:`predict_raster`).
         out: prediction folder (one input) or parent folder (several).
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`; the AOI applies
-            to every input, progress bars show on rank 0 only).
+            to every input).
         overwrite: replace existing outputs.
         skip_existing: skip inputs whose prediction folder is complete.
         on_result: called with each input's result as soon as it is committed.
-        options: the settings as keywords (:class:`~aerialmtl.inference.settings.PredictOptions`), applied over
+        progress: show progress bars (on rank 0 only).
+        checkpoint_name: the checkpoint's name in ``prediction.json`` and messages (as for :func:`predict_raster`).
+        options: the settings as keywords named like its fields (as for :func:`predict_raster`), applied over
             ``settings``.
 
     Returns:
@@ -225,15 +234,16 @@ def predict_many(
         OutputExistsError: an input's outputs exist (neither ``overwrite`` nor ``skip_existing``).
         PeerFailure: an input failed on another rank (distributed runs).
     """
-    settings = _settings(checkpoint, settings, options)
+    settings = _settings(checkpoint, settings, options, checkpoint_name)
     return _predict(orthos, checkpoint, out, settings,
-                    _Policy(overwrite, skip_existing, settings.progress, on_result, "out"))
+                    _Policy(overwrite, skip_existing, progress, on_result, "out"), checkpoint_name)
 
 
 def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Path, settings: PredictSettings,
-             policy: _Policy) -> JobResult:
-    """:func:`predict_many` and :func:`predict_raster`: load the model on this rank's device, read every input's
-    header, hold the output folders, run.
+             policy: _Policy, checkpoint_name: str | None = None) -> JobResult:
+    """Run :func:`predict_many` or :func:`predict_raster`.
+
+    Load the model on this rank's device, read every input's header, hold the output folders, run.
     """
     ranks = runtime.Torchrun.from_env()
     targets = targets_for(orthos, out, policy.option)
@@ -241,10 +251,13 @@ def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Pa
         predictor = checkpoint
     else:
         device = ranks.resolve_device(settings.device)
-        predictor = Predictor(checkpoint, dataclasses.replace(settings, device=str(device)))
+        predictor = Predictor(checkpoint, dataclasses.replace(settings, device=str(device)),
+                              checkpoint_name=checkpoint_name)
     with runtime.gdal_env("predict"):
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = predictor.open(t.ortho, warn=False)
+    if not isinstance(checkpoint, Predictor):  # auto on a cold engine cache: torch where compiling would not pay
+        predictor.fit_engine([t.src for t in targets if t.src is not None])
     ranks.join(predictor.device, runtime.SHARE_TIMEOUT)
     try:
         with contextlib.ExitStack() as held:
@@ -254,16 +267,18 @@ def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Pa
         ranks.leave()
 
 
-def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options: PredictOptions) -> PredictSettings:
+def _settings(checkpoint: Checkpoint, settings: PredictSettings | None, options: dict[str, Any],
+              checkpoint_name: str | None = None) -> PredictSettings:
     """The run's settings: ``settings`` with ``options``, or a given :class:`Predictor`'s own.
 
     Raises:
-        InputError: a :class:`Predictor` and settings too (they would not apply to it).
+        InputError: a :class:`Predictor` and settings or a name too (they would not apply to it).
     """
     if not isinstance(checkpoint, Predictor):
         return settings_of(settings, options)
-    if settings is not None or options:
-        given = "settings" if settings is not None else ", ".join(map(str, options))
+    if settings is not None or options or checkpoint_name is not None:
+        given = ("settings" if settings is not None else "checkpoint_name" if checkpoint_name is not None
+                 else ", ".join(map(str, options)))
         raise InputError(f"a Predictor predicts with its own settings; pass them to Predictor(...) instead of "
                          f"here (got {given})")
     return checkpoint.settings
@@ -282,8 +297,10 @@ class _Policy:
 
 def _hold_folders(held: contextlib.ExitStack, targets: Sequence[Target], out: Path, ranks: runtime.Torchrun,
                   aoi: str | Path | None, option: str) -> None:
-    """Take the job's output folders (:class:`~aerialmtl.io.outputs.OutputFolder`: every input's prediction
-    folder, and ``out`` with several inputs) on rank 0, for the whole job; every rank raises rank 0's error.
+    """Take the job's output folders on rank 0, for the whole job; every rank raises rank 0's error.
+
+    The folders (:class:`~aerialmtl.io.outputs.OutputFolder`) are every input's prediction folder, and ``out`` with
+    several inputs.
     """
     error: BaseException | None = None
     if ranks.rank == 0:
@@ -308,8 +325,10 @@ def _job(predictor: Predictor, t: Target, overwrite: bool = False, option: str =
 
 def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.Torchrun,
          policy: _Policy) -> JobResult:
-    """:func:`predict_many` once the folders are held: choose the inputs, claim their outputs, plan the ranks'
-    shares, compute and commit (one :class:`~aerialmtl.inference.job.InputJob` per input or strip), mosaic.
+    """Run :func:`predict_many` once the folders are held.
+
+    Choose the inputs, claim their outputs, plan the ranks' shares, compute and commit (one
+    :class:`~aerialmtl.inference.job.InputJob` per input or strip), mosaic.
     """
     done = JobResult(ranks=ranks)
     todo, replace, kept = _select(predictor, targets, policy.skip_existing, done)
@@ -348,10 +367,11 @@ def _run(predictor: Predictor, targets: list[Target], out: Path, ranks: runtime.
 
 def _select(predictor: Predictor, targets: Sequence[Target], skip_existing: bool,
             done: JobResult) -> tuple[list[int], set[int], dict[int, str]]:
-    """The inputs to compute, those of them whose earlier, outdated outputs ``skip_existing`` recomputes
-    (their ``prediction.json`` proves every output there is that run's), and why ``skip_existing`` neither
-    skipped nor may replace the others' files (no readable ``prediction.json`` owns them); the skipped ones go
-    into ``done``.
+    """The inputs to compute, those ``skip_existing`` recomputes, and why it kept the others' files.
+
+    Recomputed: those whose earlier, outdated outputs ``skip_existing`` replaces (their ``prediction.json`` proves
+    every output there is that run's); kept: why ``skip_existing`` neither skipped nor may replace the others' files
+    (no readable ``prediction.json`` owns them). The skipped ones go into ``done``.
     """
     todo = []
     replace: set[int] = set()
@@ -378,9 +398,10 @@ def _select(predictor: Predictor, targets: Sequence[Target], skip_existing: bool
 
 def _claim(predictor: Predictor, targets: Sequence[Target], out: Path, todo: Sequence[int],
            replace: set[int], kept: Mapping[int, str], option: str) -> None:
-    """Refuse existing outputs (without ``overwrite``): each input's, and with several inputs the mosaics and
-    ``collection.json`` (a user's own are never replaced silently); ``kept``: why ``skip_existing`` could not
-    use an input's folder, said with the refusal.
+    """Refuse existing outputs (without ``overwrite``).
+
+    Each input's, and with several inputs the mosaics and ``collection.json`` (a user's own are never replaced
+    silently); ``kept``: why ``skip_existing`` could not use an input's folder, said with the refusal.
     """
     for k in todo:
         if k not in replace:
@@ -412,8 +433,9 @@ def _shares(targets: Sequence[Target], todo: Sequence[int], ranks: runtime.Torch
 def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Share], shared: set[int],
              replace: set[int], ranks: runtime.Torchrun, policy: _Policy,
              committed: Callable[[PredictResult], None]) -> list[tuple[str, int, str]]:
-    """Compute this rank's shares and commit what it owns: a whole input at once, a shared one (its first
-    strip here) once every rank's strips are in; ``committed`` gets each result.
+    """Compute this rank's shares and commit what it owns; ``committed`` gets each result.
+
+    A whole input at once, a shared one (its first strip here) once every rank's strips are in.
 
     Returns:
         every rank's failures, ``(input, rank, message)`` (in one process the first failure is raised instead).
@@ -471,8 +493,10 @@ def _one_line(exc: BaseException) -> str:
 
 
 def write_mosaics(predictor: Predictor, targets: Sequence[Target], out: Path) -> dict[str, Path]:
-    """One VRT per layer over every input's folder (:func:`~aerialmtl.formats.prediction.mosaic_filename`),
-    each with its QGIS style, and the STAC ``collection.json`` linking the inputs' items and the mosaics.
+    """One VRT per layer over every input's folder, and the STAC collection.
+
+    Each mosaic (:func:`~aerialmtl.formats.prediction.mosaic_filename`) has its QGIS style; ``collection.json``
+    links the inputs' items and the mosaics.
 
     A mosaic an earlier run here wrote (its ``collection.json`` lists it) of a layer this run does not make
     (e.g. ``height_std`` after ``--mc 1``) is removed with its style: it would point at layers that are gone.

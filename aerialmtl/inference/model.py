@@ -16,8 +16,9 @@ A strip is read → model → stitch → write, each stage overlapping the other
    background threads, a few windows ahead;
 2. :class:`~aerialmtl.inference.runner.ModelRunner` normalises them on the device and runs the model in
    batches of windows of one window row (plain forward for T = 1, MC dropout for T > 1);
-3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device and hands
-   back finished blocks in their output dtypes, following one output schema
+3. :class:`~aerialmtl.inference.stitch.Stitcher` blends the window statistics on the device (in a thread of
+   its own while the model computes the next batches, on a GPU or a host of 4 cores or more) and hands back
+   finished blocks in their output dtypes, following one output schema
    (:func:`~aerialmtl.formats.prediction.prediction_layers`);
 4. the job's :class:`~aerialmtl.inference.writer.PredictionWriter` writes the blocks into staging files
    in a background thread; at the commit it converts every layer to a COG (the layers in parallel, each
@@ -39,29 +40,31 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import queue
+import threading
 import time
 import warnings
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
-from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
-from aerialmtl.formats.prediction import PROVENANCE_KEY, LayerSpec, prediction_layers
+from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
-from aerialmtl.inference.engine_choice import choose_engine
-from aerialmtl.inference.engines import Pending, openvino_available
-from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.inference.engine_choice import choose_engine, cold_cache_choice
+from aerialmtl.inference.engines import Pending, cache_root, openvino_available
+from aerialmtl.inference.model_record import CheckpointModel, make_record, read_record, resolve_model, write_record
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
-from aerialmtl.inference.settings import PredictOptions, PredictSettings, Resolved, settings_of
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings, settings_of
 from aerialmtl.inference.shadows import ShadowStep
 from aerialmtl.inference.stitch import Block, Stitcher
 from aerialmtl.inference.sun_choice import SunChoice, choose_sun
@@ -94,8 +97,10 @@ class StripResult:
 
 def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool = False
           ) -> tuple[torch.nn.Module | CheckpointModel, ModelMeta, str, str | None]:
-    """``(model, meta, name, fingerprint)``; the fingerprint is that of the checkpoint bytes loaded (``None`` for a
-    model given in memory: computed from its weights when needed).
+    """``(model, meta, name, fingerprint)`` of ``checkpoint``.
+
+    The fingerprint is that of the checkpoint bytes loaded (``None`` for a model given in memory: computed from its
+    weights when needed).
 
     With ``warm`` (a run that may use the OpenVINO engine), a checkpoint file whose record is beside the engine
     cache (:mod:`aerialmtl.inference.model_record`) is not loaded: its bytes are hashed, and the model is a
@@ -105,12 +110,9 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
-    from aerialmtl.formats.checkpoint import file_sha256, read_model
+    from aerialmtl.formats.checkpoint import file_sha256, read_model  # looked up here: tests stop a load by patching it
 
     if warm:
-        from aerialmtl.inference.engines import cache_root
-        from aerialmtl.inference.model_record import make_record, read_record, write_record
-
         root = cache_root()
         try:
             digest: str | None = file_sha256(checkpoint)
@@ -140,15 +142,18 @@ class Predictor:
         checkpoint: checkpoint path, or ``(model, meta)`` already loaded.
         settings: predict's settings (:class:`~aerialmtl.inference.settings.PredictSettings`; default: its
             defaults).
-        options: the Python API's keywords, one per field of the settings
-            (:class:`~aerialmtl.inference.settings.PredictOptions`), applied over ``settings``.
+        checkpoint_name: the checkpoint's name in ``prediction.json`` and in messages (default: its path, or
+            ``<in-memory model>``).
+        options: the Python API's keywords, one per field of the settings (named like them), applied over
+            ``settings`` (:meth:`~aerialmtl.inference.settings.PredictSettings.with_options`).
 
     What ``auto`` and the defaults resolve to is :attr:`resolved` (and, one by one, :attr:`device`,
     :attr:`engine`, :attr:`precision`, :attr:`threads`, :attr:`mc`).
     """
 
     def __init__(self, checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta],
-                 settings: PredictSettings | None = None, **options: Unpack[PredictOptions]) -> None:
+                 settings: PredictSettings | None = None, *, checkpoint_name: str | None = None,
+                 **options: Any) -> None:
         self.settings = s = settings_of(settings, options)
         self.device = runtime.resolve_device(s.device)
         #: Inference threads and streams (:func:`aerialmtl.runtime.resolve_threads`).
@@ -166,8 +171,9 @@ class Predictor:
         if s.compile and self.engine != "torch":
             warnings.warn("‹compile› applies to the torch engine; the OpenVINO engine compiles the model itself",
                           UserWarning, stacklevel=2)
-        self.checkpoint_name = s.checkpoint_name or name
+        self.checkpoint_name = checkpoint_name or name
         self._checkpoint = checkpoint
+        self._loaded = model  # as loaded: the torch engine is built from it if a cold cache turns auto to torch
         self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
         self.mc = s.mc if s.mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
         if s.calibration:
@@ -175,7 +181,7 @@ class Predictor:
         self.calibration = self.meta.calibration if s.calibration else None
         self.calibration_available = self.meta.calibration is not None
         #: What the settings resolved to.
-        self.resolved = Resolved(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.resolved = ResolvedSettings(self.device, self.engine, self.precision, self.threads, self.mc)
         # the checkpoint hashed once: provenance and the OpenVINO cache's key
         weights_key = self.fingerprint if self.engine == "openvino" else None
         self.runner = ModelRunner(model, self.meta, s, self.resolved, weights_key)
@@ -246,8 +252,9 @@ class Predictor:
 
     # ---- inputs -----------------------------------------------------------------------------------
     def open(self, ortho: str | Path | OrthoInput, warn: bool = True) -> OrthoInput:
-        """Read the header of ``ortho`` and a sample of its values once
-        (:meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>`); an :class:`OrthoInput` is
+        """Read the header of ``ortho`` and a sample of its values once.
+
+        :meth:`OrthoInput.open <aerialmtl.inference.ortho.OrthoInput.open>` reads them; an :class:`OrthoInput` is
         returned as it is.
 
         Args:
@@ -277,11 +284,34 @@ class Predictor:
                                                self.device, self.precision)
         return self._batch[key]
 
+    def fit_engine(self, srcs: Sequence[OrthoInput]) -> None:
+        """With ``engine: auto``, the choice for the job of predicting ``srcs`` once its size is known: OpenVINO on a
+        cold cache gives way to the torch engine when compiling first would make the job slower than torch
+        (:func:`~aerialmtl.inference.engine_choice.cold_cache_choice`, which :attr:`choice` then says). Called by
+        the jobs (:mod:`aerialmtl.inference.jobs`) before anything is computed.
+        """
+        cached = getattr(self.runner.engine, "cached", None)
+        if self.settings.engine != "auto" or not srcs or not callable(cached):
+            return
+        shapes = {(src.plan.rows.size, src.plan.cols.size) for src in srcs}
+        warm = all(cached(h, w, self.mc) for h, w in shapes)
+        work = sum(src.plan.num_windows * src.plan.rows.size * src.plan.cols.size for src in srcs) / 1e6
+        passes = self.mc * (8 if self.settings.tta else 1)
+        choice = cold_cache_choice(self.choice, self.settings.precision, self.device, work, passes, warm)
+        if choice is self.choice:
+            return
+        self.choice = choice
+        self.engine, self.precision = choice.engine, choice.precision
+        self.resolved = ResolvedSettings(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.runner = ModelRunner(resolve_model(self._loaded), self.meta, self.settings, self.resolved)
+        self._batch.clear()
+
     # ---- computing --------------------------------------------------------------------------------
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
                 progress: bool = True) -> StripResult:
-        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan (inside the settings'
-        AOI); each finished block goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
+        """Read, run and stitch window rows ``rows = [start, stop)`` of ``src``'s plan (inside the settings' AOI).
+
+        Each finished block goes to ``write`` (the job's writer: :class:`~aerialmtl.inference.job.InputJob`).
 
         The window rows before ``start`` that reach into it
         (:attr:`~aerialmtl.inference.windows.WindowRow.sources`) are computed too, so a strip gives exactly
@@ -305,8 +335,10 @@ class Predictor:
     # ---- run information --------------------------------------------------------------------------
     @property
     def fingerprint(self) -> str:
-        """The model's fingerprint: SHA-256 of the checkpoint bytes that were loaded
-        (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the weights of a model given in memory.
+        """The model's fingerprint (SHA-256).
+
+        Of the checkpoint bytes that were loaded (:func:`~aerialmtl.formats.checkpoint.read_checkpoint`), or of the
+        weights of a model given in memory.
         """
         if self._fingerprint is None:
             assert isinstance(self._checkpoint, tuple)
@@ -316,33 +348,39 @@ class Predictor:
     def provenance(self, src: OrthoInput) -> dict[str, Any]:
         """What makes the maps of ``src`` (``provenance`` in prediction.json, :mod:`aerialmtl.formats.prediction`)."""
         s = self.settings
+        settings = s.provenance(self._ran_as(), shadows=self.shadows is not None, aoi=file_fingerprint(s.aoi),
+                                calibration=self.calibration is not None,
+                                input_rescale=None if src.rescale is None else list(src.rescale))
         return {
             "checkpoint": self.fingerprint,
-            "settings": {"mc_samples": self.mc, "tta": s.tta, "seed": s.seed, "precision": self.precision,
-                         "engine": self.runner.engine.name, "probabilities": bool(s.probabilities),
-                         "aoi": file_fingerprint(s.aoi), "calibration": self.calibration is not None,
-                         "input_rescale": None if src.rescale is None else list(src.rescale),
-                         **({"sun": s.sun, "acquired": s.acquired, "shadow_fusion": s.shadow_fusion}
-                            if self.shadows is not None else {})},
+            "settings": settings,
             "input": src.fingerprint if src.fingerprint is not None else input_fingerprint(src.path),
         }
 
     def record_settings(self, src: OrthoInput) -> dict[str, Any]:
-        """The model's and the settings' fields of ``src``'s ``prediction.json``
-        (:class:`~aerialmtl.formats.prediction.PredictionRecord`; the job adds the input's and the run's): the
+        """The model's and the settings' fields of ``src``'s ``prediction.json``.
+
+        See :class:`~aerialmtl.formats.prediction.PredictionRecord` (the job adds the input's and the run's): the
         settings with what they resolved to (:meth:`PredictSettings.record
         <aerialmtl.inference.settings.PredictSettings.record>`).
         """
-        resolved = dataclasses.replace(self.resolved, engine=self.runner.engine.name)  # torch if auto fell back
+        settings = self.settings.record(self._ran_as(), self.resolved_batch_size(src.plan))
         return {
             "checkpoint": self.checkpoint_name,
             "model": model_summary(self.meta),
-            **self.settings.record(resolved, self.resolved_batch_size(src.plan)),
+            **{k: v for k, v in settings.items() if k in RECORD_KEYS},
+            "mc_samples": settings["mc"],
+            "sun_setting": settings["sun"],
+            "settings": settings,
             "engine_choice": self.choice.as_dict(),
             "calibration": self.calibration_info(),
             **({"sun": choice.record()} if (choice := self.sun_for(src)) is not None else {}),
             PROVENANCE_KEY: self.provenance(src),
         }
+
+    def _ran_as(self) -> ResolvedSettings:
+        """What the settings resolved to, with the engine that ran (``torch`` if ``auto`` fell back)."""
+        return dataclasses.replace(self.resolved, engine=self.runner.engine.name)
 
     def calibration_info(self) -> dict[str, Any]:
         """``prediction.json``'s ``calibration``: whether the checkpoint's calibration was applied, and which."""
@@ -369,9 +407,11 @@ class Predictor:
 
 
 class _StripLoop:
-    """The window loop of :meth:`Predictor.compute`: windows read → batches submitted to the engine (up to
-    :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked and stitched → blocks
-    to ``write``; with the stage times.
+    """The window loop of :meth:`Predictor.compute`, with the stage times.
+
+    Windows read → batches submitted to the engine (up to
+    :attr:`~aerialmtl.inference.runner.ModelRunner.in_flight` ahead) → statistics checked → stitched, and blocks
+    handed to ``write``, by :class:`_StitchStage` (in a thread of its own: :func:`stitch_in_thread`).
     """
 
     def __init__(self, predictor: Predictor, src: OrthoInput, stitcher: Stitcher, write: Callable[[Block], None],
@@ -385,30 +425,40 @@ class _StripLoop:
         # batches submitted to the engine, oldest first: (windows in plan order, pending statistics, validity)
         self.queue: deque[tuple[list[ReadWindow], Pending | None, torch.Tensor | None]] = deque()
         self.todo_rows = todo_rows
+        self.stage: _StitchStage | None = None
         self.bar = tqdm(total=len(todo_rows) * self.n_cols, unit="win", desc=src.name, disable=not progress,
                         dynamic_ncols=True)
 
     def run(self) -> None:
-        """Compute the window rows ``todo_rows`` of the plan."""
+        """Compute the window rows ``todo_rows`` of the plan: this thread reads, submits and collects the model's
+        batches while :class:`_StitchStage` stitches and writes the finished ones, in a thread of its own on a GPU
+        or a host of :data:`STITCH_THREAD_CORES` cores or more (:func:`stitch_in_thread`).
+        """
         p, src, todo_rows = self.p, self.src, self.todo_rows
         aoi_mask = Aoi(p.settings.aoi, src.grid) if p.settings.aoi is not None else None
         depth = max(4, 2 * self.batch_size)  # windows read ahead: a batch being computed and the next one
         reader = WindowReader(src, list(p.meta.bands), todo_rows, aoi_mask, threads=p.settings.reader_threads,
                               depth=depth, pin=p.device.type == "cuda")
-        with reader:
-            waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
-            for win in reader:
-                waiting.append(win)
-                todo = [w for w in waiting if w.data is not None]
-                if len(todo) < self.batch_size and win.j != self.n_cols - 1:
-                    continue
-                self.submit(waiting, todo)
-                waiting = []
-                while len(self.queue) > self.runner.in_flight:
+        self.stage = stage = _StitchStage(self, stitch_in_thread(p.device))
+        try:
+            with reader:
+                waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
+                for win in reader:
+                    waiting.append(win)
+                    todo = [w for w in waiting if w.data is not None]
+                    if len(todo) < self.batch_size and win.j != self.n_cols - 1:
+                        continue
+                    self.submit(waiting, todo)
+                    waiting = []
+                    while len(self.queue) > self.runner.in_flight:
+                        self.finish_oldest()
+                while self.queue:
                     self.finish_oldest()
-            while self.queue:
-                self.finish_oldest()
-            self.timings["read"] = reader.seconds_reading
+                self.timings["read"] = reader.seconds_reading
+            stage.finish()
+        finally:
+            stage.stop()
+        self.timings["stitch_write"] = stage.seconds  # in its own thread: overlaps ``model``
 
     def submit(self, windows: list[ReadWindow], todo: list[ReadWindow]) -> None:
         """Queue ``windows``, starting the statistics of those with data (``todo``) on the engine."""
@@ -424,7 +474,7 @@ class _StripLoop:
         self.computed += len(todo)
 
     def finish_oldest(self) -> None:
-        """Wait for the oldest batch's statistics, check them, and stitch its windows."""
+        """Wait for the oldest batch's statistics, check them, and hand its windows to the stitch stage."""
         windows, pending, valid = self.queue.popleft()
         stats = None
         if pending is not None:
@@ -436,7 +486,8 @@ class _StripLoop:
             self.timings["model"] += time.perf_counter() - t0
             if self.p.shadows is not None:
                 self.shadows(windows, stats, valid)
-        self.flush(windows, stats, valid)
+        assert self.stage is not None
+        self.stage.put((windows, stats, valid))
 
     def shadows(self, windows: list[ReadWindow], stats: McStatistics, valid: torch.Tensor) -> None:
         """The shadow layers (and fusion) of the batch's computed windows (:mod:`aerialmtl.inference.shadows`)."""
@@ -461,10 +512,10 @@ class _StripLoop:
         self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
-        """Hand ``windows`` (with their statistics, in order, for those with data) to the stitcher and the
-        finished blocks to ``write``.
+        """Hand ``windows`` to the stitcher and the finished blocks to ``write`` (by :class:`_StitchStage`).
+
+        ``stats`` holds the statistics of the windows with data, in order.
         """
-        t0 = time.perf_counter()
         n = 0
         for w in windows:
             if w.data is None:
@@ -476,7 +527,109 @@ class _StripLoop:
             for block in blocks:
                 self.write(block)
         self.bar.update(len(windows))
-        self.timings["stitch_write"] += time.perf_counter() - t0
 
 
-__all__ = ["DEFAULT_MC_SAMPLES", "Predictor", "StripResult"]
+#: Batches of checked statistics waiting for the stitch stage at most (each holds its windows' statistics:
+#: ~80 MiB per 1024² window with 20 classes); the model loop waits beyond.
+STITCH_QUEUE = 2
+#: Host cores from which a CPU run stitches in a thread of its own (a CUDA run always does: the host then only
+#: feeds the device). On 2 cores shared with other work the thread gained nothing and cost 8 % more CPU time and
+#: ~180 MiB (near-null pipeline, 8192², T = 1, load 15; issue 46), so fewer cores stitch in the model loop.
+STITCH_THREAD_CORES = 4
+_END = None
+
+
+def stitch_in_thread(device: torch.device, cores: int | None = None) -> bool:
+    """Whether a strip on ``device`` stitches in a thread of its own (:data:`STITCH_THREAD_CORES`); ``cores``:
+    the host cores this process may use (default: its CPU affinity).
+    """
+    if device.type == "cuda":
+        return True
+    if cores is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # pragma: no cover - not Linux
+            cores = os.cpu_count() or 1
+    return cores >= STITCH_THREAD_CORES
+
+
+class _StitchStage:
+    """The stitch stage of a strip in a thread of its own: batches of checked statistics, in plan order, are
+    stitched (:meth:`_StripLoop.flush`) and their finished blocks handed to the writer while the model loop
+    reads, submits and collects the next batches (torch and GDAL release Python's GIL while they work).
+
+    An error here (a block the writer refused, a stitching error) is raised in the model loop at its next
+    :meth:`put` or at :meth:`finish`; :meth:`stop` (always called, also on Ctrl-C) ends the thread before the
+    job aborts the writer.
+    """
+
+    def __init__(self, loop: _StripLoop, threaded: bool = True) -> None:
+        self.loop = loop
+        self.seconds = 0.0  # busy stitching and writing
+        self.error: BaseException | None = None
+        self._queue: queue.Queue[tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None] | None] = \
+            queue.Queue(maxsize=STITCH_QUEUE)
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._work, name="aerialmtl-stitch", daemon=True)
+        self.threaded = threaded
+        if threaded:
+            self._thread.start()
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _END:
+                return
+            if self.error is not None or self._cancel.is_set():
+                continue  # drained: the model loop raises the error or has stopped
+            t0 = time.perf_counter()
+            try:
+                self.loop.flush(*item)
+            except BaseException as exc:  # raised in the model loop
+                self.error = exc
+            self.seconds += time.perf_counter() - t0
+
+    def _raise(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+    def put(self, item: tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None]) -> None:
+        """Queue a batch (waits while :data:`STITCH_QUEUE` are queued); raises an earlier batch's error. Without
+        a thread (:func:`stitch_in_thread`), the batch is stitched here.
+        """
+        if not self.threaded:
+            t0 = time.perf_counter()
+            self.loop.flush(*item)
+            self.seconds += time.perf_counter() - t0
+            return
+        while True:
+            self._raise()
+            try:
+                self._queue.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def finish(self) -> None:
+        """Wait until every queued batch is stitched and written to the writer; raises their error."""
+        if not self.threaded:
+            return
+        self._queue.put(_END)
+        self._thread.join()
+        self._raise()
+
+    def stop(self) -> None:
+        """End the thread (the batches still queued are dropped); returns once it has ended."""
+        if not self._thread.is_alive():
+            return
+        self._cancel.set()
+        while self._thread.is_alive():
+            try:
+                self._queue.put(_END, timeout=0.1)
+                break
+            except queue.Full:
+                continue
+        self._thread.join()
+
+
+__all__ = ["DEFAULT_MC_SAMPLES", "STITCH_THREAD_CORES", "Predictor", "StripResult", "stitch_in_thread"]

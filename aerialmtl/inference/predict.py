@@ -15,7 +15,7 @@ from __future__ import annotations
 from aerialmtl.inference.job import PredictResult
 from aerialmtl.inference.jobs import JobResult, predict_many, predict_raster
 from aerialmtl.inference.model import DEFAULT_MC_SAMPLES, Predictor
-from aerialmtl.inference.settings import PredictOptions, PredictSettings
+from aerialmtl.inference.settings import PredictSettings
 
-__all__ = ["DEFAULT_MC_SAMPLES", "JobResult", "PredictOptions", "PredictResult", "PredictSettings", "Predictor",
+__all__ = ["DEFAULT_MC_SAMPLES", "JobResult", "PredictResult", "PredictSettings", "Predictor",
            "predict_many", "predict_raster"]

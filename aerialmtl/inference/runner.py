@@ -42,7 +42,7 @@ from aerialmtl.inference.engines import (
     fallback_engine,
 )
 from aerialmtl.inference.model_record import CheckpointModel
-from aerialmtl.inference.settings import PredictSettings, Resolved
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 from aerialmtl.models.mc_dropout import McStatistics
 
 #: Largest number of image pixels (windows × MC samples × h × w) decoded in one call, per device type.
@@ -117,10 +117,11 @@ def invert_statistics(stats: McStatistics, t: int) -> McStatistics:
 
 
 def combine_tta(parts: Sequence[McStatistics]) -> McStatistics:
-    """The statistics of V views together, each a mixture component of equal weight: mean height = mean of the
-    view means; ``height_std² = mean of the view variances + variance of the view means`` (the law of total
-    variance, as for the MC samples); probabilities averaged; the expected entropy averaged (per view: its
-    mean per-sample entropy, or the entropy of its probabilities at T = 1).
+    """The statistics of V views together, each a mixture component of equal weight.
+
+    Mean height = mean of the view means; ``height_std² = mean of the view variances + variance of the view
+    means`` (the law of total variance, as for the MC samples); probabilities averaged; the expected entropy
+    averaged (per view: its mean per-sample entropy, or the entropy of its probabilities at T = 1).
     """
     n = len(parts)
     out = McStatistics()
@@ -164,7 +165,7 @@ class ModelRunner:
     """
 
     def __init__(self, model: nn.Module | CheckpointModel, meta: ModelMeta, settings: PredictSettings,
-                 resolved: Resolved, weights_key: str | None = None) -> None:
+                 resolved: ResolvedSettings, weights_key: str | None = None) -> None:
         self.settings, self.resolved = settings, resolved
         self.device = resolved.device
         self.precision = resolved.precision
@@ -181,8 +182,9 @@ class ModelRunner:
 
     @property
     def model(self) -> nn.Module:
-        """The model prepared for prediction (:func:`~aerialmtl.models.d3net.inference_model`; the OpenVINO
-        engine's own copy there).
+        """The model prepared for prediction (:func:`~aerialmtl.models.d3net.inference_model`).
+
+        On the OpenVINO engine, its own copy there.
         """
         return self.engine.model
 
@@ -193,9 +195,10 @@ class ModelRunner:
 
     @property
     def in_flight(self) -> int:
-        """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`): the engine's
-        :meth:`~aerialmtl.inference.engines.Engine.ahead` (one per stream on OpenVINO at T = 1), none with TTA
-        (the views are computed one after the other).
+        """Batches a caller keeps submitted ahead of the one it stitches (:meth:`submit`).
+
+        The engine's :meth:`~aerialmtl.inference.engines.Engine.ahead` (one per stream on OpenVINO at T = 1), none
+        with TTA (the views are computed one after the other).
         """
         return 0 if self.tta else self.engine.ahead(self.mc)
 
@@ -218,8 +221,9 @@ class ModelRunner:
         return x.contiguous(memory_format=torch.channels_last)
 
     def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
-        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`); with
-        :attr:`tta`, those of the 8 flips and 90° rotations combined (:func:`combine_tta`).
+        """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`).
+
+        With :attr:`tta`, those of the 8 flips and 90° rotations combined (:func:`combine_tta`).
 
         With :attr:`fallback` (``engine: auto``), an OpenVINO engine that fails on the first batch is
         replaced by the torch engine, with a warning, and the batch is computed again: the whole raster then
@@ -232,9 +236,10 @@ class ModelRunner:
             if not (first and self.fallback and self.engine.name != FALLBACK):
                 raise
             label = engine_spec(self.engine.name).label
+            fallback = engine_spec(FALLBACK)
             warnings.warn(f"the {label} engine cannot run this model ({type(exc).__name__}: "
-                          f"{cause(exc)}); predicting with the torch engine "
-                          "instead (pass --engine torch to choose it directly)", UserWarning, stacklevel=2)
+                          f"{cause(exc)}); predicting with the {fallback.label} engine "
+                          f"instead (pass --engine {FALLBACK} to choose it directly)", UserWarning, stacklevel=2)
             self.engine = fallback_engine(self.engine, self._setup)  # over the engine's folded copy
             return self._statistics(x, keys)
 
@@ -251,8 +256,9 @@ class ModelRunner:
         return combine_tta(parts)
 
     def submit(self, x: torch.Tensor, keys: Sequence[int]) -> Pending:
-        """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` gives them (the same
-        numbers as :meth:`__call__`). Up to :attr:`in_flight` batches run while the caller stitches. Computed
+        """Start the statistics of a normalised (B, C, h, w) batch; ``.result()`` gives them.
+
+        The same numbers as :meth:`__call__`. Up to :attr:`in_flight` batches run while the caller stitches. Computed
         here, synchronously: with :attr:`tta` (the views one after the other), and the first batch when
         :attr:`fallback` may still switch engines.
         """

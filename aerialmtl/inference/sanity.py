@@ -249,8 +249,9 @@ def check_height_range(stats: McStatistics, valid: torch.Tensor, checkpoint: str
     inside = valid.to(h.device)
     if not bool(inside.any()):
         return
-    values = h[inside]
-    lo, hi = float(values.min()), float(values.max())
+    values = h if bool(inside.all()) else h[inside]  # a window inside the raster: no copy of its heights
+    ends = torch.aminmax(values)  # one pass
+    lo, hi = float(ends.min), float(ends.max)
     if low <= lo and hi <= high:
         return
     trained = (f"the {meta.height_range[0]:.4g}..{meta.height_range[1]:.4g} m it was trained on"

@@ -1,12 +1,17 @@
 """Predict's settings: one frozen, validated object, built once and carried unchanged to the engines.
 
 :class:`PredictSettings` holds every option of ``aerialmtl predict`` that decides the maps or how they are
-computed (as :class:`~aerialmtl.tiling.tile.TileOptions` does for ``tile``). The CLI builds it from its
-flags, the QGIS provider through the CLI, the Python API from its keywords (:meth:`PredictSettings.with_options`);
-the job, the model (:class:`~aerialmtl.inference.model.Predictor`), the runner and the engines read it.
+computed (as :class:`~aerialmtl.tiling.tile.TileOptions` does for ``tile``); its fields are the one list of
+them. The CLI builds it from its options (one per field, found by name: :func:`~aerialmtl.cli.predict.predict`),
+the QGIS provider through the CLI, the Python API from its keywords (:meth:`PredictSettings.with_options`: the
+field names, checked against the fields at run time). The job, the model
+(:class:`~aerialmtl.inference.model.Predictor`), the runner and the engines read it. Run-time things that do not
+decide the maps (progress bars, the checkpoint's display name) are arguments of the calls, not settings.
+
 What ``auto`` and the defaults resolve to on this machine and for this checkpoint (device, precision,
-engine, threads, MC samples) is a :class:`Resolved`; ``prediction.json`` is written from the two together
-(:meth:`PredictSettings.record`).
+engine, threads, MC samples) is a :class:`ResolvedSettings`. ``prediction.json`` records every field, with what
+it resolved to (:meth:`PredictSettings.record`), and ``provenance.settings`` the fields that change the maps
+(:meth:`PredictSettings.provenance`): both loop over the fields, so a new field is recorded without another edit.
 
 Where a caller spells the window ``tile`` (the name before ``window``), :meth:`PredictSettings.with_options`
 takes it, with a :class:`FutureWarning`; ``prediction.json`` files that say ``tile`` are still read
@@ -17,12 +22,11 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TypedDict
+from typing import Any, Literal
 
 import torch
-from typing_extensions import Unpack
 
 from aerialmtl import runtime
 from aerialmtl.errors import InputError
@@ -33,9 +37,22 @@ from aerialmtl.sun.solar_position import parse_time
 BatchSize = int | Literal["auto"]
 
 
+def speed_only(default: Any) -> Any:
+    """A field that changes speed or memory, not the maps (not in ``provenance.settings``; the module docstring)."""
+    return field(default=default, metadata={"maps": False})
+
+
+def shadow_setting(default: Any) -> Any:
+    """A field that changes the maps only when the shadow features run (in ``provenance.settings`` only then)."""
+    return field(default=default, metadata={"maps": "shadows"})
+
+
 @dataclass(frozen=True)
 class PredictSettings:
     """How ``predict`` computes the maps of every input (see the module docstring).
+
+    A field's default is the CLI option's default (a test holds them equal). Fields made with
+    :func:`speed_only` change speed or memory only; every other field is part of the maps' provenance.
 
     Attributes:
         mc: MC-dropout samples T (1 = single deterministic pass, no uncertainty layers); ``None``: 30
@@ -49,13 +66,14 @@ class PredictSettings:
             is bf16 where the hardware computes it natively and the engine gains from it).
         device: ``"auto"``, ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
         engine: ``"auto"`` or an engine's name (:data:`aerialmtl.inference.engines.ENGINES`).
-        threads: inference threads on a CPU: a number, or ``"auto"``/``None``
-            (:func:`aerialmtl.runtime.resolve_threads`).
+        threads: inference threads on a CPU: a number, or ``"auto"`` (``None`` means the same;
+            :func:`aerialmtl.runtime.resolve_threads`).
         aoi: GeoJSON polygons: windows outside are not computed, pixels outside are nodata.
         probabilities: also write ``class_probabilities.tif`` (K float32 bands).
         calibration: apply the checkpoint's calibration when it has one.
         rescale_input: map an orthophoto whose values do not match the training data's onto the training
-            range instead of refusing it (:mod:`aerialmtl.inference.sanity`).
+            range instead of refusing it (:mod:`aerialmtl.inference.sanity`; the map applied is recorded as
+            ``input_rescale``).
         tta: test-time augmentation: each window also flipped and rotated (8 views); 8× the work.
         compile: ``torch.compile`` the model (torch engine; a warning and the plain model where unavailable).
         seed: base seed of the per-window dropout masks (T > 1): the same seed gives the same maps.
@@ -70,33 +88,28 @@ class PredictSettings:
         shadow_fusion: fuse the heights measured from shadows into the height map and its spread, inside the
             network's objects (:mod:`aerialmtl.inference.shadows`); the ``shadow`` and ``shadow_height`` layers
             are written whenever the sun is known, fused or not.
-        checkpoint_name: the checkpoint's name in ``prediction.json`` (default: its path, or
-            ``<in-memory model>``).
-        progress: progress bars.
     """
 
     mc: int | None = None
-    window: int = 1024
-    overlap: int = 64
-    batch_size: BatchSize = 2
+    window: int = speed_only(1024)
+    overlap: int = speed_only(64)
+    batch_size: BatchSize = speed_only("auto")
     precision: runtime.Precision = "auto"
-    device: str = "auto"
+    device: str = speed_only("auto")
     engine: str = "auto"
-    threads: int | str | None = None
+    threads: int | str | None = speed_only("auto")
     aoi: str | Path | None = None
     probabilities: bool = False
     calibration: bool = True
-    rescale_input: bool = False
+    rescale_input: bool = speed_only(False)
     tta: bool = False
-    compile: bool = False
+    compile: bool = speed_only(False)
     seed: int = 0
-    max_decode_pixels: int | None = None
-    reader_threads: int = 2
-    sun: str = "auto"
-    acquired: str | None = None
-    shadow_fusion: bool = False
-    checkpoint_name: str | None = None
-    progress: bool = True
+    max_decode_pixels: int | None = speed_only(None)
+    reader_threads: int = speed_only(2)
+    sun: str = shadow_setting("auto")
+    acquired: str | None = shadow_setting(None)
+    shadow_fusion: bool = shadow_setting(False)
 
     def __post_init__(self) -> None:
         check_tiling(self.window, self.overlap)
@@ -115,80 +128,80 @@ class PredictSettings:
         if self.acquired is not None:
             parse_time(self.acquired)
 
-    def with_options(self, **options: Unpack[PredictOptions]) -> PredictSettings:
-        """These settings with ``options`` (the keywords of :class:`PredictOptions`) replaced, validated again.
+    def with_options(self, **options: Any) -> PredictSettings:
+        """These settings with ``options`` (keywords named like the fields) replaced, validated again.
 
         ``tile`` (the window's name before ``window``) is taken as ``window``, with a :class:`FutureWarning`.
+
+        Raises:
+            InputError: a keyword that names no field (the message lists the fields).
         """
         if not options:
             return self
-        fields: dict[str, Any] = dict(options)
-        if "tile" in fields:
-            tile = fields.pop("tile")
+        if "tile" in options:
+            tile = options.pop("tile")
             warnings.warn("‹tile› is deprecated for predict: pass ‹window› (the side of the prediction window)",
                           FutureWarning, stacklevel=4)
-            fields.setdefault("window", tile)
-        return dataclasses.replace(self, **fields)
+            options.setdefault("window", tile)
+        names = [f.name for f in dataclasses.fields(self)]
+        unknown = sorted(set(options) - set(names))
+        if unknown:
+            raise InputError(f"predict has no setting {', '.join(f'‹{u}›' for u in unknown)}; the settings are "
+                             f"{', '.join(names)}", param=unknown[0])
+        return dataclasses.replace(self, **options)
 
-    def record(self, resolved: Resolved, batch_size: int) -> dict[str, Any]:
-        """The settings' fields of ``prediction.json``: these settings with what ``auto`` and the defaults
-        resolved to (:class:`Resolved`) and the batch size used (``batch_size``, resolved per window size).
+    def _values(self, resolved: ResolvedSettings) -> dict[str, Any]:
+        """Every field's value as JSON, with what ``auto`` or a default resolved to in its place.
+
+        The fields of ``resolved`` are named like the settings they resolve.
         """
-        return {
-            "mc_samples": resolved.mc,
-            "tta": self.tta,
-            "seed": self.seed,
-            "window": self.window,
-            "overlap": self.overlap,
-            "batch_size": batch_size,
-            "precision": resolved.precision,
-            "engine": resolved.engine,
-            "threads": resolved.threads.as_dict() if resolved.device.type == "cpu" else None,
-            "device": str(resolved.device),
-            "compile": self.compile,
-            "sun_setting": self.sun,
-            "shadow_fusion": self.shadow_fusion,
-        }
+        values: dict[str, Any] = {}
+        for f in dataclasses.fields(self):
+            value = getattr(resolved, f.name) if hasattr(resolved, f.name) else getattr(self, f.name)
+            values[f.name] = _json(value, resolved)
+        return values
+
+    def record(self, resolved: ResolvedSettings, batch_size: int) -> dict[str, Any]:
+        """``prediction.json``'s ``settings``: every field, resolved.
+
+        ``resolved``: what ``auto`` and the defaults resolved to; ``batch_size``: the batch size used (resolved per
+        window size).
+        """
+        return {**self._values(resolved), "batch_size": batch_size}
+
+    def provenance(self, resolved: ResolvedSettings, shadows: bool = False, **recorded: Any) -> dict[str, Any]:
+        """``provenance.settings`` of ``prediction.json``: the fields that change the maps, resolved.
+
+        All fields but the :func:`speed_only` ones (and the :func:`shadow_setting` ones unless the shadow features
+        ran: ``shadows``), ``mc`` under its recorded name ``mc_samples``; ``recorded`` replaces or adds values the
+        model knows better (the AOI's fingerprint, whether calibration was applied, ...).
+        """
+        values = self._values(resolved)
+        maps = {True, "shadows"} if shadows else {True}
+        kept = {f.name: values[f.name] for f in dataclasses.fields(self) if f.metadata.get("maps", True) in maps}
+        kept["mc_samples"] = kept.pop("mc")
+        return {**kept, **recorded}
 
 
-class PredictOptions(TypedDict, total=False):
-    """The keywords of the Python API's one-call forms: the fields of :class:`PredictSettings` (and ``tile``,
-    the window's earlier name).
-    """
-
-    mc: int | None
-    window: int
-    tile: int
-    overlap: int
-    batch_size: BatchSize
-    precision: runtime.Precision
-    device: str
-    engine: str
-    threads: int | str | None
-    aoi: str | Path | None
-    probabilities: bool
-    calibration: bool
-    rescale_input: bool
-    tta: bool
-    compile: bool
-    seed: int
-    max_decode_pixels: int | None
-    reader_threads: int
-    sun: str
-    acquired: str | None
-    shadow_fusion: bool
-    checkpoint_name: str | None
-    progress: bool
+def _json(value: Any, resolved: ResolvedSettings) -> Any:
+    """``value`` as ``prediction.json`` holds it (a device and a path as text, threads as a mapping on a CPU)."""
+    if isinstance(value, runtime.CpuThreads):
+        return value.as_dict() if resolved.device.type == "cpu" else None
+    if isinstance(value, (torch.device, Path)):
+        return str(value)
+    return value
 
 
-def settings_of(settings: PredictSettings | None, options: PredictOptions) -> PredictSettings:
+def settings_of(settings: PredictSettings | None, options: dict[str, Any]) -> PredictSettings:
     """``settings`` (default :class:`PredictSettings`) with the keywords ``options`` of a one-call form."""
     return (settings if settings is not None else PredictSettings()).with_options(**options)
 
 
 @dataclass(frozen=True)
-class Resolved:
-    """What :class:`PredictSettings`' ``auto`` values and defaults resolved to for one model on this machine.
+class ResolvedSettings:
+    """What the ``auto`` values and defaults of :class:`PredictSettings` resolved to for one model on this machine.
+
+    Each field is named like the setting it resolves.
 
     Attributes:
         device: where the model runs.
@@ -205,4 +218,4 @@ class Resolved:
     mc: int
 
 
-__all__ = ["BatchSize", "PredictOptions", "PredictSettings", "Resolved", "settings_of"]
+__all__ = ["BatchSize", "PredictSettings", "ResolvedSettings", "settings_of", "shadow_setting", "speed_only"]

@@ -67,7 +67,8 @@ class ShadowStep:
                 prob = self.model.predict_proba(rgb[n][:3], self.gsd_m)
                 prob = np.where(ok, prob, np.nan).astype(np.float32)
                 objects, _ = ndimage.label((heights[n] >= OBJECT_MIN_M) & ok)
-                measured = shadow_heights(prob, self.gsd_m, sun, objects, height=heights[n])
+                measured = shadow_heights(prob, self.gsd_m, sun, objects, height=heights[n],
+                                          threshold=self.model.threshold)
                 has = np.isfinite(measured.height) & ok
                 shadow[n] = torch.from_numpy(np.nan_to_num(prob, nan=0.0))
                 s_on[n] = torch.from_numpy(ok.astype(np.float32))

@@ -152,7 +152,7 @@ def _mosaic_time(path: str | Path) -> str | None:
     try:
         with rasterio.open(str(path)) as src:
             files = [f for f in src.files if not f.lower().endswith(".vrt")]
-        times = {}
+        times: dict[str, str] = {}
         for f in files:
             with rasterio.open(f) as part:
                 stamp = part.tags().get("TIFFTAG_DATETIME")
@@ -169,7 +169,7 @@ def _mosaic_time(path: str | Path) -> str | None:
         raise InputError(f"--sun auto: the mosaic '{path}' joins orthophotos flown at different times ({named}): "
                          "their suns differ; predict them one by one (aerialmtl predict a.tif b.tif ...), each with "
                          "its own sun, or pass --sun none", param="sun")
-    return next(iter(times.values()))
+    return str(next(iter(times.values())))
 
 
 def _centre(grid: Grid) -> tuple[float, float]:

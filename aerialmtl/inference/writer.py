@@ -41,6 +41,8 @@ from aerialmtl.formats.prediction import (
     PredictionRecord,
     style_filename,
 )
+from aerialmtl.formats.qgis_style import layer_style, write_style
+from aerialmtl.formats.stac import build_item, write_json
 from aerialmtl.inference.stitch import Block
 from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
@@ -48,6 +50,7 @@ from aerialmtl.io.fingerprint import content_sha256
 from aerialmtl.io.oserrors import kind_of, output_error
 from aerialmtl.io.outputs import MERGE_VRT, STAGING, staging_path
 from aerialmtl.io.stats import BandStats, band_stats
+from aerialmtl.io.vrt import mosaic_vrt
 
 #: Blocks queued for the writer thread at most (the model waits beyond; memory stays bounded).
 MAX_PENDING_BLOCKS = 4
@@ -57,11 +60,10 @@ COG_LEVEL: int | None = 1
 
 
 def cog_threads() -> int:
-    """Threads for COG compression: the CPUs this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    """Threads for COG compression: the CPUs this process may use (:func:`aerialmtl.runtime.usable_cpus`)."""
+    from aerialmtl.runtime import usable_cpus
+
+    return usable_cpus()
 
 
 def _staging_tag(row_start: int | None) -> str:
@@ -208,8 +210,6 @@ class PredictionWriter:
             strips: first rows of the other strips of a distributed run (their staging files, written
                 by other processes, are joined with this writer's through a VRT).
         """
-        from aerialmtl.io.vrt import mosaic_vrt
-
         merged: list[Path] = []
         try:
             self.finish()
@@ -295,9 +295,6 @@ class PredictionWriter:
         Returns:
             key → (partial path, final path): ``<layer>_style`` and ``item``.
         """
-        from aerialmtl.formats.qgis_style import layer_style, write_style
-        from aerialmtl.formats.stac import build_item, write_json
-
         out: dict[str, tuple[Path, Path]] = {}
         for name, spec in self.specs.items():
             qml = staging_path(self.out_dir / style_filename(name))

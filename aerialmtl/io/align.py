@@ -35,6 +35,7 @@ from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
 from aerialmtl.errors import AlignmentError, InputError, cause
+from aerialmtl.io.fingerprint import blocking_file
 from aerialmtl.io.paths import (
     ARCHIVE_VSI,
     REMOTE_OPEN_OPTIONS,
@@ -114,8 +115,9 @@ class Grid:
 
 
 def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetReader:
-    """Open ``path`` (a file, a URL or a ``/vsi...`` path: :mod:`aerialmtl.io.paths`) with a message that
-    names the role and the fix when it cannot be read.
+    """Open ``path``, with a message that names the role and the fix when it cannot be read.
+
+    ``path``: a file, a URL or a ``/vsi...`` path (:mod:`aerialmtl.io.paths`).
 
     Raises:
         InputError: a local file is missing or unreadable, or a remote one cannot be reached (the
@@ -124,6 +126,8 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
     gpath = gdal_path(path)
     if is_local(gpath) and not Path(gpath).exists():
         raise InputError(f"{role} '{gpath}' does not exist; check the path")
+    if is_local(gpath):
+        raise_if_blocking(gpath, role)
     remote = is_remote(gpath)
     if remote:
         configure_remote()
@@ -158,9 +162,27 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
         ) from exc
 
 
+def raise_if_blocking(path: str | Path, role: str = "raster") -> None:
+    """Refuse local raster ``path`` when it or a sidecar GDAL reads with it is a FIFO, a socket or a device
+    (:func:`~aerialmtl.io.fingerprint.blocking_file`): GDAL would wait on it forever.
+
+    Raises:
+        InputError: naming the file, what it is, and the fix.
+    """
+    found = blocking_file(path)
+    if found is None:
+        return
+    bad, kind = found
+    what = "it" if bad == Path(path) else f"'{bad}', which GDAL reads with it,"
+    raise InputError(f"{role} '{path}' cannot be opened: {what} is {kind}, not a regular file (GDAL would wait on it "
+                     f"forever); remove '{bad}' or replace it with the file it should be")
+
+
 def _gdal_message(exc: BaseException) -> str:
-    """GDAL's own words for a failed read, in whole sentences (rasterio chains the CPLE error as the cause, and says
-    only "Read failed. See previous exception for details." itself).
+    """GDAL's own words for a failed read, in whole sentences.
+
+    rasterio chains the CPLE error as the cause, and says only "Read failed. See previous exception for details."
+    itself.
     """
     seen: BaseException | None = exc
     while seen is not None:
@@ -172,7 +194,9 @@ def _gdal_message(exc: BaseException) -> str:
 
 
 def read_error(role: str, path: str | Path, exc: BaseException) -> InputError:
-    """The error to raise when reading pixels of an opened raster failed (``exc``): the path or URL, what failed
+    """The error to raise when reading pixels of an opened raster failed (``exc``).
+
+    It names the path or URL, what failed
     (GDAL's words and, for a URL, what the server answers when asked again: an HTTP status, a refused or closed
     connection, a timeout) and the fix.
     """
@@ -267,8 +291,9 @@ def ortho_grid(src: rasterio.io.DatasetReader) -> Grid:
 
 
 def resampled_grid(grid: Grid, gsd: float) -> Grid:
-    """``grid`` with square pixels of ``gsd`` metres over its extent, from its upper-left corner
-    (see :func:`reference_grid`).
+    """``grid`` with square pixels of ``gsd`` metres over its extent, from its upper-left corner.
+
+    See :func:`reference_grid`.
     """
     if not gsd > 0:
         raise AlignmentError(f"‹gsd› must be a positive pixel size in metres, got {gsd}", param="gsd")
@@ -440,7 +465,9 @@ class AlignedRaster:
 
 @dataclass(frozen=True)
 class NdsmOptions:
-    """How heights above ground are derived: ``clip_negative`` sets nDSM < 0 to 0; ``max_height``
+    """How heights above ground are derived.
+
+    ``clip_negative`` sets nDSM < 0 to 0; ``max_height``
     (metres) marks taller pixels as invalid (``None`` keeps all); ``z_unit`` is the unit of the height
     rasters' values when a file states none (``"m"``, ``"ft"``, ``"us-ft"``; ``None`` = metres; see
     :mod:`aerialmtl.io.units`). Heights are always derived in metres.
@@ -506,8 +533,9 @@ class HeightSource:
         return [Window(c, r, w, h) for r in rows for c in cols]
 
     def check_dsm_above_dtm(self) -> None:
-        """Refuse a DSM that lies below its DTM on most pixels where the two differ (they are swapped,
-        or on different vertical datums): every height would be clipped to 0 or negative.
+        """Refuse a DSM that lies below its DTM on most pixels where the two differ.
+
+        They are swapped, or on different vertical datums: every height would be clipped to 0 or negative.
 
         Reads a spread of 16 windows of 64 × 64 pixels (not the whole rasters). Pixels where
         |DSM − DTM| ≤ :attr:`SWAP_TOLERANCE_M` (bare ground, noise) are not counted.
@@ -554,8 +582,9 @@ class HeightSource:
         return height, valid
 
     def units(self) -> dict[str, dict[str, object]]:
-        """Per layer (``"DSM"``, ``"DTM"`` or ``"nDSM"``): the unit its values were read in and where it
-        came from, e.g. ``{"DSM": {"unit": "us-ft", "metres_per_unit": 0.3048006, "source": "z_unit"}}``.
+        """Per layer (``"DSM"``, ``"DTM"`` or ``"nDSM"``): the unit its values were read in and where it came from.
+
+        For example ``{"DSM": {"unit": "us-ft", "metres_per_unit": 0.3048006, "source": "z_unit"}}``.
         """
         return {layer.role: {"unit": layer.z.name, "metres_per_unit": layer.z.factor, "source": layer.z.source}
                 for layer in self.layers if layer.z is not None}

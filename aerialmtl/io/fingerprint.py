@@ -1,5 +1,6 @@
-"""Fingerprints of what GDAL reads: whether an input is still the one a run read, and whether a file's bytes are
-still those written.
+"""Fingerprints of what GDAL reads.
+
+Whether an input is still the one a run read, and whether a file's bytes are still those written.
 
 An orthophoto is more than its file: GDAL also reads files beside it that change what the raster means, and a
 fingerprint that left them out would call a folder complete after its input moved 100 km (a new world file) or
@@ -31,6 +32,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
+from aerialmtl.stores import open_regular, special_kind
+
 #: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
 VRT_DEPTH = 4
 #: Seconds :func:`http_validators` waits for a server's answer.
@@ -47,12 +51,13 @@ def content_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
     """The SHA-256 (hex) of the bytes of file ``path``, read in ``chunk``-byte pieces (not held in memory).
 
     Raises:
-        OSError: it cannot be read.
+        OSError: it cannot be read, or it is not a regular file (a FIFO, a device: never waited on or read
+            without end; :func:`aerialmtl.stores.open_regular`).
     """
     h = hashlib.sha256()
     buf = bytearray(chunk)
     view = memoryview(buf)
-    with open(path, "rb", buffering=0) as f:
+    with os.fdopen(open_regular(path, follow_links=True), "rb", buffering=0) as f:  # a FIFO there: an error, no hang
         while n := f.readinto(buf):
             h.update(view[:n])
     return h.hexdigest()
@@ -62,7 +67,6 @@ def file_fingerprint(path: str | Path | None) -> dict[str, Any] | None:
     """Resolved path, size and mtime (ns) of a local file (``None`` for ``None``); the GDAL path alone otherwise."""
     if path is None:
         return None
-    from aerialmtl.io.paths import gdal_path, is_local
 
     if not is_local(path):
         return {"path": gdal_path(path)}
@@ -105,36 +109,71 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
     return out
 
 
+def blocking_file(path: str | Path, depth: int = VRT_DEPTH) -> tuple[Path, str] | None:
+    """The first of local raster ``path``, the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) and,
+    for a VRT, the files it lists (``depth`` levels) that is a FIFO, a socket or a device (links followed), and
+    what it is; ``None`` when there is none. GDAL opens those without a timeout and would wait on a FIFO forever,
+    so a raster with one is not opened (:func:`aerialmtl.io.align.open_raster`). A folder at a sidecar's name is
+    not one (GDAL reads nothing there).
+    """
+    for p in (Path(path), *sidecar_paths(path)):
+        try:
+            mode = os.stat(p).st_mode
+        except OSError:
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            return p, special_kind(mode)
+    if str(path).lower().endswith(".vrt") and depth > 0:  # and the files a VRT lists, which GDAL opens as it reads
+        from aerialmtl.io.paths import is_local
+
+        for name in _vrt_source_names(path):
+            found = blocking_file(name, depth - 1) if is_local(name) else None
+            if found is not None:
+                return found
+    return None
+
+
 def raster_identity(src: Any) -> dict[str, Any]:
-    """What GDAL makes of an open raster ``src`` (a rasterio dataset): size (px), geotransform, CRS, nodata per
-    band (as text: NaN is no JSON number). The same file and sidecars always give the same identity.
+    """What GDAL makes of an open raster ``src`` (a rasterio dataset).
+
+    Size (px), geotransform, CRS, nodata per band (as text: NaN is no JSON number). The same file and sidecars
+    always give the same identity.
     """
     crs = src.crs.to_string() if src.crs is not None else None
     return {"width": int(src.width), "height": int(src.height), "transform": [float(v) for v in src.transform][:6],
             "crs": crs, "nodata": [None if v is None else repr(float(v)) for v in src.nodatavals]}
 
 
-def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
-    """:func:`input_fingerprint` of every source a local VRT lists (``SourceFilename``, relative ones resolved
-    against the VRT's folder; VRTs inside followed ``depth`` levels), in document order without repeats.
+def _vrt_source_names(path: str | Path) -> list[str]:
+    """The sources local VRT ``path`` lists (``SourceFilename``; relative ones resolved against its folder), in
+    document order without repeats; ``[]`` when it cannot be read (a FIFO there is not waited on).
     """
     import xml.etree.ElementTree as ET
 
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError):
-        return []
     from aerialmtl.io.paths import is_local
 
-    out: list[dict[str, Any]] = []
-    seen: set[str] = set()
+    try:
+        with os.fdopen(open_regular(path, follow_links=True), "rb") as fh:
+            root = ET.parse(fh).getroot()
+    except (OSError, ET.ParseError):
+        return []
+    out: list[str] = []
     for el in root.iter("SourceFilename"):
         name = (el.text or "").strip()
-        if not name or name in seen:
-            continue
-        seen.add(name)
         if is_local(name) and el.get("relativeToVRT", "0") == "1":
             name = str(Path(path).parent / name)
+        if name and name not in out:
+            out.append(name)
+    return out
+
+
+def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]]:
+    """:func:`input_fingerprint` of every source a local VRT lists, in document order without repeats.
+
+    ``SourceFilename``, relative ones resolved against the VRT's folder; VRTs inside followed ``depth`` levels.
+    """
+    out: list[dict[str, Any]] = []
+    for name in _vrt_source_names(path):
         try:
             fp = input_fingerprint(name, depth=depth - 1) if depth > 0 else file_fingerprint(name)
         except OSError:
@@ -145,8 +184,9 @@ def vrt_sources(path: str | Path, depth: int = VRT_DEPTH) -> list[dict[str, Any]
 
 
 def http_validators(url: str) -> dict[str, Any] | None:
-    """What an HTTP(S) server says identifies the current version of ``url`` (one HEAD request): ``etag``,
-    ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S).
+    """What an HTTP(S) server says identifies the current version of ``url`` (one HEAD request).
+
+    ``etag``, ``last_modified`` and ``size`` (bytes); ``None`` when it does not answer or the URL is not HTTP(S).
     """
     import urllib.error
     import urllib.request
@@ -168,8 +208,9 @@ def http_validators(url: str) -> dict[str, Any] | None:
 
 def input_fingerprint(path: str | Path, raster: Mapping[str, Any] | None = None,
                       depth: int = VRT_DEPTH) -> dict[str, Any]:
-    """The fingerprint of an orthophoto (see the module docstring): what says whether what GDAL reads is still the
-    same.
+    """The fingerprint of an orthophoto: what says whether what GDAL reads is still the same.
+
+    See the module docstring.
 
     Args:
         path: the orthophoto (a local file, a VRT, a URL or a GDAL ``/vsi...`` path).
@@ -181,8 +222,6 @@ def input_fingerprint(path: str | Path, raster: Mapping[str, Any] | None = None,
         GDAL path and ``server`` (the HTTP validators) or ``archive`` (the local archive's
         :func:`file_fingerprint`); with ``raster`` when given.
     """
-    from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
-
     fp = file_fingerprint(path)
     assert fp is not None
     if is_local(path):
@@ -204,8 +243,9 @@ def input_fingerprint(path: str | Path, raster: Mapping[str, Any] | None = None,
 
 
 def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
-    """What differs between two fingerprints (:func:`input_fingerprint`) of one input (``None``: nothing), e.g.
-    ``"sidecar o.tfw changed"``, ``"raster.transform [...] → [...]"``.
+    """What differs between two fingerprints (:func:`input_fingerprint`) of one input (``None``: nothing).
+
+    For example ``"sidecar o.tfw changed"``, ``"raster.transform [...] → [...]"``.
     """
     if before == after:
         return None
@@ -229,6 +269,6 @@ def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
     return ", ".join(parts)
 
 
-__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH", "changed",
+__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH", "blocking_file", "changed",
            "content_sha256", "file_fingerprint", "http_validators", "input_fingerprint", "raster_identity",
            "sidecar_paths", "sidecars", "vrt_sources"]

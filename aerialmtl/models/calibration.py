@@ -156,8 +156,10 @@ class Calibration:
         return (), (self.std_scale,), (self.std_floor,)
 
     def std(self, s: np.ndarray, h: np.ndarray | None = None) -> np.ndarray:
-        """Calibrated spreads (metres): ``sqrt((s_k · s)² + f_k²)`` with the range ``k`` of the predicted
-        (uncalibrated) height ``h`` (same shape; needed when the spread is fitted per range).
+        """Calibrated spreads (metres): ``sqrt((s_k · s)² + f_k²)``.
+
+        ``k`` is the range of the predicted (uncalibrated) height ``h`` (same shape; needed when the spread is
+        fitted per range).
         """
         s_arr = np.asarray(s)
         if not self.spread_applied:
@@ -290,8 +292,10 @@ def _sampled_pairs(abs_error: np.ndarray, std: np.ndarray, max_pixels: int) -> t
 
 
 def fit_spread(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 200_000) -> tuple[float, float]:
-    """``(std_scale, std_floor)`` such that ``sqrt((scale·std)² + floor²)`` covers :data:`ONE_SIGMA` of the
-    pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors tried: quantiles of the error).
+    """``(std_scale, std_floor)`` of the spread ``sqrt((scale·std)² + floor²)``.
+
+    It covers :data:`ONE_SIGMA` of the pixels at ±1 σ and comes closest to :data:`TWO_SIGMA` at ±2 σ (floors
+    tried: quantiles of the error).
     """
     err, sd = _sampled_pairs(abs_error, std, max_pixels)
     if err.size == 0:
@@ -331,7 +335,9 @@ def fit_std_scale(abs_error: np.ndarray, std: np.ndarray, coverage: float = ONE_
 
 def spread_ranges(pred: np.ndarray, edges: tuple[float, ...] = SPREAD_EDGES,
                   min_pixels: int = MIN_RANGE_PIXELS) -> tuple[float, ...]:
-    """The inner edges of :data:`SPREAD_EDGES` kept for ``pred`` (metres): a range with fewer than
+    """The inner edges of :data:`SPREAD_EDGES` kept for ``pred`` (metres).
+
+    A range with fewer than
     ``min_pixels`` predicted heights loses its upper edge (it joins the range above it); a top range that is
     too small loses its lower edge (it joins the range below).
     """

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -39,7 +40,11 @@ EXP_FLOOR = np.float32(-87.0)
 
 _OPTIONS: dict[str, Any] = {"boundscheck": False, "error_model": "numpy", "nogil": True}
 #: The entry recording the SHA-256 of every file numba wrote in the store.
-MANIFEST = "manifest"
+MANIFEST = stores.MANIFEST
+#: The names numba gives its files: ``<module>.<function>-<line>.py<version>.nbi`` (the index) and
+#: ``....<n>.nbc`` (the machine code), and ``<either>.tmp.<hex>`` while it writes one. Only such files are
+#: numba's: any other file in the folder is a user's, never read, judged or removed.
+NUMBA_FILE = re.compile(r"^[\w.]+-\d+\.py\w+?(\.\d+\.nbc|\.nbi)(\.tmp\.[0-9a-f]+)?$")
 #: The environment variable that moves the store (every store: :data:`aerialmtl.stores.ROOT_ENV`).
 _ENV = stores.ROOT_ENV
 
@@ -72,13 +77,13 @@ class KernelStore(stores.Store):
         return True
 
     def _files(self) -> list[Path]:
-        """The files numba wrote in the folder (not the manifest, not staging files)."""
+        """The files of numba's in the folder (:data:`NUMBA_FILE`; its staging files too, not the manifest)."""
         assert self.folder is not None
         try:
             names = os.listdir(self.folder)
         except OSError:
             return []
-        return [self.folder / n for n in sorted(names) if n != MANIFEST and not n.startswith(".")]
+        return [self.folder / n for n in sorted(names) if NUMBA_FILE.match(n)]
 
     def _recorded(self) -> dict[str, str]:
         found = self.read(MANIFEST)

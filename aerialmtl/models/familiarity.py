@@ -45,6 +45,17 @@ from aerialmtl.errors import CheckpointError
 
 #: Quantile levels stored (share of training feature pixels), 0, 0.005, ..., 1.
 QUANTILE_LEVELS = 201
+#: The encoder's feature levels (strides 2, 4, 8, 16, 32: :func:`aerialmtl.models.encoders.feature_channels`).
+ENCODER_LEVELS = 5
+#: How far the mixture weights may sum from 1, and a basis's Gram matrix from the identity (a fit stores them to
+#: ~1e-15; a float32 round trip ~1e-7).
+WEIGHT_SUM_TOLERANCE = 1e-4
+BASIS_TOLERANCE = 1e-3
+
+
+def _short(values: Sequence[float], n: int = 4) -> str:
+    """``[0.5, 0.5, ...]``: the first ``n`` values, for messages."""
+    return "[" + ", ".join(f"{v:.3g}" for v in values[:n]) + (", ...]" if len(values) > n else "]")
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -97,10 +108,54 @@ class FeatureDensity:
                 *(v for r in self.means for v in r), *(v for r in self.precision_chol for v in r)]
         if not all(math.isfinite(v) for v in flat) or any(s <= 0 for s in self.scale):
             problems.append("non-finite values or a scale ≤ 0")
+        elif not problems:
+            problems += self._fit_problems()
+        bad_levels = [v for v in self.levels if not 0 <= v < ENCODER_LEVELS]
+        if bad_levels or len(set(self.levels)) != len(self.levels):
+            problems.append(f"encoder levels {list(self.levels)}, where the encoder has the distinct levels 0–"
+                            f"{ENCODER_LEVELS - 1} (strides 2–32)")
         if problems:
             raise CheckpointError(f"checkpoint meta is invalid: its feature density (familiarity) has "
-                                  f"{'; '.join(problems)}; refit it (aerialmtl.training.familiarity) or drop it "
-                                  "from the checkpoint")
+                                  f"{'; '.join(problems)} (no fit writes that: the file was edited or damaged, and "
+                                  "its unfamiliarity layer would be NaN or constant); use the checkpoint as `train` "
+                                  "wrote it, or refit the density (aerialmtl.training.familiarity."
+                                  "familiarize_checkpoint)")
+
+    def check_widths(self, channels: Sequence[int]) -> str | None:
+        """Why this density does not fit an encoder whose levels have ``channels`` channels (``None``: it does)."""
+        want = sum(int(channels[v]) for v in self.levels)
+        if len(self.centre) != want:
+            return (f"its feature density (familiarity) reads {len(self.centre)} channels at encoder levels "
+                    f"{list(self.levels)}, where the model has {want}")
+        return None
+
+    def _fit_problems(self) -> list[str]:
+        """What no fit (:func:`fit_density`) leaves, in a density of the right shapes and finite values: weights
+        that are not positive or do not sum to 1, precision factors that are not lower triangular with a positive
+        diagonal, a basis whose rows are not orthonormal (a zero basis makes every pixel alike), a quantile table
+        without spread (a constant layer), values beyond float32 (predict computes in float32: NaN or inf).
+        """
+        out = []
+        w = np.asarray(self.weights, np.float64)
+        if (w <= 0).any() or abs(float(w.sum()) - 1.0) > WEIGHT_SUM_TOLERANCE:
+            out.append(f"mixture weights {_short(self.weights)}, which must be > 0 and sum to 1")
+        k, d = self.components, self.dims
+        chol = np.asarray(self.precision_chol, np.float64).reshape(k, d, d)
+        diag = np.diagonal(chol, axis1=1, axis2=2)
+        if (diag <= 0).any() or np.triu(chol, 1).any():
+            out.append("precision factors that are not lower triangular with a positive diagonal")
+        basis = np.asarray(self.basis, np.float64)
+        if np.abs(basis @ basis.T - np.eye(d)).max() > BASIS_TOLERANCE:
+            out.append("a basis whose rows are not orthonormal principal axes")
+        q = self.quantiles
+        if not q[-1] > q[0]:
+            out.append(f"a quantile table without spread ({q[0]:g}..{q[-1]:g} nats: every pixel would get one value)")
+        big = float(np.finfo(np.float32).max)
+        if not out and (max(abs(v) for v in (*self.centre, *self.scale, *self.quantiles, *w)) >= big
+                        or not np.isfinite(self._tensors["const"].numpy()).all()
+                        or not np.isfinite(self._tensors["basis"].numpy()).all()):
+            out.append("values beyond float32, in which predict computes it")
+        return out
 
     @property
     def dims(self) -> int:
@@ -312,4 +367,5 @@ def fit_density(x: np.ndarray, levels: Sequence[int], stride: int, *, dims: int 
         quantiles=tuple(float(v) for v in quantiles), n_pixels=int(z.shape[0]), method=method, source=source)
 
 
-__all__ = ["QUANTILE_LEVELS", "FeatureDensity", "fit_density"]
+__all__ = ["BASIS_TOLERANCE", "ENCODER_LEVELS", "QUANTILE_LEVELS", "WEIGHT_SUM_TOLERANCE", "FeatureDensity",
+           "fit_density"]

@@ -198,9 +198,11 @@ def class_probabilities(logits: torch.Tensor) -> torch.Tensor:
 
 def _class_sums(logits: torch.Tensor, s: int, b: int, p_sum: torch.Tensor | None = None,
                 e_sum: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(s·B)×K×H×W logits (sample-major: sample ``t`` of image ``n`` at ``t·B + n``) → the sums over these ``s``
-    samples: Σ_t p_t (K×B×H×W class planes) and Σ_t H_t (B×H×W, nats), float32; added into ``p_sum`` and
-    ``e_sum`` when given, else new. On a CPU by :mod:`aerialmtl.models.class_kernel` (one pass per sample),
+    """The class sums over ``s`` MC samples of (s·B)×K×H×W logits.
+
+    Sample-major: sample ``t`` of image ``n`` at ``t·B + n``. The sums over these ``s`` samples: Σ_t p_t
+    (K×B×H×W class planes) and Σ_t H_t (B×H×W, nats), float32; added into ``p_sum`` and ``e_sum`` when given,
+    else new. On a CPU by :mod:`aerialmtl.models.class_kernel` (one pass per sample),
     elsewhere (or without numba) by :func:`_class_sums_torch`; the two agree to 1e-6.
     """
     if logits.device.type == "cpu" and class_kernel.available():
@@ -220,7 +222,9 @@ def _class_sums(logits: torch.Tensor, s: int, b: int, p_sum: torch.Tensor | None
 
 def _class_sums_torch(logits: torch.Tensor, s: int, b: int, p_sum: torch.Tensor | None = None,
                       e_sum: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`_class_sums` with torch operations (any device), row block by row block: Σ_t p_t (K×B×H×W class
+    """:func:`_class_sums` with torch operations (any device), row block by row block.
+
+    Σ_t p_t (K×B×H×W class
     planes) and Σ_t H_t (B×H×W, nats), float32; added into ``p_sum`` and ``e_sum`` when given (the sums of
     earlier samples: ``p_sum + Σ_t p_t``), else new.
 
@@ -269,7 +273,9 @@ def _class_sums_torch(logits: torch.Tensor, s: int, b: int, p_sum: torch.Tensor 
 
 
 def _sum_samples(x: torch.Tensor, out: torch.Tensor, dim: int, s: int, b: int) -> None:
-    """``out = Σ_t x[..., t·b:(t+1)·b, ...]`` along ``dim``, as s − 1 element-wise adds into ``out``: for a
+    """``out = Σ_t x[..., t·b:(t+1)·b, ...]`` along ``dim``, as s − 1 element-wise adds into ``out``.
+
+    For a
     chunk of 2 samples of 1024², K = 20, :func:`_class_sums` took 0.34 s instead of 0.47 s with
     ``x.unflatten(dim, (s, b)).sum(dim)`` copied into ``out`` (1 thread, Zen 4, load ~10; the same sums).
     """
@@ -412,8 +418,9 @@ def laplace_variance(scale: torch.Tensor) -> torch.Tensor:
 
 
 def predictive_std(epistemic_var: torch.Tensor, aleatoric_var: torch.Tensor) -> torch.Tensor:
-    """The predictive standard deviation (metres) of a mixture of T Laplace samples: ``sqrt(var_t μ_t +
-    mean_t 2·b_t²)`` (the law of total variance; Kendall & Gal 2017), from its two parts (m²).
+    """The predictive standard deviation (metres) of a mixture of T Laplace samples, from its two parts (m²).
+
+    ``sqrt(var_t μ_t + mean_t 2·b_t²)`` (the law of total variance; Kendall & Gal 2017).
     """
     return (epistemic_var + aleatoric_var).clamp_min(0).sqrt()
 
@@ -459,8 +466,9 @@ class DropoutSite:
 
 @torch.no_grad()
 def dropout_sites(model: nn.Module, in_channels: int, probe: int = 64) -> list[DropoutSite]:
-    """The seedable dropout layers (``p > 0``) of ``model.decode``, in call order, found by one small
-    probe pass (``probe × probe`` zeros).
+    """The seedable dropout layers (``p > 0``) of ``model.decode``, in call order.
+
+    Found by one small probe pass (``probe × probe`` zeros).
     """
     sites: list[DropoutSite] = []
     handles = []
@@ -493,8 +501,9 @@ def dropout_sites(model: nn.Module, in_channels: int, probe: int = 64) -> list[D
 
 def dropout_masks(sites: Sequence[DropoutSite], height: int, width: int, seed: int, key: int,
                   sample: int) -> list[torch.Tensor]:
-    """The dropout masks of image ``key`` in MC sample ``sample``, one per site: 1×C×h×w float32, values
-    0 or 1/(1 − p).
+    """The dropout masks of image ``key`` in MC sample ``sample``, one per site.
+
+    Each 1×C×h×w float32, values 0 or 1/(1 − p).
 
     Drawn from the same generator, in the same order, with the same calls as the seeded hooks of
     :func:`mc_statistics`, so an engine that multiplies its dropout inputs by them gives the samples of

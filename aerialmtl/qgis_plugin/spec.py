@@ -106,7 +106,10 @@ PREDICT = Algorithm(
         Param("MC", "--mc", "int", "MC-dropout samples T (1 = no uncertainty) [empty: 30 if the model has dropout]",
               optional=True, minimum=1),
         Param("AOI", "--aoi", "vector", "Area of interest (polygons): compute only there", optional=True),
-        Param("ENGINE", "--engine", "enum", "Engine", default="auto", choices=("auto", "torch", "openvino")),
+        # a name, not a list: the engines are the registry's (aerialmtl.inference.engines.ENGINES), which this
+        # module cannot import; the command refuses a name it does not know, listing them
+        Param("ENGINE", "--engine", "string", "Engine: auto, or an engine's name (`aerialmtl predict --help` lists "
+              "them)", default="auto"),
         Param("PRECISION", "--precision", "enum", "Precision", default="auto", choices=_PRECISION, advanced=True),
         Param("DEVICE", "--device", "enum", "Device", default="auto", choices=_DEVICES, advanced=True),
         Param("WINDOW", "--window", "int", "Largest window side (pixels, multiple of 32)", default=1024, advanced=True,
@@ -121,6 +124,8 @@ PREDICT = Algorithm(
               default=False, advanced=True),
         Param("RESCALE_INPUT", "--rescale-input", "bool",
               "Rescale an orthophoto whose values differ from the training images'", default=False, advanced=True),
+        Param("SEED", "--seed", "int", "Base seed of the MC-dropout masks (the same seed gives the same maps)",
+              default=0, advanced=True, minimum=0),
         Param("SUN", "--sun", "string", "Sun for the shadow layers: auto, none, or AZIMUTH,ELEVATION (degrees, "
               "azimuth from true north)", default="auto", advanced=True),
         Param("ACQUIRED", "--acquired", "string", "Acquisition time, ISO 8601 (e.g. 2019-06-21T16:45:00Z) "

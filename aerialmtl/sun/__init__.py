@@ -6,6 +6,8 @@ heights (:func:`cast_shadow_mask`), scores how shadow-like pixels look (:func:`s
 :class:`ShadowModel`), fits the sun on an area with reference heights (:func:`fit_sun`), measures heights
 from shadow runs next to objects (:func:`shadow_heights`) and fuses them into a height map inside objects
 only (:func:`fuse_heights`). Angles: azimuth towards the sun, clockwise from grid north; rasters north-up.
+A differentiable cast shadow for self-supervised steps is in :mod:`aerialmtl.sun.soft` (imports torch; not
+imported here).
 """
 
 from aerialmtl.sun.cast import cast_shadow_mask

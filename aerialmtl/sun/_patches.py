@@ -19,25 +19,25 @@ def as_patches(rgb: ArrayOrList, height: ArrayOrList, valid: ArrayOrList | None 
     ``valid`` (default: all) is and-ed with the height being finite.
     """
     single = isinstance(rgb, np.ndarray) and rgb.ndim == 3
-    rgbs = [rgb] if single else list(rgb)  # type: ignore[list-item]
-    heights = [height] if single else list(height)  # type: ignore[list-item]
+    rgbs = [rgb] if single else list(rgb)
+    heights = [height] if single else list(height)
     valids: list[np.ndarray | None] = ([None] * len(rgbs) if valid is None
                                        else [valid] if single else list(valid))  # type: ignore[list-item]
     if not len(rgbs) == len(heights) == len(valids):
-        raise InputError(f"‹rgb›, ‹height› and ‹valid› must hold as many patches each, got {len(rgbs)}, "
+        raise InputError(f"'rgb', 'height' and 'valid' must hold as many patches each, got {len(rgbs)}, "
                          f"{len(heights)} and {len(valids)}")
     out: list[Patch] = []
     for i, (im, h, v) in enumerate(zip(rgbs, heights, valids)):
         im = np.asarray(im)
         h = np.asarray(h, dtype=np.float32)
         if im.ndim != 3 or im.shape[0] != 3 or h.shape != im.shape[1:]:
-            raise InputError(f"patch {i}: ‹rgb› must be (3, H, W) and ‹height› (H, W) on the same grid, got "
+            raise InputError(f"patch {i}: 'rgb' must be (3, H, W) and 'height' (H, W) on the same grid, got "
                              f"{im.shape} and {h.shape}")
         ok = np.isfinite(h)
         if v is not None:
             v = np.asarray(v, dtype=bool)
             if v.shape != h.shape:
-                raise InputError(f"patch {i}: ‹valid› must be (H, W) like ‹height›, got {v.shape} and {h.shape}")
+                raise InputError(f"patch {i}: 'valid' must be (H, W) like 'height', got {v.shape} and {h.shape}")
             ok &= v
         out.append((im, np.where(ok, h, np.float32(np.nan)).astype(np.float32), ok))
     return out

@@ -144,4 +144,5 @@ def cast_shadow_mask(height: np.ndarray, gsd_m: float, sun: Sun, tol_m: float = 
         with np.errstate(invalid="ignore"):
             shadow = (occ - z) > np.float32(tol_m)
     shadow &= ~nan
-    return shadow
+    result: np.ndarray = shadow
+    return result

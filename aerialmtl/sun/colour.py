@@ -15,8 +15,9 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from aerialmtl.errors import InputError
-from aerialmtl.sun._patches import ArrayOrList, as_patches
+from aerialmtl.sun._patches import ArrayOrList, Patch, as_patches
 from aerialmtl.sun.cast import cast_shadow_mask
+from aerialmtl.sun.heights import shadow_heights
 from aerialmtl.sun.position import Sun
 
 #: Added to the channel sum before chromaticities (0–1 scale per channel), so black pixels get no colour.
@@ -27,10 +28,13 @@ def unit_rgb(rgb: np.ndarray) -> np.ndarray:
     """float32 (3, H, W) in 0–1 from uint8/uint16 (divided by the dtype's maximum) or float (taken as 0–1)."""
     a = np.asarray(rgb)
     if a.ndim != 3 or a.shape[0] != 3:
-        raise InputError(f"‹rgb› must be a (3, H, W) image, got shape {a.shape}")
+        raise InputError(f"'rgb' must be a (3, H, W) image, got shape {a.shape}")
+    out: np.ndarray
     if np.issubdtype(a.dtype, np.integer):
-        return (a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
-    return a.astype(np.float32, copy=False)
+        out = (a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
+    else:
+        out = a.astype(np.float32, copy=False)
+    return out
 
 
 def shadow_score(rgb: np.ndarray) -> np.ndarray:
@@ -50,18 +54,39 @@ def shadow_score(rgb: np.ndarray) -> np.ndarray:
     return result
 
 
-def colour_features(rgb: np.ndarray, gsd_m: float, context_m: float) -> np.ndarray:
-    """float32 (6, H, W) features of :class:`ShadowModel`: log-brightness L, blue and red chromaticity, L minus
-    its mean over ``context_m`` metres (darker than the surroundings), L², L × blue chromaticity.
+#: Neighbourhoods (metres) the brightness is compared with: its mean over each (darker than the surroundings)
+#: and, for the first two, its maximum (darker than the lit edge next to it).
+MEAN_CONTEXTS_M = (2.0, 6.0, 12.0, 40.0)
+PEAK_CONTEXTS_M = (2.0, 6.0)
+#: Name of the feature set below, stored with a model so that a model of another set is refused.
+FEATURES = "colour-v1"
+N_FEATURES = 6 + len(MEAN_CONTEXTS_M) + len(PEAK_CONTEXTS_M)
+#: Measured objects needed to choose the threshold from heights.
+MIN_CALIBRATION_OBJECTS = 10
+
+
+def _window(metres: float, gsd_m: float) -> int:
+    return max(3, int(round(metres / gsd_m)) | 1)
+
+
+def colour_features(rgb: np.ndarray, gsd_m: float) -> np.ndarray:
+    """float32 (12, H, W) features of :class:`ShadowModel`.
+
+    Log-brightness L, blue and red chromaticity, saturation, L², L × blue chromaticity, L minus its mean over
+    each of :data:`MEAN_CONTEXTS_M` and L minus its maximum over each of :data:`PEAK_CONTEXTS_M` (windows in
+    metres, so ``gsd_m`` matters).
     """
     x = unit_rgb(rgb)
     total = x.sum(0) + np.float32(_EPS)
     lum = np.log(x.mean(0) + np.float32(0.02))
     cb = x[2] / total - np.float32(1 / 3)
     cr = x[0] / total - np.float32(1 / 3)
-    size = max(3, int(round(context_m / gsd_m)) | 1)
-    local = lum - ndimage.uniform_filter(lum, size=size, mode="reflect")
-    return np.stack([lum, cb, cr, local, lum * lum, lum * cb]).astype(np.float32)
+    top = x.max(0)
+    sat = (top - x.min(0)) / (top + np.float32(0.02))
+    feats = [lum, cb, cr, sat, lum * lum, lum * cb]
+    feats += [lum - ndimage.uniform_filter(lum, size=_window(m, gsd_m), mode="reflect") for m in MEAN_CONTEXTS_M]
+    feats += [lum - ndimage.maximum_filter(lum, size=_window(m, gsd_m), mode="reflect") for m in PEAK_CONTEXTS_M]
+    return np.stack(feats).astype(np.float32)
 
 
 @dataclass
@@ -70,31 +95,41 @@ class ShadowModel:
     cast shadows of the area's reference heights at its sun (labels, not a threshold).
 
     Attributes:
-        gsd_m: pixel size the model was fitted at (the context window is in metres).
-        context_m: side of the neighbourhood the brightness is compared with, metres.
-        mean, scale: per-feature standardisation (6 values each).
-        weights: 7 logistic weights (intercept first); empty before :meth:`fit`.
+        gsd_m: pixel size the model was fitted at (the neighbourhoods are in metres).
+        features: name of the feature set (:data:`FEATURES`).
+        mean, scale: per-feature standardisation (:data:`N_FEATURES` values each).
+        weights: logistic weights, intercept first; empty before :meth:`fit`.
         shadow_share: share of the fitted pixels in cast shadow.
+        threshold: the probability from which a pixel is called shadow; pass it to
+            :func:`~aerialmtl.sun.shadow_heights` (``threshold=``). Colour alone is ambiguous, so calibrated
+            probabilities rarely pass 0.5 where a shadow is. Chosen on the fitted area (``threshold_by``): where
+            the shadow heights of its own objects are closest to its reference heights (``"heights"``: smallest
+            median |log(shadow / reference)|, needs :data:`MIN_CALIBRATION_OBJECTS` measured objects, else F1), or
+            with the best F1 score of the shadow mask against the cast shadows (``"f1"``).
+        threshold_by: how :attr:`threshold` was chosen: ``"heights"``, ``"f1"`` or ``"default"``.
     """
 
     gsd_m: float = 0.0
-    context_m: float = 12.0
+    features: str = FEATURES
     mean: list[float] = field(default_factory=list)
     scale: list[float] = field(default_factory=list)
     weights: list[float] = field(default_factory=list)
     shadow_share: float = 0.0
+    threshold: float = 0.5
+    threshold_by: str = "default"
 
     #: pixels used for the fit at most (a fixed-seed random subset beyond)
     MAX_PIXELS = 300_000
 
     def fit(self, rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, sun: Sun,
-            valid: ArrayOrList | None = None, l2: float = 1e-3) -> ShadowModel:
+            valid: ArrayOrList | None = None, l2: float = 1e-3, threshold_by: str = "heights") -> ShadowModel:
         """Fit on one patch or a list of patches (see :func:`aerialmtl.sun.fit_sun` for the forms).
 
         Args:
             rgb: (3, H, W) image(s); height: float (H, W) reference heights above ground in metres (NaN invalid).
             gsd_m: pixel size in metres. sun: the area's sun. valid: optional bool (H, W) mask(s).
             l2: ridge penalty on the standardised weights.
+            threshold_by: ``"heights"`` or ``"f1"`` (see :attr:`threshold`).
 
         Returns:
             self.
@@ -102,17 +137,20 @@ class ShadowModel:
         Raises:
             InputError: no valid pixels, or the heights cast no shadow (or nothing but shadow) at ``sun``.
         """
+        if threshold_by not in ("heights", "f1"):
+            raise InputError(f"'threshold_by' must be 'heights' or 'f1', got {threshold_by!r}", param="threshold_by")
         self.gsd_m = float(gsd_m)
         feats, labels = [], []
-        for im, h, ok in as_patches(rgb, height, valid):
+        patches = as_patches(rgb, height, valid)
+        for im, h, ok in patches:
             mask = cast_shadow_mask(h, gsd_m, sun)
-            f = colour_features(im, gsd_m, self.context_m)
+            f = colour_features(im, gsd_m)
             feats.append(f[:, ok])
             labels.append(mask[ok])
         x = np.concatenate(feats, axis=1).T.astype(np.float64)
         y = np.concatenate(labels).astype(np.float64)
         if len(y) == 0:
-            raise InputError("‹valid› leaves no pixel to fit the shadow model on")
+            raise InputError("'valid' leaves no pixel to fit the shadow model on")
         if len(y) > self.MAX_PIXELS:
             pick = np.random.default_rng(0).choice(len(y), self.MAX_PIXELS, replace=False)
             x, y = x[pick], y[pick]
@@ -122,14 +160,57 @@ class ShadowModel:
                              f"({sun}): nothing to learn what a shadow looks like from")
         mean, scale = x.mean(0), x.std(0) + 1e-6
         self.mean, self.scale = mean.tolist(), scale.tolist()
-        self.weights = _logistic((x - mean) / scale, y, l2).tolist()
+        w = _logistic((x - mean) / scale, y, l2)
+        self.weights = w.tolist()
+        p = 1.0 / (1.0 + np.exp(-np.clip(w[0] + ((x - mean) / scale) @ w[1:], -40, 40)))
+        self.threshold, self.threshold_by = _best_f1_threshold(p, y > 0.5), "f1"
+        if threshold_by == "heights":
+            t = self._heights_threshold(patches, sun)
+            if t is not None:
+                self.threshold, self.threshold_by = t, "heights"
         return self
+
+    def _heights_threshold(self, patches: list[Patch], sun: Sun) -> float | None:
+        """The threshold (0.04–0.5) at which the shadow heights of the patches' own objects (heights ≥ 2 m,
+        ≥ 20 m²) are closest to their median reference heights (smallest median |log ratio|); ``None`` with too
+        few objects.
+        """
+        cases = []
+        for im, h, ok in patches:
+            labels, n = ndimage.label(np.nan_to_num(h) >= 2.0)
+            if n == 0:
+                continue
+            sizes = np.bincount(labels.ravel()) * self.gsd_m ** 2
+            keep = sizes >= 20.0
+            keep[0] = False
+            labels = np.where(keep[labels], labels, 0)
+            ref = np.zeros(len(sizes))
+            idx = np.nonzero(keep)[0]
+            ref[idx] = ndimage.median(np.nan_to_num(h), labels, index=idx)
+            prob = np.where(ok, self.predict_proba(im), np.float32(np.nan)).astype(np.float32)
+            cases.append((prob, h, labels, ref))
+        best: tuple[float, float] | None = None
+        for t in np.arange(0.04, 0.51, 0.02):
+            ratios = []
+            for prob, h, labels, ref in cases:
+                sh = shadow_heights(prob, self.gsd_m, sun, labels, height=h, threshold=float(t))
+                ratios += [o.height_m / ref[o.label] for o in sh.objects if o.measured and ref[o.label] > 0]
+            if len(ratios) >= MIN_CALIBRATION_OBJECTS:
+                miss = float(np.median(np.abs(np.log(np.maximum(ratios, 1e-3)))))
+                if best is None or miss < best[0]:
+                    best = (miss, float(round(t, 2)))
+        return None if best is None else best[1]
+
+    def shadow_mask(self, rgb: np.ndarray, gsd_m: float | None = None) -> np.ndarray:
+        """The shadow pixels, bool (H, W): :meth:`predict_proba` ≥ :attr:`threshold`."""
+        mask: np.ndarray = self.predict_proba(rgb, gsd_m) >= np.float32(self.threshold)
+        return mask
 
     def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None) -> np.ndarray:
         """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's)."""
         if not self.weights:
             raise InputError("this ShadowModel is not fitted: call fit() first")
-        f = colour_features(rgb, gsd_m or self.gsd_m, self.context_m).astype(np.float64)
+        f = colour_features(rgb, gsd_m or self.gsd_m).astype(np.float64)
         w = np.asarray(self.weights)
         z = w[0] + np.tensordot(w[1:] / np.asarray(self.scale), f - np.asarray(self.mean)[:, None, None], axes=1)
         out: np.ndarray = (1.0 / (1.0 + np.exp(-np.clip(z, -40, 40)))).astype(np.float32)
@@ -137,22 +218,39 @@ class ShadowModel:
 
     def to_dict(self) -> dict[str, object]:
         """Plain JSON/YAML types (floats and lists of floats)."""
-        return {"gsd_m": self.gsd_m, "context_m": self.context_m, "mean": list(self.mean),
-                "scale": list(self.scale), "weights": list(self.weights), "shadow_share": self.shadow_share}
+        return {"gsd_m": self.gsd_m, "features": self.features, "mean": list(self.mean),
+                "scale": list(self.scale), "weights": list(self.weights), "shadow_share": self.shadow_share,
+                "threshold": self.threshold, "threshold_by": self.threshold_by}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, object]) -> ShadowModel:
         """Inverse of :meth:`to_dict`."""
         try:
-            m = cls(gsd_m=float(d["gsd_m"]), context_m=float(d["context_m"]),  # type: ignore[arg-type]
+            m = cls(gsd_m=float(d["gsd_m"]), features=str(d["features"]),  # type: ignore[arg-type]
                     mean=[float(v) for v in d["mean"]], scale=[float(v) for v in d["scale"]],  # type: ignore[attr-defined]
                     weights=[float(v) for v in d["weights"]],  # type: ignore[attr-defined]
-                    shadow_share=float(d["shadow_share"]))  # type: ignore[arg-type]
+                    shadow_share=float(d["shadow_share"]),  # type: ignore[arg-type]
+                    threshold=float(d.get("threshold", 0.5)),  # type: ignore[arg-type]
+                    threshold_by=str(d.get("threshold_by", "default")))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"not a shadow model record ({exc!r}); keys {sorted(d)}") from exc
-        if m.weights and not (len(m.weights) == len(m.mean) + 1 == len(m.scale) + 1):
+        if m.features != FEATURES:
+            raise InputError(f"shadow model record of feature set {m.features!r}; this version computes {FEATURES!r}")
+        if m.weights and not (len(m.weights) == N_FEATURES + 1 == len(m.mean) + 1 == len(m.scale) + 1):
             raise InputError(f"shadow model record: {len(m.weights)} weights for {len(m.mean)} features")
         return m
+
+
+def _best_f1_threshold(p: np.ndarray, y: np.ndarray) -> float:
+    """The probability threshold (0.02 steps) with the best F1 score of ``p ≥ t`` against ``y``."""
+    best_t, best_f1 = 0.5, -1.0
+    for t in np.arange(0.02, 0.99, 0.02):
+        called = p >= t
+        tp = float((called & y).sum())
+        f1 = 2 * tp / (float(called.sum()) + float(y.sum())) if called.any() else 0.0
+        if f1 > best_f1:
+            best_t, best_f1 = float(round(t, 2)), f1
+    return best_t
 
 
 def _logistic(x: np.ndarray, y: np.ndarray, l2: float) -> np.ndarray:

@@ -35,7 +35,7 @@ def fuse_heights(height: np.ndarray, std: np.ndarray, shadow: ShadowHeights,
     s = np.asarray(std, dtype=np.float32)
     labels = np.asarray(objects)
     if not h.shape == s.shape == labels.shape == shadow.height.shape:
-        raise InputError(f"‹height›, ‹std›, ‹objects› and the shadow heights must share one (H, W) shape, got "
+        raise InputError(f"'height', 'std', 'objects' and the shadow heights must share one (H, W) shape, got "
                          f"{h.shape}, {s.shape}, {labels.shape} and {shadow.height.shape}")
     out_h, out_s = h.copy(), s.copy()
     hs_all, ss_all = shadow.height, shadow.std

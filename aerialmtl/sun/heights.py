@@ -72,12 +72,13 @@ class ShadowHeights:
 
 
 def shadow_runs(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun: Sun,
-                max_steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                max_steps: int, gap_px: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Shadow runs from every object's shadow-casting edge.
 
     Args:
         shadow: bool (H, W) shadow pixels. known: bool (H, W) pixels whose shadow state is known.
         objects: int (H, W) labels, 0 = no object. sun: the sun. max_steps: longest run walked, in steps.
+        gap_px: lit pixels a run may cross and go on (a run ends at its last shadow pixel before more lit ones).
 
     Returns:
         ``(label, length, ok, rc)``: per edge pixel its object label, the run length in steps (int), whether
@@ -102,6 +103,7 @@ def shadow_runs(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun:
     r, c, lab = r[edge], c[edge], lab[edge]
     n = len(r)
     length = np.zeros(n, np.int64)
+    lit = np.zeros(n, np.int64)  # lit pixels since the last shadow pixel
     state = np.zeros(n, np.int8)  # 0 running, 1 ended (a measurement if length > 0), 2 not a measurement
     for k in range(1, max_steps + 1):
         run = np.nonzero(state == 0)[0]
@@ -110,14 +112,16 @@ def shadow_runs(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun:
         dr, dc = offset(k)
         rr, cc = r[run] + dr, c[run] + dc
         inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-        state[run[~inside]] = 2
-        run, rr, cc = run[inside], rr[inside], cc[inside]
-        bad = ~known[rr, cc] | (objects[rr, cc] != 0)
-        state[run[bad]] = 2
+        # leaving the raster, unknown pixels or an object: clipped, unless a lit pixel already ended the shadow
+        bad = ~inside
+        bad[inside] = ~known[rr[inside], cc[inside]] | (objects[rr[inside], cc[inside]] != 0)
+        state[run[bad]] = np.where(lit[run[bad]] > 0, 1, 2)
         run, rr, cc = run[~bad], rr[~bad], cc[~bad]
         dark = shadow[rr, cc]
         length[run[dark]] = k
-        state[run[~dark]] = 1
+        lit[run[dark]] = 0
+        lit[run[~dark]] += 1
+        state[run[lit[run] > gap_px]] = 1
     ok = (state == 1) & (length > 0)
     return lab, length, ok, np.stack([r, c], axis=1)
 
@@ -154,7 +158,7 @@ def occluder_steps(height: np.ndarray, objects: np.ndarray, rc: np.ndarray, lab:
 
 
 def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.ndarray, *,
-                   height: np.ndarray | None = None, threshold: float = 0.5, smooth_px: int = 3,
+                   height: np.ndarray | None = None, threshold: float = 0.5, smooth_px: int = 3, gap_px: int = 1,
                    min_runs: int = 3, max_height_m: float = 150.0,
                    elevation_sd_deg: float = 3.0) -> ShadowHeights:
     """Per-object heights from the shadow runs next to them.
@@ -170,6 +174,7 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
             its top, so edge runs underestimate crowns. ``None``: from the edge.
         threshold: probability from which a pixel is shadow.
         smooth_px: side of the median filter applied to the shadow mask (lone pixels would cut runs); 1 = none.
+        gap_px: lit pixels a run may cross (noise in the shadow mask); 0 = a run ends at its first lit pixel.
         min_runs: an object needs this many measured runs to get a height.
         max_height_m: runs longer than this height allows are not measurements.
         elevation_sd_deg: uncertainty of the sun's elevation, degrees (it scales every height of the area).
@@ -185,10 +190,10 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
     prob = np.asarray(shadow_prob)
     labels = np.asarray(objects)
     if prob.shape != labels.shape or prob.ndim != 2:
-        raise InputError(f"‹shadow_prob› and ‹objects› must be (H, W) rasters of one shape, got {prob.shape} and "
+        raise InputError(f"'shadow_prob' and 'objects' must be (H, W) rasters of one shape, got {prob.shape} and "
                          f"{labels.shape}")
     if not np.issubdtype(labels.dtype, np.integer):
-        raise InputError(f"‹objects› must hold integer labels (0 = no object), got dtype {labels.dtype}")
+        raise InputError(f"'objects' must hold integer labels (0 = no object), got dtype {labels.dtype}")
     if prob.dtype == bool:
         shadow, known = prob, np.ones(prob.shape, bool)
     else:
@@ -201,11 +206,11 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
     per_step = gsd_m * math.hypot(1.0, slope)
     q = per_step * sun.tan_elevation
     max_steps = max(1, int(math.ceil(max_height_m / q)))
-    lab, length, ok, rc = shadow_runs(shadow, known, labels, sun, max_steps)
+    lab, length, ok, rc = shadow_runs(shadow, known, labels, sun, max_steps, gap_px)
     if height is not None:
         hmap = np.asarray(height, dtype=np.float32)
         if hmap.shape != labels.shape:
-            raise InputError(f"‹height› must be (H, W) like ‹objects›, got {hmap.shape} and {labels.shape}")
+            raise InputError(f"'height' must be (H, W) like 'objects', got {hmap.shape} and {labels.shape}")
         length = length + np.where(ok, occluder_steps(hmap, labels, rc, lab, sun, q, max_steps), 0)
     e = math.tan(math.radians(min(sun.elevation_deg + elevation_sd_deg, 89.9))) / sun.tan_elevation - 1.0
     all_labels = np.unique(labels[labels != 0])

@@ -37,11 +37,11 @@ class Sun:
     def __post_init__(self) -> None:
         az, el = _number("azimuth", self.azimuth_deg), _number("elevation", self.elevation_deg)
         if not AZIMUTH_RANGE[0] <= az < AZIMUTH_RANGE[1]:
-            raise InputError(f"‹sun› azimuth {self.azimuth_deg!r} is outside [0, 360) degrees (clockwise from grid "
-                             "north, towards the sun); pass e.g. ‹sun=100,45›", param="sun")
+            raise InputError(f"'sun' azimuth {self.azimuth_deg!r} is outside [0, 360) degrees (clockwise from grid "
+                             "north, towards the sun); pass e.g. 'sun=100,45'", param="sun")
         if not ELEVATION_RANGE[0] < el < ELEVATION_RANGE[1]:
-            raise InputError(f"‹sun› elevation {self.elevation_deg!r} is outside (0, 90) degrees above the horizon; "
-                             "pass e.g. ‹sun=100,45›", param="sun")
+            raise InputError(f"'sun' elevation {self.elevation_deg!r} is outside (0, 90) degrees above the horizon; "
+                             "pass e.g. 'sun=100,45'", param="sun")
         object.__setattr__(self, "azimuth_deg", az)
         object.__setattr__(self, "elevation_deg", el)
 
@@ -76,9 +76,9 @@ def _number(name: str, value: object) -> float:
     try:
         out = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:
-        raise InputError(f"‹sun› {name} must be a number of degrees, got {value!r}; pass e.g. ‹sun=100,45›",
+        raise InputError(f"'sun' {name} must be a number of degrees, got {value!r}; pass e.g. 'sun=100,45'",
                          param="sun") from exc
     if not math.isfinite(out):
-        raise InputError(f"‹sun› {name} must be a finite number of degrees, got {value!r}; pass e.g. ‹sun=100,45›",
+        raise InputError(f"'sun' {name} must be a finite number of degrees, got {value!r}; pass e.g. 'sun=100,45'",
                          param="sun")
     return out

@@ -64,8 +64,9 @@ def _remove_dataset(out_dir: Path, owned: Sequence[str]) -> None:
 
 
 def _move_into(src: Path, dst: Path) -> None:
-    """Move ``src`` (a file or folder) to ``dst``, merging into a folder that is already there (a file replaces
-    the file of the same name).
+    """Move ``src`` (a file or folder) to ``dst``, merging into a folder that is already there.
+
+    A file replaces the file of the same name.
     """
     if not dst.exists() or not src.is_dir():
         os.replace(src, dst)
@@ -81,8 +82,9 @@ SWAP_FILE = "swap.json"
 
 
 def commit(stage: Path, out_dir: Path, owned: Sequence[str], info: TileFolderInfo) -> None:
-    """Swap the staged tile dataset (patches, manifest) and ``info`` (its ``dataset.yaml``) into ``out_dir``,
-    replacing the earlier dataset (``owned``): journal first, then :func:`finish_swap`.
+    """Swap the staged tile dataset (patches, manifest) and ``info`` (its ``dataset.yaml``) into ``out_dir``.
+
+    It replaces the earlier dataset (``owned``): journal first, then :func:`finish_swap`.
     """
     dataclasses.replace(info, root=stage).write()
     new = {p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file()}
@@ -93,8 +95,9 @@ def commit(stage: Path, out_dir: Path, owned: Sequence[str], info: TileFolderInf
 
 
 def finish_swap(stage: Path, out_dir: Path) -> None:
-    """Carry out (or finish) the swap journaled in ``stage`` (:data:`SWAP_FILE`); every step can be repeated,
-    so an interrupted swap is finished by calling this again.
+    """Carry out (or finish) the swap journaled in ``stage`` (:data:`SWAP_FILE`).
+
+    Every step can be repeated, so an interrupted swap is finished by calling this again.
     """
     plan = json.loads((stage / SWAP_FILE).read_text(encoding="utf-8"))
     if (stage / DATASET_YAML).exists():  # the earlier dataset.yaml first: a half-swapped folder reads unfinished
@@ -110,8 +113,9 @@ def finish_swap(stage: Path, out_dir: Path) -> None:
 
 
 def finish_interrupted_swap(out_dir: Path) -> bool:
-    """Roll forward the swap a killed run left journaled in ``out_dir`` (call under the folder's lock);
-    returns whether there was one.
+    """Roll forward the swap a killed run left journaled in ``out_dir``; returns whether there was one.
+
+    Call it under the folder's lock.
     """
     stage = staging_path(out_dir / STAGING_NAME)
     if not (stage / SWAP_FILE).is_file():

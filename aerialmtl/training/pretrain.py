@@ -1,21 +1,33 @@
 """``aerialmtl pretrain``: train the small-area recipe's network on synthetic scenes made on the fly, and export
 the result as a pretrained start (:mod:`aerialmtl.formats.starts`) for ``train --init``.
 
+Pretraining is training on another stream of batches: it runs the same step and loop as ``aerialmtl train``
+(:class:`~aerialmtl.training.steploop.StepLoop`), so ``optim`` (``lr``, ``betas``, ``weight_decay``, ``ema``) and
+``schedule.lr_schedule``/``warmup_steps``/``log_every`` mean what they mean there (the cosine spans the run's
+``steps``), and a diverging run stops the same way. Keys it cannot apply are refused by name
+(:func:`check_config`).
+
 The network is the training config's (by default ``configs/small_area.yaml``: an ImageNet EfficientNet-Lite0
 encoder under the D3-Net decoder, an aleatoric height head), with both tasks, height and the ``synthetic``
 class scheme's land cover. Batches come from :class:`~aerialmtl.data.synthetic_batches.SyntheticBatches`
 (nothing is read from or written to disk but the run folder). The loss, task weighting and optimiser are the
-training config's; there is no validation split (the start is judged by fine-tuning from it).
+training config's; there is no validation split (the start is judged by fine-tuning from it). A network whose
+start would be too large to ship is refused before the first step.
 
 The run folder ``OUT`` holds ``last.pt`` (written every ``checkpoint_every`` steps and at the end, with the
-optimiser, the RNG state and the wall time so far), ``log.csv`` and ``config.yaml``; at the end it also holds
-the exported start ``NAME.pt`` and its card ``NAME.yaml``. A run stopped at any point continues with
-``resume=True`` from its last checkpoint and ends with exactly the weights an uninterrupted run ends with:
-each step's batch depends only on ``(seed, step)`` and the dropout masks' RNG state is saved.
+optimiser, the RNG state and the wall time so far; with ``optim.ema`` its weights are the average and the
+trained ones ride beside them, as in ``train``), ``log.csv`` and ``config.yaml``; at the end it also holds
+the exported start ``NAME.pt`` and its card ``NAME.yaml`` (the average, with ``optim.ema``). The run holds the
+folder's lock (the one ``train`` takes) throughout, and never replaces a file it did not write (a training
+run's checkpoints, a file of the user's at the start's paths; names of run or tile-folder files are refused).
+A run stopped at any point continues with ``resume=True`` from its last checkpoint and ends with exactly the
+weights an uninterrupted run ends with: each step's batch depends only on ``(seed, step)``, the learning rate
+only on the step, and the dropout masks' RNG state is saved.
 """
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import logging
 import math
@@ -28,6 +40,7 @@ from typing import Any
 
 import torch
 import yaml
+from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl._version import __version__
@@ -35,16 +48,17 @@ from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.data.synthetic_batches import GENERATOR, SCHEME_NAME, SyntheticBatches, SyntheticStream
 from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFiniteError, OutputExistsError
-from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, save_checkpoint
-from aerialmtl.formats.run import CsvLog
-from aerialmtl.formats.starts import export_start
-from aerialmtl.io.outputs import write_text_atomic
+from aerialmtl.formats.checkpoint import ModelMeta, first_nonfinite, load_checkpoint, save_checkpoint
+from aerialmtl.formats.run import BEST_PT, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog
+from aerialmtl.formats.starts import check_exportable, export_start, foreign_files
+from aerialmtl.io.outputs import FolderLock, OutputFolder, write_text_atomic
 from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.objective import Objective
-from aerialmtl.training.setup import CPU_BF16_TRAINING, StepModule, build_model
-from aerialmtl.training.state import rng_state, set_rng_state
+from aerialmtl.training.setup import CPU_BF16_TRAINING, ModelParts, StepModule, build_model
+from aerialmtl.training.state import TrainState, rng_state, set_rng_state
+from aerialmtl.training.steploop import StepLoop
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +70,9 @@ PLAIN_SCALING = (127.5, 64.0)
 DEFAULT_NAME = "synthcity-lite0"
 #: Tallest synthetic structure (m), recorded as the start's height range.
 SYNTH_MAX_HEIGHT_M = 60.0
+#: Names a start may not take: its NAME.pt or NAME.yaml would be a file of the run folder (``last.pt``,
+#: ``config.yaml``; ``best.pt`` and ``log`` of a training run's) or of a tile folder (``dataset.yaml``).
+RESERVED_NAMES = frozenset({Path(n).stem for n in RUN_FILES} | {"dataset", "manifest"})
 
 
 @dataclass(frozen=True)
@@ -87,6 +104,10 @@ class PretrainSettings:
                              param="export_dtype")
         if not self.name or any(c in self.name for c in "/\\ ") or self.name.startswith("."):
             raise InputError(f"‹name› must be a file name without spaces or slashes, got {self.name!r}", param="name")
+        if self.name.lower() in RESERVED_NAMES:
+            raise InputError(f"‹name› {self.name!r} would write the start over a run's or a tile folder's own file "
+                             f"({self.name}.pt/{self.name}.yaml); pass another name (reserved: "
+                             f"{', '.join(sorted(RESERVED_NAMES))})", param="name")
 
 
 @dataclass(frozen=True)
@@ -140,15 +161,119 @@ def machine() -> dict[str, Any]:
             "torch": str(torch.__version__), "python": platform.python_version()}
 
 
-def _check_folder(run: Path, resume: bool, overwrite: bool) -> None:
+def check_config(cfg: TrainConfig) -> None:
+    """Refuse, by name, the config keys pretraining cannot apply (it has no validation split and no tile folder).
+
+    Every step key applies as in ``train`` (``optim.*``, ``schedule.lr_schedule``, ``warmup_steps``,
+    ``log_every``; the cosine spans the run's ``steps``). The length is ``steps``, so ``schedule.epochs``,
+    ``max_steps`` and ``val_every`` (set in every config) are not read; ``calibration`` and ``familiarity`` need
+    a real split and are done by the fine-tuning ``train --init``; the stream's scenes replace ``data``'s
+    augmentations.
+
+    Raises:
+        ConfigError: ``schedule.patience`` (early stopping on validation), ``schedule.max_time_s`` or
+            ``data.copy_paste`` (an object bank of a tile folder) is set.
+    """
+    refused = [(key, value) for key, value, on in (
+        ("schedule.patience", cfg.schedule.patience, cfg.schedule.patience is not None),
+        ("schedule.max_time_s", cfg.schedule.max_time_s, cfg.schedule.max_time_s is not None),
+        ("data.copy_paste.prob", cfg.data.copy_paste.prob, cfg.data.copy_paste.enabled)) if on]
+    if refused:
+        key, value = refused[0]
+        raise ConfigError(f"{key}: pretraining cannot apply it (no validation split, no tile folder; its length is "
+                          f"‹steps›), got {value}; set {key.split('.')[-1]}: null (copy_paste: prob 0) in the config",
+                          param=key)
+
+
+def _check_folder(run: Path, resume: bool, overwrite: bool, name: str) -> None:
+    """The run-folder policy: as ``train``'s (a running job named first, a run refused unless resume/overwrite), and
+    never a file pretraining did not write (a training run's checkpoints, a file at the start's paths).
+    """
+    if resume and overwrite:
+        raise InputError("‹resume› continues a run and ‹overwrite› starts it again; pass only one",
+                         param="resume/overwrite")
     if run.exists() and not run.is_dir():
         raise InputError(f"‹out_dir› '{run}' is a file; pass a folder", param="out_dir")
+    if run.is_dir():
+        FolderLock(run, "pretrain").check_free()  # another run writing there: say so before judging its files
     if resume and not (run / LAST_PT).is_file():
         raise InputError(f"‹resume› '{run / LAST_PT}' does not exist; there is no pretraining run to resume there",
                          param="resume")
+    trained = [n for n in (BEST_PT,) if os.path.lexists(run / n)]
+    if (run / LAST_PT).is_file() and not trained and not _is_pretraining(run / LAST_PT):
+        trained = [LAST_PT]
+    if trained:
+        raise OutputExistsError(f"‹out_dir› '{run}' holds a training run's {trained[0]} (written by `aerialmtl "
+                                "train`), which pretraining never replaces; choose another ‹out_dir›")
     if not resume and not overwrite and (run / LAST_PT).exists():
         raise OutputExistsError(f"run folder '{run}' already holds a pretraining run ({LAST_PT}); pass ‹resume=True› "
                                 "to continue it, ‹overwrite=True› to start it again, or another ‹out_dir›")
+    foreign = foreign_files(run, name)
+    if foreign:
+        raise OutputExistsError(f"'{foreign[0]}' exists and is not a start (or its card) that pretraining wrote; the "
+                                "export would replace it: pass another ‹name›, or move that file away")
+
+
+def _is_pretraining(path: Path) -> bool:
+    """Whether checkpoint ``path`` is a pretraining run's ``last.pt`` (its training state records ``settings``)."""
+    try:
+        ts = load_checkpoint(path)[0].get("train_state")
+    except (CheckpointError, OSError, ValueError, KeyError, RuntimeError):
+        return True  # unreadable: not proof of another command's file; resume names what is wrong with it
+    return not isinstance(ts, dict) or "settings" in ts
+
+
+class _Pretrainer(StepLoop):
+    """The shared step loop on the synthetic stream: a checkpoint every ``checkpoint_every`` steps and at the end,
+    a ``train`` row at the end too; ``time_s`` counts the whole run (resumed parts included).
+    """
+
+    def __init__(self, cfg: TrainConfig, ctx: runtime.Torchrun, parts: ModelParts, step_module: nn.Module,
+                 tasks: tuple[str, ...], state: TrainState, settings: PretrainSettings, csv_log: CsvLog,
+                 averaged: dict[str, torch.Tensor] | None, run: Path, meta: ModelMeta, wall: float) -> None:
+        super().__init__(cfg, ctx, parts.model, parts.optimizer, step_module, tasks, state, settings.steps, csv_log,
+                         averaged)
+        self.parts, self.settings, self.run_dir, self.meta, self.wall = parts, settings, run, meta, wall
+        self.saved_step = state.step
+
+    def elapsed(self) -> float:
+        return round(self.wall + time.perf_counter() - self.t0, 3)
+
+    def recovery_hint(self) -> str:
+        return (f"'{self.run_dir / LAST_PT}' keeps step {self.saved_step}, unchanged: lower optim.lr (now "
+                f"{self.cfg.optim.lr:g}) and start again with ‹overwrite=True›, or use precision fp32")
+
+    def after_step(self) -> str | None:
+        step, s = self.state.step, self.settings
+        if step == s.steps and step % self.cfg.schedule.log_every:
+            self.log_train_row()
+        if step % s.checkpoint_every == 0 or step == s.steps:
+            self.save()
+        return "steps" if step >= s.steps else None
+
+    def save(self) -> None:
+        """``last.pt``: the weights (their average with ``optim.ema``, the trained ones beside it), the optimiser,
+        weighting, RNG state and counters; refused while a pending loss or a weight is not finite.
+        """
+        self.losses.flush()
+        bad = first_nonfinite(self.model.state_dict())
+        if bad is not None:
+            raise NonFiniteError(f"training diverged at step {self.state.step}: weight '{bad}' holds NaN or inf; "
+                                 f"{self.recovery_hint()}")
+        with self.averaged() as raw:
+            state = {"optimizer": self.optimizer.state_dict(), "weighting": self.parts.weighting.state_dict(),
+                     "step": self.state.step, "wall_time_s": self.elapsed(), "rng": rng_state(),
+                     "config": self.cfg.to_dict(), "settings": to_dict(self.settings)}
+            if raw is not None:
+                state[RAW_WEIGHTS_KEY] = raw
+            save_checkpoint(self.run_dir / LAST_PT, self.model, self.meta, state)
+        self.saved_step = self.state.step
+
+
+def _on_device(raw: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    batch = {k: v.to(device, non_blocking=True) for k, v in raw.items()}
+    batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
+    return batch
 
 
 def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, *, resume: bool = False,
@@ -156,22 +281,38 @@ def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, 
     """Pretrain on synthetic scenes to ``settings.steps`` steps, then export the start (see the module docstring).
 
     Args:
-        cfg: the training config (model, loss, weighting, optim, ``data.batch_size``/``num_workers``, seed,
-            device, precision, ``schedule.log_every``); with ``resume``, the run's own (``config.yaml``).
-        out_dir: the run folder.
+        cfg: the training config (model, loss, weighting, optim, schedule's ``lr_schedule``/``warmup_steps``/
+            ``log_every``, ``data.batch_size``/``num_workers``, seed, device, precision); with ``resume``, the
+            run's own (``config.yaml``). Keys it cannot apply are refused (:func:`check_config`).
+        out_dir: the run folder (its lock, the one ``train`` takes, is held until the start is exported).
         settings: steps, checkpoint interval, the start's name, the synthetic stream.
         resume: continue from ``out_dir/last.pt`` (its settings, but ``steps``, are kept).
-        overwrite: start again in a folder that holds a run.
+        overwrite: start again in a folder that holds a pretraining run.
         progress: show a progress bar.
         command: the command line, recorded in the card.
 
     Raises:
-        InputError: bad settings or run-folder options. OutputExistsError: a run is there (neither resume
-        nor overwrite). CheckpointError: ``last.pt`` cannot be resumed (another config or stream).
+        InputError: bad settings or run-folder options; ``log.csv`` damaged on resume. ConfigError: a key it
+        cannot apply. OutputExistsError: a run is there (neither resume nor overwrite), a training run's files,
+        or a file at the start's paths it did not write. OutputInUseError: another command writes ``out_dir``.
+        CheckpointError: ``last.pt`` cannot be resumed (another config or stream); the network's start would
+        be too large to export (before the first step).
     """
     t0 = time.perf_counter()
     run = Path(out_dir)
-    _check_folder(run, resume, overwrite)
+    check_config(cfg)
+    _check_folder(run, resume, overwrite, settings.name)
+    s = settings.stream
+    folder = OutputFolder(run, "pretrain", inputs={"textures": s.textures, "real": s.real}, what="run folder")
+    with folder:
+        folder.remove_leftovers((LAST_PT, LOG_CSV, CONFIG_YAML, f"{settings.name}.pt", f"{settings.name}.yaml"))
+        _check_folder(run, resume, overwrite, settings.name)  # under the lock: what is there now is final
+        return _pretrain(cfg, run, settings, resume, progress, command, t0)
+
+
+def _pretrain(cfg: TrainConfig, run: Path, settings: PretrainSettings, resume: bool, progress: bool,
+              command: str | None, t0: float) -> PretrainResult:
+    """:func:`pretrain` in its locked run folder."""
     settings = dataclasses.replace(settings, stream=dataclasses.replace(settings.stream, seed=cfg.seed,
                                                                         batch_size=cfg.data.batch_size))
     ctx = runtime.Torchrun.start(cfg.device, runtime.COLLECTIVE_TIMEOUT, ConfigError)
@@ -183,88 +324,84 @@ def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, 
     tasks = tuple(meta.model.tasks)
     objective = Objective(cfg, tasks, None)
     parts = build_model(cfg, meta.model, device, ctx)
-    step, wall = 0, 0.0
+    dtype = torch.float16 if settings.export_dtype == "float16" else torch.float32
+    check_exportable(parts.model.state_dict(), run / f"{settings.name}.pt", dtype)
+    state, wall, averaged = TrainState(), 0.0, None
     if resume:
-        step, wall, settings = _restore(run / LAST_PT, parts, cfg, settings)
-    run.mkdir(parents=True, exist_ok=True)
-    if not resume:
+        state.step, wall, settings, averaged = _restore(run / LAST_PT, parts, cfg, settings)
+    else:
         write_text_atomic(run / CONFIG_YAML, yaml.safe_dump(cfg.to_dict(), sort_keys=False))
-    csv_log = _log(run / LOG_CSV, step if resume else None)
+    csv_log = _log(run / LOG_CSV, state.step if resume else None)
     step_module = StepModule(parts.model, parts.weighting, objective, device, precision, compile=cfg.compile)
+    loop = _Pretrainer(cfg, ctx, parts, step_module, tasks, state, settings, csv_log, averaged, run, meta, wall)
     dataset = SyntheticBatches(settings.stream, meta.mean, meta.std, settings.steps)
     loader = torch.utils.data.DataLoader(
-        dataset, sampler=range(step, settings.steps), batch_size=None, num_workers=cfg.data.num_workers,
+        dataset, sampler=range(state.step, settings.steps), batch_size=None, num_workers=cfg.data.num_workers,
         generator=torch.Generator().manual_seed(cfg.seed))  # its own generator: the global RNG is the dropout's
-    every, window, logged, first = cfg.schedule.log_every, [], math.nan, step
-    t_run = time.perf_counter()
-
-    def save() -> None:
-        state = {"optimizer": parts.optimizer.state_dict(), "weighting": parts.weighting.state_dict(),
-                 "step": step, "wall_time_s": wall + time.perf_counter() - t_run, "rng": rng_state(),
-                 "config": cfg.to_dict(), "settings": to_dict(settings)}
-        save_checkpoint(run / LAST_PT, parts.model, meta, state)
-
+    first = state.step
     parts.model.train()
-    bar = tqdm(total=settings.steps, initial=step, disable=not progress, desc="pretrain", unit="step",
+    bar = tqdm(total=settings.steps, initial=state.step, disable=not progress, desc="pretrain", unit="step",
                dynamic_ncols=True)
+    loop.t0 = time.perf_counter()
     try:
-        for raw in loader:
-            step += 1
-            window.append(_train_step(step_module, parts.optimizer, raw, device, tasks))
-            bar.update(1)
-            if not math.isfinite(window[-1][0]):
-                raise NonFiniteError(f"pretraining diverged at step {step} (loss {window[-1][0]}); last.pt keeps "
-                                      f"step {step - step % settings.checkpoint_every}: lower optim.lr and resume")
-            if step % every == 0 or step == settings.steps:
-                logged = _log_row(csv_log, step, wall + time.perf_counter() - t_run, parts.optimizer, tasks, window)
-                bar.set_postfix(loss=f"{logged:.4f}")
-                window = []
-            if step % settings.checkpoint_every == 0 or step == settings.steps:
-                save()
+        if state.step < settings.steps:
+            loop.run_steps((_on_device(raw, device) for raw in loader), bar)
     finally:
         bar.close()
-    if first == step and not (run / LAST_PT).is_file():
-        save()
-    wall += time.perf_counter() - t_run
-    start = _export(run, settings, cfg, step, wall, command)
-    return PretrainResult(run, run / LAST_PT, start, step, time.perf_counter() - t0, wall, step - first, logged)
+    if first == state.step and not (run / LAST_PT).is_file():
+        loop.save()
+    wall = loop.elapsed()
+    start = _export(run, settings, cfg, state.step, wall, command)
+    logged = _last_loss(run / LOG_CSV)
+    return PretrainResult(run, run / LAST_PT, start, state.step, time.perf_counter() - t0, wall, state.step - first,
+                          logged)
 
 
-def _train_step(step_module: torch.nn.Module, optimizer: torch.optim.Optimizer, raw: dict[str, torch.Tensor],
-                device: torch.device, tasks: tuple[str, ...]) -> list[float]:
-    """One optimisation step on a synthetic batch; returns its total and per-task losses."""
-    batch = {k: v.to(device, non_blocking=True) for k, v in raw.items()}
-    batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
-    total, losses = step_module(batch)
-    optimizer.zero_grad(set_to_none=True)
-    total.backward()
-    optimizer.step()
-    return [float(total.detach())] + [float(losses[t].detach()) for t in tasks]
-
-
-def _log_row(csv_log: CsvLog, step: int, seconds: float, optimizer: torch.optim.Optimizer, tasks: tuple[str, ...],
-             window: list[list[float]]) -> float:
-    """Write the ``train`` row of the steps in ``window``; returns their mean total loss."""
-    mean = [sum(col) / len(col) for col in zip(*window)]
-    csv_log.write(kind="train", step=step, epoch=0, time_s=round(seconds, 3), lr=optimizer.param_groups[0]["lr"],
-                  loss=mean[0], **{f"loss_{t}": v for t, v in zip(tasks, mean[1:])})
-    loss: float = mean[0]
-    return loss
+def _last_loss(path: Path) -> float:
+    """The ``loss`` of the log's last ``train`` row (NaN without one)."""
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r.get("kind") == "train" and r.get("loss")]
+    return float(rows[-1]["loss"]) if rows else math.nan
 
 
 def _log(path: Path, resumed_at: int | None) -> CsvLog:
-    """The run's log; when resumed, without the rows of steps after the checkpoint (they are run again)."""
+    """The run's log; when resumed, without the rows of steps after the checkpoint (they are run again).
+
+    Raises:
+        InputError: the log is not the UTF-8 CSV pretraining writes (re-saved in another encoding, a step that
+            is not a number): names the file, the line and the fix.
+    """
     if resumed_at is None or not path.is_file():
         return CsvLog(path, append=False)
-    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
-    kept = lines[:1] + [ln for ln in lines[1:] if ln.split(",")[1:2] and int(ln.split(",")[1]) <= resumed_at]
+    fix = (f"restore the line as pretraining wrote it, or move '{path}' away (the resumed run then starts a new "
+           "log), and resume again")
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"‹resume› '{path}' is not UTF-8 text as pretraining writes it (re-saved in another encoding? "
+                         f"byte {exc.start}); save it as UTF-8, or move it away (the resumed run then starts a new "
+                         "log), and resume again", param="resume") from exc
+    kept = lines[:1]
+    for number, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        step = line.split(",")[1:2]
+        try:
+            at = int(step[0])
+        except (IndexError, ValueError):
+            raise InputError(f"‹resume› '{path}' line {number}: step {step[0] if step else ''!r} is not a number; "
+                             f"{fix}", param="resume") from None
+        if at <= resumed_at:
+            kept.append(line)
     write_text_atomic(path, "".join(kept))
     return CsvLog(path, append=True)
 
 
-def _restore(path: Path, parts: Any, cfg: TrainConfig,
-             settings: PretrainSettings) -> tuple[int, float, PretrainSettings]:
-    """Weights, optimiser, weighting, RNG and counters of ``path``; the run's settings with the new ``steps``."""
+def _restore(path: Path, parts: ModelParts, cfg: TrainConfig,
+             settings: PretrainSettings) -> tuple[int, float, PretrainSettings, dict[str, torch.Tensor] | None]:
+    """Weights, optimiser, weighting, RNG and counters of ``path``; the run's settings with the new ``steps``;
+    the weight average it holds (``optim.ema``: the checkpoint's weights, the trained ones beside them), or None.
+    """
     payload, _ = load_checkpoint(path)
     ts = payload.get("train_state") or {}
     try:
@@ -274,11 +411,13 @@ def _restore(path: Path, parts: Any, cfg: TrainConfig,
         if from_dict(TrainConfig, ts["config"]).to_dict() != cfg.to_dict():
             raise CheckpointError(f"checkpoint '{path}' was pretrained with another config; resume with the run's "
                                   f"{CONFIG_YAML} (the default with resume)")
-        parts.model.load_state_dict(payload["state_dict"])
+        raw = ts.get(RAW_WEIGHTS_KEY)
+        parts.model.load_state_dict(payload["state_dict"] if raw is None else raw)
         parts.optimizer.load_state_dict(ts["optimizer"])
         parts.weighting.load_state_dict(ts["weighting"])
         set_rng_state(ts["rng"])
-        return int(ts["step"]), float(ts["wall_time_s"]), saved
+        averaged = payload["state_dict"] if raw is not None else None
+        return int(ts["step"]), float(ts["wall_time_s"]), saved, averaged
     except (KeyError, TypeError, ValueError, RuntimeError, ConfigError) as exc:
         raise CheckpointError(f"checkpoint '{path}' cannot be resumed as a pretraining run ({exc}); start again "
                               "with ‹overwrite=True›") from exc

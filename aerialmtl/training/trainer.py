@@ -6,12 +6,12 @@
   order (:class:`~aerialmtl.data.batches.EpochOrder`) and the DataLoaders; batches are augmented on the
   training device (:func:`~aerialmtl.data.batches.prepare_batch`);
 * model and optimizer — :meth:`Trainer.build_model`, :func:`build_optimizer`;
-* the step — :class:`StepModule` (forward, losses, weighting; what DistributedDataParallel wraps) and
-  :meth:`Trainer.train_step`;
+* the step — :class:`StepModule` (forward, losses, weighting; what DistributedDataParallel wraps) and the
+  shared loop's :meth:`~aerialmtl.training.steploop.StepLoop.train_step` (the same step ``pretrain`` runs);
 * validation — :meth:`Trainer.validate` (all processes, sums reduced);
 * checkpoints and resume — :meth:`Trainer.checkpoint`, :meth:`Trainer.restore`, :mod:`aerialmtl.training.state`;
   fine-tuning from a checkpoint — :mod:`aerialmtl.training.finetune`;
-* logging — :class:`~aerialmtl.training.runlog.CsvLog` and :class:`LossWindow`.
+* logging — :class:`~aerialmtl.training.runlog.CsvLog` and :class:`~aerialmtl.training.steploop.LossWindow`.
 
 Several processes (``torchrun``) are handled by :mod:`aerialmtl.training.distributed`; here they appear
 only as ``self.ctx`` (rank, world size, collectives that are no-ops for one process).
@@ -25,18 +25,14 @@ either way. The model runs in ``channels_last``; ``compile: true`` (``--compile`
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
@@ -46,82 +42,16 @@ from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M, ModelMeta, first_non
 from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.progress import tqdm_auto as tqdm
-from aerialmtl.training.averaging import WeightAverage
-from aerialmtl.training.config import TrainConfig
-from aerialmtl.training.lr_schedule import lr_factor
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
 from aerialmtl.training.setup import TrainSetup
-from aerialmtl.training.state import TrainState, rng_state
+from aerialmtl.training.state import rng_state
+from aerialmtl.training.steploop import LOSS_GROWTH, LossWindow, StepLoop
 
 log = logging.getLogger(__name__)
 
-#: A task loss this many times its first logged value means the run diverged (finite or not).
-LOSS_GROWTH = 1e4
 #: A validation class loss above this many times ln K (an untrained model's) means the run diverged.
 EXPLODED_CLASS_LOSS = 20.0
-
-
-class LossWindow:
-    """Per-step losses kept on the device, read (one synchronisation, reduced over processes) only when
-    logged or before a validation — not after every step, which would stall a GPU.
-
-    ``flush`` checks every pending step for a non-finite loss, or a task loss that grew by more than
-    :data:`LOSS_GROWTH` times its first logged value (a diverged-but-finite run), and raises naming the first
-    one (with ``hint()``, what to do, appended).
-    """
-
-    def __init__(self, tasks: tuple[str, ...], ctx: runtime.Torchrun, hint: Callable[[], str] | None = None) -> None:
-        self.tasks, self.ctx = tasks, ctx
-        self.hint = hint if hint is not None else (lambda: "")
-        self.pending: list[torch.Tensor] = []
-        self.first_step = 0
-        self.window: dict[str, list[float]] = {"loss": [], **{t: [] for t in tasks}}
-        self.since_val: list[float] = []
-        #: each task's first logged loss (the untrained model's, or the resumed one's): the growth reference
-        self.first: dict[str, float] = {}
-
-    def add(self, step: int, total: torch.Tensor, losses: dict[str, torch.Tensor]) -> None:
-        """Keep the losses of ``step`` (on the device, not read yet)."""
-        if not self.pending:
-            self.first_step = step
-        self.pending.append(torch.stack([total.float()] + [losses[t].float() for t in self.tasks]))
-
-    def flush(self) -> None:
-        """Read the pending losses (one synchronisation) and raise on the first non-finite one."""
-        if not self.pending:
-            return
-        values = self.ctx.all_reduce_sum(torch.stack(self.pending)) / self.ctx.world
-        rows = values.cpu().tolist()
-        first = self.first_step
-        self.pending = []
-        for i, row in enumerate(rows):
-            if not math.isfinite(row[0]):
-                tasks = [t for t, v in zip(self.tasks, row[1:]) if not math.isfinite(v)]
-                which = f" ({', '.join(tasks)})" if tasks else ""
-                raise NonFiniteError(f"training diverged at step {first + i}: the loss is {row[0]}{which}; "
-                                     f"{self.hint()}")
-            for t, v in zip(self.tasks, row[1:]):
-                ref = self.first.setdefault(t, v)
-                if ref > 0 and v > LOSS_GROWTH * ref:
-                    raise NonFiniteError(f"training diverged at step {first + i}: the {t} loss grew from {ref:.3g} "
-                                         f"to {v:.3g} (more than {LOSS_GROWTH:.0e} times); {self.hint()}")
-            self.window["loss"].append(row[0])
-            self.since_val.append(row[0])
-            for t, v in zip(self.tasks, row[1:]):
-                self.window[t].append(v)
-
-    def take(self) -> dict[str, float]:
-        """Means since the last ``take`` (after a flush); resets the window."""
-        means = {k: float(np.mean(v)) for k, v in self.window.items() if v}
-        self.window = {k: [] for k in self.window}
-        return means
-
-    def take_since_validation(self) -> float:
-        """Mean total loss since the last validation (``inf`` without any); starts a new window."""
-        value = float(np.mean(self.since_val)) if self.since_val else math.inf
-        self.since_val = []
-        return value
 
 
 @dataclass
@@ -160,8 +90,12 @@ class TrainResult:
     best_metrics: dict[str, float] = field(default_factory=dict)
 
 
-class Trainer:
+class Trainer(StepLoop):
     """Train a D3-Net on a tile folder; :meth:`fit` runs it (see :func:`aerialmtl.training.loop.train`).
+
+    The step, the loss window and the ``train`` rows are the shared loop's
+    (:class:`~aerialmtl.training.steploop.StepLoop`); the trainer adds the epochs, validation, ``best.pt``,
+    early stopping, calibration and the feature density.
 
     Args:
         setup: what it trains with (:func:`~aerialmtl.training.setup.prepare_training`: model, optimiser,
@@ -173,48 +107,36 @@ class Trainer:
 
     def __init__(self, setup: TrainSetup, *, max_steps: int | None = None, max_time_s: float | None = None,
                  progress: bool = True) -> None:
-        self.t0 = time.perf_counter()
+        t0 = time.perf_counter()
         #: what it trains with; the properties below read it (nothing of it is copied)
         self.setup = setup
         cfg = setup.cfg
+        #: the steps the learning-rate schedule spans: the config's (``schedule.max_steps``, else every epoch's),
+        #: not this call's ``max_steps``, so a run stopped early and resumed follows the same schedule
+        every_epoch = cfg.schedule.epochs * setup.loaders.order.steps_per_epoch
+        planned = min(cfg.schedule.max_steps or every_epoch, every_epoch)
+        self.paths = {n: setup.run / n for n in RUN_FILES}
+        if setup.ctx.is_main:
+            self.write_config(setup.data_dir if setup.data_dir is not None else cfg.data.dir)
+        csv_log = CsvLog(self.paths["log.csv"], append=setup.resume) if setup.ctx.is_main else None
+        super().__init__(cfg, setup.ctx, setup.parts.model, setup.parts.optimizer, setup.ddp, setup.data.tasks,
+                         setup.state, planned, csv_log, setup.averaged)
+        self.t0 = t0
         self.steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
         self.time_cap = max_time_s if max_time_s is not None else cfg.schedule.max_time_s
         self.progress = progress and self.ctx.is_main
-        self.paths = {n: self.run / n for n in RUN_FILES}
         #: the losses validation scores with (setup's; a test may swap it for one trainer)
         self.objective = setup.objective
         #: step of the last checkpoint written whole (``last.pt``), or of the one resumed from
         self.saved_step: int | None = setup.saved_step
-        if self.ctx.is_main:
-            self.write_config(setup.data_dir if setup.data_dir is not None else cfg.data.dir)
-        self.average: WeightAverage | None = None
-        if cfg.optim.ema is not None:
-            self.average = WeightAverage(self.model, cfg.optim.ema)
-            if setup.averaged is not None:
-                self.average.load(setup.averaged)
-        #: the steps the learning-rate schedule spans: the config's (``schedule.max_steps``, else every epoch's),
-        #: not this call's ``max_steps``, so a run stopped early and resumed follows the same schedule
-        every_epoch = cfg.schedule.epochs * self.order.steps_per_epoch
-        self.planned_steps = min(cfg.schedule.max_steps or every_epoch, every_epoch)
-        self.csv_log = CsvLog(self.paths["log.csv"], append=setup.resume) if self.ctx.is_main else None
-        self.losses = LossWindow(self.tasks, self.ctx, self.recovery_hint)
         self.metrics: dict[str, float] = {}
         #: the trained weights while the model holds their average for a checkpoint (``optim.ema``), else None
         self.raw_weights: dict[str, torch.Tensor] | None = None
         self.best_step: int | None = None  # the validation that wrote best.pt in this call, and its metrics
         self.best_metrics: dict[str, float] = {}
+        self.validated_at = -1
 
     # ---- what it trains with (read from the setup) --------------------------------------------------
-    @property
-    def cfg(self) -> TrainConfig:
-        """The training configuration."""
-        return self.setup.cfg
-
-    @property
-    def ctx(self) -> runtime.Torchrun:
-        """The process context (rank, world size, collectives)."""
-        return self.setup.ctx
-
     @property
     def device(self) -> torch.device:
         """The training device."""
@@ -231,29 +153,9 @@ class Trainer:
         return self.setup.data.meta
 
     @property
-    def tasks(self) -> tuple[str, ...]:
-        """The tasks trained (``height``, ``classes``)."""
-        return self.setup.data.tasks
-
-    @property
     def k(self) -> int | None:
         """The number of classes (``None`` without a classes task)."""
         return self.setup.data.k
-
-    @property
-    def model(self) -> nn.Module:
-        """The model trained."""
-        return self.setup.parts.model
-
-    @property
-    def optimizer(self) -> torch.optim.Optimizer:
-        """The optimiser."""
-        return self.setup.parts.optimizer
-
-    @property
-    def state(self) -> TrainState:
-        """The counters (epoch, position, step, best score), advanced in place."""
-        return self.setup.state
 
     @property
     def order(self) -> EpochOrder:
@@ -269,27 +171,6 @@ class Trainer:
     def height_slack(self) -> float:
         """The largest validation height MAE (m) a sane model of these heights reaches (:func:`height_slack`)."""
         return height_slack(self.meta.height_range)
-
-    # ---- the step -----------------------------------------------------------------------------------
-    def train_step(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """One optimisation step on a prepared batch; returns the detached total and task losses."""
-        sched = self.cfg.schedule
-        lr = self.cfg.optim.lr * lr_factor(self.state.step, self.planned_steps, sched.lr_schedule, sched.warmup_steps)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
-        total, losses = self.setup.ddp(batch)
-        self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        self.optimizer.step()
-        if self.average is not None:
-            self.average.update(self.model)
-        return total.detach(), {t: v.detach() for t, v in losses.items()}
-
-    def averaged(self) -> contextlib.AbstractContextManager[dict[str, torch.Tensor] | None]:
-        """A block in which the model holds the weight average (``optim.ema``); yields the raw weights (``None``
-        without an average, when the model is used as it is).
-        """
-        return self.average.applied(self.model) if self.average is not None else contextlib.nullcontext()
 
     # ---- validation ---------------------------------------------------------------------------------
     @torch.no_grad()
@@ -457,30 +338,27 @@ class Trainer:
 
     def write_config(self, data: str | Path | None) -> None:
         """``config.yaml``: the config with the model fields taken from the data and the absolute data dir."""
-        resolved = self.cfg.to_dict()
-        resolved["model"] = {**to_dict(self.setup.data.model_cfg), "sync_bn": self.cfg.model.sync_bn}
+        cfg = self.setup.cfg
+        resolved = cfg.to_dict()
+        resolved["model"] = {**to_dict(self.setup.data.model_cfg), "sync_bn": cfg.model.sync_bn}
         resolved["data"]["dir"] = str(Path(data).resolve()) if data is not None else None
         with writing(self.paths["config.yaml"], "the run's config"):
             RunFolder(self.run).write_config(resolved)
 
     # ---- the loop -----------------------------------------------------------------------------------
-    @property
-    def lr(self) -> float:
-        """The current learning rate."""
-        return float(self.optimizer.param_groups[0]["lr"])
+    def advance(self) -> None:
+        """The epoch and position after a step."""
+        st = self.state
+        st.epoch, st.position = self.order.advance(st.epoch, st.position)
 
-    def elapsed(self) -> float:
-        """Seconds since this call of ``fit`` started."""
-        return round(time.perf_counter() - self.t0, 3)
-
-    def log_train_row(self) -> dict[str, float]:
-        """Write the ``train`` row of the steps since the last one; returns its mean losses."""
-        self.losses.flush()
-        means = self.losses.take()
-        if self.csv_log is not None and means:
-            self.csv_log.write(kind="train", step=self.state.step, epoch=self.state.epoch, time_s=self.elapsed(),
-                               lr=self.lr, loss=means["loss"], **{f"loss_{t}": means.get(t) for t in self.tasks})
-        return means
+    def after_step(self) -> str | None:
+        """Validate at the end of every ``val_every``-th epoch; why to stop (``patience`` or :meth:`done`)."""
+        st = self.state
+        if st.position == 0 and st.epoch % self.cfg.schedule.val_every == 0:
+            self.validated_at = st.step
+            if self.after_epoch_validation():
+                return "patience"
+        return self.done()
 
     def done(self) -> str | None:
         """Why training must stop now (``max_steps``, ``epochs``, ``max_time``), or ``None``."""
@@ -499,44 +377,32 @@ class Trainer:
         nb = self.order.steps_per_epoch
         total = sched.epochs * nb if self.steps_cap is None else min(self.steps_cap, sched.epochs * nb)
         stopped_by = self.done_before_start()
-        validated_at = -1
+        self.validated_at = -1
         self.model.train()
         bar = tqdm(total=total, initial=min(st.step, total), disable=not self.progress, desc="train", unit="step",
                    dynamic_ncols=True)
         loaders = self.setup.loaders
         it = iter(loaders.train_loader) if stopped_by is None else None
+        batches = None if it is None else (
+            prepare_batch(raw, loaders.train_transform, loaders.mean, loaders.std, self.device) for raw in it)
         try:
-            while stopped_by is None:
-                assert it is not None
-                batch = prepare_batch(next(it), loaders.train_transform, loaders.mean, loaders.std, self.device)
-                total_loss, losses = self.train_step(batch)
-                st.step += 1
-                self.losses.add(st.step, total_loss, losses)
-                st.epoch, st.position = self.order.advance(st.epoch, st.position)
-                bar.update(1)
-                if st.step % sched.log_every == 0:
-                    means = self.log_train_row()
-                    bar.set_postfix(loss=f"{means.get('loss', math.nan):.4f}", epoch=st.epoch)
-                if st.position == 0 and st.epoch % sched.val_every == 0:
-                    validated_at = st.step
-                    if self.after_epoch_validation():
-                        stopped_by = "patience"
-                        break
-                stopped_by = self.done()
+            if batches is not None:
+                stopped_by = self.run_steps(batches, bar)
         except RuntimeError as exc:  # DDP's gradient all-reduce: a peer process is gone
             if self.ctx.distributed and runtime.is_peer_error(exc):
                 raise runtime.peer_failure(exc) from exc
             raise
         finally:
             bar.close()
-            del it
-        if validated_at != st.step or not self.paths["last.pt"].exists():
+            del batches, it  # the loader's workers end here, before the last validation
+        if self.validated_at != st.step or not self.paths["last.pt"].exists():
             self.after_epoch_validation()
         if self.average is not None:  # the run is over: the model is its average, as in last.pt
             self.model.load_state_dict(self.average.shadow)
         self.calibrate()
         self.familiarize()
         self.fit_sun()
+        assert stopped_by is not None  # the loop ran until a reason, or there was one before it
         return TrainResult(run_dir=self.run, last_checkpoint=self.paths["last.pt"],
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
                            config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
@@ -610,5 +476,5 @@ class Trainer:
             self.ctx.leave()
 
 
-__all__ = ["Trainer", "TrainResult", "LossWindow",
+__all__ = ["LOSS_GROWTH", "Trainer", "TrainResult", "LossWindow",
            "RUN_FILES"]

@@ -52,6 +52,25 @@ def _val_block(out: Path) -> Path:
     return path
 
 
+def _current_sun(run: Path, tiles: Path, out: Path, seed: int, threads: int) -> None:
+    """Fit the sun of ``run``'s checkpoints again when the package's shadow classifier changed since they were
+    trained (the weights stay; only ``meta.sun``), and drop that seed's shadow predictions made with the old one."""
+    from aerialmtl.sun.colour import ShadowModel
+
+    version = ShadowModel().features
+    marker = run / "sun.version"
+    if marker.is_file() and marker.read_text() == version:
+        return
+    for name in ("best.pt", "last.pt"):
+        _run([sys.executable, "-c", "import sys; from aerialmtl.training.sun import sun_checkpoint; "
+              "print(sun_checkpoint(sys.argv[1], sys.argv[2]).reason)", str(run / name), str(tiles)], threads)
+    import shutil
+
+    for stale in (out / "pred").glob(f"shadows_*_s{seed}*"):
+        shutil.rmtree(stale) if stale.is_dir() else stale.unlink()
+    marker.write_text(version)
+
+
 def prepare(out: Path, seeds: list[int], threads: int) -> None:
     """Tile, train each seed, predict both blocks with both arms (each skipped when its output exists)."""
     exe = [sys.executable, "-m", "aerialmtl"]
@@ -70,6 +89,7 @@ def prepare(out: Path, seeds: list[int], threads: int) -> None:
             config.write_text(yaml.safe_dump(cfg))
             _run([*exe, "train", "--config", str(config), "--data", str(tiles), "--out", str(run), "--quiet",
                   *(["--resume"] if (run / "last.pt").is_file() else [])], threads)
+        _current_sun(run, tiles, out, seed, threads)
         for block, aoi in blocks.items():
             for arm, flags in ARMS.items():
                 pred = out / "pred" / f"{arm}_{block}_s{seed}"

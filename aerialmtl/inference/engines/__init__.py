@@ -4,16 +4,21 @@
 * ``openvino`` — the same (loaded, BatchNorm-folded) model converted with ``openvino.convert_model``
   and compiled for the CPU, once per window shape. OpenVINO fuses DenseNet's many small concatenations
   and kernels that torch's eager mode runs one by one, and runs bf16 at the CPU's native speed
-  (AVX-512-BF16 or AMX): on a Zen 4 CPU (AVX-512-BF16, no AMX) 1.6× torch fp32 for the model alone and
-  2× end to end at T = 8 (bench/RESULTS.md, CPU engines); more on CPUs with AMX.
+  (AVX-512-BF16 or AMX). How much faster is measured per kind of CPU in the shipped table
+  (``aerialmtl/resources/engine_choice.yaml``, :mod:`~aerialmtl.inference.engine_choice`); on the Zen 4 CPU
+  measured there (AVX-512-BF16, no AMX), OpenVINO bf16 ran the model alone about 3.5× torch fp32 and the whole
+  prediction 1.14× (T = 1).
 
-``auto`` (:func:`~aerialmtl.inference.engines.registry.resolve_engine`) is ``openvino`` on a CPU when OpenVINO
-is installed and the model is a D3-Net (``encode``/``decode``), ``torch`` otherwise.
+``auto`` (:func:`~aerialmtl.inference.engines.registry.resolve_engine`) is the first engine of the registry
+that can run the model on the device: ``openvino`` on a CPU when OpenVINO is installed and the model is a D3-Net
+(``encode``/``decode``), ``torch`` otherwise; on a CPU, the measured table may pick torch instead
+(:func:`~aerialmtl.inference.engine_choice.choose_engine`).
 
 The package: :mod:`~aerialmtl.inference.engines.base` (the :class:`Engine` protocol, what an engine is built
 from), :mod:`~aerialmtl.inference.engines.registry` (the engines by name, ``auto``, the fallback), one module
 per engine (:mod:`~aerialmtl.inference.engines.torch_engine`, :mod:`~aerialmtl.inference.engines.openvino_engine`
-with its graphs and requests beside it). Adding an engine is one module and one registry entry.
+with its graphs and requests beside it). Adding an engine is one module (with its ``SPEC``) and one entry in
+:data:`~aerialmtl.inference.engine_names.ENGINE_MODULES`.
 
 Both engines give the runner (:class:`~aerialmtl.inference.runner.ModelRunner`) per-window statistics
 through the same code: T = 1 is one forward pass (height, softmax of the logits); T > 1 runs the encoder

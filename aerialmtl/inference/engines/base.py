@@ -1,5 +1,7 @@
-"""The interface of the engines: :class:`Engine`, what :meth:`Engine.submit` returns (:class:`Pending`), and
-what an engine is built from (:class:`EngineSetup`).
+"""The interface of the engines.
+
+:class:`Engine`, what :meth:`Engine.submit` returns (:class:`Pending`), and what an engine is built from
+(:class:`EngineSetup`).
 """
 
 from __future__ import annotations
@@ -11,9 +13,10 @@ from typing import Protocol
 import torch
 from torch import nn
 
+from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.inference.model_record import CheckpointModel
-from aerialmtl.inference.settings import PredictSettings, Resolved
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 from aerialmtl.models.mc_dropout import McStatistics
 
 
@@ -35,7 +38,7 @@ class EngineSetup:
     model: nn.Module | CheckpointModel
     meta: ModelMeta
     settings: PredictSettings
-    resolved: Resolved
+    resolved: ResolvedSettings
     weights_key: str | None = None
 
     @property
@@ -45,9 +48,10 @@ class EngineSetup:
 
 
 class Engine(Protocol):
-    """What runs the model in prediction: the one interface of every engine (``torch``:
-    :class:`~aerialmtl.inference.engines.torch_engine.TorchEngine`, ``openvino``:
-    :class:`~aerialmtl.inference.engines.openvino_engine.OpenVINOEngine`).
+    """What runs the model in prediction: the one interface of every engine.
+
+    ``torch``: :class:`~aerialmtl.inference.engines.torch_engine.TorchEngine`, ``openvino``:
+    :class:`~aerialmtl.inference.engines.openvino_engine.OpenVINOEngine`.
 
     The runner (:class:`~aerialmtl.inference.runner.ModelRunner`) uses these members only; it never asks
     which class it holds. A new engine implements them in a module of its own and is one entry of
@@ -64,14 +68,16 @@ class Engine(Protocol):
 
     @property
     def net(self) -> nn.Module:
-        """A torch module that computes what the engine computes, for measuring the memory of one window
-        (:func:`~aerialmtl.inference.runner.auto_batch_size` on CUDA).
+        """A torch module that computes what the engine computes.
+
+        For measuring the memory of one window (:func:`~aerialmtl.inference.runner.auto_batch_size` on CUDA).
         """
         ...
 
     def ahead(self, samples: int) -> int:
-        """Batches a caller may keep submitted (:meth:`submit`) ahead of the one it stitches, at ``samples``
-        MC samples: 0 for an engine that computes synchronously.
+        """Batches a caller may keep submitted (:meth:`submit`) ahead of the one it stitches.
+
+        At ``samples`` MC samples; 0 for an engine that computes synchronously.
         """
         ...
 
@@ -94,11 +100,32 @@ class Engine(Protocol):
 
     def submit(self, x: torch.Tensor, keys: Sequence[int], samples: int, seed: int,
                sample_batch: int) -> Pending:
-        """Start :meth:`statistics` of a batch; ``.result()`` of the returned :class:`Pending` gives them (an
-        engine that runs synchronously returns them computed, as :class:`Done`).
+        """Start :meth:`statistics` of a batch; ``.result()`` of the returned :class:`Pending` gives them.
+
+        An engine that runs synchronously returns them computed, as :class:`Done`.
         """
         ...
 
+
+
+@dataclass(frozen=True)
+class EngineSpec:
+    """One engine of the registry: its module's ``SPEC`` (:mod:`aerialmtl.inference.engine_names`).
+
+    Attributes:
+        name: the ``engine`` value that selects it (recorded in ``prediction.json``).
+        label: how messages spell it (``OpenVINO``).
+        build: setup → the engine.
+        unusable: (device, model) → why the engine cannot run that model there (the error to raise), or ``None``.
+        over: (model another engine prepared, setup) → the engine over that model, not compiled; what ``auto``'s
+            fallback builds (needed of :data:`~aerialmtl.inference.engine_names.FALLBACK` only).
+    """
+
+    name: str
+    label: str
+    build: Callable[[EngineSetup], Engine]
+    unusable: Callable[[torch.device, nn.Module | CheckpointModel], InputError | None]
+    over: Callable[[nn.Module, EngineSetup], Engine] | None = None
 
 
 class Pending(Protocol):
@@ -133,4 +160,4 @@ class Deferred:
 
 
 
-__all__ = ["Deferred", "Done", "Engine", "EngineSetup", "Pending"]
+__all__ = ["Deferred", "Done", "Engine", "EngineSetup", "EngineSpec", "Pending"]

@@ -5,6 +5,7 @@ compiled for the CPU, once per window shape (:mod:`aerialmtl.inference.engines`,
 from __future__ import annotations
 
 import hashlib
+import os
 import threading
 import warnings
 from collections.abc import Sequence
@@ -19,7 +20,7 @@ from aerialmtl import runtime
 from aerialmtl._version import __version__
 from aerialmtl.errors import InputError
 from aerialmtl.inference.engine_cache import EngineCache
-from aerialmtl.inference.engines.base import Deferred, EngineSetup, Pending
+from aerialmtl.inference.engines.base import Deferred, EngineSetup, EngineSpec, Pending
 from aerialmtl.inference.engines.openvino_graphs import (
     CONVERT_SIZE,
     GRAPH_OUTPUTS,
@@ -37,6 +38,7 @@ from aerialmtl.models.d3net import inference_model
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import DropoutSite, McStatistics, accumulate_samples, dropout_masks, dropout_sites
 from aerialmtl.runtime import CpuThreads, resolve_threads
+from aerialmtl.stores import warn_once
 
 if TYPE_CHECKING:
     import openvino
@@ -83,6 +85,7 @@ class OpenVINOEngine:
         self.in_channels = in_channels
         self.tasks = model_outputs(model, tasks)  # output order of the converted graphs
         self.precision = precision
+        self._tag: str | None = None
         #: Threads and streams the model is compiled for (:func:`aerialmtl.runtime.resolve_threads`).
         self.threads = threads if threads is not None else resolve_threads()
         self._sites: list[DropoutSite] | None = None
@@ -183,13 +186,41 @@ class OpenVINOEngine:
         with self._lock:
             if key not in self._compiled:
                 config = self.compile_config()
-                hint, n = config["INFERENCE_PRECISION_HINT"], self.threads
-                name = f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.blob"
+                name = self._entry_name(part, h, w)
                 compiled, blob = self._import(name, config)
                 if compiled is None:
                     compiled = self._compile(self._shaped(part, h, w), name, config)
                 self._compiled[key] = _Requests(compiled, self.threads.streams, keep=blob)
             return self._compiled[key]
+
+    def _entry_name(self, part: str, h: int, w: int) -> str:
+        """The cache entry of ``part`` compiled for ``h × w`` windows at this precision, threads, streams and CPU."""
+        hint, n = self.compile_config()["INFERENCE_PRECISION_HINT"], self.threads
+        return f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.{self._cpu_tag()}.blob"
+
+    def cached(self, h: int, w: int, samples: int) -> bool:
+        """Whether every graph that ``h × w`` windows at ``samples`` MC samples run is compiled in the cache (a
+        run without them converts and compiles first: :func:`~aerialmtl.inference.engine_choice.cold_start_pays`).
+        """
+        parts = {"forward"} if samples == 1 else {"encode", "decode"}
+        if self.density is not None:
+            parts.add("encode")
+        return self.cache.enabled and all(self.cache.path(self._entry_name(p, h, w)).is_file() for p in parts)
+
+    def _cpu_tag(self) -> str:
+        """A short tag of the CPU a compiled model is for: its name as OpenVINO reports it and the oneDNN ISA cap.
+
+        Compiled models are CPU-specific; one cache folder shared by machines of several kinds (a home folder on
+        a cluster's network drive) keeps one entry per kind instead of rebuilding, with a warning, at every switch.
+        """
+        if self._tag is None:
+            try:
+                name = str(self.core.get_property("CPU", "FULL_DEVICE_NAME"))
+            except RuntimeError:  # pragma: no cover - every CPU plugin answers it
+                name = "cpu"
+            cap = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
+            self._tag = hashlib.sha256(f"{name}|{cap}".encode()).hexdigest()[:8]
+        return self._tag
 
     def _shaped(self, part: str, h: int, w: int) -> openvino.Model:
         """The converted ``part`` reshaped for ``h × w`` windows (a copy)."""
@@ -206,7 +237,10 @@ class OpenVINOEngine:
         """OpenVINO's CPU settings: precision, threads and streams (:attr:`threads`), no pinning of threads to
         cores (a core another process holds would stall the stream pinned to it).
         """
-        hint = "bf16" if self.precision == "bf16" else "f32"
+        hint = "bf16" if self.precision == "bf16" and runtime.cpu_bf16_flags() else "f32"
+        if self.precision == "bf16" and hint == "f32":  # as OpenVINO does on such a CPU, but said
+            warn_once("--precision bf16: this CPU has no bf16 units (no AVX-512-BF16 or AMX), so OpenVINO computes "
+                      "in fp32 (use --precision auto or fp32 to say so)")
         return {"INFERENCE_PRECISION_HINT": hint, "INFERENCE_NUM_THREADS": self.threads.threads,
                 "NUM_STREAMS": self.threads.streams, "ENABLE_CPU_PINNING": False}
 
@@ -380,4 +414,7 @@ def build_openvino(setup: EngineSetup) -> OpenVINOEngine:
                           density=setup.meta.familiarity)
 
 
-__all__ = ["OPENVINO_INSTALL", "OpenVINOEngine", "build_openvino", "openvino_available", "openvino_unusable"]
+#: The OpenVINO engine's entry of the registry (:mod:`aerialmtl.inference.engine_names`).
+SPEC = EngineSpec("openvino", "OpenVINO", build_openvino, openvino_unusable)
+
+__all__ = ["OPENVINO_INSTALL", "SPEC", "OpenVINOEngine", "build_openvino", "openvino_available", "openvino_unusable"]

@@ -1,55 +1,54 @@
-"""The engines by name: one :class:`EngineSpec` each in :data:`ENGINES`, shaped like the encoder registry
-(:mod:`aerialmtl.models.encoders`).
+"""The engines by name: :data:`ENGINES`, one :class:`~aerialmtl.inference.engines.base.EngineSpec` each, shaped
+like the encoder registry (:mod:`aerialmtl.models.encoders`).
 
-Adding an engine is one module of its own (a class with the :class:`~aerialmtl.inference.engines.base.Engine`
-members, a function that builds it from an :class:`~aerialmtl.inference.engines.base.EngineSetup`, and one that
-says why it cannot run somewhere) and one entry here. ``predict --engine`` offers the names of :data:`ENGINES`
-(tests/test_engines.py keeps the two lists equal); ``auto`` is resolved by :func:`resolve_engine` alone.
+The names and their order are :data:`~aerialmtl.inference.engine_names.ENGINE_MODULES` (a table that imports no
+engine, so the command line reads it without torch); each engine's entry is its module's ``SPEC``, imported when
+first asked for. Adding an engine is one module of its own (a class with the
+:class:`~aerialmtl.inference.engines.base.Engine` members, a function that builds it from an
+:class:`~aerialmtl.inference.engines.base.EngineSetup`, one that says why it cannot run somewhere, and its
+``SPEC``) and one entry in that table, nothing else: ``predict --engine`` offers the names of the table, and
+tests/test_engine_registry.py predicts with a fake third engine added so. The order is ``auto``'s preference:
+:func:`resolve_engine` (the one resolver of ``auto`` against the registry;
+:func:`~aerialmtl.inference.engine_choice.choose_engine` adds the measured table on top of it) takes the first
+engine that can run the model on the device; an engine after :data:`FALLBACK` (which runs anything, anywhere) is
+never picked by ``auto``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import importlib
+from collections.abc import Iterator, Mapping
 
 import torch
 from torch import nn
 
 from aerialmtl.errors import InputError
-from aerialmtl.inference.engines.base import Engine, EngineSetup
-from aerialmtl.inference.engines.openvino_engine import build_openvino, openvino_unusable
-from aerialmtl.inference.engines.torch_engine import build_torch, torch_over
+from aerialmtl.inference.engine_names import ENGINE_MODULES, FALLBACK
+from aerialmtl.inference.engines.base import Engine, EngineSetup, EngineSpec
 from aerialmtl.inference.model_record import CheckpointModel
 
 
-@dataclass(frozen=True)
-class EngineSpec:
-    """One engine of the registry.
+class _Registry(Mapping[str, EngineSpec]):
+    """Name → :class:`EngineSpec`, read from :data:`~aerialmtl.inference.engine_names.ENGINE_MODULES`.
 
-    Attributes:
-        name: the ``engine`` value that selects it (recorded in ``prediction.json``).
-        label: how messages spell it (``OpenVINO``).
-        build: setup → the engine.
-        unusable: (device, model) → why the engine cannot run that model there (the error to raise), or ``None``.
+    The names in its order, each the ``SPEC`` of its module.
     """
 
-    name: str
-    label: str
-    build: Callable[[EngineSetup], Engine]
-    unusable: Callable[[torch.device, nn.Module | CheckpointModel], InputError | None]
+    def __getitem__(self, name: str) -> EngineSpec:
+        spec = importlib.import_module(ENGINE_MODULES[name]).SPEC
+        if not isinstance(spec, EngineSpec) or spec.name != name:
+            raise TypeError(f"{ENGINE_MODULES[name]}.SPEC must be the EngineSpec of engine {name!r}, got {spec!r}")
+        return spec
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(ENGINE_MODULES))
+
+    def __len__(self) -> int:
+        return len(ENGINE_MODULES)
 
 
-def _always_usable(device: torch.device, model: nn.Module | CheckpointModel) -> InputError | None:
-    return None
-
-
-#: Name → engine; ``torch`` (runs anywhere) first.
-ENGINES: dict[str, EngineSpec] = {
-    "torch": EngineSpec("torch", "torch", build_torch, _always_usable),
-    "openvino": EngineSpec("openvino", "OpenVINO", build_openvino, openvino_unusable),
-}
-#: The engine ``auto`` falls back to when the one it chose fails on the first batch (runs anything, anywhere).
-FALLBACK = "torch"
+#: Name → engine, in ``auto``'s order of preference (the module docstring).
+ENGINES: Mapping[str, EngineSpec] = _Registry()
 
 
 def engine_spec(name: str) -> EngineSpec:
@@ -64,14 +63,17 @@ def engine_spec(name: str) -> EngineSpec:
 
 
 def resolve_engine(engine: str, device: torch.device, model: nn.Module | CheckpointModel) -> str:
-    """``auto`` → ``openvino`` on a CPU when it is installed and ``model`` is a D3-Net, else ``torch``; a named
-    engine → itself, once it can run ``model`` on ``device``.
+    """The engine that runs ``model`` on ``device`` for the option ``engine``.
+
+    ``auto`` → the first engine of :data:`ENGINES` that can run ``model`` on ``device`` (``openvino`` on a CPU
+    where it is installed and ``model`` is a D3-Net, else ``torch``); a named engine → itself, once it can run
+    ``model`` on ``device``.
 
     Raises:
         InputError: an unknown engine, or one that cannot run here (its :attr:`EngineSpec.unusable` error).
     """
     if engine == "auto":
-        return "openvino" if openvino_unusable(device, model) is None else "torch"
+        return next((name for name, spec in ENGINES.items() if spec.unusable(device, model) is None), FALLBACK)
     why = engine_spec(engine).unusable(device, model)
     if why is not None:
         raise why
@@ -85,7 +87,9 @@ def build_engine(setup: EngineSetup) -> Engine:
 
 def fallback_engine(failed: Engine, setup: EngineSetup) -> Engine:
     """The :data:`FALLBACK` engine over the model ``failed`` prepared (not compiled), for ``auto``'s fallback."""
-    return torch_over(failed.model, setup)
+    over = ENGINES[FALLBACK].over
+    assert over is not None, "the fallback engine builds over another engine's model"
+    return over(failed.model, setup)
 
 
 __all__ = ["ENGINES", "FALLBACK", "EngineSpec", "build_engine", "engine_spec", "fallback_engine", "resolve_engine"]

@@ -9,16 +9,18 @@ import torch
 from torch import nn
 
 from aerialmtl import runtime
-from aerialmtl.inference.engines.base import Done, EngineSetup, Pending
-from aerialmtl.inference.model_record import resolve_model
+from aerialmtl.errors import InputError
+from aerialmtl.inference.engines.base import Done, EngineSetup, EngineSpec, Pending
+from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.models.d3net import inference_model
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
 
 class _Compiled(nn.Module):
-    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC) with the
-    fallback of :class:`aerialmtl.runtime.CompileFallback`.
+    """``torch.compile`` of the deterministic parts (``forward`` for T = 1, ``encode`` for MC).
+
+    With the fallback of :class:`aerialmtl.runtime.CompileFallback`.
 
     The decoder stays eager under MC dropout: its per-window seeded masks are drawn by Python hooks.
     """
@@ -100,8 +102,9 @@ class TorchEngine:
 
 
 def build_torch(setup: EngineSetup) -> TorchEngine:
-    """The torch engine of ``setup``: the model prepared (:func:`~aerialmtl.models.d3net.inference_model`),
-    compiled with ``settings.compile``.
+    """The torch engine of ``setup``.
+
+    The model prepared (:func:`~aerialmtl.models.d3net.inference_model`), compiled with ``settings.compile``.
     """
     device = setup.resolved.device
     prepared = inference_model(resolve_model(setup.model), device)
@@ -115,4 +118,11 @@ def torch_over(model: nn.Module, setup: EngineSetup) -> TorchEngine:
                        density=setup.meta.familiarity)
 
 
-__all__ = ["TorchEngine", "build_torch", "compile_model", "torch_over"]
+def _always_usable(device: torch.device, model: nn.Module | CheckpointModel) -> InputError | None:
+    return None
+
+
+#: The torch engine's entry of the registry (:mod:`aerialmtl.inference.engine_names`): runs anything, anywhere.
+SPEC = EngineSpec("torch", "torch", build_torch, _always_usable, over=torch_over)
+
+__all__ = ["SPEC", "TorchEngine", "build_torch", "compile_model", "torch_over"]

@@ -1,0 +1,270 @@
+"""Host overhead of the training loop per step: ``aerialmtl train`` with a near-null model vs its bare step.
+
+The D3-Net is replaced by a near-null network (one 1×1 convolution from the bands to the outputs: a few
+dozen parameters), so what is left of a step's time is the loop around the model: the loader (patch cache
+gather, augmentation parameters, workers), the transfer to the device, the augmentation there, the losses,
+the optimiser, the weight average (``--ema``), the learning-rate schedule, the loss window, logging and the
+per-epoch checkpoints. The loop runs through :func:`aerialmtl.training.loop.train` (the library call behind
+``aerialmtl train``), on a tile folder of 320² patches cut from a synthetic town (made once under
+``--workdir``); its ms/step is timed between the starts of its steps (the first ``--skip`` excluded), as wall
+time and as CPU time of the main process and its DataLoader workers (CPU time barely depends on what else runs
+on a shared machine; wall time does).
+
+The bare step is the same near-null network's forward + losses + weighting + backward + Adam
+(:class:`~aerialmtl.training.setup.StepModule`) on one batch already on the device: what no loop can avoid.
+
+    python bench/train_overhead.py                       # batch 32, 320² patches, 2 workers, 60 steps
+    python bench/train_overhead.py --workers 0 --steps 40 --ema 0.99 --device cpu
+    python bench/train_overhead.py --profile             # cProfile of the loop's main process (top 25)
+
+It also prints the data path's CPU time per batch on one thread (what each DataLoader worker spends): on a CPU
+run the workers share the cores with the step, so that time is host overhead the loop cannot hide there.
+
+Speed only: the run folder and its weights are thrown away.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+
+
+class NullNet(nn.Module):
+    """A 1×1 convolution from the input bands to every output D3-Net has for ``cfg`` (same keys and shapes)."""
+
+    def __init__(self, cfg: Any) -> None:
+        super().__init__()
+        self.tasks = tuple(cfg.tasks)
+        self.k = int(cfg.num_classes or 0) if "classes" in self.tasks else 0
+        self.aleatoric = bool(getattr(cfg, "aleatoric", False))
+        out = (2 if self.aleatoric else 1) * ("height" in self.tasks) + self.k
+        self.conv = nn.Conv2d(int(cfg.in_channels), out, 1)
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        y = self.conv(x)
+        out: dict[str, torch.Tensor] = {}
+        i = 0
+        if "height" in self.tasks:
+            out["height"] = y[:, :1]
+            i = 1
+            if self.aleatoric:
+                out["height_scale"] = nn.functional.softplus(y[:, 1:2]) + 1e-3
+                i = 2
+        if self.k:
+            out["classes"] = y[:, i:i + self.k]
+        return out
+
+
+def make_tiles(workdir: Path, town_px: int, stride: int) -> Path:
+    """A synthetic town of ``town_px``² at 0.25 m tiled into 320² patches at ``stride`` (train split only)."""
+    from aerialmtl.data.synth import synthesize
+    from aerialmtl.tiling.splits import SplitSpec
+    from aerialmtl.tiling.tile import TileOptions, tile_dataset
+
+    tiles = workdir / f"tiles_{town_px}_{stride}"
+    if (tiles / "dataset.yaml").is_file():
+        return tiles
+    town = synthesize(workdir / f"town_{town_px}", size=town_px, seed=3, gsd=0.25, overwrite=True)
+    tile_dataset(
+        town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, overwrite=True, progress=False,
+        options=TileOptions(size=320, stride=stride, splits=SplitSpec(block_size=160.0, ratios=(1.0, 0.0, 0.0),
+                                                                      seed=0)),
+    )
+    return tiles
+
+
+def config(args: argparse.Namespace, tiles: Path) -> Any:
+    from aerialmtl.training.config import load_train_config
+
+    cfg = load_train_config(ROOT / args.config)
+    return cfg.with_overrides(
+        model={"num_classes": None},
+        data={"batch_size": args.batch, "num_workers": args.workers, "dir": str(tiles)},
+        optim={"ema": args.ema},
+        schedule={"max_steps": args.steps, "epochs": 10_000, "log_every": args.log_every,
+                  "lr_schedule": args.lr_schedule, "warmup_steps": args.warmup},
+        calibration={"enabled": False}, familiarity={"enabled": False},
+        device=args.device, precision="fp32" if args.device == "cpu" else "auto", seed=0)
+
+
+def _children_cpu_s() -> float:
+    """CPU seconds (user + system) of this process's live children (the DataLoader workers), from /proc."""
+    import multiprocessing
+
+    ticks = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for child in multiprocessing.active_children():
+        try:
+            fields = Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / ticks
+    return total
+
+
+def loop_ms(args: argparse.Namespace, tiles: Path) -> tuple[float, float, int, int]:
+    """Wall and CPU (main process + workers) ms per step of ``train`` with the near-null model, over the steps
+    after the first ``--skip``; the steps timed; steps per epoch.
+    """
+    import aerialmtl.models.d3net as d3net
+    from aerialmtl.formats.tiles import read_manifest
+    from aerialmtl.training.loop import train
+
+    try:
+        from aerialmtl.training.steploop import StepLoop
+    except ImportError:  # before the shared loop (to measure an older version)
+        from aerialmtl.training.trainer import Trainer as StepLoop  # type: ignore[assignment]
+
+    real, real_step = d3net.D3Net, StepLoop.train_step
+    stamps: list[tuple[float, float]] = []
+
+    def stamped(self: Any, batch: dict[str, torch.Tensor]) -> Any:
+        stamps.append((time.perf_counter(), time.process_time() + _children_cpu_s()))
+        return real_step(self, batch)
+
+    d3net.D3Net = NullNet  # type: ignore[misc,assignment]
+    StepLoop.train_step = stamped  # type: ignore[method-assign]
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            cfg = config(args, tiles)
+            if args.profile:
+                import cProfile
+                import pstats
+
+                prof = cProfile.Profile()
+                prof.enable()
+            result = train(cfg, out_dir=Path(tmp) / "run", progress=False)
+            if args.profile:
+                prof.disable()
+                pstats.Stats(prof).sort_stats("tottime").print_stats(25)
+    finally:
+        d3net.D3Net, StepLoop.train_step = real, real_step  # type: ignore[misc,method-assign]
+    assert result.step == args.steps
+    w = min(args.skip, len(stamps) - 2)
+    n = len(stamps) - 1 - w
+    (t0, c0), (t1, c1) = stamps[w], stamps[-1]
+    per_epoch = len(read_manifest(tiles, "train")) // args.batch
+    return 1000 * (t1 - t0) / n, 1000 * (c1 - c0) / n, n, per_epoch
+
+
+def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> tuple[float, float]:
+    """Wall and CPU ms/step of the near-null model's step alone on one batch already on the device."""
+    from aerialmtl.formats.tiles import TileFolderInfo
+    from aerialmtl.training.objective import Objective
+    from aerialmtl.training.setup import StepModule, build_optimizer
+    from aerialmtl.training.weighting import build_weighting
+
+    cfg = config(args, tiles)
+    info = TileFolderInfo.read(tiles)
+    k = info.classes.num_classes if info.classes is not None else None
+    model_cfg = cfg.model.resolve(info.num_bands, info.tasks, k)
+    device = torch.device("cuda" if args.device in ("cuda", "auto") and torch.cuda.is_available() else "cpu")
+    model = NullNet(model_cfg).to(device).to(memory_format=torch.channels_last)
+    weighting = build_weighting(cfg.weighting.method, list(model_cfg.tasks)).to(device)
+    opt = build_optimizer(cfg.optim, model, weighting)
+    step = StepModule(model, weighting, Objective(cfg, tuple(model_cfg.tasks), None), device, "fp32")
+    b, s = args.batch, 320
+    g = torch.Generator().manual_seed(0)
+    batch = {"image": torch.randn(b, info.num_bands, s, s, generator=g).to(device)
+             .contiguous(memory_format=torch.channels_last),
+             "height": (torch.rand(b, 1, s, s, generator=g) * 20).to(device),
+             "height_valid": torch.ones(b, 1, s, s, dtype=torch.bool, device=device)}
+    if k:
+        batch["classes"] = torch.randint(0, k, (b, s, s), generator=g).to(device)
+    times, cpu = [], []
+    for i in range(steps + 3):
+        t, c = time.perf_counter(), time.process_time()
+        total, _ = step(batch)
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        if i >= 3:
+            times.append(time.perf_counter() - t)
+            cpu.append(time.process_time() - c)
+    return 1000 * sum(times) / len(times), 1000 * sum(cpu) / len(cpu)
+
+
+def data_parts_ms(args: argparse.Namespace, tiles: Path, batches: int = 5) -> dict[str, float]:
+    """CPU ms per batch of the data path's parts, one thread (what a DataLoader worker does on a CPU run):
+    gathering the patches out of the cache with their augmentation parameters, and finishing the batch
+    (flips/rot90, normalisation, jitter).
+    """
+    from aerialmtl.data.batches import CachedBatches, EpochOrder, prepare_batch
+    from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+    from aerialmtl.data.transforms import build_train_transform
+    from aerialmtl.formats.tiles import TileFolderInfo, cache_dir
+
+    cfg = config(args, tiles)
+    info = TileFolderInfo.read(tiles)
+    index = ensure_patch_cache(info, "train")
+    transform = build_train_transform(cfg.data.flips, cfg.data.rot90, cfg.data.jitter, cfg.data.crop_size)
+    mean, std = torch.tensor(info.mean), torch.tensor(info.std)
+    ds = CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks)
+    specs = EpochOrder(index.count, args.batch, 0).batches(0, 0, 0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    gather, finish = [], []
+    try:
+        for _ in range(batches):
+            spec = next(specs)
+            t = time.process_time()
+            raw = ds[spec]
+            t1 = time.process_time()
+            prepare_batch(raw, transform, mean, std, torch.device("cpu"))
+            gather.append(t1 - t)
+            finish.append(time.process_time() - t1)
+    finally:
+        torch.set_num_threads(threads)
+    return {"gather": 1000 * sorted(gather)[len(gather) // 2], "finish": 1000 * sorted(finish)[len(finish) // 2]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default="configs/d3net_dfc2018.yaml")
+    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--log-every", type=int, default=10)
+    ap.add_argument("--skip", type=int, default=5, help="first loop steps left out of the timing")
+    ap.add_argument("--ema", type=float, default=None)
+    ap.add_argument("--lr-schedule", default="constant", choices=("constant", "cosine"))
+    ap.add_argument("--warmup", type=int, default=0)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--town", type=int, default=3072, help="synthetic town side (px); tiled 320 at --stride")
+    ap.add_argument("--stride", type=int, default=160)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--workdir", default=os.environ.get("AERIALMTL_BENCH_DIR", "/tmp/aerialmtl-bench"))
+    ap.add_argument("--profile", action="store_true", help="cProfile the loop's main process")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    tiles = make_tiles(Path(args.workdir), args.town, args.stride)
+    ms, cpu, timed, per_epoch = loop_ms(args, tiles)
+    bare, bare_cpu = bare_ms(args, tiles, min(timed, 20))
+    load = " ".join(Path("/proc/loadavg").read_text().split()[:3]) if Path("/proc/loadavg").exists() else "?"
+    print(f"train loop, near-null model: {ms:.1f} ms/step wall, {cpu:.1f} ms/step CPU (main + workers) over {timed} "
+          f"steps ({per_epoch} steps/epoch; batch {args.batch} of 320², {args.workers} workers, ema {args.ema}, "
+          f"{args.device}, torch threads {torch.get_num_threads()})")
+    print(f"bare step, near-null model:  {bare:.1f} ms/step wall, {bare_cpu:.1f} ms/step CPU")
+    print(f"loop overhead:               {ms - bare:.1f} ms/step wall, {cpu - bare_cpu:.1f} ms/step CPU   "
+          f"(load {load})")
+    parts = data_parts_ms(args, tiles)
+    print(f"data path, CPU time per batch on one thread (a worker's share): gather {parts['gather']:.1f} ms, "
+          f"flips/rot90/normalise/jitter {parts['finish']:.1f} ms")
+
+
+if __name__ == "__main__":
+    main()
