@@ -374,9 +374,10 @@ def on_config(config: Any, **kwargs: Any) -> Any:
     return config
 
 
-#: A page's link to the benchmarks file itself (``../../bench/RESULTS.md#section``), which works on GitHub and in a
-#: clone; the site has that file as its Benchmarks page (``benchmarks.md`` includes it).
-RESULTS_LINK = re.compile(r"\]\((?:\.\./)+bench/RESULTS\.md(#[^)\s]*)?\)")
+#: A page's link to a benchmarks file itself (``../../bench/RESULTS.md``, ``../../bench/results/TOPIC.md#section``),
+#: which works on GitHub and in a clone; the site has those files on its Benchmarks page (``benchmarks.md``
+#: includes every topic).
+RESULTS_LINK = re.compile(r"\]\((?:\.\./)+bench/(?:RESULTS|results/\w+)\.md(#[^)\s]*)?\)")
 
 
 def site_links(markdown: str, src_uri: str) -> str:

@@ -117,9 +117,16 @@ def test_links_to_the_benchmarks_file_lead_to_the_benchmarks_page_on_the_site() 
     md = "[b](../../bench/RESULTS.md#real-data) and [c](../bench/RESULTS.md)"
     assert links(md, "tutorials/small-area.md") == "[b](../benchmarks.md#real-data) and [c](../benchmarks.md)"
     assert links("[c](../bench/RESULTS.md)", "index.md") == "[c](benchmarks.md)"
+    assert links("[u](../../bench/results/uncertainty.md#x)", "tutorials/a.md") == "[u](../benchmarks.md#x)"
     for page in ("tutorials/small-area.md", "getting-started.md", "index.md"):
-        for link in re.findall(r"\]\(((?:\.\./)+bench/RESULTS\.md)", (DOCS / page).read_text()):
-            assert ((DOCS / page).parent / link).resolve() == REPO / "bench" / "RESULTS.md", (page, link)
+        text = (DOCS / page).read_text()
+        for link, anchor in re.findall(r"\]\(((?:\.\./)+bench/(?:RESULTS|results/\w+)\.md)(#[^)]*)?\)", text):
+            target = ((DOCS / page).parent / link).resolve()
+            assert target.is_file(), (page, link)
+            if anchor:  # the heading it names is there (GitHub's and the site's anchors agree for these)
+                slugs = {re.sub(r"[-\s]+", "-", re.sub(r"[^\w\s-]", "", h.replace("`", "")).strip().lower())
+                         for h in re.findall(r"^#+ (.+)$", target.read_text(), flags=re.M)}
+                assert anchor[1:] in slugs, (page, link, anchor)
 
 
 # ---- the built site ----------------------------------------------------------------------------------
