@@ -20,6 +20,9 @@ torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
 #: ``precision: auto`` follow), in this process and in the subprocesses tests start.
 #: ``avx512`` and ``avx2`` also set the kind (AERIALMTL_CPU_KIND) that ``--engine auto`` looks up in its table
 #: (:mod:`aerialmtl.inference.engine_choice`); the others derive it from the bf16 flags.
+#: the untracked, unignored entries at the repository root when the session started
+_ROOT_BEFORE = pytest.StashKey[set[str]]()
+
 CPU_KINDS = {"amx": "amx_bf16,avx512_bf16", "avx512bf16": "avx512_bf16", "avx512": "", "avx2": "", "none": ""}
 
 
@@ -46,6 +49,40 @@ def pytest_configure(config: pytest.Config) -> None:
         runtime.import_openvino()
     except ImportError:
         pass
+
+
+def _root_entries() -> set[str]:
+    """Top-level entries of the checkout that git neither tracks nor ignores (none outside a git checkout)."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        out = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "-z", "--untracked-files=normal",
+                              "--", "."], capture_output=True, check=True, timeout=60).stdout
+    except (OSError, subprocess.SubprocessError):
+        return set()
+    return {e[3:].split("/", 1)[0] for e in out.decode().split("\0") if e.startswith("?? ")}
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    if not hasattr(session.config, "workerinput"):  # the controller only (pytest-xdist workers share the root)
+        session.config.stash[_ROOT_BEFORE] = _root_entries()
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Fail the run when its tests left a new file or folder at the repository root (test output belongs in
+    ``tmp_path``; tests/test_repository.py says why)."""
+    before = session.config.stash.get(_ROOT_BEFORE, None)
+    if before is None:
+        return
+    new = sorted(_root_entries() - before)
+    if new:
+        import sys
+
+        print(f"\nerror: the tests left new files at the repository root: {new}; write test output into "
+              "tmp_path (tests/test_repository.py)", file=sys.stderr)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 def pytest_report_header(config: pytest.Config) -> str:

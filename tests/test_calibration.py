@@ -105,6 +105,93 @@ def test_map_continues_beyond_the_knots() -> None:
         Calibration((0.0, 0.0), (1.0, 2.0))
 
 
+def test_a_validation_of_bare_ground_calibrates_no_tall_height_and_no_spread() -> None:
+    """Validation all ground (the reference never reaches 1 m), the model predicting up to 1.2 m there: the
+    map it fits ("everything is ground") must not shift the heights it never saw (it shifted a 10 m roof
+    down by a metre, slope 1 beyond the last knot), and a spread fitted on centimetre errors must not shrink
+    every interval."""
+    rng = np.random.default_rng(7)
+    n = 40_000
+    ref = rng.uniform(0.0, 0.1, n)
+    pred = np.clip(ref + rng.gamma(1.0, 0.3, n), 0.0, 1.2)
+    std = rng.uniform(0.2, 0.6, n)
+    folds = (np.arange(n) // 500) % 2
+    cal = fit_calibration(pred, ref, std, "isotonic", folds=folds)
+    assert cal.height_applied  # below 1 m the map is supported: it pulls the ground down
+    assert cal.height_limit == 1.0 and "heights ≥ 1 m keep no calibration" in cal.unsupported
+    tall = np.array([1.0, 2.0, 5.0, 10.0, 40.0])
+    np.testing.assert_array_equal(cal.height(tall), tall)
+    np.testing.assert_allclose(cal.height_torch(torch.from_numpy(tall)).numpy(), tall)
+    assert np.all(np.diff(cal.height(np.linspace(0.0, 3.0, 301))) >= 0)  # still monotone across the cut
+    assert not cal.spread_applied and "spread map off" in cal.unsupported
+    np.testing.assert_array_equal(cal.std(np.full(5, 0.4), tall), np.full(5, 0.4))
+    # enough tall pixels: the map and the spread reach them again
+    ref2 = np.where(rng.random(n) < 0.5, ref, rng.uniform(2.0, 30.0, n))
+    cal2 = fit_calibration(0.5 * ref2, ref2, std, "isotonic", folds=folds)
+    assert cal2.height_limit is None and not cal2.unsupported and cal2.spread_applied
+    assert cal2.height(np.array([10.0]))[0] > 15.0
+
+
+def test_tall_heights_above_the_supported_range_keep_no_spread_factor() -> None:
+    """Validation reaches 5 m often but 10 m rarely (< MIN_SUPPORT_PIXELS): ranges from 10 m up keep factor 1."""
+    from aerialmtl.models.calibration import MIN_SUPPORT_PIXELS, support_limit
+
+    rng = np.random.default_rng(8)
+    n = 30_000
+    ref = np.concatenate([rng.uniform(0, 0.5, n - 3000), rng.uniform(5.0, 9.0, 3000 - 50), rng.uniform(10, 12, 50)])
+    assert support_limit(ref) == 10.0 and 50 < MIN_SUPPORT_PIXELS
+    pred = ref + rng.normal(0, 0.5, ref.size)
+    cal = fit_calibration(pred, ref, np.full(ref.size, 0.01), "isotonic")
+    assert cal.spread_applied and 10.0 in cal.std_edges
+    np.testing.assert_allclose(cal.std(np.array([0.01, 0.01]), np.array([11.0, 30.0])), [0.01, 0.01])
+    assert cal.std(np.array([0.01]), np.array([6.0]))[0] > 0.1  # below the limit the spread is widened
+    np.testing.assert_array_equal(cal.height(np.array([10.0, 25.0])), [10.0, 25.0])
+
+
+def _flatten_val_heights(root: Path, height: float = 0.3) -> None:
+    """Make every validation patch bare ground (``height`` metres everywhere) and say so in the manifest."""
+    import csv
+
+    manifest = root / "manifest.csv"
+    with manifest.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        fields, rows = reader.fieldnames, list(reader)
+    for row in rows:
+        if row["split"] == "val":
+            with rasterio.open(root / row["height_path"], "r+") as dst:
+                dst.write(np.full((1, dst.height, dst.width), height, np.float32))
+            row.update(height_min=height, height_mean=height, height_max=height)
+    with manifest.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(fields or []))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def test_train_with_a_validation_of_bare_ground_says_so_and_calibrates_no_tall_height(tmp_path: Path) -> None:
+    """A run whose validation split holds no pixel ≥ 2 m (its images show buildings, its heights say ground):
+    best.pt calibrates no height ≥ 2 m and scales no spread, and `train` says so on one line."""
+    import yaml
+    from click.testing import CliRunner
+
+    from aerialmtl.cli import cli
+
+    tiles = write_tile_folder(tmp_path / "tiles", size=64, counts={"train": 4, "val": 2}, tasks=("height",))
+    _flatten_val_heights(tiles)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(yaml.safe_dump(_cfg("densenet121").to_dict()))
+    res = CliRunner().invoke(cli, ["train", "--config", str(cfg), "--data", str(tiles), "--out", str(tmp_path / "run"),
+                                   "--max-steps", "2", "--quiet", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.startswith("warning: calibration:")]
+    assert len(lines) == 1 and "keep no calibration" in lines[0] and "--split-block" in lines[0], res.output
+    cal = load_checkpoint(tmp_path / "run" / "best.pt")[1].calibration
+    assert cal is not None and cal.height_limit is not None and cal.height_limit <= 2.0
+    tall = np.array([2.0, 4.0, 8.0, 30.0])
+    np.testing.assert_array_equal(cal.height(tall), tall)
+    np.testing.assert_array_equal(cal.std(np.full(4, 0.5), tall), np.full(4, 0.5))
+    assert not cal.spread_applied
+
+
 # ---- end to end ---------------------------------------------------------------------------------
 def _cfg(encoder: str) -> TrainConfig:
     model = ({"growth_rate": 4, "block_config": [1, 1, 1, 1], "num_init_features": 8, "bn_size": 2}

@@ -98,6 +98,37 @@ def test_the_readme_keeps_the_two_commands_and_its_links() -> None:
             assert (REPO / link).exists(), link
 
 
+def test_getting_started_states_the_time_its_sample_output_shows() -> None:
+    """The page said "about 6 min" right above a sample output ending "Done in 3903 s": the prose must name the
+    time the sample shows (and say why it differs from the quiet machine's)."""
+    text = (DOCS / "getting-started.md").read_text()
+    done = re.search(r"^Done in (\d+) s\.", text, flags=re.M)
+    assert done, "the sample output's 'Done in N s' line"
+    prose = re.sub(r"```.*?```", "", text, flags=re.S)
+    seconds = int(done.group(1))
+    assert f"{seconds} s" in prose and f"about {round(seconds / 60)} min" in prose, "state the sample's time"
+
+
+def test_links_to_the_benchmarks_file_lead_to_the_benchmarks_page_on_the_site() -> None:
+    """Pages link ``bench/RESULTS.md`` itself (it works on GitHub and in a clone; ``docs/benchmarks.md`` is an
+    include line there); the site's build points those links at its Benchmarks page, anchors kept."""
+    hooks = _docs_hooks()
+    links = hooks.site_links  # type: ignore[attr-defined]
+    md = "[b](../../bench/RESULTS.md#real-data) and [c](../bench/RESULTS.md)"
+    assert links(md, "tutorials/small-area.md") == "[b](../benchmarks.md#real-data) and [c](../benchmarks.md)"
+    assert links("[c](../bench/RESULTS.md)", "index.md") == "[c](benchmarks.md)"
+    assert links("[u](../../bench/results/uncertainty.md#x)", "tutorials/a.md") == "[u](../benchmarks.md#x)"
+    for page in ("tutorials/small-area.md", "getting-started.md", "index.md"):
+        text = (DOCS / page).read_text()
+        for link, anchor in re.findall(r"\]\(((?:\.\./)+bench/(?:RESULTS|results/\w+)\.md)(#[^)]*)?\)", text):
+            target = ((DOCS / page).parent / link).resolve()
+            assert target.is_file(), (page, link)
+            if anchor:  # the heading it names is there (GitHub's and the site's anchors agree for these)
+                slugs = {re.sub(r"[-\s]+", "-", re.sub(r"[^\w\s-]", "", h.replace("`", "")).strip().lower())
+                         for h in re.findall(r"^#+ (.+)$", target.read_text(), flags=re.M)}
+                assert anchor[1:] in slugs, (page, link, anchor)
+
+
 # ---- the built site ----------------------------------------------------------------------------------
 #: What no page of the site may show: a notebook cell's stderr block (a warning), a traceback, click's
 #: marker for "no default", and paths of the machine that built it (checkout, Python, home, build temp folders).
@@ -106,7 +137,7 @@ _TMP = re.escape(tempfile.gettempdir().rstrip(os.sep) + os.sep)
 FORBIDDEN = [re.compile(r'<[^>]*data-mime-type="application/vnd\.jupyter\.stderr"'), re.compile("Traceback"),
              re.compile("Sentinel"),
              *(re.compile(re.escape(p.rstrip(os.sep) + os.sep)) for p in _MACHINE if p.strip(os.sep)),
-             re.compile(_TMP + r"(?:tmp[a-z0-9_]{8}|aerialmtl_nb_)")]
+             re.compile(_TMP + r"(?:tmp[a-z0-9_]{8}|aerialmtl_nb_|aerialmtl_docs_)")]
 
 
 @pytest.mark.slow
@@ -126,3 +157,19 @@ def test_the_built_site_shows_no_warning_traceback_sentinel_or_machine_path(tmp_
     found = [(str(page.relative_to(site)), m.group(0)) for page in pages for pattern in FORBIDDEN
              if (m := pattern.search(page.read_text(encoding="utf-8")))]
     assert not found, found
+    # the pages a newcomer meets first show what the package makes (figures the build drew, light enough)
+    for name in ("index.html", "getting-started/index.html", "tutorials/small-area/index.html",
+                 "tutorials/qgis/index.html"):
+        images = re.findall(r'<img[^>]+src="([^"]*images/built/[^"]+\.png)"', (site / name).read_text())
+        assert images, f"{name} shows no picture of the package's output"
+        for src in images:
+            png = ((site / name).parent / src).resolve()
+            assert 5_000 < png.stat().st_size < 600_000, (name, src, png.stat().st_size)
+    # the notebook page's outputs read as a page: no raw floats, no nan, no JSON dump (its code cells left out)
+    notebook = (site / "tutorials" / "uncertainty_maps" / "index.html").read_text()
+    outputs = re.sub(r'<div class="highlight[^"]*"><pre>.*?</pre>|<div class="clipboard-copy-txt"[^>]*>.*?</div>'
+                     r"|<script.*?</script>", "", notebook, flags=re.S)  # code, its copy buttons, the theme's config
+    shown = html.unescape(re.sub(r"<[^>]+>", " ", re.sub(r'src="data:[^"]*"', "", outputs)))
+    assert not re.search(r"\d\.\d{12,}", shown), re.search(r".{40}\d\.\d{12,}.{20}", shown)
+    assert not re.search(r"\bnan\b", shown, flags=re.I), re.search(r".{60}\bnan\b", shown, flags=re.I)
+    assert not re.search(r'\{\s*"\w+":', shown), "a JSON dump"

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,15 @@ pytest.importorskip("ipykernel")
 NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "uncertainty_maps.ipynb"
 
 
+def _docs_hooks() -> object:
+    """The site's hooks (docs_hooks.py): the site runs the notebook with its ``NOTEBOOK_WARNINGS``."""
+    spec = importlib.util.spec_from_file_location("docs_hooks", NOTEBOOK.parents[1] / "docs_hooks.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_notebook_is_committed_without_outputs() -> None:
     nb = nbformat.read(NOTEBOOK, as_version=4)
     nbformat.validate(nb)
@@ -29,13 +40,23 @@ def test_notebook_is_committed_without_outputs() -> None:
     assert len(params) == 1 and "PRED_DIR = None" in params[0].source and "AERIALMTL_NB_WORKDIR" in params[0].source
 
 
-def _run(nb: object, cwd: Path) -> dict:
-    """Execute ``nb`` in place and return the JSON printed by its last code cell."""
+def _run(nb: object, cwd: Path, work: Path) -> dict:
+    """Execute ``nb`` in place and return the summary its last cell writes (``WORKDIR/notebook_summary.json``)."""
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(cwd)}})
     client.execute()  # raises CellExecutionError on any failing cell
-    last = [c for c in nb.cells if c.cell_type == "code"][-1]  # type: ignore[attr-defined]
-    text = "".join(o.get("text", "") for o in last.outputs if o.output_type == "stream")
-    return json.loads(text.strip().splitlines()[-1])
+    result: dict = json.loads((work / "notebook_summary.json").read_text())
+    return result
+
+
+def _page_text(nb: object) -> str:
+    """What the notebook's outputs show on the page: streams, plain text and Markdown."""
+    parts = []
+    for c in nb.cells:  # type: ignore[attr-defined]
+        for o in c.get("outputs", []):
+            parts.append(o.get("text", ""))
+            data = o.get("data", {})
+            parts += [data.get("text/markdown", ""), data.get("text/plain", "")]
+    return "\n".join(parts)
 
 
 def test_notebook_on_a_users_own_prediction_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -47,7 +68,7 @@ def test_notebook_on_a_users_own_prediction_folder(tmp_path: Path, monkeypatch: 
     at = next(i for i, c in enumerate(nb.cells) if "parameters" in c.metadata.get("tags", []))
     nb.cells.insert(at + 1, nbformat.v4.new_code_cell(  # what papermill does with injected parameters
         f"PRED_DIR = {str(pred)!r}\nORTHO = {str(pred.parent / 'ortho.tif')!r}\nAREA_SIZE_PX = 32"))
-    result = _run(nb, tmp_path)
+    result = _run(nb, tmp_path, work)
     assert Path(result["prediction"]) == pred
     assert not (work / "prediction").exists() and not (work / "run").exists(), "nothing may be trained"
     assert result["uncertainty"] == {}  # no references given: no curves
@@ -63,9 +84,15 @@ def test_notebook_runs_the_mini_pipeline(tmp_path: Path, monkeypatch: pytest.Mon
     monkeypatch.setenv("AERIALMTL_NB_WORKDIR", str(work))
     monkeypatch.setenv("AERIALMTL_NB_THREADS", "1")  # the test machine is shared: 1 thread is much faster there
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    monkeypatch.setenv("PYTHONWARNINGS", _docs_hooks().NOTEBOOK_WARNINGS)  # as the site's build runs it
     nb = nbformat.read(NOTEBOOK, as_version=4)
-    result = _run(nb, tmp_path)
-    assert result == json.loads((work / "notebook_summary.json").read_text())
+    result = _run(nb, tmp_path, work)
+    # what a reader sees: small tables with units, no raw floats, no `nan`, no JSON dump, no stray Out[]
+    text = _page_text(nb)
+    assert not re.search(r"\d\.\d{12,}", text) and not re.search(r"\bnan\b", text), text
+    assert "{" not in text and "| height MAE | " in text, text
+    assert not [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "execute_result"
+                and "text/plain" in o.get("data", {}) and "image/png" not in o.get("data", {})]
     # the site publishes the outputs as they are, and its build fails on a warning (docs_hooks.py)
     stderr = [o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs
               if o.output_type == "stream" and o.get("name") == "stderr"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -148,6 +149,38 @@ def test_aoi_splits_keep_patches_inside_their_polygon(scene: dict[str, Path], tm
         else:
             assert left >= xm - 1e-6
     assert res.dropped_split > 0  # the windows across x = xm
+
+
+def test_a_split_without_tall_pixels_is_warned_about_with_the_numbers_and_the_fix(scene: dict[str, Path],
+                                                                                    tmp_path: Path) -> None:
+    """Training holds buildings, validation (the right half, by AOI) only ground: the calibration fitted there could
+    correct no tall height, so `tile` says so, naming the counts and the options that draw other splits."""
+    x0, y1 = ORIGIN
+    ndsm = np.random.default_rng(2).uniform(0, 20, size=(64, 64)).astype(np.float32)
+    ndsm[:, 28:] = 0.2  # the right half (and a margin for resampling): bare ground
+    flat = write_raster(tmp_path / "flat.tif", ndsm, CRS, T1, nodata=-9999.0)
+    xm, y0 = x0 + 32.0, y1 - 64.0
+    fc = {"type": "FeatureCollection", "features": [
+        _feature(_utm_polygon_to_lonlat(x0 - 5, y0 - 5, xm, y1 + 5), split="train"),
+        _feature(_utm_polygon_to_lonlat(xm, y0 - 5, x0 + 69, y1 + 5), split="val"),
+    ]}
+    aoi = tmp_path / "aoi.geojson"
+    aoi.write_text(json.dumps(fc))
+    args = ["tile", "--ortho", str(scene["ortho"]), "--ndsm", str(flat), "--size", "16", "--stride", "16",
+            "--min-valid", "0", "--split-aoi", str(aoi), "--quiet", "--out", str(tmp_path / "out")]
+    with pytest.warns(UserWarning) as caught:  # `aerialmtl tile` prints each as one `warning:` line (cli.main)
+        result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    lines = [str(w.message) for w in caught if "holds no pixel ≥ 2 m" in str(w.message)]
+    assert len(lines) == 1 and "the val split" in lines[0], [str(w.message) for w in caught]
+    assert all(opt in lines[0] for opt in ("--split-block", "--split-ratios", "--split-aoi")), lines[0]
+    assert " px, mean 0.20 m" in lines[0] and "while train holds " in lines[0]
+    # a split that holds tall pixels everywhere is not warned about
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        tile_dataset(scene["ortho"], tmp_path / "ok", ndsm=scene["ndsm"], progress=False,
+                     options=TileOptions(size=16, stride=16, min_valid=0.0,
+                                         splits=SplitSpec(method="aoi", aoi=str(aoi))))
 
 
 # ---- tile folder -----------------------------------------------------------------------------

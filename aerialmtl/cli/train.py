@@ -108,6 +108,10 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
         if calibration is not None:  # what validation kept, and why (predict applies exactly this)
             click.echo(f"calibration of best.pt (its scores: best.pt on the same validation patches, mean of "
                        f"{cfg.calibration.mc_samples} MC-dropout samples): {calibration.summary()}")
+            if calibration.unsupported:  # the one thing a small or unlucky split must be told plainly
+                click.echo(f"warning: calibration: {calibration.unsupported}; to calibrate these heights give "
+                           "validation taller areas (aerialmtl tile --split-block, --split-ratios or --split-aoi)",
+                           err=True)
         if best_meta.sun is not None:  # the training area's sun (predict --sun auto uses it for the same flight)
             click.echo(f"training area's {best_meta.sun.summary()}" + (
                 "" if best_meta.sun.clear else "; predict writes no shadow layers"))

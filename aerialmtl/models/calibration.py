@@ -34,6 +34,16 @@ other): the height map only if it lowers the MAE, the spread map only if it lowe
 Gaussian NLL (proper scores of the spread: the CRPS alone accepts a few confident misses that the NLL
 does not). A part that is not applied is the identity, and the checkpoint records why
 (:attr:`Calibration.notes`).
+
+**Only where validation saw heights** (:func:`support_limit`): a calibration corrects a height only where
+validation holds at least :data:`MIN_SUPPORT_PIXELS` pixels at or above it (reference height). From the
+lowest edge of :data:`SPREAD_EDGES` that fewer validation pixels reach (the *limit*, :attr:`Calibration.height_limit`)
+upwards, heights and spreads pass unchanged: the height map is cut there (its calibrated heights stay below
+the limit and meet the identity at it) and the spread ranges above it keep factor 1 and no floor. And a
+spread map is applied only if validation holds that many pixels ≥ :data:`TALL_HEIGHT` (above the ground):
+a spread fitted on ground alone (errors of centimetres) shrinks every building's and tree's interval with it.
+Without this, a validation split of bare ground (it happens on a small area) fitted "everything is ground":
+heights above its highest prediction shifted down by a metre and spreads scaled by 0.09 everywhere.
 """
 
 from __future__ import annotations
@@ -56,6 +66,12 @@ SPREAD_EDGES: tuple[float, ...] = (1.0, 2.0, 5.0, 10.0, 20.0)
 #: Fewest validation pixels a range needs to be fitted alone (else it joins the range above it; the top range
 #: joins the one below).
 MIN_RANGE_PIXELS = 2000
+#: Fewest validation pixels at or above a height (reference, metres) for the calibration to correct that height
+#: (:func:`support_limit`); about a thousand square metres at 1 m, a handful of buildings or trees.
+MIN_SUPPORT_PIXELS = 1000
+#: Metres from which a pixel stands above the ground (a building, a tree): a spread map needs
+#: :data:`MIN_SUPPORT_PIXELS` validation pixels this tall, and ``tile`` warns when validation or test holds none.
+TALL_HEIGHT = 2.0
 
 
 @dataclass(frozen=True)
@@ -77,6 +93,10 @@ class Calibration:
             ``std_scale``/``std_floor`` (older calibrations).
         std_scales, std_floors: factor and floor per range (``len(std_edges) + 1`` each).
         notes: what the validation said of each part (cross-fitted scores, why a part is off).
+        height_limit: predicted heights (metres) from which nothing is calibrated, because fewer than
+            :data:`MIN_SUPPORT_PIXELS` validation pixels reach it (:func:`support_limit`); ``None``: no limit.
+        unsupported: what validation held too few pixels to calibrate, one phrase (also in ``notes``;
+            ``train`` prints it on a line of its own); empty when it held enough at every height.
     """
 
     height_x: tuple[float, ...]
@@ -92,6 +112,8 @@ class Calibration:
     std_scales: tuple[float, ...] = ()
     std_floors: tuple[float, ...] = ()
     notes: str = ""
+    height_limit: float | None = None
+    unsupported: str = ""
 
     def __post_init__(self) -> None:
         if len(self.height_x) != len(self.height_y) or len(self.height_x) < 2:
@@ -113,6 +135,9 @@ class Calibration:
             raise ValueError("Calibration: std_scales and std_floors need one value per range (len(std_edges) + 1)")
         if any(not (math.isfinite(v) and v >= 0) for v in (*self.std_scales, *self.std_floors)):
             raise ValueError("Calibration: std_scales and std_floors must be finite and ≥ 0")
+        if self.height_limit is not None and not (math.isfinite(self.height_limit) and self.height_limit > 0):
+            raise ValueError(f"Calibration: height_limit must be None or a positive number of metres, got "
+                             f"{self.height_limit}")
 
     def height(self, h: np.ndarray) -> np.ndarray:
         """Calibrated heights (metres) of predicted heights ``h`` (any shape; NaN stays NaN)."""
@@ -362,13 +387,15 @@ def fit_spread_crps(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 50
     return best[1], best[2]
 
 
-def _fit_spread_ranges(err: np.ndarray, std: np.ndarray, pred: np.ndarray,
-                       edges: tuple[float, ...]) -> tuple[tuple[float, ...], tuple[float, ...]]:
+def _fit_spread_ranges(err: np.ndarray, std: np.ndarray, pred: np.ndarray, edges: tuple[float, ...],
+                       limit: float | None = None) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Factor and floor per range of ``edges``; a range from ``limit`` up keeps factor 1 and no floor."""
     k = np.searchsorted(np.asarray(edges), pred, side="right")
     scales, floors = [], []
     for r in range(len(edges) + 1):
         sel = k == r
-        a, b = fit_spread_crps(err[sel], std[sel]) if sel.any() else (1.0, 0.0)
+        above = limit is not None and r > 0 and edges[r - 1] >= limit
+        a, b = fit_spread_crps(err[sel], std[sel]) if sel.any() and not above else (1.0, 0.0)
         scales.append(float(a))
         floors.append(float(b))
     return tuple(scales), tuple(floors)
@@ -390,16 +417,43 @@ def _nll(err: np.ndarray, sigma: np.ndarray) -> float:
     return float(np.mean(0.5 * np.log(2 * np.pi * sig * sig) + 0.5 * (err / sig) ** 2))
 
 
+def support_limit(ref: np.ndarray, min_pixels: int = MIN_SUPPORT_PIXELS,
+                  edges: tuple[float, ...] = SPREAD_EDGES) -> float | None:
+    """The lowest of ``edges`` (metres) that fewer than ``min_pixels`` reference heights ``ref`` reach (≥), from
+    which a calibration fitted on them corrects nothing; ``None`` when every edge is reached that often.
+    """
+    ref = np.asarray(ref, np.float64)
+    for e in edges:
+        if int(np.count_nonzero(ref >= e)) < min_pixels:
+            return float(e)
+    return None
+
+
+def _cut_height_map(x: np.ndarray, y: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """Knots of the map below ``limit`` with their heights capped at it, then ``(limit, limit)``: from the limit
+    up the map is the identity (slope 1, no offset), and it stays continuous and non-decreasing.
+    """
+    keep = x < limit
+    xs, ys = np.append(x[keep], limit), np.append(np.minimum(y[keep], limit), limit)
+    if xs.size < 2:  # no knot below the limit: the identity
+        xs, ys = np.array([0.0, limit]), np.array([0.0, limit])
+    return xs, ys
+
+
 def _fit_parts(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None, method: CalibrationMethod, knots: int,
-               edges: tuple[float, ...], height: bool = True) -> Calibration:
-    """The height map (``height``: else the identity) and the per-range spread map fitted around it."""
+               edges: tuple[float, ...], height: bool = True, limit: float | None = None) -> Calibration:
+    """The height map (``height``: else the identity) and the per-range spread map fitted around it, both cut at
+    ``limit`` (metres of predicted height; ``edges`` must then hold it).
+    """
     x, y = fit_height_map(pred, ref, method, knots)
+    if limit is not None:
+        x, y = _cut_height_map(x, y, limit)
     cal = Calibration(tuple(float(v) for v in x), tuple(float(v) for v in y), 1.0, method, int(np.size(pred)),
-                      height_applied=height)
+                      height_applied=height, height_limit=limit)
     if std is None:
         return dataclasses.replace(cal, spread_applied=False)
     err = np.abs(cal.height(pred) - ref)
-    scales, floors = _fit_spread_ranges(err, std, pred, edges)
+    scales, floors = _fit_spread_ranges(err, std, pred, edges, limit)
     if not edges:
         return dataclasses.replace(cal, std_scale=scales[0], std_floor=floors[0])
     return dataclasses.replace(cal, std_edges=edges, std_scales=scales, std_floors=floors)
@@ -419,32 +473,57 @@ def fit_calibration(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None = 
             fitted on one fold and scored on the other (both ways), it beats no calibration — the height
             map on MAE, the spread map on CRPS (see the module docstring). ``None``: both parts applied.
         edges: inner edges of the spread ranges (default: :func:`spread_ranges` of ``pred``).
+
+    Heights from :func:`support_limit` of ``ref`` up keep no calibration, and the spread map is fitted only if
+    :data:`MIN_SUPPORT_PIXELS` reference heights reach :data:`TALL_HEIGHT` (see the module docstring); the notes
+    say so.
     """
     pred = np.asarray(pred, np.float64).ravel()
     ref = np.asarray(ref, np.float64).ravel()
     sd = None if std is None else np.asarray(std, np.float64).ravel()
     if edges is None:
         edges = spread_ranges(pred)
-    cal = dataclasses.replace(_fit_parts(pred, ref, sd, method, knots, edges), source=source)
+    support: list[str] = []
+    if ref.size < MIN_SUPPORT_PIXELS:
+        note = (f"validation holds {ref.size} px, fewer than {MIN_SUPPORT_PIXELS}: no calibration (height map and "
+                "spread map off)")
+        return Calibration((0.0, 1.0), (0.0, 1.0), 1.0, method, int(ref.size), source, height_applied=False,
+                           spread_applied=False, notes=note, unsupported=note)
+    limit = support_limit(ref)
+    if limit is not None:
+        edges = tuple(sorted({e for e in edges if e < limit} | {limit}))
+        support.append(f"validation holds {int(np.count_nonzero(ref >= limit))} px ≥ {limit:g} m, fewer than "
+                       f"{MIN_SUPPORT_PIXELS}: heights ≥ {limit:g} m keep no calibration")
+    n_tall = int(np.count_nonzero(ref >= TALL_HEIGHT))
+    if sd is not None and n_tall < MIN_SUPPORT_PIXELS:
+        sd = None
+        support.append(f"validation holds {n_tall} px ≥ {TALL_HEIGHT:g} m, fewer than {MIN_SUPPORT_PIXELS}: "
+                       "spread map off (it would be fitted on the ground alone)")
+    cal = dataclasses.replace(_fit_parts(pred, ref, sd, method, knots, edges, limit=limit), source=source,
+                              unsupported="; ".join(support))
     if folds is None:
-        return cal
+        return dataclasses.replace(cal, notes="; ".join(support))
     folds = np.asarray(folds).ravel()
     parts = [folds == 0, folds == 1]
     if not (parts[0].any() and parts[1].any()):
-        return dataclasses.replace(cal, notes="one validation fold: both parts applied unchecked")
+        return dataclasses.replace(cal, notes="; ".join(["one validation fold: both parts applied unchecked",
+                                                         *support]))
     n = pred.size
-    fitted = [(score, _fit_parts(pred[fit], ref[fit], None if sd is None else sd[fit], method, knots, edges))
+    fitted = [(score, _fit_parts(pred[fit], ref[fit], None if sd is None else sd[fit], method, knots, edges,
+                                 limit=limit))
               for fit, score in (parts, parts[::-1])]
     mae_raw = float(np.abs(pred - ref).mean())
     mae_cal = sum(float(np.abs(c.height(pred[score]) - ref[score]).sum()) for score, c in fitted) / n
     height_ok = mae_cal < mae_raw
     notes = [f"validation MAE {mae_raw:.3f} m raw, {mae_cal:.3f} m with the height map (cross-fitted)"
-             + ("" if height_ok else ": height map off")]
+             + ("" if height_ok else ": height map off"), *support]
     spread_ok = False
     if sd is not None:
         if not height_ok:  # the spread is fitted and judged around the raw heights the user will get
-            cal = dataclasses.replace(_fit_parts(pred, ref, sd, method, knots, edges, height=False), source=source)
-            fitted = [(score, _fit_parts(pred[fit], ref[fit], sd[fit], method, knots, edges, height=False))
+            cal = dataclasses.replace(_fit_parts(pred, ref, sd, method, knots, edges, height=False, limit=limit),
+                                      source=source, unsupported="; ".join(support))
+            fitted = [(score, _fit_parts(pred[fit], ref[fit], sd[fit], method, knots, edges, height=False,
+                                         limit=limit))
                       for fit, score in (parts, parts[::-1])]
         crps_raw = crps_cal = nll_raw = nll_cal = 0.0
         for score, c in fitted:
@@ -467,6 +546,6 @@ def interval_coverage(abs_error: np.ndarray, std: np.ndarray) -> dict[str, float
             "within_2sigma": float(np.count_nonzero(abs_error <= 2 * std) / n)}
 
 
-__all__ = ["MIN_RANGE_PIXELS", "ONE_SIGMA", "SPREAD_EDGES", "Calibration", "CalibrationMethod", "fit_calibration",
-           "fit_height_map", "fit_spread", "fit_spread_crps", "fit_std_scale", "interp_torch", "interval_coverage",
-           "spread_ranges"]
+__all__ = ["MIN_RANGE_PIXELS", "MIN_SUPPORT_PIXELS", "ONE_SIGMA", "SPREAD_EDGES", "TALL_HEIGHT", "Calibration",
+           "CalibrationMethod", "fit_calibration", "fit_height_map", "fit_spread", "fit_spread_crps", "fit_std_scale",
+           "interp_torch", "interval_coverage", "spread_ranges", "support_limit"]

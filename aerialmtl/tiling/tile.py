@@ -63,6 +63,7 @@ from aerialmtl.io.oserrors import kind_of, output_error
 from aerialmtl.io.outputs import OutputFolder, staging_path
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
+from aerialmtl.models.calibration import TALL_HEIGHT
 from aerialmtl.progress import tqdm
 from aerialmtl.runtime import gdal_env
 from aerialmtl.tiling.grid import count_windows, tile_windows
@@ -134,13 +135,15 @@ class TileResult:
     block_size_m: float | None = None
     block_patches: int | None = None
     max_valid_fraction: float = 0.0
-    #: per split with heights: ``mean_m`` (mean reference height of its valid pixels, metres) and
-    #: ``tall_share`` (share of them ≥ :data:`TALL_M`), as the summary prints them
+    #: per split with heights: ``mean_m`` (mean reference height of its valid pixels, metres),
+    #: ``tall_share`` (share of them ≥ :data:`TALL_M`), as the summary prints them, and ``pixels`` and
+    #: ``tall_pixels`` (counts of them)
     height_summary: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
-#: Height (metres) above which a pixel counts as "tall" in the tile summary.
-TALL_M = 2.0
+#: Height (metres) above which a pixel counts as "tall" in the tile summary (the calibration's, which needs
+#: validation pixels this tall: :data:`aerialmtl.models.calibration.TALL_HEIGHT`).
+TALL_M = TALL_HEIGHT
 
 
 class _HeightSummary:
@@ -164,7 +167,7 @@ class _HeightSummary:
         a[2] += float(np.count_nonzero(heights >= TALL_M))
 
     def result(self) -> dict[str, dict[str, float]]:
-        return {s: {"mean_m": a[0] / a[1], "tall_share": a[2] / a[1]}
+        return {s: {"mean_m": a[0] / a[1], "tall_share": a[2] / a[1], "pixels": a[1], "tall_pixels": a[2]}
                 for s, a in sorted(self.acc.items(), key=lambda kv: SPLITS.index(kv[0])) if a[1]}
 
 
@@ -278,7 +281,31 @@ def tile_dataset(
             folder.remove_leftovers((STAGING_NAME, MANIFEST_CSV, DATASET_YAML))  # of a killed run
             owned = claim(folder, overwrite)
             result = _write_staged(sources, assigner, grid, options, out_dir, owned or [], progress)
+    warn_no_tall_pixels(result)
     return result
+
+
+def warn_no_tall_pixels(result: TileResult) -> None:
+    """Warn when the val or test split holds no reference height ≥ :data:`TALL_M` while train does: the
+    calibration fitted on validation could then correct no building or tree (it corrects only heights validation
+    holds), and validation and test scores would say nothing about them.
+    """
+    summary = result.height_summary
+    train_tall = int(summary.get("train", {}).get("tall_pixels", 0))
+    if not train_tall:
+        return
+    for split in ("val", "test"):
+        part = summary.get(split)
+        if part is None or part["tall_pixels"] > 0:
+            continue
+        warnings.warn(
+            f"tile folder '{result.out_dir}': the {split} split holds no pixel ≥ {TALL_M:g} m (its "
+            f"{result.counts.get(split, 0)} patches: {int(part['pixels'])} px, mean {part['mean_m']:.2f} m) while "
+            f"train holds {train_tall} ({100 * summary['train']['tall_share']:.0f} %): "
+            + ("the calibration fitted on it would correct no building or tree, and its scores would say nothing "
+               "of them" if split == "val" else "its scores would say nothing of buildings or trees")
+            + "; draw other splits: a smaller --split-block, a larger share in --split-ratios, another --split-seed, "
+            "or --split-aoi around an area with buildings or trees", UserWarning, stacklevel=2)
 
 
 def _write_staged(

@@ -292,11 +292,13 @@ def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, 
         command: the command line, recorded in the card.
 
     Raises:
-        InputError: bad settings or run-folder options; ``log.csv`` damaged on resume. ConfigError: a key it
-        cannot apply. OutputExistsError: a run is there (neither resume nor overwrite), a training run's files,
-        or a file at the start's paths it did not write. OutputInUseError: another command writes ``out_dir``.
+        InputError: bad settings or run-folder options; ``log.csv`` damaged on resume.
+        ConfigError: a key it cannot apply.
+        OutputExistsError: a run is there (neither resume nor overwrite), a training run's files, or a file at
+            the start's paths it did not write.
+        OutputInUseError: another command writes ``out_dir``.
         CheckpointError: ``last.pt`` cannot be resumed (another config or stream); the network's start would
-        be too large to export (before the first step).
+            be too large to export (before the first step).
     """
     t0 = time.perf_counter()
     run = Path(out_dir)
