@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 # Before torch loads OpenMP: threads that sleep instead of spinning while they wait. On a CPU shared with
 # other jobs, spinning threads steal the cores the work needs (bench/RESULTS.md, train: 6× slower model
@@ -52,31 +53,43 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def _root_entries() -> set[str]:
-    """Top-level entries of the checkout that git neither tracks nor ignores (none outside a git checkout)."""
-    import subprocess
+    """Top-level entries of the checkout (names), read from the file system: no subprocess at the end of a run (a
+    ``git status`` there crashed the interpreter of a full run; bench/results/commands.md, "the suite's crash")."""
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    try:
-        out = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "-z", "--untracked-files=normal",
-                              "--", "."], capture_output=True, check=True, timeout=60).stdout
-    except (OSError, subprocess.SubprocessError):
-        return set()
-    return {e[3:].split("/", 1)[0] for e in out.decode().split("\0") if e.startswith("?? ")}
+    return {p.name for p in Path(__file__).resolve().parents[1].iterdir()}
+
+
+def _ignored_at_root() -> list[str]:
+    """The root-level patterns of ``.gitignore`` (``/name``, ``name``, ``*.ext``): what a run may leave there."""
+    from pathlib import Path
+
+    gitignore = Path(__file__).resolve().parents[1] / ".gitignore"
+    if not gitignore.is_file():
+        return []
+    out = []
+    for line in gitignore.read_text(encoding="utf-8").splitlines():
+        line = line.strip()
+        if line and not line.startswith(("#", "!")) and "/" not in line.strip("/"):
+            out.append(line.strip("/"))
+    return out
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
-    if not hasattr(session.config, "workerinput"):  # the controller only (pytest-xdist workers share the root)
-        session.config.stash[_ROOT_BEFORE] = _root_entries()
+    if not hasattr(session.config, "workerinput") and (Path(__file__).resolve().parents[1] / ".git").exists():
+        session.config.stash[_ROOT_BEFORE] = _root_entries()  # the controller only (xdist workers share the root)
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     """Fail the run when its tests left a new file or folder at the repository root (test output belongs in
-    ``tmp_path``; tests/test_repository.py says why)."""
+    ``tmp_path``; tests/test_repository.py says why); what ``.gitignore`` ignores at the root may appear."""
+    import fnmatch
+
     before = session.config.stash.get(_ROOT_BEFORE, None)
     if before is None:
         return
-    new = sorted(_root_entries() - before)
+    ignored = _ignored_at_root()
+    new = sorted(n for n in _root_entries() - before if not any(fnmatch.fnmatch(n, pat) for pat in ignored))
     if new:
         import sys
 
