@@ -199,18 +199,16 @@ class OpenVINOEngine:
         return f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.{self._cpu_tag()}.blob"
 
     def _cpu_tag(self) -> str:
-        """A short tag of the CPU a compiled model is for: its name as OpenVINO reports it and the oneDNN ISA cap.
-
-        Compiled models are CPU-specific; one cache folder shared by machines of several kinds (a home folder on
-        a cluster's network drive) keeps one entry per kind instead of rebuilding, with a warning, at every switch.
+        """A short tag of the kind of CPU a compiled model is for: the machine, its native bf16 units and the oneDNN
+        ISA cap (:func:`aerialmtl.runtime.cpu_bf16_flags`). Compiled models are CPU-specific; a cache folder shared by
+        machines of several kinds (a home folder on a cluster's network drive, or a run under ``.ci/as-cpu``) keeps
+        one entry per kind instead of rebuilding, with a warning, at every switch. (Asking OpenVINO for the CPU's
+        name instead made a later garbage collection crash the process: bench/results/commands.md.)
         """
         if self._tag is None:
-            try:
-                name = str(self.core.get_property("CPU", "FULL_DEVICE_NAME"))
-            except RuntimeError:  # pragma: no cover - every CPU plugin answers it
-                name = "cpu"
             cap = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
-            self._tag = hashlib.sha256(f"{name}|{cap}".encode()).hexdigest()[:8]
+            key = f"{os.uname().machine}|{','.join(runtime.cpu_bf16_flags())}|{cap}"
+            self._tag = hashlib.sha256(key.encode()).hexdigest()[:8]
         return self._tag
 
     def _shaped(self, part: str, h: int, w: int) -> openvino.Model:
