@@ -199,11 +199,12 @@ class OpenVINOEngine:
         return f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.{self._cpu_tag()}.blob"
 
     def _cpu_tag(self) -> str:
-        """A short tag of the kind of CPU a compiled model is for: the machine, its native bf16 units and the oneDNN
-        ISA cap (:func:`aerialmtl.runtime.cpu_bf16_flags`). Compiled models are CPU-specific; a cache folder shared by
-        machines of several kinds (a home folder on a cluster's network drive, or a run under ``.ci/as-cpu``) keeps
-        one entry per kind instead of rebuilding, with a warning, at every switch. (Asking OpenVINO for the CPU's
-        name instead made a later garbage collection crash the process: bench/results/commands.md.)
+        """A short tag of the kind of CPU a compiled model is for.
+
+        The machine, its native bf16 units and the oneDNN ISA cap (:func:`aerialmtl.runtime.cpu_bf16_flags`).
+        Compiled models are CPU-specific: a cache folder shared by machines of several kinds (a home folder on a
+        cluster's network drive, or a run under ``.ci/as-cpu``) keeps one entry per kind instead of rebuilding,
+        with a warning, at every switch.
         """
         if self._tag is None:
             cap = os.environ.get("ONEDNN_MAX_CPU_ISA", "").strip().upper()
