@@ -50,6 +50,7 @@ class AreaImage:
     gsd: float
     crs: str | None
     bounds: tuple[float, float, float, float] | None
+    ortho: str | None = None  # the orthophoto the tile folder was cut from (its provenance), where recorded
 
 
 def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
@@ -75,7 +76,8 @@ def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
     bottom = min(float(r["bottom"]) for r in rows)
     right = max(float(r["right"]) for r in rows)
     top = max(float(r["top"]) for r in rows)
-    area = AreaImage([], [], [], float(info.gsd), info.crs, (left, bottom, right, top))
+    ortho = info.provenance.get("ortho")
+    area = AreaImage([], [], [], float(info.gsd), info.crs, (left, bottom, right, top), str(ortho) if ortho else None)
     if w * h <= MAX_MOSAIC_PIXELS:
         rgb = np.zeros((3, h, w), np.uint8)
         height = np.full((h, w), np.nan, np.float32)
@@ -99,9 +101,8 @@ def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
     return area
 
 
-def _acquired(info: TileFolderInfo) -> str | None:
+def _acquired(path: str | None) -> str | None:
     """The training orthophoto's TIFF ``DateTime`` (as written), where the file is still there and has one."""
-    path = info.provenance.get("ortho")
     if not path or not Path(str(path)).is_file():
         return None
     try:
@@ -134,7 +135,7 @@ def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
               f"grid), elevation {fit.sun.elevation_deg:.1f}° (correlation {fit.score:.2f}, sharpness "
               f"{fit.sharpness:.2f})")
     acquired, time_sun = None, None
-    stamp = _acquired(TileFolderInfo.read(data_dir))
+    stamp = _acquired(area.ortho)
     if stamp:
         try:
             when = parse_time(stamp, "the training orthophoto's DateTime")
