@@ -124,8 +124,6 @@ def blocking_file(path: str | Path, depth: int = VRT_DEPTH) -> tuple[Path, str] 
         if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
             return p, special_kind(mode)
     if str(path).lower().endswith(".vrt") and depth > 0:  # and the files a VRT lists, which GDAL opens as it reads
-        from aerialmtl.io.paths import is_local
-
         for name in _vrt_source_names(path):
             found = blocking_file(name, depth - 1) if is_local(name) else None
             if found is not None:
@@ -149,8 +147,6 @@ def _vrt_source_names(path: str | Path) -> list[str]:
     document order without repeats; ``[]`` when it cannot be read (a FIFO there is not waited on).
     """
     import xml.etree.ElementTree as ET
-
-    from aerialmtl.io.paths import is_local
 
     try:
         with os.fdopen(open_regular(path, follow_links=True), "rb") as fh:
