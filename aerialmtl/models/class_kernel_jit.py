@@ -195,7 +195,7 @@ class GuardedCache(caching.FunctionCache):
         if STORE.folder is None:
             return None
         try:
-            return super().load_overload(sig, target_context)  # type: ignore[no-untyped-call]
+            return super().load_overload(sig, target_context)  # type: ignore[no-untyped-call]  # numba: unannotated
         except Exception as exc:  # damaged pickles raise anything: UnpicklingError, EOFError, ValueError, ...
             why = f"not loadable ({type(exc).__name__}: {' '.join(str(exc).split()) or 'no detail'})"
             STORE.discard([(path, why) for path in STORE._files()])
@@ -206,10 +206,10 @@ class GuardedCache(caching.FunctionCache):
         if STORE.folder is None:
             return
         try:
-            super().save_overload(sig, data)  # type: ignore[no-untyped-call]
+            super().save_overload(sig, data)  # type: ignore[no-untyped-call]  # numba: unannotated
         except OSError as exc:
             STORE.disable(exc, "written")
-            self.disable()  # type: ignore[no-untyped-call]
+            self.disable()  # type: ignore[no-untyped-call]  # numba: unannotated
             return
         STORE.record()
 
@@ -221,7 +221,8 @@ def jit(fn: Any) -> Any:
     """
     dispatcher = numba.njit(cache=False, **_OPTIONS)(fn)
     if STORE.usable():
-        dispatcher._cache = GuardedCache(fn)  # type: ignore[no-untyped-call] # numba's Dispatcher.enable_caching, with this cache class
+        # numba's Dispatcher.enable_caching, with this cache class
+        dispatcher._cache = GuardedCache(fn)  # type: ignore[no-untyped-call]  # numba: unannotated
     return dispatcher
 
 
