@@ -27,6 +27,7 @@ from rasterio.windows import Window
 from aerialmtl._version import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme, OnUnknown
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.evaluation.buildings import evaluate_buildings
 from aerialmtl.evaluation.metrics import (
     DEFAULT_HEIGHT_BINS,
     HeightStats,
@@ -276,8 +277,6 @@ def _evaluate(pred_dir: Path, refs: _References, classes: str | Path | ClassSche
     if classes_eval is not None:
         classes_eval.report_into(report, names, options.steps)
     if refs.buildings is not None:
-        from aerialmtl.evaluation.buildings import evaluate_buildings
-
         report["references"]["buildings"] = str(refs.buildings)
         report["buildings"] = evaluate_buildings(pred_dir, refs.buildings, grid, refs.pred_buildings, notes=notes)
     if out is not None:
