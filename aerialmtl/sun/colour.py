@@ -98,9 +98,9 @@ def feature_planes(rgb: np.ndarray, gsd_m: float, workers: int = 1) -> list[np.n
     def context(job: tuple[str, float]) -> np.ndarray:
         kind, metres = job
         size = _window(metres, gsd_m)
-        if kind == "mean":
-            return lum - ndimage.uniform_filter(lum, size=size, mode="reflect")
-        return lum - ndimage.maximum_filter(lum, size=size, mode="reflect")
+        local: np.ndarray = (ndimage.uniform_filter if kind == "mean" else ndimage.maximum_filter)(
+            lum, size=size, mode="reflect")
+        return lum - local
 
     jobs = [("mean", m) for m in MEAN_CONTEXTS_M] + [("peak", m) for m in PEAK_CONTEXTS_M]
     if workers > 1:
