@@ -100,7 +100,8 @@ def feature_planes(rgb: np.ndarray, gsd_m: float, workers: int = 1) -> list[np.n
         size = _window(metres, gsd_m)
         local: np.ndarray = (ndimage.uniform_filter if kind == "mean" else ndimage.maximum_filter)(
             lum, size=size, mode="reflect")
-        return lum - local
+        out: np.ndarray = lum - local
+        return out
 
     jobs = [("mean", m) for m in MEAN_CONTEXTS_M] + [("peak", m) for m in PEAK_CONTEXTS_M]
     if workers > 1:
