@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TypedDict
+from typing import Any, TypedDict, cast
 
 import torch
 
@@ -23,3 +23,12 @@ class Sample(TypedDict, total=False):
     height_valid: torch.Tensor
     classes: torch.Tensor
     patch_id: str
+
+
+def as_sample(fields: dict[str, Any]) -> Sample:
+    """``fields``, a sample's keys and values put together key by key (a batch's split, a transform's output), as
+    the :class:`Sample` they are (the same dict, not a copy).
+
+    A TypedDict cannot be built from keys known only when the code runs; this is the one place that says so.
+    """
+    return cast(Sample, fields)
