@@ -52,6 +52,7 @@ def bench(models: tuple[str, ...], cases: tuple[str, ...], window: int, windows:
 
     One parameter per command-line option: click passes each option to the command.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.inference.cpu_bench import (
         BenchRow,
         BenchSettings,

@@ -46,6 +46,7 @@ def export(checkpoint: Path, format_: Format, task: Task, tile: int, overlap: in
         aerialmtl export best.pt --task height --out height.onnx
         aerialmtl export best.pt --task classes --out classes.onnx
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.inference.export import export_model
 
     result = export_model(checkpoint, out, format=format_, task=task, tile=tile,

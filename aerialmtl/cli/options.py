@@ -219,7 +219,7 @@ def values_for(names: Iterable[Any], values: dict[str, Any]) -> dict[str, Any]:
 
 
 def _commands() -> dict[str, click.Command]:
-    from aerialmtl.cli import cli  # the group registers every command
+    from aerialmtl.cli import cli  # cycle: aerialmtl.cli imports this module to build the group
 
     return dict(cli.commands)
 

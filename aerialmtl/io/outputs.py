@@ -63,7 +63,7 @@ STAGING_TAGS = (PARTIAL, STAGING, MERGE_VRT)
 try:  # POSIX
     import fcntl
 except ImportError:  # pragma: no cover - Windows
-    fcntl = None  # type: ignore[assignment]
+    fcntl = None  # type: ignore[assignment]  # no fcntl module on Windows: None says so
 
 
 # ---- staging and atomic writes -------------------------------------------------------------------
