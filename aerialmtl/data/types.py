@@ -26,9 +26,9 @@ class Sample(TypedDict, total=False):
 
 
 def as_sample(fields: dict[str, Any]) -> Sample:
-    """``fields``, a sample's keys and values put together key by key (a batch's split, a transform's output), as
-    the :class:`Sample` they are (the same dict, not a copy).
+    """``fields`` as the :class:`Sample` they are (the same dict, not a copy).
 
-    A TypedDict cannot be built from keys known only when the code runs; this is the one place that says so.
+    For a sample put together key by key (a batch's split, a transform's output): a TypedDict cannot be built
+    from keys known only when the code runs, and this is the one place that says they are a sample's.
     """
     return cast(Sample, fields)
