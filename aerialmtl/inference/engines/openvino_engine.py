@@ -198,6 +198,15 @@ class OpenVINOEngine:
         hint, n = self.compile_config()["INFERENCE_PRECISION_HINT"], self.threads
         return f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.{self._cpu_tag()}.blob"
 
+    def cached(self, h: int, w: int, samples: int) -> bool:
+        """Whether every graph that ``h × w`` windows at ``samples`` MC samples run is compiled in the cache (a
+        run without them converts and compiles first: :func:`~aerialmtl.inference.engine_choice.cold_start_pays`).
+        """
+        parts = {"forward"} if samples == 1 else {"encode", "decode"}
+        if self.density is not None:
+            parts.add("encode")
+        return self.cache.enabled and all(self.cache.path(self._entry_name(p, h, w)).is_file() for p in parts)
+
     def _cpu_tag(self) -> str:
         """A short tag of the kind of CPU a compiled model is for.
 
