@@ -118,21 +118,66 @@ def test_openvino_where_measured_slower_warns_once(kind) -> None:  # type: ignor
     assert choose_engine("torch", "auto", CPU, tiny_d3net()[0], TABLE).reason == "asked for"
 
 
-def test_prediction_json_records_the_choice(kind, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+def test_prediction_json_records_the_choice(kind, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # type: ignore[no-untyped-def]
     from helpers.rasters import write_raster
 
     from aerialmtl.inference.predict import predict_raster
 
     pytest.importorskip("openvino")
     kind("avx2")
+    monkeypatch.setenv("AERIALMTL_OPENVINO_CACHE", str(tmp_path / "cache"))  # cold: nothing compiled yet
     ortho = write_raster(tmp_path / "o.tif", torch.randint(0, 255, (3, 64, 64)).numpy().astype("uint8"))
-    predict_raster(ortho, tiny_d3net(), tmp_path / "out", mc=1, progress=False)
-    info = json.loads((tmp_path / "out" / "prediction.json").read_text())
     expect = engine_choice.shipped_table().get("avx2")
+
+    def run(**options: str) -> dict:  # type: ignore[type-arg]
+        predict_raster(ortho, tiny_d3net(), tmp_path / "out", mc=1, progress=False, overwrite=True,
+                       **options)  # type: ignore[arg-type]
+        return json.loads((tmp_path / "out" / "prediction.json").read_text())  # type: ignore[no-any-return]
+
+    info = run()
     assert info["engine_choice"]["cpu_kind"] == "avx2"
     assert info["engine_choice"]["reason"]
-    if expect is not None:
-        assert (info["engine"], info["precision"]) == (expect.engine, expect.precision)
+    if expect is None or expect.engine != "openvino" or not expect.speedup:
+        return
+    # a tiny job on a cold cache: compiling OpenVINO first would take longer than the torch engine, said so
+    assert (info["engine"], info["engine_choice"]["engine"]) == ("torch", "torch")
+    assert "cache cold" in info["engine_choice"]["reason"]
+    run(engine="openvino", precision=expect.precision)  # compiles this model and window into the cache
+    info = run()  # the cache is warm now: the table's choice
+    assert (info["engine"], info["precision"]) == (expect.engine, expect.precision)
+
+
+@pytest.mark.parametrize(("work_mpx", "samples", "speedup", "pays"), [
+    (4.875, 1, 1.69, False),  # 2048² at T = 1 on the Zen 3 of issue 46: its first OpenVINO run took 0.55× torch
+    (79.7, 1, 1.69, True),  # 8192² at T = 1
+    (4.875, 30, 1.69, True),  # 2048² at T = 30: 30 decoder passes per window
+    (4.875, 1, 100.0, False),  # even a free OpenVINO run does not make up for compiling before a tiny job
+    (20.0, 1, 1.0, False),  # nothing to gain: never compile for it
+])
+def test_cold_start_pays_weighs_compiling_against_the_job(work_mpx: float, samples: int, speedup: float,
+                                                         pays: bool) -> None:
+    graphs = 1 if samples == 1 else 2
+    assert engine_choice.cold_start_pays(work_mpx * samples, speedup, graphs) is pays
+
+
+def test_cold_cache_turns_auto_to_torch_for_small_jobs_only(kind) -> None:  # type: ignore[no-untyped-def]
+    kind("avx512_bf16")  # TABLE: OpenVINO bf16 measured 2.4× torch
+    choice = engine_choice.EngineChoice("openvino", "bf16", "openvino", "engine=auto, precision=auto", "avx512_bf16",
+                                        "table")
+    small, large = 1.0, 500.0  # window megapixels of the job
+    cold = engine_choice.cold_cache_choice(choice, "auto", CPU, small, 1, warm=False, table=TABLE)
+    assert (cold.engine, cold.precision, cold.layout) == ("torch", "fp32", "channels_last")  # no AMX: torch fp32
+    assert "cache cold" in cold.reason and cold.asked == choice.asked
+    assert engine_choice.cold_cache_choice(choice, "bf16", CPU, small, 1, warm=False, table=TABLE).precision == "bf16"
+    assert engine_choice.cold_cache_choice(choice, "auto", CPU, small, 1, warm=True, table=TABLE) is choice
+    assert engine_choice.cold_cache_choice(choice, "auto", CPU, large, 1, warm=False, table=TABLE) is choice
+    assert engine_choice.cold_cache_choice(choice, "auto", CPU, 0.2, 30, warm=False, table=TABLE).engine == "torch"
+    assert engine_choice.cold_cache_choice(choice, "auto", CPU, 10.0, 30, warm=False, table=TABLE) is choice
+    asked = engine_choice.EngineChoice("openvino", "bf16", "openvino", "engine=openvino, precision=auto",
+                                       "avx512_bf16", "asked for")
+    assert engine_choice.cold_cache_choice(asked, "auto", CPU, small, 1, warm=False, table=TABLE) is asked
+    unmeasured = engine_choice.EngineChoice("openvino", "bf16", "openvino", choice.asked, "amx", "no measurement")
+    assert engine_choice.cold_cache_choice(unmeasured, "auto", CPU, small, 1, warm=False, table=TABLE) is unmeasured
 
 
 def test_bench_measures_and_writes_the_table(tmp_path: Path) -> None:

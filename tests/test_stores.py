@@ -215,6 +215,10 @@ def test_full_tmpdir_names_the_temporary_folder_not_the_model(engine: str, full_
     done = _predict(inputs, out, cache, engine=engine, TMPDIR=str(full_tmpdir))
     err = one_line(done.stderr)
     assert done.returncode == 0, err
+    choice = json.loads((out / "prediction.json").read_text())["engine_choice"]
+    if engine == "auto" and "cache cold" in choice["reason"]:  # a measured CPU kind: torch for a job this small
+        assert choice["engine"] == "torch" and "cannot run this model" not in err
+        return
     assert not any(b in err for b in BAD) and "Error:" not in err  # OpenVINO's "iostream error" only as the cause
     assert f"the temporary folder '{full_tmpdir}' ($TMPDIR={full_tmpdir}" in err and "point TMPDIR at" in err
     assert "cannot run this model" not in err  # the model runs: it was the temporary folder

@@ -286,8 +286,65 @@ def choose_engine(engine: str, precision: str, device: torch.device, model: nn.M
     return EngineChoice(resolved, prec, layout, asked, kind, why)
 
 
+# ---- a cold engine cache ----------------------------------------------------------------------
+#: What converting and compiling the full D3-Net for one window shape costs, in window megapixels of the torch
+#: engine (fp32) on the same CPU. Measured on an AVX2 AMD Zen 3 (issue 46): a first 2048² T = 1 predict (4.9 window
+#: megapixels) ran 0.55× the torch engine, the second 1.69×, so the compilation took (1/0.55 − 1/1.69) ≈ 1.23
+#: torch runs of that job ≈ 6 megapixels. Compilation and the torch engine both slow down with the CPU, so the
+#: cost is kept in the torch engine's work rather than in seconds.
+COMPILE_TORCH_MPX = 6.0
 
 
-__all__ = ["CPU_KINDS", "CPU_KIND_ENV", "TABLE_RESOURCE", "TOLERANCES", "CpuKind", "EngineChoice",
-           "KindEntry", "choose_engine", "cpu_kind", "kind_of", "read_table",
+def cold_start_pays(work_mpx: float, speedup: float, graphs: int = 1,
+                    compile_mpx: float = COMPILE_TORCH_MPX) -> bool:
+    """Whether OpenVINO, converting and compiling ``graphs`` graphs first, finishes a job no later than the torch
+    engine: ``work / speedup + graphs × compile ≤ work``, all in the torch engine's window megapixels.
+
+    Args:
+        work_mpx: the job's window megapixels times its model passes (MC samples, TTA views).
+        speedup: OpenVINO's measured speed over the torch engine (the table's :attr:`KindEntry.speedup`).
+        graphs: graphs compiled (the forward pass at T = 1; the encoder and the decoder at T > 1).
+        compile_mpx: the cost of one graph's compilation (:data:`COMPILE_TORCH_MPX`).
+    """
+    return work_mpx / max(speedup, 1e-9) + graphs * compile_mpx <= work_mpx
+
+
+def cold_cache_choice(choice: EngineChoice, precision: str, device: torch.device, work_mpx: float, samples: int,
+                      warm: bool, table: dict[CpuKind, KindEntry] | None = None) -> EngineChoice:
+    """``auto``'s choice for a job once its size and the engine cache are known: the table's OpenVINO, when the
+    graphs the job runs are not compiled in the cache (``warm`` false) and :func:`cold_start_pays` says the torch
+    engine finishes first, gives way to the torch engine (``precision``: as an explicit torch engine resolves it).
+    Every other choice is returned as it is, as is a kind without a measured speedup (nothing to weigh).
+
+    A job the torch engine takes leaves the cache cold; the first job large enough for compilation to pay (or one
+    run with ``--engine openvino``) fills it, and the later jobs on this model and window shape take OpenVINO.
+
+    Args:
+        choice: :func:`choose_engine`'s choice.
+        precision: the ``precision`` option as given.
+        device: where the model runs.
+        work_mpx: the job's window megapixels (all inputs), once.
+        samples: model passes per window (MC samples × TTA views).
+        warm: whether the cache holds the compiled graphs of every window shape of the job.
+        table: kind → entry; default :func:`shipped_table`.
+    """
+    if not choice.asked.startswith("engine=auto") or choice.engine != "openvino" or warm or choice.cpu_kind is None:
+        return choice
+    entry = (shipped_table() if table is None else table).get(choice.cpu_kind)
+    if entry is None or not entry.speedup or entry.engine != "openvino":
+        return choice
+    work = work_mpx * max(1, samples)
+    if cold_start_pays(work, entry.speedup, 1 if samples == 1 else 2):
+        return choice
+    from aerialmtl import runtime
+
+    prec = runtime.resolve_precision(precision, device, cpu_bf16=runtime.cpu_has_amx())
+    why = (f"auto on a CPU of kind {choice.cpu_kind}, OpenVINO's cache cold for this model and window: {work:.3g} "
+           f"window Mpx run sooner on torch than after compiling ({COMPILE_TORCH_MPX:g} Mpx per graph) at "
+           f"{entry.speedup:.2f}× torch")
+    return EngineChoice("torch", prec, "channels_last", choice.asked, choice.cpu_kind, why)
+
+
+__all__ = ["COMPILE_TORCH_MPX", "CPU_KINDS", "CPU_KIND_ENV", "TABLE_RESOURCE", "TOLERANCES", "CpuKind", "EngineChoice",
+           "KindEntry", "choose_engine", "cold_cache_choice", "cold_start_pays", "cpu_kind", "kind_of", "read_table",
            "shipped_table"]

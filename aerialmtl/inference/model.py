@@ -46,7 +46,7 @@ import threading
 import time
 import warnings
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,7 +58,7 @@ from aerialmtl.formats import checkpoint as checkpoint_format  # read_model at c
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
-from aerialmtl.inference.engine_choice import choose_engine
+from aerialmtl.inference.engine_choice import choose_engine, cold_cache_choice
 from aerialmtl.inference.engines import Pending, cache_root, openvino_available
 from aerialmtl.inference.model_record import CheckpointModel, make_record, read_record, resolve_model, write_record
 from aerialmtl.inference.ortho import OrthoInput
@@ -173,6 +173,7 @@ class Predictor:
                           UserWarning, stacklevel=2)
         self.checkpoint_name = checkpoint_name or name
         self._checkpoint = checkpoint
+        self._loaded = model  # as loaded: the torch engine is built from it if a cold cache turns auto to torch
         self._fingerprint: str | None = loaded_fingerprint  # of the bytes loaded, not of the path at commit
         self.mc = s.mc if s.mc is not None else (DEFAULT_MC_SAMPLES if self.meta.model.dropout > 0 else 1)
         if s.calibration:
@@ -281,6 +282,28 @@ class Predictor:
             self._batch[key] = auto_batch_size(lambda: self.runner.net, self.meta.model.in_channels, *key,
                                                self.device, self.precision)
         return self._batch[key]
+
+    def fit_engine(self, srcs: Sequence[OrthoInput]) -> None:
+        """With ``engine: auto``, the choice for the job of predicting ``srcs`` once its size is known: OpenVINO on a
+        cold cache gives way to the torch engine when compiling first would make the job slower than torch
+        (:func:`~aerialmtl.inference.engine_choice.cold_cache_choice`, which :attr:`choice` then says). Called by
+        the jobs (:mod:`aerialmtl.inference.jobs`) before anything is computed.
+        """
+        cached = getattr(self.runner.engine, "cached", None)
+        if self.settings.engine != "auto" or not srcs or not callable(cached):
+            return
+        shapes = {(src.plan.rows.size, src.plan.cols.size) for src in srcs}
+        warm = all(cached(h, w, self.mc) for h, w in shapes)
+        work = sum(src.plan.num_windows * src.plan.rows.size * src.plan.cols.size for src in srcs) / 1e6
+        passes = self.mc * (8 if self.settings.tta else 1)
+        choice = cold_cache_choice(self.choice, self.settings.precision, self.device, work, passes, warm)
+        if choice is self.choice:
+            return
+        self.choice = choice
+        self.engine, self.precision = choice.engine, choice.precision
+        self.resolved = ResolvedSettings(self.device, self.engine, self.precision, self.threads, self.mc)
+        self.runner = ModelRunner(resolve_model(self._loaded), self.meta, self.settings, self.resolved)
+        self._batch.clear()
 
     # ---- computing --------------------------------------------------------------------------------
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,

@@ -89,7 +89,7 @@ class OpenVINOEngine:
         #: Threads and streams the model is compiled for (:func:`aerialmtl.runtime.resolve_threads`).
         self.threads = threads if threads is not None else resolve_threads()
         self._sites: list[DropoutSite] | None = None
-        self.core = ov.Core()
+        self.core = runtime.openvino_core()  # one per process (see there: a Core per engine corrupted memory)
         self.cache_dir: Path | None = None
         if cache:
             cfg = getattr(model, "cfg", "")
@@ -197,6 +197,15 @@ class OpenVINOEngine:
         """The cache entry of ``part`` compiled for ``h × w`` windows at this precision, threads, streams and CPU."""
         hint, n = self.compile_config()["INFERENCE_PRECISION_HINT"], self.threads
         return f"{part}.{h}x{w}.{hint}.t{n.threads}s{n.streams}.{self._cpu_tag()}.blob"
+
+    def cached(self, h: int, w: int, samples: int) -> bool:
+        """Whether every graph that ``h × w`` windows at ``samples`` MC samples run is compiled in the cache (a
+        run without them converts and compiles first: :func:`~aerialmtl.inference.engine_choice.cold_start_pays`).
+        """
+        parts = {"forward"} if samples == 1 else {"encode", "decode"}
+        if self.density is not None:
+            parts.add("encode")
+        return self.cache.enabled and all(self.cache.path(self._entry_name(p, h, w)).is_file() for p in parts)
 
     def _cpu_tag(self) -> str:
         """A short tag of the kind of CPU a compiled model is for.
