@@ -328,8 +328,9 @@ def bytes_fingerprint(data: bytes) -> str:
 
 
 def file_sha256(path: str | Path) -> str:
-    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory; a FIFO or device
-    there is an ``OSError``, never waited on: :func:`aerialmtl.io.fingerprint.content_sha256`).
+    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory).
+
+    A FIFO or device there is an ``OSError``, never waited on (:func:`aerialmtl.io.fingerprint.content_sha256`).
     """
     return f"sha256:{content_sha256(path)}"
 
@@ -342,9 +343,10 @@ MAX_CHECKPOINT_VALUES = 5_000_000
 
 
 def expanded_values(obj: Any, limit: int = MAX_CHECKPOINT_VALUES) -> int:
-    """The values of ``obj`` (dicts, lists, tuples, sets and what they hold) counted as a walk of the tree would
-    meet them, shared references counted each time (``limit + 1`` stands for "more", and for a structure that
-    contains itself). Linear in the distinct objects: the count of each is kept.
+    """The values of ``obj`` (dicts, lists, tuples, sets and what they hold) counted as a walk of the tree would.
+
+    Shared references are counted each time they are met (``limit + 1`` stands for "more", and for a structure
+    that contains itself). Linear in the distinct objects: the count of each is kept.
     """
     sizes: dict[int, int] = {}
     on_path: set[int] = set()
@@ -522,9 +524,10 @@ def _state_dict_mismatch(expected: dict[str, torch.Tensor], got: Any) -> str | N
 
 
 def wrong_dtype(expected: dict[str, torch.Tensor], got: dict[str, torch.Tensor]) -> str | None:
-    """The first tensor of ``got`` stored as another kind of number than the model's (``expected``) has: a float
-    weight as an integer or ``bool`` (``int8`` weights would be cast silently into other maps), an integer counter
-    as a float, anything complex; ``None`` when there is none. A float of another width (a ``float16`` start) is
+    """The first tensor of ``got`` stored as another kind of number than the model's (``expected``), or ``None``.
+
+    Another kind: a float weight as an integer or ``bool`` (``int8`` weights would be cast silently into other
+    maps), an integer counter as a float, anything complex. A float of another width (a ``float16`` start) is
     the same kind, cast exactly enough.
     """
     for key, ref in expected.items():

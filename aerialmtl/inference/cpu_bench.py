@@ -87,9 +87,11 @@ class BenchSettings:
 
 @dataclass
 class BenchRow:
-    """One measurement. ``stage``: ``model`` (alone) or ``end-to-end``; ``mpx_s``: output megapixels per second;
-    ``seconds``: per window (model) or per process (end to end); accuracy against torch fp32 (model alone);
-    ``load``: load average (1 min) before → after; ``note``: why a case was skipped, or the stage timings.
+    """One measurement.
+
+    ``stage``: ``model`` (alone) or ``end-to-end``; ``mpx_s``: output megapixels per second; ``seconds``: per
+    window (model) or per process (end to end); accuracy against torch fp32 (model alone); ``load``: load average
+    (1 min) before → after; ``note``: why a case was skipped, or the stage timings.
     """
 
     model: str
@@ -362,12 +364,13 @@ def within_tolerance(row: BenchRow) -> bool:
 
 
 def best_entry(report: BenchReport, model: str = "full") -> KindEntry:
-    """The table entry of the report's CPU kind: the engine × precision of ``model`` with the highest model-alone
-    speed among those whose maps stay within the tolerances (:func:`within_tolerance`; int8 is never chosen:
-    ``predict`` has no int8 path). The model-alone speed decides, not the end-to-end one: it is measured back to
-    back in one process, while one end-to-end run per case on a small raster is mostly start-up and, on a shared
-    CPU, the load of the moment. ``speedup`` is the end-to-end ratio over torch fp32 where both were measured
-    (else the model-alone ratio), and ``measured`` says which.
+    """The table entry of the report's CPU kind: the fastest engine × precision of ``model`` within the tolerances.
+
+    Fastest by model-alone speed among those whose maps stay within the tolerances (:func:`within_tolerance`;
+    int8 is never chosen: ``predict`` has no int8 path). The model-alone speed decides, not the end-to-end one:
+    it is measured back to back in one process, while one end-to-end run per case on a small raster is mostly
+    start-up and, on a shared CPU, the load of the moment. ``speedup`` is the end-to-end ratio over torch fp32
+    where both were measured (else the model-alone ratio), and ``measured`` says which.
 
     Raises:
         ValueError: the report has no measured row of ``model`` within the tolerances, or its best is no

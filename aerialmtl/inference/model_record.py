@@ -88,8 +88,9 @@ def record_path(digest: str, root: Path) -> Path:
 
 
 def read_record(digest: str, root: Path) -> ModelRecord | None:
-    """The record of fingerprint ``digest``, or ``None`` (missing, unreadable or damaged: a damaged one is
-    removed, and the run that loads the checkpoint writes it again).
+    """The record of fingerprint ``digest``, or ``None`` (missing, unreadable or damaged).
+
+    A damaged record is removed, and the run that loads the checkpoint writes it again.
     """
     path = record_path(digest, root)
     store = _store(path)
@@ -110,8 +111,10 @@ def _store(path: Path) -> Store:
 
 
 def make_record(model: nn.Module, meta: ModelMeta) -> ModelRecord | None:
-    """The record of a loaded D3-Net, or ``None`` when it cannot stand for the model (another model class, or
-    metadata that would not come back equal from JSON: such checkpoints are always loaded).
+    """The record of a loaded D3-Net, or ``None`` when it cannot stand for the model.
+
+    It cannot for another model class, or for metadata that would not come back equal from JSON: such
+    checkpoints are always loaded.
     """
     if type(model) is not D3Net:
         return None
@@ -126,8 +129,9 @@ def make_record(model: nn.Module, meta: ModelMeta) -> ModelRecord | None:
 
 
 def write_record(digest: str, record: ModelRecord, root: Path) -> None:
-    """Store ``record`` for fingerprint ``digest`` (whole, through a staging file). A folder that cannot be
-    written is skipped with the stores' one warning per folder.
+    """Store ``record`` for fingerprint ``digest`` (whole, through a staging file).
+
+    A folder that cannot be written is skipped with the stores' one warning per folder.
     """
     path = record_path(digest, root)
     _store(path).write(path.name, [record.to_json()])

@@ -110,11 +110,12 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
 
 
 def blocking_file(path: str | Path, depth: int = VRT_DEPTH) -> tuple[Path, str] | None:
-    """The first of local raster ``path``, the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) and,
-    for a VRT, the files it lists (``depth`` levels) that is a FIFO, a socket or a device (links followed), and
-    what it is; ``None`` when there is none. GDAL opens those without a timeout and would wait on a FIFO forever,
-    so a raster with one is not opened (:func:`aerialmtl.io.align.open_raster`). A folder at a sidecar's name is
-    not one (GDAL reads nothing there).
+    """The first file of raster ``path`` that is a FIFO, a socket or a device, and what it is; ``None`` if none.
+
+    Looked at: local raster ``path``, the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) and, for a
+    VRT, the files it lists (``depth`` levels), links followed. GDAL opens those without a timeout and would wait
+    on a FIFO forever, so a raster with one is not opened (:func:`aerialmtl.io.align.open_raster`). A folder at a
+    sidecar's name is not one (GDAL reads nothing there).
     """
     for p in (Path(path), *sidecar_paths(path)):
         try:
@@ -143,8 +144,9 @@ def raster_identity(src: Any) -> dict[str, Any]:
 
 
 def _vrt_source_names(path: str | Path) -> list[str]:
-    """The sources local VRT ``path`` lists (``SourceFilename``; relative ones resolved against its folder), in
-    document order without repeats; ``[]`` when it cannot be read (a FIFO there is not waited on).
+    """The sources local VRT ``path`` lists (``SourceFilename``), in document order without repeats.
+
+    Relative ones are resolved against its folder; ``[]`` when it cannot be read (a FIFO there is not waited on).
     """
     import xml.etree.ElementTree as ET
 

@@ -99,8 +99,9 @@ class KernelStore(stores.Store):
         return table
 
     def heal(self) -> None:
-        """Remove every file numba would read that is not one it wrote here (see the module docstring), with one
-        warning naming them; once per process, before numba reads the folder.
+        """Remove every file numba would read that is not one it wrote here (see the module docstring).
+
+        One warning names them; once per process, before numba reads the folder.
         """
         with self._lock:
             if self._healed or self.folder is None:
@@ -182,9 +183,10 @@ class _Impl(caching.CompileResultCacheImpl):
 
 
 class GuardedCache(caching.FunctionCache):
-    """numba's function cache in the ``numba`` store, under the stores' rule: the folder is healed before the first
-    load, a load that fails anyway is a recompile (with a warning), a save that fails turns caching off (with a
-    warning), and every save is recorded in the manifest.
+    """numba's function cache in the ``numba`` store, under the stores' rule.
+
+    The folder is healed before the first load, a load that fails anyway is a recompile (with a warning), a save
+    that fails turns caching off (with a warning), and every save is recorded in the manifest.
     """
 
     _impl_class = _Impl
