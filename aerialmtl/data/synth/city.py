@@ -44,7 +44,7 @@ from aerialmtl.data.synth.city_canvas import (
     CityCanvas,
 )
 from aerialmtl.data.synth.materials import BUILDING, LOW_VEGETATION, ROAD, WATER, jitter, texture_terms
-from aerialmtl.data.synth.noise import value_noise
+from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.relief import relief_displacement
 from aerialmtl.data.synth.shading import Sky, direct_sun, wall_sun
 from aerialmtl.data.synth.streets import (
@@ -153,7 +153,7 @@ def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: 
     """
     theta = 0.0 if layout.random() < 0.3 else math.radians(layout.uniform(-45, 45))
     cv = CityCanvas(size, gsd, theta, texture)
-    bumps = value_noise(cv.ndsm.shape, max(1.0, 0.8 / gsd), layout)
+    bumps = smooth_noise(cv.ndsm.shape, max(1.0, 0.8 / gsd), layout, "smoothstep")
     lines_u = _lines(layout, float(cv.u.min()), float(cv.u.max()))
     lines_v = _lines(layout, float(cv.v.min()), float(cv.v.max()))
     kerb = layout.uniform(1.5, 4.0)
@@ -191,8 +191,8 @@ def _street_trees(b: Blocks, u0: float, u1: float, v0: float, v1: float, kerb: f
 
 def _albedo(cv: CityCanvas, rng: np.random.Generator) -> np.ndarray:
     """Surface colour with material textures: float32 (3, N, N) DN."""
-    large = value_noise(cv.ndsm.shape, 25.0 / cv.gsd, rng)
-    mid = value_noise(cv.ndsm.shape, max(1.0, 3.0 / cv.gsd), rng)
+    large = smooth_noise(cv.ndsm.shape, 25.0 / cv.gsd, rng, "smoothstep")
+    mid = smooth_noise(cv.ndsm.shape, max(1.0, 3.0 / cv.gsd), rng, "smoothstep")
     fine = rng.standard_normal(cv.ndsm.shape, dtype=np.float32)
     gain, grain = texture_terms(TEXTURE[cv.material], large, mid, fine)
     tinted: np.ndarray = cv.tint * gain[None] + grain[None]

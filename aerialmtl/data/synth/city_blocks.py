@@ -53,6 +53,7 @@ from aerialmtl.data.synth.materials import (
     Rgb,
     jitter,
 )
+from aerialmtl.data.synth.shapes import crown, gable, tile_rows
 
 
 def span(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -131,11 +132,8 @@ class Blocks:
         if hit is None:
             return
         win, inside = hit
-        along_u = (u1 - u0) >= (v1 - v0)
-        across = (win.v - 0.5 * (v0 + v1)) if along_u else (win.u - 0.5 * (u0 + u1))
-        half = 0.5 * ((v1 - v0) if along_u else (u1 - u0))
-        h = eave + rise * np.clip(1.0 - np.abs(across) / half, 0.0, 1.0)
-        stripes = 1.0 + 0.07 * np.sin(2 * np.pi * np.abs(across) / 0.9)
+        h, across = gable(win.u, win.v, u0, u1, v0, v1, eave, rise)
+        stripes = 1.0 + tile_rows(across)
         albedo = np.asarray(rgb, np.float32)[:, None, None] * stripes[None].astype(np.float32)
         self.cv.put(win, inside, h.astype(np.float32), BUILDING, TILE, albedo, facade)
 
@@ -151,7 +149,7 @@ class Blocks:
         d2 = ((win.u - u) ** 2 + (win.v - v) ** 2) / np.float32(radius * radius)
         inside = d2 < 1.0
         bumps = self.bumps[win.rows, win.cols]
-        h = np.clip(base + (top - base) * np.sqrt(np.clip(1.0 - d2, 0.0, 1.0)) + 0.35 * bumps, 3.0, TREE_MAX)
+        h = crown(d2, base, top, bumps, TREE_MAX)
         albedo = rgb[:, None, None] * (1.0 + 0.15 * bumps)[None]
         self.cv.put(win, inside, h.astype(np.float32), TREE, CROWN, albedo, tuple(rgb * 0.75))
 

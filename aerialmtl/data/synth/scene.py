@@ -46,6 +46,7 @@ from aerialmtl.data.synth.materials import (
 )
 from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.scene_parts import Building, BuildingTruth, RoofPart, Scene, TreeSpec
+from aerialmtl.data.synth.shapes import crown, gable, tile_rows
 from aerialmtl.data.synth.streets import (
     StreetField,
     StreetLine,
@@ -69,6 +70,8 @@ _ROOF_TILES = (*TILE_REDS, (160, 82, 70))
 _ROOF_GREY = [(118, 118, 124), (150, 148, 146), (104, 110, 118)]
 _ROOF_DARK = [(60, 60, 68), (74, 70, 70), (52, 56, 62)]
 _ROOF_FLAT = [(176, 174, 168), (196, 190, 178), (88, 88, 94), (142, 142, 136), (160, 150, 140)]
+#: The town's tallest tree, metres.
+TREE_MAX = 25.0
 #: The town's streets: 6–12 m wide, 45–110 m apart.
 TOWN_STREETS = StreetSpacing(spacing=(45, 110), width=(6, 12), lead=40, tail=60)
 
@@ -105,7 +108,7 @@ class _Planner:
 
     def tree(self, u: float, v: float, radius: float, top: float, dark: float = 0.0) -> None:
         rng = self.rng
-        top = float(np.clip(top, 4.0, 25.0))
+        top = float(np.clip(top, 4.0, TREE_MAX))
         base = max(3.0, top * rng.uniform(0.3, 0.55))
         rgb = jitter(rng, TREE_GREENS[rng.integers(len(TREE_GREENS))], 8.0)
         rgb = (rgb[0] * (1.0 - dark), rgb[1] * (1.0 - dark), rgb[2] * (1.0 - dark))
@@ -473,12 +476,9 @@ def _draw_building(cv: _Canvas, bld: Building, tex_small: np.ndarray,
         u, v = cv.uv_of(rr, cc)
         texture = 1.0 + 0.05 * tex_small[rr, cc] + 0.03 * fine[rr, cc]
         if part.kind == "gable":
-            along_u = (part.u1 - part.u0) >= (part.v1 - part.v0)
-            across = (v - 0.5 * (part.v0 + part.v1)) if along_u else (u - 0.5 * (part.u0 + part.u1))
-            half = 0.5 * ((part.v1 - part.v0) if along_u else (part.u1 - part.u0))
-            h = part.eave + part.rise * np.clip(1.0 - np.abs(across) / half, 0.0, 1.0)
-            if bld.textured:  # rows of tiles parallel to the ridge
-                texture = texture + 0.07 * np.sin(2 * np.pi * np.abs(across) / 0.9)
+            h, across = gable(u, v, part.u0, part.u1, part.v0, part.v1, part.eave, part.rise)
+            if bld.textured:
+                texture = texture + tile_rows(across)
         else:
             h = np.full(rr.shape, part.eave, np.float32)
         cv.put(rr, cc, h.astype(np.float32), BUILDING, color * texture[None, :])
@@ -496,10 +496,8 @@ def _draw_tree(cv: _Canvas, tr: TreeSpec, tex_small: np.ndarray, tex_mid: np.nda
     if rr.size == 0:
         return
     d2 = ((rr - r) ** 2 + (cc - c) ** 2) * (cv.gsd / tr.radius) ** 2
-    dome = np.sqrt(np.clip(1.0 - d2, 0.0, 1.0))
     bumps = tex_small[rr, cc]
-    h = tr.base + (tr.top - tr.base) * dome + 0.35 * bumps
-    h = np.clip(h, 3.0, 25.0).astype(np.float32)
+    h = crown(d2, tr.base, tr.top, bumps, TREE_MAX).astype(np.float32)
     color = np.array(tr.color, np.float32)[:, None]
     texture = 1.0 + 0.18 * bumps + 0.08 * tex_mid[rr, cc] + 0.06 * fine[rr, cc]
     cv.put(rr, cc, h, TREE, color * texture[None, :])
