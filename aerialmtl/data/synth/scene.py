@@ -39,6 +39,7 @@ from aerialmtl.data.synth.materials import (
     TREE_GREENS,
     WATER,
     WATER_TEXTURE,
+    Rgb,
     Texture,
     jitter,
     texture_table,
@@ -66,10 +67,10 @@ _COVER_TEX = texture_table((GRASS_TEXTURE, SOIL_TEXTURE, Texture(0.06, 0.05, 6.0
                             Texture(0.0, 0.03, 5.0), WATER_TEXTURE, Texture(0.05, 0.06, 8.0)))
 _DRY_GRASS = np.array([150, 150, 88], np.float32)
 
-_ROOF_TILES = (*TILE_REDS, (160, 82, 70))
-_ROOF_GREY = [(118, 118, 124), (150, 148, 146), (104, 110, 118)]
-_ROOF_DARK = [(60, 60, 68), (74, 70, 70), (52, 56, 62)]
-_ROOF_FLAT = [(176, 174, 168), (196, 190, 178), (88, 88, 94), (142, 142, 136), (160, 150, 140)]
+_ROOF_TILES: tuple[Rgb, ...] = (*TILE_REDS, (160, 82, 70))
+_ROOF_GREY: tuple[Rgb, ...] = ((118, 118, 124), (150, 148, 146), (104, 110, 118))
+_ROOF_DARK: tuple[Rgb, ...] = ((60, 60, 68), (74, 70, 70), (52, 56, 62))
+_ROOF_FLAT: tuple[Rgb, ...] = ((176, 174, 168), (196, 190, 178), (88, 88, 94), (142, 142, 136), (160, 150, 140))
 #: The town's tallest tree, metres.
 TREE_MAX = 25.0
 #: The town's streets: 6–12 m wide, 45–110 m apart.
