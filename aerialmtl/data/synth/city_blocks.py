@@ -48,12 +48,12 @@ from aerialmtl.data.synth.materials import (
     ROAD,
     SOIL_RGB,
     TREE,
-    TREE_GREENS,
     WATER,
     Rgb,
     jitter,
+    tree_green,
 )
-from aerialmtl.data.synth.shapes import crown, gable, tile_rows
+from aerialmtl.data.synth.shapes import crown, crown_size, gable, tile_rows
 
 
 def span(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -139,10 +139,8 @@ class Blocks:
 
     def tree(self, u: float, v: float, radius: float, top: float, dark: float = 0.0) -> None:
         """A tree crown (dome between its rim ``base`` and ``top``, metres) centred on (u, v)."""
-        rng = self.rng
-        top = float(np.clip(top, 4.0, TREE_MAX))
-        base = max(3.0, top * rng.uniform(0.3, 0.6))
-        rgb = np.asarray(jitter(rng, TREE_GREENS[int(rng.integers(len(TREE_GREENS)))], 8.0), np.float32) * (1 - dark)
+        top, base = crown_size(self.rng, top, TREE_MAX, 0.6)
+        rgb = np.asarray(tree_green(self.rng), np.float32) * (1 - dark)
         win = self.cv.window(u - radius, u + radius, v - radius, v + radius)
         if win is None:
             return

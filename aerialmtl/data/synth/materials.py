@@ -55,6 +55,11 @@ def jitter(rng: np.random.Generator, rgb: tuple[float, ...], amount: float) -> R
     return r, g, b
 
 
+def tree_green(rng: np.random.Generator) -> Rgb:
+    """A tree's crown colour: one of :data:`TREE_GREENS` jittered by 8 DN (one integer and three normal draws)."""
+    return jitter(rng, TREE_GREENS[int(rng.integers(len(TREE_GREENS)))], 8.0)
+
+
 def texture_table(textures: tuple[Texture, ...]) -> np.ndarray:
     """float32 (M, 3) amplitudes (large, mid, fine) of a palette's materials, indexed by material number."""
     return np.array(textures, np.float32)
@@ -81,4 +86,4 @@ def texture_terms(amplitudes: np.ndarray, large: np.ndarray, mid: np.ndarray,
 
 __all__ = ["ASPHALT_RGB", "BARE_SOIL", "BUILDING", "GRASS_RGB", "GRASS_TEXTURE", "GRAVEL_RGB", "LOW_VEGETATION",
            "MARKING_RGB", "ROAD", "Rgb", "SOIL_RGB", "SOIL_TEXTURE", "TILE_REDS", "TREE", "TREE_GREENS", "Texture",
-           "WATER", "WATER_TEXTURE", "jitter", "texture_table", "texture_terms"]
+           "WATER", "WATER_TEXTURE", "jitter", "texture_table", "texture_terms", "tree_green"]

@@ -36,7 +36,6 @@ from aerialmtl.data.synth.materials import (
     SOIL_TEXTURE,
     TILE_REDS,
     TREE,
-    TREE_GREENS,
     WATER,
     WATER_TEXTURE,
     Rgb,
@@ -44,10 +43,11 @@ from aerialmtl.data.synth.materials import (
     jitter,
     texture_table,
     texture_terms,
+    tree_green,
 )
 from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.scene_parts import Building, BuildingTruth, RoofPart, Scene, TreeSpec
-from aerialmtl.data.synth.shapes import crown, gable, tile_rows
+from aerialmtl.data.synth.shapes import crown, crown_size, gable, tile_rows
 from aerialmtl.data.synth.streets import (
     StreetField,
     StreetLine,
@@ -108,10 +108,8 @@ class _Planner:
         self.cover[rr, cc] = material
 
     def tree(self, u: float, v: float, radius: float, top: float, dark: float = 0.0) -> None:
-        rng = self.rng
-        top = float(np.clip(top, 4.0, TREE_MAX))
-        base = max(3.0, top * rng.uniform(0.3, 0.55))
-        rgb = jitter(rng, TREE_GREENS[rng.integers(len(TREE_GREENS))], 8.0)
+        top, base = crown_size(self.rng, top, TREE_MAX, 0.55)
+        rgb = tree_green(self.rng)
         rgb = (rgb[0] * (1.0 - dark), rgb[1] * (1.0 - dark), rgb[2] * (1.0 - dark))
         self.trees.append(TreeSpec(u, v, radius, top, base, rgb))
 

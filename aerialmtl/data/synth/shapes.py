@@ -1,15 +1,15 @@
-"""Height profiles of the objects both styles draw: gable roofs and tree crowns.
+"""Shapes of the objects both styles draw: gable roofs and tree crowns (their size and height profile).
 
 Coordinates are metres in the scene's frame (:mod:`~aerialmtl.data.synth.canvas`); heights are metres above
-ground. Each function takes the pixels an object covers and returns their heights; the style draws them.
+ground. The profiles take the pixels an object covers and return their heights; the style draws them.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-#: Lowest crown height of a tree, metres.
-CROWN_MIN_M = 3.0
+#: Lowest crown height (rim) of a tree and lowest crown top, metres.
+CROWN_MIN_M, CROWN_TOP_MIN_M = 3.0, 4.0
 #: Roof tiles: rows 0.9 m apart, ±7 % brightness.
 TILE_ROW_M, TILE_CONTRAST = 0.9, 0.07
 
@@ -41,6 +41,19 @@ def tile_rows(across: np.ndarray) -> np.ndarray:
     return rows
 
 
+def crown_size(rng: np.random.Generator, top: float, top_max: float, rim_share: float) -> tuple[float, float]:
+    """The top and rim heights of a tree crown, metres.
+
+    Args:
+        rng: draws the rim's share of the top (one uniform draw in [0.3, ``rim_share``]).
+        top: the wanted top, clipped to [:data:`CROWN_TOP_MIN_M`, ``top_max``].
+        top_max: the style's tallest tree, metres.
+        rim_share: the highest rim as a share of the top.
+    """
+    top = float(np.clip(top, CROWN_TOP_MIN_M, top_max))
+    return top, max(CROWN_MIN_M, top * rng.uniform(0.3, rim_share))
+
+
 def crown(d2: np.ndarray, base: float, top: float, bumps: np.ndarray, top_max: float) -> np.ndarray:
     """A tree crown: a dome from its rim at ``base`` to ``top`` metres, roughened by ``bumps``.
 
@@ -58,4 +71,4 @@ def crown(d2: np.ndarray, base: float, top: float, bumps: np.ndarray, top_max: f
     return height
 
 
-__all__ = ["crown", "gable", "tile_rows"]
+__all__ = ["crown", "crown_size", "gable", "tile_rows"]
