@@ -10,8 +10,8 @@ import pytest
 from aerialmtl.data.synth import CityStyle, TexturePool, sample_city
 from aerialmtl.data.synth.city import render_city
 from aerialmtl.data.synth.city_canvas import CityCanvas
+from aerialmtl.data.synth.materials import BUILDING
 from aerialmtl.data.synth.relief import relief_displacement
-from aerialmtl.data.synth.scene import BUILDING
 from aerialmtl.data.synth.style import Imaging
 from aerialmtl.data.synthetic_batches import city_seed, synthetic_scene
 from aerialmtl.errors import InputError
