@@ -91,11 +91,8 @@ def cast_shadows(surface: np.ndarray, gsd: float, azimuth: float, elevation: flo
 def direct_sun(surface: np.ndarray, gsd: float, azimuth: float, elevation: float) -> tuple[np.ndarray, np.ndarray]:
     """Direct sunlight on a surface model: :func:`hillshade`, 0 in :func:`cast_shadows`, at most :data:`MAX_DIRECT`.
 
-    Args:
-        surface: float (H, W) heights in metres (a DSM).
-        gsd: pixel size in metres.
-        azimuth: sun azimuth in degrees clockwise from north.
-        elevation: sun elevation in degrees.
+    The arguments are those of :func:`hillshade` (a DSM in metres, its pixel size in metres, the sun's azimuth
+    and elevation in degrees).
 
     Returns:
         ``direct`` float32 (H, W), relative to flat ground (1), and ``shadow`` bool (H, W), the cast shadows.

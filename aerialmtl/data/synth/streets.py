@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
@@ -99,27 +98,19 @@ class StreetField:
     off_u: np.ndarray
     half_u: np.ndarray
     index_u: np.ndarray
+    on_u: np.ndarray
     off_v: np.ndarray
     half_v: np.ndarray
     index_v: np.ndarray
+    on_v: np.ndarray
 
     @classmethod
     def measure(cls, u: np.ndarray, v: np.ndarray, lines_u: list[StreetLine],
                 lines_v: list[StreetLine]) -> StreetField:
         """The field of the pixels at frame coordinates ``u``, ``v`` (float32 (H, W), metres)."""
-        return cls(*nearest_street(u, lines_u), *nearest_street(v, lines_v))
-
-    @cached_property
-    def on_u(self) -> np.ndarray:
-        """The pixels on a street of the ``u`` family: bool (H, W)."""
-        on: np.ndarray = np.abs(self.off_u) <= self.half_u
-        return on
-
-    @cached_property
-    def on_v(self) -> np.ndarray:
-        """The pixels on a street of the ``v`` family: bool (H, W)."""
-        on: np.ndarray = np.abs(self.off_v) <= self.half_v
-        return on
+        off_u, half_u, index_u = nearest_street(u, lines_u)
+        off_v, half_v, index_v = nearest_street(v, lines_v)
+        return cls(off_u, half_u, index_u, np.abs(off_u) <= half_u, off_v, half_v, index_v, np.abs(off_v) <= half_v)
 
     def centre_dashes(self, u: np.ndarray, v: np.ndarray, gsd: float, road_u: np.ndarray,
                       road_v: np.ndarray) -> np.ndarray:
