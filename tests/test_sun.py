@@ -100,6 +100,8 @@ def test_shadow_score_and_model_find_the_cast_shadows() -> None:
     score = shadow_score(test.image)
     for v in (prob, score):  # shadows score higher than lit pixels
         assert np.median(v[truth]) > np.percentile(v[~truth], 75)
+    # predict spreads the classifier's filters over its threads: the same probabilities to the bit
+    np.testing.assert_array_equal(model.predict_proba(test.image, workers=3), prob)
 
 
 def test_learnt_shadow_model_does_not_call_lit_water_shadow() -> None:

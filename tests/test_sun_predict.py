@@ -251,3 +251,33 @@ def test_a_mosaic_of_flights_with_different_suns_is_refused_naming_them(tmp_path
         choose_sun("auto", None, vrt, grid, {}, None)
     assert choose_sun("auto", "2019-06-21T16:45:00Z", vrt, grid, {}, None).on  # a time given: the user's word
     assert not choose_sun("none", None, vrt, grid, {}, None).on
+
+
+def test_shadow_layers_do_not_depend_on_how_many_windows_run_at_once(town: dict[str, object]) -> None:
+    """The shadow step works on a batch's windows in parallel (one thread per inference thread): the layers and
+    the fused heights are those of one window after the other, to the bit."""
+    from aerialmtl.inference.shadows import ShadowStep
+    from aerialmtl.models.mc_dropout import McStatistics
+
+    sun: Sun = town["sun"]  # type: ignore[assignment]
+    model = ShadowModel.from_dict(town["training"].shadow_model)  # type: ignore[attr-defined]
+    ndsm = np.nan_to_num(np.asarray(town["ndsm"], np.float32))
+    with rasterio.open(town["ortho"]) as src:  # type: ignore[arg-type]
+        rgb = src.read([1, 2, 3])
+    # four overlapping 128 px windows of the town, as predict hands them over
+    corners = [(0, 0), (0, 96), (96, 0), (96, 128)]
+    windows = [np.ascontiguousarray(rgb[:, r:r + 128, c:c + 128]) for r, c in corners]
+    heights = torch.from_numpy(np.stack([ndsm[r:r + 128, c:c + 128] for r, c in corners]))
+    valid = torch.ones(heights.shape, dtype=torch.bool)
+    valid[1, :10] = False
+
+    def layers(workers: int) -> McStatistics:
+        stats = McStatistics(height_mean=heights.clone(), height_std=torch.full_like(heights, 1.5))
+        ShadowStep(model, 0.5, fuse=True, workers=workers).apply(stats, windows, valid, sun)
+        return stats
+
+    one, many = layers(1), layers(3)
+    assert one.shadow_weight is not None and one.shadow_weight.sum() > 0  # objects were measured
+    for name in ("shadow", "shadow_on", "shadow_height", "shadow_weight", "height_mean", "height_std"):
+        torch.testing.assert_close(getattr(many, name), getattr(one, name), rtol=0, atol=0, msg=name)
+    assert not torch.equal(one.height_mean, heights)  # fusion moved measured objects

@@ -222,7 +222,8 @@ class Predictor:
             return None
         from aerialmtl.sun import ShadowModel
 
-        return ShadowStep(ShadowModel.from_dict(sun.shadow_model), self.meta.gsd, s.shadow_fusion)
+        return ShadowStep(ShadowModel.from_dict(sun.shadow_model), self.meta.gsd, s.shadow_fusion,
+                          workers=self.threads.threads)
 
     def sun_for(self, src: OrthoInput) -> SunChoice | None:
         """The sun of ``src`` (:func:`~aerialmtl.inference.sun_choice.choose_sun`; chosen once per input and said

@@ -22,6 +22,9 @@ maps are then those of a run without the feature, to the bit.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from scipy import ndimage
@@ -33,6 +36,17 @@ from aerialmtl.sun import ShadowModel, Sun, fuse_heights, shadow_heights
 OBJECT_MIN_M = 2.0
 
 
+class _Window(NamedTuple):
+    """One window's layers, (h, w) each: shadow probability (0 where invalid), measured shadow height in metres
+    (0 where none), where one was measured, and the fused (height, spread) or ``None``.
+    """
+
+    shadow: np.ndarray
+    height: np.ndarray
+    measured: np.ndarray
+    fused: tuple[np.ndarray, np.ndarray] | None
+
+
 class ShadowStep:
     """The shadow layers (and fusion) of one window batch; see the module docstring.
 
@@ -40,10 +54,31 @@ class ShadowStep:
         model: the training area's shadow classifier.
         gsd_m: the prediction grid's pixel size, metres.
         fuse: fuse the shadow heights into the height map and its spread.
+        workers: threads of the step (the run's inference threads: the model waits meanwhile at T > 1, and
+            scipy's filters and numpy release the GIL): a batch's windows at once, or a lone window's
+            filters; the layers do not depend on it.
     """
 
-    def __init__(self, model: ShadowModel, gsd_m: float, fuse: bool) -> None:
+    def __init__(self, model: ShadowModel, gsd_m: float, fuse: bool, workers: int = 1) -> None:
         self.model, self.gsd_m, self.fuse = model, float(gsd_m), bool(fuse)
+        self.workers = max(1, int(workers))
+
+    def _window(self, rgb: np.ndarray, ok: np.ndarray, height: np.ndarray, spread: np.ndarray | None,
+                sun: Sun, workers: int = 1) -> _Window:
+        """The layers of one window: ``rgb`` (3, h, w) raw 8-bit, ``ok`` bool (h, w), ``height``/``spread``
+        float32 (h, w) metres (the network's); fused height and spread only with :attr:`fuse` and a measure;
+        ``workers`` threads for the shadow classifier's filters.
+        """
+        prob = self.model.predict_proba(rgb, self.gsd_m, workers)
+        prob = np.where(ok, prob, np.nan).astype(np.float32)
+        objects, _ = ndimage.label((height >= OBJECT_MIN_M) & ok)
+        measured = shadow_heights(prob, self.gsd_m, sun, objects, height=height, threshold=self.model.threshold)
+        has = np.isfinite(measured.height) & ok
+        fused = None
+        if self.fuse and spread is not None and has.any():
+            fused = fuse_heights(height, spread, measured, objects)
+        return _Window(np.nan_to_num(prob, nan=0.0), np.where(has, measured.height, 0.0).astype(np.float32), has,
+                       fused)
 
     def apply(self, stats: McStatistics, rgb: list[np.ndarray], valid: torch.Tensor, sun: Sun | None) -> None:
         """Set ``stats.shadow``, ``shadow_on``, ``shadow_height`` and ``shadow_weight`` (B, h, w) for the windows
@@ -62,20 +97,26 @@ class ShadowStep:
             spreads = None if stats.height_std is None else stats.height_std.detach().float().cpu().numpy().copy()
             ok_all = valid.cpu().numpy()
             fused = False
-            for n in range(b):
-                ok = ok_all[n]
-                prob = self.model.predict_proba(rgb[n][:3], self.gsd_m)
-                prob = np.where(ok, prob, np.nan).astype(np.float32)
-                objects, _ = ndimage.label((heights[n] >= OBJECT_MIN_M) & ok)
-                measured = shadow_heights(prob, self.gsd_m, sun, objects, height=heights[n],
-                                          threshold=self.model.threshold)
-                has = np.isfinite(measured.height) & ok
-                shadow[n] = torch.from_numpy(np.nan_to_num(prob, nan=0.0))
-                s_on[n] = torch.from_numpy(ok.astype(np.float32))
-                s_height[n] = torch.from_numpy(np.where(has, measured.height, 0.0).astype(np.float32))
-                s_weight[n] = torch.from_numpy(has.astype(np.float32))
-                if self.fuse and spreads is not None and has.any():
-                    heights[n], spreads[n] = fuse_heights(heights[n], spreads[n], measured, objects)
+
+            # windows on threads of their own; a lone window (a CPU's batch) spreads its filters over them
+            inner = max(1, self.workers // b)
+
+            def one(n: int) -> _Window:
+                return self._window(rgb[n][:3], ok_all[n], heights[n], None if spreads is None else spreads[n], sun,
+                                    inner)
+
+            if self.workers > 1 and b > 1:
+                with ThreadPoolExecutor(min(self.workers, b), thread_name_prefix="aerialmtl-shadows") as pool:
+                    done = list(pool.map(one, range(b)))
+            else:
+                done = [one(n) for n in range(b)]
+            for n, win in enumerate(done):
+                shadow[n] = torch.from_numpy(win.shadow)
+                s_on[n] = torch.from_numpy(ok_all[n].astype(np.float32))
+                s_height[n] = torch.from_numpy(win.height)
+                s_weight[n] = torch.from_numpy(win.measured.astype(np.float32))
+                if win.fused is not None and spreads is not None:
+                    heights[n], spreads[n] = win.fused
                     fused = True
             if fused and spreads is not None:  # new tensors: the engine's may be inference-mode views
                 stats.height_mean = torch.from_numpy(heights).to(stats.height_mean.device)

@@ -9,6 +9,7 @@ roofs that the heights say are lit are not called shadows.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -69,12 +70,21 @@ def _window(metres: float, gsd_m: float) -> int:
     return max(3, int(round(metres / gsd_m)) | 1)
 
 
-def colour_features(rgb: np.ndarray, gsd_m: float) -> np.ndarray:
+def colour_features(rgb: np.ndarray, gsd_m: float, workers: int = 1) -> np.ndarray:
     """float32 (12, H, W) features of :class:`ShadowModel`.
 
     Log-brightness L, blue and red chromaticity, saturation, L², L × blue chromaticity, L minus its mean over
     each of :data:`MEAN_CONTEXTS_M` and L minus its maximum over each of :data:`PEAK_CONTEXTS_M` (windows in
-    metres, so ``gsd_m`` matters).
+    metres, so ``gsd_m`` matters). ``workers``: see :func:`feature_planes`.
+    """
+    return np.stack(feature_planes(rgb, gsd_m, workers))
+
+
+def feature_planes(rgb: np.ndarray, gsd_m: float, workers: int = 1) -> list[np.ndarray]:
+    """The :func:`colour_features` as a list of float32 (H, W) planes (no (12, H, W) copy).
+
+    ``workers`` > 1 computes the neighbourhood filters on that many threads at once (scipy's filters release the
+    GIL); the planes are the same to the bit.
     """
     x = unit_rgb(rgb)
     total = x.sum(0) + np.float32(_EPS)
@@ -84,9 +94,22 @@ def colour_features(rgb: np.ndarray, gsd_m: float) -> np.ndarray:
     top = x.max(0)
     sat = (top - x.min(0)) / (top + np.float32(0.02))
     feats = [lum, cb, cr, sat, lum * lum, lum * cb]
-    feats += [lum - ndimage.uniform_filter(lum, size=_window(m, gsd_m), mode="reflect") for m in MEAN_CONTEXTS_M]
-    feats += [lum - ndimage.maximum_filter(lum, size=_window(m, gsd_m), mode="reflect") for m in PEAK_CONTEXTS_M]
-    return np.stack(feats).astype(np.float32)
+
+    def context(job: tuple[str, float]) -> np.ndarray:
+        kind, metres = job
+        size = _window(metres, gsd_m)
+        local: np.ndarray = (ndimage.uniform_filter if kind == "mean" else ndimage.maximum_filter)(
+            lum, size=size, mode="reflect")
+        out: np.ndarray = lum - local
+        return out
+
+    jobs = [("mean", m) for m in MEAN_CONTEXTS_M] + [("peak", m) for m in PEAK_CONTEXTS_M]
+    if workers > 1:
+        with ThreadPoolExecutor(min(workers, len(jobs)), thread_name_prefix="aerialmtl-colour") as pool:
+            feats += list(pool.map(context, jobs))
+    else:
+        feats += [context(j) for j in jobs]
+    return [f.astype(np.float32, copy=False) for f in feats]
 
 
 @dataclass
@@ -206,15 +229,17 @@ class ShadowModel:
         mask: np.ndarray = self.predict_proba(rgb, gsd_m) >= np.float32(self.threshold)
         return mask
 
-    def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None) -> np.ndarray:
-        """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's)."""
+    def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None, workers: int = 1) -> np.ndarray:
+        """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's);
+        ``workers``: threads for the features' filters (:func:`feature_planes`), the same result to the bit.
+        """
         if not self.weights:
             raise InputError("this ShadowModel is not fitted: call fit() first")
-        f = colour_features(rgb, gsd_m or self.gsd_m)
-        # the standardisation folded into the weights once, then one float32 pass per feature (predict runs this on
-        # every window: a float64 (12, H, W) temporary was 100 MB per 1024² window)
+        f = feature_planes(rgb, gsd_m or self.gsd_m, workers)
+        # the standardisation folded into the weights once, then one float32 pass per feature plane (predict runs
+        # this on every window: a float64 (12, H, W) temporary was 100 MB per 1024² window)
         a = np.asarray(self.weights[1:], np.float64) / np.asarray(self.scale, np.float64)
-        z = np.full(f.shape[1:], self.weights[0] - float(a @ np.asarray(self.mean, np.float64)), np.float32)
+        z = np.full(f[0].shape, self.weights[0] - float(a @ np.asarray(self.mean, np.float64)), np.float32)
         for k, ak in enumerate(a.astype(np.float32)):
             z += ak * f[k]
         np.clip(z, -40.0, 40.0, out=z)
