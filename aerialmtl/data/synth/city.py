@@ -95,7 +95,10 @@ class CityPatch:
 
 
 def _streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
-    return tuple(np.random.default_rng([int(seed) & 0xFFFFFFFFFFFF, k]) for k in (_LAYOUT, _IMAGING, _TEXTURES))  # type: ignore[return-value]
+    """The layout, imaging and texture generators of ``seed`` (independent streams)."""
+    layout, imaging, textures = (np.random.default_rng([int(seed) & 0xFFFFFFFFFFFF, k])
+                                 for k in (_LAYOUT, _IMAGING, _TEXTURES))
+    return layout, imaging, textures
 
 
 def _lines(rng: np.random.Generator, lo: float, hi: float) -> list[StreetLine]:

@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
-from shapely.geometry import Polygon, box
+from shapely.geometry import Point, Polygon, box
 from shapely.ops import unary_union
 from skimage.draw import disk
 
@@ -122,7 +121,7 @@ class _Planner:
         a0, b0, a1, b1 = region.bounds
         for _ in range(tries):
             u, v = self.rng.uniform(a0, a1), self.rng.uniform(b0, b1)
-            if region.contains(_Pt(u, v)):
+            if region.contains(Point(u, v)):
                 return u, v
         pt = region.representative_point()
         return pt.x, pt.y
@@ -263,7 +262,7 @@ class _Planner:
         for _ in range(int(area * rng.uniform(0.003, 0.008))):
             cu, cvv = rng.uniform(u0, u1), rng.uniform(v0, v1)
             radius = rng.uniform(2.5, 6.5)
-            if pond_poly is not None and pond_poly.distance(_Pt(cu, cvv)) < radius:
+            if pond_poly is not None and pond_poly.distance(Point(cu, cvv)) < radius:
                 continue
             self.tree(cu, cvv, radius, radius * rng.uniform(2.0, 3.2) + rng.uniform(0, 3))
 
@@ -294,12 +293,6 @@ class _Planner:
         else:
             self._tree_row(v0, v1, u0 + verge / 2, along_u=False)
             self._tree_row(v0, v1, u1 - verge / 2, along_u=False)
-
-
-def _Pt(u: float, v: float) -> Any:  # noqa: N802 - tiny shapely point factory
-    from shapely.geometry import Point
-
-    return Point(u, v)
 
 
 def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
