@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from aerialmtl.data.synth import streets
 from aerialmtl.data.synth.city_blocks import KINDS, Blocks
 from aerialmtl.data.synth.city_canvas import (
     ASPHALT,
@@ -47,14 +48,6 @@ from aerialmtl.data.synth.materials import BUILDING, LOW_VEGETATION, ROAD, WATER
 from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.relief import relief_displacement
 from aerialmtl.data.synth.shading import Sky, direct_sun, wall_sun
-from aerialmtl.data.synth.streets import (
-    StreetField,
-    StreetLine,
-    StreetSpacing,
-    blocks_between,
-    positions_along,
-    street_lines,
-)
 from aerialmtl.data.synth.style import CityStyle, Imaging, finish_image
 from aerialmtl.data.synth.textures import Source, TexturePool
 from aerialmtl.errors import InputError
@@ -63,7 +56,7 @@ from aerialmtl.errors import InputError
 AMBIENT = 0.42
 SKY = Sky(AMBIENT, (0.92, 0.98, 1.10))
 #: The city's streets: 7–22 m wide, blocks of 50–170 m.
-CITY_STREETS = StreetSpacing(spacing=(50, 170), width=(7, 22), lead=120, tail=170)
+CITY_STREETS = streets.StreetSpacing(spacing=(50, 170), width=(7, 22), lead=120, tail=170)
 #: Storey height drawn on walls (window bands), metres.
 STOREY_M = 3.3
 #: Smallest patch side accepted, pixels; GSD range accepted, metres.
@@ -101,22 +94,22 @@ def _streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.ra
     return layout, imaging, textures
 
 
-def _lines(rng: np.random.Generator, lo: float, hi: float) -> list[StreetLine]:
+def _lines(rng: np.random.Generator, lo: float, hi: float) -> streets.Family:
     """Parallel streets covering [lo, hi] (:data:`CITY_STREETS`); in 15 % of families one is a river of 15–50 m."""
-    lines = street_lines(rng, lo, hi, CITY_STREETS)
+    lines = streets.street_lines(rng, lo, hi, CITY_STREETS)
     if len(lines) > 2 and rng.random() < 0.15:
         i = int(rng.integers(1, len(lines) - 1))
         lines[i] = replace(lines[i], width=rng.uniform(15, 50), river=True)
     return lines
 
 
-def _streets(cv: CityCanvas, rng: np.random.Generator, lines_u: list[StreetLine], lines_v: list[StreetLine],
+def _streets(cv: CityCanvas, rng: np.random.Generator, lines_u: streets.Family, lines_v: streets.Family,
              kerb: float) -> None:
     """Asphalt streets with dashed centre lines, concrete pavements, and rivers with grass banks."""
     asphalt = np.asarray(jitter(rng, (88, 88, 92), 10.0), np.float32)
     pavement = np.asarray(jitter(rng, (170, 168, 160), 10.0), np.float32)
     water = np.asarray(jitter(rng, (38, 62, 76), 10.0), np.float32)
-    st = StreetField.measure(cv.u, cv.v, lines_u, lines_v)
+    st = streets.StreetField.measure(cv.u, cv.v, lines_u, lines_v)
     river_u = np.array([ln.river for ln in lines_u], bool)[st.index_u]
     river_v = np.array([ln.river for ln in lines_v], bool)[st.index_v]
     off_u, half_u, off_v, half_v, on_u, on_v = st.off_u, st.half_u, st.off_v, st.half_v, st.on_u, st.on_v
@@ -165,7 +158,7 @@ def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: 
     names = list(KINDS)
     probs = np.array([KINDS[k][1] for k in names])
     stats = dict.fromkeys(names, 0)
-    for low_u, high_u, low_v, high_v in blocks_between(lines_u, lines_v):
+    for low_u, high_u, low_v, high_v in streets.blocks_between(lines_u, lines_v):
         # a block stops at the kerb, and 4 m more from a river (its grass bank)
         u0, u1 = low_u.high + kerb + (4 if low_u.river else 0), high_u.low - kerb - (4 if high_u.river else 0)
         v0, v1 = low_v.high + kerb + (4 if low_v.river else 0), high_v.low - kerb - (4 if high_v.river else 0)
@@ -187,7 +180,7 @@ def _street_trees(b: Blocks, u0: float, u1: float, v0: float, v1: float, kerb: f
     spacing = b.rng.uniform(7, 13)
     for along_u, lo, hi, fixed in ((True, u0, u1, v0 - kerb / 2), (True, u0, u1, v1 + kerb / 2),
                                    (False, v0, v1, u0 - kerb / 2), (False, v0, v1, u1 + kerb / 2)):
-        for pos in positions_along(b.rng, lo, hi, spacing, 1.0):
+        for pos in streets.positions_along(b.rng, lo, hi, spacing, 1.0):
             u, v = (pos, fixed) if along_u else (fixed, pos)
             b.tree(u, v, b.rng.uniform(2.0, 4.0), b.rng.uniform(5, 14))
 

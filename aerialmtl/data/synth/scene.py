@@ -20,6 +20,7 @@ from shapely.geometry import Point, Polygon, box
 from shapely.ops import unary_union
 from skimage.draw import disk
 
+from aerialmtl.data.synth import streets
 from aerialmtl.data.synth.canvas import Canvas
 from aerialmtl.data.synth.materials import (
     ASPHALT_RGB,
@@ -47,14 +48,6 @@ from aerialmtl.data.synth.materials import (
 from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.scene_parts import Building, BuildingTruth, RoofPart, Scene, TreeSpec
 from aerialmtl.data.synth.shapes import crown, crown_size, gable, tile_rows
-from aerialmtl.data.synth.streets import (
-    StreetField,
-    StreetLine,
-    StreetSpacing,
-    blocks_between,
-    positions_along,
-    street_lines,
-)
 
 # The town's ground materials (index into the tables below).
 GRASS, SOIL, FIELD, ASPHALT, MARKING, POND, GRAVEL = range(7)
@@ -73,7 +66,7 @@ _ROOF_FLAT: tuple[Rgb, ...] = ((176, 174, 168), (196, 190, 178), (88, 88, 94), (
 #: The town's tallest tree, metres.
 TREE_MAX = 25.0
 #: The town's streets: 6–12 m wide, 45–110 m apart.
-TOWN_STREETS = StreetSpacing(spacing=(45, 110), width=(6, 12), lead=40, tail=60)
+TOWN_STREETS = streets.StreetSpacing(spacing=(45, 110), width=(6, 12), lead=40, tail=60)
 
 
 class _Canvas(Canvas):
@@ -281,7 +274,7 @@ class _Planner:
     def _tree_row(self, u0: float, u1: float, fixed: float, along_u: bool) -> None:
         rng = self.rng
         spacing = rng.uniform(8, 14)
-        for pos in positions_along(rng, u0, u1, spacing, 2.0):
+        for pos in streets.positions_along(rng, u0, u1, spacing, 2.0):
             radius = rng.uniform(2.0, 4.0)
             u, v = (pos, fixed) if along_u else (fixed, pos)
             self.tree(u, v, radius, rng.uniform(5, 13))
@@ -317,8 +310,8 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
     cv = _Canvas(size, gsd, theta)
     corners_u, corners_v = cv.to_frame(np.array([0, extent, extent, 0]), np.array([0, 0, extent, extent]))
     scene_poly = Polygon(np.c_[corners_u, corners_v])
-    lines_u = street_lines(rng, corners_u.min(), corners_u.max(), TOWN_STREETS)
-    lines_v = street_lines(rng, corners_v.min(), corners_v.max(), TOWN_STREETS)
+    lines_u = streets.street_lines(rng, corners_u.min(), corners_u.max(), TOWN_STREETS)
+    lines_v = streets.street_lines(rng, corners_v.min(), corners_v.max(), TOWN_STREETS)
     plan = _Planner(cv, rng, scene_poly)
     stats = _plan_blocks(plan, lines_u, lines_v)
     _paint_roads(cv, plan.cover, lines_u, lines_v)
@@ -340,11 +333,11 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
     return Scene(dtm, cv.ndsm, cv.labels, cv.albedo, sun_azimuth, sun_elevation, gsd, stats, truths)
 
 
-def _plan_blocks(plan: _Planner, lines_u: list[StreetLine], lines_v: list[StreetLine]) -> dict[str, int]:
+def _plan_blocks(plan: _Planner, lines_u: streets.Family, lines_v: streets.Family) -> dict[str, int]:
     """Give every block between the streets a kind and plan its content; returns blocks per kind."""
     rng, scene_poly = plan.rng, plan.scene_poly
     blocks = []
-    for low_u, high_u, low_v, high_v in blocks_between(lines_u, lines_v):
+    for low_u, high_u, low_v, high_v in streets.blocks_between(lines_u, lines_v):
         b = (low_u.high, high_u.low, low_v.high, high_v.low)
         area = box(b[0], b[2], b[1], b[3]).intersection(scene_poly).area
         if area > 1.0:
@@ -377,12 +370,12 @@ def _plan_blocks(plan: _Planner, lines_u: list[StreetLine], lines_v: list[Street
     return stats
 
 
-def _paint_roads(cv: _Canvas, cover: np.ndarray, lines_u: list[StreetLine], lines_v: list[StreetLine]) -> None:
+def _paint_roads(cv: _Canvas, cover: np.ndarray, lines_u: streets.Family, lines_v: streets.Family) -> None:
     """Mark asphalt (and, at 0.5 m or finer, dashed centre lines) in ``cover``, vectorised over the grid."""
-    streets = StreetField.measure(cv.u, cv.v, lines_u, lines_v)
-    cover[streets.on_u | streets.on_v] = ASPHALT
+    field = streets.StreetField.measure(cv.u, cv.v, lines_u, lines_v)
+    cover[field.on_u | field.on_v] = ASPHALT
     if cv.gsd <= 0.5:
-        cover[streets.centre_dashes(cv.u, cv.v, cv.gsd, streets.on_u, streets.on_v)] = MARKING
+        cover[field.centre_dashes(cv.u, cv.v, cv.gsd, field.on_u, field.on_v)] = MARKING
 
 
 def _ground_covers(cv: _Canvas, cover: np.ndarray, u: np.ndarray,

@@ -54,12 +54,16 @@ class StreetLine:
         return self.centre + self.width / 2
 
 
-def street_lines(rng: np.random.Generator, lo: float, hi: float, spacing: StreetSpacing) -> list[StreetLine]:
+#: One family of parallel streets, in ascending order of their centre lines.
+Family = list[StreetLine]
+
+
+def street_lines(rng: np.random.Generator, lo: float, hi: float, spacing: StreetSpacing) -> Family:
     """A family of parallel streets covering the frame interval [lo, hi] (metres), in ascending order.
 
     Draws from ``rng`` in this order: the lead, then each street's width and the gap to the next.
     """
-    lines: list[StreetLine] = []
+    lines: Family = []
     pos = lo - rng.uniform(0, spacing.lead)
     while pos < hi + spacing.tail:
         lines.append(StreetLine(pos, rng.uniform(*spacing.width)))
@@ -67,7 +71,7 @@ def street_lines(rng: np.random.Generator, lo: float, hi: float, spacing: Street
     return lines
 
 
-def nearest_street(coord: np.ndarray, lines: list[StreetLine]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def nearest_street(coord: np.ndarray, lines: Family) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pixel: signed offset from the nearest street's centre line (m), its half width (m), its index.
 
     Args:
@@ -105,8 +109,7 @@ class StreetField:
     on_v: np.ndarray
 
     @classmethod
-    def measure(cls, u: np.ndarray, v: np.ndarray, lines_u: list[StreetLine],
-                lines_v: list[StreetLine]) -> StreetField:
+    def measure(cls, u: np.ndarray, v: np.ndarray, lines_u: Family, lines_v: Family) -> StreetField:
         """The field of the pixels at frame coordinates ``u``, ``v`` (float32 (H, W), metres)."""
         off_u, half_u, index_u = nearest_street(u, lines_u)
         off_v, half_v, index_v = nearest_street(v, lines_v)
@@ -130,8 +133,7 @@ class StreetField:
         return dashes
 
 
-def blocks_between(lines_u: list[StreetLine],
-                   lines_v: list[StreetLine]) -> Iterator[tuple[StreetLine, StreetLine, StreetLine, StreetLine]]:
+def blocks_between(lines_u: Family, lines_v: Family) -> Iterator[tuple[StreetLine, StreetLine, StreetLine, StreetLine]]:
     """The blocks of the grid, row by row: the streets around each, (low u, high u, low v, high v)."""
     for low_u, high_u in zip(lines_u[:-1], lines_u[1:]):
         for low_v, high_v in zip(lines_v[:-1], lines_v[1:]):
@@ -149,5 +151,5 @@ def positions_along(rng: np.random.Generator, lo: float, hi: float, spacing: flo
         pos += spacing
 
 
-__all__ = ["StreetField", "StreetLine", "StreetSpacing", "blocks_between", "nearest_street", "positions_along",
-           "street_lines"]
+__all__ = ["Family", "StreetField", "StreetLine", "StreetSpacing", "blocks_between", "nearest_street",
+           "positions_along", "street_lines"]
