@@ -53,7 +53,7 @@ from aerialmtl.data.synth.materials import (
     jitter,
     tree_green,
 )
-from aerialmtl.data.synth.shapes import crown, crown_size, gable, tile_rows
+from aerialmtl.data.synth.shapes import crown, crown_size, forest_trees, gable, tile_rows
 
 
 def span(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -342,10 +342,8 @@ def forest_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
     """A closed forest of 4–30 m trees."""
     rng = b.rng
     b.ground(u0, u1, v0, v1, Ground(SOIL, BARE_SOIL, jitter(rng, (110, 100, 70), 10.0)))
-    for _ in range(int((u1 - u0) * (v1 - v0) / (math.pi * 4.5**2) * rng.uniform(1.0, 1.6))):
-        r = rng.uniform(2.5, 7.0)
-        b.tree(rng.uniform(u0, u1), rng.uniform(v0, v1), r, r * rng.uniform(2.2, 4.2) + rng.uniform(0, 4),
-               dark=rng.uniform(0.0, 0.25))
+    for u, v, radius, top, dark in forest_trees(rng, u0, u1, v0, v1, 4.2, 0.25):
+        b.tree(u, v, radius, top, dark)
 
 
 def bare_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:

@@ -47,7 +47,7 @@ from aerialmtl.data.synth.materials import (
 )
 from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.scene_parts import Building, BuildingTruth, RoofPart, Scene, TreeSpec
-from aerialmtl.data.synth.shapes import crown, crown_size, gable, tile_rows
+from aerialmtl.data.synth.shapes import crown, crown_size, forest_trees, gable, tile_rows
 
 # The town's ground materials (index into the tables below).
 GRASS, SOIL, FIELD, ASPHALT, MARKING, POND, GRAVEL = range(7)
@@ -260,12 +260,8 @@ class _Planner:
             self.tree(cu, cvv, radius, radius * rng.uniform(2.0, 3.2) + rng.uniform(0, 3))
 
     def forest(self, u0: float, u1: float, v0: float, v1: float) -> None:
-        rng = self.rng
-        area = (u1 - u0) * (v1 - v0)
-        for _ in range(int(area / (np.pi * 4.5**2) * rng.uniform(1.0, 1.6))):
-            radius = rng.uniform(2.5, 7.0)
-            self.tree(rng.uniform(u0, u1), rng.uniform(v0, v1), radius,
-                      radius * rng.uniform(2.2, 3.4) + rng.uniform(0, 4), dark=rng.uniform(0.0, 0.2))
+        for u, v, radius, top, dark in forest_trees(self.rng, u0, u1, v0, v1, 3.4, 0.2):
+            self.tree(u, v, radius, top, dark)
 
     def field(self, u0: float, u1: float, v0: float, v1: float, ploughed: bool) -> None:
         if ploughed:

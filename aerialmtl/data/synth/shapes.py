@@ -1,10 +1,13 @@
-"""Shapes of the objects both styles draw: gable roofs and tree crowns (their size and height profile).
+"""Shapes of the objects both styles draw: gable roofs, tree crowns (size and height profile), closed forests.
 
 Coordinates are metres in the scene's frame (:mod:`~aerialmtl.data.synth.canvas`); heights are metres above
 ground. The profiles take the pixels an object covers and return their heights; the style draws them.
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -71,4 +74,21 @@ def crown(d2: np.ndarray, base: float, top: float, bumps: np.ndarray, top_max: f
     return height
 
 
-__all__ = ["crown", "crown_size", "gable", "tile_rows"]
+def forest_trees(rng: np.random.Generator, u0: float, u1: float, v0: float, v1: float, slender_max: float,
+                 dark_max: float) -> Iterator[tuple[float, float, float, float, float]]:
+    """The trees of a closed forest over the frame rectangle [u0, u1] × [v0, v1] (metres).
+
+    About 1–1.6 crowns of 4.5 m radius per their area, at random places; crowns of 2.5–7 m radius, their top
+    ``radius × [2.2, slender_max] + [0, 4]`` metres, darkened by a share in [0, ``dark_max``]. Draws from ``rng``
+    lazily, tree by tree (the caller may draw for each tree in between).
+
+    Yields:
+        (u, v, radius, top, dark) of each tree: metres, metres, metres, metres, a share.
+    """
+    for _ in range(int((u1 - u0) * (v1 - v0) / (math.pi * 4.5**2) * rng.uniform(1.0, 1.6))):
+        radius = rng.uniform(2.5, 7.0)
+        yield (rng.uniform(u0, u1), rng.uniform(v0, v1), radius, radius * rng.uniform(2.2, slender_max)
+               + rng.uniform(0, 4), rng.uniform(0.0, dark_max))
+
+
+__all__ = ["crown", "crown_size", "forest_trees", "gable", "tile_rows"]
