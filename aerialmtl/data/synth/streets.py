@@ -26,7 +26,7 @@ class StreetSpacing:
         spacing: distance from one street's centre line to the next.
         width: street width.
         lead: the first street lies up to this far before the area.
-        tail: streets continue until one lies at least this far past the area.
+        tail: streets are laid while their centre line lies less than this far past the area.
     """
 
     spacing: tuple[float, float]
