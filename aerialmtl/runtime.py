@@ -31,6 +31,7 @@ import datetime as _dt
 import functools
 import os
 import sys
+import threading
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -137,11 +138,35 @@ def cpu_bf16_flags() -> tuple[str, ...]:
                 break
         return tuple(f for f in BF16_CPU_FLAGS if f in flags - _capped_away())
     try:  # pragma: no cover - not Linux
-        ov = import_openvino()
-        caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+        caps = openvino_core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
         return ("openvino:BF16",) if "BF16" in caps else ()
     except Exception:  # pragma: no cover
         return ()
+
+
+_OPENVINO_CORE: Any = None
+_OPENVINO_CORE_LOCK = threading.Lock()
+
+
+def openvino_core() -> Any:
+    """The process's one ``openvino.Core`` (created on first use, kept until the process ends).
+
+    Every engine, export check and benchmark of aerialmtl compiles through this one: each ``Core`` loads its own
+    CPU plugin, and the plugin points the calling thread's alternate signal stack at a buffer of its own
+    (sized for AMX's signal frames), freeing that buffer when the ``Core`` goes. Cores created and dropped in
+    another order than last-in-first-out (engines freed by the garbage collector) left the main thread's
+    alternate stack on freed memory: the next signal handled there (a DataLoader worker's or a subprocess's
+    SIGCHLD) was written into whatever used that memory (corrupted data) or killed the process with a
+    segmentation fault (si_code SI_KERNEL), at random. One Core loads the plugin once.
+
+    Raises:
+        ImportError: OpenVINO is not installed.
+    """
+    global _OPENVINO_CORE
+    with _OPENVINO_CORE_LOCK:
+        if _OPENVINO_CORE is None:
+            _OPENVINO_CORE = import_openvino().Core()
+        return _OPENVINO_CORE
 
 
 #: OpenVINO's usage-telemetry package, which ``import openvino`` loads (through ``openvino.tools.ovc``) when it is
@@ -524,5 +549,5 @@ def gdal_env(command: Literal["tile", "buildings", "predict"], **options: Any) -
 
 __all__ = ["BF16_CPU_FLAGS", "COLLECTIVE_TIMEOUT", "CPU_FLAGS_ENV", "MAX_STREAMS", "SHARE_TIMEOUT", "THREADS_ENV",
            "CompileFallback", "CpuThreads", "GDAL_CACHE_BYTES", "Precision", "Resolved", "Torchrun", "autocast",
-           "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "is_peer_error", "native_bf16", "peer_failure",
+           "cpu_bf16_flags", "cpu_has_amx", "gdal_env", "is_peer_error", "native_bf16", "openvino_core", "peer_failure",
            "resolve_device", "resolve_precision", "resolve_threads", "usable_cpus"]

@@ -272,3 +272,44 @@ def test_openvino_is_imported_without_its_telemetry(tmp_path):
         f"from aerialmtl.runtime import import_openvino; ov = import_openvino(); ov.Core(); {report}", ours)
     assert seen == [False, "MainThread"]
     assert list(ours.iterdir()) == []
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the thread's alternate signal stack (Linux)")
+def test_engines_share_one_openvino_core_and_leave_the_signal_stack_in_place(rng: np.random.Generator) -> None:
+    """Each OpenVINO Core loads its own CPU plugin, which points the thread's alternate signal stack at a buffer
+    of its own and frees it when it goes: engines of their own Cores, dropped in another order than they were
+    made, left that stack on freed memory, and a later SIGCHLD (a DataLoader worker's, a subprocess's) corrupted
+    data or killed the process (SIGSEGV) at random. Engines made and dropped in any order now leave it as the
+    first one set it."""
+    import ctypes
+    import gc
+
+    class StackT(ctypes.Structure):
+        _fields_ = [("ss_sp", ctypes.c_void_p), ("ss_flags", ctypes.c_int), ("ss_size", ctypes.c_size_t)]
+
+    libc = ctypes.CDLL(None, use_errno=True)
+
+    def alt_stack() -> tuple[int | None, int, int]:
+        ss = StackT()
+        assert libc.sigaltstack(None, ctypes.byref(ss)) == 0
+        return ss.ss_sp, ss.ss_flags, ss.ss_size
+
+    model, meta = tiny_d3net()
+    x = torch.from_numpy(rng.standard_normal((1, 3, 64, 64)).astype(np.float32))
+
+    def engine_that_ran() -> Predictor:
+        pred = Predictor((model, meta), mc=1, window=64, overlap=16, precision="fp32", engine="openvino")
+        pred.runner(x, [0])  # compiles: the CPU plugin is loaded by now
+        return pred
+
+    first = engine_that_ran()
+    where = alt_stack()
+    second = engine_that_ran()
+    assert first.runner.engine.core is second.runner.engine.core  # type: ignore[attr-defined]
+    assert alt_stack() == where
+    del first
+    gc.collect()
+    assert alt_stack() == where  # the older engine gone first: the stack stays where the live plugin put it
+    del second
+    gc.collect()
+    assert alt_stack() == where

@@ -100,7 +100,8 @@ def test_onnx_reproduces_torch_and_carries_the_metadata(exported: dict[str, Path
 
 def test_qgis_files_per_task_and_openvino_ir(exported: dict[str, Path], capsys: pytest.CaptureFixture) -> None:
     import onnxruntime as ort
-    import openvino as ov
+
+    from aerialmtl.runtime import openvino_core
 
     ckpt, root = exported["ckpt"], exported["ckpt"].parent
     x = (_image(2, seed=1) - 110.0) / 40.0
@@ -122,7 +123,7 @@ def test_qgis_files_per_task_and_openvino_ir(exported: dict[str, Path], capsys: 
                              "--out", root / "h.xml")
     assert code == 0, err
     assert "Deepness Regressor" in out and (root / "h.xml").is_file() and (root / "h.bin").is_file()
-    compiled = ov.Core().compile_model(str(root / "h.xml"), "CPU", {"INFERENCE_PRECISION_HINT": "f32"})
+    compiled = openvino_core().compile_model(str(root / "h.xml"), "CPU", {"INFERENCE_PRECISION_HINT": "f32"})
     assert [o.get_any_name() for o in compiled.outputs] == ["height"]
     height = compiled({"image": x})[compiled.output(0)]
     np.testing.assert_allclose(height, ref["height"], atol=1e-4, rtol=0)

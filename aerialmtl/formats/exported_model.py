@@ -134,10 +134,9 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     """The metadata of an exported ``.onnx`` or OpenVINO ``.xml`` file, JSON-decoded."""
     path = Path(path)
     if path.suffix == ".xml":
-        from aerialmtl.runtime import import_openvino
+        from aerialmtl.runtime import openvino_core
 
-        ov = import_openvino()
-        model = ov.Core().read_model(path)
+        model = openvino_core().read_model(path)
         info = model.get_rt_info()[OPENVINO_SECTION]
         return {key: json.loads(value.astype(str)) for key, value in info.items()}
     import onnx

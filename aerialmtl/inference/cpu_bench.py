@@ -232,9 +232,9 @@ def _int8_alone(model: Any, meta: Any, settings: BenchSettings,
     calib = [((synthetic_window(side, seed=s).astype(np.float32) - mean) / std)[None] for s in range(8)]
     quantised = nncf.quantize(ov_model, nncf.Dataset(calib), subset_size=len(calib))
     threads = runtime.resolve_threads(settings.threads)
-    compiled = ov.Core().compile_model(quantised, "CPU", {"INFERENCE_NUM_THREADS": threads.threads,
-                                                          "NUM_STREAMS": threads.streams,
-                                                          "ENABLE_CPU_PINNING": False})
+    compiled = runtime.openvino_core().compile_model(quantised, "CPU", {"INFERENCE_NUM_THREADS": threads.threads,
+                                                                       "NUM_STREAMS": threads.streams,
+                                                                       "ENABLE_CPU_PINNING": False})
     inp = x.contiguous().numpy()
 
     def run() -> tuple[np.ndarray, np.ndarray]:

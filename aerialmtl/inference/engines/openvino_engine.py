@@ -89,7 +89,7 @@ class OpenVINOEngine:
         #: Threads and streams the model is compiled for (:func:`aerialmtl.runtime.resolve_threads`).
         self.threads = threads if threads is not None else resolve_threads()
         self._sites: list[DropoutSite] | None = None
-        self.core = ov.Core()
+        self.core = runtime.openvino_core()  # one per process (see there: a Core per engine corrupted memory)
         self.cache_dir: Path | None = None
         if cache:
             cfg = getattr(model, "cfg", "")
