@@ -122,13 +122,3 @@ def _private_stores(config: pytest.Config) -> None:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
-
-
-def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> None:
-    """Collect each test's garbage when it ends. Left to pile up over ~300 tests, one collection of it (reference
-    cycles holding OpenVINO engines and torch models from many in-process predictions) crashed the interpreter with
-    a segmentation fault at a random later test (2026-12-04, reproducible only in the full run; a collection after
-    every test never crashed). The cycle at fault is not yet found: bench/results/commands.md, "the suite's crash"."""
-    import gc
-
-    gc.collect()

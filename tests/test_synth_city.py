@@ -10,8 +10,8 @@ import pytest
 from aerialmtl.data.synth import CityStyle, TexturePool, sample_city
 from aerialmtl.data.synth.city import render_city
 from aerialmtl.data.synth.city_canvas import CityCanvas
+from aerialmtl.data.synth.materials import BUILDING
 from aerialmtl.data.synth.relief import relief_displacement
-from aerialmtl.data.synth.scene import BUILDING
 from aerialmtl.data.synth.style import Imaging
 from aerialmtl.data.synthetic_batches import city_seed, synthetic_scene
 from aerialmtl.errors import InputError
@@ -185,3 +185,23 @@ def test_ground_roofs_sets_the_share_of_roofs_that_look_like_the_ground() -> Non
     assert np.array_equal(a.image, b.image) and np.array_equal(a.height, b.height)  # the default is today's generator
     with pytest.raises(InputError, match="ground_roofs"):
         CityStyle(ground_roofs=1.2)
+
+
+def test_cli_city_takes_textures_from_an_orthophoto_and_ndsm(tmp_path) -> None:
+    """``--textures ORTHO NDSM`` cuts the pool from those rasters (read through the aligner) and lays it on the
+    city's surfaces: the image changes, the heights and labels do not."""
+    import rasterio
+    from click.testing import CliRunner
+
+    from aerialmtl.cli import cli
+    from aerialmtl.data.synth import synthesize
+
+    town = synthesize(tmp_path / "town", size=96, seed=2, gsd=0.5)
+    args = ["synth", "--kind", "city", "--size", "64", "--gsd", "0.5", "--plain"]
+    res = CliRunner().invoke(cli, [*args, str(tmp_path / "plain")])
+    assert res.exit_code == 0, res.output
+    res = CliRunner().invoke(cli, [*args, str(tmp_path / "tex"), "--textures", str(town.ortho), str(town.ndsm)])
+    assert res.exit_code == 0, res.output
+    for name, same in (("ortho.tif", False), ("ndsm.tif", True), ("labels.tif", True)):
+        with rasterio.open(tmp_path / "plain" / name) as a, rasterio.open(tmp_path / "tex" / name) as b:
+            assert np.array_equal(a.read(), b.read()) == same, name

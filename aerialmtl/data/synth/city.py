@@ -14,6 +14,12 @@ Labels are raw codes of the built-in ``synthetic`` class scheme (the one :func:`
 soil, 2 road, 3 building, 4 tree, 5 low vegetation, 6 water). Cars carry their height (1.4–1.8 m) in the
 nDSM and keep the label of the ground they stand on.
 
+The city is one style of the synthetic generator, the town (:mod:`~aerialmtl.data.synth.scene`) the other:
+it draws on the same canvas, street grid, materials and sun (:mod:`~aerialmtl.data.synth.canvas`,
+:mod:`~aerialmtl.data.synth.streets`, :mod:`~aerialmtl.data.synth.materials`,
+:mod:`~aerialmtl.data.synth.shading`) with its own blocks (:mod:`~aerialmtl.data.synth.city_blocks`),
+palette and imaging (:mod:`~aerialmtl.data.synth.style`).
+
 Random streams: the layout (heights, labels), the imaging (sun, lean, sensor look, image noise) and the
 textures each draw from their own generator seeded by ``(seed, stream)``, so changing the style or the
 textures never changes the heights or labels of a seed.
@@ -22,10 +28,11 @@ textures never changes the heights or labels of a seed.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from aerialmtl.data.synth import streets
 from aerialmtl.data.synth.city_blocks import KINDS, Blocks
 from aerialmtl.data.synth.city_canvas import (
     ASPHALT,
@@ -36,19 +43,20 @@ from aerialmtl.data.synth.city_canvas import (
     TEXTURE,
     WATER_M,
     CityCanvas,
-    TextureFn,
-    jitter,
 )
+from aerialmtl.data.synth.materials import BUILDING, LOW_VEGETATION, ROAD, WATER, jitter, texture_terms
+from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.relief import relief_displacement
-from aerialmtl.data.synth.scene import BUILDING, LOW_VEGETATION, ROAD, WATER
-from aerialmtl.data.synth.shading import cast_shadows, hillshade
+from aerialmtl.data.synth.shading import Sky, direct_sun, wall_sun
 from aerialmtl.data.synth.style import CityStyle, Imaging, finish_image
-from aerialmtl.data.synth.textures import TexturePool
+from aerialmtl.data.synth.textures import Source, TexturePool
 from aerialmtl.errors import InputError
 
-#: Fraction of flat-ground brightness left in shadow, and the bluer sky light (as in the town renderer).
+#: Fraction of flat-ground brightness left in shadow, and the bluer sky light (:class:`~.shading.Sky`) of a city.
 AMBIENT = 0.42
-_SKY_TINT = np.array([0.92, 0.98, 1.10], np.float32)
+SKY = Sky(AMBIENT, (0.92, 0.98, 1.10))
+#: The city's streets: 7–22 m wide, blocks of 50–170 m.
+CITY_STREETS = streets.StreetSpacing(spacing=(50, 170), width=(7, 22), lead=120, tail=170)
 #: Storey height drawn on walls (window bands), metres.
 STOREY_M = 3.3
 #: Smallest patch side accepted, pixels; GSD range accepted, metres.
@@ -80,52 +88,39 @@ class CityPatch:
 
 
 def _streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
-    return tuple(np.random.default_rng([int(seed) & 0xFFFFFFFFFFFF, k]) for k in (_LAYOUT, _IMAGING, _TEXTURES))  # type: ignore[return-value]
+    """The layout, imaging and texture generators of ``seed`` (independent streams)."""
+    layout, imaging, textures = (np.random.default_rng([int(seed) & 0xFFFFFFFFFFFF, k])
+                                 for k in (_LAYOUT, _IMAGING, _TEXTURES))
+    return layout, imaging, textures
 
 
-def _lines(rng: np.random.Generator, lo: float, hi: float) -> list[tuple[float, float, bool]]:
-    """(centre, width, is_river) of parallel streets covering [lo, hi]: blocks of 50–170 m, streets of 7–22 m."""
-    lines: list[tuple[float, float, bool]] = []
-    pos = lo - rng.uniform(0, 120)
-    while pos < hi + 170:
-        lines.append((pos, rng.uniform(7, 22), False))
-        pos += rng.uniform(50, 170)
+def _lines(rng: np.random.Generator, lo: float, hi: float) -> streets.Family:
+    """Parallel streets covering [lo, hi] (:data:`CITY_STREETS`); in 15 % of families one is a river of 15–50 m."""
+    lines = streets.street_lines(rng, lo, hi, CITY_STREETS)
     if len(lines) > 2 and rng.random() < 0.15:
         i = int(rng.integers(1, len(lines) - 1))
-        lines[i] = (lines[i][0], rng.uniform(15, 50), True)
+        lines[i] = replace(lines[i], width=rng.uniform(15, 50), river=True)
     return lines
 
 
-def _nearest(coord: np.ndarray, lines: list[tuple[float, float, bool]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per pixel: offset from the nearest line's centre, its half width, and whether it is a river."""
-    centres = np.array([c for c, _, _ in lines], np.float32)
-    halves = np.array([w / 2 for _, w, _ in lines], np.float32)
-    river = np.array([r for _, _, r in lines], bool)
-    k = np.clip(np.searchsorted(centres, coord), 1, len(centres) - 1)
-    idx = np.where((centres[k] - coord) < (coord - centres[k - 1]), k, k - 1)
-    return coord - centres[idx], halves[idx], river[idx]
-
-
-def _streets(cv: CityCanvas, rng: np.random.Generator, lines_u: list[tuple[float, float, bool]],
-             lines_v: list[tuple[float, float, bool]], kerb: float) -> None:
+def _streets(cv: CityCanvas, rng: np.random.Generator, lines_u: streets.Family, lines_v: streets.Family,
+             kerb: float) -> None:
     """Asphalt streets with dashed centre lines, concrete pavements, and rivers with grass banks."""
     asphalt = np.asarray(jitter(rng, (88, 88, 92), 10.0), np.float32)
     pavement = np.asarray(jitter(rng, (170, 168, 160), 10.0), np.float32)
     water = np.asarray(jitter(rng, (38, 62, 76), 10.0), np.float32)
-    off_u, half_u, river_u = _nearest(cv.u, lines_u)
-    off_v, half_v, river_v = _nearest(cv.v, lines_v)
-    on_u, on_v = np.abs(off_u) <= half_u, np.abs(off_v) <= half_v
+    st = streets.StreetField.measure(cv.u, cv.v, lines_u, lines_v)
+    river_u = np.array([ln.river for ln in lines_u], bool)[st.index_u]
+    river_v = np.array([ln.river for ln in lines_v], bool)[st.index_v]
+    off_u, half_u, off_v, half_v, on_u, on_v = st.off_u, st.half_u, st.off_v, st.half_v, st.on_u, st.on_v
     walk = ~(on_u | on_v) & ((np.abs(off_u) <= half_u + kerb) | (np.abs(off_v) <= half_v + kerb))
-    road = (on_u & ~river_u) | (on_v & ~river_v)
-    layers = ((walk, ROAD, CONCRETE, pavement), (road, ROAD, ASPHALT, asphalt))
+    road_u, road_v = on_u & ~river_u, on_v & ~river_v
+    layers = ((walk, ROAD, CONCRETE, pavement), (road_u | road_v, ROAD, ASPHALT, asphalt))
     for mask, label, mat, rgb in layers:
         cv.labels[mask], cv.material[mask] = label, mat
         cv.tint[:, mask] = rgb[:, None]
     if cv.gsd <= 0.6:
-        line_w = max(0.15, 0.55 * cv.gsd)
-        dash_u = on_u & ~on_v & ~river_u & (np.abs(off_u) < line_w) & (half_u >= 4) & (np.mod(cv.v, 9.0) < 4.5)
-        dash_v = on_v & ~on_u & ~river_v & (np.abs(off_v) < line_w) & (half_v >= 4) & (np.mod(cv.u, 9.0) < 4.5)
-        dash = dash_u | dash_v
+        dash = st.centre_dashes(cv.u, cv.v, cv.gsd, road_u, road_v)
         cv.material[dash] = MARKING
         cv.tint[:, dash] = np.float32(212.0)
     wet = (on_u & river_u) | (on_v & river_v)
@@ -137,7 +132,7 @@ def _streets(cv: CityCanvas, rng: np.random.Generator, lines_u: list[tuple[float
 
 
 def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: np.random.Generator,
-               texture: TextureFn | None = None,
+               texture: Source | None = None,
                ground_roofs: float = GROUND_ROOFS) -> tuple[CityCanvas, dict[str, int]]:
     """Plan and draw a city on a ``size`` × ``size`` canvas of ``gsd`` metres.
 
@@ -154,7 +149,7 @@ def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: 
     """
     theta = 0.0 if layout.random() < 0.3 else math.radians(layout.uniform(-45, 45))
     cv = CityCanvas(size, gsd, theta, texture)
-    bumps = value_noise(cv.ndsm.shape, max(1.0, 0.8 / gsd), layout)
+    bumps = smooth_noise(cv.ndsm.shape, max(1.0, 0.8 / gsd), layout, "smoothstep")
     lines_u = _lines(layout, float(cv.u.min()), float(cv.u.max()))
     lines_v = _lines(layout, float(cv.v.min()), float(cv.v.max()))
     kerb = layout.uniform(1.5, 4.0)
@@ -163,18 +158,18 @@ def build_city(size: int, gsd: float, layout: np.random.Generator, texture_rng: 
     names = list(KINDS)
     probs = np.array([KINDS[k][1] for k in names])
     stats = dict.fromkeys(names, 0)
-    for (cu0, wu0, ru0), (cu1, wu1, ru1) in zip(lines_u[:-1], lines_u[1:]):
-        for (cv0, wv0, rv0), (cv1, wv1, rv1) in zip(lines_v[:-1], lines_v[1:]):
-            u0, u1 = cu0 + wu0 / 2 + kerb + (4 if ru0 else 0), cu1 - wu1 / 2 - kerb - (4 if ru1 else 0)
-            v0, v1 = cv0 + wv0 / 2 + kerb + (4 if rv0 else 0), cv1 - wv1 / 2 - kerb - (4 if rv1 else 0)
-            kind = names[int(layout.choice(len(names), p=probs))]
-            street_trees = layout.random() < 0.35
-            if u1 - u0 < 12 or v1 - v0 < 12 or cv.window(u0, u1, v0, v1) is None:
-                continue
-            stats[kind] += 1
-            KINDS[kind][0](blocks, u0, u1, v0, v1)
-            if street_trees:
-                _street_trees(blocks, u0, u1, v0, v1, kerb)
+    for low_u, high_u, low_v, high_v in streets.blocks_between(lines_u, lines_v):
+        # a block stops at the kerb, and 4 m more from a river (its grass bank)
+        u0, u1 = low_u.high + kerb + (4 if low_u.river else 0), high_u.low - kerb - (4 if high_u.river else 0)
+        v0, v1 = low_v.high + kerb + (4 if low_v.river else 0), high_v.low - kerb - (4 if high_v.river else 0)
+        kind = names[int(layout.choice(len(names), p=probs))]
+        street_trees = layout.random() < 0.35
+        if u1 - u0 < 12 or v1 - v0 < 12 or cv.window(u0, u1, v0, v1) is None:
+            continue
+        stats[kind] += 1
+        KINDS[kind][0](blocks, u0, u1, v0, v1)
+        if street_trees:
+            _street_trees(blocks, u0, u1, v0, v1, kerb)
     grass = (cv.material == GRASS) & (cv.labels == LOW_VEGETATION) & (cv.ndsm < 0.5)
     cv.ndsm[grass] = np.clip(0.1 + 0.08 * bumps[grass], 0.0, 0.3)
     return cv, stats
@@ -185,45 +180,18 @@ def _street_trees(b: Blocks, u0: float, u1: float, v0: float, v1: float, kerb: f
     spacing = b.rng.uniform(7, 13)
     for along_u, lo, hi, fixed in ((True, u0, u1, v0 - kerb / 2), (True, u0, u1, v1 + kerb / 2),
                                    (False, v0, v1, u0 - kerb / 2), (False, v0, v1, u1 + kerb / 2)):
-        pos = lo + b.rng.uniform(1, spacing)
-        while pos < hi - 1:
+        for pos in streets.positions_along(b.rng, lo, hi, spacing, 1.0):
             u, v = (pos, fixed) if along_u else (fixed, pos)
             b.tree(u, v, b.rng.uniform(2.0, 4.0), b.rng.uniform(5, 14))
-            pos += spacing
-
-
-def value_noise(shape: tuple[int, int], cell_px: float, rng: np.random.Generator) -> np.ndarray:
-    """Smooth N(0, 1) noise with features of ``cell_px`` pixels: float32 (H, W), std ~0.6–1.
-
-    A coarse grid of normal values, one every ``cell_px`` pixels, interpolated separably with smoothstep
-    weights (two gathers; no BLAS and no spline filter, which cost most of a patch's time).
-    """
-    h, w = shape
-    if cell_px <= 1.0:
-        return rng.standard_normal(shape, dtype=np.float32)
-    coarse = rng.standard_normal((int(h / cell_px) + 2, int(w / cell_px) + 2), dtype=np.float32)
-
-    def axis(n: int) -> tuple[np.ndarray, np.ndarray]:
-        pos = (np.arange(n, dtype=np.float32) + 0.5) / np.float32(cell_px)
-        i = pos.astype(np.int64)
-        f = pos - i
-        return i, f * f * (3 - 2 * f)
-
-    ri, rf = axis(h)
-    ci, cf = axis(w)
-    rows = coarse[ri] * (1 - rf)[:, None] + coarse[ri + 1] * rf[:, None]  # (H, gw)
-    noise: np.ndarray = (rows[:, ci] * (1 - cf) + rows[:, ci + 1] * cf).astype(np.float32)
-    return noise
 
 
 def _albedo(cv: CityCanvas, rng: np.random.Generator) -> np.ndarray:
     """Surface colour with material textures: float32 (3, N, N) DN."""
-    large = value_noise(cv.ndsm.shape, 25.0 / cv.gsd, rng)
-    mid = value_noise(cv.ndsm.shape, max(1.0, 3.0 / cv.gsd), rng)
+    large = smooth_noise(cv.ndsm.shape, 25.0 / cv.gsd, rng, "smoothstep")
+    mid = smooth_noise(cv.ndsm.shape, max(1.0, 3.0 / cv.gsd), rng, "smoothstep")
     fine = rng.standard_normal(cv.ndsm.shape, dtype=np.float32)
-    amp = TEXTURE[cv.material]  # (N, N, 3)
-    gain = 1.0 + amp[..., 0] * large + amp[..., 1] * mid
-    tinted: np.ndarray = cv.tint * gain[None] + (amp[..., 2] * fine)[None]
+    gain, grain = texture_terms(TEXTURE[cv.material], large, mid, fine)
+    tinted: np.ndarray = cv.tint * gain[None] + grain[None]
     return tinted
 
 
@@ -234,19 +202,13 @@ def render_city(cv: CityCanvas, imaging: Imaging, rng: np.random.Generator) -> n
         float32 (3, N, N) radiance in DN (before the sensor look of :func:`finish_image`).
     """
     albedo = _albedo(cv, rng)
-    direct = hillshade(cv.ndsm, cv.gsd, imaging.sun_azimuth, imaging.sun_elevation)
-    direct[cast_shadows(cv.ndsm, cv.gsd, imaging.sun_azimuth, imaging.sun_elevation)] = 0.0
-    np.minimum(direct, 1.6, out=direct)
-    light = np.float32(1 - AMBIENT) * direct[None] + np.float32(AMBIENT) * _SKY_TINT[:, None, None]
-    lit = albedo * light
+    direct, _ = direct_sun(cv.ndsm, cv.gsd, imaging.sun_azimuth, imaging.sun_elevation)
+    lit = albedo * SKY.light(direct)
     relief = relief_displacement(cv.ndsm, cv.gsd, imaging.lean_azimuth, imaging.lean_tan)
     out = lit[:, relief.src_row, relief.src_col]
     if relief.wall.any():
         rows, cols = relief.src_row[relief.wall], relief.src_col[relief.wall]
-        facing = math.cos(math.radians(imaging.sun_azimuth - imaging.lean_azimuth - 180.0))
-        el = math.radians(imaging.sun_elevation)
-        wall_direct = min(1.6, max(0.0, facing) * math.cos(el) / math.sin(el))
-        wall_light = np.float32(1 - AMBIENT) * np.float32(wall_direct) + np.float32(AMBIENT) * _SKY_TINT
+        wall_light = SKY.light(wall_sun(imaging.sun_azimuth, imaging.sun_elevation, imaging.lean_azimuth))
         z = relief.z[relief.wall]
         storeys = np.where(cv.labels[rows, cols] == BUILDING,
                            np.where(np.mod(z, STOREY_M) < 0.45 * STOREY_M, np.float32(0.7), np.float32(1.0)),

@@ -33,15 +33,27 @@ from aerialmtl.data.synth.city_canvas import (
     SEATS,
     SOIL,
     TILE,
-    TREE_GREENS,
     TREE_MAX,
     WATER_M,
     YARD_ROOFS,
     CityCanvas,
+)
+from aerialmtl.data.synth.materials import (
+    BARE_SOIL,
+    BUILDING,
+    GRASS_RGB,
+    GRAVEL_RGB,
+    LOW_VEGETATION,
+    MARKING_RGB,
+    ROAD,
+    SOIL_RGB,
+    TREE,
+    WATER,
     Rgb,
     jitter,
+    tree_green,
 )
-from aerialmtl.data.synth.scene import BARE_SOIL, BUILDING, LOW_VEGETATION, ROAD, TREE, WATER
+from aerialmtl.data.synth.shapes import crown, crown_size, forest_trees, gable, tile_rows
 
 
 def span(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -120,27 +132,22 @@ class Blocks:
         if hit is None:
             return
         win, inside = hit
-        along_u = (u1 - u0) >= (v1 - v0)
-        across = (win.v - 0.5 * (v0 + v1)) if along_u else (win.u - 0.5 * (u0 + u1))
-        half = 0.5 * ((v1 - v0) if along_u else (u1 - u0))
-        h = eave + rise * np.clip(1.0 - np.abs(across) / half, 0.0, 1.0)
-        stripes = 1.0 + 0.07 * np.sin(2 * np.pi * np.abs(across) / 0.9)
+        h, across = gable(win.u, win.v, u0, u1, v0, v1, eave, rise)
+        stripes = 1.0 + tile_rows(across)
         albedo = np.asarray(rgb, np.float32)[:, None, None] * stripes[None].astype(np.float32)
         self.cv.put(win, inside, h.astype(np.float32), BUILDING, TILE, albedo, facade)
 
     def tree(self, u: float, v: float, radius: float, top: float, dark: float = 0.0) -> None:
         """A tree crown (dome between its rim ``base`` and ``top``, metres) centred on (u, v)."""
-        rng = self.rng
-        top = float(np.clip(top, 4.0, TREE_MAX))
-        base = max(3.0, top * rng.uniform(0.3, 0.6))
-        rgb = np.asarray(jitter(rng, TREE_GREENS[int(rng.integers(len(TREE_GREENS)))], 8.0), np.float32) * (1 - dark)
+        top, base = crown_size(self.rng, top, TREE_MAX, 0.6)
+        rgb = np.asarray(tree_green(self.rng), np.float32) * (1 - dark)
         win = self.cv.window(u - radius, u + radius, v - radius, v + radius)
         if win is None:
             return
         d2 = ((win.u - u) ** 2 + (win.v - v) ** 2) / np.float32(radius * radius)
         inside = d2 < 1.0
         bumps = self.bumps[win.rows, win.cols]
-        h = np.clip(base + (top - base) * np.sqrt(np.clip(1.0 - d2, 0.0, 1.0)) + 0.35 * bumps, 3.0, TREE_MAX)
+        h = crown(d2, base, top, bumps, TREE_MAX)
         albedo = rgb[:, None, None] * (1.0 + 0.15 * bumps)[None]
         self.cv.put(win, inside, h.astype(np.float32), TREE, CROWN, albedo, tuple(rgb * 0.75))
 
@@ -167,7 +174,7 @@ class Blocks:
             if hit is not None:
                 win, inside = hit
                 lines = inside & (np.mod(win.u - u0, 2.6) < 0.12 + 0.5 * self.cv.gsd)
-                self.cv.paint(win, lines, ROAD, MARKING, np.array([[[215.0]], [[215.0]], [[205.0]]], np.float32))
+                self.cv.paint(win, lines, ROAD, MARKING, np.asarray(MARKING_RGB, np.float32)[:, None, None])
             for s in np.arange(u0 + 1.3, u1 - 1.3, 2.6):
                 if rng.random() < fill:
                     self.car(float(s), v + 2.5, along_u=False)
@@ -191,7 +198,7 @@ def hall_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
         placed.append((cu, cu + w, cv, cv + d))
         height = rng.uniform(15, 28) if rng.random() < 0.35 else rng.uniform(6, 15)
         mat, rgb, textured = b.flat_roof(yard)
-        b.box(cu, cu + w, cv, cv + d, height, mat, rgb, jitter(rng, FACADES[int(rng.integers(len(FACADES)))]),
+        b.box(cu, cu + w, cv, cv + d, height, mat, rgb, jitter(rng, FACADES[int(rng.integers(len(FACADES)))], 10.0),
               textured)
         if rng.random() < 0.3:  # skylight strips along the hall
             for s in np.arange(cu + 4, cu + w - 4, rng.uniform(6, 12)):
@@ -214,7 +221,7 @@ def tower_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
             break
         cu, cv = span(rng, u0 + 2, u1 - 2 - w), span(rng, v0 + 2, v1 - 2 - d)
         height = float(rng.triangular(25, 30, BUILDING_MAX))
-        facade = jitter(rng, FACADES[int(rng.integers(len(FACADES)))])
+        facade = jitter(rng, FACADES[int(rng.integers(len(FACADES)))], 10.0)
         if rng.random() < 0.5:  # podium
             m = rng.uniform(3, 8)
             mat, rgb, textured = b.flat_roof(plaza)
@@ -230,11 +237,11 @@ def tower_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
 def midrise_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
     """Perimeter block: flat-roofed buildings of 8–25 m along the edges around a courtyard."""
     rng = b.rng
-    yard = b.paved() if rng.random() < 0.6 else Ground(GRASS, LOW_VEGETATION, jitter(rng, (96, 128, 62)))
+    yard = b.paved() if rng.random() < 0.6 else Ground(GRASS, LOW_VEGETATION, jitter(rng, GRASS_RGB, 10.0))
     b.ground(u0, u1, v0, v1, yard)
     depth = rng.uniform(10, 18)
     height = rng.uniform(8, 25)
-    facade = jitter(rng, FACADES[int(rng.integers(len(FACADES)))])
+    facade = jitter(rng, FACADES[int(rng.integers(len(FACADES)))], 10.0)
     edges = [(u0, u1, v0, v0 + depth), (u0, u1, v1 - depth, v1), (u0, u0 + depth, v0, v1), (u1 - depth, u1, v0, v1)]
     for e in edges:
         if rng.random() < 0.8:
@@ -248,7 +255,7 @@ def midrise_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None
 def residential_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
     """Houses with gable roofs (3–12 m), sheds (2.5–4 m), lawns, driveways and garden trees."""
     rng = b.rng
-    b.ground(u0, u1, v0, v1, Ground(GRASS, LOW_VEGETATION, jitter(rng, (96, 128, 62), 10.0)))
+    b.ground(u0, u1, v0, v1, Ground(GRASS, LOW_VEGETATION, jitter(rng, GRASS_RGB, 10.0)))
     for row_v0, row_v1 in ((v0, min(v1, v0 + 30)), (max(v0, v1 - 30), v1)) if v1 - v0 > 40 else ((v0, v1),):
         u = u0
         while u < u1 - 8:
@@ -256,7 +263,7 @@ def residential_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> 
             w, d = min(lot - 3, rng.uniform(8, 14)), min(row_v1 - row_v0 - 6, rng.uniform(8, 12))
             if w >= 6 and d >= 6:
                 hv = row_v0 + 3 if row_v0 == v0 else row_v1 - 3 - d
-                facade = jitter(rng, FACADES[int(rng.integers(len(FACADES)))])
+                facade = jitter(rng, FACADES[int(rng.integers(len(FACADES)))], 10.0)
                 rgb = jitter(rng, ROOF_TILES[int(rng.integers(len(ROOF_TILES)))], 8.0)
                 rise = 0.5 * min(w, d) * math.tan(math.radians(rng.uniform(25, 45)))
                 b.gable(u + 1.5, u + 1.5 + w, hv, hv + d, rng.uniform(3, 7), rise, rgb, facade)
@@ -302,19 +309,19 @@ def stadium_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None
     h = low + (top - low) * np.minimum(steps * tier / band, 1.0)
     seat, concrete = np.asarray(jitter(rng, CAR_COLOURS[int(rng.integers(len(CAR_COLOURS)))], 20.0)), 175.0
     albedo = np.where((steps % 2 == 0)[None], seat[:, None, None], np.float32(concrete)).astype(np.float32)
-    facade = jitter(rng, (170, 168, 160))
+    facade = jitter(rng, (170, 168, 160), 10.0)
     b.cv.put(win, inside, h.astype(np.float32), BUILDING, SEATS, albedo, facade)
     if rng.random() < 0.5:  # a roof canopy over the outer rows
         canopy = inside & (dist > band * rng.uniform(0.5, 0.8))
         mat, rgb = ROOF_OTHER[int(rng.integers(len(ROOF_OTHER)))]
         b.cv.put(win, canopy, float(min(BUILDING_MAX, top + rng.uniform(2, 6))), BUILDING, mat,
-                 np.asarray(jitter(rng, rgb), np.float32)[:, None, None], facade)
+                 np.asarray(jitter(rng, rgb, 10.0), np.float32)[:, None, None], facade)
 
 
 def park_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
     """Grass, a gravel path, sometimes a pond, and scattered trees."""
     rng = b.rng
-    b.ground(u0, u1, v0, v1, Ground(GRASS, LOW_VEGETATION, jitter(rng, (96, 128, 62), 10.0)))
+    b.ground(u0, u1, v0, v1, Ground(GRASS, LOW_VEGETATION, jitter(rng, GRASS_RGB, 10.0)))
     if rng.random() < 0.5:
         ru, rv = (u1 - u0) * rng.uniform(0.15, 0.35), (v1 - v0) * rng.uniform(0.15, 0.35)
         pu, pv = span(rng, u0 + ru, u1 - ru), span(rng, v0 + rv, v1 - rv)
@@ -325,7 +332,7 @@ def park_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
             b.cv.paint(win, pond, WATER, WATER_M, water)
     if rng.random() < 0.5:
         vm = rng.uniform(v0, v1)
-        b.ground(u0, u1, vm - 1.2, vm + 1.2, Ground(GRAVEL, BARE_SOIL, jitter(rng, (172, 160, 140))))
+        b.ground(u0, u1, vm - 1.2, vm + 1.2, Ground(GRAVEL, BARE_SOIL, jitter(rng, GRAVEL_RGB, 10.0)))
     for _ in range(int((u1 - u0) * (v1 - v0) * rng.uniform(0.002, 0.008))):
         r = rng.uniform(2.5, 6.5)
         b.tree(rng.uniform(u0, u1), rng.uniform(v0, v1), r, r * rng.uniform(2.0, 3.2) + rng.uniform(0, 4))
@@ -335,17 +342,15 @@ def forest_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
     """A closed forest of 4–30 m trees."""
     rng = b.rng
     b.ground(u0, u1, v0, v1, Ground(SOIL, BARE_SOIL, jitter(rng, (110, 100, 70), 10.0)))
-    for _ in range(int((u1 - u0) * (v1 - v0) / (math.pi * 4.5**2) * rng.uniform(1.0, 1.6))):
-        r = rng.uniform(2.5, 7.0)
-        b.tree(rng.uniform(u0, u1), rng.uniform(v0, v1), r, r * rng.uniform(2.2, 4.2) + rng.uniform(0, 4),
-               dark=rng.uniform(0.0, 0.25))
+    for u, v, radius, top, dark in forest_trees(rng, u0, u1, v0, v1, 4.2, 0.25):
+        b.tree(u, v, radius, top, dark)
 
 
 def bare_block(b: Blocks, u0: float, u1: float, v0: float, v1: float) -> None:
     """A construction site or fallow lot: soil and gravel, a few sheds."""
     rng = b.rng
     b.ground(u0, u1, v0, v1, Ground(SOIL if rng.random() < 0.5 else GRAVEL, BARE_SOIL,
-                                    jitter(rng, (150, 122, 88), 15.0)))
+                                    jitter(rng, SOIL_RGB, 15.0)))
     for _ in range(int(rng.integers(0, 4))):
         su, sv = span(rng, u0, u1 - 6), span(rng, v0, v1 - 3)
         shed = jitter(rng, (200, 200, 200), 30.0)

@@ -43,8 +43,8 @@ _OUTPUTS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "labels.tif", "classe
 
 
 @dataclass(frozen=True)
-class SynthResult:
-    """Paths written by :func:`synthesize` and the scene's sun angles (degrees)."""
+class Written:
+    """The folder and the files both :func:`synthesize` and :func:`synthesize_city` write."""
 
     out_dir: Path
     ortho: Path
@@ -53,6 +53,12 @@ class SynthResult:
     ndsm: Path
     labels: Path
     classes: Path
+
+
+@dataclass(frozen=True)
+class SynthResult(Written):
+    """Paths written by :func:`synthesize` and the scene's sun angles (degrees)."""
+
     sun_azimuth: float
     sun_elevation: float
     seconds: float
@@ -228,16 +234,9 @@ CITY_GROUND_M = 100.0
 
 
 @dataclass(frozen=True)
-class CityResult:
+class CityResult(Written):
     """Paths written by :func:`synthesize_city`, the imaging the ortho was made with, and the time taken (s)."""
 
-    out_dir: Path
-    ortho: Path
-    dsm: Path
-    dtm: Path
-    ndsm: Path
-    labels: Path
-    classes: Path
     imaging: Imaging
     seconds: float
 

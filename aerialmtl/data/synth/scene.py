@@ -1,96 +1,85 @@
 """Procedural town layout: terrain, roads, blocks of houses, commercial lots, parks, forests, fields.
 
-Everything is planned in metres in a "town frame" (u, v) rotated by a seeded angle from the image
-axes, and rasterised onto the pixel grid: ground covers with vectorised masks, objects (buildings,
-trees) one by one with :func:`skimage.draw.polygon` / :func:`skimage.draw.disk` and a "highest
-surface wins" rule, so that the label of every pixel is the class of the surface a camera looking
-straight down would see, and its nDSM is that surface's height above ground.
-
-The pixel (row, col) centre lies at X = (col + 0.5)·gsd east and Y = (row + 0.5)·gsd south of the
-scene's upper-left corner; u = X·cosθ + Y·sinθ, v = −X·sinθ + Y·cosθ.
+The town is one style of the synthetic generator, the city (:mod:`~aerialmtl.data.synth.city`) the other:
+both plan in metres in a frame rotated by a seeded angle from the image axes and draw on a
+:class:`~aerialmtl.data.synth.canvas.Canvas` (its frame, pixel conventions and "highest surface wins" rule),
+lay a street grid (:mod:`~aerialmtl.data.synth.streets`), colour with the shared materials
+(:mod:`~aerialmtl.data.synth.materials`) and are lit by the same sun (:mod:`~aerialmtl.data.synth.shading`).
+The town's own parts: gentle terrain, ground covers as a material raster, objects rasterised one by one with
+:func:`skimage.draw.polygon` / :func:`skimage.draw.disk`, so that the label of every pixel is the class of
+the surface a camera looking straight down would see, and its nDSM is that surface's height above ground.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
-from shapely.geometry import Polygon, box
+from shapely.geometry import Point, Polygon, box
 from shapely.ops import unary_union
-from skimage.draw import disk, polygon
+from skimage.draw import disk
 
+from aerialmtl.data.synth import streets
+from aerialmtl.data.synth.canvas import Canvas
+from aerialmtl.data.synth.materials import (
+    ASPHALT_RGB,
+    BARE_SOIL,
+    BUILDING,
+    GRASS_RGB,
+    GRASS_TEXTURE,
+    GRAVEL_RGB,
+    LOW_VEGETATION,
+    MARKING_RGB,
+    ROAD,
+    SOIL_RGB,
+    SOIL_TEXTURE,
+    TILE_REDS,
+    TREE,
+    WATER,
+    WATER_TEXTURE,
+    Rgb,
+    Texture,
+    jitter,
+    texture_table,
+    texture_terms,
+    tree_green,
+)
 from aerialmtl.data.synth.noise import smooth_noise
 from aerialmtl.data.synth.scene_parts import Building, BuildingTruth, RoofPart, Scene, TreeSpec
+from aerialmtl.data.synth.shapes import crown, crown_size, forest_trees, gable, tile_rows
 
-# Raw label codes of the built-in "synthetic" class scheme.
-BARE_SOIL, ROAD, BUILDING, TREE, LOW_VEGETATION, WATER = 1, 2, 3, 4, 5, 6
-
-# Ground materials (index into the tables below).
+# The town's ground materials (index into the tables below).
 GRASS, SOIL, FIELD, ASPHALT, MARKING, POND, GRAVEL = range(7)
 _COVER_LABEL = np.array([LOW_VEGETATION, BARE_SOIL, BARE_SOIL, ROAD, ROAD, WATER, BARE_SOIL], np.uint8)
-# base colour (R, G, B) in DN and texture amplitudes: large (×), mid (×), fine (DN)
-_COVER_RGB = np.array(
-    [[96, 128, 62], [150, 122, 88], [128, 100, 72], [92, 92, 94], [215, 215, 205], [32, 56, 78], [172, 160, 140]],
-    np.float32,
-)
-_COVER_TEX = np.array(
-    [[0.10, 0.10, 9.0], [0.08, 0.08, 7.0], [0.06, 0.05, 6.0], [0.05, 0.07, 6.0], [0.0, 0.03, 5.0],
-     [0.04, 0.03, 1.5], [0.05, 0.06, 8.0]],
-    np.float32,
-)
+# base colour (R, G, B) in DN and texture amplitudes; the town's asphalt, markings and gravel are its own
+_COVER_RGB = np.array([GRASS_RGB, SOIL_RGB, (128, 100, 72), ASPHALT_RGB, MARKING_RGB, (32, 56, 78), GRAVEL_RGB],
+                      np.float32)
+_COVER_TEX = texture_table((GRASS_TEXTURE, SOIL_TEXTURE, Texture(0.06, 0.05, 6.0), Texture(0.05, 0.07, 6.0),
+                            Texture(0.0, 0.03, 5.0), WATER_TEXTURE, Texture(0.05, 0.06, 8.0)))
 _DRY_GRASS = np.array([150, 150, 88], np.float32)
 
-_ROOF_TILES = [(150, 68, 48), (172, 92, 62), (122, 58, 44), (140, 100, 80), (160, 82, 70)]
-_ROOF_GREY = [(118, 118, 124), (150, 148, 146), (104, 110, 118)]
-_ROOF_DARK = [(60, 60, 68), (74, 70, 70), (52, 56, 62)]
-_ROOF_FLAT = [(176, 174, 168), (196, 190, 178), (88, 88, 94), (142, 142, 136), (160, 150, 140)]
-_TREE_GREENS = [(46, 82, 36), (58, 96, 42), (38, 70, 40), (70, 100, 46), (50, 76, 30)]
+_ROOF_TILES: tuple[Rgb, ...] = (*TILE_REDS, (160, 82, 70))
+_ROOF_GREY: tuple[Rgb, ...] = ((118, 118, 124), (150, 148, 146), (104, 110, 118))
+_ROOF_DARK: tuple[Rgb, ...] = ((60, 60, 68), (74, 70, 70), (52, 56, 62))
+_ROOF_FLAT: tuple[Rgb, ...] = ((176, 174, 168), (196, 190, 178), (88, 88, 94), (142, 142, 136), (160, 150, 140))
+#: The town's tallest tree, metres.
+TREE_MAX = 25.0
+#: The town's streets: 6–12 m wide, 45–110 m apart.
+TOWN_STREETS = streets.StreetSpacing(spacing=(45, 110), width=(6, 12), lead=40, tail=60)
 
 
-class _Canvas:
-    """Pixel arrays plus the town-frame ↔ pixel transforms."""
+class _Canvas(Canvas):
+    """The town's canvas: the shared arrays plus the surface colour (``albedo``, float32 (3, N, N) DN)."""
 
     def __init__(self, size: int, gsd: float, theta: float) -> None:
-        self.n = size
-        self.gsd = gsd
-        self.cos, self.sin = math.cos(theta), math.sin(theta)
-        self.shape = (size, size)
-        self.ndsm = np.zeros(self.shape, np.float32)
-        self.labels = np.zeros(self.shape, np.uint8)
+        super().__init__(size, gsd, theta)
         self.albedo = np.zeros((3, *self.shape), np.float32)
-
-    def to_px(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = u * self.cos - v * self.sin
-        y = u * self.sin + v * self.cos
-        return y / self.gsd - 0.5, x / self.gsd - 0.5
-
-    def uv_of(self, rr: np.ndarray, cc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = (cc.astype(np.float32) + 0.5) * self.gsd
-        y = (rr.astype(np.float32) + 0.5) * self.gsd
-        return x * self.cos + y * self.sin, -x * self.sin + y * self.cos
-
-    def fill(self, u: list[float] | np.ndarray, v: list[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r, c = self.to_px(np.asarray(u, np.float64), np.asarray(v, np.float64))
-        result: tuple[np.ndarray, np.ndarray] = polygon(r, c, self.shape)
-        return result
-
-    def fill_rect(self, u0: float, u1: float, v0: float, v1: float) -> tuple[np.ndarray, np.ndarray]:
-        return self.fill([u0, u1, u1, u0], [v0, v0, v1, v1])
 
     def put(self, rr: np.ndarray, cc: np.ndarray, h: np.ndarray, code: int, rgb: np.ndarray) -> None:
         """Draw an object: where ``h`` is above the current surface it becomes the visible surface."""
-        win = h > self.ndsm[rr, cc]
-        rr, cc = rr[win], cc[win]
-        self.ndsm[rr, cc] = h[win]
-        self.labels[rr, cc] = code
-        self.albedo[:, rr, cc] = rgb[:, win]
-
-
-def _jitter(rng: np.random.Generator, rgb: tuple[int, int, int], amount: float = 12.0) -> tuple[float, float, float]:
-    r, g, b = (float(np.clip(c + rng.normal(0, amount), 0, 255)) for c in rgb)
-    return r, g, b
+        top, rt, ct = self.raise_top(rr, cc, h, code)
+        self.albedo[:, rt, ct] = rgb[:, top]
 
 
 class _Planner:
@@ -111,10 +100,8 @@ class _Planner:
         self.cover[rr, cc] = material
 
     def tree(self, u: float, v: float, radius: float, top: float, dark: float = 0.0) -> None:
-        rng = self.rng
-        top = float(np.clip(top, 4.0, 25.0))
-        base = max(3.0, top * rng.uniform(0.3, 0.55))
-        rgb = _jitter(rng, _TREE_GREENS[rng.integers(len(_TREE_GREENS))], 8.0)
+        top, base = crown_size(self.rng, top, TREE_MAX, 0.55)
+        rgb = tree_green(self.rng)
         rgb = (rgb[0] * (1.0 - dark), rgb[1] * (1.0 - dark), rgb[2] * (1.0 - dark))
         self.trees.append(TreeSpec(u, v, radius, top, base, rgb))
 
@@ -127,7 +114,7 @@ class _Planner:
         a0, b0, a1, b1 = region.bounds
         for _ in range(tries):
             u, v = self.rng.uniform(a0, a1), self.rng.uniform(b0, b1)
-            if region.contains(_Pt(u, v)):
+            if region.contains(Point(u, v)):
                 return u, v
         pt = region.representative_point()
         return pt.x, pt.y
@@ -191,7 +178,7 @@ class _Planner:
                 color, textured = _ROOF_GREY[rng.integers(len(_ROOF_GREY))], True
             else:
                 color, textured = _ROOF_DARK[rng.integers(len(_ROOF_DARK))], False
-            self.buildings.append(Building(tuple(parts), _jitter(rng, color, 8.0), textured))
+            self.buildings.append(Building(tuple(parts), jitter(rng, color, 8.0), textured))
             if rng.random() < 0.5:  # gravel driveway from the street to the house
                 side = ca - 3.5 if ca - 3.5 > la0 + 0.3 else ca + wh + 0.5
                 if side + 3 < la1:
@@ -241,7 +228,7 @@ class _Planner:
                     continue
                 bu, bv = rng.uniform(cu + 1, cu + w - bw - 1), rng.uniform(cvv + 1, cvv + d - bd - 1)
                 parts.append(RoofPart(bu, bu + bw, bv, bv + bd, "flat", min(40.0, height + rng.uniform(1, 3))))
-            roof = _jitter(rng, _ROOF_FLAT[rng.integers(len(_ROOF_FLAT))])
+            roof = jitter(rng, _ROOF_FLAT[rng.integers(len(_ROOF_FLAT))], 12.0)
             self.buildings.append(Building(tuple(parts), roof, False))
         if rng.random() < 0.5:
             self._tree_row(u0, u1, v0 + 2.5, along_u=True)
@@ -268,17 +255,13 @@ class _Planner:
         for _ in range(int(area * rng.uniform(0.003, 0.008))):
             cu, cvv = rng.uniform(u0, u1), rng.uniform(v0, v1)
             radius = rng.uniform(2.5, 6.5)
-            if pond_poly is not None and pond_poly.distance(_Pt(cu, cvv)) < radius:
+            if pond_poly is not None and pond_poly.distance(Point(cu, cvv)) < radius:
                 continue
             self.tree(cu, cvv, radius, radius * rng.uniform(2.0, 3.2) + rng.uniform(0, 3))
 
     def forest(self, u0: float, u1: float, v0: float, v1: float) -> None:
-        rng = self.rng
-        area = (u1 - u0) * (v1 - v0)
-        for _ in range(int(area / (np.pi * 4.5**2) * rng.uniform(1.0, 1.6))):
-            radius = rng.uniform(2.5, 7.0)
-            self.tree(rng.uniform(u0, u1), rng.uniform(v0, v1), radius,
-                      radius * rng.uniform(2.2, 3.4) + rng.uniform(0, 4), dark=rng.uniform(0.0, 0.2))
+        for u, v, radius, top, dark in forest_trees(self.rng, u0, u1, v0, v1, 3.4, 0.2):
+            self.tree(u, v, radius, top, dark)
 
     def field(self, u0: float, u1: float, v0: float, v1: float, ploughed: bool) -> None:
         if ploughed:
@@ -287,12 +270,10 @@ class _Planner:
     def _tree_row(self, u0: float, u1: float, fixed: float, along_u: bool) -> None:
         rng = self.rng
         spacing = rng.uniform(8, 14)
-        pos = u0 + rng.uniform(2, spacing)
-        while pos < u1 - 2:
+        for pos in streets.positions_along(rng, u0, u1, spacing, 2.0):
             radius = rng.uniform(2.0, 4.0)
             u, v = (pos, fixed) if along_u else (fixed, pos)
             self.tree(u, v, radius, rng.uniform(5, 13))
-            pos += spacing
 
     def street_trees(self, u0: float, u1: float, v0: float, v1: float, verge: float) -> None:
         if (u1 - u0) >= (v1 - v0):
@@ -301,33 +282,6 @@ class _Planner:
         else:
             self._tree_row(v0, v1, u0 + verge / 2, along_u=False)
             self._tree_row(v0, v1, u1 - verge / 2, along_u=False)
-
-
-def _Pt(u: float, v: float) -> Any:  # noqa: N802 - tiny shapely point factory
-    from shapely.geometry import Point
-
-    return Point(u, v)
-
-
-def _road_lines(rng: np.random.Generator, lo: float, hi: float) -> list[tuple[float, float]]:
-    """(centre, width) of parallel roads covering [lo, hi] with 45–110 m spacing."""
-    lines = []
-    pos = lo - rng.uniform(0, 40)
-    while pos < hi + 60:
-        lines.append((pos, rng.uniform(6, 12)))
-        pos += rng.uniform(45, 110)
-    return lines
-
-
-def _nearest_line(coord: np.ndarray, lines: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
-    """Signed offset from the nearest road centre line and that road's half width, per pixel."""
-    centres = np.array([c for c, _ in lines], np.float32)
-    halves = np.array([w / 2 for _, w in lines], np.float32)
-    k = np.clip(np.searchsorted(centres, coord), 1, len(centres) - 1)
-    lo, hi = centres[k - 1], centres[k]
-    use_hi = (hi - coord) < (coord - lo)
-    idx = np.where(use_hi, k, k - 1)
-    return coord - centres[idx], halves[idx]
 
 
 def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
@@ -350,20 +304,18 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
     sun_azimuth = float(rng.uniform(110, 250))
     sun_elevation = float(rng.uniform(35, 55))
     cv = _Canvas(size, gsd, theta)
-    corners_u = np.array([0, extent, extent, 0]) * cv.cos + np.array([0, 0, extent, extent]) * cv.sin
-    corners_v = -np.array([0, extent, extent, 0]) * cv.sin + np.array([0, 0, extent, extent]) * cv.cos
+    corners_u, corners_v = cv.to_frame(np.array([0, extent, extent, 0]), np.array([0, 0, extent, extent]))
     scene_poly = Polygon(np.c_[corners_u, corners_v])
-    lines_u = _road_lines(rng, corners_u.min(), corners_u.max())
-    lines_v = _road_lines(rng, corners_v.min(), corners_v.max())
+    lines_u = streets.street_lines(rng, corners_u.min(), corners_u.max(), TOWN_STREETS)
+    lines_v = streets.street_lines(rng, corners_v.min(), corners_v.max(), TOWN_STREETS)
     plan = _Planner(cv, rng, scene_poly)
     stats = _plan_blocks(plan, lines_u, lines_v)
-    u = _paint_roads(cv, plan.cover, lines_u, lines_v)
-    xs = (np.arange(size, dtype=np.float32) + 0.5) * gsd
-    dtm = _terrain(rng, xs, extent)
+    _paint_roads(cv, plan.cover, lines_u, lines_v)
+    dtm = _terrain(rng, cv.centres(), extent)
     for rr, cc in plan.ponds:
         if rr.size:
             dtm[rr, cc] = dtm[rr, cc].min()
-    tex_small, tex_mid, fine = _ground_covers(cv, plan.cover, u, rng)
+    tex_small, tex_mid, fine = _ground_covers(cv, plan.cover, cv.u, rng)
     truths = []
     for bld in plan.buildings:
         drawn = _draw_building(cv, bld, tex_small, fine)
@@ -377,17 +329,15 @@ def build_scene(size: int, gsd: float, rng: np.random.Generator) -> Scene:
     return Scene(dtm, cv.ndsm, cv.labels, cv.albedo, sun_azimuth, sun_elevation, gsd, stats, truths)
 
 
-def _plan_blocks(plan: _Planner, lines_u: list[tuple[float, float]],
-                 lines_v: list[tuple[float, float]]) -> dict[str, int]:
+def _plan_blocks(plan: _Planner, lines_u: streets.Family, lines_v: streets.Family) -> dict[str, int]:
     """Give every block between the streets a kind and plan its content; returns blocks per kind."""
     rng, scene_poly = plan.rng, plan.scene_poly
     blocks = []
-    for (cu0, wu0), (cu1, wu1) in zip(lines_u[:-1], lines_u[1:]):
-        for (cv0, wv0), (cv1, wv1) in zip(lines_v[:-1], lines_v[1:]):
-            b = (cu0 + wu0 / 2, cu1 - wu1 / 2, cv0 + wv0 / 2, cv1 - wv1 / 2)
-            area = box(b[0], b[2], b[1], b[3]).intersection(scene_poly).area
-            if area > 1.0:
-                blocks.append((area, b))
+    for low_u, high_u, low_v, high_v in streets.blocks_between(lines_u, lines_v):
+        b = (low_u.high, high_u.low, low_v.high, high_v.low)
+        area = box(b[0], b[2], b[1], b[3]).intersection(scene_poly).area
+        if area > 1.0:
+            blocks.append((area, b))
     blocks.sort(key=lambda t: -t[0])
     mandatory = ["residential", "park", "commercial"]
     rng.shuffle(mandatory)
@@ -416,25 +366,12 @@ def _plan_blocks(plan: _Planner, lines_u: list[tuple[float, float]],
     return stats
 
 
-def _paint_roads(cv: _Canvas, cover: np.ndarray, lines_u: list[tuple[float, float]],
-                 lines_v: list[tuple[float, float]]) -> np.ndarray:
-    """Mark asphalt (and dashed centre lines) in ``cover``, vectorised over the grid; returns the u grid (m)."""
-    size, gsd = cv.n, cv.gsd
-    xs = (np.arange(size, dtype=np.float32) + 0.5) * gsd
-    u = xs[None, :] * np.float32(cv.cos) + xs[:, None] * np.float32(cv.sin)
-    v = -xs[None, :] * np.float32(cv.sin) + xs[:, None] * np.float32(cv.cos)
-    off_u, half_u = _nearest_line(u, lines_u)
-    off_v, half_v = _nearest_line(v, lines_v)
-    on_u = np.abs(off_u) <= half_u
-    on_v = np.abs(off_v) <= half_v
-    cover[on_u | on_v] = ASPHALT
-    if gsd <= 0.5:  # dashed centre lines on wide roads, not across junctions
-        line_w = max(0.15, 0.55 * gsd)
-        dash_u = on_u & ~on_v & (np.abs(off_u) < line_w) & (half_u >= 4) & (np.mod(v, 9.0) < 4.5)
-        dash_v = on_v & ~on_u & (np.abs(off_v) < line_w) & (half_v >= 4) & (np.mod(u, 9.0) < 4.5)
-        cover[dash_u | dash_v] = MARKING
-    along: np.ndarray = u
-    return along
+def _paint_roads(cv: _Canvas, cover: np.ndarray, lines_u: streets.Family, lines_v: streets.Family) -> None:
+    """Mark asphalt (and, at 0.5 m or finer, dashed centre lines) in ``cover``, vectorised over the grid."""
+    field = streets.StreetField.measure(cv.u, cv.v, lines_u, lines_v)
+    cover[field.on_u | field.on_v] = ASPHALT
+    if cv.gsd <= 0.5:
+        cover[field.centre_dashes(cv.u, cv.v, cv.gsd, field.on_u, field.on_v)] = MARKING
 
 
 def _ground_covers(cv: _Canvas, cover: np.ndarray, u: np.ndarray,
@@ -446,10 +383,7 @@ def _ground_covers(cv: _Canvas, cover: np.ndarray, u: np.ndarray,
     tex_small = smooth_noise(cv.shape, max(1.0, 0.8 / gsd), rng)
     fine = rng.standard_normal(cv.shape, dtype=np.float32)
     cv.labels[:] = _COVER_LABEL[cover]
-    tex = _COVER_TEX[cover]  # (H, W, 3)
-    gain = 1.0 + tex[..., 0] * tex_large + tex[..., 1] * tex_mid
-    add = tex[..., 2] * fine
-    del tex
+    gain, add = texture_terms(_COVER_TEX[cover], tex_large, tex_mid, fine)
     grass = cover == GRASS
     dry = np.clip(0.5 + 0.6 * tex_large, 0, 1)[grass]
     field_px = cover == FIELD
@@ -500,9 +434,8 @@ def _building_truth(cv: _Canvas, bld: Building, drawn: list[tuple[np.ndarray, np
     roof = h[order][first]
     parts = []
     for p in bld.parts:
-        u = np.array([p.u0, p.u1, p.u1, p.u0])
-        v = np.array([p.v0, p.v0, p.v1, p.v1])
-        parts.append(Polygon(np.c_[u * cv.cos - v * cv.sin, u * cv.sin + v * cv.cos]))
+        x, y = cv.from_frame(np.array([p.u0, p.u1, p.u1, p.u0]), np.array([p.v0, p.v0, p.v1, p.v1]))
+        parts.append(Polygon(np.c_[x, y]))
     footprint = unary_union(parts).intersection(scene_box)
     if footprint.is_empty or not isinstance(footprint, Polygon):
         polys = [g for g in getattr(footprint, "geoms", []) if isinstance(g, Polygon)]
@@ -524,12 +457,9 @@ def _draw_building(cv: _Canvas, bld: Building, tex_small: np.ndarray,
         u, v = cv.uv_of(rr, cc)
         texture = 1.0 + 0.05 * tex_small[rr, cc] + 0.03 * fine[rr, cc]
         if part.kind == "gable":
-            along_u = (part.u1 - part.u0) >= (part.v1 - part.v0)
-            across = (v - 0.5 * (part.v0 + part.v1)) if along_u else (u - 0.5 * (part.u0 + part.u1))
-            half = 0.5 * ((part.v1 - part.v0) if along_u else (part.u1 - part.u0))
-            h = part.eave + part.rise * np.clip(1.0 - np.abs(across) / half, 0.0, 1.0)
-            if bld.textured:  # rows of tiles parallel to the ridge
-                texture = texture + 0.07 * np.sin(2 * np.pi * np.abs(across) / 0.9)
+            h, across = gable(u, v, part.u0, part.u1, part.v0, part.v1, part.eave, part.rise)
+            if bld.textured:
+                texture = texture + tile_rows(across)
         else:
             h = np.full(rr.shape, part.eave, np.float32)
         cv.put(rr, cc, h.astype(np.float32), BUILDING, color * texture[None, :])
@@ -547,10 +477,8 @@ def _draw_tree(cv: _Canvas, tr: TreeSpec, tex_small: np.ndarray, tex_mid: np.nda
     if rr.size == 0:
         return
     d2 = ((rr - r) ** 2 + (cc - c) ** 2) * (cv.gsd / tr.radius) ** 2
-    dome = np.sqrt(np.clip(1.0 - d2, 0.0, 1.0))
     bumps = tex_small[rr, cc]
-    h = tr.base + (tr.top - tr.base) * dome + 0.35 * bumps
-    h = np.clip(h, 3.0, 25.0).astype(np.float32)
+    h = crown(d2, tr.base, tr.top, bumps, TREE_MAX).astype(np.float32)
     color = np.array(tr.color, np.float32)[:, None]
     texture = 1.0 + 0.18 * bumps + 0.08 * tex_mid[rr, cc] + 0.06 * fine[rr, cc]
     cv.put(rr, cc, h, TREE, color * texture[None, :])

@@ -1,6 +1,9 @@
-"""Sun geometry for synthetic scenes: hillshade of a surface and cast shadows along the sun direction.
+"""Sun and sky light of synthetic scenes: hillshade, cast shadows along the sun direction, the sky's share.
 
-Angles follow the photogrammetry convention: the sun ``azimuth`` is measured in degrees clockwise
+Both styles light their surfaces the same way: each pixel receives
+``albedo × ((1 − ambient)·direct + ambient·tint)`` (:class:`Sky`), with ``direct`` the sun on the surface
+relative to flat ground, 0 in cast shadows (:func:`direct_sun`; :func:`wall_sun` for the walls a leaning
+camera sees). Angles follow the photogrammetry convention: the sun ``azimuth`` is measured in degrees clockwise
 from grid north (90 = east, 180 = south) and the ``elevation`` in degrees above the horizon. Arrays
 are north-up rasters: row 0 is the northern edge, column 0 the western edge.
 """
@@ -8,10 +11,14 @@ are north-up rasters: row 0 is the northern edge, column 0 the western edge.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from aerialmtl.sun.cast import shadow_surface_sweep
+
+#: Most direct sun a surface receives, relative to flat ground (steep slopes facing a low sun are capped).
+MAX_DIRECT = 1.6
 
 
 def sun_vector(azimuth: float, elevation: float) -> tuple[float, float, float]:
@@ -79,3 +86,57 @@ def cast_shadows(surface: np.ndarray, gsd: float, azimuth: float, elevation: flo
         return np.zeros(z.shape, dtype=bool)
     shadow: np.ndarray = (shadow_surface_sweep(z, gsd, azimuth, elevation) - z) > tolerance
     return shadow
+
+
+def direct_sun(surface: np.ndarray, gsd: float, azimuth: float, elevation: float) -> tuple[np.ndarray, np.ndarray]:
+    """Direct sunlight on a surface model: :func:`hillshade`, 0 in :func:`cast_shadows`, at most :data:`MAX_DIRECT`.
+
+    The arguments are those of :func:`hillshade` (a DSM in metres, its pixel size in metres, the sun's azimuth
+    and elevation in degrees).
+
+    Returns:
+        ``direct`` float32 (H, W), relative to flat ground (1), and ``shadow`` bool (H, W), the cast shadows.
+    """
+    direct = hillshade(surface, gsd, azimuth, elevation)
+    shadow = cast_shadows(surface, gsd, azimuth, elevation)
+    direct[shadow] = 0.0
+    np.minimum(direct, MAX_DIRECT, out=direct)
+    return direct, shadow
+
+
+def wall_sun(sun_azimuth: float, sun_elevation: float, lean_azimuth: float) -> float:
+    """Direct sunlight on the walls a leaning camera sees, relative to flat ground, at most :data:`MAX_DIRECT`.
+
+    A camera whose tall things lean towards ``lean_azimuth`` (degrees clockwise from north; see
+    :mod:`aerialmtl.data.synth.relief`) sees the vertical walls that face the opposite way; the sun at
+    (``sun_azimuth``, ``sun_elevation``) (degrees) lights them by ``max(0, cos(facing)) / tan(elevation)``.
+    """
+    facing = math.cos(math.radians(sun_azimuth - lean_azimuth - 180.0))
+    el = math.radians(sun_elevation)
+    return min(MAX_DIRECT, max(0.0, facing) * math.cos(el) / math.sin(el))
+
+
+@dataclass(frozen=True)
+class Sky:
+    """The sky's part of the light: the share of flat-ground brightness left in shadow, and its colour.
+
+    Attributes:
+        ambient: fraction of flat-ground brightness that remains in shadow (sky light only), 0–1.
+        tint: per-channel (R, G, B) factor on the ambient part (sky light is bluer than sunlight).
+    """
+
+    ambient: float
+    tint: tuple[float, float, float]
+
+    def band(self, direct: np.ndarray, channel: int) -> np.ndarray:
+        """float32 (H, W) light of one channel for a ``direct`` float32 (H, W) sun factor (:func:`direct_sun`)."""
+        tint = np.float32(self.tint[channel])
+        light: np.ndarray = np.float32(1 - self.ambient) * direct + np.float32(self.ambient) * tint
+        return light
+
+    def light(self, direct: np.ndarray | float) -> np.ndarray:
+        """float32 (3, ...) light of the three channels for a ``direct`` sun factor (an array or one value)."""
+        d = np.asarray(direct, np.float32)
+        tint = np.asarray(self.tint, np.float32).reshape(3, *(1,) * d.ndim)
+        light: np.ndarray = np.float32(1 - self.ambient) * d[None] + np.float32(self.ambient) * tint
+        return light

@@ -15,6 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from aerialmtl.errors import InputError
+from aerialmtl.io.align import AlignedRaster, reference_grid
 
 #: A texture source bound to a GSD: (rng, (h, w), base colour) → float32 (3, h, w) DN, or None (no texture).
 Source = Callable[[np.random.Generator, tuple[int, int], tuple[float, float, float]], "np.ndarray | None"]
@@ -114,12 +115,11 @@ class TexturePool:
                          f"of the {split} split of '{folder}'")
 
     @classmethod
-    def from_files(cls, ortho: str | Path, ndsm: str | Path, gsd: float | None = None, **kwargs: float) -> TexturePool:
+    def from_files(cls, ortho: str | Path, ndsm: str | Path, gsd: float | None = None, patch_px: int = 16,
+                   max_height: float = 0.5, max_patches: int = 256, share: float = 0.5, seed: int = 0) -> TexturePool:
         """Read an orthophoto and an nDSM raster (any grid and CRS; aligned onto the orthophoto's grid, or a
-        grid of ``gsd`` metres) and cut a pool from them (``kwargs`` as :meth:`from_arrays`).
+        grid of ``gsd`` metres) and cut a pool from them (the other arguments as :meth:`from_arrays`).
         """
-        from aerialmtl.io.align import AlignedRaster, reference_grid
-
         grid = reference_grid(ortho, gsd)
         with AlignedRaster(ortho, grid, "image", role="orthophoto") as src:
             image, valid = src.read()
@@ -129,7 +129,8 @@ class TexturePool:
         if image.shape[0] < 3 or image.dtype != np.uint8:
             raise InputError(f"the texture orthophoto '{ortho}' must be 8-bit RGB, got {image.shape[0]} bands of "
                              f"{image.dtype}; pass an 8-bit RGB orthophoto", param="ortho")
-        return cls.from_arrays(image[:3], heights, float(grid.res[0] * grid.unit_m), **kwargs)  # type: ignore[arg-type]
+        return cls.from_arrays(image[:3], heights, float(grid.res[0] * grid.unit_m), patch_px, max_height,
+                               max_patches, share, seed)
 
     def source(self, gsd: float) -> Source:
         """A texture source for surfaces of a city of ``gsd`` metres (patches resampled to that GSD)."""
