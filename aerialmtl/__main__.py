@@ -7,11 +7,11 @@ paused and what the imports made frozen out of its sight (:func:`aerialmtl.cli._
 
 from __future__ import annotations
 
+from aerialmtl.cli import main as cli_main
+
 
 def main() -> None:
     """Run the ``aerialmtl`` command line (:func:`aerialmtl.cli.main`)."""
-    from aerialmtl.cli import main as cli_main
-
     cli_main()
 
 

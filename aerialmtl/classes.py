@@ -25,6 +25,8 @@ from aerialmtl.errors import ConfigError, LabelError
 
 #: Class index written for "no label" in patches, predictions and losses (cross-entropy ignore_index).
 IGNORE_INDEX = 255
+#: What :meth:`ClassScheme.remap` does with a code that is neither a class nor an ignore code.
+OnUnknown = Literal["error", "ignore"]
 
 #: Folder of the class schemes shipped with the package (``dfc2018``, ``isprs``, ``synthetic``).
 BUILTIN_DIR = Path(__file__).resolve().parent / "resources" / "classes"
@@ -103,7 +105,7 @@ class ClassScheme:
     @property
     def colors(self) -> list[tuple[int, int, int]]:
         """RGB colours (0–255) of the classes, in class-index order."""
-        return [tuple(c.color) for c in self.classes]  # type: ignore[misc]
+        return [(*c.color,) for c in self.classes]
 
     @property
     def codes(self) -> list[int]:
@@ -121,7 +123,7 @@ class ClassScheme:
         self,
         codes: np.ndarray,
         valid: np.ndarray | None = None,
-        on_unknown: Literal["error", "ignore"] = "error",
+        on_unknown: OnUnknown = "error",
         source: str = "labels",
     ) -> np.ndarray:
         """Raw label codes → class indices.

@@ -68,7 +68,7 @@ def _configure(tp: Any, seen: set[Any]) -> None:
     seen.add(tp)
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
         if "__pydantic_config__" not in tp.__dict__:
-            tp.__pydantic_config__ = _STRICT  # type: ignore[attr-defined]
+            tp.__pydantic_config__ = _STRICT  # type: ignore[attr-defined]  # pydantic's per-class hook; `type` declares none
         for hint in get_type_hints(tp).values():
             _configure(hint, seen)
         return

@@ -232,9 +232,10 @@ def resolve_precision(precision: str, device: torch.device, *, cpu_bf16: bool = 
         if device.type == "cuda":
             return "bf16" if native_bf16(device) else "fp32"
         return "bf16" if cpu_bf16 and native_bf16(device) else "fp32"
-    if precision not in ("bf16", "fp32"):
-        raise InputError(f"‹precision={precision}› is not supported; use auto, bf16 or fp32", param="precision")
-    return precision  # type: ignore[return-value]
+    match precision:
+        case "bf16" | "fp32":
+            return precision
+    raise InputError(f"‹precision={precision}› is not supported; use auto, bf16 or fp32", param="precision")
 
 
 def autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager[Any]:

@@ -189,7 +189,8 @@ class BuildingLayers:
             if self.entropy is not None:
                 entropy = self.entropy.read(window)[0][0]
             else:
-                probs = self.probabilities.read(window)[0]  # type: ignore[union-attr]
+                assert self.probabilities is not None, "confidence is available with entropy or probabilities"
+                probs = self.probabilities.read(window)[0]
                 with np.errstate(divide="ignore", invalid="ignore"):
                     entropy = -np.sum(np.where(probs > 0, probs * np.log(probs), 0.0), axis=0).astype(np.float32)
             norm = math.log(self.num_classes) if self.num_classes > 1 else 1.0

@@ -52,6 +52,7 @@ def bench(models: tuple[str, ...], cases: tuple[str, ...], window: int, windows:
 
     One parameter per command-line option: click passes each option to the command.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.inference.cpu_bench import (
         BenchRow,
         BenchSettings,
@@ -78,7 +79,8 @@ def bench(models: tuple[str, ...], cases: tuple[str, ...], window: int, windows:
                    f" {('yes' if within_tolerance(r) else 'no ') if r.stage == 'model' and r.mpx_s else '   '} "
                    f"{r.load[0]:.1f}→{r.load[1]:.1f}{'  ' + r.note if r.note else ''}")
 
-    settings = BenchSettings(models=models, cases=tuple(tuple(c.split("/")) for c in cases),  # type: ignore[misc]
+    pairs = tuple((engine, precision) for engine, _, precision in (c.partition("/") for c in cases))
+    settings = BenchSettings(models=models, cases=pairs,
                              window=window, windows=windows, size=size, threads=threads, workdir=workdir)
     report = run_bench(settings, on_row=show)
     if json_out is not None:

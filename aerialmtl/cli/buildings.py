@@ -51,6 +51,7 @@ def buildings(pred_dir: Path, outputs: tuple[Path, ...], dtm: str | None, buildi
 
     One parameter per command-line option: click passes each option to the command.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.buildings import BuildingLayers, BuildingOptions, building_class_indices, write_buildings
     from aerialmtl.buildings.export import output_format
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import click
 
 from aerialmtl.cli.options import option
-from aerialmtl.stores import DEFAULT_LIMIT_MB, LIMIT_ENV, ROOT_ENV, STORES
+from aerialmtl.stores import DEFAULT_LIMIT_MB, LIMIT_ENV, ROOT_ENV, STORES, clear_stores, list_stores, size_limit
 
 
 @click.command(name="cache")
@@ -25,8 +25,6 @@ def cache(action: str, names: tuple[str, ...]) -> None:
     together (least recently used entries go first). Only files aerialmtl wrote are counted or removed:
     a folder of yours that a store is pointed at keeps its files.
     """
-    from aerialmtl.stores import clear_stores, list_stores, size_limit
-
     chosen = names or STORES
     if action == "clear":
         files, size, left = clear_stores(chosen)

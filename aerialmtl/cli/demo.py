@@ -28,6 +28,7 @@ def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: i
     """Synthesize a training and a test town, tile, train the small D3-Net, predict with MC dropout,
     evaluate, and write GeoTIFFs, a report and PNG previews into OUT.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.demo import EXPECTED, EXPECTED_BAND, DemoSettings, run_demo
 
     settings = DemoSettings(train_size=train_size, test_size=test_size, train_steps=train_steps,

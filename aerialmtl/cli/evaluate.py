@@ -79,6 +79,7 @@ def evaluate(pred: Path, height_ref: str | None, dsm_ref: str | None, dtm_ref: s
 
     One parameter per command-line option: click passes each option to the command.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
     from aerialmtl.evaluation.report import headline
 

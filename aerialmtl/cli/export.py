@@ -6,10 +6,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from aerialmtl.cli.options import argument, option, output_path, overwrite_option
+
+if TYPE_CHECKING:  # the library itself only when the command runs: --help stays fast
+    from aerialmtl.inference.export import Format, Task
 
 
 @click.command(name="export")
@@ -30,7 +34,7 @@ from aerialmtl.cli.options import argument, option, output_path, overwrite_optio
 @option("--no-calibration", "no_calibration", is_flag=True, library="calibration",
         help="Leave out the checkpoint's height calibration (applied in the graph by default, as predict does).")
 @overwrite_option()
-def export(checkpoint: Path, format_: str, task: str, tile: int, overlap: int | None, out: Path,
+def export(checkpoint: Path, format_: Format, task: Task, tile: int, overlap: int | None, out: Path,
            no_calibration: bool, overwrite: bool) -> None:
     """Export the model of CHECKPOINT (best.pt) for use without aerialmtl, e.g. in QGIS.
 
@@ -42,9 +46,10 @@ def export(checkpoint: Path, format_: str, task: str, tile: int, overlap: int | 
         aerialmtl export best.pt --task height --out height.onnx
         aerialmtl export best.pt --task classes --out classes.onnx
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.inference.export import export_model
 
-    result = export_model(checkpoint, out, format=format_, task=task, tile=tile,  # type: ignore[arg-type]
+    result = export_model(checkpoint, out, format=format_, task=task, tile=tile,
                           overlap=tile // 8 if overlap is None else overlap, calibration=not no_calibration,
                           overwrite=overwrite)
     kinds = {"height": "Deepness Regressor", "height_std": "Deepness Regressor", "classes": "Deepness Segmentor"}

@@ -21,7 +21,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ParamSpec, TypeVar
 
 import click
 
@@ -30,6 +30,8 @@ from aerialmtl.inference.engine_names import ENGINE_MODULES
 from aerialmtl.io.paths import gdal_path, is_local
 
 F = TypeVar("F", bound=Callable[..., Any])
+P = ParamSpec("P")
+R = TypeVar("R")
 Decorator = Callable[[F], F]
 
 
@@ -217,7 +219,7 @@ def values_for(names: Iterable[Any], values: dict[str, Any]) -> dict[str, Any]:
 
 
 def _commands() -> dict[str, click.Command]:
-    from aerialmtl.cli import cli  # the group registers every command
+    from aerialmtl.cli import cli  # cycle: aerialmtl.cli imports this module to build the group
 
     return dict(cli.commands)
 
@@ -255,7 +257,7 @@ def __getattr__(name: str) -> dict[str, str]:
     raise AttributeError(name)
 
 
-def usage_errors(command: str, callback: F) -> F:
+def usage_errors(command: str, callback: Callable[P, R]) -> Callable[P, R]:
     """Wrap a command's callback: a library error about one option's value becomes click's usage error.
 
     The message is spelled with the command's options; a leading mark of the option itself is dropped
@@ -264,7 +266,7 @@ def usage_errors(command: str, callback: F) -> F:
     """
 
     @functools.wraps(callback)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return callback(*args, **kwargs)
         except (InputError, ConfigError) as exc:
@@ -279,7 +281,7 @@ def usage_errors(command: str, callback: F) -> F:
                 text = text[lead.end():].lstrip()
             raise click.BadParameter(AerialMTLError(text).render(flags), param_hint=option) from exc
 
-    return wrapper  # type: ignore[return-value]
+    return wrapper
 
 
 __all__ = [

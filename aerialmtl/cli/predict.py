@@ -69,6 +69,7 @@ def _batch_size(ctx: click.Context, param: click.Parameter, value: str) -> int |
 
 def _say_if_start(model: Path) -> None:
     """Say once when ``model`` is a pretrained start (not fine-tuned on real data; prediction.json records it)."""
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.formats.checkpoint import load_checkpoint
 
     start = load_checkpoint(model)[1].start
@@ -156,6 +157,7 @@ def predict(orthos: tuple[str, ...], model: Path | None, out: Path | None, overw
     own or its ``library=`` name; a field without its option fails here and in tests/test_predict_settings.py):
     click passes them in ``options``; the settings are built once and travel unchanged to the engine.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.settings import PredictSettings
 
@@ -207,6 +209,7 @@ def _written(res: PredictResult) -> list[str]:
     """Every file the prediction folder of ``res`` holds from this run: the layers, their ``.qml`` styles, the
     STAC ``item.json`` and ``prediction.json`` (the order of :func:`~aerialmtl.formats.prediction.folder_files`).
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.formats.prediction import folder_files
 
     layers = [name for name in res.files if name != "prediction"]  # "prediction" is prediction.json

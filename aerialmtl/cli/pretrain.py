@@ -76,6 +76,7 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
 
     One parameter per command-line option: click passes each option to the command.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.data.synthetic_batches import SyntheticStream
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.pretrain import CONFIG_YAML, PretrainSettings

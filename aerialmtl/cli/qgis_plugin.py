@@ -25,6 +25,7 @@ def qgis_plugin(out: Path, overwrite: bool) -> None:
     Processing toolbox and run this installation's `aerialmtl` program; if QGIS does not find it on its
     PATH, set it in Settings → Options → Processing → Providers → aerialmtl.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.plugin_zip import build_plugin_zip
 
     path = build_plugin_zip(out, overwrite=overwrite)

@@ -42,6 +42,7 @@ def synth(out: Path, kind: str, size: int, seed: int, gsd: float | None, crs: st
     if kind == "town":
         if lean is not None or plain or textures is not None:
             raise click.BadParameter("--lean, --plain and --textures apply to --kind city only", param_hint="--kind")
+        # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
         from aerialmtl.data.synth import synthesize
 
         result = synthesize(out, size=size, seed=seed, gsd=gsd or 0.25, crs=crs, origin=origin, overwrite=overwrite)
@@ -56,6 +57,7 @@ def synth(out: Path, kind: str, size: int, seed: int, gsd: float | None, crs: st
 
 def _city(out: Path, size: int, seed: int, gsd: float, crs: str, origin: tuple[float, float],
           lean: tuple[float, float] | None, plain: bool, textures: tuple[str, str] | None, overwrite: bool) -> None:
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.data.synth import CityStyle, TexturePool, synthesize_city
 
     style = CityStyle.plain() if plain else CityStyle()

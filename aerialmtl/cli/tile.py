@@ -99,6 +99,7 @@ def tile(ortho: str, dsm: str | None, dtm: str | None, ndsm: str | None, z_unit:
 
     One parameter per command-line option: click passes each option to the command.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.io.align import NdsmOptions
     from aerialmtl.tiling.splits import SplitSpec
     from aerialmtl.tiling.tile import TileOptions, tile_dataset

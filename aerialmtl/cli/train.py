@@ -19,6 +19,7 @@ from aerialmtl.cli.options import (
     precision_option,
     quiet_option,
 )
+from aerialmtl.errors import CheckpointError
 
 
 @click.command(name="train")
@@ -54,6 +55,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
 
     One parameter per command-line option: click passes each option to the command.
     """
+    # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.formats.run import RunFolder
     from aerialmtl.runtime import Torchrun
     from aerialmtl.training.config import load_train_config
@@ -65,7 +67,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     # the option pairs (--resume with --overwrite or --init) first: the library's refusal names both options
     check_run_folder(out_dir, resume, overwrite, init_ckpt)  # before the config is read: says what is wrong first
     if init_ckpt is not None:  # a checkpoint file, or the name of a start shipped with the package
-        from aerialmtl.errors import CheckpointError
+        # when the command runs (CLI start time)
         from aerialmtl.formats.starts import resolve_start
 
         try:
@@ -101,6 +103,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     else:
         click.echo(f"best checkpoint: {result.best_checkpoint}")
     if Path(result.best_checkpoint).is_file():
+        # when the command runs (CLI start time)
         from aerialmtl.formats.checkpoint import load_checkpoint
 
         best_meta = load_checkpoint(result.best_checkpoint)[1]

@@ -21,7 +21,7 @@ import torch
 from rasterio.errors import RasterioError
 
 from aerialmtl.classes import IGNORE_INDEX
-from aerialmtl.data.types import Sample
+from aerialmtl.data.types import Sample, as_sample
 from aerialmtl.errors import InputError, cause
 from aerialmtl.formats.tiles import (
     MANIFEST_CSV,
@@ -249,7 +249,7 @@ class PatchDataset(torch.utils.data.Dataset[Sample]):
             None if raw.height is None else torch.from_numpy(raw.height[None, None]),
             None if raw.classes is None else torch.from_numpy(raw.classes[None]),
         )
-        sample: Sample = {k: v[0] for k, v in batch.items()}  # type: ignore[assignment]
+        sample = as_sample({k: v[0] for k, v in batch.items()})
         sample["patch_id"] = row["patch_id"]
         return sample
 

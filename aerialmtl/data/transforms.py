@@ -42,7 +42,7 @@ from typing import Any
 
 import torch
 
-from aerialmtl.data.types import Sample
+from aerialmtl.data.types import Sample, as_sample
 from aerialmtl.errors import ConfigError
 
 SPATIAL_KEYS = ("image", "height", "height_valid", "classes", "image_valid")
@@ -86,13 +86,13 @@ class BatchTransform:
 
     def __call__(self, sample: Sample, generator: torch.Generator | None = None) -> Sample:
         """Apply the transform to one sample with parameters drawn from ``generator``."""
-        shape = tuple(sample["image"].shape)
-        params = stack_params([self.draw(generator, shape)])  # type: ignore[arg-type]
-        batch = {k: sample[k][None] for k in SPATIAL_KEYS if k in sample}  # type: ignore[literal-required]
-        out: Sample = dict(sample)  # type: ignore[assignment]
+        c, h, w = sample["image"].shape
+        params = stack_params([self.draw(generator, (c, h, w))])
+        out: dict[str, Any] = dict(sample)
+        batch = {k: out[k][None] for k in SPATIAL_KEYS if k in out}
         for k, v in self.apply(batch, params).items():
-            out[k] = v[0].contiguous()  # type: ignore[literal-required]
-        return out
+            out[k] = v[0].contiguous()
+        return as_sample(out)
 
 
 def _map_spatial(batch: Batch, fn: Callable[[torch.Tensor], torch.Tensor]) -> Batch:

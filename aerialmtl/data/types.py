@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TypedDict
+from typing import Any, TypedDict, cast
 
 import torch
 
@@ -23,3 +23,12 @@ class Sample(TypedDict, total=False):
     height_valid: torch.Tensor
     classes: torch.Tensor
     patch_id: str
+
+
+def as_sample(fields: dict[str, Any]) -> Sample:
+    """``fields`` as the :class:`Sample` they are (the same dict, not a copy).
+
+    For a sample put together key by key (a batch's split, a transform's output): a TypedDict cannot be built
+    from keys known only when the code runs, and this is the one place that says they are a sample's.
+    """
+    return cast(Sample, fields)

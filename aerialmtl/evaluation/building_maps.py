@@ -15,6 +15,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from aerialmtl.evaluation.maps import add_colorbar, layer_cmap
 from aerialmtl.formats.buildings import ID_FIELD
 from aerialmtl.formats.prediction import HEIGHT, HEIGHT_STD
 
@@ -70,8 +71,6 @@ def plot_buildings(geoms: Sequence[shapely.Geometry], fields: dict[str, np.ndarr
     """
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import PathPatch
-
-    from aerialmtl.evaluation.maps import add_colorbar, layer_cmap
 
     if fig is None:
         from matplotlib.figure import Figure

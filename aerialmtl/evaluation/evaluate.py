@@ -25,8 +25,9 @@ import rasterio
 from rasterio.windows import Window
 
 from aerialmtl._version import __version__
-from aerialmtl.classes import IGNORE_INDEX, ClassScheme
+from aerialmtl.classes import IGNORE_INDEX, ClassScheme, OnUnknown
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.evaluation.buildings import evaluate_buildings
 from aerialmtl.evaluation.metrics import (
     DEFAULT_HEIGHT_BINS,
     HeightStats,
@@ -276,8 +277,6 @@ def _evaluate(pred_dir: Path, refs: _References, classes: str | Path | ClassSche
     if classes_eval is not None:
         classes_eval.report_into(report, names, options.steps)
     if refs.buildings is not None:
-        from aerialmtl.evaluation.buildings import evaluate_buildings
-
         report["references"]["buildings"] = str(refs.buildings)
         report["buildings"] = evaluate_buildings(pred_dir, refs.buildings, grid, refs.pred_buildings, notes=notes)
     if out is not None:
@@ -426,13 +425,13 @@ class LabelReference:
     def __init__(self, path: str | Path, grid: Grid, scheme: ClassScheme, ignore_unknown_codes: bool) -> None:
         self.path = path
         self.scheme = scheme
-        self.on_unknown = "ignore" if ignore_unknown_codes else "error"
+        self.on_unknown: OnUnknown = "ignore" if ignore_unknown_codes else "error"
         self.raster = AlignedRaster(path, grid, "labels", bands=[1], role="label reference")
 
     def read(self, win: Window) -> np.ndarray:
         """(h, w) uint8 class indices of ``win``, ``IGNORE_INDEX`` where unlabelled."""
         codes, valid = self.raster.read(win)
-        return self.scheme.remap(codes[0], valid, on_unknown=self.on_unknown, source=str(self.path))  # type: ignore[arg-type]
+        return self.scheme.remap(codes[0], valid, on_unknown=self.on_unknown, source=str(self.path))
 
     def close(self) -> None:
         """Close the label raster."""

@@ -284,7 +284,8 @@ def _draw(ax: Any, maps: PredictionMaps, key: str, extent: Sequence[float], crop
     sl = crop or (slice(None), slice(None))
     common = dict(extent=extent, interpolation="nearest")
     if key == "rgb":
-        ax.imshow(np.nan_to_num(maps.rgb[sl], nan=1.0), **common)  # type: ignore[index]
+        assert maps.rgb is not None
+        ax.imshow(np.nan_to_num(maps.rgb[sl], nan=1.0), **common)
         return
     if key == "classes":
         assert maps.classes is not None

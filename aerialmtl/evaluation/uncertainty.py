@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from aerialmtl.evaluation.metrics import Subsample
+
 #: Number of removal fractions of a sparsification curve (0, 1/S, ..., (S-1)/S).
 DEFAULT_STEPS = 50
 
@@ -294,8 +296,6 @@ class SpreadStrata:
 
     def __init__(self, edges: Any, class_names: list[str] | None = None, sample_cap: int = 2_000_000,
                  seed: int = 0, min_std: float = DEFAULT_MIN_STD) -> None:
-        from aerialmtl.evaluation.metrics import Subsample
-
         self.edges = np.asarray(edges, np.float64)
         self.class_names = class_names
         self.min_std = float(min_std)

@@ -43,12 +43,16 @@ from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, cause
+from aerialmtl.io.fingerprint import content_sha256
 from aerialmtl.io.oserrors import output_error
 from aerialmtl.io.outputs import atomic_write
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.d3net import D3Net
+from aerialmtl.models.encoders import feature_channels
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.signals import deferred
+from aerialmtl.stores import open_regular, special_kind
 from aerialmtl.sun.record import TrainingSun
 
 FORMAT = "aerialmtl-checkpoint"
@@ -324,11 +328,10 @@ def bytes_fingerprint(data: bytes) -> str:
 
 
 def file_sha256(path: str | Path) -> str:
-    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory; a FIFO or device
-    there is an ``OSError``, never waited on: :func:`aerialmtl.io.fingerprint.content_sha256`).
-    """
-    from aerialmtl.io.fingerprint import content_sha256
+    """:func:`bytes_fingerprint` of the bytes of file ``path``, streamed (not held in memory).
 
+    A FIFO or device there is an ``OSError``, never waited on (:func:`aerialmtl.io.fingerprint.content_sha256`).
+    """
     return f"sha256:{content_sha256(path)}"
 
 
@@ -340,9 +343,10 @@ MAX_CHECKPOINT_VALUES = 5_000_000
 
 
 def expanded_values(obj: Any, limit: int = MAX_CHECKPOINT_VALUES) -> int:
-    """The values of ``obj`` (dicts, lists, tuples, sets and what they hold) counted as a walk of the tree would
-    meet them, shared references counted each time (``limit + 1`` stands for "more", and for a structure that
-    contains itself). Linear in the distinct objects: the count of each is kept.
+    """The values of ``obj`` (dicts, lists, tuples, sets and what they hold) counted as a walk of the tree would.
+
+    Shared references are counted each time they are met (``limit + 1`` stands for "more", and for a structure
+    that contains itself). Linear in the distinct objects: the count of each is kept.
     """
     sizes: dict[int, int] = {}
     on_path: set[int] = set()
@@ -391,8 +395,6 @@ def read_checkpoint(path: str | Path,
     The file is read once into memory and parsed from there, so the fingerprint describes the weights in
     use even when the file is replaced meanwhile (a training run writing a new ``best.pt``).
     """
-    from aerialmtl.stores import open_regular, special_kind
-
     path = Path(path)
     if path.exists() and not path.is_file():  # a FIFO would block the read forever, a folder fail it
         raise CheckpointError(f"checkpoint '{path}' is {special_kind(path.stat().st_mode)}, not a regular file; pass "
@@ -522,9 +524,10 @@ def _state_dict_mismatch(expected: dict[str, torch.Tensor], got: Any) -> str | N
 
 
 def wrong_dtype(expected: dict[str, torch.Tensor], got: dict[str, torch.Tensor]) -> str | None:
-    """The first tensor of ``got`` stored as another kind of number than the model's (``expected``) has: a float
-    weight as an integer or ``bool`` (``int8`` weights would be cast silently into other maps), an integer counter
-    as a float, anything complex; ``None`` when there is none. A float of another width (a ``float16`` start) is
+    """The first tensor of ``got`` stored as another kind of number than the model's (``expected``), or ``None``.
+
+    Another kind: a float weight as an integer or ``bool`` (``int8`` weights would be cast silently into other
+    maps), an integer counter as a float, anything complex. A float of another width (a ``float16`` start) is
     the same kind, cast exactly enough.
     """
     for key, ref in expected.items():
@@ -551,8 +554,6 @@ def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tu
 def read_model(path: str | Path,
                map_location: str | torch.device = "cpu") -> tuple[torch.nn.Module, ModelMeta, str]:
     """:func:`load_model`, plus the fingerprint of the bytes the weights came from (:func:`read_checkpoint`)."""
-    from aerialmtl.models.d3net import D3Net
-
     payload, meta, digest = read_checkpoint(path, map_location)
     model_cfg = meta.model
     if model_cfg.encoder_weights is not None:  # weights are in the state dict; don't look for the file
@@ -561,20 +562,18 @@ def read_model(path: str | Path,
     model = D3Net(model_cfg)
     state = payload.get("state_dict")
     problem = _state_dict_mismatch(model.state_dict(), state)
-    if problem is None:
+    if problem is None and isinstance(state, dict):  # no problem: a dict of the model's tensors
         try:
-            model.load_state_dict(state)  # type: ignore[arg-type]
+            model.load_state_dict(state)
         except (RuntimeError, KeyError, TypeError) as exc:  # pragma: no cover - caught by the check above
             problem = cause(exc)
-    if problem is None:
-        wrong = wrong_dtype(model.state_dict(), state)  # type: ignore[arg-type]
+    if problem is None and isinstance(state, dict):
+        wrong = wrong_dtype(model.state_dict(), state)
         if wrong is not None:
             raise CheckpointError(
                 f"checkpoint '{path}': {wrong} (quantised or edited: loading would cast it silently into other "
                 "maps); use the checkpoint as `train` wrote it")
     if problem is None and meta.familiarity is not None:
-        from aerialmtl.models.encoders import feature_channels
-
         density_problem = meta.familiarity.check_widths(feature_channels(model.encoder))
         if density_problem is not None:
             raise CheckpointError(

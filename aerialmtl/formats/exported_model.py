@@ -33,6 +33,7 @@ from typing import Any
 
 from aerialmtl._version import __version__
 from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.runtime import openvino_core
 
 #: Name of the graph's input.
 INPUT = "image"
@@ -134,8 +135,6 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     """The metadata of an exported ``.onnx`` or OpenVINO ``.xml`` file, JSON-decoded."""
     path = Path(path)
     if path.suffix == ".xml":
-        from aerialmtl.runtime import openvino_core
-
         model = openvino_core().read_model(path)
         info = model.get_rt_info()[OPENVINO_SECTION]
         return {key: json.loads(value.astype(str)) for key, value in info.items()}

@@ -72,7 +72,8 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, cause
-from aerialmtl.io.fingerprint import changed, content_sha256
+from aerialmtl.io.fingerprint import blocking_file, changed, content_sha256
+from aerialmtl.stores import special_kind
 
 #: Layer names, in the order a prediction folder lists them (file ``<name>.tif``).
 HEIGHT = "height"
@@ -250,7 +251,7 @@ def prediction_layers(
 
 def read_class_scheme_tag(path: str | Path) -> ClassScheme | None:
     """The :class:`ClassScheme` stored in the :data:`CLASS_SCHEME_TAG` tag of ``path``, or ``None``."""
-    from aerialmtl.io.align import open_raster
+    from aerialmtl.io.align import open_raster  # rasterio (GDAL): see _layer_problem
 
     with open_raster(path, "predicted classes") as src:
         text = src.tags().get(CLASS_SCHEME_TAG) or src.tags(1).get(CLASS_SCHEME_TAG)
@@ -498,8 +499,6 @@ class PredictionFolder:
             path = self.path / str(name)
             if not path.is_file():
                 if path.exists():  # a FIFO or a folder at a layer's name: never opened
-                    from aerialmtl.stores import special_kind
-
                     return f"{name} is {special_kind(path.stat().st_mode)}, not a regular file"
                 return f"{name} is missing"
             size = sizes.get(str(name))
@@ -539,10 +538,8 @@ class PredictionFolder:
 
 def _layer_problem(path: Path, grid: Mapping[str, Any]) -> str | None:
     """Why layer ``path`` does not open as a raster of ``grid`` (``None`` when it does)."""
-    import rasterio
+    import rasterio  # GDAL only when a layer is opened: reading prediction.json stays numpy-only
     from rasterio.errors import RasterioError
-
-    from aerialmtl.io.fingerprint import blocking_file
 
     found = blocking_file(path)  # a FIFO among its sidecars: GDAL would wait on it forever
     if found is not None:

@@ -36,9 +36,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 import yaml
+from torch import nn
 
+from aerialmtl import runtime
+from aerialmtl.classes import ClassDef, ClassScheme
+from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
 from aerialmtl.inference.engine_choice import CPU_KINDS, TOLERANCES, KindEntry, cpu_kind
+from aerialmtl.inference.runner import ModelRunner
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
+from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.d3net import D3Net, TaskDecoder, inference_model
+from aerialmtl.models.mc_dropout import McStatistics
 
 #: The models of the bench: ModelConfig fields over its defaults (the paper's DenseNet-121 D3-Net).
 MODELS: dict[str, dict[str, Any]] = {
@@ -77,9 +87,11 @@ class BenchSettings:
 
 @dataclass
 class BenchRow:
-    """One measurement. ``stage``: ``model`` (alone) or ``end-to-end``; ``mpx_s``: output megapixels per second;
-    ``seconds``: per window (model) or per process (end to end); accuracy against torch fp32 (model alone);
-    ``load``: load average (1 min) before → after; ``note``: why a case was skipped, or the stage timings.
+    """One measurement.
+
+    ``stage``: ``model`` (alone) or ``end-to-end``; ``mpx_s``: output megapixels per second; ``seconds``: per
+    window (model) or per process (end to end); accuracy against torch fp32 (model alone); ``load``: load average
+    (1 min) before → after; ``note``: why a case was skipped, or the stage timings.
     """
 
     model: str
@@ -134,21 +146,15 @@ def _load() -> float:
     return round(os.getloadavg()[0], 2)
 
 
-def bench_model(name: str, seed: int = 0) -> tuple[Any, Any]:
+def bench_model(name: str, seed: int = 0) -> tuple[D3Net, ModelMeta]:
     """The bench's model ``name`` (:data:`MODELS`) and its metadata: untrained, heads drawn (normal, std 0.3)."""
-    import torch
-
-    from aerialmtl.classes import ClassDef, ClassScheme
-    from aerialmtl.formats.checkpoint import ModelMeta
-    from aerialmtl.models.config import ModelConfig
-    from aerialmtl.models.d3net import D3Net
-
     torch.manual_seed(seed)
     cfg = ModelConfig(num_classes=NUM_CLASSES, **MODELS[name])
     model = D3Net(cfg).eval()
     with torch.no_grad():  # heights of a few metres, class logits a few units apart (a trained model's margins)
         for task, head in model.heads.items():
-            torch.nn.init.normal_(head.head.weight, std=HEAD_STD[task])  # type: ignore[union-attr, arg-type]
+            assert isinstance(head, TaskDecoder)  # nn.ModuleDict holds plain Modules for mypy
+            torch.nn.init.normal_(head.head.weight, std=HEAD_STD[task])
     scheme = ClassScheme("bench", tuple(ClassDef(i + 1, f"c{i}", (i * 12 % 256, 100, 200))
                                         for i in range(NUM_CLASSES)))
     return model, ModelMeta(cfg, scheme, (1, 2, 3), (110.0, 110.0, 100.0), (45.0, 45.0, 45.0), 0.5)
@@ -173,19 +179,13 @@ def _compare(maps: tuple[np.ndarray, np.ndarray], ref: tuple[np.ndarray, np.ndar
     return mae, mae / max(float(np.abs(ref[0]).mean()), 1e-6), float((maps[1] == ref[1]).mean())
 
 
-def _model_alone(model: Any, meta: Any, engine: str, precision: str, settings: BenchSettings,
-                 x: Any) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
-    """Seconds per window of ``engine``/``precision``, and its maps of the first window."""
-    import torch
-
-    from aerialmtl import runtime
-    from aerialmtl.inference.runner import ModelRunner
-    from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
-
+def _model_alone(model: nn.Module, meta: ModelMeta, engine: str, precision: str, settings: BenchSettings,
+                 x: torch.Tensor) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+    """Seconds per window of ``engine``/``precision`` (``bf16`` or ``fp32``), and its maps of the first window."""
     threads = runtime.resolve_threads(settings.threads)
-    asked = PredictSettings(engine=engine, precision=precision, mc=1, threads=settings.threads)  # type: ignore[arg-type]
-    runner = ModelRunner(model, meta, asked, ResolvedSettings(torch.device("cpu"), engine, precision,  # type: ignore[arg-type]
-                                                              threads, 1))
+    resolved = runtime.resolve_precision(precision, torch.device("cpu"))  # bf16 or fp32 as they are
+    asked = PredictSettings(engine=engine, precision=resolved, mc=1, threads=settings.threads)
+    runner = ModelRunner(model, meta, asked, ResolvedSettings(torch.device("cpu"), engine, resolved, threads, 1))
     maps = _maps(runner(x, [0]))  # conversion or compilation, warm-up
     pending: deque[Any] = deque()
     t0 = time.perf_counter()
@@ -198,19 +198,14 @@ def _model_alone(model: Any, meta: Any, engine: str, precision: str, settings: B
     return (time.perf_counter() - t0) / settings.windows, maps
 
 
-def _int8_alone(model: Any, meta: Any, settings: BenchSettings,
-                x: Any) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+def _int8_alone(model: nn.Module, meta: ModelMeta, settings: BenchSettings,
+                x: torch.Tensor) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
     """The model quantised to int8 by NNCF (calibrated on 8 synthetic windows), on OpenVINO: as :func:`_model_alone`.
 
     Raises:
         ImportError: NNCF is not installed.
     """
     import nncf  # noqa: F401 - the ImportError says it is missing
-    import torch
-
-    from aerialmtl import runtime
-    from aerialmtl.models.d3net import inference_model
-    from aerialmtl.models.mc_dropout import McStatistics
 
     ov = runtime.import_openvino()
     net = inference_model(model, torch.device("cpu"))
@@ -290,11 +285,6 @@ def end_to_end(checkpoint: Path, raster: Path, out: Path, engine: str, precision
 
 def run_bench(settings: BenchSettings, on_row: Callable[[BenchRow], None] | None = None) -> BenchReport:
     """Measure every model × case of ``settings`` (see the module docstring); ``on_row`` sees each row as it comes."""
-    import torch
-
-    from aerialmtl import runtime
-    from aerialmtl.formats.checkpoint import save_checkpoint
-
     report = BenchReport(cpu_info(), {k: (str(v) if isinstance(v, Path) else v) for k, v in
                                       asdict(settings).items()})
 
@@ -374,21 +364,29 @@ def within_tolerance(row: BenchRow) -> bool:
 
 
 def best_entry(report: BenchReport, model: str = "full") -> KindEntry:
-    """The table entry of the report's CPU kind: the engine × precision of ``model`` with the highest model-alone
-    speed among those whose maps stay within the tolerances (:func:`within_tolerance`; int8 is never chosen:
-    ``predict`` has no int8 path). The model-alone speed decides, not the end-to-end one: it is measured back to
-    back in one process, while one end-to-end run per case on a small raster is mostly start-up and, on a shared
-    CPU, the load of the moment. ``speedup`` is the end-to-end ratio over torch fp32 where both were measured
-    (else the model-alone ratio), and ``measured`` says which.
+    """The table entry of the report's CPU kind: the fastest engine × precision of ``model`` within the tolerances.
+
+    Fastest by model-alone speed among those whose maps stay within the tolerances (:func:`within_tolerance`;
+    int8 is never chosen: ``predict`` has no int8 path). The model-alone speed decides, not the end-to-end one:
+    it is measured back to back in one process, while one end-to-end run per case on a small raster is mostly
+    start-up and, on a shared CPU, the load of the moment. ``speedup`` is the end-to-end ratio over torch fp32
+    where both were measured (else the model-alone ratio), and ``measured`` says which.
 
     Raises:
-        ValueError: the report has no measured row of ``model`` within the tolerances.
+        ValueError: the report has no measured row of ``model`` within the tolerances, or its best is no
+            engine/precision of the table (a case outside :data:`CASES`).
     """
     alone = {(r.engine, r.precision): r for r in report.rows if r.model == model and r.stage == "model"}
     pool = {key: r for key, r in alone.items() if r.mpx_s is not None and within_tolerance(r) and key[1] != "int8"}
     if not pool:
         raise ValueError(f"no engine × precision of the {model} model was measured within the tolerances")
     (engine, precision), best = max(pool.items(), key=lambda kv: kv[1].mpx_s or 0.0)
+    match engine, precision:  # the table's choices (``bench``'s cases are these and int8, left out above)
+        case ("torch" | "openvino") as chosen_engine, ("fp32" | "bf16") as chosen_precision:
+            pass
+        case _:
+            raise ValueError(f"{engine}/{precision} is no choice of the engine table; measure torch or openvino "
+                             "in fp32 or bf16")
     e2e = {(r.engine, r.precision): r for r in report.rows if r.model == model and r.stage == "end-to-end"
            and r.mpx_s is not None}
     pair = (e2e.get((engine, precision)), e2e.get(("torch", "fp32")))
@@ -406,7 +404,8 @@ def best_entry(report: BenchReport, model: str = "full") -> KindEntry:
                 f"load {min(loads, default=0):.1f}-{max(loads, default=0):.1f}, chosen on the model alone, speedup "
                 f"{ratio_of}, {datetime.now(timezone.utc).date()}")
     return KindEntry(
-        engine=engine, precision=precision, layout="openvino" if engine == "openvino" else "channels_last",  # type: ignore[arg-type]
+        engine=chosen_engine, precision=chosen_precision,
+        layout="openvino" if chosen_engine == "openvino" else "channels_last",
         speedup=speedup, measured=measured,
         model_alone_mpx_s={f"{e}/{p}": r.mpx_s for (e, p), r in alone.items() if r.mpx_s is not None},
         accuracy={f"{e}/{p}": {"height_mae_m": float(r.height_mae_m), "height_rel_mae": float(r.height_rel_mae or 0),

@@ -41,7 +41,7 @@ from torch import nn
 
 from aerialmtl._version import __version__
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
-from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.formats.checkpoint import ModelMeta, load_model
 from aerialmtl.formats.exported_model import (
     HEIGHT_STD_OUTPUT,
     INPUT,
@@ -51,6 +51,7 @@ from aerialmtl.formats.exported_model import (
     export_metadata,
     model_tasks,
 )
+from aerialmtl.inference.sanity import check_calibration
 from aerialmtl.io.outputs import OutputFolder, check_files_not_input, staging_path
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import HEIGHT_SCALE
@@ -229,12 +230,8 @@ def export_model(
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
     else:
-        from aerialmtl.formats.checkpoint import load_model
-
         model, meta = load_model(checkpoint)
     if calibration and "height" in model_tasks(meta):
-        from aerialmtl.inference.sanity import check_calibration
-
         check_calibration(meta, "<in-memory model>" if isinstance(checkpoint, tuple) else str(checkpoint))
     if task != "all" and task not in model_tasks(meta):
         raise InputError(f"the model has no {task} task (its tasks: {', '.join(model_tasks(meta))}); pass "

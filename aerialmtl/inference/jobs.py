@@ -420,13 +420,15 @@ def _claim(predictor: Predictor, targets: Sequence[Target], out: Path, todo: Seq
 
 def _shares(targets: Sequence[Target], todo: Sequence[int], ranks: runtime.Torchrun) -> tuple[list[Share], set[int]]:
     """This rank's shares (:func:`partition` of the inputs' window rows), and the inputs cut between ranks."""
-    plans = {k: targets[k].plan for k in todo}
-    costs = [[float(len(p.cols.starts) * p.rows.size * p.cols.size)] * len(p.window_rows)
-             for p in plans.values() if p is not None]
+    plans: list[Plan] = []
+    for k in todo:
+        plan = targets[k].plan
+        assert plan is not None, "the inputs to do are open"
+        plans.append(plan)
+    costs = [[float(len(p.cols.starts) * p.rows.size * p.cols.size)] * len(p.window_rows) for p in plans]
     shares = partition(costs, ranks.world)
     mine = [Share(todo[s.target], s.start, s.stop) for s in shares[ranks.rank]]
-    shared = {todo[s.target] for r in shares for s in r
-              if s.start > 0 or s.stop < len(targets[todo[s.target]].plan.window_rows)}  # type: ignore[union-attr]
+    shared = {todo[s.target] for r in shares for s in r if s.start > 0 or s.stop < len(plans[s.target].window_rows)}
     return mine, shared
 
 

@@ -54,6 +54,7 @@ from typing import Any
 import torch
 
 from aerialmtl import runtime
+from aerialmtl.formats import checkpoint as checkpoint_format  # read_model at call time: tests patch it
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
@@ -73,6 +74,7 @@ from aerialmtl.io.fingerprint import file_fingerprint, input_fingerprint
 from aerialmtl.models import class_kernel
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.progress import tqdm_auto as tqdm
+from aerialmtl.sun import ShadowModel, Sun
 
 log = logging.getLogger(__name__)
 
@@ -110,18 +112,16 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], warm: bool
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
-    from aerialmtl.formats.checkpoint import file_sha256, read_model  # looked up here: tests stop a load by patching it
-
     if warm:
         root = cache_root()
         try:
-            digest: str | None = file_sha256(checkpoint)
+            digest: str | None = checkpoint_format.file_sha256(checkpoint)
         except OSError:  # read_model says what is wrong with the file
             digest = None
         record = read_record(digest, root) if digest is not None and root is not None else None
         if digest is not None and record is not None:
             return CheckpointModel(checkpoint, digest, record), record.meta, str(checkpoint), digest
-    model, meta, loaded = read_model(checkpoint)
+    model, meta, loaded = checkpoint_format.read_model(checkpoint)
     if warm:
         made = make_record(model, meta)
         if made is not None and root is not None:
@@ -221,8 +221,6 @@ class Predictor:
                 warnings.warn(f"--sun {s.sun}: {self.checkpoint_name} {why}; no shadow layers", UserWarning,
                               stacklevel=3)
             return None
-        from aerialmtl.sun import ShadowModel
-
         return ShadowStep(ShadowModel.from_dict(sun.shadow_model), self.meta.gsd, s.shadow_fusion,
                           workers=self.threads.threads)
 
@@ -496,8 +494,6 @@ class _StripLoop:
         choice = self.p.sun_for(self.src)
         sun = None
         if choice is not None and choice.on:
-            from aerialmtl.sun import Sun
-
             assert choice.grid_azimuth_deg is not None and choice.elevation_deg is not None
             sun = Sun(choice.grid_azimuth_deg % 360.0, choice.elevation_deg)
         rgb = []

@@ -30,17 +30,17 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+from torch import nn
 
 from aerialmtl._version import __version__
 from aerialmtl.errors import CheckpointError
+from aerialmtl.formats import checkpoint  # read_model looked up at call time: tests stop a load by patching it
+from aerialmtl.formats.checkpoint import ModelMeta
+from aerialmtl.models.d3net import D3Net
+from aerialmtl.models.mc_dropout import DropoutSite, dropout_sites
 from aerialmtl.stores import Store
-
-if TYPE_CHECKING:
-    from torch import nn
-
-    from aerialmtl.formats.checkpoint import ModelMeta
-    from aerialmtl.models.mc_dropout import DropoutSite
 
 #: Version of the record's content (a change makes older records unused, never misread).
 RECORD_VERSION = 1
@@ -74,9 +74,6 @@ class ModelRecord:
     @classmethod
     def from_json(cls, data: bytes) -> ModelRecord:
         """A record from :meth:`to_json`'s bytes (``ValueError``/``KeyError``/``TypeError`` when they are not one)."""
-        from aerialmtl.formats.checkpoint import ModelMeta
-        from aerialmtl.models.mc_dropout import DropoutSite
-
         raw: dict[str, Any] = json.loads(data)
         if raw.get("version") != RECORD_VERSION:
             raise ValueError(f"record version {raw.get('version')!r}")
@@ -91,8 +88,9 @@ def record_path(digest: str, root: Path) -> Path:
 
 
 def read_record(digest: str, root: Path) -> ModelRecord | None:
-    """The record of fingerprint ``digest``, or ``None`` (missing, unreadable or damaged: a damaged one is
-    removed, and the run that loads the checkpoint writes it again).
+    """The record of fingerprint ``digest``, or ``None`` (missing, unreadable or damaged).
+
+    A damaged record is removed, and the run that loads the checkpoint writes it again.
     """
     path = record_path(digest, root)
     store = _store(path)
@@ -113,13 +111,11 @@ def _store(path: Path) -> Store:
 
 
 def make_record(model: nn.Module, meta: ModelMeta) -> ModelRecord | None:
-    """The record of a loaded D3-Net, or ``None`` when it cannot stand for the model (another model class, or
-    metadata that would not come back equal from JSON: such checkpoints are always loaded).
-    """
-    from aerialmtl.formats.checkpoint import ModelMeta
-    from aerialmtl.models.d3net import D3Net
-    from aerialmtl.models.mc_dropout import dropout_sites
+    """The record of a loaded D3-Net, or ``None`` when it cannot stand for the model.
 
+    It cannot for another model class, or for metadata that would not come back equal from JSON: such
+    checkpoints are always loaded.
+    """
     if type(model) is not D3Net:
         return None
     record = ModelRecord(meta, tuple(model.outputs), str(model.cfg),
@@ -133,8 +129,9 @@ def make_record(model: nn.Module, meta: ModelMeta) -> ModelRecord | None:
 
 
 def write_record(digest: str, record: ModelRecord, root: Path) -> None:
-    """Store ``record`` for fingerprint ``digest`` (whole, through a staging file). A folder that cannot be
-    written is skipped with the stores' one warning per folder.
+    """Store ``record`` for fingerprint ``digest`` (whole, through a staging file).
+
+    A folder that cannot be written is skipped with the stores' one warning per folder.
     """
     path = record_path(digest, root)
     _store(path).write(path.name, [record.to_json()])
@@ -177,9 +174,7 @@ class CheckpointModel:
                 the run went on), or it cannot be loaded.
         """
         if self._model is None:
-            from aerialmtl.formats.checkpoint import read_model
-
-            model, _, digest = read_model(self.path)
+            model, _, digest = checkpoint.read_model(self.path)
             if digest != self.digest:
                 raise CheckpointError(
                     f"checkpoint '{self.path}' changed while this run used it ({self.digest} when it started, "

@@ -30,6 +30,7 @@ from shapely.strtree import STRtree
 from aerialmtl.errors import InputError
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.io.align import AlignedRaster, Grid
+from aerialmtl.io.vector import check_aoi_overlaps, load_geometries
 
 if TYPE_CHECKING:
     from shapely.geometry.base import BaseGeometry
@@ -42,8 +43,6 @@ class Aoi:
     """AOI polygons on the grid; ``mask(window)`` → (h, w) bool inside (thread-safe: read-only)."""
 
     def __init__(self, path: str | Path, grid: Grid) -> None:
-        from aerialmtl.io.vector import check_aoi_overlaps, load_geometries
-
         self.geoms: list[BaseGeometry] = [g for g, _ in load_geometries(path, grid.crs, role="AOI (‹aoi›)")]
         if not self.geoms:
             raise InputError(f"AOI (‹aoi›) '{path}' holds no polygon; pass a GeoJSON with polygons", param="aoi")

@@ -33,6 +33,7 @@ import rasterio
 from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
+from aerialmtl import runtime
 from aerialmtl.errors import OutputError, cause
 from aerialmtl.formats.prediction import (
     INFO_FILE,
@@ -61,9 +62,7 @@ COG_LEVEL: int | None = 1
 
 def cog_threads() -> int:
     """Threads for COG compression: the CPUs this process may use (:func:`aerialmtl.runtime.usable_cpus`)."""
-    from aerialmtl.runtime import usable_cpus
-
-    return usable_cpus()
+    return runtime.usable_cpus()
 
 
 def _staging_tag(row_start: int | None) -> str:

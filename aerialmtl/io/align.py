@@ -511,9 +511,9 @@ class HeightSource:
             z = options.z_unit
             if ndsm is not None:
                 self.layers.append(AlignedRaster(ndsm, grid, "height", bands=[1], role="nDSM", z_unit=z))
-            else:
-                self.layers.append(AlignedRaster(dsm, grid, "height", bands=[1], role="DSM", z_unit=z))  # type: ignore[arg-type]
-                self.layers.append(AlignedRaster(dtm, grid, "height", bands=[1], role="DTM", z_unit=z))  # type: ignore[arg-type]
+            elif dsm is not None and dtm is not None:  # both, as checked above
+                self.layers.append(AlignedRaster(dsm, grid, "height", bands=[1], role="DSM", z_unit=z))
+                self.layers.append(AlignedRaster(dtm, grid, "height", bands=[1], role="DTM", z_unit=z))
                 self.check_dsm_above_dtm()
         except Exception:
             self.close()

@@ -110,11 +110,12 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
 
 
 def blocking_file(path: str | Path, depth: int = VRT_DEPTH) -> tuple[Path, str] | None:
-    """The first of local raster ``path``, the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) and,
-    for a VRT, the files it lists (``depth`` levels) that is a FIFO, a socket or a device (links followed), and
-    what it is; ``None`` when there is none. GDAL opens those without a timeout and would wait on a FIFO forever,
-    so a raster with one is not opened (:func:`aerialmtl.io.align.open_raster`). A folder at a sidecar's name is
-    not one (GDAL reads nothing there).
+    """The first file of raster ``path`` that is a FIFO, a socket or a device, and what it is; ``None`` if none.
+
+    Looked at: local raster ``path``, the sidecars GDAL reads when it opens it (:func:`sidecar_paths`) and, for a
+    VRT, the files it lists (``depth`` levels), links followed. GDAL opens those without a timeout and would wait
+    on a FIFO forever, so a raster with one is not opened (:func:`aerialmtl.io.align.open_raster`). A folder at a
+    sidecar's name is not one (GDAL reads nothing there).
     """
     for p in (Path(path), *sidecar_paths(path)):
         try:
@@ -124,8 +125,6 @@ def blocking_file(path: str | Path, depth: int = VRT_DEPTH) -> tuple[Path, str] 
         if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
             return p, special_kind(mode)
     if str(path).lower().endswith(".vrt") and depth > 0:  # and the files a VRT lists, which GDAL opens as it reads
-        from aerialmtl.io.paths import is_local
-
         for name in _vrt_source_names(path):
             found = blocking_file(name, depth - 1) if is_local(name) else None
             if found is not None:
@@ -145,12 +144,11 @@ def raster_identity(src: Any) -> dict[str, Any]:
 
 
 def _vrt_source_names(path: str | Path) -> list[str]:
-    """The sources local VRT ``path`` lists (``SourceFilename``; relative ones resolved against its folder), in
-    document order without repeats; ``[]`` when it cannot be read (a FIFO there is not waited on).
+    """The sources local VRT ``path`` lists (``SourceFilename``), in document order without repeats.
+
+    Relative ones are resolved against its folder; ``[]`` when it cannot be read (a FIFO there is not waited on).
     """
     import xml.etree.ElementTree as ET
-
-    from aerialmtl.io.paths import is_local
 
     try:
         with os.fdopen(open_regular(path, follow_links=True), "rb") as fh:

@@ -45,6 +45,8 @@ from types import TracebackType
 from typing import Any
 
 from aerialmtl.errors import InputError, OutputError, OutputExistsError, OutputInUseError
+from aerialmtl.io.oserrors import writing
+from aerialmtl.io.paths import is_local
 
 #: The lock file of an output folder (removed when the run ends).
 LOCK_FILE = ".aerialmtl.lock"
@@ -61,7 +63,7 @@ STAGING_TAGS = (PARTIAL, STAGING, MERGE_VRT)
 try:  # POSIX
     import fcntl
 except ImportError:  # pragma: no cover - Windows
-    fcntl = None  # type: ignore[assignment]
+    fcntl = None  # type: ignore[assignment]  # no fcntl module on Windows: None says so
 
 
 # ---- staging and atomic writes -------------------------------------------------------------------
@@ -120,8 +122,6 @@ def write_text(path: str | Path, text: str, what: str, atomic: bool = True) -> P
     Returns:
         ``path``.
     """
-    from aerialmtl.io.oserrors import writing
-
     path = Path(path)
     with writing(path, what):
         if atomic:
@@ -133,8 +133,6 @@ def write_text(path: str | Path, text: str, what: str, atomic: bool = True) -> P
 # ---- inputs vs outputs ---------------------------------------------------------------------------
 def is_local_path(path: str | Path) -> bool:
     """Whether ``path`` names a local file (not a URL or a GDAL virtual path; :func:`aerialmtl.io.paths.is_local`)."""
-    from aerialmtl.io.paths import is_local
-
     return is_local(path)
 
 

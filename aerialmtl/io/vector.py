@@ -28,7 +28,7 @@ from rasterio.windows import Window
 from shapely.geometry import box, mapping, shape
 from shapely.strtree import STRtree
 
-from aerialmtl.classes import IGNORE_INDEX, ClassScheme
+from aerialmtl.classes import IGNORE_INDEX, ClassScheme, OnUnknown
 from aerialmtl.errors import AlignmentError, InputError, LabelError, cause
 
 #: CRS of GeoJSON without a ``crs`` member (RFC 7946).
@@ -218,7 +218,7 @@ class VectorLabels:
         grid: Any,
         class_field: str,
         scheme: ClassScheme,
-        on_unknown: Literal["error", "ignore"] = "error",
+        on_unknown: OnUnknown = "error",
         all_touched: bool = False,
     ) -> None:
         self.path = Path(path)

@@ -37,7 +37,7 @@ import numpy as np
 def _kernel() -> Callable[..., None] | None:
     """The compiled kernel, or ``None`` where numba cannot be imported (then torch's path runs)."""
     try:
-        from aerialmtl.models import class_kernel_jit
+        from aerialmtl.models import class_kernel_jit  # numba: imported (seconds) only where the kernel runs
     except ImportError:  # pragma: no cover - numba is a dependency; a broken install falls back
         return None
     return cast(Callable[..., None], class_kernel_jit.kernel)

@@ -99,8 +99,9 @@ class KernelStore(stores.Store):
         return table
 
     def heal(self) -> None:
-        """Remove every file numba would read that is not one it wrote here (see the module docstring), with one
-        warning naming them; once per process, before numba reads the folder.
+        """Remove every file numba would read that is not one it wrote here (see the module docstring).
+
+        One warning names them; once per process, before numba reads the folder.
         """
         with self._lock:
             if self._healed or self.folder is None:
@@ -182,9 +183,10 @@ class _Impl(caching.CompileResultCacheImpl):
 
 
 class GuardedCache(caching.FunctionCache):
-    """numba's function cache in the ``numba`` store, under the stores' rule: the folder is healed before the first
-    load, a load that fails anyway is a recompile (with a warning), a save that fails turns caching off (with a
-    warning), and every save is recorded in the manifest.
+    """numba's function cache in the ``numba`` store, under the stores' rule.
+
+    The folder is healed before the first load, a load that fails anyway is a recompile (with a warning), a save
+    that fails turns caching off (with a warning), and every save is recorded in the manifest.
     """
 
     _impl_class = _Impl
@@ -195,7 +197,7 @@ class GuardedCache(caching.FunctionCache):
         if STORE.folder is None:
             return None
         try:
-            return super().load_overload(sig, target_context)  # type: ignore[no-untyped-call]
+            return super().load_overload(sig, target_context)  # type: ignore[no-untyped-call]  # numba: unannotated
         except Exception as exc:  # damaged pickles raise anything: UnpicklingError, EOFError, ValueError, ...
             why = f"not loadable ({type(exc).__name__}: {' '.join(str(exc).split()) or 'no detail'})"
             STORE.discard([(path, why) for path in STORE._files()])
@@ -206,10 +208,10 @@ class GuardedCache(caching.FunctionCache):
         if STORE.folder is None:
             return
         try:
-            super().save_overload(sig, data)  # type: ignore[no-untyped-call]
+            super().save_overload(sig, data)  # type: ignore[no-untyped-call]  # numba: unannotated
         except OSError as exc:
             STORE.disable(exc, "written")
-            self.disable()  # type: ignore[no-untyped-call]
+            self.disable()  # type: ignore[no-untyped-call]  # numba: unannotated
             return
         STORE.record()
 
@@ -221,7 +223,8 @@ def jit(fn: Any) -> Any:
     """
     dispatcher = numba.njit(cache=False, **_OPTIONS)(fn)
     if STORE.usable():
-        dispatcher._cache = GuardedCache(fn)  # type: ignore[no-untyped-call] # numba's Dispatcher.enable_caching, with this cache class
+        # numba's Dispatcher.enable_caching, with this cache class
+        dispatcher._cache = GuardedCache(fn)  # type: ignore[no-untyped-call]  # numba: unannotated
     return dispatcher
 
 

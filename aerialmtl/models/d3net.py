@@ -24,8 +24,8 @@ owns the last ``cfg.task_blocks`` blocks plus a 3×3 output convolution (with bi
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import cast
+from collections.abc import Callable, Sequence
+from typing import TypeVar, cast
 
 import torch
 import torch.nn.functional as F
@@ -192,7 +192,7 @@ class D3Net(nn.Module):
     def check_input(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is B×C×H×W with C = in_channels and H, W multiples of 32."""
         # a traced graph (the OpenVINO engine) is reshaped to checked windows only
-        if torch.jit.is_tracing():  # type: ignore[attr-defined,no-untyped-call]
+        if torch.jit.is_tracing():  # type: ignore[attr-defined,no-untyped-call]  # not in torch.jit's __all__; unannotated
             return
         c = self.cfg.in_channels
         if x.dim() != 4 or x.shape[1] != c:
@@ -253,6 +253,31 @@ class D3Net(nn.Module):
         return self.decode(self.encode(x))
 
 
+ModuleT = TypeVar("ModuleT", bound=nn.Module)
+
+
+def to_channels_last(model: ModuleT) -> ModuleT:
+    """``model.to(memory_format=torch.channels_last)``: its 4-D and 5-D parameters and buffers channels-last.
+
+    ``nn.Module.to`` accepts ``memory_format`` but its typed overloads do not list it; the call is typed here once.
+    """
+    to = cast(Callable[..., ModuleT], model.to)
+    return to(memory_format=torch.channels_last)
+
+
+def encode_features(model: nn.Module, x: torch.Tensor) -> list[torch.Tensor]:
+    """``model.encode(x)`` (:meth:`D3Net.encode`) of a D3-Net or a wrapper that forwards it (``torch.compile``'s).
+
+    torch types a module's attributes as ``Tensor | Module``; the call is typed here once.
+    """
+    return cast(Callable[[torch.Tensor], list[torch.Tensor]], model.encode)(x)
+
+
+def decode_features(model: nn.Module, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``model.decode(feats)`` (:meth:`D3Net.decode`) of a D3-Net or a wrapper that forwards it (typed once)."""
+    return cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)(feats)
+
+
 def fold_batchnorm(model: nn.Module) -> nn.Module:
     """A copy of ``model`` for inference with each decoder convolution and its BatchNorm folded into one.
 
@@ -273,7 +298,9 @@ def fold_batchnorm(model: nn.Module) -> nn.Module:
         if isinstance(m, UpBlock) and isinstance(m.norm1, nn.BatchNorm2d):
             m.up = fuse_conv_bn_eval(m.up, m.norm1, transpose=True)
             m.norm1 = nn.Identity()
-            m.conv = fuse_conv_bn_eval(m.conv, m.norm2)  # type: ignore[arg-type]
+            norm2 = m.norm2
+            assert isinstance(norm2, nn.BatchNorm2d), "an UpBlock's two BatchNorms are folded together"
+            m.conv = fuse_conv_bn_eval(m.conv, norm2)
             m.norm2 = nn.Identity()
     return folded
 
@@ -282,7 +309,7 @@ def inference_model(model: nn.Module, device: torch.device) -> nn.Module:
     """A copy of ``model`` on ``device`` prepared for prediction: decoder BatchNorms folded
     (:func:`fold_batchnorm`), channels-last activations (measured faster on CPU), eval mode.
     """
-    prepared = fold_batchnorm(model).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    prepared = to_channels_last(fold_batchnorm(model).to(device))
     prepared.eval()
     result: nn.Module = prepared
     return result

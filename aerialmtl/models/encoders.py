@@ -26,6 +26,7 @@ from torch import nn
 
 from aerialmtl.models.densenet import DenseNetEncoder
 from aerialmtl.models.efficientnet import IMAGENET_LITE_MEAN, IMAGENET_LITE_STD, VARIANTS, EfficientNetLiteEncoder
+from aerialmtl.models.pretrained import load_efficientnet_lite, load_torchvision_densenet
 
 
 class EncoderSettings(Protocol):
@@ -83,8 +84,6 @@ def _densenet(settings: EncoderSettings) -> nn.Module:
 
 
 def _load_densenet(encoder: nn.Module, weights: str | Path) -> object:
-    from aerialmtl.models.pretrained import load_torchvision_densenet
-
     assert isinstance(encoder, DenseNetEncoder)
     return load_torchvision_densenet(encoder, weights)
 
@@ -97,8 +96,6 @@ def _lite(variant: str) -> Callable[[EncoderSettings], nn.Module]:
 
 
 def _load_lite(encoder: nn.Module, weights: str | Path) -> object:
-    from aerialmtl.models.pretrained import load_efficientnet_lite
-
     return load_efficientnet_lite(encoder, weights)
 
 

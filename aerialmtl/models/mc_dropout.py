@@ -41,7 +41,6 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, fields
-from typing import cast
 
 import numpy as np
 import torch
@@ -49,6 +48,7 @@ from torch import nn
 
 from aerialmtl.models import class_kernel
 from aerialmtl.models.config import HEIGHT_SCALE
+from aerialmtl.models.d3net import decode_features, encode_features
 from aerialmtl.models.familiarity import FeatureDensity
 
 _DROPOUT_TYPES = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d, nn.AlphaDropout, nn.FeatureAlphaDropout)
@@ -76,6 +76,12 @@ def _entropy(p: torch.Tensor, dim: int = 1) -> torch.Tensor:
 
 #: Dropout modules whose masks :func:`mc_statistics` can draw per image from seeded generators.
 _SEEDABLE = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)
+
+
+def _dropout_p(module: nn.Module) -> float:
+    """The drop probability of a seedable dropout layer (the forward hooks here are registered on those only)."""
+    assert isinstance(module, _SEEDABLE), f"a dropout hook on {type(module).__name__}"
+    return float(module.p)
 #: Elements per temporary of the softmax/entropy loop (4 MiB of float32; 1 MiB and 16 MiB were slower).
 _ROW_BLOCK_ELEMENTS = 1 << 20
 
@@ -100,7 +106,7 @@ class _SeededMasks:
         self._handles: list[torch.utils.hooks.RemovableHandle] = []
 
     def _hook(self, module: nn.Module, inputs: tuple[torch.Tensor, ...], output: torch.Tensor) -> torch.Tensor:
-        p = float(module.p)  # type: ignore[arg-type]
+        p = _dropout_p(module)
         if p <= 0.0:
             return output
         x = output  # eval mode: the module returned its input unchanged
@@ -331,16 +337,14 @@ def mc_statistics(
     with mode, rng:
         if masks is None and seed is not None:
             torch.manual_seed(seed)
-        encode = cast(Callable[[torch.Tensor], list[torch.Tensor]], model.encode)
-        decode = cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)
-        feats = encode(x)
+        feats = encode_features(model, x)
 
         def decode_chunk(done: int, s: int) -> dict[str, torch.Tensor]:
             if masks is not None:
                 assert keys is not None
                 masks.generators = [sample_generator(seed or 0, key, t, x.device)
                                     for t in range(done, done + s) for key in keys]
-            return decode([f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats])
+            return decode_features(model, [f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats])
 
         stats = accumulate_samples(decode_chunk, samples, chunk, b)
     if density is not None:
@@ -474,7 +478,7 @@ def dropout_sites(model: nn.Module, in_channels: int, probe: int = 64) -> list[D
     handles = []
 
     def hook(module: nn.Module, inputs: tuple[torch.Tensor, ...], output: torch.Tensor) -> None:
-        p = float(module.p)  # type: ignore[arg-type]
+        p = _dropout_p(module)
         if p > 0:
             x = inputs[0]
             sites.append(DropoutSite(p, int(x.shape[1]), probe // int(x.shape[-1]), not isinstance(module, nn.Dropout)))
@@ -488,9 +492,7 @@ def dropout_sites(model: nn.Module, in_channels: int, probe: int = 64) -> list[D
         param = next(model.parameters(), None)
         device = param.device if param is not None else torch.device("cpu")
         x = torch.zeros((1, in_channels, probe, probe), device=device)
-        encode = cast(Callable[[torch.Tensor], list[torch.Tensor]], model.encode)
-        decode = cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)
-        decode(encode(x))
+        decode_features(model, encode_features(model, x))
     finally:
         for h in handles:
             h.remove()

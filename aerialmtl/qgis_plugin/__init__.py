@@ -16,6 +16,6 @@ from typing import Any
 
 def classFactory(iface: Any) -> Any:  # the name QGIS looks for
     """QGIS's entry point: the plugin object."""
-    from .plugin import AerialMTLPlugin
+    from .plugin import AerialMTLPlugin  # imports qgis: only inside QGIS (spec/runner load without it)
 
     return AerialMTLPlugin(iface)

@@ -16,6 +16,7 @@ import os
 import queue
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -128,8 +129,8 @@ def run_command(
     environment = dict(os.environ if env is None else env)
     environment["PYTHONUNBUFFERED"] = "1"
     popen_kwargs: dict[str, Any] = {}
-    if os.name == "nt":  # pragma: no cover - the signal group differs on Windows
-        popen_kwargs["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP  # type: ignore[attr-defined]
+    if sys.platform == "win32":  # pragma: no cover - the signal group differs on Windows
+        popen_kwargs["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP
     proc = subprocess.Popen(list(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
                             text=True, encoding="utf-8", errors="replace", bufsize=1, env=environment, **popen_kwargs)
     lines: queue.Queue[tuple[str, str | None]] = queue.Queue()
@@ -168,8 +169,8 @@ def _terminate(proc: subprocess.Popen[str]) -> None:
     """Ask the process to stop the way ``kill``/SLURM do: SIGTERM (CTRL_BREAK on Windows)."""
     if proc.poll() is not None:
         return
-    if os.name == "nt":  # pragma: no cover
-        proc.send_signal(signal.CTRL_BREAK_EVENT)  # type: ignore[attr-defined]
+    if sys.platform == "win32":  # pragma: no cover
+        proc.send_signal(signal.CTRL_BREAK_EVENT)
     else:
         proc.send_signal(signal.SIGTERM)
 

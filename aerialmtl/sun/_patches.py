@@ -21,8 +21,8 @@ def as_patches(rgb: ArrayOrList, height: ArrayOrList, valid: ArrayOrList | None 
     single = isinstance(rgb, np.ndarray) and rgb.ndim == 3
     rgbs = [rgb] if single else list(rgb)
     heights = [height] if single else list(height)
-    valids: list[np.ndarray | None] = ([None] * len(rgbs) if valid is None
-                                       else [valid] if single else list(valid))  # type: ignore[list-item]
+    valids: list[ArrayOrList | None] = ([None] * len(rgbs) if valid is None
+                                        else [valid] if single else list(valid))
     if not len(rgbs) == len(heights) == len(valids):
         raise InputError(f"'rgb', 'height' and 'valid' must hold as many patches each, got {len(rgbs)}, "
                          f"{len(heights)} and {len(valids)}")

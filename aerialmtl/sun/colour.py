@@ -19,7 +19,7 @@ from aerialmtl.errors import InputError
 from aerialmtl.sun._patches import ArrayOrList, Patch, as_patches
 from aerialmtl.sun.cast import cast_shadow_mask
 from aerialmtl.sun.heights import shadow_heights
-from aerialmtl.sun.position import Sun
+from aerialmtl.sun.position import Sun, as_float, as_floats
 
 #: Added to the channel sum before chromaticities (0–1 scale per channel), so black pixels get no colour.
 _EPS = 0.05
@@ -259,11 +259,9 @@ class ShadowModel:
     def from_dict(cls, d: Mapping[str, object]) -> ShadowModel:
         """Inverse of :meth:`to_dict`."""
         try:
-            m = cls(gsd_m=float(d["gsd_m"]), features=str(d["features"]),  # type: ignore[arg-type]
-                    mean=[float(v) for v in d["mean"]], scale=[float(v) for v in d["scale"]],  # type: ignore[attr-defined]
-                    weights=[float(v) for v in d["weights"]],  # type: ignore[attr-defined]
-                    shadow_share=float(d["shadow_share"]),  # type: ignore[arg-type]
-                    threshold=float(d.get("threshold", 0.5)),  # type: ignore[arg-type]
+            m = cls(gsd_m=as_float(d["gsd_m"]), features=str(d["features"]),
+                    mean=as_floats(d["mean"]), scale=as_floats(d["scale"]), weights=as_floats(d["weights"]),
+                    shadow_share=as_float(d["shadow_share"]), threshold=as_float(d.get("threshold", 0.5)),
                     threshold_by=str(d.get("threshold_by", "default")))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"not a shadow model record ({exc!r}); keys {sorted(d)}") from exc

@@ -30,7 +30,7 @@ from aerialmtl.errors import InputError
 from aerialmtl.sun._patches import ArrayOrList, as_patches
 from aerialmtl.sun.cast import cast_shadow_mask
 from aerialmtl.sun.colour import shadow_score
-from aerialmtl.sun.position import Sun
+from aerialmtl.sun.position import Sun, as_float
 
 #: Reference heights below this (metres) are ground where the correlation is taken.
 GROUND_M = 0.5
@@ -71,10 +71,14 @@ class SunFit:
     def from_dict(cls, d: Mapping[str, object]) -> SunFit:
         """Inverse of :meth:`to_dict`."""
         def sun(v: object) -> Sun | None:
-            return None if v is None else Sun.from_dict(v)  # type: ignore[arg-type]
+            if v is None:
+                return None
+            if not isinstance(v, Mapping):
+                raise TypeError(f"a sun record must be a mapping, got {v!r}")
+            return Sun.from_dict(v)
 
         def num(v: object) -> float:
-            return math.nan if v is None else float(v)  # type: ignore[arg-type]
+            return math.nan if v is None else as_float(v)
 
         try:
             return cls(sun=sun(d["sun"]), score=num(d["score"]), sharpness=num(d["sharpness"]),
@@ -205,9 +209,12 @@ def fit_sun(rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, valid: ArrayOrL
     return SunFit(None, r, sharp, False, reason, best)
 
 
-def fit_sun_patches(patches: Sequence[tuple[np.ndarray, ...]], gsd_m: float, **options: object) -> SunFit:
-    """:func:`fit_sun` on a sequence of ``(rgb, height)`` or ``(rgb, height, valid)`` tuples."""
+def fit_sun_patches(patches: Sequence[tuple[np.ndarray, ...]], gsd_m: float, *,
+                    elevation_range: tuple[float, float] = (10.0, 80.0), min_score: float = MIN_SCORE,
+                    min_sharpness: float = MIN_SHARPNESS, ground_m: float = GROUND_M) -> SunFit:
+    """:func:`fit_sun` (same keywords) on a sequence of ``(rgb, height)`` or ``(rgb, height, valid)`` tuples."""
     rgbs = [p[0] for p in patches]
     heights = [p[1] for p in patches]
     valids = [p[2] if len(p) > 2 else np.ones(np.shape(p[1]), bool) for p in patches]
-    return fit_sun(rgbs, heights, gsd_m, valids, **options)  # type: ignore[arg-type]
+    return fit_sun(rgbs, heights, gsd_m, valids, elevation_range=elevation_range, min_score=min_score,
+                   min_sharpness=min_sharpness, ground_m=ground_m)

@@ -8,8 +8,9 @@ degrees clockwise from grid north (the raster's up: row 0 is the northern edge, 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import SupportsFloat, SupportsIndex
 
 from aerialmtl.errors import InputError
 
@@ -63,7 +64,7 @@ class Sun:
     def from_dict(cls, d: Mapping[str, object]) -> Sun:
         """Inverse of :meth:`to_dict` (validated)."""
         try:
-            return cls(float(d["azimuth_deg"]), float(d["elevation_deg"]))  # type: ignore[arg-type]
+            return cls(as_float(d["azimuth_deg"]), as_float(d["elevation_deg"]))
         except KeyError as exc:
             raise InputError(f"a sun record needs 'azimuth_deg' and 'elevation_deg', got keys {sorted(d)}",
                              param="sun") from exc
@@ -72,9 +73,28 @@ class Sun:
         return f"azimuth {self.azimuth_deg:.1f}°, elevation {self.elevation_deg:.1f}°"
 
 
+def as_float(value: object) -> float:
+    """``float(value)`` of a number read from a record (JSON/YAML: ``object`` until checked).
+
+    Raises:
+        TypeError: ``value`` is no number, numeric string or bytes (what :class:`float` itself refuses).
+        ValueError: a string that is no number.
+    """
+    if isinstance(value, (SupportsFloat, SupportsIndex, str, bytes, bytearray)):
+        return float(value)
+    raise TypeError(f"float() argument must be a string or a real number, not {type(value).__name__!r}")
+
+
+def as_floats(value: object) -> list[float]:
+    """:func:`as_float` of each item of a list read from a record; TypeError when ``value`` is no iterable."""
+    if not isinstance(value, Iterable):
+        raise TypeError(f"{type(value).__name__!r} object is not iterable")
+    return [as_float(v) for v in value]
+
+
 def _number(name: str, value: object) -> float:
     try:
-        out = float(value)  # type: ignore[arg-type]
+        out = as_float(value)
     except (TypeError, ValueError) as exc:
         raise InputError(f"'sun' {name} must be a number of degrees, got {value!r}; pass e.g. 'sun=100,45'",
                          param="sun") from exc

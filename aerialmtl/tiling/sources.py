@@ -15,7 +15,7 @@ import numpy as np
 import rasterio
 from rasterio.windows import Window
 
-from aerialmtl.classes import ClassScheme
+from aerialmtl.classes import ClassScheme, OnUnknown
 from aerialmtl.io.align import AlignedRaster, Grid, HeightSource, NdsmOptions
 from aerialmtl.io.vector import VectorLabels
 
@@ -50,7 +50,7 @@ class TileSources:
         ignore_unknown_codes: bool,
     ) -> None:
         self.scheme = scheme
-        self.on_unknown = "ignore" if ignore_unknown_codes else "error"
+        self.on_unknown: OnUnknown = "ignore" if ignore_unknown_codes else "error"
         self.paths = {"ortho": ortho, "ndsm": ndsm, "dsm": dsm, "dtm": dtm, "labels": labels,
                       "labels_vector": labels_vector}
         self.class_field = class_field
@@ -66,7 +66,7 @@ class TileSources:
                 self.labels = self._open(AlignedRaster(labels, grid, "labels", bands=[1], role="labels"))
             elif labels_vector is not None and scheme is not None:
                 self.labels = self._open(VectorLabels(labels_vector, grid, class_field or "", scheme,
-                                                      self.on_unknown))  # type: ignore[arg-type]
+                                                      self.on_unknown))
         except BaseException:
             self.close()
             raise
@@ -85,7 +85,7 @@ class TileSources:
         if isinstance(self.labels, VectorLabels):
             return self.labels.read(win)[0]
         codes, valid = self.labels.read(win)
-        return self.scheme.remap(codes[0], valid=valid, on_unknown=self.on_unknown,  # type: ignore[arg-type]
+        return self.scheme.remap(codes[0], valid=valid, on_unknown=self.on_unknown,
                                  source=f"labels '{self.labels.path}'")
 
     def _open(self, layer: Any) -> Any:

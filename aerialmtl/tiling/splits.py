@@ -217,7 +217,8 @@ class SplitAssigner:
                     )
                 per_split[name].append(g)
         else:
-            for name, path in dict(aoi).items():  # type: ignore[arg-type]
+            assert aoi is not None, "SplitSpec checks that method 'aoi' has its polygons"
+            for name, path in dict(aoi).items():
                 if name not in per_split:
                     raise InputError(f"split AOI for unknown split {name!r}; use train, val or test")
                 per_split[name].extend(g for g, _ in load_geometries(path, self.grid.crs, f"{name} AOI"))

@@ -31,6 +31,7 @@ import torch.distributed as dist
 from torch import nn
 
 from aerialmtl.runtime import Torchrun, peer_failure
+from aerialmtl.signals import install_stop_signals
 
 
 def install_stop_handler() -> None:
@@ -41,8 +42,6 @@ def install_stop_handler() -> None:
     stopped, instead of vanishing mid-write. SIGHUP stays Ctrl-C-like (:mod:`aerialmtl.signals`, the one
     place stop signals are handled).
     """
-    from aerialmtl.signals import install_stop_signals
-
     install_stop_signals(distributed=True, on_peer_stop=lambda: peer_failure(RuntimeError("torchrun sent SIGTERM")))
 
 

@@ -27,6 +27,7 @@ from aerialmtl.data.transforms import build_eval_transform
 from aerialmtl.errors import ConfigError
 from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
 from aerialmtl.formats.tiles import TileFolderInfo, cache_dir, read_manifest
+from aerialmtl.models.d3net import encode_features
 from aerialmtl.models.familiarity import FeatureDensity, fit_density
 
 log = logging.getLogger(__name__)
@@ -70,7 +71,7 @@ def feature_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path
         batch = prepare_batch(data[spec], transform, mean, std, dev)
         x = batch["image"]
         with torch.no_grad():
-            enc = model.encode(x)  # type: ignore[operator]
+            enc = encode_features(model, x)
         picked = [enc[i].float() for i in levels]
         size = picked[0].shape[-2:]
         stride = x.shape[-1] // size[-1]

@@ -51,6 +51,7 @@ from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFinite
 from aerialmtl.formats.checkpoint import ModelMeta, first_nonfinite, load_checkpoint, save_checkpoint
 from aerialmtl.formats.run import BEST_PT, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog
 from aerialmtl.formats.starts import check_exportable, export_start, foreign_files
+from aerialmtl.formats.tiles import read_manifest, read_tile_info, split_fingerprint
 from aerialmtl.io.outputs import FolderLock, OutputFolder, write_text_atomic
 from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.progress import tqdm_auto as tqdm
@@ -431,8 +432,6 @@ def _real_data(stream: SyntheticStream) -> str | dict[str, Any]:
     """
     if stream.textures is None and stream.real_count() == 0:
         return "none: no real orthophoto, height or label was seen"
-    from aerialmtl.formats.tiles import read_manifest, read_tile_info, split_fingerprint
-
     def folder(path: str) -> dict[str, str]:
         root = Path(path)
         return {"folder": str(root.resolve()), "split": "train",

@@ -62,9 +62,11 @@ from aerialmtl.formats.tiles import (
     read_manifest,
 )
 from aerialmtl.models.config import ModelConfig
+from aerialmtl.models.d3net import D3Net, to_channels_last
 from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
+from aerialmtl.training.finetune import load_init_weights
 from aerialmtl.training.objective import Objective, class_weights
 from aerialmtl.training.state import (
     TrainState,
@@ -74,6 +76,7 @@ from aerialmtl.training.state import (
     seed_everything,
     set_rng_state,
 )
+from aerialmtl.training.weighting import build_weighting
 
 #: The trainer's logger (the messages of training, whichever module writes them).
 log = logging.getLogger("aerialmtl.training.trainer")
@@ -243,11 +246,8 @@ def build_optimizer(optim: OptimSection, model: nn.Module, weighting: nn.Module)
 
 def build_model(cfg: TrainConfig, model_cfg: ModelConfig, device: torch.device, ctx: runtime.Torchrun) -> ModelParts:
     """Seeded D3-Net (channels_last, SyncBatchNorm if asked with several processes), weighting, optimiser."""
-    from aerialmtl.models.d3net import D3Net
-    from aerialmtl.training.weighting import build_weighting
-
     seed_everything(cfg.seed)
-    model: nn.Module = D3Net(model_cfg).to(device).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    model: nn.Module = to_channels_last(D3Net(model_cfg).to(device))
     if cfg.model.sync_bn and ctx.distributed:
         model = distributed.convert_sync_batchnorm(model, device)
     weighting = build_weighting(cfg.weighting.method, list(model_cfg.tasks)).to(device)
@@ -572,8 +572,6 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
         resumed = restore(run / "last.pt", parts, data, cfg, ctx, device)
         state, saved_step, rng, averaged = resumed.state, resumed.state.step, resumed.rng, resumed.averaged
     elif init is not None:
-        from aerialmtl.training.finetune import load_init_weights
-
         load_init_weights(parts.model, init, data.meta)
     seed_rank_stream(cfg, ctx, state.step, rng)
     step_module = StepModule(parts.model, parts.weighting, objective, device, precision, compile=cfg.compile)

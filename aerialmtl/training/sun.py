@@ -117,10 +117,9 @@ def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
     """Fit the sun and the shadow classifier on ``data_dir``'s ``split`` (see the module docstring)."""
     area = training_area(data_dir, split)
     fit = fit_sun(area.rgb, area.height, area.gsd, area.valid)
-    base = {"crs": area.crs, "bounds": area.bounds}
     if not fit.clear or fit.sun is None or area.crs is None or area.bounds is None:
         return TrainingSun(clear=False, reason=fit.reason, score=_finite(fit.score), sharpness=_finite(fit.sharpness),
-                           **base)  # type: ignore[arg-type]
+                           crs=area.crs, bounds=area.bounds)
     x = (area.bounds[0] + area.bounds[2]) / 2.0
     y = (area.bounds[1] + area.bounds[3]) / 2.0
     convergence = grid_convergence_deg(area.crs, x, y)
@@ -130,7 +129,7 @@ def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
         model = shadows.to_dict()
     except InputError as exc:
         return TrainingSun(clear=False, reason=f"no shadow model: {exc}", score=fit.score, sharpness=fit.sharpness,
-                           **base)  # type: ignore[arg-type]
+                           crs=area.crs, bounds=area.bounds)
     reason = (f"sun fitted: azimuth {true_az:.1f}° from true north ({fit.sun.azimuth_deg:.1f}° on the training "
               f"grid), elevation {fit.sun.elevation_deg:.1f}° (correlation {fit.score:.2f}, sharpness "
               f"{fit.sharpness:.2f})")
@@ -152,7 +151,8 @@ def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
             pass
     return TrainingSun(clear=True, reason=reason, azimuth_deg=round(true_az, 4), elevation_deg=fit.sun.elevation_deg,
                        grid_azimuth_deg=fit.sun.azimuth_deg, score=fit.score, sharpness=fit.sharpness,
-                       acquired=acquired, time_sun=time_sun, shadow_model=model, **base)  # type: ignore[arg-type]
+                       acquired=acquired, time_sun=time_sun, shadow_model=model, crs=area.crs,
+                       bounds=area.bounds)
 
 
 def _finite(v: float) -> float:

@@ -37,16 +37,19 @@ import torch
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
 from aerialmtl.data.batches import EpochOrder, prepare_batch
-from aerialmtl.errors import NonFiniteError
+from aerialmtl.errors import InputError, NonFiniteError
 from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M, ModelMeta, first_nonfinite, height_slack, save_checkpoint
 from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.progress import tqdm_auto as tqdm
+from aerialmtl.training.calibrate import calibrate_checkpoint
+from aerialmtl.training.familiarity import familiarize_checkpoint
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
 from aerialmtl.training.setup import TrainSetup
 from aerialmtl.training.state import rng_state
 from aerialmtl.training.steploop import LOSS_GROWTH, LossWindow, StepLoop
+from aerialmtl.training.sun import fit_training_sun, store_sun
 
 log = logging.getLogger(__name__)
 
@@ -416,8 +419,6 @@ class Trainer(StepLoop):
         cal = self.cfg.calibration
         if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
             return
-        from aerialmtl.training.calibrate import calibrate_checkpoint
-
         for name in ("best.pt", "last.pt"):
             if self.paths[name].exists():
                 data = self.setup.data
@@ -432,8 +433,6 @@ class Trainer(StepLoop):
         fam = self.cfg.familiarity
         if not (fam.enabled and self.ctx.is_main):
             return
-        from aerialmtl.training.familiarity import familiarize_checkpoint
-
         for name in ("best.pt", "last.pt"):
             if self.paths[name].exists():
                 data = self.setup.data
@@ -448,9 +447,6 @@ class Trainer(StepLoop):
         """
         if not (self.cfg.sun.enabled and self.ctx.is_main and "height" in self.tasks):
             return
-        from aerialmtl.errors import InputError
-        from aerialmtl.training.sun import fit_training_sun, store_sun
-
         try:
             sun = fit_training_sun(self.setup.data.info.root)
         except InputError as exc:

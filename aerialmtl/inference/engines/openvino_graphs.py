@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from aerialmtl.inference.model_record import CheckpointModel
+from aerialmtl.models.d3net import decode_features, encode_features
 from aerialmtl.models.mc_dropout import _SEEDABLE
 from aerialmtl.stores import open_store_folder
 
@@ -98,7 +99,7 @@ class _Encoder(nn.Module):
         self.model = model
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return tuple(self.model.encode(x))  # type: ignore[operator]
+        return tuple(encode_features(self.model, x))
 
 
 class _Decoder(nn.Module):
@@ -122,7 +123,7 @@ class _Decoder(nn.Module):
         feats, masks = list(inputs[:self.n_feats]), inputs[self.n_feats:]
         for site, mask in zip(self.sites, masks):
             site.mask = mask
-        out = self.model.decode(feats)  # type: ignore[operator]
+        out = decode_features(self.model, feats)
         return tuple(_graph_output(t, out[t]) for t in self.tasks)
 
 

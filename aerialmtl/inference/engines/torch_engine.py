@@ -12,7 +12,7 @@ from aerialmtl import runtime
 from aerialmtl.errors import InputError
 from aerialmtl.inference.engines.base import Done, EngineSetup, EngineSpec, Pending
 from aerialmtl.inference.model_record import CheckpointModel, resolve_model
-from aerialmtl.models.d3net import inference_model
+from aerialmtl.models.d3net import decode_features, encode_features, inference_model
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import McStatistics, mc_statistics, single_pass_statistics
 
@@ -92,8 +92,8 @@ class TorchEngine:
                 self._model.eval()
                 if self.density is None:
                     return single_pass_statistics(self._net(x))
-                feats = self._net.encode(x)  # type: ignore[operator]
-                stats = single_pass_statistics(self._net.decode(feats))  # type: ignore[operator]
+                feats = encode_features(self._net, x)
+                stats = single_pass_statistics(decode_features(self._net, feats))
                 stats.unfamiliarity = self.density.unfamiliarity(feats, (x.shape[-2], x.shape[-1]))
                 return stats
             return mc_statistics(self._net, x, samples, sample_batch=sample_batch, seed=seed, keys=keys,
