@@ -10,8 +10,8 @@ path; it resumes where it stopped (a finished step's output is kept). Arms:
 
 Usage::
 
-    python experiments/heights_from_the_sun/run.py --out /work/study45 [--seeds 0 1 2] [--threads 2]
-    python experiments/heights_from_the_sun/run.py --out /work/study45 --table   # the tables only
+    python -m experiments.heights_from_the_sun.run --out /work/study45 [--seeds 0 1 2] [--threads 2]
+    python -m experiments.heights_from_the_sun.run --out /work/study45 --table   # the tables only
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python bench/sanity.py [--window 512] [--reps 5] [--workdir /tmp/aerialmtl-bench-sanity]
+    python -m experiments.sanity_cost.run [--window 512] [--reps 5] [--workdir /tmp/aerialmtl-bench-sanity]
 
 Measures, in this process, on the CPU:
 
@@ -35,8 +35,7 @@ from aerialmtl.io.align import HeightSource, reference_grid
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net
 from aerialmtl.models.mc_dropout import McStatistics
-
-DATA = Path(__file__).resolve().parents[1] / "samples" / "autzen_west"  # samples/README.md
+from experiments.common.autzen import DATA, DSM, DTM, ORTHO
 
 
 def median_time(fn, reps: int) -> float:
@@ -87,7 +86,7 @@ def main() -> None:
                  f"{100 * check_s / model_s:.2f} % of the model call"))
     rows.append((f"check_finite_outputs, 1×1024², K={k} (the default --tile)", big_s, "median of 30"))
 
-    ortho = DATA / "ortho_1ft.tif"
+    ortho = DATA / ORTHO
     if ortho.exists():
         rows.append(("sample_input, Autzen ortho 1308×4385 (no overviews)",
                      median_time(lambda: sample_input(ortho, [1, 2, 3]), args.reps), "16 windows of 128²"))
@@ -96,7 +95,7 @@ def main() -> None:
                  median_time(lambda: sample_input(big, [1, 2, 3]), args.reps), "16 windows of 128²"))
     if ortho.exists():
         grid = reference_grid(ortho)
-        with HeightSource(grid, dsm=DATA / "dsm_1m_utm.tif", dtm=DATA / "dtm_1m_utm.tif") as hs:
+        with HeightSource(grid, dsm=DATA / DSM, dtm=DATA / DTM) as hs:
             rows.append(("check_dsm_above_dtm, Autzen DSM/DTM through the ortho grid (warped)",
                          median_time(hs.check_dsm_above_dtm, args.reps), "16 windows of 64²"))
 

@@ -13,11 +13,11 @@ cast shadows of its reference heights at the fitted sun. Two ways of measuring a
 
 Per reference-height bin of the object (median nDSM over the object: 2–5, 5–10, 10–20, ≥ 20 m): objects,
 share measured, median ratio shadow / reference, MAE and bias in metres. The split is
-``samples/autzen_west/split.geojson`` (bench/real_data.py's ``middle-val``) and ``test_block.geojson``.
+``samples/autzen_west/split.geojson`` (experiments/common/autzen.py's ``middle-val``) and ``test_block.geojson``.
 
 Usage::
 
-    OMP_NUM_THREADS=1 nice python bench/shadow_heights.py [--gsd 0.6096] [--json out.json]
+    OMP_NUM_THREADS=1 nice python -m experiments.heights_from_the_sun.shadow_heights [--gsd 0.6096] [--json out.json]
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -35,12 +34,10 @@ import numpy as np
 from rasterio.features import geometry_mask
 from scipy import ndimage
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_data import DATA, DSM, DTM, ORTHO, cpu_model  # noqa: E402
-
-from aerialmtl.io.align import AlignedRaster, HeightSource, reference_grid  # noqa: E402
-from aerialmtl.io.vector import load_geometries  # noqa: E402
-from aerialmtl.sun import ShadowModel, Sun, cast_shadow_mask, fit_sun, shadow_heights  # noqa: E402
+from aerialmtl.io.align import AlignedRaster, HeightSource, reference_grid
+from aerialmtl.io.vector import load_geometries
+from aerialmtl.sun import ShadowModel, Sun, cast_shadow_mask, fit_sun, shadow_heights
+from experiments.common.autzen import DATA, DSM, DTM, ORTHO, cpu_model
 
 BINS = ((2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 MIN_AREA_M2 = 20.0

@@ -1,4 +1,4 @@
-"""What ownership, locks and verified completeness cost (issue 18): ``python bench/outputs.py``.
+"""What ownership, locks and verified completeness cost (issue 18): ``python -m experiments.output_folder_cost.run``.
 
 Measures, on this machine:
 

@@ -9,8 +9,9 @@ the training-town mean height and the training-town majority class.
 
 Usage::
 
-    python bench/quality.py                      # full protocol (about 25-35 min on 2 quiet cores)
-    python bench/quality.py --steps 20 --train-size 512 --test-size 256 --test-seeds 101   # smoke run
+    python -m experiments.multitask_synthetic.run   # full protocol (about 25-35 min on 2 quiet cores)
+    python -m experiments.multitask_synthetic.run --steps 20 --train-size 512 --test-size 256 \
+        --test-seeds 101                            # smoke run
 
 Prints a Markdown table and writes ``OUT/quality.json``.
 """
@@ -78,7 +79,7 @@ def _mean(values: list[float]) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=Path("bench/out/quality"))
+    ap.add_argument("--out", type=Path, default=Path("experiments/out/multitask_synthetic"))
     ap.add_argument("--train-seed", type=int, default=11)
     ap.add_argument("--train-size", type=int, default=1024)
     ap.add_argument("--test-seeds", default="101,102")

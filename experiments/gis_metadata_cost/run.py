@@ -1,6 +1,6 @@
 """What the GIS metadata of a prediction costs, and what mosaic overviews save.
 
-Usage: python bench/gis_meta.py --size 8192 --tiles 2 [--workdir /tmp/bench_gis_meta]
+Usage: python -m experiments.gis_metadata_cost.run --size 8192 --tiles 2 [--workdir /tmp/bench_gis_meta]
 
 Writes ``--tiles`` float32 height COGs of N×N pixels side by side (smooth synthetic heights, a nodata
 corner), then times:

@@ -2,8 +2,8 @@
 layer written as the package writes layers (a COG, DEFLATE, predictor 3), once at commit and once per
 ``--skip-existing`` check (:meth:`aerialmtl.formats.prediction.PredictionFolder.check`).
 
-Usage: ``nice -n 10 python bench/layer_checksum.py [--size 10000] [--out /tmp/layer-bench]``; prints one JSON
-line (seconds, MB, MB/s, and the load average beside them).
+Usage: ``nice -n 10 python -m experiments.layer_checksum_cost.run [--size 10000] [--out /tmp/layer-bench]``;
+prints one JSON line (seconds, MB, MB/s, and the load average beside them).
 """
 
 from __future__ import annotations
