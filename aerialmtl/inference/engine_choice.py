@@ -249,6 +249,8 @@ def choose_engine(engine: str, precision: str, device: torch.device, model: nn.M
     Raises:
         InputError: an unknown engine or precision, or OpenVINO asked for where it cannot run.
     """
+    # torch (runtime) and the engines load when an engine is chosen: reading the table (cli bench, the tests'
+    # CPU kind) stays light
     from aerialmtl import runtime
     from aerialmtl.inference.engines import resolve_engine
 
@@ -336,7 +338,7 @@ def cold_cache_choice(choice: EngineChoice, precision: str, device: torch.device
     work = work_mpx * max(1, samples)
     if cold_start_pays(work, entry.speedup, 1 if samples == 1 else 2):
         return choice
-    from aerialmtl import runtime
+    from aerialmtl import runtime  # torch: see choose_engine
 
     prec = runtime.resolve_precision(precision, device, cpu_bf16=runtime.cpu_has_amx())
     why = (f"auto on a CPU of kind {choice.cpu_kind}, OpenVINO's cache cold for this model and window: {work:.3g} "

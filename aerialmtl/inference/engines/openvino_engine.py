@@ -34,7 +34,7 @@ from aerialmtl.inference.engines.openvino_graphs import (
 )
 from aerialmtl.inference.engines.openvino_requests import _DONE, _BufferPool, _Forward1, _Job, _Requests
 from aerialmtl.inference.model_record import CheckpointModel, resolve_model
-from aerialmtl.models.d3net import inference_model
+from aerialmtl.models.d3net import D3Net, encode_features, inference_model
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import DropoutSite, McStatistics, accumulate_samples, dropout_masks, dropout_sites
 from aerialmtl.runtime import CpuThreads, resolve_threads
@@ -149,7 +149,7 @@ class OpenVINOEngine:
         if part == "encode":
             return _Encoder(self.model), (x,)
         with torch.no_grad():
-            feats = self.model.encode(x)  # type: ignore[operator]
+            feats = encode_features(self.model, x)
         masks = [torch.ones((1, *site.shape(s, s))) for site in self.sites]
         return _Decoder(self.model, self.tasks, len(feats)), (*feats, *masks)
 
@@ -382,11 +382,7 @@ class OpenVINOEngine:
         return self._buffers
 
 
-
-
 def _convertible(model: nn.Module | CheckpointModel) -> bool:
-    from aerialmtl.models.d3net import D3Net
-
     return isinstance(model, (D3Net, CheckpointModel))  # a checkpoint's model is a D3-Net
 
 
