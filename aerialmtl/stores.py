@@ -222,8 +222,10 @@ def checked(data: bytes | bytearray) -> tuple[list[int], int]:
 
 
 def entry_problem(path: Path) -> str | None:
-    """Why the file at ``path`` must not be read as an entry, as words after "is" (``None``: it is a regular file
-    of this user, or missing). Looks at the name itself (``lstat``), never through a link, and opens nothing.
+    """Why the file at ``path`` must not be read as an entry, as words after "is"; ``None`` when it may.
+
+    ``None``: it is a regular file of this user, or missing. Looks at the name itself (``lstat``), never through
+    a link, and opens nothing.
     """
     try:
         st = os.lstat(path)
@@ -243,10 +245,11 @@ def entry_problem(path: Path) -> str | None:
 
 
 def open_regular(path: str | Path, follow_links: bool = False) -> int:
-    """A read-only descriptor of regular file ``path``, opened without blocking (a FIFO, a device or a socket at
-    its name would block the open or every read) and, unless ``follow_links``, not through a symbolic link. The one
-    way aerialmtl opens a file that someone else may have put in place: store entries, an input's sidecars, the
-    layers a ``prediction.json`` lists.
+    """A read-only descriptor of regular file ``path``, opened without blocking and not through a link.
+
+    Without blocking: a FIFO, a device or a socket at its name would block the open or every read. Through a
+    symbolic link only with ``follow_links``. The one way aerialmtl opens a file that someone else may have put
+    in place: store entries, an input's sidecars, the layers a ``prediction.json`` lists.
 
     Raises:
         FileNotFoundError: it is missing.
@@ -283,8 +286,9 @@ def special_kind(mode: int) -> str:
 
 
 def read_file(path: Path) -> bytearray | None:
-    """The bytes of regular file ``path`` (:func:`open_regular`: not through a link, not blocking on a FIFO),
-    or ``None`` when it is missing.
+    """The bytes of regular file ``path``, or ``None`` when it is missing.
+
+    Read through :func:`open_regular`: not through a link, not blocking on a FIFO.
 
     Raises:
         OSError: it cannot be read, or it is not a regular file after all (replaced between look and open).
@@ -350,8 +354,10 @@ class Store:
         return self.folder / name
 
     def raw(self, name: str) -> bytearray | None:
-        """The bytes of entry ``name`` under the rule (checked as a file, not as an entry), or ``None`` when it is
-        missing or must not be used (then warned about and removed where possible). Marks the entry used.
+        """The bytes of entry ``name``, or ``None`` when it is missing or must not be used.
+
+        Checked as a file under the rule, not as an entry; one that must not be used is warned about and removed
+        where possible. Marks the entry used.
         """
         if self.folder is None:
             return None
@@ -371,9 +377,10 @@ class Store:
         return data
 
     def entry(self, name: str, sections: int | None = None) -> tuple[bytearray, list[int], int] | None:
-        """Entry ``name`` read whole and checked: ``(bytes, section lengths, payload start)``, or ``None``
-        when it is missing or unusable (see :meth:`raw`, :func:`checked`; or it has other than ``sections``
-        sections): those are removed with a warning.
+        """Entry ``name`` read whole and checked: ``(bytes, section lengths, payload start)``, or ``None``.
+
+        ``None`` when it is missing or unusable (see :meth:`raw`, :func:`checked`; or it has other than
+        ``sections`` sections): unusable ones are removed with a warning.
         """
         data = self.raw(name)
         if data is None:
@@ -393,8 +400,9 @@ class Store:
         return None if entry is None else sections_of(*entry)
 
     def write(self, name: str, sections: Sequence[bytes]) -> None:
-        """Store entry ``name`` whole (written as ``.NAME.partial.PID``, then renamed into place); an unwritable
-        folder turns the store off. Evicts least recently used entries beyond :func:`size_limit`.
+        """Store entry ``name`` whole, then evict least recently used entries beyond :func:`size_limit`.
+
+        Written as ``.NAME.partial.PID``, then renamed into place; an unwritable folder turns the store off.
         """
         self.write_raw(name, pack(sections))
 
@@ -459,8 +467,9 @@ def store_folders() -> dict[str, Path]:
 
 
 def is_entry(path: Path) -> bool:
-    """Whether ``path`` is an entry a store wrote: a regular file of this user that starts with :data:`MAGIC`
-    (read without blocking, never through a link). A user's own file in a store's folder is not one.
+    """Whether ``path`` is an entry a store wrote: a regular file of this user that starts with :data:`MAGIC`.
+
+    Read without blocking, never through a link. A user's own file in a store's folder is not one.
     """
     if entry_problem(path) is not None:
         return False
@@ -473,8 +482,9 @@ def is_entry(path: Path) -> bool:
 
 
 def recorded_names(folder: Path) -> frozenset[str]:
-    """The names of the files in ``folder`` that a store wrote in another format than its entries (numba's
-    machine code), as its :data:`MANIFEST` entry records them; empty without a valid one.
+    """The names of the files in ``folder`` that a store wrote in another format than its entries.
+
+    Such as numba's machine code, as the folder's :data:`MANIFEST` entry records them; empty without a valid one.
     """
     import json
 
@@ -517,9 +527,10 @@ def _candidates(folder: Path, depth: int = ENTRY_DEPTH) -> Iterator[Path]:
 
 
 def owned_files(folder: Path) -> tuple[list[Path], list[Path]]:
-    """``(owned, other)``: the files at most :data:`ENTRY_DEPTH` levels below store folder ``folder`` that the
-    store wrote (:func:`is_entry`, or a name its :data:`MANIFEST` records beside it) and every other one (a user's
-    files: never counted, never removed).
+    """``(owned, other)``: the files below store folder ``folder`` that the store wrote, and every other one.
+
+    At most :data:`ENTRY_DEPTH` levels down. Owned: :func:`is_entry`, or a name its :data:`MANIFEST` records
+    beside it. Other: a user's files, never counted, never removed.
     """
     owned: list[Path] = []
     other: list[Path] = []
@@ -533,8 +544,9 @@ def owned_files(folder: Path) -> tuple[list[Path], list[Path]]:
 
 
 def entries(names: Sequence[str] = STORES) -> list[Entry]:
-    """The entries of stores ``names`` (:func:`owned_files`), oldest use first; a user's files in a store's folder
-    are not entries.
+    """The entries of stores ``names`` (:func:`owned_files`), oldest use first.
+
+    A user's files in a store's folder are not entries.
     """
     out: list[Entry] = []
     for name, folder in store_folders().items():
@@ -553,10 +565,11 @@ def _staging(path: Path) -> bool:
 
 
 def evict(limit: int | None = None, keep: Path | None = None) -> list[Entry]:
-    """Remove least recently used entries until the stores' entries hold at most ``limit`` bytes (default
-    :func:`size_limit`); ``keep`` and files being written (staging files) are never removed, nor is any file that
-    is not an entry (:func:`owned_files`). Returns what was removed; the first eviction of a command says what it
-    removed in one warning.
+    """Remove least recently used entries until the stores' entries hold at most ``limit`` bytes.
+
+    ``limit`` defaults to :func:`size_limit`. ``keep`` and files being written (staging files) are never removed,
+    nor is any file that is not an entry (:func:`owned_files`). Returns what was removed; the first eviction of a
+    command says what it removed in one warning.
     """
     try:
         limit = size_limit() if limit is None else limit
@@ -587,8 +600,10 @@ def evict(limit: int | None = None, keep: Path | None = None) -> list[Entry]:
 
 
 def list_stores() -> list[tuple[str, Path, int, int, int]]:
-    """``(store, folder, entries, bytes, other files)`` of each store (folders that do not exist yet with 0
-    entries); other files are those in a store's folder that no store wrote (:func:`owned_files`).
+    """``(store, folder, entries, bytes, other files)`` of each store.
+
+    Folders that do not exist yet have 0 entries; other files are those in a store's folder that no store wrote
+    (:func:`owned_files`).
 
     Raises:
         NoCacheHome: see :func:`cache_home`.
@@ -606,8 +621,9 @@ def list_stores() -> list[tuple[str, Path, int, int, int]]:
 
 
 def clear_stores(names: Sequence[str] = STORES) -> tuple[int, int, int]:
-    """Remove every entry of stores ``names`` (:func:`owned_files`) and the folders that leaves empty:
-    ``(files, bytes, other files left)``. A user's files in a store's folder stay, and are counted as left.
+    """Remove every entry of stores ``names`` and the folders that leaves empty: ``(files, bytes, other files left)``.
+
+    Entries as :func:`owned_files` tells them. A user's files in a store's folder stay, and are counted as left.
 
     Raises:
         NoCacheHome: see :func:`cache_home`.

@@ -143,8 +143,9 @@ class PixelBuilding:
 
 
 class _Groups:
-    """Union–find over building pieces that also knows, per group, its pieces and how many block edges
-    through which it may still continue (an open edge of one of its pieces).
+    """Union–find over building pieces, with each group's pieces and open edges.
+
+    Open edges: how many block edges a group may still continue through (an open edge of one of its pieces).
     """
 
     def __init__(self) -> None:
@@ -290,8 +291,9 @@ class _BlockWalk:
 
     def add_block(self, block: dict[str, np.ndarray], mask: np.ndarray, col_off: int, row_off: int, *,
                   last_row: bool, last_col: bool, stats: ExtractionStats) -> Iterator[PixelBuilding]:
-        """Add the building pixels ``mask`` (h, w) of the block at ``col_off, row_off``; yields every building
-        the block completes.
+        """Add the building pixels of one block; yields every building the block completes.
+
+        ``mask`` (h, w) holds the block at ``col_off, row_off``.
         """
         n_mask = int(np.count_nonzero(mask))
         new: list[int] = []
@@ -311,8 +313,9 @@ class _BlockWalk:
 
     def _add_pieces(self, block: dict[str, np.ndarray], mask: np.ndarray, col_off: int, row_off: int,
                     last_row: bool, last_col: bool, stats: ExtractionStats) -> tuple[list[int], list[int]]:
-        """Open one piece per component of ``mask`` and join it to its neighbours on the left and above;
-        returns the new piece ids and those reaching the block's right column.
+        """Open one piece per component of ``mask`` and join it to its neighbours on the left and above.
+
+        Returns the new piece ids and those reaching the block's right column.
         """
         labels, n = _components(mask, block["height"], self.step)
         stats.components += n

@@ -32,8 +32,9 @@ CACHE_ENV = OPENVINO_ENV
 
 
 def temporary_folder_problem(exc: BaseException) -> str:
-    """A warning that the temporary folder could not take a file (``exc``), naming it, ``$TMPDIR`` and its free
-    space; not about the model, which converted fine.
+    """A warning that the temporary folder could not take a file (``exc``).
+
+    It names the folder, ``$TMPDIR`` and its free space; it is not about the model, which converted fine.
     """
     tmp = tempfile.gettempdir()
     why = getattr(exc, "strerror", None) or " ".join(str(exc).split()) or exc.__class__.__name__
@@ -59,17 +60,20 @@ class EngineCache(Store):
         super().__init__(folder, what="cached OpenVINO model", env=CACHE_ENV, kind="OpenVINO")
 
     def read_one(self, name: str) -> np.ndarray | None:
-        """The one section of entry ``name`` as a writable uint8 array over the file's bytes as read (no copy:
-        a compiled model of ~100 MB is then imported from it with one copy less than from :meth:`read`), or
+        """The one section of entry ``name`` as a writable uint8 array over the file's bytes as read, or ``None``.
+
+        No copy: a compiled model of ~100 MB is then imported from it with one copy less than from :meth:`read`.
         ``None`` as :meth:`read` (an unusable entry, or one of several sections, is removed with a warning).
         """
         entry = self.entry(name, sections=1)
         return None if entry is None else np.frombuffer(entry[0], np.uint8, offset=entry[2])
 
     def serialise(self, save: Callable[[Path], None]) -> list[bytes] | None:
-        """The files ``save(xml_path)`` writes (an IR's XML and its ``.bin`` weights), through a private temporary
-        folder (OpenVINO writes files); ``None`` with one warning (:func:`temporary_folder_problem`) when the
-        temporary folder cannot take them: a full or read-only ``$TMPDIR`` only means no caching.
+        """The files ``save(xml_path)`` writes (an IR's XML and its ``.bin`` weights), or ``None``.
+
+        Written through a private temporary folder (OpenVINO writes files). ``None`` with one warning
+        (:func:`temporary_folder_problem`) when the temporary folder cannot take them: a full or read-only
+        ``$TMPDIR`` only means no caching.
         """
         try:
             with tempfile.TemporaryDirectory(prefix="aerialmtl-ov-") as tmp:

@@ -208,8 +208,10 @@ class Predictor:
         return self.settings.aoi
 
     def _shadow_step(self) -> ShadowStep | None:
-        """The shadow features of this run: on unless ``--sun none``, for a height model whose checkpoint holds
-        the training area's shadow classifier (``meta.sun``; fitted by ``train`` since this version).
+        """The shadow features of this run, or ``None`` when they are off.
+
+        On unless ``--sun none``, for a height model whose checkpoint holds the training area's shadow classifier
+        (``meta.sun``; fitted by ``train`` since this version).
         """
         s, sun = self.settings, self.meta.sun
         if s.sun == "none" or "height" not in self.meta.model.tasks:
@@ -225,8 +227,9 @@ class Predictor:
                           workers=self.threads.threads)
 
     def sun_for(self, src: OrthoInput) -> SunChoice | None:
-        """The sun of ``src`` (:func:`~aerialmtl.inference.sun_choice.choose_sun`; chosen once per input and said
-        once), or ``None`` when the shadow features are off for the run.
+        """The sun of ``src``, or ``None`` when the shadow features are off for the run.
+
+        Chosen by :func:`~aerialmtl.inference.sun_choice.choose_sun`, once per input, and said once.
         """
         if self.shadows is None:
             return None
@@ -284,10 +287,11 @@ class Predictor:
         return self._batch[key]
 
     def fit_engine(self, srcs: Sequence[OrthoInput]) -> None:
-        """With ``engine: auto``, the choice for the job of predicting ``srcs`` once its size is known: OpenVINO on a
-        cold cache gives way to the torch engine when compiling first would make the job slower than torch
-        (:func:`~aerialmtl.inference.engine_choice.cold_cache_choice`, which :attr:`choice` then says). Called by
-        the jobs (:mod:`aerialmtl.inference.jobs`) before anything is computed.
+        """With ``engine: auto``, settle the engine for the job of predicting ``srcs`` once its size is known.
+
+        OpenVINO on a cold cache gives way to the torch engine when compiling first would make the job slower than
+        torch (:func:`~aerialmtl.inference.engine_choice.cold_cache_choice`, which :attr:`choice` then says).
+        Called by the jobs (:mod:`aerialmtl.inference.jobs`) before anything is computed.
         """
         cached = getattr(self.runner.engine, "cached", None)
         if self.settings.engine != "auto" or not srcs or not callable(cached):
@@ -429,9 +433,11 @@ class _StripLoop:
                         dynamic_ncols=True)
 
     def run(self) -> None:
-        """Compute the window rows ``todo_rows`` of the plan: this thread reads, submits and collects the model's
-        batches while :class:`_StitchStage` stitches and writes the finished ones, in a thread of its own on a GPU
-        or a host of :data:`STITCH_THREAD_CORES` cores or more (:func:`stitch_in_thread`).
+        """Compute the window rows ``todo_rows`` of the plan.
+
+        This thread reads, submits and collects the model's batches while :class:`_StitchStage` stitches and
+        writes the finished ones, in a thread of its own on a GPU or a host of :data:`STITCH_THREAD_CORES` cores
+        or more (:func:`stitch_in_thread`).
         """
         p, src, todo_rows = self.p, self.src, self.todo_rows
         aoi_mask = Aoi(p.settings.aoi, src.grid) if p.settings.aoi is not None else None
@@ -537,8 +543,9 @@ _END = None
 
 
 def stitch_in_thread(device: torch.device, cores: int | None = None) -> bool:
-    """Whether a strip on ``device`` stitches in a thread of its own (:data:`STITCH_THREAD_CORES`); ``cores``:
-    the host cores this process may use (default: its CPU affinity).
+    """Whether a strip on ``device`` stitches in a thread of its own (:data:`STITCH_THREAD_CORES`).
+
+    ``cores``: the host cores this process may use (default: its CPU affinity).
     """
     if device.type == "cuda":
         return True
@@ -551,9 +558,11 @@ def stitch_in_thread(device: torch.device, cores: int | None = None) -> bool:
 
 
 class _StitchStage:
-    """The stitch stage of a strip in a thread of its own: batches of checked statistics, in plan order, are
-    stitched (:meth:`_StripLoop.flush`) and their finished blocks handed to the writer while the model loop
-    reads, submits and collects the next batches (torch and GDAL release Python's GIL while they work).
+    """The stitch stage of a strip, in a thread of its own.
+
+    Batches of checked statistics, in plan order, are stitched (:meth:`_StripLoop.flush`) and their finished
+    blocks handed to the writer while the model loop reads, submits and collects the next batches (torch and
+    GDAL release Python's GIL while they work).
 
     An error here (a block the writer refused, a stitching error) is raised in the model loop at its next
     :meth:`put` or at :meth:`finish`; :meth:`stop` (always called, also on Ctrl-C) ends the thread before the
@@ -591,8 +600,10 @@ class _StitchStage:
             raise self.error
 
     def put(self, item: tuple[list[ReadWindow], McStatistics | None, torch.Tensor | None]) -> None:
-        """Queue a batch (waits while :data:`STITCH_QUEUE` are queued); raises an earlier batch's error. Without
-        a thread (:func:`stitch_in_thread`), the batch is stitched here.
+        """Queue a batch for stitching, or raise an earlier batch's error.
+
+        Waits while :data:`STITCH_QUEUE` are queued. Without a thread (:func:`stitch_in_thread`), the batch is
+        stitched here.
         """
         if not self.threaded:
             t0 = time.perf_counter()

@@ -224,8 +224,10 @@ _HELD: dict[Path, list[int]] = {}
 
 
 def _forget_locks_in_child() -> None:
-    """In a forked child: close the inherited lock files (the parent keeps its locks; a ``flock`` lives as
-    long as any process holds the file open, so a worker outliving a killed parent would hold it).
+    """In a forked child: close the inherited lock files.
+
+    The parent keeps its locks; a ``flock`` lives as long as any process holds the file open, so a worker
+    outliving a killed parent would hold it.
     """
     for _, fd in _HELD.values():
         with contextlib.suppress(OSError):
@@ -237,8 +239,9 @@ if hasattr(os, "register_at_fork"):  # POSIX
     os.register_at_fork(after_in_child=_forget_locks_in_child)
 
 def _special_kind(path: Path) -> str | None:
-    """``"a FIFO"``, ``"a folder"``, ... when ``path`` exists and is neither a regular file nor a link (else
-    ``None``).
+    """``"a FIFO"``, ``"a folder"``, ... when ``path`` exists and is neither a regular file nor a link.
+
+    ``None`` otherwise.
     """
     try:
         mode = os.lstat(path).st_mode
@@ -336,9 +339,10 @@ class FolderLock:
         return self
 
     def _unwritable(self, exc: OSError) -> OutputError:
-        """The error for a lock file that cannot be created or replaced: a stale lock that this user may not replace
-        (their own read-only one, another user's in a shared folder) is named as stale, with the command that
-        removes it; otherwise the folder is not writable.
+        """The error for a lock file that cannot be created or replaced.
+
+        A stale lock that this user may not replace (their own read-only one, another user's in a shared folder)
+        is named as stale, with the command that removes it; otherwise the folder is not writable.
         """
         why = exc.strerror or str(exc)
         try:

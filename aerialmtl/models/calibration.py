@@ -419,8 +419,10 @@ def _nll(err: np.ndarray, sigma: np.ndarray) -> float:
 
 def support_limit(ref: np.ndarray, min_pixels: int = MIN_SUPPORT_PIXELS,
                   edges: tuple[float, ...] = SPREAD_EDGES) -> float | None:
-    """The lowest of ``edges`` (metres) that fewer than ``min_pixels`` reference heights ``ref`` reach (≥), from
-    which a calibration fitted on them corrects nothing; ``None`` when every edge is reached that often.
+    """The lowest of ``edges`` (metres) that fewer than ``min_pixels`` reference heights ``ref`` reach (≥).
+
+    From that height up a calibration fitted on them corrects nothing; ``None`` when every edge is reached that
+    often.
     """
     ref = np.asarray(ref, np.float64)
     for e in edges:
@@ -430,8 +432,9 @@ def support_limit(ref: np.ndarray, min_pixels: int = MIN_SUPPORT_PIXELS,
 
 
 def _cut_height_map(x: np.ndarray, y: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """Knots of the map below ``limit`` with their heights capped at it, then ``(limit, limit)``: from the limit
-    up the map is the identity (slope 1, no offset), and it stays continuous and non-decreasing.
+    """Knots of the map below ``limit`` with their heights capped at it, then ``(limit, limit)``.
+
+    From the limit up the map is the identity (slope 1, no offset), and it stays continuous and non-decreasing.
     """
     keep = x < limit
     xs, ys = np.append(x[keep], limit), np.append(np.minimum(y[keep], limit), limit)
@@ -442,8 +445,10 @@ def _cut_height_map(x: np.ndarray, y: np.ndarray, limit: float) -> tuple[np.ndar
 
 def _fit_parts(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None, method: CalibrationMethod, knots: int,
                edges: tuple[float, ...], height: bool = True, limit: float | None = None) -> Calibration:
-    """The height map (``height``: else the identity) and the per-range spread map fitted around it, both cut at
-    ``limit`` (metres of predicted height; ``edges`` must then hold it).
+    """The height map and the per-range spread map fitted around it, both cut at ``limit``.
+
+    The height map is the identity unless ``height``. ``limit`` is in metres of predicted height; ``edges``
+    must then hold it.
     """
     x, y = fit_height_map(pred, ref, method, knots)
     if limit is not None:

@@ -20,8 +20,10 @@ MIN_ELEVATION_DEG = 5.0
 
 
 def parse_time(text: str, what: str = "--acquired") -> datetime:
-    """An ISO 8601 time (``2019-06-21T16:45:00Z``, ``2019-06-21 09:45-07:00``; a date alone is not enough) or a
-    TIFF ``DateTime`` (``2019:06:21 16:45:00``, which has no time zone) → an aware UTC datetime.
+    """An ISO 8601 time or a TIFF ``DateTime`` read as an aware UTC datetime.
+
+    ISO 8601: ``2019-06-21T16:45:00Z``, ``2019-06-21 09:45-07:00``; a date alone is not enough. TIFF
+    ``DateTime``: ``2019:06:21 16:45:00``, which has no time zone.
 
     A time without a zone is read as UTC; the caller says so where it matters (:func:`has_zone`).
 
@@ -52,8 +54,10 @@ def has_zone(text: str) -> bool:
 
 
 def sun_position(when: datetime, lon: float, lat: float) -> tuple[float, float]:
-    """``(azimuth, elevation)`` in degrees of the sun seen from (``lon``, ``lat``, WGS 84 degrees) at ``when``:
-    azimuth clockwise from true north in [0, 360), elevation above the horizon with atmospheric refraction.
+    """``(azimuth, elevation)`` of the sun seen from (``lon``, ``lat``) at ``when``.
+
+    ``lon``, ``lat`` in WGS 84 degrees. Azimuth in degrees clockwise from true north in [0, 360), elevation in
+    degrees above the horizon with atmospheric refraction.
     """
     import pandas as pd
     from pvlib import solarposition
@@ -64,9 +68,10 @@ def sun_position(when: datetime, lon: float, lat: float) -> tuple[float, float]:
 
 
 def grid_convergence_deg(crs: object, x: float, y: float) -> float:
-    """Azimuth of true north on the grid of ``crs`` at map point (``x``, ``y``), degrees clockwise from the
-    grid's north: 0 where the grid follows the meridian, negative east of a UTM zone's central meridian (true
-    north leans west of the grid's there).
+    """Azimuth of true north on the grid of ``crs`` at map point (``x``, ``y``).
+
+    Degrees clockwise from the grid's north: 0 where the grid follows the meridian, negative east of a UTM
+    zone's central meridian (true north leans west of the grid's there).
     """
     from rasterio.crs import CRS
     from rasterio.warp import transform

@@ -42,9 +42,10 @@ HeightLoss = Literal["l1", "l2", "huber", "berhu", "scale_invariant", "scale_inv
 
 @dataclass(frozen=True)
 class ModelSection(Architecture):
-    """The ``model`` section: an :class:`~aerialmtl.models.config.Architecture` plus the data-dependent
-    fields of :class:`~aerialmtl.models.config.ModelConfig`, which default to ``None`` = taken from the
-    tile folder.
+    """The ``model`` section: the architecture, and the model fields the tile folder gives by default.
+
+    An :class:`~aerialmtl.models.config.Architecture` plus the data-dependent fields of
+    :class:`~aerialmtl.models.config.ModelConfig`, which default to ``None`` = taken from the tile folder.
 
     ``in_channels`` comes from the number of bands, ``num_classes`` from the class scheme and ``tasks``
     from the tasks present in ``dataset.yaml``; a value given here must agree with the data.
@@ -305,8 +306,9 @@ class CalibrationSection:
 
 @dataclass(frozen=True)
 class FamiliaritySection:
-    """The encoder-feature density fitted on the train split at the end of training
-    (:mod:`aerialmtl.training.familiarity`); ``predict`` writes the ``unfamiliarity`` layer from it.
+    """The ``familiarity`` section: the encoder-feature density fitted on the train split at the end of training.
+
+    Fitted by :mod:`aerialmtl.training.familiarity`; ``predict`` writes the ``unfamiliarity`` layer from it.
 
     Attributes:
         enabled: fit it and store it in ``best.pt`` and ``last.pt``.
@@ -334,8 +336,10 @@ class FamiliaritySection:
 
 @dataclass(frozen=True)
 class SunSection:
-    """The training area's sun and shadow classifier, fitted on the train split at the end of training
-    (:mod:`aerialmtl.training.sun`); ``predict --sun`` writes the ``shadow`` and ``shadow_height`` layers from them.
+    """The ``sun`` section: the training area's sun and shadow classifier, fitted at the end of training.
+
+    Fitted on the train split by :mod:`aerialmtl.training.sun`; ``predict --sun`` writes the ``shadow`` and
+    ``shadow_height`` layers from them.
 
     Attributes:
         enabled: fit them and store them in ``best.pt`` and ``last.pt`` (a tile folder without heights or

@@ -1,5 +1,6 @@
-"""``aerialmtl pretrain``: train the small-area recipe's network on synthetic scenes made on the fly, and export
-the result as a pretrained start (:mod:`aerialmtl.formats.starts`) for ``train --init``.
+"""``aerialmtl pretrain``: train the small-area recipe's network on synthetic scenes, export a pretrained start.
+
+The scenes are made on the fly; the start (:mod:`aerialmtl.formats.starts`) is what ``train --init`` takes.
 
 Pretraining is training on another stream of batches: it runs the same step and loop as ``aerialmtl train``
 (:class:`~aerialmtl.training.steploop.StepLoop`), so ``optim`` (``lr``, ``betas``, ``weight_decay``, ``ema``) and
@@ -113,8 +114,10 @@ class PretrainSettings:
 
 @dataclass(frozen=True)
 class PretrainResult:
-    """What :func:`pretrain` did: the run folder, its last checkpoint, the exported start, the steps done in
-    total, the wall time of this call and of the whole run (seconds), and the mean loss of the last logged steps.
+    """What :func:`pretrain` did.
+
+    The run folder, its last checkpoint, the exported start, the steps done in total, the wall time of this call
+    and of the whole run (seconds), and the mean loss of the last logged steps.
     """
 
     run_dir: Path
@@ -187,8 +190,10 @@ def check_config(cfg: TrainConfig) -> None:
 
 
 def _check_folder(run: Path, resume: bool, overwrite: bool, name: str) -> None:
-    """The run-folder policy: as ``train``'s (a running job named first, a run refused unless resume/overwrite), and
-    never a file pretraining did not write (a training run's checkpoints, a file at the start's paths).
+    """The run-folder policy: ``train``'s, and never a file pretraining did not write.
+
+    As ``train``'s: a running job named first, a run refused unless resume/overwrite. Never replaced: a training
+    run's checkpoints, a file at the start's paths.
     """
     if resume and overwrite:
         raise InputError("‹resume› continues a run and ‹overwrite› starts it again; pass only one",
@@ -225,8 +230,10 @@ def _is_pretraining(path: Path) -> bool:
 
 
 class _Pretrainer(StepLoop):
-    """The shared step loop on the synthetic stream: a checkpoint every ``checkpoint_every`` steps and at the end,
-    a ``train`` row at the end too; ``time_s`` counts the whole run (resumed parts included).
+    """The shared step loop on the synthetic stream, with pretraining's checkpoints and log.
+
+    A checkpoint every ``checkpoint_every`` steps and at the end, a ``train`` row at the end too; ``time_s``
+    counts the whole run (resumed parts included).
     """
 
     def __init__(self, cfg: TrainConfig, ctx: runtime.Torchrun, parts: ModelParts, step_module: nn.Module,
@@ -253,8 +260,10 @@ class _Pretrainer(StepLoop):
         return "steps" if step >= s.steps else None
 
     def save(self) -> None:
-        """``last.pt``: the weights (their average with ``optim.ema``, the trained ones beside it), the optimiser,
-        weighting, RNG state and counters; refused while a pending loss or a weight is not finite.
+        """Write ``last.pt``: weights, optimiser, weighting, RNG state and counters.
+
+        With ``optim.ema`` the weights are their average, the trained ones stored beside it. Refused while a
+        pending loss or a weight is not finite.
         """
         self.losses.flush()
         bad = first_nonfinite(self.model.state_dict())
@@ -402,7 +411,9 @@ def _log(path: Path, resumed_at: int | None) -> CsvLog:
 
 def _restore(path: Path, parts: ModelParts, cfg: TrainConfig,
              settings: PretrainSettings) -> tuple[int, float, PretrainSettings, dict[str, torch.Tensor] | None]:
-    """Weights, optimiser, weighting, RNG and counters of ``path``; the run's settings with the new ``steps``;
+    """Load checkpoint ``path`` into ``parts``: ``(step, wall time in seconds, settings, weight average)``.
+
+    Loads weights, optimiser, weighting, RNG and counters; returns the run's settings with the new ``steps`` and
     the weight average it holds (``optim.ema``: the checkpoint's weights, the trained ones beside them), or None.
     """
     payload, _ = load_checkpoint(path)
@@ -427,8 +438,9 @@ def _restore(path: Path, parts: ModelParts, cfg: TrainConfig,
 
 
 def _real_data(stream: SyntheticStream) -> str | dict[str, Any]:
-    """What the card says of real data: none, or the tile folders whose ground textures the scenes wore and whose
-    training patches were mixed into the batches.
+    """What the card says of real data: none, or the tile folders the run drew on.
+
+    Those whose ground textures the scenes wore and whose training patches were mixed into the batches.
     """
     if stream.textures is None and stream.real_count() == 0:
         return "none: no real orthophoto, height or label was seen"

@@ -199,8 +199,9 @@ def prepare_caches(cfg: TrainConfig, info: TileFolderInfo,
 
 
 def train_height_range(cache_folder: Path) -> tuple[float, float] | None:
-    """``(min, max)`` metres of the train split's valid reference heights (read from the patch cache in
-    chunks; ``None`` without a valid height), recorded in the checkpoint (:attr:`ModelMeta.height_range`).
+    """``(min, max)`` metres of the train split's valid reference heights, or ``None`` without a valid height.
+
+    Read from the patch cache in chunks; recorded in the checkpoint (:attr:`ModelMeta.height_range`).
     """
     path = cache_file(cache_folder, "train", "height")
     try:
@@ -257,9 +258,11 @@ def build_model(cfg: TrainConfig, model_cfg: ModelConfig, device: torch.device, 
 # ---- the starting point -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Resumed:
-    """Where a resumed run continues: its counters, this process's saved RNG state (``{}``: none) and, for a
-    run with ``optim.ema``, the weight average the checkpoint holds (``None``: none; the model then holds the
-    raw weights saved beside it).
+    """Where a resumed run continues: its counters, RNG state and weight average.
+
+    The RNG state is this process's saved one (``{}``: none). The weight average is, for a run with
+    ``optim.ema``, the one the checkpoint holds (``None``: none; the model then holds the raw weights saved
+    beside it).
     """
 
     state: TrainState
@@ -367,8 +370,10 @@ def restore(path: Path, parts: ModelParts, data: TrainData, cfg: TrainConfig, ct
 
 
 def seed_rank_stream(cfg: TrainConfig, ctx: runtime.Torchrun, step: int, saved: dict[str, Any] | None) -> None:
-    """Give this process its RNG stream: the saved one when resuming, else rank 0 keeps the seeded
-    stream (a single process is unchanged) and rank r > 0 gets its own (other dropout masks).
+    """Give this process its RNG stream.
+
+    The saved one when resuming; else rank 0 keeps the seeded stream (a single process is unchanged) and rank
+    r > 0 gets its own (other dropout masks).
     """
     if saved:
         set_rng_state(saved)

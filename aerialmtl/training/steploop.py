@@ -1,5 +1,7 @@
-"""The optimisation-step loop every training command runs: ``aerialmtl train`` on a tile folder and
-``aerialmtl pretrain`` on a synthetic stream (pretraining is training on another stream of batches).
+"""The optimisation-step loop every training command runs.
+
+``aerialmtl train`` runs it on a tile folder and ``aerialmtl pretrain`` on a synthetic stream (pretraining is
+training on another stream of batches).
 
 :class:`StepLoop` owns what a step is and what happens around it, once:
 
@@ -42,8 +44,9 @@ LOSS_GROWTH = 1e4
 
 
 class LossWindow:
-    """Per-step losses kept on the device, read (one synchronisation, reduced over processes) only when
-    logged or before a validation — not after every step, which would stall a GPU.
+    """Per-step losses kept on the device, read only when logged or before a validation.
+
+    A read is one synchronisation, reduced over processes; reading after every step would stall a GPU.
 
     ``flush`` checks every pending step for a non-finite loss, or a task loss that grew by more than
     :data:`LOSS_GROWTH` times its first logged value (a diverged-but-finite run), and raises naming the first
@@ -104,8 +107,10 @@ class LossWindow:
 
 
 class StepLoop:
-    """The step and the loop of a training command (see the module docstring); the trainer and pretraining
-    are subclasses that say where batches come from and what happens after a step (:meth:`after_step`).
+    """The step and the loop of a training command (see the module docstring).
+
+    The trainer and pretraining are subclasses that say where batches come from and what happens after a step
+    (:meth:`after_step`).
 
     Args:
         cfg: the training configuration (``optim.lr``, ``optim.ema``, ``schedule.lr_schedule``,
@@ -151,8 +156,9 @@ class StepLoop:
         return total.detach(), {t: v.detach() for t, v in losses.items()}
 
     def averaged(self) -> contextlib.AbstractContextManager[dict[str, torch.Tensor] | None]:
-        """A block in which the model holds the weight average (``optim.ema``); yields the raw weights (``None``
-        without an average, when the model is used as it is).
+        """A block in which the model holds the weight average (``optim.ema``); yields the raw weights.
+
+        Yields ``None`` without an average, when the model is used as it is.
         """
         return self.average.applied(self.model) if self.average is not None else contextlib.nullcontext()
 

@@ -217,8 +217,10 @@ class Trainer(StepLoop):
         return metrics
 
     def after_epoch_validation(self) -> bool:
-        """Validate (or score by the training loss without a val split), log, write best.pt/last.pt; with
-        ``optim.ema`` all of it with the weight average in the model.
+        """Validate, log, and write best.pt/last.pt after an epoch.
+
+        Without a val split the training loss scores the epoch. With ``optim.ema`` all of it runs with the weight
+        average in the model.
 
         Returns:
             True when early stopping says to stop (``schedule.patience`` validations without improvement).
@@ -268,10 +270,11 @@ class Trainer(StepLoop):
         return patience is not None and st.since_best >= patience
 
     def check_exploded(self, step: int) -> None:
-        """Stop like a non-finite run when the validation error is finite but can only be garbage: a height MAE
-        beyond :attr:`height_slack` (10 × the trained height span + 100 m), or a class loss above
-        :data:`EXPLODED_CLASS_LOSS` × ln K (an untrained model scores ln K). Every process sees the same
-        reduced metrics, so all stop together; ``best.pt`` and ``last.pt`` are not replaced.
+        """Stop like a non-finite run when the validation error is finite but can only be garbage.
+
+        Garbage: a height MAE beyond :attr:`height_slack` (10 × the trained height span + 100 m), or a class
+        loss above :data:`EXPLODED_CLASS_LOSS` × ln K (an untrained model scores ln K). Every process sees the
+        same reduced metrics, so all stop together; ``best.pt`` and ``last.pt`` are not replaced.
 
         Raises:
             NonFiniteError: naming the step, the value, the bound and what to do.
@@ -296,8 +299,10 @@ class Trainer(StepLoop):
 
     # ---- checkpoints --------------------------------------------------------------------------------
     def recovery_hint(self) -> str:
-        """What to do after a divergence: where the last whole checkpoint is, and how to continue (first, when
-        the tile folder's reference heights are ones no surface has, that: no learning rate fixes them).
+        """What to do after a divergence: where the last whole checkpoint is, and how to continue.
+
+        When the tile folder's reference heights are ones no surface has, that comes first: no learning rate
+        fixes them.
         """
         hr = self.meta.height_range
         if hr is not None and (hr[0] < SURFACE_HEIGHTS_M[0] or hr[1] > SURFACE_HEIGHTS_M[1]):
@@ -413,8 +418,9 @@ class Trainer(StepLoop):
                            model=self.model, best_step=self.best_step, best_metrics=self.best_metrics)
 
     def calibrate(self) -> None:
-        """Fit the calibration on the val split and store it in best.pt and last.pt (rank 0; see
-        :mod:`aerialmtl.training.calibrate`); skipped without a val split or a height task.
+        """Fit the calibration on the val split and store it in best.pt and last.pt.
+
+        Runs on rank 0 (see :mod:`aerialmtl.training.calibrate`); skipped without a val split or a height task.
         """
         cal = self.cfg.calibration
         if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
@@ -427,8 +433,9 @@ class Trainer(StepLoop):
                 log.info("%s: %s", name, c.summary())
 
     def familiarize(self) -> None:
-        """Fit the encoder-feature density on the train split and store it in best.pt and last.pt (rank 0; see
-        :mod:`aerialmtl.training.familiarity`).
+        """Fit the encoder-feature density on the train split and store it in best.pt and last.pt.
+
+        Runs on rank 0 (see :mod:`aerialmtl.training.familiarity`).
         """
         fam = self.cfg.familiarity
         if not (fam.enabled and self.ctx.is_main):
@@ -442,8 +449,9 @@ class Trainer(StepLoop):
                 log.info("%s: %s", name, d.summary())
 
     def fit_sun(self) -> None:
-        """Fit the training area's sun and shadow classifier and store them in best.pt and last.pt (rank 0; see
-        :mod:`aerialmtl.training.sun`); one line says the sun, or why there is none.
+        """Fit the training area's sun and shadow classifier and store them in best.pt and last.pt.
+
+        Runs on rank 0 (see :mod:`aerialmtl.training.sun`); one line says the sun, or why there is none.
         """
         if not (self.cfg.sun.enabled and self.ctx.is_main and "height" in self.tasks):
             return

@@ -1,5 +1,6 @@
-"""The OpenVINO engine's graphs: the modules traced for conversion (forward, encoder, decoder with explicit
-dropout masks), their outputs' layout, and the cache's location and key.
+"""The OpenVINO engine's graphs: the modules traced for conversion, their outputs' layout, the cache.
+
+The modules: forward, encoder, and decoder with explicit dropout masks. The cache: its location and key.
 """
 
 from __future__ import annotations
@@ -32,8 +33,9 @@ GRAPH_OUTPUTS = "forward-decoder-classes-nhwc"
 
 
 def cache_root() -> Path | None:
-    """Root of the OpenVINO caches: the ``openvino`` store (:func:`aerialmtl.stores.store_folder`), or ``None``
-    (with one warning) where no folder can hold it.
+    """Root of the OpenVINO caches: the ``openvino`` store, or ``None`` where no folder can hold it.
+
+    The store's folder is :func:`aerialmtl.stores.store_folder`'s; ``None`` comes with one warning.
     """
     return open_store_folder("openvino", "the converted OpenVINO model")
 
@@ -63,22 +65,26 @@ class _MaskMul(nn.Module):
 
 
 def model_outputs(model: nn.Module | CheckpointModel, tasks: Sequence[str]) -> tuple[str, ...]:
-    """The keys of ``model``'s output dict in order: its ``outputs`` (a D3-Net: the tasks, plus
-    ``height_scale`` for an aleatoric head), else ``tasks``.
+    """The keys of ``model``'s output dict in order: its ``outputs``, else ``tasks``.
+
+    A D3-Net's ``outputs`` are the tasks, plus ``height_scale`` for an aleatoric head.
     """
     return tuple(getattr(model, "outputs", None) or tasks)
 
 
 def _graph_output(task: str, t: torch.Tensor) -> torch.Tensor:
-    """Output ``task`` of a traced graph (forward or decoder): ``(1, C, h, w)`` → ``(1, h, w, C)`` for
-    :data:`FORWARD_CHANNELS_LAST`.
+    """Output ``task`` of a traced graph (forward or decoder), in the layout the graph returns.
+
+    ``(1, C, h, w)`` → ``(1, h, w, C)`` for :data:`FORWARD_CHANNELS_LAST`.
     """
     return t.permute(0, 2, 3, 1) if task in FORWARD_CHANNELS_LAST else t
 
 
 def _as_planes(task: str, t: torch.Tensor) -> torch.Tensor:
-    """A graph's output ``task`` in the models' ``(B, C, h, w)`` order: a view of a channels-last ``(B, h, w, C)``
-    array for :data:`FORWARD_CHANNELS_LAST` (no copy: the softmax and the MC class kernel read it channels last).
+    """A graph's output ``task`` in the models' ``(B, C, h, w)`` order.
+
+    For :data:`FORWARD_CHANNELS_LAST`, a view of a channels-last ``(B, h, w, C)`` array (no copy: the softmax and
+    the MC class kernel read it channels last).
     """
     return t.permute(0, 3, 1, 2) if task in FORWARD_CHANNELS_LAST else t
 

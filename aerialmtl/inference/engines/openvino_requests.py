@@ -1,5 +1,6 @@
-"""The OpenVINO engine's requests in flight: infer requests used in turn, the jobs started on them, and the
-reused output buffers of T = 1 windows.
+"""The OpenVINO engine's requests in flight.
+
+Infer requests used in turn, the jobs started on them, and the reused output buffers of T = 1 windows.
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ class _Job:
         self._outputs: list[np.ndarray] | None = None
 
     def collect(self) -> None:
-        """Wait for the request and copy its outputs out (into ``dest`` when given, unless the request wrote
-        there itself), freeing the request.
+        """Wait for the request and copy its outputs out, freeing the request.
+
+        Into ``dest`` when given, unless the request wrote there itself.
         """
         if self._outputs is not None or self.owner is None:
             return
@@ -59,8 +61,10 @@ _DONE = _Job()
 
 
 class _Requests:
-    """The infer requests of one compiled model, one per stream, used in turn: a new job takes the next
-    request, first collecting the job still on it (the oldest, as jobs take similar times).
+    """The infer requests of one compiled model, one per stream, used in turn.
+
+    A new job takes the next request, first collecting the job still on it (the oldest, as jobs take similar
+    times).
     """
 
     def __init__(self, compiled: Any, n: int, keep: np.ndarray | None = None) -> None:
@@ -79,9 +83,10 @@ class _Requests:
         self._next = 0
 
     def start(self, inputs: dict[int, np.ndarray], dest: list[np.ndarray] | None = None) -> _Job:
-        """Start one inference on ``inputs`` (copied into the request) and return its job. With ``dest`` (one
-        float32 array per output, of its shape), the outputs end up there: written by the request itself when
-        the arrays are C-contiguous (no copy), else copied when the job is collected.
+        """Start one inference on ``inputs`` (copied into the request) and return its job.
+
+        With ``dest`` (one float32 array per output, of its shape), the outputs end up there: written by the
+        request itself when the arrays are C-contiguous (no copy), else copied when the job is collected.
         """
         slot = self._next
         self._next = (slot + 1) % len(self.requests)
@@ -109,8 +114,9 @@ class _Requests:
 
 
 class _Forward1:
-    """The T = 1 statistics of a batch whose forward passes are running (one job per window); the output
-    buffers go back to ``pool`` once the statistics are made from them.
+    """The T = 1 statistics of a batch whose forward passes are running (one job per window).
+
+    The output buffers go back to ``pool`` once the statistics are made from them.
     """
 
     def __init__(self, tasks: tuple[str, ...], jobs: list[_Job], pool: _BufferPool,
@@ -131,8 +137,10 @@ class _Forward1:
 
 
 class _BufferPool:
-    """Output buffers of T = 1 windows, reused: a fresh 80 MiB array per window (1024², 20 classes) costs
-    its page faults every time. Holds at most ``limit`` sets, of any shapes.
+    """Output buffers of T = 1 windows, reused.
+
+    A fresh 80 MiB array per window (1024², 20 classes) costs its page faults every time. Holds at most
+    ``limit`` sets, of any shapes.
     """
 
     def __init__(self, limit: int = 4) -> None:
