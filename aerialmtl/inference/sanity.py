@@ -182,7 +182,7 @@ def _all_finite(stats: McStatistics) -> bool:
     """Whether every height and probability is finite, from a min/max reduction of each tensor.
 
     On the CPU the reductions run in numpy (one thread, no parallel region to wake up: about 2 ms for a
-    1024² window with 6 classes, bench/sanity.py); on a GPU in torch with one sync.
+    1024² window with 6 classes, experiments/sanity_cost/run.py); on a GPU in torch with one sync.
     """
     heights, probs = stats.height_mean, stats.probs
     tensors = [t for t in (heights, probs) if t is not None and t.numel()]

@@ -32,8 +32,8 @@ from aerialmtl.sun.solar_position import grid_convergence_deg, lonlat, parse_tim
 log = logging.getLogger(__name__)
 
 #: The largest training mosaic pieced together for the fit (pixels): the fit casts shadows for ~300 suns, about
-#: 30 s on 1.4 Mpx on one core (bench/shadow_heights.py); a larger area is fitted on a seeded sample of its
-#: patches holding about as many pixels (shadows clipped at patch edges then count as noise).
+#: 30 s on 1.4 Mpx on one core (experiments/heights_from_the_sun/shadow_heights.py); a larger area is fitted on a
+#: seeded sample of its patches holding about as many pixels (shadows clipped at patch edges then count as noise).
 MAX_MOSAIC_PIXELS = 4_000_000
 
 
