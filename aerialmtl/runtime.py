@@ -35,7 +35,6 @@ import threading
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal, TypeVar
 
@@ -44,6 +43,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from aerialmtl.cpuinfo import cpu_fields, cpu_flags
 from aerialmtl.errors import AerialMTLError, InputError, PeerFailure, cause
 from aerialmtl.stores import warn_once
 
@@ -129,14 +129,8 @@ def cpu_bf16_flags() -> tuple[str, ...]:
     forced = os.environ.get(CPU_FLAGS_ENV)
     if forced is not None:
         return tuple(f for f in BF16_CPU_FLAGS if f in forced.replace(",", " ").split())
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        flags: set[str] = set()
-        for line in cpuinfo.read_text(errors="replace").splitlines():
-            if line.startswith("flags"):
-                flags.update(line.split(":", 1)[-1].split())
-                break
-        return tuple(f for f in BF16_CPU_FLAGS if f in flags - _capped_away())
+    if cpu_fields():
+        return tuple(f for f in BF16_CPU_FLAGS if f in cpu_flags() - _capped_away())
     try:  # pragma: no cover - not Linux
         caps = openvino_core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
         return ("openvino:BF16",) if "BF16" in caps else ()

@@ -5,6 +5,8 @@ AVX-512-BF16 or AMX; an explicit torch engine takes bf16 only with AMX, fp32 wit
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -47,3 +49,24 @@ def test_auto_precision_per_cpu_kind(monkeypatch: pytest.MonkeyPatch, flags: str
         monkeypatch.undo()
         runtime.cpu_bf16_flags.cache_clear()
         engine_choice.cpu_kind.cache_clear()
+
+
+def test_the_cpu_is_read_from_the_first_processor_block_and_missing_is_empty(tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """One reader of /proc/cpuinfo for the engines' probes, the benchmarks and a run's machine record: the first
+    processor's fields; no file (macOS, Windows) gives nothing rather than an error."""
+    from aerialmtl import cpuinfo
+
+    fake = tmp_path / "cpuinfo"
+    fake.write_text("processor\t: 0\nmodel name\t: Test CPU 9000\ncpu family\t: 25\nmodel\t\t: 33\n"
+                    "flags\t\t: fpu avx2 avx512_bf16\n\nprocessor\t: 1\nmodel name\t: Other\nflags\t\t: fpu\n")
+    monkeypatch.setattr(cpuinfo, "PROC_CPUINFO", fake)
+    cpuinfo.cpu_fields.cache_clear()
+    try:
+        assert cpuinfo.cpu_flags() == {"fpu", "avx2", "avx512_bf16"}
+        assert cpuinfo.cpu_name() == "Test CPU 9000 family 25 model 33"
+        monkeypatch.setattr(cpuinfo, "PROC_CPUINFO", tmp_path / "absent")
+        cpuinfo.cpu_fields.cache_clear()
+        assert cpuinfo.cpu_fields() == {} and cpuinfo.cpu_flags() == frozenset() and cpuinfo.cpu_name() is None
+    finally:
+        cpuinfo.cpu_fields.cache_clear()

@@ -42,6 +42,7 @@ from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.classes import ClassDef, ClassScheme
+from aerialmtl.cpuinfo import cpu_fields, cpu_flags
 from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
 from aerialmtl.inference.engine_choice import CPU_KINDS, TOLERANCES, KindEntry, cpu_kind
 from aerialmtl.inference.runner import ModelRunner
@@ -125,20 +126,15 @@ def cpu_info() -> dict[str, Any]:
     info: dict[str, Any] = {"name": platform.processor() or platform.machine(), "kind": cpu_kind(),
                             "cores": os.cpu_count(), "isa_cap": os.environ.get("ONEDNN_MAX_CPU_ISA"),
                             "machine": platform.machine()}
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text(errors="replace").splitlines():
-            key, _, value = line.partition(":")
-            key, value = key.strip(), value.strip()
-            if key == "model name":
-                info["name"] = value
-            elif key in ("cpu family", "model") and key.replace(" ", "_") not in info:
-                info[key.replace(" ", "_")] = value
-            elif key == "flags":
-                flags = set(value.split())
-                info["flags"] = sorted(flags & {"avx2", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16",
-                                                "amx_bf16", "amx_int8"})
-                break
+    fields = cpu_fields()
+    if "model name" in fields:
+        info["name"] = fields["model name"]
+    for key in ("cpu family", "model"):
+        if key in fields:
+            info[key.replace(" ", "_")] = fields[key]
+    if "flags" in fields:
+        info["flags"] = sorted(cpu_flags() & {"avx2", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16",
+                                              "amx_bf16", "amx_int8"})
     return info
 
 

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
 
+from aerialmtl.cpuinfo import cpu_flags
 from aerialmtl.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -74,13 +75,7 @@ Layout = Literal["channels_last", "openvino"]
 
 
 def _flags() -> set[str]:
-    cpuinfo = Path("/proc/cpuinfo")
-    if not cpuinfo.is_file():  # pragma: no cover - not Linux
-        return set()
-    for line in cpuinfo.read_text(errors="replace").splitlines():
-        if line.startswith("flags"):
-            return set(line.split(":", 1)[-1].split())
-    return set()  # pragma: no cover
+    return set(cpu_flags())
 
 
 def kind_of(flags: set[str] | frozenset[str]) -> CpuKind:

@@ -47,6 +47,7 @@ from aerialmtl import runtime
 from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
+from aerialmtl.cpuinfo import cpu_name
 from aerialmtl.data.synthetic_batches import GENERATOR, SCHEME_NAME, SyntheticBatches, SyntheticStream
 from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFiniteError, OutputExistsError
 from aerialmtl.formats.checkpoint import ModelMeta, first_nonfinite, load_checkpoint, save_checkpoint
@@ -151,15 +152,7 @@ def start_meta(cfg: TrainConfig, settings: PretrainSettings) -> ModelMeta:
 
 def machine() -> dict[str, Any]:
     """The machine a run ran on: CPU model, cores torch uses, GPU if any, torch version."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            fields = dict(line.split(":", 1) for line in fh.read().split("\n\n")[0].splitlines() if ":" in line)
-        info = {k.strip(): v.strip() for k, v in fields.items()}
-        cpu = " ".join(x for x in (info.get("model name", cpu), f"family {info['cpu family']}" if "cpu family" in info
-                                   else "", f"model {info['model']}" if "model" in info else "") if x)
-    except OSError:
-        pass
+    cpu = cpu_name() or platform.processor() or platform.machine()
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {"cpu": cpu, "cpu_threads": torch.get_num_threads(), "cpus_visible": os.cpu_count(), "gpu": gpu,
             "torch": str(torch.__version__), "python": platform.python_version()}
