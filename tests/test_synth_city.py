@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
+from helpers import pins
 
 from aerialmtl.data.synth import CityStyle, TexturePool, sample_city
 from aerialmtl.data.synth.city import render_city
@@ -205,3 +207,34 @@ def test_cli_city_takes_textures_from_an_orthophoto_and_ndsm(tmp_path) -> None:
     for name, same in (("ortho.tif", False), ("ndsm.tif", True), ("labels.tif", True)):
         with rasterio.open(tmp_path / "plain" / name) as a, rasterio.open(tmp_path / "tex" / name) as b:
             assert np.array_equal(a.read(), b.read()) == same, name
+
+
+def test_city_output_is_pinned() -> None:
+    """The city patches are the synthetic pretraining's (the shipped start was made from them): the same seeds make
+    the same patches, compared with the pin (``tests/data/city_pin.npz``) within the town pin's tolerances, which
+    hold on every CPU kind. If this fails, the city changed: say so on the start's card (it was made by the
+    former city) and remake the pin (``python -m tests.helpers.pins``), or undo the change."""
+    assert pins.city_differences(pins.make_cities(), pins.load_city_pin()) == []
+
+
+@pytest.mark.parametrize("change", ["sky light", "street width", "one label", "5 cm on ten pixels"])
+def test_city_pin_catches_a_changed_generator(monkeypatch: pytest.MonkeyPatch, change: str) -> None:
+    """A renderer default moved a little, the narrowest street a metre wider, one pixel relabelled or ten pixels 5 cm
+    higher: each is caught by the city pin's tolerances."""
+    from aerialmtl.data.synth import city
+
+    pin = pins.load_city_pin()
+    if change == "sky light":
+        monkeypatch.setattr(city, "SKY", city.Sky(city.AMBIENT + 0.01, (0.92, 0.98, 1.10)))
+    elif change == "street width":
+        monkeypatch.setattr(city, "CITY_STREETS", dataclasses.replace(city.CITY_STREETS, width=(8, 22)))
+    if change in ("sky light", "street width"):
+        got = pins.make_cities()
+    else:
+        got = {name: arr.copy() for name, arr in pin.items()}
+        seed = pins.CITY_SEEDS[0]
+        if change == "one label":
+            got[f"classes_{seed}"][5, 7] = got[f"classes_{seed}"][5, 7] % 6 + 1
+        else:
+            got[f"height_{seed}"][60, 60:70] += np.float32(0.05)
+    assert pins.city_differences(got, pin) != []
