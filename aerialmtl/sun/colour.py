@@ -230,23 +230,63 @@ class ShadowModel:
         return mask
 
     def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None, workers: int = 1) -> np.ndarray:
-        """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's);
-        ``workers``: threads for the features' filters (:func:`feature_planes`), the same result to the bit.
+        """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's).
+
+        The features of :func:`colour_features`, never held as a (12, H, W) stack: the brightness and its
+        neighbourhood filters over the whole image, then every per-pixel feature and the logistic in bands of
+        rows. ``workers`` > 1 runs the filters, and the bands, on that many threads (scipy's filters and numpy's
+        arithmetic release the GIL); the result is the same to the bit.
         """
         if not self.weights:
             raise InputError("this ShadowModel is not fitted: call fit() first")
-        f = feature_planes(rgb, gsd_m or self.gsd_m, workers)
-        # the standardisation folded into the weights once, then one float32 pass per feature plane (predict runs
-        # this on every window: a float64 (12, H, W) temporary was 100 MB per 1024² window)
+        gsd = gsd_m or self.gsd_m
+        x = unit_rgb(rgb)
+        n_rows = x.shape[1]
+        k = max(1, min(int(workers), n_rows))
+        bands = [slice(i * n_rows // k, (i + 1) * n_rows // k) for i in range(k)]
+        # the standardisation folded into the weights once
         a = np.asarray(self.weights[1:], np.float64) / np.asarray(self.scale, np.float64)
-        z = np.full(f[0].shape, self.weights[0] - float(a @ np.asarray(self.mean, np.float64)), np.float32)
-        for k, ak in enumerate(a.astype(np.float32)):
-            z += ak * f[k]
-        np.clip(z, -40.0, 40.0, out=z)
-        np.negative(z, out=z)
-        np.exp(z, out=z)
-        z += np.float32(1.0)
-        out: np.ndarray = np.reciprocal(z, out=z)
+        a32 = a.astype(np.float32)
+        bias = np.float32(self.weights[0] - float(a @ np.asarray(self.mean, np.float64)))
+        lum = np.empty(x.shape[1:], np.float32)
+        out = np.empty(x.shape[1:], np.float32)
+
+        def brightness(rows: slice) -> None:
+            lum[rows] = np.log(x[:, rows].mean(0) + np.float32(0.02))
+
+        jobs = [("mean", m) for m in MEAN_CONTEXTS_M] + [("peak", m) for m in PEAK_CONTEXTS_M]
+
+        def local(job: tuple[str, float]) -> np.ndarray:
+            kind, metres = job
+            filt = ndimage.uniform_filter if kind == "mean" else ndimage.maximum_filter
+            result: np.ndarray = filt(lum, size=_window(metres, gsd), mode="reflect")
+            return result
+
+        def logistic(rows: slice) -> None:
+            xs, ls = x[:, rows], lum[rows]
+            total = xs.sum(0) + np.float32(_EPS)
+            cb = xs[2] / total - np.float32(1 / 3)
+            top = xs.max(0)
+            planes = [ls, cb, xs[0] / total - np.float32(1 / 3), (top - xs.min(0)) / (top + np.float32(0.02)),
+                      ls * ls, ls * cb] + [ls - loc[rows] for loc in locals_]
+            z = np.full(ls.shape, bias, np.float32)
+            for ak, plane in zip(a32, planes):
+                z += ak * plane
+            np.clip(z, -40.0, 40.0, out=z)
+            np.negative(z, out=z)
+            np.exp(z, out=z)
+            z += np.float32(1.0)
+            out[rows] = np.reciprocal(z, out=z)
+
+        if k > 1:
+            with ThreadPoolExecutor(k, thread_name_prefix="aerialmtl-colour") as pool:
+                list(pool.map(brightness, bands))
+                locals_ = list(pool.map(local, jobs))
+                list(pool.map(logistic, bands))
+        else:
+            brightness(bands[0])
+            locals_ = [local(j) for j in jobs]
+            logistic(bands[0])
         return out
 
     def to_dict(self) -> dict[str, object]:
