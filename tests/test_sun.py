@@ -238,3 +238,17 @@ def test_soft_cast_shadow_tends_to_the_hard_mask_and_has_gradients() -> None:
     assert agree > 0.98, agree
     soft.sum().backward()
     assert h.grad is not None and torch.isfinite(h.grad).all() and h.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("size", [2, 3, 4, 5])
+def test_the_shadow_mask_majority_is_the_median_filter(size: int) -> None:
+    """The shadow mask is smoothed by a majority of counts, which must be the median filter it replaced, to the
+    pixel (edges included), on sparse, even and dense masks."""
+    from scipy import ndimage
+
+    from aerialmtl.sun.heights import majority
+
+    rng = np.random.default_rng(size)
+    for share in (0.1, 0.5, 0.9):
+        mask = rng.random((61, 83)) < share
+        np.testing.assert_array_equal(majority(mask, size), ndimage.median_filter(mask, size=size, mode="nearest"))
