@@ -55,8 +55,8 @@ class ShadowStep:
         gsd_m: the prediction grid's pixel size, metres.
         fuse: fuse the shadow heights into the height map and its spread.
         workers: threads of the step (the run's inference threads: the model waits meanwhile at T > 1, and
-            scipy's filters and numpy release the GIL): a batch's windows at once, or a lone window's
-            filters; the layers do not depend on it.
+            scipy's filters and numpy release the GIL): a batch's windows at once, or a lone window's shadow
+            classifier (its filters and bands of rows); the layers do not depend on it.
     """
 
     def __init__(self, model: ShadowModel, gsd_m: float, fuse: bool, workers: int = 1) -> None:
@@ -67,7 +67,7 @@ class ShadowStep:
                 sun: Sun, workers: int = 1) -> _Window:
         """The layers of one window: ``rgb`` (3, h, w) raw 8-bit, ``ok`` bool (h, w), ``height``/``spread``
         float32 (h, w) metres (the network's); fused height and spread only with :attr:`fuse` and a measure;
-        ``workers`` threads for the shadow classifier's filters.
+        ``workers`` threads for the shadow classifier (:meth:`~aerialmtl.sun.ShadowModel.predict_proba`).
         """
         prob = self.model.predict_proba(rgb, self.gsd_m, workers)
         prob = np.where(ok, prob, np.nan).astype(np.float32)
