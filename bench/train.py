@@ -25,6 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import torch
+from _training import town_tiles  # bench/ is the script's folder: on sys.path when run as `python bench/train.py`
 
 from aerialmtl.training import losses
 from aerialmtl.training.config import load_train_config
@@ -71,23 +72,6 @@ def bench(name: str, precision: str, steps: int, warmup: int, device: torch.devi
 
 
 # ---- data path ----------------------------------------------------------------------------------
-def make_tiles(workdir: Path, town_px: int) -> Path:
-    """A synthetic town of ``town_px``² at 0.25 m tiled into 320² patches (90 % train); reused if present."""
-    from aerialmtl.data.synth import synthesize
-    from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import TileOptions, tile_dataset
-
-    tiles = workdir / f"tiles_{town_px}"
-    if (tiles / "dataset.yaml").is_file():
-        return tiles
-    town = synthesize(workdir / f"town_{town_px}", size=town_px, seed=3, gsd=0.25, overwrite=True)
-    tile_dataset(
-        town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, overwrite=True, progress=False,
-        options=TileOptions(size=320, stride=320, splits=SplitSpec(block_size=160.0, ratios=(0.9, 0.1, 0.0), seed=0)),
-    )
-    return tiles
-
-
 class _Batches:
     """Batches of ``(index, seed)``: an epoch permutation seeded by (seed, epoch), as training orders them."""
 
@@ -223,7 +207,7 @@ def main() -> None:
     print(f"torch {torch.__version__}, device {device}, threads {torch.get_num_threads()}, "
           f"load average {os.getloadavg()}")
     if args.data:
-        tiles = make_tiles(args.workdir, args.town)
+        tiles = town_tiles(args.workdir, args.town, val=0.1)
         bench_data(args.paths, tiles, args.batch, args.workers, args.batches, args.warmup, device)
         print(f"load average at the end {os.getloadavg()}")
         return

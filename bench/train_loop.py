@@ -35,6 +35,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+from _training import random_batch, town_tiles  # noqa: E402
 
 
 class GpuSampler:
@@ -143,13 +144,7 @@ def model_step(args: argparse.Namespace, cfg: Any, tiles: Path) -> float:
     step = StepModule(parts.model, parts.weighting, Objective(cfg, tuple(model_cfg.tasks), None), device, precision,
                       compile=cfg.compile)
     b, s = cfg.data.batch_size, info.patch_size
-    g = torch.Generator().manual_seed(0)
-    batch = {"image": torch.randn(b, info.num_bands, s, s, generator=g).to(device)
-             .contiguous(memory_format=torch.channels_last),
-             "height": (torch.rand(b, 1, s, s, generator=g) * 20).to(device),
-             "height_valid": torch.ones(b, 1, s, s, dtype=torch.bool, device=device)}
-    if k:
-        batch["classes"] = torch.randint(0, k, (b, s, s), generator=g).to(device)
+    batch = random_batch(b, info.num_bands, s, k, device)
     parts.model.train()
     times = []
     for i in range(args.step_warmup + args.model_steps):
@@ -183,7 +178,7 @@ def main() -> None:
     from aerialmtl.training.config import load_train_config
 
     t = time.perf_counter()
-    tiles = _tiles(args)
+    tiles = town_tiles(Path(args.workdir), args.town, args.stride, args.val)
     print(f"tile folder: {tiles} ({time.perf_counter() - t:.0f} s)", flush=True)
     data: dict[str, Any] = {"dir": str(tiles)}
     if args.batch:
@@ -216,22 +211,6 @@ def main() -> None:
                   f"used on the GPU (nvidia-smi)", flush=True)
     finally:
         sampler.stop()
-
-
-def _tiles(args: argparse.Namespace) -> Path:
-    """The town tiled 320 at ``--stride`` with a ``--val`` validation share (blocks)."""
-    from aerialmtl.data.synth import synthesize
-    from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import TileOptions, tile_dataset
-
-    tiles = Path(args.workdir) / f"tiles_{args.town}_{args.stride}_val{args.val:g}"
-    if (tiles / "dataset.yaml").is_file():
-        return tiles
-    town = synthesize(Path(args.workdir) / f"town_{args.town}", size=args.town, seed=3, gsd=0.25, overwrite=True)
-    tile_dataset(town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, overwrite=True,
-                 progress=False, options=TileOptions(size=320, stride=args.stride, splits=SplitSpec(
-                     block_size=160.0, ratios=(1 - args.val, args.val, 0.0), seed=0)))
-    return tiles
 
 
 if __name__ == "__main__":

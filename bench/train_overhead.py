@@ -38,6 +38,7 @@ from torch import nn
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+from _training import random_batch, town_tiles  # noqa: E402
 
 
 class NullNet(nn.Module):
@@ -64,24 +65,6 @@ class NullNet(nn.Module):
         if self.k:
             out["classes"] = y[:, i:i + self.k]
         return out
-
-
-def make_tiles(workdir: Path, town_px: int, stride: int) -> Path:
-    """A synthetic town of ``town_px``² at 0.25 m tiled into 320² patches at ``stride`` (train split only)."""
-    from aerialmtl.data.synth import synthesize
-    from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import TileOptions, tile_dataset
-
-    tiles = workdir / f"tiles_{town_px}_{stride}"
-    if (tiles / "dataset.yaml").is_file():
-        return tiles
-    town = synthesize(workdir / f"town_{town_px}", size=town_px, seed=3, gsd=0.25, overwrite=True)
-    tile_dataset(
-        town.ortho, tiles, ndsm=town.ndsm, labels=town.labels, classes=town.classes, overwrite=True, progress=False,
-        options=TileOptions(size=320, stride=stride, splits=SplitSpec(block_size=160.0, ratios=(1.0, 0.0, 0.0),
-                                                                      seed=0)),
-    )
-    return tiles
 
 
 def config(args: argparse.Namespace, tiles: Path) -> Any:
@@ -175,13 +158,7 @@ def bare_ms(args: argparse.Namespace, tiles: Path, steps: int) -> tuple[float, f
     opt = build_optimizer(cfg.optim, model, weighting)
     step = StepModule(model, weighting, Objective(cfg, tuple(model_cfg.tasks), None), device, "fp32")
     b, s = args.batch, 320
-    g = torch.Generator().manual_seed(0)
-    batch = {"image": torch.randn(b, info.num_bands, s, s, generator=g).to(device)
-             .contiguous(memory_format=torch.channels_last),
-             "height": (torch.rand(b, 1, s, s, generator=g) * 20).to(device),
-             "height_valid": torch.ones(b, 1, s, s, dtype=torch.bool, device=device)}
-    if k:
-        batch["classes"] = torch.randint(0, k, (b, s, s), generator=g).to(device)
+    batch = random_batch(b, info.num_bands, s, k, device)
     times, cpu = [], []
     for i in range(steps + 3):
         t, c = time.perf_counter(), time.process_time()
@@ -251,7 +228,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    tiles = make_tiles(Path(args.workdir), args.town, args.stride)
+    tiles = town_tiles(Path(args.workdir), args.town, args.stride)
     ms, cpu, timed, per_epoch = loop_ms(args, tiles)
     bare, bare_cpu = bare_ms(args, tiles, min(timed, 20))
     load = " ".join(Path("/proc/loadavg").read_text().split()[:3]) if Path("/proc/loadavg").exists() else "?"
