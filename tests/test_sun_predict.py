@@ -281,3 +281,20 @@ def test_shadow_layers_do_not_depend_on_how_many_windows_run_at_once(town: dict[
     for name in ("shadow", "shadow_on", "shadow_height", "shadow_weight", "height_mean", "height_std"):
         torch.testing.assert_close(getattr(many, name), getattr(one, name), rtol=0, atol=0, msg=name)
     assert not torch.equal(one.height_mean, heights)  # fusion moved measured objects
+
+
+def test_predict_reads_the_orthophotos_tiff_datetime(town: dict[str, object], tmp_path: Path) -> None:
+    """`--sun auto` through predict: the TIFF DateTime of the orthophoto (read with its header, in the one opening
+    predict makes of it) reaches the sun choice, which records it in prediction.json."""
+    import shutil
+
+    dated = tmp_path / "dated.tif"
+    shutil.copy(town["ortho"], dated)  # type: ignore[arg-type]
+    with rasterio.open(dated, "r+") as dst:
+        dst.update_tags(TIFFTAG_DATETIME="2019:06:21 16:45:00")
+    out = _predict({**town, "ortho": dated}, tmp_path, "dated", town["training"])  # type: ignore[arg-type]
+    sun = json.loads((out / "prediction.json").read_text())["sun"]
+    assert sun["acquired"] == "2019-06-21T16:45:00Z" and "TIFF DateTime" in sun["note"]
+    undated = json.loads((_predict(town, tmp_path, "undated", town["training"]) / "prediction.json")  # type: ignore[arg-type]
+                         .read_text())["sun"]
+    assert undated["acquired"] is None and undated["source"] == "training fit"

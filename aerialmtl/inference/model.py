@@ -235,11 +235,8 @@ class Predictor:
             return None
         key = str(src.path)
         if key not in self._suns:
-            import rasterio
-
-            with rasterio.open(str(src.path)) as ds:
-                tags = ds.tags()
-            choice = choose_sun(self.settings.sun, self.settings.acquired, src.path, src.grid, tags, self.meta.sun)
+            choice = choose_sun(self.settings.sun, self.settings.acquired, src.path, src.grid, src.tags,
+                                self.meta.sun)
             self._suns[key] = choice
             if choice.on:
                 log.info("%s: %s", src.name, choice.note)

@@ -13,7 +13,7 @@ between threads.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +53,7 @@ class OrthoInput:
         fingerprint: :func:`~aerialmtl.io.fingerprint.input_fingerprint`, of the file and its sidecars taken
             before the file was first read, with the raster as GDAL presents it (``provenance.input``; checked
             again before the maps are committed, :meth:`changed`).
+        tags: its dataset tags (GDAL metadata, e.g. TIFF ``DateTime``: the acquisition time ``--sun auto`` reads).
     """
 
     path: str | Path
@@ -64,6 +65,7 @@ class OrthoInput:
     plan: Plan
     rescale: tuple[float, float] | None = None
     fingerprint: dict[str, Any] | None = None
+    tags: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def open(cls, path: str | Path, meta: ModelMeta, window: int, overlap: int,
@@ -92,12 +94,14 @@ class OrthoInput:
             count = int(src.count)
             rescale = check_input_values(path, meta, rescale_input, dataset=src)
             identity = raster_identity(src)
+            tags = dict(src.tags())
         unused = tuple(b for b in range(1, count + 1) if b not in meta.bands and b not in alpha[:1])
         resampled_from = native.gsd if abs(native.gsd - meta.gsd) > GSD_TOLERANCE * meta.gsd else None
         grid = resampled_grid(native, meta.gsd) if resampled_from is not None else native
         fingerprint = {**local, "raster": identity} if local is not None else input_fingerprint(path, identity)
         return cls(path, native, grid, resampled_from, count, unused,
-                   plan_windows(grid.height, grid.width, window, overlap), rescale=rescale, fingerprint=fingerprint)
+                   plan_windows(grid.height, grid.width, window, overlap), rescale=rescale, fingerprint=fingerprint,
+                   tags=tags)
 
     def changed(self) -> str | None:
         """What changed in the input since it was opened (``None``: nothing; see :attr:`fingerprint`)."""
