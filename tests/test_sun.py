@@ -23,6 +23,7 @@ from aerialmtl.sun import (
     shadow_heights,
     shadow_score,
 )
+from aerialmtl.sun.colour import colour_features
 
 
 def city(seed: int, azimuth: float, elevation: float, size: int = 192):
@@ -102,6 +103,11 @@ def test_shadow_score_and_model_find_the_cast_shadows() -> None:
         assert np.median(v[truth]) > np.percentile(v[~truth], 75)
     # predict spreads the classifier's filters over its threads: the same probabilities to the bit
     np.testing.assert_array_equal(model.predict_proba(test.image, workers=3), prob)
+    # and predicts on the features it was fitted on (colour_features, stacked), computed by bands of rows
+    f = colour_features(test.image, test.gsd).astype(np.float64)
+    z = model.weights[0] + np.tensordot(np.asarray(model.weights[1:]) / np.asarray(model.scale),
+                                        f - np.asarray(model.mean)[:, None, None], axes=1)
+    np.testing.assert_allclose(prob, 1.0 / (1.0 + np.exp(-np.clip(z, -40, 40))), rtol=0, atol=1e-5)
 
 
 def test_learnt_shadow_model_does_not_call_lit_water_shadow() -> None:

@@ -70,46 +70,47 @@ def _window(metres: float, gsd_m: float) -> int:
     return max(3, int(round(metres / gsd_m)) | 1)
 
 
-def colour_features(rgb: np.ndarray, gsd_m: float, workers: int = 1) -> np.ndarray:
+def colour_features(rgb: np.ndarray, gsd_m: float) -> np.ndarray:
     """float32 (12, H, W) features of :class:`ShadowModel`.
 
     Log-brightness L, blue and red chromaticity, saturation, L², L × blue chromaticity, L minus its mean over
     each of :data:`MEAN_CONTEXTS_M` and L minus its maximum over each of :data:`PEAK_CONTEXTS_M` (windows in
-    metres, so ``gsd_m`` matters). ``workers``: see :func:`feature_planes`.
-    """
-    return np.stack(feature_planes(rgb, gsd_m, workers))
-
-
-def feature_planes(rgb: np.ndarray, gsd_m: float, workers: int = 1) -> list[np.ndarray]:
-    """The :func:`colour_features` as a list of float32 (H, W) planes (no (12, H, W) copy).
-
-    ``workers`` > 1 computes the neighbourhood filters on that many threads at once (scipy's filters release the
-    GIL); the planes are the same to the bit.
+    metres, so ``gsd_m`` matters). :meth:`ShadowModel.predict_proba` computes the same planes by bands of rows.
     """
     x = unit_rgb(rgb)
+    lum = _brightness(x)
+    return np.stack(_planes(x, lum, [_local(lum, job, gsd_m) for job in _CONTEXTS]))
+
+
+#: The neighbourhood filters of the context features, in feature order: (kind, window in metres).
+_CONTEXTS = [("mean", m) for m in MEAN_CONTEXTS_M] + [("peak", m) for m in PEAK_CONTEXTS_M]
+
+
+def _brightness(x: np.ndarray) -> np.ndarray:
+    """Log-brightness L, float32 (h, w), of unit RGB ``x`` (3, h, w)."""
+    lum: np.ndarray = np.log(x.mean(0) + np.float32(0.02))
+    return lum
+
+
+def _local(lum: np.ndarray, job: tuple[str, float], gsd_m: float) -> np.ndarray:
+    """The mean (``"mean"``) or maximum (``"peak"``) of ``lum`` over a window of ``job[1]`` metres."""
+    kind, metres = job
+    filt = ndimage.uniform_filter if kind == "mean" else ndimage.maximum_filter
+    result: np.ndarray = filt(lum, size=_window(metres, gsd_m), mode="reflect")
+    return result
+
+
+def _planes(x: np.ndarray, lum: np.ndarray, local: list[np.ndarray]) -> list[np.ndarray]:
+    """The 12 feature planes, float32 (h, w) each, of unit RGB ``x`` (3, h, w), its brightness ``lum`` and the
+    :data:`_CONTEXTS` filters of it (``local``, cut to the same rows): per pixel, so any band of rows gives the
+    rows of the whole image's planes to the bit.
+    """
     total = x.sum(0) + np.float32(_EPS)
-    lum = np.log(x.mean(0) + np.float32(0.02))
     cb = x[2] / total - np.float32(1 / 3)
     cr = x[0] / total - np.float32(1 / 3)
     top = x.max(0)
     sat = (top - x.min(0)) / (top + np.float32(0.02))
-    feats = [lum, cb, cr, sat, lum * lum, lum * cb]
-
-    def context(job: tuple[str, float]) -> np.ndarray:
-        kind, metres = job
-        size = _window(metres, gsd_m)
-        local: np.ndarray = (ndimage.uniform_filter if kind == "mean" else ndimage.maximum_filter)(
-            lum, size=size, mode="reflect")
-        out: np.ndarray = lum - local
-        return out
-
-    jobs = [("mean", m) for m in MEAN_CONTEXTS_M] + [("peak", m) for m in PEAK_CONTEXTS_M]
-    if workers > 1:
-        with ThreadPoolExecutor(min(workers, len(jobs)), thread_name_prefix="aerialmtl-colour") as pool:
-            feats += list(pool.map(context, jobs))
-    else:
-        feats += [context(j) for j in jobs]
-    return [f.astype(np.float32, copy=False) for f in feats]
+    return [lum, cb, cr, sat, lum * lum, lum * cb] + [lum - loc for loc in local]
 
 
 @dataclass
@@ -232,10 +233,10 @@ class ShadowModel:
     def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None, workers: int = 1) -> np.ndarray:
         """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's).
 
-        The features of :func:`colour_features`, never held as a (12, H, W) stack: the brightness and its
-        neighbourhood filters over the whole image, then every per-pixel feature and the logistic in bands of
-        rows. ``workers`` > 1 runs the filters, and the bands, on that many threads (scipy's filters and numpy's
-        arithmetic release the GIL); the result is the same to the bit.
+        The features of :func:`colour_features` (the same functions), never held as a (12, H, W) stack: the
+        brightness and its neighbourhood filters over the whole image, then every per-pixel feature and the
+        logistic in bands of rows. ``workers`` > 1 runs the filters, and the bands, on that many threads (scipy's
+        filters and numpy's arithmetic release the GIL); the result is the same to the bit.
         """
         if not self.weights:
             raise InputError("this ShadowModel is not fitted: call fit() first")
@@ -252,25 +253,11 @@ class ShadowModel:
         out = np.empty(x.shape[1:], np.float32)
 
         def brightness(rows: slice) -> None:
-            lum[rows] = np.log(x[:, rows].mean(0) + np.float32(0.02))
-
-        jobs = [("mean", m) for m in MEAN_CONTEXTS_M] + [("peak", m) for m in PEAK_CONTEXTS_M]
-
-        def local(job: tuple[str, float]) -> np.ndarray:
-            kind, metres = job
-            filt = ndimage.uniform_filter if kind == "mean" else ndimage.maximum_filter
-            result: np.ndarray = filt(lum, size=_window(metres, gsd), mode="reflect")
-            return result
+            lum[rows] = _brightness(x[:, rows])
 
         def logistic(rows: slice) -> None:
-            xs, ls = x[:, rows], lum[rows]
-            total = xs.sum(0) + np.float32(_EPS)
-            cb = xs[2] / total - np.float32(1 / 3)
-            top = xs.max(0)
-            planes = [ls, cb, xs[0] / total - np.float32(1 / 3), (top - xs.min(0)) / (top + np.float32(0.02)),
-                      ls * ls, ls * cb] + [ls - loc[rows] for loc in locals_]
-            z = np.full(ls.shape, bias, np.float32)
-            for ak, plane in zip(a32, planes):
+            z = np.full(lum[rows].shape, bias, np.float32)
+            for ak, plane in zip(a32, _planes(x[:, rows], lum[rows], [loc[rows] for loc in locals_])):
                 z += ak * plane
             np.clip(z, -40.0, 40.0, out=z)
             np.negative(z, out=z)
@@ -281,11 +268,11 @@ class ShadowModel:
         if k > 1:
             with ThreadPoolExecutor(k, thread_name_prefix="aerialmtl-colour") as pool:
                 list(pool.map(brightness, bands))
-                locals_ = list(pool.map(local, jobs))
+                locals_ = list(pool.map(lambda job: _local(lum, job, gsd), _CONTEXTS))
                 list(pool.map(logistic, bands))
         else:
             brightness(bands[0])
-            locals_ = [local(j) for j in jobs]
+            locals_ = [_local(lum, job, gsd) for job in _CONTEXTS]
             logistic(bands[0])
         return out
 
