@@ -298,3 +298,27 @@ def test_predict_reads_the_orthophotos_tiff_datetime(town: dict[str, object], tm
     undated = json.loads((_predict(town, tmp_path, "undated", town["training"]) / "prediction.json")  # type: ignore[arg-type]
                          .read_text())["sun"]
     assert undated["acquired"] is None and undated["source"] == "training fit"
+
+
+def test_a_uint16_orthophoto_of_8_bit_values_gets_the_shadows_of_the_8_bit_one(town: dict[str, object],
+                                                                                 tmp_path: Path) -> None:
+    """The shadow classifier sees colours on the scale it was fitted on (the training data's type), whatever the
+    orthophoto's own type: the same town written as uint16 (values unchanged) gives the same shadow layers, and
+    a `--rescale-input` mapping is applied before the colours are scaled."""
+    from aerialmtl.inference.shadows import unit_colours
+
+    sun: Sun = town["sun"]  # type: ignore[assignment]
+    given = f"{sun.azimuth_deg},{sun.elevation_deg}"
+    with rasterio.open(town["ortho"]) as src:  # type: ignore[arg-type]
+        data, profile = src.read(), src.profile
+    wide = dict(town, ortho=tmp_path / "ortho16.tif")
+    with rasterio.open(wide["ortho"], "w", **{**profile, "dtype": "uint16"}) as dst:
+        dst.write(data.astype(np.uint16))
+    a = _predict(wide, tmp_path, "u16", town["training"], sun=given)  # type: ignore[arg-type]
+    b = _predict(town, tmp_path, "u8", town["training"], sun=given)  # type: ignore[arg-type]
+    for name in ("shadow", "shadow_height"):
+        np.testing.assert_array_equal(_read(a, name), _read(b, name), err_msg=name)
+    raw = np.array([[[0, 1000]], [[2000, 65535]], [[10, 20]]], np.uint16)
+    np.testing.assert_allclose(unit_colours(raw, (255 / 65535, 0.0), "uint8"), raw / 65535, rtol=1e-6)
+    np.testing.assert_allclose(unit_colours(raw, None, "uint16"), raw / 65535, rtol=1e-6)
+    np.testing.assert_array_equal(unit_colours(raw.astype(np.float32), None, "float32"), raw.astype(np.float32))

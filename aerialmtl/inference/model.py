@@ -66,7 +66,7 @@ from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
 from aerialmtl.inference.settings import PredictSettings, ResolvedSettings, settings_of
-from aerialmtl.inference.shadows import ShadowStep
+from aerialmtl.inference.shadows import ShadowStep, unit_colours
 from aerialmtl.inference.stitch import Block, Stitcher
 from aerialmtl.inference.sun_choice import SunChoice, choose_sun
 from aerialmtl.inference.windows import Plan
@@ -503,10 +503,7 @@ class _StripLoop:
         for w in windows:
             if w.data is not None:
                 data = w.data.numpy() if isinstance(w.data, torch.Tensor) else w.data
-                if self.src.rescale is not None:  # the values the model (and the shadow classifier) trained on
-                    a, b = self.src.rescale
-                    data = (data.astype("float32") * a + b).clip(0, 255)
-                rgb.append(data[:3])
+                rgb.append(unit_colours(data[:3], self.src.rescale, self.p.meta.input_dtype))
         assert self.p.shadows is not None
         self.p.shadows.apply(stats, rgb, valid, sun)
         self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0

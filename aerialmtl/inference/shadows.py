@@ -36,6 +36,22 @@ from aerialmtl.sun import ShadowModel, Sun, fuse_heights, shadow_heights
 OBJECT_MIN_M = 2.0
 
 
+def unit_colours(data: np.ndarray, rescale: tuple[float, float] | None, train_dtype: str | None) -> np.ndarray:
+    """float32 (3, h, w) colours of a window's raw values ``data`` (3, h, w) as the shadow classifier was fitted
+    on them: the values the model trained on (``rescale`` = ``--rescale-input``'s ``(a, b)``: ``a·x + b``) over the
+    largest value of the training data's integer type ``train_dtype`` (as :func:`aerialmtl.sun.colour.unit_rgb`
+    scaled the training patches; float training data is taken as it is), whatever this orthophoto's own type: a
+    uint16 orthophoto holding 8-bit values is read as 8-bit values, not as 1/257 of them.
+    """
+    x = data.astype(np.float32)
+    if rescale is not None:
+        x = x * np.float32(rescale[0]) + np.float32(rescale[1])
+    kind = np.dtype(train_dtype or "uint8")
+    if np.issubdtype(kind, np.integer):
+        x = (x / np.float32(np.iinfo(kind).max)).astype(np.float32)
+    return x
+
+
 class _Window(NamedTuple):
     """One window's layers, (h, w) each: shadow probability (0 where invalid), measured shadow height in metres
     (0 where none), where one was measured, and the fused (height, spread) or ``None``.
@@ -65,9 +81,9 @@ class ShadowStep:
 
     def _window(self, rgb: np.ndarray, ok: np.ndarray, height: np.ndarray, spread: np.ndarray | None,
                 sun: Sun, workers: int = 1) -> _Window:
-        """The layers of one window: ``rgb`` (3, h, w) raw 8-bit, ``ok`` bool (h, w), ``height``/``spread``
-        float32 (h, w) metres (the network's); fused height and spread only with :attr:`fuse` and a measure;
-        ``workers`` threads for the shadow classifier (:meth:`~aerialmtl.sun.ShadowModel.predict_proba`).
+        """The layers of one window: ``rgb`` (3, h, w) colours (:func:`unit_colours`), ``ok`` bool (h, w),
+        ``height``/``spread`` float32 (h, w) metres (the network's); fused height and spread only with :attr:`fuse`
+        and a measure; ``workers`` threads for the shadow classifier (:meth:`~aerialmtl.sun.ShadowModel.predict_proba`).
         """
         prob = self.model.predict_proba(rgb, self.gsd_m, workers)
         prob = np.where(ok, prob, np.nan).astype(np.float32)
@@ -82,8 +98,8 @@ class ShadowStep:
 
     def apply(self, stats: McStatistics, rgb: list[np.ndarray], valid: torch.Tensor, sun: Sun | None) -> None:
         """Set ``stats.shadow``, ``shadow_on``, ``shadow_height`` and ``shadow_weight`` (B, h, w) for the windows
-        ``rgb`` (raw 8-bit (3, h, w) each, in batch order) under ``sun``; with :attr:`fuse`, replace
-        ``height_mean`` and ``height_std`` inside measured objects. ``sun`` None: the layers' weights are 0 (the
+        ``rgb`` (colours (3, h, w) each, :func:`unit_colours`, in batch order) under ``sun``; with :attr:`fuse`,
+        replace ``height_mean`` and ``height_std`` inside measured objects. ``sun`` None: the layers' weights are 0 (the
         stitcher writes nodata) and nothing else changes.
         """
         b, h, w = valid.shape
@@ -127,4 +143,4 @@ class ShadowStep:
         stats.shadow_weight = s_weight.to(dev)
 
 
-__all__ = ["OBJECT_MIN_M", "ShadowStep"]
+__all__ = ["OBJECT_MIN_M", "ShadowStep", "unit_colours"]

@@ -95,7 +95,7 @@ def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
         pick = np.random.default_rng(0).permutation(len(rows))[:max(1, MAX_MOSAIC_PIXELS // per_patch)]
         for i in sorted(pick):
             p = read_raw_patch(root, rows[i], info.num_bands, ("height",))
-            area.rgb.append(np.ascontiguousarray(p.image[:3], np.uint8))
+            area.rgb.append(np.ascontiguousarray(p.image[:3]))  # its own type: unit_rgb scales by its largest value
             area.height.append(p.height if p.height is not None else np.full(p.image_valid.shape, np.nan, np.float32))
             area.valid.append(p.image_valid)
     return area
