@@ -5,9 +5,9 @@ Every store is a folder under the package's cache folder (:func:`cache_home`), o
 * ``openvino/`` — the OpenVINO engine's converted and compiled models, one folder per model, and the records of
   the checkpoints it has seen (:mod:`aerialmtl.inference.engine_cache`, :mod:`aerialmtl.inference.model_record`;
   ``AERIALMTL_OPENVINO_CACHE`` moves this store alone);
-* ``numba/`` — the machine code of the MC class kernel (:mod:`aerialmtl.models.class_kernel_jit`), which numba
-  would otherwise keep in the installed package's ``__pycache__`` (read-only in a system install, and shared by
-  every user of it).
+* ``numba/`` — the machine code of the compiled kernels (:mod:`aerialmtl.jit`: the MC class kernel, the shadow
+  step's kernels), which numba would otherwise keep in the installed package's ``__pycache__`` (read-only in a
+  system install, and shared by every user of it).
 
 **Where.** ``$AERIALMTL_CACHE`` when set; else the platform's user cache folder (``platformdirs``: on Linux
 ``$XDG_CACHE_HOME/aerialmtl`` when that is an absolute path, else ``$HOME/.cache/aerialmtl``). A ``HOME`` that is

@@ -253,7 +253,7 @@ def test_class_kernel_runs_where_numba_cannot_cache(monkeypatch: pytest.MonkeyPa
     import numba.core.caching as caching
     import numpy as np
 
-    from aerialmtl.models import class_kernel_jit
+    from aerialmtl import jit
 
     def add_one(x):  # noqa: ANN001, ANN202 - a function for numba
         return x + 1
@@ -261,4 +261,4 @@ def test_class_kernel_runs_where_numba_cannot_cache(monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])
     with pytest.raises(RuntimeError, match="no locator"):
         numba.njit(cache=True)(add_one)
-    assert class_kernel_jit.jit(add_one)(np.float32(1.0)) == 2.0
+    assert jit.jit(add_one)(np.float32(1.0)) == 2.0

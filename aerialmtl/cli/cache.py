@@ -19,7 +19,7 @@ def cache(action: str, names: tuple[str, ...]) -> None:
 
     \b
     openvino  converted and compiled OpenVINO models (AERIALMTL_OPENVINO_CACHE moves it)
-    numba     the compiled MC class kernel
+    numba     the compiled kernels (MC class statistics, shadow step)
     Everything is rebuilt when needed: clearing only makes the next run slower. The stores live in the
     platform's cache folder (AERIALMTL_CACHE moves them) and hold at most AERIALMTL_CACHE_LIMIT_MB MiB
     together (least recently used entries go first). Only files aerialmtl wrote are counted or removed:

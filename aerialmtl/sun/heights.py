@@ -17,6 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from aerialmtl.errors import InputError
+from aerialmtl.sun import kernels
 from aerialmtl.sun.cast import line_offsets, sun_steps
 from aerialmtl.sun.position import Sun
 
@@ -84,46 +85,27 @@ def shadow_runs(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun:
         ``(label, length, ok, rc)``: per edge pixel its object label, the run length in steps (int), whether
         the run is a measurement, and its (row, col) as an int (n, 2) array.
     """
-    h, w = objects.shape
-    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
-    step, slope = -step, -slope  # away from the sun
-    cross = line_offsets(max_steps + 2, slope)
-
-    def offset(k: int) -> tuple[int, int]:
-        return (step * k, int(cross[k])) if rows_dom else (int(cross[k]), step * k)
-
-    dr, dc = offset(1)
-    r, c = np.nonzero(objects)
+    off_r, off_c = _walk(sun, max_steps, away=True)
+    objects = np.ascontiguousarray(objects)
+    r, c = kernels.edge_pixels(objects, int(off_r[1]), int(off_c[1]))
     lab = objects[r, c]
-    rr, cc = r + dr, c + dc
-    inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-    nxt = np.zeros(len(r), objects.dtype)
-    nxt[inside] = objects[rr[inside], cc[inside]]
-    edge = nxt != lab
-    r, c, lab = r[edge], c[edge], lab[edge]
-    n = len(r)
-    length = np.zeros(n, np.int64)
-    lit = np.zeros(n, np.int64)  # lit pixels since the last shadow pixel
-    state = np.zeros(n, np.int8)  # 0 running, 1 ended (a measurement if length > 0), 2 not a measurement
-    for k in range(1, max_steps + 1):
-        run = np.nonzero(state == 0)[0]
-        if len(run) == 0:
-            break
-        dr, dc = offset(k)
-        rr, cc = r[run] + dr, c[run] + dc
-        inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-        # leaving the raster, unknown pixels or an object: clipped, unless a lit pixel already ended the shadow
-        bad = ~inside
-        bad[inside] = ~known[rr[inside], cc[inside]] | (objects[rr[inside], cc[inside]] != 0)
-        state[run[bad]] = np.where(lit[run[bad]] > 0, 1, 2)
-        run, rr, cc = run[~bad], rr[~bad], cc[~bad]
-        dark = shadow[rr, cc]
-        length[run[dark]] = k
-        lit[run[dark]] = 0
-        lit[run[~dark]] += 1
-        state[run[lit[run] > gap_px]] = 1
-    ok = (state == 1) & (length > 0)
+    length = np.zeros(len(r), np.int64)
+    ok = np.zeros(len(r), bool)
+    kernels.run_lengths(np.ascontiguousarray(shadow, dtype=bool), np.ascontiguousarray(known, dtype=bool),
+                        objects, r, c, off_r, off_c, int(max_steps), int(gap_px), length, ok)
     return lab, length, ok, np.stack([r, c], axis=1)
+
+
+def _walk(sun: Sun, max_steps: int, away: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) offsets, int64 (max_steps + 2,) each, of the digital line from a pixel towards the sun (or,
+    ``away``, away from it): step ``k`` at ``(off_r[k], off_c[k])``.
+    """
+    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
+    if away:
+        step, slope = -step, -slope
+    along = step * np.arange(max_steps + 2, dtype=np.int64)
+    cross = line_offsets(max_steps + 2, slope)
+    return (along, cross) if rows_dom else (cross, along)
 
 
 def occluder_steps(height: np.ndarray, objects: np.ndarray, rc: np.ndarray, lab: np.ndarray, sun: Sun,
@@ -132,29 +114,24 @@ def occluder_steps(height: np.ndarray, objects: np.ndarray, rc: np.ndarray, lab:
     furthest: ``argmax_j h(p + j·u) − j·q`` (``q`` = height per step of shadow). 0 on a flat roof (the edge casts
     the shadow's end), near the top of a crown. int (n,).
     """
-    h, w = objects.shape
-    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
-    cross = line_offsets(max_steps + 2, slope)
-    r, c = rc[:, 0], rc[:, 1]
-    best = np.nan_to_num(height[r, c].astype(np.float64), nan=-np.inf)
-    arg = np.zeros(len(r), np.int64)
-    alive = np.ones(len(r), bool)
-    for j in range(1, max_steps + 1):
-        idx = np.nonzero(alive)[0]
-        if len(idx) == 0:
-            break
-        dr, dc = (step * j, int(cross[j])) if rows_dom else (int(cross[j]), step * j)
-        rr, cc = r[idx] + dr, c[idx] + dc
-        inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-        same = np.zeros(len(idx), bool)
-        same[inside] = objects[rr[inside], cc[inside]] == lab[idx[inside]]
-        alive[idx[~same]] = False
-        idx, rr, cc = idx[same], rr[same], cc[same]
-        val = np.nan_to_num(height[rr, cc].astype(np.float64), nan=-np.inf) - j * q
-        better = val > best[idx]
-        best[idx[better]] = val[better]
-        arg[idx[better]] = j
+    off_r, off_c = _walk(sun, max_steps, away=False)
+    arg = np.zeros(len(rc), np.int64)
+    kernels.occluder_offsets(np.ascontiguousarray(height, dtype=np.float32), np.ascontiguousarray(objects),
+                             np.ascontiguousarray(rc[:, 0]), np.ascontiguousarray(rc[:, 1]),
+                             np.ascontiguousarray(lab), off_r, off_c, float(q), int(max_steps), arg)
     return arg
+
+
+def _sorted_medians(values: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """float64 (m,): the median of each group ``values[starts[i] : starts[i] + counts[i]]`` (each sorted
+    ascending), as ``np.median`` gives it (the mean of the two middle values of an even count); NaN where empty.
+    """
+    out = np.full(len(starts), np.nan)
+    some = counts > 0
+    lo = starts[some] + (counts[some] - 1) // 2
+    hi = starts[some] + counts[some] // 2
+    out[some] = (values[lo] + values[hi]) / 2.0
+    return out
 
 
 def majority(mask: np.ndarray, size: int) -> np.ndarray:
@@ -229,32 +206,35 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
         length = length + np.where(ok, occluder_steps(hmap, labels, rc, lab, sun, q, max_steps), 0)
     e = math.tan(math.radians(min(sun.elevation_deg + elevation_sd_deg, 89.9))) / sun.tan_elevation - 1.0
     all_labels = np.unique(labels[labels != 0])
-    n_edges = dict(zip(*np.unique(lab, return_counts=True)))
+    n_edges = np.zeros(len(all_labels), np.int64)
+    found, counts = np.unique(lab, return_counts=True)
+    n_edges[np.searchsorted(all_labels, found)] = counts
+    # every object's runs together, ascending: medians by position, no loop over the objects
     heights = length[ok] * q
     lab_ok = lab[ok]
-    order = np.argsort(lab_ok, kind="stable")
+    order = np.lexsort((heights, lab_ok))
     lab_ok, heights = lab_ok[order], heights[order]
     starts = np.searchsorted(lab_ok, all_labels, side="left")
-    ends = np.searchsorted(lab_ok, all_labels, side="right")
-    records: list[ShadowObject] = []
-    value = {}
-    for label, a, b in zip(all_labels.tolist(), starts.tolist(), ends.tolist()):
-        runs = heights[a:b]
-        n = len(runs)
-        hm = sd = math.nan
-        if n >= min_runs:
-            hm = float(np.median(runs))
-            mad = MAD_TO_SD * float(np.median(np.abs(runs - hm)))
-            sd = math.sqrt(max(mad, q / 2) ** 2 * (1.0 + 10.0 / n) + (hm * e) ** 2)
-            value[label] = (hm, sd)
-        records.append(ShadowObject(int(label), int(n_edges.get(label, 0)), n, hm, sd))
+    n_runs = np.searchsorted(lab_ok, all_labels, side="right") - starts
+    hm = _sorted_medians(heights, starts, n_runs)
+    group = np.repeat(np.arange(len(all_labels)), n_runs)
+    dev = np.abs(heights - hm[group])
+    dev = dev[np.lexsort((dev, group))]
+    mad = MAD_TO_SD * _sorted_medians(dev, starts, n_runs)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sd = np.sqrt(np.maximum(mad, q / 2) ** 2 * (1.0 + 10.0 / n_runs) + (hm * e) ** 2)
+    measured = n_runs >= min_runs
+    hm[~measured] = np.nan
+    sd[~measured] = np.nan
+    records = [ShadowObject(label, edges, n, h, s) for label, edges, n, h, s in
+               zip(all_labels.tolist(), n_edges.tolist(), n_runs.tolist(), hm.tolist(), sd.tolist())]
     height = np.full(labels.shape, np.nan, np.float32)
     std = np.full(labels.shape, np.nan, np.float32)
-    if value:
+    if measured.any():
         lut_h = np.full(int(labels.max()) + 1, np.nan, np.float32)
         lut_s = np.full(int(labels.max()) + 1, np.nan, np.float32)
-        for label, (hm, sd) in value.items():
-            lut_h[label], lut_s[label] = hm, sd
+        lut_h[all_labels[measured]] = hm[measured]
+        lut_s[all_labels[measured]] = sd[measured]
         inside = labels > 0
         height[inside] = lut_h[labels[inside]]
         std[inside] = lut_s[labels[inside]]

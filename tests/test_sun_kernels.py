@@ -1,0 +1,106 @@
+"""The shadow step's compiled kernels (aerialmtl.sun.kernels) compute what the numpy and scipy code they replace
+computes: the walks and the maximum filter to the bit, the classifier's logistic within float32 rounding."""
+
+from __future__ import annotations
+
+from dataclasses import astuple
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from aerialmtl.sun import ShadowModel, Sun, kernels, shadow_heights
+from aerialmtl.sun.colour import _CONTEXTS, _EPS, _brightness, _local, _planes, unit_rgb
+from aerialmtl.sun.heights import occluder_steps, shadow_runs
+from tests.helpers.shadow_walks import occluder_steps_numpy, shadow_heights_numpy, shadow_runs_numpy
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 3), (5, 40), (37, 29), (64, 64)])
+@pytest.mark.parametrize("size", [3, 5, 7, 41])
+def test_max_filter_is_scipys_reflect_maximum_to_the_bit(shape: tuple[int, int], size: int) -> None:
+    """Also where the window is wider than the image (a 2-pixel-wide window of a 1 m recipe at 40 m)."""
+    img = np.random.default_rng(size + shape[0]).normal(size=shape).astype(np.float32)
+    out = np.empty_like(img)
+    kernels.max_filter_reflect(img, size, np.empty_like(img), out)
+    np.testing.assert_array_equal(out, ndimage.maximum_filter(img, size=size, mode="reflect"))
+
+
+def _scene(seed: int, n: int = 96) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Random blocks (objects), their heights with NaN holes, a shadow mask with noise and unknown pixels."""
+    rng = np.random.default_rng(seed)
+    height = np.zeros((n, n), np.float32)
+    for _ in range(12):
+        r, c = rng.integers(0, n - 8, 2)
+        h, w = rng.integers(3, 14, 2)
+        height[r:r + h, c:c + w] = rng.uniform(2.5, 30.0)
+    height += rng.normal(0, 0.3, height.shape).astype(np.float32)
+    height[rng.random(height.shape) < 0.01] = np.nan
+    objects, _ = ndimage.label(np.nan_to_num(height) >= 2.0)
+    shadow = (rng.random((n, n)) < 0.35) | ndimage.binary_dilation(objects > 0, iterations=3)
+    known = rng.random((n, n)) > 0.02
+    return height, objects, shadow & known, known
+
+
+@pytest.mark.parametrize("azimuth", [0.0, 37.0, 90.0, 135.0, 181.0, 244.0, 300.0, 359.0])
+@pytest.mark.parametrize("gap_px", [0, 1, 3])
+def test_shadow_walks_equal_the_numpy_walks(azimuth: float, gap_px: int) -> None:
+    sun = Sun(azimuth, 40.0)
+    for seed in range(3):
+        height, objects, shadow, known = _scene(seed)
+        want = shadow_runs_numpy(shadow, known, objects, sun, 25, gap_px)
+        got = shadow_runs(shadow, known, objects, sun, 25, gap_px)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        lab, _, _, rc = got
+        np.testing.assert_array_equal(occluder_steps(height, objects, rc, lab, sun, 0.8, 25),
+                                      occluder_steps_numpy(height, objects, rc, lab, sun, 0.8, 25))
+
+
+def test_logistic_kernel_equals_the_numpy_features_within_float32_rounding() -> None:
+    rng = np.random.default_rng(4)
+    rgb = rng.integers(0, 256, (3, 50, 70), dtype=np.uint8)
+    model = ShadowModel(gsd_m=0.5, mean=list(rng.normal(size=12)), scale=list(rng.uniform(0.5, 2, 12)),
+                        weights=list(rng.normal(size=13)))
+    x = unit_rgb(rgb)
+    lum = _brightness(x)
+    local = [_local(lum, job, 0.5) for job in _CONTEXTS]
+    a = np.asarray(model.weights[1:]) / np.asarray(model.scale)
+    bias = np.float32(model.weights[0] - float(a @ np.asarray(model.mean)))
+    z = np.full(lum.shape, bias, np.float32)
+    for ak, plane in zip(a.astype(np.float32), _planes(x, lum, local)):
+        z += ak * plane
+    want = (1.0 / (1.0 + np.exp(-np.clip(z, -40.0, 40.0)))).astype(np.float32)
+    out = np.empty_like(lum)
+    kernels.logistic_rows(x, lum, *local, a.astype(np.float32), bias, np.float32(_EPS), 0, 50, out)
+    np.testing.assert_allclose(out, want, rtol=0, atol=1e-6)
+    # the model's own bands of rows on threads: the same to the bit, whatever the threads
+    one = model.predict_proba(rgb, workers=1)
+    np.testing.assert_array_equal(one, out)
+    np.testing.assert_array_equal(model.predict_proba(rgb, workers=3), one)
+
+
+def test_shadow_heights_accept_every_integer_label_type() -> None:
+    """ndimage.label gives int32, a user's labels may be int64 or uint16: each compiles, same heights."""
+    height, objects, shadow, known = _scene(7)
+    prob = np.where(known, shadow.astype(np.float32), np.nan)
+    sun = Sun(120.0, 45.0)
+    ref = shadow_heights(prob, 1.0, sun, objects.astype(np.int64), height=height)
+    for dtype in (np.int32, np.uint16):
+        got = shadow_heights(prob, 1.0, sun, objects.astype(dtype), height=height)
+        np.testing.assert_array_equal(got.height, ref.height)
+
+
+@pytest.mark.parametrize("min_runs", [1, 3, 8])
+def test_shadow_heights_equal_the_first_written_ones(min_runs: int) -> None:
+    """The compiled walks and the medians by position give every object the same height and spread."""
+    for seed, azimuth in ((1, 60.0), (2, 150.0), (3, 290.0)):
+        height, objects, shadow, known = _scene(seed, 128)
+        prob = np.where(known, np.random.default_rng(seed).random(known.shape) * 0.3 + shadow * 0.5, np.nan)
+        sun = Sun(azimuth, 35.0)
+        for h in (height, None):
+            got = shadow_heights(prob, 0.5, sun, objects, height=h, threshold=0.4, min_runs=min_runs)
+            want = shadow_heights_numpy(prob, 0.5, sun, objects, height=h, threshold=0.4, min_runs=min_runs)
+            np.testing.assert_array_equal(got.height, want.height)
+            np.testing.assert_array_equal(got.std, want.std)
+            np.testing.assert_equal([astuple(o) for o in got.objects], [astuple(o) for o in want.objects])
+            assert any(o.measured for o in got.objects)
