@@ -441,7 +441,9 @@ class _StripLoop:
         depth = max(4, 2 * self.batch_size)  # windows read ahead: a batch being computed and the next one
         reader = WindowReader(src, list(p.meta.bands), todo_rows, aoi_mask, threads=p.settings.reader_threads,
                               depth=depth, pin=p.device.type == "cuda")
-        self.stage = stage = _StitchStage(self, stitch_in_thread(p.device))
+        # the shadow step runs with the stitching: in the stage's thread, so that this one goes on driving the
+        # engine (its MC decoding waits for this thread) while a batch's shadows are computed
+        self.stage = stage = _StitchStage(self, stitch_in_thread(p.device) or p.shadows is not None)
         try:
             with reader:
                 waiting: list[ReadWindow] = []  # read windows not yet handed to the stitcher, in plan order
@@ -460,7 +462,8 @@ class _StripLoop:
             stage.finish()
         finally:
             stage.stop()
-        self.timings["stitch_write"] = stage.seconds  # in its own thread: overlaps ``model``
+        # in its own thread (overlapping ``model``), the shadow step's seconds apart
+        self.timings["stitch_write"] = stage.seconds - self.timings.get("shadows", 0.0)
 
     def submit(self, windows: list[ReadWindow], todo: list[ReadWindow]) -> None:
         """Queue ``windows``, starting the statistics of those with data (``todo``) on the engine."""
@@ -486,8 +489,6 @@ class _StripLoop:
             check_finite_outputs(stats, valid, self.p.checkpoint_name)
             check_height_range(stats, valid, self.p.checkpoint_name, self.p.meta)
             self.timings["model"] += time.perf_counter() - t0
-            if self.p.shadows is not None:
-                self.shadows(windows, stats, valid)
         assert self.stage is not None
         self.stage.put((windows, stats, valid))
 
@@ -509,10 +510,14 @@ class _StripLoop:
         self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:
-        """Hand ``windows`` to the stitcher and the finished blocks to ``write`` (by :class:`_StitchStage`).
+        """Hand ``windows`` to the stitcher and the finished blocks to ``write`` (by :class:`_StitchStage`), after
+        the shadow step where it is on (:meth:`shadows`: it may move the heights, with fusion, so it comes first).
 
         ``stats`` holds the statistics of the windows with data, in order.
         """
+        if stats is not None and self.p.shadows is not None:
+            assert valid is not None
+            self.shadows(windows, stats, valid)
         n = 0
         for w in windows:
             if w.data is None:
@@ -531,7 +536,9 @@ class _StripLoop:
 STITCH_QUEUE = 2
 #: Host cores from which a CPU run stitches in a thread of its own (a CUDA run always does: the host then only
 #: feeds the device). On 2 cores shared with other work the thread gained nothing and cost 8 % more CPU time and
-#: ~180 MiB (near-null pipeline, 8192², T = 1, load 15; issue 46), so fewer cores stitch in the model loop.
+#: ~180 MiB (near-null pipeline, 8192², T = 1, load 15; issue 46), so fewer cores stitch in the model loop, unless
+#: the shadow step is on: it runs in the stage (:meth:`_StripLoop.flush`), and in the loop it kept the engine's MC
+#: decoding waiting (2 cores, 2048², T = 8: +16 % for the shadow layers inline, see bench/results/predict.md).
 STITCH_THREAD_CORES = 4
 _END = None
 
