@@ -8,25 +8,14 @@ import math
 
 import numpy as np
 
-from aerialmtl.errors import InputError
 from aerialmtl.sun.cast import line_offsets, sun_steps
 from aerialmtl.sun.heights import MAD_TO_SD, ShadowHeights, ShadowObject, majority
 from aerialmtl.sun.position import Sun
 
 
-def shadow_runs_numpy(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun: Sun,
-                max_steps: int, gap_px: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Shadow runs from every object's shadow-casting edge.
-
-    Args:
-        shadow: bool (H, W) shadow pixels. known: bool (H, W) pixels whose shadow state is known.
-        objects: int (H, W) labels, 0 = no object. sun: the sun. max_steps: longest run walked, in steps.
-        gap_px: lit pixels a run may cross and go on (a run ends at its last shadow pixel before more lit ones).
-
-    Returns:
-        ``(label, length, ok, rc)``: per edge pixel its object label, the run length in steps (int), whether
-        the run is a measurement, and its (row, col) as an int (n, 2) array.
-    """
+def shadow_runs_numpy(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun: Sun, max_steps: int,
+                      gap_px: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`aerialmtl.sun.heights.shadow_runs` as first written: one numpy pass per step over the runs."""
     h, w = objects.shape
     rows_dom, step, slope = sun_steps(sun.azimuth_deg)
     step, slope = -step, -slope  # away from the sun
@@ -70,11 +59,8 @@ def shadow_runs_numpy(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray
 
 
 def occluder_steps_numpy(height: np.ndarray, objects: np.ndarray, rc: np.ndarray, lab: np.ndarray, sun: Sun,
-                   q: float, max_steps: int) -> np.ndarray:
-    """Steps from each edge pixel towards the sun, inside its own object, to the pixel whose sun ray reaches
-    furthest: ``argmax_j h(p + j·u) − j·q`` (``q`` = height per step of shadow). 0 on a flat roof (the edge casts
-    the shadow's end), near the top of a crown. int (n,).
-    """
+                         q: float, max_steps: int) -> np.ndarray:
+    """:func:`aerialmtl.sun.heights.occluder_steps` as first written: one numpy pass per step."""
     h, w = objects.shape
     rows_dom, step, slope = sun_steps(sun.azimuth_deg)
     cross = line_offsets(max_steps + 2, slope)
@@ -101,35 +87,21 @@ def occluder_steps_numpy(height: np.ndarray, objects: np.ndarray, rc: np.ndarray
 
 
 def shadow_heights_numpy(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.ndarray, *,
-                   height: np.ndarray | None = None, threshold: float = 0.5, smooth_px: int = 3, gap_px: int = 1,
-                   min_runs: int = 3, max_height_m: float = 150.0,
-                   elevation_sd_deg: float = 3.0) -> ShadowHeights:
+                         height: np.ndarray | None = None, threshold: float = 0.5, smooth_px: int = 3,
+                         gap_px: int = 1, min_runs: int = 3, max_height_m: float = 150.0,
+                         elevation_sd_deg: float = 3.0) -> ShadowHeights:
     """:func:`aerialmtl.sun.shadow_heights` as first written (a loop over the objects for the medians)."""
-    prob = np.asarray(shadow_prob)
+    # the inputs as the tests give them (float probabilities, integer labels): no checks, no bool masks
     labels = np.asarray(objects)
-    if prob.shape != labels.shape or prob.ndim != 2:
-        raise InputError(f"'shadow_prob' and 'objects' must be (H, W) rasters of one shape, got {prob.shape} and "
-                         f"{labels.shape}")
-    if not np.issubdtype(labels.dtype, np.integer):
-        raise InputError(f"'objects' must hold integer labels (0 = no object), got dtype {labels.dtype}")
-    if prob.dtype == bool:
-        shadow, known = prob, np.ones(prob.shape, bool)
-    else:
-        p = prob.astype(np.float32, copy=False)
-        known = np.isfinite(p)
-        shadow = known & (p >= threshold)
-    if smooth_px > 1:
-        shadow = majority(shadow, int(smooth_px)) & known
-    _, _, slope = sun_steps(sun.azimuth_deg)
-    per_step = gsd_m * math.hypot(1.0, slope)
-    q = per_step * sun.tan_elevation
+    p = np.asarray(shadow_prob, dtype=np.float32)
+    known = np.isfinite(p)
+    shadow = majority(known & (p >= threshold), int(smooth_px)) & known if smooth_px > 1 else known & (p >= threshold)
+    q = gsd_m * math.hypot(1.0, sun_steps(sun.azimuth_deg)[2]) * sun.tan_elevation
     max_steps = max(1, int(math.ceil(max_height_m / q)))
     lab, length, ok, rc = shadow_runs_numpy(shadow, known, labels, sun, max_steps, gap_px)
     if height is not None:
-        hmap = np.asarray(height, dtype=np.float32)
-        if hmap.shape != labels.shape:
-            raise InputError(f"'height' must be (H, W) like 'objects', got {hmap.shape} and {labels.shape}")
-        length = length + np.where(ok, occluder_steps_numpy(hmap, labels, rc, lab, sun, q, max_steps), 0)
+        steps = occluder_steps_numpy(np.asarray(height, dtype=np.float32), labels, rc, lab, sun, q, max_steps)
+        length = length + np.where(ok, steps, 0)
     e = math.tan(math.radians(min(sun.elevation_deg + elevation_sd_deg, 89.9))) / sun.tan_elevation - 1.0
     all_labels = np.unique(labels[labels != 0])
     n_edges = dict(zip(*np.unique(lab, return_counts=True)))
