@@ -1,11 +1,12 @@
 """Heights from the sun: shadow geometry that needs no training data.
 
 An object of height ``h`` casts a shadow ``h / tan(elevation)`` long away from the sun's azimuth, and the
-sun is one pair of numbers for a whole flight. This package (numpy and scipy only) casts shadows from known
-heights (:func:`cast_shadow_mask`), scores how shadow-like pixels look (:func:`shadow_score`,
-:class:`ShadowModel`), fits the sun on an area with reference heights (:func:`fit_sun`), measures heights
-from shadow runs next to objects (:func:`shadow_heights`) and fuses them into a height map inside objects
-only (:func:`fuse_heights`). Angles: azimuth towards the sun, clockwise from grid north; rasters north-up.
+sun is one pair of numbers for a whole flight. This package (numpy and scipy; its per-pixel loops compiled with
+numba, :mod:`aerialmtl.sun.kernels`) casts shadows from known heights (:func:`cast_shadow_mask`), scores how
+shadow-like pixels look (:func:`shadow_score`, :class:`ShadowModel`), fits the sun on an area with reference
+heights (:func:`fit_sun`), measures heights from shadow runs next to objects (:func:`shadow_heights`) and fuses
+them into a height map inside objects only (:func:`fuse_heights`). Angles: azimuth towards the sun, clockwise
+from grid north; rasters north-up.
 A differentiable cast shadow for self-supervised steps is in :mod:`aerialmtl.sun.soft` (imports torch; not
 imported here).
 """
