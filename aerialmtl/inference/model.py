@@ -442,7 +442,9 @@ class _StripLoop:
         reader = WindowReader(src, list(p.meta.bands), todo_rows, aoi_mask, threads=p.settings.reader_threads,
                               depth=depth, pin=p.device.type == "cuda")
         # the shadow step runs with the stitching: in the stage's thread, so that this one goes on driving the
-        # engine (its MC decoding waits for this thread) while a batch's shadows are computed
+        # engine (its MC decoding waits for this thread) while a batch's shadows are computed; the input's sun is
+        # chosen (and said, or refused) here first, before any window
+        p.sun_for(src)
         self.stage = stage = _StitchStage(self, stitch_in_thread(p.device) or p.shadows is not None)
         try:
             with reader:

@@ -31,6 +31,7 @@ from scipy import ndimage
 
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.sun import ShadowModel, Sun, fuse_heights, shadow_heights
+from aerialmtl.sun.colour import unit_rgb
 
 #: Pixels the network predicts at least this high (metres) form its objects.
 OBJECT_MIN_M = 2.0
@@ -38,18 +39,15 @@ OBJECT_MIN_M = 2.0
 
 def unit_colours(data: np.ndarray, rescale: tuple[float, float] | None, train_dtype: str | None) -> np.ndarray:
     """float32 (3, h, w) colours of a window's raw values ``data`` (3, h, w) as the shadow classifier was fitted
-    on them: the values the model trained on (``rescale`` = ``--rescale-input``'s ``(a, b)``: ``a·x + b``) over the
-    largest value of the training data's integer type ``train_dtype`` (as :func:`aerialmtl.sun.colour.unit_rgb`
-    scaled the training patches; float training data is taken as it is), whatever this orthophoto's own type: a
-    uint16 orthophoto holding 8-bit values is read as 8-bit values, not as 1/257 of them.
+    on them: the values the model trained on (``rescale`` = ``--rescale-input``'s ``(a, b)``: ``a·x + b``) on the
+    scale of the training data's type ``train_dtype`` (:func:`aerialmtl.sun.colour.unit_rgb`, as it scaled the
+    training patches), whatever this orthophoto's own type: a uint16 orthophoto holding 8-bit values is read as
+    8-bit values, not as 1/257 of them.
     """
     x = data.astype(np.float32)
     if rescale is not None:
         x = x * np.float32(rescale[0]) + np.float32(rescale[1])
-    kind = np.dtype(train_dtype or "uint8")
-    if np.issubdtype(kind, np.integer):
-        x = (x / np.float32(np.iinfo(kind).max)).astype(np.float32)
-    return x
+    return unit_rgb(x, train_dtype or "uint8")
 
 
 class _Window(NamedTuple):

@@ -26,14 +26,19 @@ from aerialmtl.sun.position import Sun, as_float, as_floats
 _EPS = 0.05
 
 
-def unit_rgb(rgb: np.ndarray) -> np.ndarray:
-    """float32 (3, H, W) in 0–1 from uint8/uint16 (divided by the dtype's maximum) or float (taken as 0–1)."""
+def unit_rgb(rgb: np.ndarray, scale: str | np.dtype | None = None) -> np.ndarray:
+    """float32 (3, H, W) in 0–1 from uint8/uint16 (divided by the dtype's maximum) or float (taken as 0–1).
+
+    ``scale``: the type whose values ``rgb`` holds, when not its own (values of a uint8 area held in a uint16 or
+    float array: divided by 255); a float type takes them as they are.
+    """
     a = np.asarray(rgb)
     if a.ndim != 3 or a.shape[0] != 3:
         raise InputError(f"'rgb' must be a (3, H, W) image, got shape {a.shape}")
+    kind = a.dtype if scale is None else np.dtype(scale)
     out: np.ndarray
-    if np.issubdtype(a.dtype, np.integer):
-        out = (a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
+    if np.issubdtype(kind, np.integer):
+        out = (a.astype(np.float32) / np.float32(np.iinfo(kind).max)).astype(np.float32)
     else:
         out = a.astype(np.float32, copy=False)
     return out
