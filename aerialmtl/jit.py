@@ -1,9 +1,10 @@
 """numba kernels whose machine code is kept in the package's ``numba`` store: :func:`jit`.
 
 The package's compiled kernels (the MC class kernel, :mod:`aerialmtl.models.class_kernel_jit`; the shadow
-step's kernels, :mod:`aerialmtl.sun.kernels`) are ``numba.njit`` functions defined at module level, so that numba's
-cache finds them again in the next process (a kernel made inside a function is a new object in every process, and
-numba then compiled and cached it anew each time). Importing this module imports numba (~0.3 s): modules that use
+step's kernels, :mod:`aerialmtl.sun.kernels`; a CPU run's training batches, :mod:`aerialmtl.data.assemble`) are
+``numba.njit`` functions defined at module level, so that numba's cache finds them again in the next process (a
+kernel made inside a function is a new object in every process, and numba then compiled and cached it anew each
+time). Importing this module imports numba (~0.3 s): modules that use
 it are imported only when a run needs their kernels.
 
 The machine code is kept in the package's ``numba`` store (:func:`aerialmtl.stores.store_folder`; e.g.

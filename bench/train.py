@@ -23,6 +23,7 @@ import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import torch
 from _training import town_tiles  # bench/ is the script's folder: on sys.path when run as `python bench/train.py`
@@ -117,9 +118,12 @@ def geotiff_loader(tiles: Path, batch: int, workers: int, device: torch.device) 
 
 
 def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) -> Iterator[dict]:
-    """The training data path: patch cache → compact batches (workers) → device → normalise + augment there."""
+    """The training data path as the trainer builds it: on a CPU one thread assembles finished batches from the
+    patch cache; on a GPU compact batches from workers → device → normalise + augment there.
+    """
     from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, prepare_batch
     from aerialmtl.data.cache import PatchCache, ensure_patch_cache
+    from aerialmtl.data.prefetch import AssembledBatches
     from aerialmtl.data.transforms import build_train_transform
     from aerialmtl.formats.tiles import TileFolderInfo, cache_dir
 
@@ -128,11 +132,15 @@ def cache_loader(tiles: Path, batch: int, workers: int, device: torch.device) ->
     transform = build_train_transform(True, True, True, None)
     mean = torch.tensor(info.mean, device=device)
     std = torch.tensor(info.std, device=device)
-    in_workers = (mean.cpu(), std.cpu()) if device.type == "cpu" and workers > 0 else None  # as the trainer does
-    loader = torch.utils.data.DataLoader(
-        CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks, in_workers),
-        sampler=RankBatchSampler(EpochOrder(index.count, batch, 0), 0, 0, 0), batch_size=None, num_workers=workers,
-        pin_memory=device.type == "cuda", generator=torch.Generator().manual_seed(0))
+    cache = PatchCache(cache_dir(tiles), index)
+    sampler = RankBatchSampler(EpochOrder(index.count, batch, 0), 0, 0, 0)
+    loader: Any
+    if device.type == "cpu":  # as the trainer does
+        loader = AssembledBatches(cache, transform, info.tasks, sampler, mean, std)
+    else:
+        loader = torch.utils.data.DataLoader(
+            CachedBatches(cache, transform, info.tasks), sampler=sampler, batch_size=None, num_workers=workers,
+            pin_memory=True, generator=torch.Generator().manual_seed(0))
     for raw in loader:
         yield prepare_batch(raw, transform, mean, std, device)
 

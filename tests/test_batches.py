@@ -11,9 +11,17 @@ import rasterio
 import torch
 from helpers.tilefolder import write_tile_folder
 
-from aerialmtl.data.batches import CachedBatches, EpochOrder, eval_batches, item_seed, prepare_batch
+from aerialmtl.data.batches import (
+    CachedBatches,
+    EpochOrder,
+    eval_batches,
+    finish_on_device,
+    item_seed,
+    prepare_batch,
+)
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.dataset import PatchDataset
+from aerialmtl.data.prefetch import AssembledBatches
 from aerialmtl.data.transforms import build_eval_transform, build_train_transform
 from aerialmtl.errors import InputError, OutputError
 from aerialmtl.formats.tiles import PatchCacheIndex, TileFolderInfo, cache_dir, cache_file, read_manifest
@@ -44,26 +52,33 @@ def _reference(tiles: Path, split: str, transform, spec) -> dict[str, torch.Tens
     return {k: torch.stack([s[k] for s in samples]) for k in ("image", "height", "height_valid", "classes")}
 
 
-def _cached(tiles: Path, split: str, transform, spec, in_worker: bool = False) -> dict[str, torch.Tensor]:
-    """The training path: cache → compact batch → finished on the device (or in the worker, on CPUs)."""
+def _cached(tiles: Path, split: str, transform, spec, path: str = "cpu") -> dict[str, torch.Tensor]:
+    """The training path: cache → compact batch → finished by torch ("device": what a GPU does) or in one
+    compiled pass ("cpu"), or assembled straight from the cache by the CPU loader ("thread").
+    """
     info = TileFolderInfo.read(tiles)
     index = ensure_patch_cache(info, split)
     mean, std = torch.tensor(info.mean), torch.tensor(info.std)
-    raw = CachedBatches(PatchCache(cache_dir(tiles), index), transform, info.tasks,
-                        (mean, std) if in_worker else None)[spec]
-    assert ("ready" in raw) == in_worker
+    cache = PatchCache(cache_dir(tiles), index)
+    if path == "thread":
+        (item,) = list(AssembledBatches(cache, transform, info.tasks, [spec], mean, std))
+        return {k: v.clone() for k, v in prepare_batch(item, transform, mean, std, torch.device("cpu")).items()}
+    raw = CachedBatches(cache, transform, info.tasks)[spec]
+    if path == "device":
+        return finish_on_device(raw["data"], raw["params"], transform, mean, std)
     return prepare_batch(raw, transform, mean, std, torch.device("cpu"))
 
 
-@pytest.mark.parametrize("dtype,crop,in_worker", [("uint8", None, False), ("uint8", 32, False),
-                                                   ("uint16", None, False), ("uint16", 32, True)])
-def test_cached_batches_equal_the_per_sample_geotiff_path(tiles: Path, dtype: str, crop: int | None,
-                                                          in_worker: bool) -> None:
+@pytest.mark.parametrize("path", ["device", "cpu", "thread"])
+@pytest.mark.parametrize("jitter", [False, True])
+@pytest.mark.parametrize("dtype,crop", [("uint8", None), ("uint8", 32), ("uint16", None), ("uint16", 32)])
+def test_cached_batches_equal_the_per_sample_geotiff_path(tiles: Path, dtype: str, crop: int | None, jitter: bool,
+                                                          path: str) -> None:
     if dtype == "uint16":
         _uint16(tiles)
-    transform = build_train_transform(flips=True, rot90=True, jitter=True, crop_size=crop)
+    transform = build_train_transform(flips=True, rot90=True, jitter=jitter, crop_size=crop)
     spec = [(i, item_seed(0, 3, p)) for p, i in enumerate([5, 0, 2, 2, 1, 3, 4, 0])]  # patch 0 has invalid pixels
-    got = _cached(tiles, "train", transform, spec, in_worker)
+    got = _cached(tiles, "train", transform, spec, path)
     ref = _reference(tiles, "train", transform, spec)
     assert got["image"].is_contiguous(memory_format=torch.channels_last)
     side = crop or 64
@@ -75,10 +90,11 @@ def test_cached_batches_equal_the_per_sample_geotiff_path(tiles: Path, dtype: st
     assert len({tuple(x.flatten()[:50].tolist()) for x in got["classes"]}) > 4
 
 
-def test_validation_batches_equal_patch_dataset(tiles: Path) -> None:
+@pytest.mark.parametrize("path", ["device", "cpu", "thread"])
+def test_validation_batches_equal_patch_dataset(tiles: Path, path: str) -> None:
     transform = build_eval_transform(32)
     spec = [(i, 0) for i in range(3)]
-    got, ref = _cached(tiles, "val", transform, spec), _reference(tiles, "val", transform, spec)
+    got, ref = _cached(tiles, "val", transform, spec, path), _reference(tiles, "val", transform, spec)
     for key in ("image", "height", "height_valid", "classes"):
         assert torch.equal(got[key], ref[key]), key
 

@@ -9,7 +9,9 @@ import pytest
 import torch
 from helpers.tilefolder import write_tile_folder
 
+from aerialmtl.data.batches import CachedBatches
 from aerialmtl.data.copy_paste import SEED_SALT, CopyPaste, CopyPaster, Placement, build_object_bank, find_objects
+from aerialmtl.data.prefetch import AssembledBatches
 from aerialmtl.errors import ConfigError
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.loop import train
@@ -132,25 +134,35 @@ def _cfg(**data: object) -> TrainConfig:
 
 
 def _first_batches(cfg: TrainConfig, tiles: Path, out: Path, n: int = 3) -> list[dict[str, torch.Tensor]]:
+    """The run's first ``n`` training batches, finished (kept: copied out of the loader's reused buffers)."""
     setup = prepare_training(cfg, tiles, out, progress=False)
     it = iter(setup.loaders.train_loader)
-    return [next(it) for _ in range(n)]
+    return [{k: v.clone() for k, v in next(it)["ready"].items()} for _ in range(n)]
+
+
+def _first_params(cfg: TrainConfig, tiles: Path, out: Path) -> dict[str, torch.Tensor]:
+    """The augmentation parameters of the run's first batch, as its loader draws them around the pasting."""
+    setup = prepare_training(cfg, tiles, out, progress=False)
+    loader = setup.loaders.train_loader
+    assert isinstance(loader, AssembledBatches)  # a CPU run
+    spec = next(iter(loader.specs))
+    return CachedBatches(loader.cache, loader.transform, ("height", "classes"), loader.paster)[spec]["params"]
 
 
 def test_off_by_default_gives_bit_equal_training_batches(tiles: Path, tmp_path: Path) -> None:
     plain = _first_batches(_cfg(), tiles, tmp_path / "a")
     zero = _first_batches(_cfg(copy_paste={"prob": 0.0, "max_objects": 5}), tiles, tmp_path / "b")
-    on = _first_batches(_cfg(copy_paste={"prob": 1.0, "min_height_m": 3.0, "margin_m": 0.5, "margin_ratio": 0.0}),
-                        tiles, tmp_path / "c")
+    on_cfg = _cfg(copy_paste={"prob": 1.0, "min_height_m": 3.0, "margin_m": 0.5, "margin_ratio": 0.0})
+    on = _first_batches(on_cfg, tiles, tmp_path / "c")
 
     def same(x: list[dict[str, torch.Tensor]], y: list[dict[str, torch.Tensor]]) -> bool:
-        # bit for bit (heights hold NaN where invalid, which == would call different)
-        return all(a["data"][k].numpy().tobytes() == b["data"][k].numpy().tobytes() for a, b in zip(x, y)
-                   for k in a["data"])
+        return all(torch.equal(a[k], b[k]) for a, b in zip(x, y) for k in a)
 
     assert same(plain, zero)
     assert not same(plain, on)
-    assert all(torch.equal(a["params"][k], b["params"][k]) for a, b in zip(plain, on) for k in a["params"])
+    # pasting draws from its own generator: the flips and rotations of every sample stay those of a plain run
+    p_plain, p_on = _first_params(_cfg(), tiles, tmp_path / "d"), _first_params(on_cfg, tiles, tmp_path / "e")
+    assert all(torch.equal(p_plain[k], p_on[k]) for k in p_plain)
 
 
 def test_training_with_copy_paste_runs_and_needs_heights(tiles: Path, tmp_path: Path) -> None:

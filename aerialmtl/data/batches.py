@@ -7,16 +7,17 @@ The data path of ``aerialmtl train``:
    one dropped); rank r takes the r-th ``batch_size`` slice of each global batch. Each patch's augmentation
    is seeded by its position in the run (:func:`item_seed`), so neither the number of DataLoader workers
    nor the number of processes nor a resume changes what a given position sees.
-2. :class:`CachedBatches` (in DataLoader workers) draws every sample's augmentation parameters on the CPU,
+2. :class:`CachedBatches` (in DataLoader workers, on a GPU run) draws every sample's augmentation parameters on the CPU,
    cuts crops while copying the patches out of the memory-mapped cache (:class:`~aerialmtl.data.cache.PatchCache`)
    and returns compact tensors: the raw image in its own dtype (uint8/uint16), uint8 validity and classes,
    float32 heights.
 3. :func:`prepare_batch` (in the training process) copies them to the device (pinned memory,
    ``non_blocking``), flips/rotates the compact arrays there, normalises
    (:func:`~aerialmtl.data.dataset.normalise_batch`), jitters (:meth:`~aerialmtl.data.transforms.Compose.apply`)
-   and returns a :class:`~aerialmtl.data.types.Sample` batch with the image in ``channels_last``.
-   Training on a CPU with DataLoader workers runs this step in the workers instead (one thread each), so
-   the main process only computes the model.
+   and returns a :class:`~aerialmtl.data.types.Sample` batch with the image in ``channels_last``
+   (:func:`finish_on_device`). On a CPU it does the same in one compiled pass (:func:`finish_on_cpu`); training
+   on a CPU takes its batches from :class:`~aerialmtl.data.prefetch.AssembledBatches` instead, which reads the
+   cache and finishes the batch in that one pass in a thread of the training process, with no worker processes.
 
 The result equals what :class:`~aerialmtl.data.dataset.PatchDataset` plus the per-sample transforms give
 for the same patches and seeds (tests/test_batches.py compares them).
@@ -24,7 +25,7 @@ for the same patches and seeds (tests/test_batches.py compares them).
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,7 +34,7 @@ import torch
 from aerialmtl.data.cache import PatchCache
 from aerialmtl.data.copy_paste import CopyPaster
 from aerialmtl.data.dataset import normalise_batch
-from aerialmtl.data.transforms import Compose, stack_params
+from aerialmtl.data.transforms import Compose, Params, stack_params
 from aerialmtl.errors import InputError
 
 #: One batch as the sampler describes it: ``(patch index, augmentation seed)`` per sample.
@@ -141,17 +142,13 @@ class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
         transform: the augmentation pipeline (:func:`~aerialmtl.data.transforms.build_train_transform` or
             ``build_eval_transform``).
         tasks: reference layers to load (``height`` and/or ``classes``; absent ones are skipped).
-        normalisation: ``(mean, std)`` to finish the batch here (:func:`prepare_batch` on the CPU, in the
-            worker): what training on a CPU does, so that workers augment while the main process computes.
-            ``None`` (training on a GPU): return the compact arrays for the device to finish.
         paster: pastes banked objects into the gathered (cropped) patches before the other augmentations
             (:mod:`aerialmtl.data.copy_paste`); ``None``: no copy-paste.
     """
 
     def __init__(self, cache: PatchCache, transform: Compose, tasks: Sequence[str],
-                 normalisation: tuple[torch.Tensor, torch.Tensor] | None = None,
                  paster: CopyPaster | None = None) -> None:
-        self.cache, self.transform, self.normalisation, self.paster = cache, transform, normalisation, paster
+        self.cache, self.transform, self.paster = cache, transform, paster
         self.layers = ("image", "image_valid") + tuple(t for t in tasks if t in cache.layers)
 
     def __len__(self) -> int:
@@ -170,19 +167,19 @@ class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
             data = self.cache.gather(indices, list(zip(rows.tolist(), cols.tolist())), size)
         if self.paster is not None:
             data = self.paster.paste(data, spec)
-        raw = {"data": {k: v for k, v in data.items() if k in self.layers}, "params": params}
-        if self.normalisation is None:
-            return raw
-        return {"ready": prepare_batch(raw, self.transform, *self.normalisation, torch.device("cpu"))}
+        return {"data": {k: v for k, v in data.items() if k in self.layers}, "params": params}
 
 
 def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, std: torch.Tensor,
                   device: torch.device) -> dict[str, torch.Tensor]:
     """A batch from :class:`CachedBatches` → normalised, augmented Sample tensors on ``device``.
 
+    On a CPU the batch is finished in one compiled pass (:func:`finish_on_cpu`), on another device by torch
+    there (:func:`finish_on_device`): the same tensors to the bit.
+
     Args:
-        raw: the DataLoader's item (``data`` and ``params``; or ``ready``, a batch finished on the CPU,
-            which is only moved).
+        raw: the loader's item: ``data`` and ``params`` from :class:`CachedBatches`, or ``ready``, a batch
+            already finished (:class:`~aerialmtl.data.prefetch.AssembledBatches`), which is only moved.
         transform: the same pipeline the dataset drew the parameters for.
         mean, std: (C,) float32 normalisation (on ``device`` to avoid a copy per batch).
         device: the training device.
@@ -193,13 +190,66 @@ def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, s
     """
     if "ready" in raw:
         return {k: v.to(device, non_blocking=True) for k, v in raw["ready"].items()}
+    if device.type == "cpu":
+        data = raw["data"]
+        b, _, h, w = data["image"].shape
+        return finish_on_cpu(data, range(b), ([0] * b, [0] * b), (h, w), raw["params"], transform, mean, std)
     data = {k: v.to(device, non_blocking=True) for k, v in raw["data"].items()}
-    data = transform.apply(data, raw["params"], stages=("permute",))  # on the compact arrays
+    return finish_on_device(data, raw["params"], transform, mean, std)
+
+
+def finish_on_device(data: dict[str, torch.Tensor], params: Params, transform: Compose, mean: torch.Tensor,
+                     std: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Flip/rotate the compact arrays where they are, normalise, jitter, image to ``channels_last`` (torch ops).
+
+    Args:
+        data: the compact batch of :meth:`~aerialmtl.data.cache.PatchCache.gather` (crops already cut), on the
+            device.
+        params: the samples' stacked augmentation parameters.
+        transform, mean, std: as :func:`prepare_batch`.
+    """
+    data = transform.apply(data, params, stages=("permute",))  # on the compact arrays
     batch = normalise_batch(data["image"], data["image_valid"], mean, std, data.get("height"), data.get("classes"))
-    batch = transform.apply(batch, raw["params"], stages=("value",))
+    batch = transform.apply(batch, params, stages=("value",))
     batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
     return batch
 
 
+def finish_on_cpu(source: Mapping[str, Any], index: Sequence[int], corners: tuple[Any, Any],
+                  window: tuple[int, int], params: Params, transform: Compose, mean: torch.Tensor, std: torch.Tensor,
+                  out: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+    """:func:`finish_on_device`'s batch made on the CPU in one pass (:func:`~aerialmtl.data.assemble.assemble_batch`).
+
+    Args:
+        source: ``image``, ``image_valid`` and the reference layers, (N, …) arrays or tensors: a compact batch
+            (crops cut) or the cache's memory maps (:meth:`~aerialmtl.data.cache.PatchCache.arrays`).
+        index: (B,) the samples' patches in ``source``.
+        corners: (rows, cols), each (B,) ints (sequences or arrays): the top-left of each sample's window in its
+            patch.
+        window: (h, w) of the windows (before the flips and rotations).
+        params, transform, mean, std: as :func:`finish_on_device`.
+        out: buffers of :func:`~aerialmtl.data.assemble.empty_batch` to fill (a loader reuses them); ``None``:
+            new ones.
+
+    Returns:
+        The tensors of :func:`prepare_batch`, equal to the bit to :func:`finish_on_device`'s for the same samples.
+    """
+    from aerialmtl.data.assemble import assemble_batch, empty_batch
+
+    b = len(index)
+    moves = transform.sample_moves(params, b)
+    jitter = transform.has_stage("value")
+    if out is None:
+        side = window[::-1] if moves and moves[0][0] else window
+        out = empty_batch(b, int(source["image"].shape[1]), side, [k for k in ("height", "classes") if k in source],
+                          channels_last=not jitter)
+    arrays = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in source.items()}
+    batch = assemble_batch(arrays, index, corners[0], corners[1], moves, mean.cpu().numpy(), std.cpu().numpy(), out)
+    if jitter:  # on the contiguous image, as on a device
+        batch = transform.apply(dict(batch), params, stages=("value",))
+        batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
+    return batch
+
+
 __all__ = ["item_seed", "EpochOrder", "RankBatchSampler", "eval_batches", "CachedBatches", "prepare_batch",
-           "BatchSpec"]
+           "finish_on_device", "finish_on_cpu", "BatchSpec"]

@@ -357,6 +357,9 @@ class Compose(BatchTransform):
         """Apply the flips/rotations at ``indices`` (consecutive in the pipeline) as one move per sample."""
         if len(indices) < 2:
             return self.transforms[indices[0]].apply(batch, self._params(params, indices[0])) if indices else batch
+        return _per_sample(batch, [_move_op(m) for m in self._moves(params, indices)])
+
+    def _moves(self, params: Params, indices: list[int]) -> list[Move]:
         moves: list[Move] | None = None
         for i in indices:
             t = self.transforms[i]
@@ -364,7 +367,21 @@ class Compose(BatchTransform):
             step = t.moves(self._params(params, i))
             moves = step if moves is None else [_then(a, b) for a, b in zip(moves, step)]
         assert moves is not None
-        return _per_sample(batch, [_move_op(m) for m in moves])
+        return moves
+
+    def sample_moves(self, params: Params, batch: int) -> list[Move]:
+        """Each sample's flips and quarter turns (the ``permute`` stage) composed into one :data:`Move`.
+
+        Args:
+            params: stacked parameters of ``batch`` samples.
+            batch: the number of samples (the identity for each when the pipeline has no flip or rotation).
+        """
+        indices = [i for i, t in enumerate(self.transforms) if isinstance(t, (RandomFlip, RandomRot90))]
+        return self._moves(params, indices) if indices else [(False, frozenset())] * batch
+
+    def has_stage(self, stage: str) -> bool:
+        """Whether a transform of ``stage`` is in the pipeline."""
+        return any(t.stage == stage for t in self.transforms)
 
     def __call__(self, sample: Sample, generator: torch.Generator | None = None) -> Sample:
         """Apply every transform to one sample, in order."""
@@ -401,4 +418,4 @@ def build_eval_transform(crop_size: int | None = None) -> Compose:
 
 __all__ = ["BatchTransform", "RandomFlip", "RandomRot90", "RandomCrop", "CenterCrop", "PhotometricJitter",
            "Compose", "stack_params", "build_train_transform", "build_eval_transform", "SPATIAL_KEYS", "STAGES",
-           "Params"]
+           "Params", "Move"]

@@ -59,7 +59,7 @@ def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | P
     mean = torch.tensor(meta.mean, dtype=torch.float32, device=dev)
     std = torch.tensor(meta.std, dtype=torch.float32, device=dev)
     transform = build_eval_transform(None)
-    data = CachedBatches(PatchCache(folder, index), transform, ("height",), None)
+    data = CachedBatches(PatchCache(folder, index), transform, ("height",))
     preds, refs, stds, patches = [], [], [], []
     model = model.to(dev).eval()
     first = 0

@@ -106,7 +106,10 @@ class DataSection:
         dir: tile folder written by ``aerialmtl tile`` (``--data`` overrides it).
         batch_size: patches per optimisation step and process (with ``torchrun --nproc_per_node N``
             a step uses ``N × batch_size`` patches).
-        num_workers: DataLoader worker processes (0 = load in the main process).
+        num_workers: DataLoader worker processes of a GPU run (0 = load in the main process), and the processes
+            that decode the patch cache on first use. A CPU run takes its batches from one thread of the training
+            process instead (:mod:`aerialmtl.data.prefetch`: cheaper than worker processes on the cores the step
+            uses).
         flips, rot90: random horizontal/vertical flips and 90° rotations.
         jitter: photometric jitter (contrast/brightness in normalised space).
         crop_size: random crop side in pixels (multiple of 32), ``None`` = whole patches.

@@ -62,7 +62,7 @@ def feature_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path
     std = torch.tensor(meta.std, dtype=torch.float32, device=dev)
     transform = build_eval_transform(None)
     tasks = tuple(t for t in ("height",) if t in info.tasks)
-    data = CachedBatches(PatchCache(folder, index), transform, tasks, None)
+    data = CachedBatches(PatchCache(folder, index), transform, tasks)
     model = model.to(dev).eval()
     feats, heights, patches = [], [], []
     stride = 1

@@ -42,6 +42,7 @@ from aerialmtl.config import to_dict
 from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, eval_batches
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.copy_paste import CopyPaster, build_object_bank
+from aerialmtl.data.prefetch import AssembledBatches
 from aerialmtl.data.transforms import Compose, build_eval_transform, build_train_transform
 from aerialmtl.errors import CheckpointError, ConfigError, OutputError, cause
 from aerialmtl.formats.checkpoint import (
@@ -382,6 +383,11 @@ def seed_rank_stream(cfg: TrainConfig, ctx: runtime.Torchrun, step: int, saved: 
 
 
 # ---- the data loaders ---------------------------------------------------------------------------------
+#: A run's batches: assembled by a thread on a CPU (:class:`~aerialmtl.data.prefetch.AssembledBatches`), loaded by
+#: DataLoader workers and finished on the device otherwise.
+Batches = AssembledBatches | torch.utils.data.DataLoader[dict[str, Any]]
+
+
 @dataclass(frozen=True)
 class Loaders:
     """The batches of a run, from its starting position.
@@ -390,7 +396,7 @@ class Loaders:
         order: which patches each step uses (:class:`~aerialmtl.data.batches.EpochOrder`).
         train_transform, eval_transform: the augmentations of training / the crop of validation.
         mean, std: (C,) per-band normalisation on the device.
-        train_loader: this process's training batches from the state's epoch and position.
+        train_loader: this process's training batches from the state's epoch and position (:data:`Batches`).
         val_loader: its share of the val split (``None``: no val split).
     """
 
@@ -399,8 +405,8 @@ class Loaders:
     eval_transform: Compose
     mean: torch.Tensor
     std: torch.Tensor
-    train_loader: torch.utils.data.DataLoader[dict[str, Any]]
-    val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None
+    train_loader: Batches
+    val_loader: Batches | None
 
 
 def build_loaders(cfg: TrainConfig, data: TrainData, device: torch.device, ctx: runtime.Torchrun,
@@ -412,23 +418,30 @@ def build_loaders(cfg: TrainConfig, data: TrainData, device: torch.device, ctx: 
     train_transform = build_train_transform(dcfg.flips, dcfg.rot90, dcfg.jitter, dcfg.crop_size)
     mean = torch.tensor(data.meta.mean, dtype=torch.float32, device=device)
     std = torch.tensor(data.meta.std, dtype=torch.float32, device=device)
-    # on a CPU with workers, the workers finish the batches (the main process computes the model)
-    in_workers = (mean.cpu(), std.cpu()) if device.type == "cpu" and nw > 0 else None
     train_cache = PatchCache(data.cache_folder, data.train_index)
-    train_loader = torch.utils.data.DataLoader(
-        CachedBatches(train_cache, train_transform, data.tasks, in_workers, copy_paster(cfg, data, train_cache)),
-        sampler=RankBatchSampler(order, ctx.rank, state.epoch, state.position),
-        batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(cfg.seed),
-    )
-    val_loader: torch.utils.data.DataLoader[dict[str, Any]] | None = None
+    sampler = RankBatchSampler(order, ctx.rank, state.epoch, state.position)
+    paster = copy_paster(cfg, data, train_cache)
     eval_transform = build_eval_transform(dcfg.crop_size)
-    if data.val_index is not None:
-        val_loader = torch.utils.data.DataLoader(
-            CachedBatches(PatchCache(data.cache_folder, data.val_index), eval_transform, data.tasks, in_workers),
-            sampler=eval_batches(data.val_index.count, dcfg.batch_size, ctx.rank, ctx.world),
-            batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
-            generator=torch.Generator().manual_seed(cfg.seed))
-    elif ctx.is_main:
+    val_loader: Batches | None = None
+    train_loader: Batches
+    if device.type == "cpu":  # one thread of this process assembles them (no worker processes: see the module)
+        train_loader = AssembledBatches(train_cache, train_transform, data.tasks, sampler, mean, std, paster)
+        if data.val_index is not None:
+            val_loader = AssembledBatches(PatchCache(data.cache_folder, data.val_index), eval_transform, data.tasks,
+                                          eval_batches(data.val_index.count, dcfg.batch_size, ctx.rank, ctx.world),
+                                          mean, std)
+    else:
+        train_loader = torch.utils.data.DataLoader(
+            CachedBatches(train_cache, train_transform, data.tasks, paster), sampler=sampler,
+            batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(cfg.seed),
+        )
+        if data.val_index is not None:
+            val_loader = torch.utils.data.DataLoader(
+                CachedBatches(PatchCache(data.cache_folder, data.val_index), eval_transform, data.tasks),
+                sampler=eval_batches(data.val_index.count, dcfg.batch_size, ctx.rank, ctx.world),
+                batch_size=None, num_workers=min(nw, 1), persistent_workers=nw > 0, pin_memory=pin,
+                generator=torch.Generator().manual_seed(cfg.seed))
+    if data.val_index is None and ctx.is_main:
         log.warning("no 'val' patches in %s: best.pt is chosen by the training loss", data.info.root / MANIFEST_CSV)
     return Loaders(order, train_transform, eval_transform, mean, std, train_loader, val_loader)
 

@@ -30,7 +30,6 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import torch
 
@@ -46,7 +45,7 @@ from aerialmtl.training.calibrate import calibrate_checkpoint
 from aerialmtl.training.familiarity import familiarize_checkpoint
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
-from aerialmtl.training.setup import TrainSetup
+from aerialmtl.training.setup import Batches, TrainSetup
 from aerialmtl.training.state import rng_state
 from aerialmtl.training.steploop import LOSS_GROWTH, LossWindow, StepLoop
 from aerialmtl.training.sun import fit_training_sun, store_sun
@@ -166,7 +165,7 @@ class Trainer(StepLoop):
         return self.setup.loaders.order
 
     @property
-    def val_loader(self) -> torch.utils.data.DataLoader[dict[str, Any]] | None:
+    def val_loader(self) -> Batches | None:
         """The validation batches (``None`` without a val split)."""
         return self.setup.loaders.val_loader
 
