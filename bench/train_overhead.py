@@ -1,24 +1,29 @@
 """Host overhead of the training loop per step: ``aerialmtl train`` with a near-null model vs its bare step.
 
 The D3-Net is replaced by a near-null network (one 1×1 convolution from the bands to the outputs: a few
-dozen parameters), so what is left of a step's time is the loop around the model: the loader (patch cache
-gather, augmentation parameters, workers), the transfer to the device, the augmentation there, the losses,
+dozen parameters), so what is left of a step's time is the loop around the model: the loader (on a CPU its
+thread, assembling each batch from the patch cache; on a GPU the workers, the transfer and the augmentation
+there), the losses,
 the optimiser, the weight average (``--ema``), the learning-rate schedule, the loss window, logging and the
 per-epoch checkpoints. The loop runs through :func:`aerialmtl.training.loop.train` (the library call behind
 ``aerialmtl train``), on a tile folder of 320² patches cut from a synthetic town (made once under
 ``--workdir``); its ms/step is timed between the starts of its steps (the first ``--skip`` excluded), as wall
-time and as CPU time of the main process and its DataLoader workers (CPU time barely depends on what else runs
-on a shared machine; wall time does).
+time and as CPU time of the main process (its threads included) and of any DataLoader workers (CPU time depends
+less on what else runs on a shared machine than wall time, but counts threads that spin while they wait).
 
 The bare step is the same near-null network's forward + losses + weighting + backward + Adam
-(:class:`~aerialmtl.training.setup.StepModule`) on one batch already on the device: what no loop can avoid.
+(:class:`~aerialmtl.training.setup.StepModule`) on the loop's first batch, already on the device: what no loop can
+avoid. The two are measured in turn ``--rounds`` times (the machine's state drifts; the median is printed).
 
-    python bench/train_overhead.py                       # batch 32, 320² patches, 2 workers, 60 steps
-    python bench/train_overhead.py --workers 0 --steps 40 --ema 0.99 --device cpu
+    python bench/train_overhead.py                       # batch 32, 320² patches, 60 steps
+    python bench/train_overhead.py --rounds 4            # loop and bare step in turn, 4 times
+    python bench/train_overhead.py --ema 0.99 --steps 40
     python bench/train_overhead.py --profile             # cProfile of the loop's main process (top 25)
 
-It also prints the data path's CPU time per batch on one thread (what each DataLoader worker spends): on a CPU
-run the workers share the cores with the step, so that time is host overhead the loop cannot hide there.
+It also prints the data path's CPU time per batch on one thread: on a CPU run, what the loader's thread spends
+(:class:`~aerialmtl.data.prefetch.AssembledBatches`; it shares the cores with the step, so that time is host
+overhead unless the step leaves a core idle), and, for comparison, a GPU run's worker gather and torch's
+finishing of the same batch on the CPU.
 
 Speed only: the run folder and its weights are thrown away.
 """
@@ -251,7 +256,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--config", default="configs/d3net_dfc2018.yaml")
     ap.add_argument("--batch", type=int, default=32)
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--workers", type=int, default=2, help="data.num_workers (a GPU run's loader processes)")
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--log-every", type=int, default=10)
     ap.add_argument("--skip", type=int, default=5, help="first loop steps left out of the timing")
