@@ -3,8 +3,9 @@
 :class:`Trainer` is built from small parts, each readable and testable alone:
 
 * data — :meth:`Trainer.build_data`: the decoded patch cache (:mod:`aerialmtl.data.cache`), the run's batch
-  order (:class:`~aerialmtl.data.batches.EpochOrder`) and the DataLoaders; batches are augmented on the
-  training device (:func:`~aerialmtl.data.batches.prepare_batch`);
+  order (:class:`~aerialmtl.data.batches.EpochOrder`) and the loaders; batches are augmented on the
+  training device (:func:`~aerialmtl.data.batches.prepare_batch`), on a CPU by one thread in one compiled pass
+  (:class:`~aerialmtl.data.prefetch.AssembledBatches`);
 * model and optimizer — :meth:`Trainer.build_model`, :func:`build_optimizer`;
 * the step — :class:`StepModule` (forward, losses, weighting; what DistributedDataParallel wraps) and the
   shared loop's :meth:`~aerialmtl.training.steploop.StepLoop.train_step` (the same step ``pretrain`` runs);
@@ -401,7 +402,7 @@ class Trainer(StepLoop):
             raise
         finally:
             bar.close()
-            del batches, it  # the loader's workers end here, before the last validation
+            del batches, it  # the loader's workers (or, on a CPU, its thread) end here, before the last validation
         if self.validated_at != st.step or not self.paths["last.pt"].exists():
             self.after_epoch_validation()
         if self.average is not None:  # the run is over: the model is its average, as in last.pt
