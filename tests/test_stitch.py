@@ -145,11 +145,14 @@ def _numpy_blend(plan, windows: dict, k: int) -> dict[str, np.ndarray]:
 
 
 def _stitch(plan, windows: dict, k: int, start: int = 0, stop: int | None = None,
-            chunk: int | None = None, carry_in_memory: int | None = None) -> dict[str, np.ndarray]:
-    """Run the Stitcher and paint its blocks into full-size arrays (NaN where no block landed)."""
+            chunk: int | None = None, carry_in_memory: int | None = None, mc: int = 3) -> dict[str, np.ndarray]:
+    """Run the Stitcher and paint its blocks into full-size arrays (NaN where no block landed).
+
+    ``mc`` 3: every layer (class probabilities too); 1: height and classes only (as a T = 1 predict writes).
+    """
     import aerialmtl.inference.stitch as stitch_mod
 
-    specs = prediction_layers(("height", "classes"), _scheme(k), mc=3, probabilities=True)
+    specs = prediction_layers(("height", "classes"), _scheme(k), mc=mc, probabilities=mc > 1)
     old = stitch_mod.CHUNK_ELEMENTS, stitch_mod.CARRY_IN_MEMORY
     if chunk is not None:
         stitch_mod.CHUNK_ELEMENTS = chunk
@@ -193,6 +196,73 @@ def test_stitcher_equals_a_whole_raster_blend(shape: tuple[int, int], tile: int,
         np.testing.assert_array_equal(got[name], ref[name], err_msg=name)
     for name in ("class_entropy", "class_mutual_info"):  # numpy's and torch's log differ in the last bit
         np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=2e-6, err_msg=name)
+
+
+def test_a_t1_run_writes_the_blends_classes_and_heights() -> None:
+    # T = 1 without probabilities: the CPU's class map comes from the compiled kernel alone (no quotients made)
+    plan = plan_windows(150, 230, 64, 16)
+    windows = _random_windows(plan, 6, seed=3)
+    ref = _numpy_blend(plan, windows, 6)
+    got = _stitch(plan, windows, 6, mc=1, chunk=1000)
+    assert set(got) == {"height", "classes"}
+    for name in got:
+        np.testing.assert_array_equal(got[name], ref[name], err_msg=name)
+
+
+def _torch_classes(sums: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """The class map as torch finishes it on a GPU (stitch.Stitcher._layer_values): argmax of the quotients."""
+    invalid = weight <= 0
+    safe = torch.where(invalid, torch.ones_like(weight), weight)
+    return torch.where(invalid, torch.tensor(255, dtype=torch.uint8),
+                       (sums / safe.unsqueeze(-1)).argmax(-1).to(torch.uint8))
+
+
+def test_the_cpu_class_kernel_is_torchs_argmax_of_the_quotients() -> None:
+    """Ties, ties made by the division's rounding, NaN and ∞ sums, zero, negative, NaN and ∞ weights, zeros and
+    subnormals: the compiled kernel gives torch's class (the first of equal maxima, the first NaN) everywhere.
+    """
+    from aerialmtl.inference.stitch_kernel import finished_classes
+
+    rng = np.random.default_rng(0)
+    n, k = 4000, 7
+    sums = rng.random((n, k)).astype(np.float32)
+    weight = (rng.random(n) * 1.5).astype(np.float32)
+    # sums one float apart whose quotients round to the same float: torch takes the first, not the larger
+    x = rng.random(1000).astype(np.float32) + np.float32(0.5)
+    sums[:1000] *= np.float32(0.4)
+    sums[:1000, 2] = x
+    sums[:1000, 5] = np.nextafter(x, np.float32(2))
+    weight[:1000] = np.float32(3.0)
+    made = (sums[:1000, 2] / weight[:1000] == sums[:1000, 5] / weight[:1000]) & (sums[:1000, 2] < sums[:1000, 5])
+    assert made.sum() > 50  # the case is really there
+    sums[1000:1100] = 0.25  # exact ties
+    sums[1100:1110, 3] = np.nan
+    sums[1110:1120, [1, 4]] = np.nan
+    sums[1120:1130, 2] = np.inf
+    sums[1130:1140, [0, 6]] = np.inf
+    sums[1140:1150, 1] = -np.inf
+    sums[1150:1160] = 0.0
+    sums[1160:1170] = np.float32(1e-44) * np.arange(k, dtype=np.float32)[::-1]  # subnormal sums
+    weight[1160:1165] = np.float32(1e-3)
+    weight[1170:1180] = 0.0
+    weight[1180:1190] = -1.0
+    weight[1190:1200] = np.nan
+    weight[1200:1210] = np.inf
+    weight[1210:1220] = np.float32(1e-40)  # quotients overflow to ∞: every large sum ties
+    sums[1210:1220] = np.float32(3e38) - np.arange(k, dtype=np.float32) * np.float32(1e31)
+    sums_t, weight_t = torch.from_numpy(sums), torch.from_numpy(weight)
+    want = _torch_classes(sums_t, weight_t)
+    got = torch.full((n,), 77, dtype=torch.uint8)  # a pixel left unwritten shows
+    finished_classes(sums_t.unsqueeze(1), weight_t.unsqueeze(1), 255, got.unsqueeze(1))
+    np.testing.assert_array_equal(got.numpy(), want.numpy())
+    assert (got[:1000][torch.from_numpy(made)] == 2).all()
+    # strided views of wider accumulators (the usual block), into a band of a wider block
+    wide_sums = torch.from_numpy(rng.random((40, 60, k)).astype(np.float32))
+    wide_weight = torch.from_numpy(rng.random((40, 60)).astype(np.float32) - np.float32(0.1))
+    block = torch.zeros((2, 40, 50), dtype=torch.uint8)
+    finished_classes(wide_sums[:, 5:55], wide_weight[:, 5:55], 255, block[1, :, :50])
+    np.testing.assert_array_equal(block[1].numpy(), _torch_classes(wide_sums[:, 5:55], wide_weight[:, 5:55]).numpy())
+    assert not block[0].any()
 
 
 def test_strips_give_the_rows_of_the_whole_run_and_chunking_changes_nothing() -> None:

@@ -58,6 +58,7 @@ from aerialmtl.formats import checkpoint as checkpoint_format  # read_model at c
 from aerialmtl.formats.checkpoint import ModelMeta, model_fingerprint
 from aerialmtl.formats.prediction import PROVENANCE_KEY, RECORD_KEYS, LayerSpec, prediction_layers
 from aerialmtl.formats.stac import model_summary
+from aerialmtl.inference import stitch_kernel
 from aerialmtl.inference.engine_choice import choose_engine, cold_cache_choice
 from aerialmtl.inference.engines import Pending, cache_root, openvino_available
 from aerialmtl.inference.model_record import CheckpointModel, make_record, read_record, resolve_model, write_record
@@ -199,8 +200,11 @@ class Predictor:
             log.info("%s holds no feature density: no unfamiliarity layer (a model trained with this version "
                      "fits one after training)", self.checkpoint_name)
         self._batch: dict[tuple[int, int], int] = {}
-        if self.mc > 1 and self.device.type == "cpu":  # loaded before any output exists (class_kernel.prepare)
-            class_kernel.prepare()
+        if self.device.type == "cpu":  # the kernels loaded before any output exists (class_kernel.prepare)
+            if self.mc > 1:
+                class_kernel.prepare()
+            if "classes" in self.meta.model.tasks:
+                stitch_kernel.prepare()
 
     @property
     def aoi(self) -> str | Path | None:

@@ -4,10 +4,10 @@
 row, left to right. Each one is added, weighted by its dyadic blending weights times its input
 validity, into accumulators on the model's device; after window ``(i, j)`` the output rows of window row ``i`` and the
 columns before :meth:`~aerialmtl.inference.windows.AxisPlan.final_until` ``(j)`` get no more weight, so
-that block is finalised on the device (weighted means, argmax, entropy, mutual information) and handed
-back as a :class:`Block` of host arrays in the output dtypes of the schema
-(:func:`aerialmtl.formats.prediction.prediction_layers`), nodata filled in. Only finished pixels cross
-to the host.
+that block is finalised on the device (weighted means, argmax, entropy, mutual information; on a CPU the
+class map by a compiled kernel, :mod:`aerialmtl.inference.stitch_kernel`, to the same bits) and handed back as a
+:class:`Block` of host arrays in the output dtypes of the schema (:func:`aerialmtl.formats.prediction.
+prediction_layers`), nodata filled in. Only finished pixels cross to the host.
 
 Memory: accumulators for one window (shifted in place as the window moves right) plus the rows of a
 window row that still get weight from the next one (about ``overlap − 2·margin`` rows over the raster
@@ -57,6 +57,7 @@ from aerialmtl.formats.prediction import (
     UNFAMILIARITY,
     LayerSpec,
 )
+from aerialmtl.inference import stitch_kernel
 from aerialmtl.inference.windows import Plan
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.mc_dropout import McStatistics
@@ -165,6 +166,8 @@ class Stitcher:
         self._done = 0  # first grid column of the current window row not yet handed back
         self.chunk = CHUNK_ELEMENTS
         self._tmp = torch.empty(0, device=self.device)
+        #: the classes layer by the compiled kernel (:mod:`aerialmtl.inference.stitch_kernel`) on a CPU
+        self.compiled_classes = self.device.type == "cpu" and CLASSES in self.specs
 
     # ---- storage ----------------------------------------------------------------------------------
     def _alloc(self, h: int, w: int) -> dict[str, torch.Tensor]:
@@ -328,6 +331,9 @@ class Stitcher:
                 nodata = torch.as_tensor(specs[name].nodata, dtype=value.dtype, device=self.device)
                 value = value if value.dim() == 3 else value.unsqueeze(0)
                 torch.where(invalid, nodata, value, out=out[name][:, r0:r1])
+            if self.compiled_classes:  # the same classes as _layer_values' argmax, in one pass
+                stitch_kernel.finished_classes(acc["probs"][rs, cs], acc["weight"][rs, cs],
+                                               int(specs[CLASSES].nodata), out[CLASSES][0, r0:r1])
         return Block(row_off, col_off, h, w, {n: _to_host(t) for n, t in out.items()})
 
     def _layer_values(self, acc: dict[str, torch.Tensor], rs: slice, cs: slice,
@@ -356,10 +362,11 @@ class Stitcher:
                 none = part <= 0
                 ratio = acc[value][rs, cs] / torch.where(none, torch.ones_like(part), part)
                 values[layer] = torch.where(none, torch.full_like(ratio, specs[layer].nodata), ratio)
-        if "probs" not in acc:
+        if "probs" not in acc or (self.compiled_classes and not specs.keys() & {CLASS_ENTROPY, CLASS_MUTUAL_INFO,
+                                                                                 CLASS_PROBABILITIES}):
             return values
         probs = acc["probs"][rs, cs] / safe.unsqueeze(-1)
-        if CLASSES in specs:
+        if CLASSES in specs and not self.compiled_classes:
             values[CLASSES] = probs.argmax(-1).to(torch.uint8)
         if CLASS_ENTROPY in specs or CLASS_MUTUAL_INFO in specs:
             ent = (probs * torch.log(probs.clamp(1e-12, 1.0))).sum(-1).neg_().clamp_min_(0.0)
