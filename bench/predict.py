@@ -43,6 +43,10 @@ Parts (select with flags; each can run alone):
   engine, precision, threads and streams, the OpenVINO cache of ``--startup``/``--shared-cpu`` under ``--tmp``) on
   ``--alone-windows`` windows of the shape ``predict`` uses on a ``--size``² raster, one batch per stream kept in
   flight, T = 1: Mpx/s of window pixels, the yardstick of the CLI's model stage (issue 27: ≥ 80 %).
+* ``--class-map``: the ``classes`` layer of one finished ``--size``² block (K = 20 blended class sums, a strided
+  view of wider accumulators as the stitcher has them): torch's quotients, argmax and nodata (the GPU's path, and
+  the CPU's before :mod:`aerialmtl.inference.stitch_kernel`) against the compiled kernel, median of 9, with
+  ``--threads`` torch threads; the two maps are checked equal.
 * ``--shared-cpu``: the default ``predict`` (OpenVINO, auto threads and streams) against ``--engine torch
   --precision fp32`` on the full D3-Net, ``--size``² raster, T = 1, run in turn (default, torch, default,
   ...) while ``--busy`` (default ``0,1,3``) extra busy-loop processes hold cores: the issue's "load 1, 2
@@ -57,6 +61,7 @@ Usage::
     python bench/predict.py --startup --tmp DIR
     python bench/predict.py --shared-cpu --size 2048 --busy 0,1,3 --tmp DIR
     python bench/predict.py --alone --size 2048 --tmp DIR
+    python bench/predict.py --class-map --size 1024 --threads 1
 """
 
 from __future__ import annotations
@@ -571,6 +576,44 @@ def bench_shared_cpu(size: int, busy: list[int], reps: int, tmp: Path, cache: Pa
     return {"part": "shared-cpu", "cpu": cpu_name(), "size": size, "runs": rows}
 
 
+def bench_class_map(size: int, k: int = 20, reps: int = 9) -> dict:
+    """See the module docstring (``--class-map``)."""
+    from aerialmtl.inference import stitch_kernel
+
+    gen = torch.Generator().manual_seed(0)
+    sums = -torch.log(torch.rand((size, size + 64, k), generator=gen))  # Dirichlet(1) sums, times the weights
+    weight = torch.rand((size, size + 64), generator=gen) + 0.5
+    weight[::7, ::5] = 0.0
+    sums *= weight.unsqueeze(-1) / sums.sum(-1, keepdim=True)
+    block_sums, block_weight = sums[:, 32:32 + size], weight[:, 32:32 + size]
+
+    def with_torch() -> torch.Tensor:
+        invalid = block_weight <= 0
+        safe = torch.where(invalid, torch.ones_like(block_weight), block_weight)
+        return torch.where(invalid, torch.tensor(255, dtype=torch.uint8),
+                           (block_sums / safe.unsqueeze(-1)).argmax(-1).to(torch.uint8))
+
+    out = torch.empty((size, size), dtype=torch.uint8)
+
+    def with_kernel() -> torch.Tensor:
+        stitch_kernel.finished_classes(block_sums, block_weight, 255, out)
+        return out
+
+    row: dict = {"part": "class-map", "cpu": cpu_name(), "size": size, "classes": k,
+                 "threads": torch.get_num_threads(), "load_avg_before": load_avg()}
+    for name, fn in (("torch_ms", with_torch), ("kernel_ms", with_kernel)):
+        fn()
+        times = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        row[name] = round(sorted(times)[reps // 2] * 1000, 1)
+    row["equal"] = bool(torch.equal(with_torch(), with_kernel()))
+    row["load_avg_after"] = load_avg()
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--speed", action="store_true")
@@ -599,6 +642,7 @@ def main() -> None:
     ap.add_argument("--startup-runs", type=int, default=5)
     ap.add_argument("--alone", action="store_true")
     ap.add_argument("--alone-windows", type=int, default=8)
+    ap.add_argument("--class-map", action="store_true")
     ap.add_argument("--shared-cpu", action="store_true")
     ap.add_argument("--busy", default="0,1,3", help="comma list of busy-loop processes (shared-cpu part)")
     ap.add_argument("--shared-reps", type=int, default=2)
@@ -635,6 +679,8 @@ def main() -> None:
         if args.alone:
             cache = Path(args.tmp) if args.tmp else tmp
             bench_alone(args.size, args.alone_windows, cache)
+        if args.class_map:
+            print(json.dumps(bench_class_map(args.size)), flush=True)
         if args.shared_cpu:
             cache = Path(args.tmp) if args.tmp else tmp
             busy = [int(v) for v in args.busy.split(",")]

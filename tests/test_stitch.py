@@ -217,14 +217,15 @@ def _torch_classes(sums: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
                        (sums / safe.unsqueeze(-1)).argmax(-1).to(torch.uint8))
 
 
-def test_the_cpu_class_kernel_is_torchs_argmax_of_the_quotients() -> None:
+@pytest.mark.parametrize("k", [7, 20])
+def test_the_cpu_class_kernel_is_torchs_argmax_of_the_quotients(k: int) -> None:
     """Ties, ties made by the division's rounding, NaN and ∞ sums, zero, negative, NaN and ∞ weights, zeros and
     subnormals: the compiled kernel gives torch's class (the first of equal maxima, the first NaN) everywhere.
     """
     from aerialmtl.inference.stitch_kernel import finished_classes
 
-    rng = np.random.default_rng(0)
-    n, k = 4000, 7
+    rng = np.random.default_rng(k)
+    n = 4000
     sums = rng.random((n, k)).astype(np.float32)
     weight = (rng.random(n) * 1.5).astype(np.float32)
     # sums one float apart whose quotients round to the same float: torch takes the first, not the larger
@@ -240,6 +241,8 @@ def test_the_cpu_class_kernel_is_torchs_argmax_of_the_quotients() -> None:
     sums[1110:1120, [1, 4]] = np.nan
     sums[1120:1130, 2] = np.inf
     sums[1130:1140, [0, 6]] = np.inf
+    sums[1220:1230, k - 1] = np.nan  # in the last, partial group of four
+    sums[1230:1240, k - 1] = np.float32(2.0)  # the largest last
     sums[1140:1150, 1] = -np.inf
     sums[1150:1160] = 0.0
     sums[1160:1170] = np.float32(1e-44) * np.arange(k, dtype=np.float32)[::-1]  # subnormal sums
