@@ -541,11 +541,12 @@ class _StripLoop:
 #: ~80 MiB per 1024² window with 20 classes); the model loop waits beyond.
 STITCH_QUEUE = 2
 #: Host cores from which a CPU run stitches in a thread of its own (a CUDA run always does: the host then only
-#: feeds the device). On 2 cores shared with other work the thread gained nothing and cost 8 % more CPU time and
-#: ~180 MiB (near-null pipeline, 8192², T = 1, load 15; issue 46), so fewer cores stitch in the model loop, unless
-#: the shadow step is on: it runs in the stage (:meth:`_StripLoop.flush`), and in the loop it kept the engine's MC
-#: decoding waiting (2 cores, 2048², T = 8: +16 % for the shadow layers inline, see bench/results/predict.md).
-STITCH_THREAD_CORES = 4
+#: feeds the device); a one-core host stitches in the model loop, unless the shadow step is on: it runs in the
+#: stage (:meth:`_StripLoop.flush`), and in the loop it kept the engine's MC decoding waiting (2 cores, 2048²,
+#: T = 8: +16 % for the shadow layers inline). On 2 quiet cores the thread took the near-null pipeline (8192²,
+#: T = 1) from 12.4-13.7 to 11.5-12.3 s for +4 % CPU time and ~140 MiB; on 2 cores oversubscribed 7× (load 15)
+#: it had gained nothing for +8 % CPU time (bench/results/predict.md, issue 46).
+STITCH_THREAD_CORES = 2
 _END = None
 
 
