@@ -31,10 +31,11 @@ from typing import Any
 
 import torch
 
+from aerialmtl.data.assemble import assemble_batch, empty_batch
 from aerialmtl.data.cache import PatchCache
 from aerialmtl.data.copy_paste import CopyPaster
 from aerialmtl.data.dataset import normalise_batch
-from aerialmtl.data.transforms import Compose, Params, stack_params
+from aerialmtl.data.transforms import Compose, Move, Params, stack_params
 from aerialmtl.errors import InputError
 
 #: One batch as the sampler describes it: ``(patch index, augmentation seed)`` per sample.
@@ -215,9 +216,21 @@ def finish_on_device(data: dict[str, torch.Tensor], params: Params, transform: C
     return batch
 
 
+def cpu_batch_shape(transform: Compose, moves: Sequence[Move], window: tuple[int, int]) -> tuple[int, int, bool]:
+    """``(h, w, channels_last)`` of the buffers :func:`finish_on_cpu` fills for samples moved by ``moves``.
+
+    ``(h, w)`` is ``window`` after the moves (a batch's samples are all turned or none: a quarter turn needs
+    square windows otherwise); the image is written ``channels_last`` unless a jitter follows (it reduces over the
+    contiguous layout, as on a device).
+    """
+    h, w = window[::-1] if moves and moves[0][0] else window
+    return h, w, not transform.has_stage("value")
+
+
 def finish_on_cpu(source: Mapping[str, Any], index: Sequence[int], corners: tuple[Any, Any],
                   window: tuple[int, int], params: Params, transform: Compose, mean: torch.Tensor, std: torch.Tensor,
-                  out: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+                  out: dict[str, torch.Tensor] | None = None,
+                  moves: Sequence[Move] | None = None) -> dict[str, torch.Tensor]:
     """:func:`finish_on_device`'s batch made on the CPU in one pass (:func:`~aerialmtl.data.assemble.assemble_batch`).
 
     Args:
@@ -228,28 +241,27 @@ def finish_on_cpu(source: Mapping[str, Any], index: Sequence[int], corners: tupl
             patch.
         window: (h, w) of the windows (before the flips and rotations).
         params, transform, mean, std: as :func:`finish_on_device`.
-        out: buffers of :func:`~aerialmtl.data.assemble.empty_batch` to fill (a loader reuses them); ``None``:
-            new ones.
+        out: buffers of :func:`~aerialmtl.data.assemble.empty_batch` to fill, shaped by :func:`cpu_batch_shape`
+            (a loader reuses them); ``None``: new ones.
+        moves: ``transform.sample_moves(params, B)`` when the caller has them already.
 
     Returns:
         The tensors of :func:`prepare_batch`, equal to the bit to :func:`finish_on_device`'s for the same samples.
     """
-    from aerialmtl.data.assemble import assemble_batch, empty_batch
-
     b = len(index)
-    moves = transform.sample_moves(params, b)
-    jitter = transform.has_stage("value")
+    if moves is None:
+        moves = transform.sample_moves(params, b)
     if out is None:
-        side = window[::-1] if moves and moves[0][0] else window
-        out = empty_batch(b, int(source["image"].shape[1]), side, [k for k in ("height", "classes") if k in source],
-                          channels_last=not jitter)
+        h, w, channels_last = cpu_batch_shape(transform, moves, window)
+        out = empty_batch(b, int(source["image"].shape[1]), (h, w),
+                          [k for k in ("height", "classes") if k in source], channels_last=channels_last)
     arrays = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in source.items()}
     batch = assemble_batch(arrays, index, corners[0], corners[1], moves, mean.cpu().numpy(), std.cpu().numpy(), out)
-    if jitter:  # on the contiguous image, as on a device
+    if transform.has_stage("value"):  # the jitter, on the contiguous image, as on a device
         batch = transform.apply(dict(batch), params, stages=("value",))
         batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
     return batch
 
 
 __all__ = ["item_seed", "EpochOrder", "RankBatchSampler", "eval_batches", "CachedBatches", "prepare_batch",
-           "finish_on_device", "finish_on_cpu", "BatchSpec"]
+           "finish_on_device", "finish_on_cpu", "cpu_batch_shape", "BatchSpec"]

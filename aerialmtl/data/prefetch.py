@@ -9,7 +9,7 @@ worker and then copied into a new shared-memory segment for the main process (81
 (:func:`~aerialmtl.data.batches.finish_on_cpu`), straight from the memory-mapped patch cache into a few buffers
 reused from batch to batch, in a thread of the training process that runs while the step computes (the kernel
 releases the GIL). Its batches are those of :class:`~aerialmtl.data.batches.CachedBatches` +
-:func:`~aerialmtl.data.batches.prepare_batch` for the same batch specs, to the bit (tests/test_prefetch.py): the
+:func:`~aerialmtl.data.batches.prepare_batch` for the same batch specs, to the bit (tests/test_batches.py): the
 order, the augmentation seeds and a resume are the sampler's, as with a DataLoader.
 
 A batch stays valid until the next one is taken from the iterator (its buffers are then reused): the loop
@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from aerialmtl.data.batches import BatchSpec, finish_on_cpu
+from aerialmtl.data.assemble import empty_batch
+from aerialmtl.data.batches import BatchSpec, cpu_batch_shape, finish_on_cpu
 from aerialmtl.data.cache import PatchCache
 from aerialmtl.data.copy_paste import CopyPaster
 from aerialmtl.data.transforms import Compose, stack_params
@@ -114,8 +115,6 @@ class AssembledBatches:
     def assemble(self, spec: BatchSpec, rings: dict[tuple[int, ...], list[dict[str, torch.Tensor]]] | None = None,
                  turns: dict[tuple[int, ...], int] | None = None) -> dict[str, torch.Tensor]:
         """One batch (into a ring buffer when ``rings`` is given, else into new tensors)."""
-        from aerialmtl.data.assemble import empty_batch
-
         shape = self.cache.index.shape
         b = len(spec)
         params = stack_params([self.transform.draw(torch.Generator().manual_seed(seed), shape) for _, seed in spec])
@@ -133,19 +132,18 @@ class AssembledBatches:
             indices = list(range(b))
             corners = (np.zeros(b, np.int64), np.zeros(b, np.int64))
         out = None
-        jitter = self.transform.has_stage("value")
+        moves = self.transform.sample_moves(params, b)
         if rings is not None and turns is not None:
-            moves = self.transform.sample_moves(params, b)
-            out_side = side[::-1] if moves and moves[0][0] else side
-            key = (b, *out_side)
+            h, w, channels_last = cpu_batch_shape(self.transform, moves, side)
+            key = (b, h, w)
             ring = rings.setdefault(key, [])
             turn = turns.get(key, 0)
             turns[key] = turn + 1
             if len(ring) < self.ahead + 2:
-                ring.append(empty_batch(b, int(shape[0]), out_side, [k for k in ("height", "classes")
-                                                                     if k in self.layers], channels_last=not jitter))
+                ring.append(empty_batch(b, int(shape[0]), (h, w), [k for k in ("height", "classes")
+                                                                   if k in self.layers], channels_last=channels_last))
             out = ring[turn % len(ring)] if len(ring) == self.ahead + 2 else ring[-1]
-        return finish_on_cpu(source, indices, corners, side, params, self.transform, self.mean, self.std, out)
+        return finish_on_cpu(source, indices, corners, side, params, self.transform, self.mean, self.std, out, moves)
 
 
 __all__ = ["AHEAD", "AssembledBatches"]
