@@ -140,13 +140,14 @@ def _first_batches(cfg: TrainConfig, tiles: Path, out: Path, n: int = 3) -> list
     return [{k: v.clone() for k, v in next(it)["ready"].items()} for _ in range(n)]
 
 
-def _first_params(cfg: TrainConfig, tiles: Path, out: Path) -> dict[str, torch.Tensor]:
-    """The augmentation parameters of the run's first batch, as its loader draws them around the pasting."""
+def _first_params(cfg: TrainConfig, tiles: Path, out: Path, n: int = 3) -> list[dict[str, torch.Tensor]]:
+    """The augmentation parameters of the run's first ``n`` batches, as its loader draws them around the pasting."""
     setup = prepare_training(cfg, tiles, out, progress=False)
     loader = setup.loaders.train_loader
     assert isinstance(loader, AssembledBatches)  # a CPU run
-    spec = next(iter(loader.specs))
-    return CachedBatches(loader.cache, loader.transform, ("height", "classes"), loader.paster)[spec]["params"]
+    batches = CachedBatches(loader.cache, loader.transform, ("height", "classes"), loader.paster)
+    specs = iter(loader.specs)
+    return [batches[next(specs)]["params"] for _ in range(n)]
 
 
 def test_off_by_default_gives_bit_equal_training_batches(tiles: Path, tmp_path: Path) -> None:
@@ -162,7 +163,8 @@ def test_off_by_default_gives_bit_equal_training_batches(tiles: Path, tmp_path: 
     assert not same(plain, on)
     # pasting draws from its own generator: the flips and rotations of every sample stay those of a plain run
     p_plain, p_on = _first_params(_cfg(), tiles, tmp_path / "d"), _first_params(on_cfg, tiles, tmp_path / "e")
-    assert all(torch.equal(p_plain[k], p_on[k]) for k in p_plain)
+    assert len(p_plain) == len(p_on) == 3
+    assert all(torch.equal(a[k], b[k]) for a, b in zip(p_plain, p_on) for k in a)
 
 
 def test_training_with_copy_paste_runs_and_needs_heights(tiles: Path, tmp_path: Path) -> None:
