@@ -71,3 +71,30 @@ def test_completion_imports_nothing_heavy(words: str, cword: int, expect: str) -
                                     "COMP_CWORD": str(cword)})
     assert expect in text
     assert loaded == [], f"completion of {words!r} imported {loaded}"
+
+
+def test_the_predict_modules_load_the_shadow_machinery_only_when_a_run_casts_shadows() -> None:
+    """Every predict, evaluate and export reads a checkpoint, whose sun record lives in the sun package: that
+    must not import the package's scipy fits and numba kernels (~0.45 s of every start); the package's names
+    still resolve, each importing its own module when first asked for."""
+    code = ("import json, sys\n"
+            "import aerialmtl.formats.checkpoint, aerialmtl.inference.jobs\n"
+            "before = sorted(m for m in ('scipy.ndimage', 'scipy.optimize', 'aerialmtl.sun.colour',"
+            " 'aerialmtl.sun.kernels', 'aerialmtl.inference.shadows') if m in sys.modules)\n"
+            "import aerialmtl.sun as sun\n"
+            "names = {n: type(getattr(sun, n)).__name__ for n in sun.__all__}\n"
+            "print(json.dumps([before, names, 'aerialmtl.sun.colour' in sys.modules]))\n")
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    before, names, colour_after = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert before == [], f"reading a checkpoint / the predict job imported {before}"
+    assert set(names) == {"ShadowHeights", "ShadowModel", "ShadowObject", "Sun", "SunFit", "cast_shadow_mask",
+                          "fit_sun", "fit_sun_patches", "fuse_heights", "shadow_heights", "shadow_score"}
+    assert colour_after and names["ShadowModel"] == "type" and names["fit_sun"] == "function"
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        import aerialmtl.sun
+
+        _ = aerialmtl.sun.nothing  # type: ignore[attr-defined]

@@ -49,7 +49,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -67,7 +67,6 @@ from aerialmtl.inference.reader import Aoi, ReadWindow, WindowReader
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration, check_finite_outputs, check_height_range, rescaled
 from aerialmtl.inference.settings import PredictSettings, ResolvedSettings, settings_of
-from aerialmtl.inference.shadows import ShadowStep, unit_colours
 from aerialmtl.inference.stitch import Block, Stitcher
 from aerialmtl.inference.sun_choice import SunChoice, choose_sun
 from aerialmtl.inference.windows import Plan
@@ -75,7 +74,10 @@ from aerialmtl.io.fingerprint import file_fingerprint, input_fingerprint
 from aerialmtl.models import class_kernel
 from aerialmtl.models.mc_dropout import McStatistics
 from aerialmtl.progress import tqdm_auto as tqdm
-from aerialmtl.sun import ShadowModel, Sun
+from aerialmtl.sun.position import Sun
+
+if TYPE_CHECKING:
+    from aerialmtl.inference.shadows import ShadowStep
 
 log = logging.getLogger(__name__)
 
@@ -227,6 +229,9 @@ class Predictor:
                 warnings.warn(f"--sun {s.sun}: {self.checkpoint_name} {why}; no shadow layers", UserWarning,
                               stacklevel=3)
             return None
+        from aerialmtl.inference.shadows import ShadowStep  # scipy and the sun's kernels: only a run that casts shadows
+        from aerialmtl.sun.colour import ShadowModel
+
         return ShadowStep(ShadowModel.from_dict(sun.shadow_model), self.meta.gsd, s.shadow_fusion,
                           workers=self.threads.threads)
 
@@ -500,6 +505,8 @@ class _StripLoop:
 
     def shadows(self, windows: list[ReadWindow], stats: McStatistics, valid: torch.Tensor) -> None:
         """The shadow layers (and fusion) of the batch's computed windows (:mod:`aerialmtl.inference.shadows`)."""
+        from aerialmtl.inference.shadows import unit_colours  # imported with the step (Predictor._shadow_step)
+
         t0 = time.perf_counter()
         choice = self.p.sun_for(self.src)
         sun = None

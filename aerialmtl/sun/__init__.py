@@ -11,12 +11,45 @@ A differentiable cast shadow for self-supervised steps is in :mod:`aerialmtl.sun
 imported here).
 """
 
-from aerialmtl.sun.cast import cast_shadow_mask
-from aerialmtl.sun.colour import ShadowModel, shadow_score
-from aerialmtl.sun.fit import SunFit, fit_sun, fit_sun_patches
-from aerialmtl.sun.fusion import fuse_heights
-from aerialmtl.sun.heights import ShadowHeights, ShadowObject, shadow_heights
-from aerialmtl.sun.position import Sun
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from aerialmtl.sun.cast import cast_shadow_mask
+    from aerialmtl.sun.colour import ShadowModel, shadow_score
+    from aerialmtl.sun.fit import SunFit, fit_sun, fit_sun_patches
+    from aerialmtl.sun.fusion import fuse_heights
+    from aerialmtl.sun.heights import ShadowHeights, ShadowObject, shadow_heights
+    from aerialmtl.sun.position import Sun
+
+#: Where each public name lives. The package imports a module when one of its names is first asked for
+#: (PEP 562), so that reading a checkpoint (its sun record, :mod:`aerialmtl.sun.record`) or a sun's angles
+#: does not import scipy and the numba kernels (~0.45 s) for a run that casts no shadow.
+_OWNERS = {
+    "cast_shadow_mask": "cast",
+    "ShadowModel": "colour",
+    "shadow_score": "colour",
+    "SunFit": "fit",
+    "fit_sun": "fit",
+    "fit_sun_patches": "fit",
+    "fuse_heights": "fusion",
+    "ShadowHeights": "heights",
+    "ShadowObject": "heights",
+    "shadow_heights": "heights",
+    "Sun": "position",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _OWNERS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "ShadowHeights",
