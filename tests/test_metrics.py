@@ -154,3 +154,47 @@ def test_miou_skips_classes_absent_from_reference_and_prediction() -> None:
 def test_kappa_of_single_class_agreement_is_undefined() -> None:
     assert math.isnan(cohen_kappa(np.array([[4, 0], [0, 0]])))
     assert math.isnan(cohen_kappa(np.zeros((2, 2))))
+
+
+# ---- the training loop's validation meters (aerialmtl.training.metrics) ------------------------------------
+
+
+def test_training_height_meter_is_the_masked_mae_and_rmse_over_batches(rng: np.random.Generator) -> None:
+    """The meter that picks best.pt reads only valid pixels (a NaN where the reference is invalid does not
+    leak), and its batches add up to the metric over all of them at once."""
+    import torch
+
+    from aerialmtl.training.metrics import HeightMeter
+
+    ref = rng.uniform(0, 30, (6, 1, 9, 11)).astype(np.float32)
+    pred = (ref + rng.normal(0, 2, ref.shape)).astype(np.float32)
+    valid = rng.random(ref.shape) > 0.3
+    ref[~valid] = np.nan  # nodata references: invalid, must not count
+    meter = HeightMeter()
+    for b in range(0, 6, 4):  # a full and a short batch
+        meter.update(torch.from_numpy(pred[b:b + 4]), torch.from_numpy(ref[b:b + 4]), torch.from_numpy(valid[b:b + 4]))
+    err = pred[valid].astype(np.float64) - ref[valid].astype(np.float64)
+    got = meter.compute()
+    assert got["height_mae"] == pytest.approx(np.abs(err).mean(), rel=1e-6)
+    assert got["height_rmse"] == pytest.approx(np.sqrt((err ** 2).mean()), rel=1e-6)
+    meter.sync(lambda t: t.mul_(3))  # three identical processes: the same means
+    assert meter.compute()["height_mae"] == pytest.approx(got["height_mae"], rel=1e-12)
+    assert math.isnan(HeightMeter().compute()["height_mae"])  # no valid pixel: undefined, not 0
+
+
+def test_training_confusion_meter_counts_as_the_evaluation_matrix(rng: np.random.Generator) -> None:
+    import torch
+
+    from aerialmtl.training.metrics import ConfusionMeter
+
+    k = 5
+    logits = rng.normal(size=(3, k, 8, 7)).astype(np.float32)
+    target = rng.integers(0, k, (3, 8, 7))
+    target[0, :2] = IGNORE_INDEX
+    target[1, 0, :3] = [k, -1, k + 7]  # out of range: not counted
+    meter = ConfusionMeter(k)
+    meter.update(torch.from_numpy(logits[:2]), torch.from_numpy(target[:2]))
+    meter.update(torch.from_numpy(logits[2:]), torch.from_numpy(target[2:]))
+    expected = confusion_matrix(target, logits.argmax(axis=1), k)
+    np.testing.assert_array_equal(meter.matrix.numpy(), expected)
+    assert meter.compute()["oa"] == pytest.approx(np.trace(expected) / expected.sum())

@@ -18,45 +18,59 @@ Reduce = Callable[[torch.Tensor], torch.Tensor]
 
 
 class HeightMeter:
-    """Sums of absolute and squared height errors (metres) over valid pixels."""
+    """Sums of absolute and squared height errors (metres) over valid pixels, kept on the model's device.
 
-    def __init__(self) -> None:
-        self.abs_sum = 0.0
-        self.sq_sum = 0.0
-        self.count = 0
+    Nothing is read back to the host until :meth:`sync`/:meth:`compute`: a validation pass on a GPU queues its
+    batches without waiting on each one. The sums are float64 (each float32 error widened before it is added).
+
+    Args:
+        device: where the batches are (the sums live there).
+    """
+
+    def __init__(self, device: torch.device | str = "cpu") -> None:
+        #: (3,) float64: Σ|e|, Σe², the count of valid pixels
+        self.sums = torch.zeros(3, dtype=torch.float64, device=device)
 
     def update(self, pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor) -> None:
         """Add a batch: ``pred``, ``target`` float (B, 1, H, W) metres, ``valid`` bool (B, 1, H, W)."""
-        err = (pred.float() - target.float())[valid]
-        self.abs_sum += float(err.abs().sum())
-        self.sq_sum += float((err * err).sum())
-        self.count += int(err.numel())
+        err = torch.where(valid, pred.float() - target.float(), 0.0)  # no boolean indexing: no wait on the device
+        self.sums[0] += err.abs().sum(dtype=torch.float64)
+        self.sums[1] += (err * err).sum(dtype=torch.float64)
+        self.sums[2] += valid.sum(dtype=torch.float64)
 
     def sync(self, reduce: Reduce) -> None:
         """Replace the sums by their totals over every process (call on every process)."""
-        total = reduce(torch.tensor([self.abs_sum, self.sq_sum, float(self.count)], dtype=torch.float64))
-        self.abs_sum, self.sq_sum, self.count = float(total[0]), float(total[1]), int(total[2])
+        self.sums = reduce(self.sums)
 
     def compute(self) -> dict[str, float]:
         """``{"height_mae", "height_rmse"}`` in metres (NaN without valid pixels)."""
-        if self.count == 0:
+        abs_sum, sq_sum, count = self.sums.tolist()
+        if count == 0:
             return {"height_mae": math.nan, "height_rmse": math.nan}
-        return {"height_mae": self.abs_sum / self.count, "height_rmse": math.sqrt(self.sq_sum / self.count)}
+        return {"height_mae": abs_sum / count, "height_rmse": math.sqrt(sq_sum / count)}
 
 
 class ConfusionMeter:
-    """K × K confusion matrix (rows = reference, columns = prediction), ignoring ``IGNORE_INDEX``."""
+    """K × K confusion matrix (rows = reference, columns = prediction), ignoring ``IGNORE_INDEX``, kept on the
+    model's device (counted there, read back by :meth:`compute`).
 
-    def __init__(self, num_classes: int) -> None:
+    Args:
+        num_classes: K.
+        device: where the batches are.
+    """
+
+    def __init__(self, num_classes: int, device: torch.device | str = "cpu") -> None:
         self.k = num_classes
-        self.matrix = torch.zeros(num_classes, num_classes, dtype=torch.int64)
+        self.matrix = torch.zeros(num_classes, num_classes, dtype=torch.int64, device=device)
 
     def update(self, logits: torch.Tensor, target: torch.Tensor) -> None:
         """Add a batch: ``logits`` (B, K, H, W), ``target`` int64 (B, H, W) with 255 = unlabelled."""
+        k = self.k
         pred = logits.argmax(dim=1)
-        keep = (target != IGNORE_INDEX) & (target >= 0) & (target < self.k)
-        idx = target[keep].to(torch.int64) * self.k + pred[keep].to(torch.int64)
-        self.matrix += torch.bincount(idx.cpu(), minlength=self.k * self.k).reshape(self.k, self.k)
+        keep = (target != IGNORE_INDEX) & (target >= 0) & (target < k)
+        # pixels not kept go to one extra bin, dropped after counting (no boolean indexing: no wait on the device)
+        idx = torch.where(keep, target.to(torch.int64) * k + pred.to(torch.int64), k * k)
+        self.matrix += torch.bincount(idx.flatten(), minlength=k * k + 1)[: k * k].reshape(k, k)
 
     def sync(self, reduce: Reduce) -> None:
         """Replace the matrix by its total over every process (call on every process)."""

@@ -190,8 +190,9 @@ class Trainer(StepLoop):
         assert self.val_loader is not None
         was_training = self.model.training
         self.model.eval()
-        sums = torch.zeros(len(self.tasks) + 1, dtype=torch.float64)
-        hm, cm = HeightMeter(), ConfusionMeter(self.k or 2)
+        # every sum stays on the device until the pass ends: a GPU is not waited on batch by batch
+        sums = torch.zeros(len(self.tasks) + 1, dtype=torch.float64, device=self.device)
+        hm, cm = HeightMeter(self.device), ConfusionMeter(self.k or 2, self.device)
         loaders = self.setup.loaders
         for raw in self.val_loader:
             batch = prepare_batch(raw, loaders.eval_transform, loaders.mean, loaders.std, self.device)
@@ -199,7 +200,7 @@ class Trainer(StepLoop):
                 out = self.model(batch["image"])
             losses = self.objective(out, batch, scoring=True)
             for i, t in enumerate(self.tasks):
-                sums[i] += float(losses[t])  # NaN/inf stays: a diverged model can never score best
+                sums[i] += losses[t].detach().double()  # NaN/inf stays: a diverged model can never score best
             sums[-1] += 1
             if "height" in self.tasks:
                 hm.update(out["height"].float(), batch["height"], batch["height_valid"])
@@ -207,7 +208,8 @@ class Trainer(StepLoop):
                 cm.update(out["classes"].float(), batch["classes"])
         self.model.train(was_training)
         self.ctx.all_reduce_sum(sums)
-        metrics = {f"val_loss_{t}": float(sums[i]) / max(1.0, float(sums[-1])) for i, t in enumerate(self.tasks)}
+        totals = sums.tolist()
+        metrics = {f"val_loss_{t}": totals[i] / max(1.0, totals[-1]) for i, t in enumerate(self.tasks)}
         if "height" in self.tasks:
             hm.sync(self.ctx.all_reduce_sum)
             metrics.update(hm.compute())
