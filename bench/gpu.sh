@@ -11,7 +11,9 @@
 #      batch 8, on a synthetic town tiled 320/160) — its samples/s, the model step alone at the same batch and
 #      precision, the GPU's busy share (nvidia-smi every 250 ms, over the training steps), memory, and the
 #      seconds of validation and calibration; and the model step under torch.compile (bench/train.py --compile);
-#   3. the GPU, driver, torch version and the load of the machine next to every number.
+#   3. a job of four 4096² inputs at T = 1 with each input's COGs built after its strip (as on a CPU) and in a
+#      thread beside the next input's strip (the default on a GPU), in turn: the job's Mpx/s;
+#   4. the GPU, driver, torch version and the load of the machine next to every number.
 # Each step has its own time limit so that the whole script ends within ~8 minutes; a step that runs out
 # of time is recorded as such. Run from the repository root: `bash bench/gpu.sh`.
 set -u
@@ -57,6 +59,8 @@ tmp = Path(sys.argv[1])
 model, meta = make_model("full")
 save_checkpoint(tmp / "full.pt", model, meta)
 synthetic_raster(tmp / "ortho8192.tif", 8192, 8192)
+for i in range(4):
+    synthetic_raster(tmp / f"many{i}.tif", 4096, 4096)
 EOF
 
 predict_case() {  # T: one predict of the 8192² orthophoto; prints its stage timings and issue 46's ratios
@@ -82,12 +86,34 @@ print(json.dumps({"output_mpx": mpx, "end_to_end_mpx_per_s": round(mpx / total, 
 PYEOF
 }
 
-export -f predict_case
+many_case() {  # four 4096² inputs, T = 1, in one job: commits inline (as on a CPU) and beside the next strip, in turn
+  "$PY" - "$TMP" <<'PYEOF'
+import json, sys, time
+from pathlib import Path
+from aerialmtl.inference import jobs
+tmp = Path(sys.argv[1])
+srcs = [tmp / f"many{i}.tif" for i in range(4)]
+for in_thread in (False, True, False, True):  # the first pays CUDA's start
+    jobs.commits_in_thread = lambda device, v=in_thread: v
+    t0 = time.perf_counter()
+    res = jobs.predict_many(srcs, tmp / "full.pt", tmp / "many_out", device="cuda", mc=1, overwrite=True,
+                            progress=False)
+    wall = time.perf_counter() - t0
+    mpx = sum(r.grid.width * r.grid.height for r in res.results) / 1e6
+    print(json.dumps({"commit_in_thread": in_thread, "inputs": len(res.results), "wall_s": round(wall, 2),
+                      "job_mpx_per_s": round(mpx / wall, 2),
+                      "per_input_strip_s": [round(r.timings.get("strip_total", 0.0), 2) for r in res.results],
+                      "per_input_cog_s": [round(r.timings.get("cog", 0.0), 2) for r in res.results]}), flush=True)
+PYEOF
+}
+
+export -f predict_case many_case
 export TMP PY
 step 60 "model alone: full D3-Net, 2048², T=1 (bench/predict.py --speed, precision auto)" \
   "$PY" bench/predict.py --speed --size 2048 --precisions auto --tmp "$TMP"
 step 60 "predict 8192², T=1, end to end (CLI, --device cuda, defaults)" predict_case 1
-step 150 "predict 8192², T=30, end to end (CLI, --device cuda, defaults)" predict_case 30
+step 100 "predict 8192², T=30, end to end (CLI, --device cuda, defaults)" predict_case 30
+step 60 "predict 4 inputs of 4096², T=1, one job: COGs inline vs beside the next strip (issue 46)" many_case
 step 140 "train loop vs model step alone, GPU busy share, memory (bench/train_loop.py, paper config, batch 8)" \
   "$PY" bench/train_loop.py --device cuda --town 2048 --steps 200 --workdir "$TMP/trainloop"
 step 40 "train model step, torch.compile: samples/s (bench/train.py --compile)" \

@@ -405,3 +405,112 @@ def test_a_failure_in_the_stitch_thread_fails_the_run_and_ends_the_thread(ortho:
         predict_raster(ortho, tiny_d3net(), out, mc=1, window=32, overlap=0, batch_size=1, progress=False)
     assert not out.exists() or list(out.iterdir()) == []  # no final file, no hidden file
     assert not [t for t in threading.enumerate() if t.name == "aerialmtl-stitch"]
+
+
+def _three_inputs(tmp_path: Path, rng: np.random.Generator) -> list[Path]:
+    paths = []
+    for k, (x0, y0) in enumerate(((500000.0, 5000000.0), (500030.0, 4999990.0), (500080.0, 5000020.0))):
+        img = rng.integers(1, 256, size=(3, 60, 70)).astype(np.uint8)
+        paths.append(write_raster(tmp_path / f"t{k}.tif", img, transform=Affine(0.5, 0, x0, 0, -0.5, y0)))
+    return paths
+
+
+def _left(folder: Path) -> list[str]:
+    """Every file left in ``folder`` (hidden ones included), or nothing when there is no folder."""
+    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
+
+
+@pytest.mark.parametrize("in_thread", [True, False])
+def test_each_input_is_committed_beside_the_next_strip_and_reported_in_order(
+        tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch, in_thread: bool) -> None:
+    """Several inputs: on a GPU an input's COGs are built in the commit thread while the next input computes
+    (issue 46), on a CPU in the main thread after its strip; either way the results come in input order, each once
+    its folder is complete, and the maps are those of one input at a time."""
+    import threading
+
+    from aerialmtl.inference import jobs
+    from aerialmtl.inference.job import InputJob
+    from aerialmtl.inference.jobs import predict_many
+
+    assert jobs.commits_in_thread(torch.device("cpu")) is False
+    assert jobs.commits_in_thread(torch.device("cuda")) is True
+    monkeypatch.setattr(jobs, "commits_in_thread", lambda device: in_thread)
+    paths = _three_inputs(tmp_path, rng)
+    model = tiny_d3net()
+    alone = {p.stem: predict_raster(p, model, tmp_path / "alone" / p.stem, mc=2, window=64, overlap=16,
+                                    progress=False) for p in paths}
+    threads: list[str] = []
+    real = InputJob.commit_files
+
+    def commit_files(self: InputJob, *args, **kwargs):  # type: ignore[no-untyped-def]
+        threads.append(threading.current_thread().name)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(InputJob, "commit_files", commit_files)
+    seen: list[tuple[str, bool]] = []
+    predict_many(paths, model, tmp_path / "out", mc=2, window=64, overlap=16, progress=False,
+                 on_result=lambda r: seen.append((r.out_dir.name, (r.out_dir / "prediction.json").is_file())))
+    assert seen == [("t0", True), ("t1", True), ("t2", True)]
+    assert len(threads) == 3
+    assert all(n.startswith("aerialmtl-commit") if in_thread else n == "MainThread" for n in threads), threads
+    for p in paths:
+        for name in ("height", "classes", "class_entropy", "class_mutual_info", "height_std"):
+            with rasterio.open(tmp_path / "out" / p.stem / f"{name}.tif") as a, \
+                    rasterio.open(alone[p.stem].files[name]) as b:
+                np.testing.assert_array_equal(a.read(), b.read())
+
+
+@pytest.mark.parametrize("in_thread", [True, False])
+def test_a_failed_commit_stops_the_run_and_leaves_no_file_of_it_or_of_the_strip_beside_it(
+        tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch, in_thread: bool) -> None:
+    from aerialmtl.inference import jobs
+    from aerialmtl.inference.jobs import predict_many
+    from aerialmtl.inference.writer import PredictionWriter
+
+    monkeypatch.setattr(jobs, "commits_in_thread", lambda device: in_thread)
+
+    paths = _three_inputs(tmp_path, rng)
+    real = PredictionWriter.convert
+
+    def convert(self: PredictionWriter, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if self.out_dir.name == "t1":
+            raise OSError(28, "No space left on device (injected)")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(PredictionWriter, "convert", convert)
+    seen: list[str] = []
+    with pytest.raises(Exception, match="No space left on device"):
+        predict_many(paths, tiny_d3net(), tmp_path / "out", window=64, overlap=16, progress=False,
+                     on_result=lambda r: seen.append(r.out_dir.name))
+    out = tmp_path / "out"
+    assert seen == ["t0"] and (out / "t0" / "prediction.json").is_file()
+    assert _left(out / "t1") == [] and _left(out / "t2") == []  # no final file, no hidden staging file
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, RuntimeError])
+def test_a_stop_in_a_strip_lets_the_commit_beside_it_finish(
+        tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch, stop: type[BaseException]) -> None:
+    """Ctrl-C (or an error) while input 2 computes beside input 1's commit thread: input 1, computed whole, is
+    still committed and reported; input 2 leaves nothing; the stop propagates."""
+    from aerialmtl.inference import jobs
+    from aerialmtl.inference.jobs import predict_many
+    from aerialmtl.inference.model import Predictor
+
+    monkeypatch.setattr(jobs, "commits_in_thread", lambda device: True)
+
+    paths = _three_inputs(tmp_path, rng)
+    real = Predictor.compute
+
+    def compute(self: Predictor, src, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if Path(src.path).stem == "t1":
+            raise stop("stopped (injected)")
+        return real(self, src, *args, **kwargs)
+
+    monkeypatch.setattr(Predictor, "compute", compute)
+    seen: list[str] = []
+    with pytest.raises(stop, match="injected"):
+        predict_many(paths, tiny_d3net(), tmp_path / "out", window=64, overlap=16, progress=False,
+                     on_result=lambda r: seen.append(r.out_dir.name))
+    out = tmp_path / "out"
+    assert seen == ["t0"] and (out / "t0" / "prediction.json").is_file()
+    assert _left(out / "t1") == [] and not (out / "t2").exists()

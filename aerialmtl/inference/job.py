@@ -230,7 +230,7 @@ class InputJob:
                started: float | None = None) -> PredictResult:
         """Join the strips (this job's first one among them) into the final COGs and ``prediction.json``.
 
-        Aborts if that fails.
+        Aborts if that fails. :meth:`commit_files`, then :meth:`result`.
 
         Args:
             strips: every strip of the input, from every rank.
@@ -239,6 +239,18 @@ class InputJob:
 
         Raises:
             InputError: the input changed while it was read.
+        """
+        return self.result(*self.commit_files(strips, processes=processes, started=started))
+
+    def commit_files(self, strips: Sequence[StripResult], *, processes: int = 1, started: float | None = None,
+                     fields: dict[str, Any] | None = None) -> tuple[dict[str, Path], int, dict[str, float]]:
+        """The files of :meth:`commit` (COGs, styles, STAC item, ``prediction.json``), put at their final paths;
+        aborts if that fails. Touches this job's folder only, and warns of nothing, so that it may run in a thread
+        beside the next input's strip (:mod:`aerialmtl.inference.jobs`), given the model's ``fields`` of
+        ``prediction.json`` (:meth:`JobModel.record_settings`) from the caller's thread (default: asked here).
+
+        Returns:
+            layer name → final path, the windows computed, the stage times: :meth:`result`'s arguments.
         """
         writer = self.writer
         assert writer is not None, "commit needs the job that computed the first strip"
@@ -259,17 +271,20 @@ class InputJob:
             writer.convert(strips=[r.row_start for r in strips])
             timings["cog"] = time.perf_counter() - t0
             timings["total"] = before + timings["cog"]
-            produced = writer.stage(self.record(computed, timings, processes))
+            produced = writer.stage(self.record(computed, timings, processes, fields))
             self._replace_earlier(produced)
             files = writer.publish()
         except BaseException:
             self.abort()
             raise
         self.writer = None
-        return self.result(files, computed, timings)
+        return files, computed, timings
 
-    def record(self, computed: int, timings: dict[str, float], processes: int = 1) -> PredictionRecord:
-        """The ``prediction.json`` of this input (:class:`~aerialmtl.formats.prediction.PredictionRecord`)."""
+    def record(self, computed: int, timings: dict[str, float], processes: int = 1,
+               fields: dict[str, Any] | None = None) -> PredictionRecord:
+        """The ``prediction.json`` of this input (:class:`~aerialmtl.formats.prediction.PredictionRecord`); the
+        model's ``fields`` as :meth:`JobModel.record_settings` gives them (default: asked here).
+        """
         src, plan, grid = self.src, self.src.plan, self.src.grid
         return PredictionRecord(
             aerialmtl_version=__version__,
@@ -286,7 +301,7 @@ class InputJob:
             overlap_factor=plan.computed_overlap(computed),
             plan_overlap_factor=plan.overlap_factor,
             timings_s=dict(timings),
-            **self.model.record_settings(src),
+            **(self.model.record_settings(src) if fields is None else fields),
         )
 
     def result(self, files: dict[str, Path], computed: int, timings: dict[str, float]) -> PredictResult:
