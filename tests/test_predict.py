@@ -415,6 +415,20 @@ def _three_inputs(tmp_path: Path, rng: np.random.Generator) -> list[Path]:
     return paths
 
 
+def _stopped_after_the_first(paths: list[Path], tmp_path: Path, stop: type[BaseException], match: str) -> Path:
+    """Predict ``paths`` into ``tmp_path / "out"``, which must stop with ``stop`` once the first input is complete
+    and reported (and no other); the output folder."""
+    from aerialmtl.inference.jobs import predict_many
+
+    seen: list[str] = []
+    with pytest.raises(stop, match=match):
+        predict_many(paths, tiny_d3net(), tmp_path / "out", window=64, overlap=16, progress=False,
+                     on_result=lambda r: seen.append(r.out_dir.name))
+    out = tmp_path / "out"
+    assert seen == [paths[0].stem] and (out / paths[0].stem / "prediction.json").is_file()
+    return out
+
+
 def _left(folder: Path) -> list[str]:
     """Every file left in ``folder`` (hidden ones included), or nothing when there is no folder."""
     return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
@@ -464,7 +478,6 @@ def test_each_input_is_committed_beside_the_next_strip_and_reported_in_order(
 def test_a_failed_commit_stops_the_run_and_leaves_no_file_of_it_or_of_the_strip_beside_it(
         tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch, in_thread: bool) -> None:
     from aerialmtl.inference import jobs
-    from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.writer import PredictionWriter
 
     monkeypatch.setattr(jobs, "commits_in_thread", lambda device: in_thread)
@@ -478,12 +491,7 @@ def test_a_failed_commit_stops_the_run_and_leaves_no_file_of_it_or_of_the_strip_
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(PredictionWriter, "convert", convert)
-    seen: list[str] = []
-    with pytest.raises(Exception, match="No space left on device"):
-        predict_many(paths, tiny_d3net(), tmp_path / "out", window=64, overlap=16, progress=False,
-                     on_result=lambda r: seen.append(r.out_dir.name))
-    out = tmp_path / "out"
-    assert seen == ["t0"] and (out / "t0" / "prediction.json").is_file()
+    out = _stopped_after_the_first(paths, tmp_path, Exception, "No space left on device")
     assert _left(out / "t1") == [] and _left(out / "t2") == []  # no final file, no hidden staging file
 
 
@@ -493,7 +501,6 @@ def test_a_stop_in_a_strip_lets_the_commit_beside_it_finish(
     """Ctrl-C (or an error) while input 2 computes beside input 1's commit thread: input 1, computed whole, is
     still committed and reported; input 2 leaves nothing; the stop propagates."""
     from aerialmtl.inference import jobs
-    from aerialmtl.inference.jobs import predict_many
     from aerialmtl.inference.model import Predictor
 
     monkeypatch.setattr(jobs, "commits_in_thread", lambda device: True)
@@ -507,10 +514,5 @@ def test_a_stop_in_a_strip_lets_the_commit_beside_it_finish(
         return real(self, src, *args, **kwargs)
 
     monkeypatch.setattr(Predictor, "compute", compute)
-    seen: list[str] = []
-    with pytest.raises(stop, match="injected"):
-        predict_many(paths, tiny_d3net(), tmp_path / "out", window=64, overlap=16, progress=False,
-                     on_result=lambda r: seen.append(r.out_dir.name))
-    out = tmp_path / "out"
-    assert seen == ["t0"] and (out / "t0" / "prediction.json").is_file()
+    out = _stopped_after_the_first(paths, tmp_path, stop, "injected")
     assert _left(out / "t1") == [] and not (out / "t2").exists()
