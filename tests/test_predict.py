@@ -516,3 +516,25 @@ def test_a_stop_in_a_strip_lets_the_commit_beside_it_finish(
     monkeypatch.setattr(Predictor, "compute", compute)
     out = _stopped_after_the_first(paths, tmp_path, stop, "injected")
     assert _left(out / "t1") == [] and not (out / "t2").exists()
+
+
+@pytest.mark.parametrize("in_thread", [True, False])
+def test_a_record_that_cannot_be_made_fails_its_input_without_leaving_files(
+        tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch, in_thread: bool) -> None:
+    """The model's fields of prediction.json are read before the commit starts (in the main thread): a failure
+    there is the input's failure like any in the commit, and its staging files go."""
+    from aerialmtl.inference import jobs
+    from aerialmtl.inference.model import Predictor
+
+    monkeypatch.setattr(jobs, "commits_in_thread", lambda device: in_thread)
+    paths = _three_inputs(tmp_path, rng)
+    real = Predictor.record_settings
+
+    def record_settings(self: Predictor, src):  # type: ignore[no-untyped-def]
+        if Path(src.path).stem == "t1":
+            raise ValueError("record (injected)")
+        return real(self, src)
+
+    monkeypatch.setattr(Predictor, "record_settings", record_settings)
+    out = _stopped_after_the_first(paths, tmp_path, ValueError, "injected")
+    assert _left(out / "t1") == []

@@ -473,15 +473,21 @@ class _Commits:
     def start(self, job: InputJob, strip: StripResult, started: float, ortho: str) -> None:
         """Commit ``job``'s one strip: in the thread, or here (:meth:`settle` the one before first)."""
         assert self._pending is None, "settle the previous commit first"
-        fields = job.model.record_settings(job.src)  # the model's state is read here, in the main thread
-        if self._pool is not None:
-            future = self._pool.submit(job.commit_files, [strip], started=started, fields=fields)
-        else:
-            future = Future()
-            try:
+        future: Future[tuple[dict[str, Path], int, dict[str, float]]]
+        try:
+            fields = job.model.record_settings(job.src)  # the model's state is read here, in the main thread
+            if self._pool is not None:
+                future = self._pool.submit(job.commit_files, [strip], started=started, fields=fields)
+            else:
+                future = Future()
                 future.set_result(job.commit_files([strip], started=started, fields=fields))
-            except Exception as exc:  # reported by settle, as from the thread
-                future.set_exception(exc)
+        except Exception as exc:  # the input's failure, reported by settle as one from the thread
+            job.abort()  # as commit_files does when it fails (a second abort removes nothing)
+            future = Future()
+            future.set_exception(exc)
+        except BaseException:
+            job.abort()
+            raise
         self._pending = (future, job, ortho)
 
     def settle(self) -> tuple[str, str] | None:
