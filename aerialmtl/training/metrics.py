@@ -21,7 +21,7 @@ class HeightMeter:
     """Sums of absolute and squared height errors (metres) over valid pixels, kept on the model's device.
 
     Nothing is read back to the host until :meth:`sync`/:meth:`compute`: a validation pass on a GPU queues its
-    batches without waiting on each one. The sums are float64 (each float32 error widened before it is added).
+    batches without waiting on each one. The sums are float64, of the float32 errors and their float32 squares.
 
     Args:
         device: where the batches are (the sums live there).
