@@ -324,13 +324,19 @@ def test_batch_size_auto_and_compile_fallback(ortho: Path, tmp_path: Path, monke
     assert batch_from_memory(10 * 2**30, 2**30) == 6 and batch_from_memory(2**20, 2**30) == 1
 
 
-def test_several_inputs_mosaic_and_skip_existing(tmp_path: Path, rng: np.random.Generator) -> None:
-    model, meta = tiny_d3net()
-    save_checkpoint(tmp_path / "m.pt", model, meta)
+def _three_inputs(tmp_path: Path, rng: np.random.Generator) -> list[Path]:
+    """Three overlapping 60 × 70 px RGB orthophotos, ``t0.tif`` … ``t2.tif`` in ``tmp_path``."""
     paths = []
     for k, (x0, y0) in enumerate(((500000.0, 5000000.0), (500030.0, 4999990.0), (500080.0, 5000020.0))):
         img = rng.integers(1, 256, size=(3, 60, 70)).astype(np.uint8)
         paths.append(write_raster(tmp_path / f"t{k}.tif", img, transform=Affine(0.5, 0, x0, 0, -0.5, y0)))
+    return paths
+
+
+def test_several_inputs_mosaic_and_skip_existing(tmp_path: Path, rng: np.random.Generator) -> None:
+    model, meta = tiny_d3net()
+    save_checkpoint(tmp_path / "m.pt", model, meta)
+    paths = _three_inputs(tmp_path, rng)
     args = ["predict", *map(str, paths), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "out"),
             "--mc", "2", "--window", "64", "--overlap", "16", "--quiet"]
     r = CliRunner().invoke(cli, args)
@@ -405,14 +411,6 @@ def test_a_failure_in_the_stitch_thread_fails_the_run_and_ends_the_thread(ortho:
         predict_raster(ortho, tiny_d3net(), out, mc=1, window=32, overlap=0, batch_size=1, progress=False)
     assert not out.exists() or list(out.iterdir()) == []  # no final file, no hidden file
     assert not [t for t in threading.enumerate() if t.name == "aerialmtl-stitch"]
-
-
-def _three_inputs(tmp_path: Path, rng: np.random.Generator) -> list[Path]:
-    paths = []
-    for k, (x0, y0) in enumerate(((500000.0, 5000000.0), (500030.0, 4999990.0), (500080.0, 5000020.0))):
-        img = rng.integers(1, 256, size=(3, 60, 70)).astype(np.uint8)
-        paths.append(write_raster(tmp_path / f"t{k}.tif", img, transform=Affine(0.5, 0, x0, 0, -0.5, y0)))
-    return paths
 
 
 def _stopped_after_the_first(paths: list[Path], tmp_path: Path, stop: type[BaseException], match: str) -> Path:

@@ -545,6 +545,12 @@ def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Sha
     strips: dict[int, StripResult] = {}
     committers: dict[int, InputJob] = {}  # shared inputs this rank commits: the job of their first strip
     commits = _Commits(committed, raise_failures=ranks.world == 1, in_thread=commits_in_thread(predictor.device))
+
+    def settle() -> None:  # the commit in flight; with ranks, its failure is this rank's
+        failure = commits.settle()
+        if failure is not None:
+            failures.append((failure[0], ranks.rank, failure[1]))
+
     try:
         for share in mine:
             t = targets[share.target]
@@ -566,20 +572,14 @@ def _compute(predictor: Predictor, targets: Sequence[Target], mine: Sequence[Sha
                     committers[share.target] = job  # this rank joins the strips
                 continue
             try:  # the previous input's commit ran beside this strip
-                failure = commits.settle()
+                settle()
             except BaseException:
                 job.abort()  # one process stops at the first failure: this strip's files go too
                 raise
-            if failure is not None:
-                failures.append((failure[0], ranks.rank, failure[1]))
             commits.start(job, strip, started, str(t.ortho))  # the one-strip case: no other rank's strips to wait for
             if not commits.in_thread:
-                failure = commits.settle()
-                if failure is not None:
-                    failures.append((failure[0], ranks.rank, failure[1]))
-        failure = commits.settle()
-        if failure is not None:
-            failures.append((failure[0], ranks.rank, failure[1]))
+                settle()
+        settle()
     finally:
         commits.close()
 
