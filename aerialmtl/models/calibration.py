@@ -368,6 +368,7 @@ def fit_spread_crps(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 50
     base = float(np.median(err)) / max(float(np.median(sd)), 1e-6)
     base = base if math.isfinite(base) and base > 0 else 1.0
     floors = [0.0, *np.quantile(err, (0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)).tolist()]
+    scores = _CrpsGrid(err, sd)
     best = (math.inf, 1.0, 0.0)
     for exps in (np.linspace(-4, 4, 17), None):
         if exps is None:  # refine around the best factor
@@ -376,12 +377,12 @@ def fit_spread_crps(abs_error: np.ndarray, std: np.ndarray, max_pixels: int = 50
         for floor in floors:
             for e in exps:
                 scale = base * 10.0 ** float(e)
-                score = _crps(err, np.hypot(scale * sd, floor))
+                score = scores.mean(scale, floor)
                 if score < best[0]:
                     best = (score, scale, float(floor))
     # a floor alone (scale 0) where the spread carries nothing
     for floor in np.quantile(err, (0.2, 0.4, 0.6, 0.8)).tolist():
-        score = _crps(err, np.full_like(err, max(floor, 0.01)))
+        score = scores.mean(0.0, max(floor, 0.01))
         if score < best[0]:
             best = (score, 0.0, float(floor))
     return best[1], best[2]
@@ -401,14 +402,60 @@ def _fit_spread_ranges(err: np.ndarray, std: np.ndarray, pred: np.ndarray, edges
     return tuple(scales), tuple(floors)
 
 
+_SQRT2 = math.sqrt(2.0)
+_TWO_PDF = 2.0 / math.sqrt(2.0 * math.pi)
+_INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
+
+
+class _CrpsGrid:
+    """The mean Gaussian CRPS of fixed errors under many spreads ``σ = hypot(scale·std, floor)`` (floored at 1 cm).
+
+    The grid search of :func:`fit_spread_crps` scores ~230 spreads per height range on up to 50,000 pixels, and a
+    calibration fits each range three to six times (all pixels, then each fold; again around the raw heights when
+    the height map is off). With numpy each score was a dozen passes (``hypot``, scipy's scalar ``erf``, ``exp``,
+    products) into new arrays, 2.2 ms per 50,000 pixels, and the fit took longer than the MC passes it follows
+    (4.8 s of a checkpoint's 8.4 s on 2 AMD EPYC cores); here each is torch's vectorised float64 operations in
+    place into three reused buffers (0.3 ms). Same formula as before; the scores agree to ~1e-15 relative.
+
+    Args:
+        err: absolute errors (metres, 1-D float64; not copied).
+        std: the predicted spreads of the same pixels (metres, 1-D float64), for :meth:`mean`.
+    """
+
+    def __init__(self, err: np.ndarray, std: np.ndarray | None = None) -> None:
+        self.err = torch.from_numpy(np.ascontiguousarray(err, np.float64))
+        self.std = None if std is None else torch.from_numpy(np.ascontiguousarray(std, np.float64))
+        self.sigma, self.z, self.term = (torch.empty_like(self.err) for _ in range(3))
+
+    def mean(self, scale: float, floor: float) -> float:
+        """Mean CRPS (metres) under ``σ = hypot(scale·std, floor)``; ``scale`` 0: ``σ = floor`` everywhere."""
+        if scale == 0.0:
+            self.sigma.fill_(floor)
+        else:
+            assert self.std is not None, "a grid of spreads needs the predicted spreads"
+            torch.mul(self.std, scale, out=self.sigma)
+            torch.hypot(self.sigma, torch.tensor(floor, dtype=torch.float64), out=self.sigma)
+        return self.mean_under(self.sigma)
+
+    def mean_under(self, sigma: torch.Tensor) -> float:
+        """Mean CRPS (metres) under the spreads ``sigma`` (1-D float64, floored at 1 cm here, in place).
+
+        ``σ·(z·erf(z/√2) + 2·φ(z) − 1/√π)`` with ``z = |error|/σ`` (Gneiting & Raftery 2007).
+        """
+        sig, z, t = sigma.clamp_min_(0.01), self.z, self.term
+        torch.div(self.err, sig, out=z)
+        torch.div(z, _SQRT2, out=t)
+        torch.special.erf(t, out=t)
+        t.mul_(z)
+        torch.mul(z, z, out=z)
+        z.mul_(-0.5).exp_().mul_(_TWO_PDF)
+        return float(t.add_(z).sub_(_INV_SQRT_PI).mul_(sig).mean())
+
+
 def _crps(err: np.ndarray, sigma: np.ndarray) -> float:
     """Mean Gaussian CRPS (metres) of errors ``err`` under spreads ``sigma`` (floored at 1 cm)."""
-    from scipy.special import erf
-
-    sig = np.maximum(sigma, 0.01)
-    z = err / sig
-    return float(np.mean(sig * (z * erf(z / math.sqrt(2)) + 2 * np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
-                                - 1 / math.sqrt(math.pi))))
+    sig = torch.tensor(np.asarray(sigma, np.float64).ravel())
+    return _CrpsGrid(np.asarray(err, np.float64).ravel()).mean_under(sig)
 
 
 def _nll(err: np.ndarray, sigma: np.ndarray) -> float:

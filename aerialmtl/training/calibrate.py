@@ -34,6 +34,10 @@ log = logging.getLogger(__name__)
 DEFAULT_CALIBRATION_SAMPLES = 16
 #: Pixels kept for the fit (a seeded subsample beyond this).
 MAX_PIXELS = 2_000_000
+#: Validation patches whose MC predictions stay on the model's device before their valid pixels are read back
+#: together (each boolean selection and copy to the host waits for the device: once per 64 patches, not 4 times
+#: per batch; ~85 MB of 320² patches).
+READ_BACK_PATCHES = 64
 #: Fewest validation patches for which a calibration is fitted without a warning.
 MIN_VAL_PATCHES = 20
 
@@ -60,20 +64,35 @@ def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | P
     std = torch.tensor(meta.std, dtype=torch.float32, device=dev)
     transform = build_eval_transform(None)
     data = CachedBatches(PatchCache(folder, index), transform, ("height",))
-    preds, refs, stds, patches = [], [], [], []
-    model = model.to(dev).eval()
+    preds: list[np.ndarray] = []
+    refs: list[np.ndarray] = []
+    stds: list[np.ndarray] = []
+    patches: list[np.ndarray] = []
+    pending: list[tuple[torch.Tensor, ...]] = []  # batches not yet read back: on the device, not waited for
     first = 0
+
+    def read_back() -> None:
+        """Select the valid pixels of the pending batches and bring them to the host, in one wait."""
+        nonlocal first
+        mean_h, std_h, ref_h, valid = (torch.cat(parts) for parts in zip(*pending))
+        pending.clear()
+        ids = torch.arange(first, first + valid.shape[0], device=valid.device).reshape(-1, 1, 1, 1)
+        first += valid.shape[0]
+        preds.append(mean_h[valid].cpu().numpy())
+        stds.append(std_h[valid].cpu().numpy())
+        refs.append(ref_h[valid].cpu().numpy())
+        patches.append(ids.expand_as(valid)[valid].cpu().numpy())
+
+    model = model.to(dev).eval()
     for k, spec in enumerate(eval_batches(index.count, batch_size)):
         batch = prepare_batch(data[spec], transform, mean, std, dev)
         with torch.no_grad():
             out = mc_predict(model, batch["image"], mc, seed=k)["height"]
-        valid = batch["height_valid"]
-        ids = torch.arange(first, first + valid.shape[0], device=valid.device).reshape(-1, 1, 1, 1)
-        first += valid.shape[0]
-        preds.append(out["mean"][valid].cpu().numpy())
-        stds.append(out["std"][valid].cpu().numpy())
-        refs.append(batch["height"][valid].cpu().numpy())
-        patches.append(ids.expand_as(valid)[valid].cpu().numpy())
+        pending.append((out["mean"], out["std"], batch["height"], batch["height_valid"]))
+        if len(pending) * batch_size >= READ_BACK_PATCHES:
+            read_back()
+    if pending:
+        read_back()
     pred, ref, sd = (np.concatenate(a) if a else np.zeros(0, np.float32) for a in (preds, refs, stds))
     patch = np.concatenate(patches) if patches else np.zeros(0, np.int64)
     if pred.size > MAX_PIXELS:
