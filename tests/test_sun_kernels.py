@@ -1,5 +1,6 @@
 """The shadow step's compiled kernels (aerialmtl.sun.kernels) compute what the numpy and scipy code they replace
-computes: the walks and the maximum filter to the bit, the classifier's logistic within float32 rounding."""
+computes: the walks, the maximum filter and the shadow surface to the bit, the classifier's logistic within float32
+rounding."""
 
 from __future__ import annotations
 
@@ -10,9 +11,15 @@ import pytest
 from scipy import ndimage
 
 from aerialmtl.sun import ShadowModel, Sun, kernels, shadow_heights
+from aerialmtl.sun.cast import shadow_surface_sweep
 from aerialmtl.sun.colour import _CONTEXTS, _EPS, _brightness, _local, _planes, unit_rgb
 from aerialmtl.sun.heights import occluder_steps, shadow_runs
-from tests.helpers.shadow_walks import occluder_steps_numpy, shadow_heights_numpy, shadow_runs_numpy
+from tests.helpers.shadow_walks import (
+    occluder_steps_numpy,
+    shadow_heights_numpy,
+    shadow_runs_numpy,
+    shadow_surface_numpy,
+)
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (2, 3), (5, 40), (37, 29), (64, 64)])
@@ -104,3 +111,21 @@ def test_shadow_heights_equal_the_first_written_ones(min_runs: int) -> None:
             np.testing.assert_array_equal(got.std, want.std)
             np.testing.assert_equal([astuple(o) for o in got.objects], [astuple(o) for o in want.objects])
             assert any(o.measured for o in got.objects)
+
+
+@pytest.mark.parametrize("azimuth", [0.0, 30.0, 45.0, 90.0, 101.3, 135.0, 180.0, 200.0, 225.0, 270.0, 315.0, 359.0])
+@pytest.mark.parametrize("elevation", [12.0, 44.0, 79.0])
+def test_the_shadow_surface_equals_the_numpy_sweep_to_the_bit(azimuth: float, elevation: float) -> None:
+    """Every direction (both axes dominant, both signs, diagonals) and sun height, on a stack of two non-square
+    rasters with buildings, noise, NaN (no height), ±∞ and a one-pixel raster; the sweep's float32 maxima and
+    differences give the same surface to the bit, NaN where numpy's maximum gives NaN."""
+    rng = np.random.default_rng(int(azimuth * 10 + elevation))
+    z = rng.gamma(1.0, 0.5, (2, 37, 53)).astype(np.float32)
+    z[0, 5:15, 8:20] += 12.0
+    z[1, 20:30, 30:50] += 25.0
+    z[0, 3, 40], z[1, 33, 2], z[0, 20, 20], z[1, 0, 0] = np.nan, np.nan, np.inf, -np.inf
+    for raster in (z, z[1], z[:, :1, :1], z[:, :, :1]):
+        want = shadow_surface_numpy(raster, 0.5, azimuth, elevation)
+        got = shadow_surface_sweep(raster, 0.5, azimuth, elevation)
+        assert got.dtype == np.float32 and got.shape == raster.shape
+        np.testing.assert_array_equal(got.view(np.int32), want.view(np.int32))

@@ -49,50 +49,23 @@ def shadow_surface_sweep(surface: np.ndarray, gsd: float, azimuth_deg: float, el
     Returns:
         float32 array of the input's shape: the shadow surface in metres.
     """
+    from aerialmtl.sun.kernels import sweep_surface  # numba: imported when a shadow is first cast
+
     z = np.asarray(surface, dtype=np.float32)
     flat = z.ndim == 2
-    z3 = z[None] if flat else z
-    az = math.radians(azimuth_deg)
-    d_row, d_col = -math.cos(az), math.sin(az)  # one step towards the sun in (row, col)
-    transposed = abs(d_row) > abs(d_col)
-    if transposed:  # sweep along the dominant axis, which must be the column axis → swap rows and columns
-        z3 = z3.transpose(0, 2, 1)
-        d_row, d_col = d_col, d_row
-    # Now |d_col| ≥ |d_row|: each step moves one column towards the sun and `slope` rows.
-    zt = np.ascontiguousarray(z3.transpose(2, 0, 1))  # (W, N, H): zt[c] holds column c of every raster
-    n_cols, _, n_rows = zt.shape
-    step_c = 1 if d_col > 0 else -1
-    slope = d_row / abs(d_col)
+    z3 = np.ascontiguousarray(z[None] if flat else z)
+    rows, step, slope = sun_steps(azimuth_deg)  # along the dominant axis: one row (else one column) per step
+    length = z3.shape[1] if rows else z3.shape[2]
     drop = np.float32(gsd * math.tan(math.radians(elevation_deg)) * math.hypot(1.0, slope))
-    offsets = line_offsets(n_cols, slope * step_c)  # row of the line through (0, 0) at column c
-    surf = np.empty_like(zt)
-    order = range(n_cols - 1, -1, -1) if step_c > 0 else range(n_cols)
-    prev: np.ndarray | None = None
-    prev_c = -1
-    neg = np.float32(-np.inf)
-    shifted = np.empty(zt.shape[1:], dtype=np.float32)
-    for c in order:
-        if prev is None:
-            surf[c] = zt[c]
-        else:
-            # upstream pixel of row r at column c is row r + delta at column prev_c
-            delta = int(offsets[prev_c] - offsets[c])
-            if delta == 0:
-                shifted[:] = prev
-            elif delta > 0:
-                shifted[:, : n_rows - delta] = prev[:, delta:]
-                shifted[:, n_rows - delta:] = neg
-            else:
-                shifted[:, -delta:] = prev[:, : n_rows + delta]
-                shifted[:, : -delta] = neg
-            np.maximum(zt[c], shifted - drop, out=surf[c])
-        prev = surf[c]
-        prev_c = c
-    out = surf.transpose(1, 2, 0)  # (N, H', W')
-    if transposed:
-        out = out.transpose(0, 2, 1)
-    out = np.ascontiguousarray(out)
-    return out[0] if flat else out
+    offsets = line_offsets(length, slope * step)  # across-axis offset of the line through 0 at each position
+    deltas = np.zeros(length, np.int64)  # the shift from each position to its upstream neighbour p + step
+    if step > 0:
+        deltas[:-1] = offsets[1:] - offsets[:-1]
+    else:
+        deltas[1:] = offsets[:-1] - offsets[1:]
+    surf = np.empty_like(z3)
+    sweep_surface(z3, rows, step, deltas, drop, surf)
+    return surf[0] if flat else surf
 
 
 def _limited_occluder(z: np.ndarray, gsd: float, sun: Sun, max_length_m: float) -> np.ndarray:

@@ -10,7 +10,12 @@ cost a fifth of the small-area recipe's model stage. Each kernel here does the s
   ``mode="reflect"``; the maximum is exact, so the result is the same to the bit);
 * :func:`edge_pixels`, :func:`run_lengths` and :func:`occluder_offsets` — the edges and the walks of
   :func:`aerialmtl.sun.shadow_heights` (integers: the same to the bit as the numpy walks they replace,
-  tests/test_sun_kernels.py).
+  tests/test_sun_kernels.py);
+* :func:`sweep_surface` — the shadow surface of :func:`aerialmtl.sun.cast.shadow_surface_sweep`, which the sun
+  fit after training casts ~740 times (every sun of its grid) over the whole training area: a numpy pass per
+  column of the raster, between two transposed copies, held the GIL and took 7.5 ms per sun on 1024² (7 s of a
+  fit); one pass here in the raster's own layout (the same float32 maxima and differences, the same surface to
+  the bit).
 
 Every kernel releases the GIL (``nogil``), so bands of rows run on threads. numba compiles them the first time
 after an install (about 2 s together) and keeps their machine code in the package's ``numba`` store.
@@ -192,3 +197,55 @@ def occluder_offsets(height: Any, objects: Any, r: Any, c: Any, lab: Any, off_r:
 
 
 __all__ = ["edge_pixels", "logistic_rows", "max_filter_reflect", "occluder_offsets", "run_lengths"]
+
+
+
+@jit
+def sweep_surface(z: Any, rows: bool, step: int, deltas: Any, drop: Any,
+                  surf: Any) -> None:  # pragma: no cover - runs compiled
+    """The shadow surface of ``z`` (float32 (N, H, W), metres) into ``surf`` (the same), swept from the sun-side
+    edge (:func:`aerialmtl.sun.cast.shadow_surface_sweep`), in the rasters' own layout.
+
+    The sweep moves one row per step (``rows``) or one column, ``step`` (+1/−1) being the way towards the sun;
+    ``deltas[p]`` (int64, one per position along that axis) is the shift across it from position ``p`` to the one
+    before it (``p + step``, its upstream neighbour on the sun's digital line). Then ``surf`` at ``p`` =
+    ``max(z, surf at p + step shifted by deltas[p] − drop)``, ``z`` where the shifted pixel leaves the raster
+    (−∞ there); the first position is ``z``'s. ``drop``: float32 metres per step. NaN propagates as in
+    ``numpy.maximum``. Along rows each step is a contiguous pass over a row; along columns each row is swept whole,
+    rows in the order the shifts point to (a row reads the row it shifts to, already swept).
+    """
+    n, h, w = z.shape
+    length = h if rows else w
+    first = length - 1 if step > 0 else 0
+    for i in range(n):
+        if rows:
+            for x in range(w):
+                surf[i, first, x] = z[i, first, x]
+            for k in range(1, length):
+                y = first - k if step > 0 else k
+                d = deltas[y]
+                prev = y + step
+                for x in range(w):
+                    zz = z[i, y, x]
+                    if 0 <= x + d < w:
+                        v = surf[i, prev, x + d] - drop
+                        surf[i, y, x] = zz if (zz >= v or zz != zz) else v
+                    else:
+                        surf[i, y, x] = zz
+        else:
+            down = False  # rows whose shift is positive read the row below: sweep the rows bottom up
+            for c in range(w):
+                if deltas[c] > 0:
+                    down = True
+            for j in range(h):
+                y = h - 1 - j if down else j
+                surf[i, y, first] = z[i, y, first]
+                for k in range(1, length):
+                    c = first - k if step > 0 else k
+                    yy = y + deltas[c]
+                    zz = z[i, y, c]
+                    if 0 <= yy < h:
+                        v = surf[i, yy, c + step] - drop
+                        surf[i, y, c] = zz if (zz >= v or zz != zz) else v
+                    else:
+                        surf[i, y, c] = zz

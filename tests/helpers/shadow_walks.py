@@ -134,3 +134,49 @@ def shadow_heights_numpy(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, object
         height[inside] = lut_h[labels[inside]]
         std[inside] = lut_s[labels[inside]]
     return ShadowHeights(height, std, records)
+
+
+def shadow_surface_numpy(surface: np.ndarray, gsd: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """:func:`aerialmtl.sun.cast.shadow_surface_sweep` as first written: one numpy pass per column."""
+    z = np.asarray(surface, dtype=np.float32)
+    flat = z.ndim == 2
+    z3 = z[None] if flat else z
+    az = math.radians(azimuth_deg)
+    d_row, d_col = -math.cos(az), math.sin(az)
+    transposed = abs(d_row) > abs(d_col)
+    if transposed:
+        z3 = z3.transpose(0, 2, 1)
+        d_row, d_col = d_col, d_row
+    zt = np.ascontiguousarray(z3.transpose(2, 0, 1))
+    n_cols, _, n_rows = zt.shape
+    step_c = 1 if d_col > 0 else -1
+    slope = d_row / abs(d_col)
+    drop = np.float32(gsd * math.tan(math.radians(elevation_deg)) * math.hypot(1.0, slope))
+    offsets = line_offsets(n_cols, slope * step_c)
+    surf = np.empty_like(zt)
+    order = range(n_cols - 1, -1, -1) if step_c > 0 else range(n_cols)
+    prev: np.ndarray | None = None
+    prev_c = -1
+    neg = np.float32(-np.inf)
+    shifted = np.empty(zt.shape[1:], dtype=np.float32)
+    for c in order:
+        if prev is None:
+            surf[c] = zt[c]
+        else:
+            delta = int(offsets[prev_c] - offsets[c])
+            if delta == 0:
+                shifted[:] = prev
+            elif delta > 0:
+                shifted[:, : n_rows - delta] = prev[:, delta:]
+                shifted[:, n_rows - delta:] = neg
+            else:
+                shifted[:, -delta:] = prev[:, : n_rows + delta]
+                shifted[:, : -delta] = neg
+            np.maximum(zt[c], shifted - drop, out=surf[c])
+        prev = surf[c]
+        prev_c = c
+    out = surf.transpose(1, 2, 0)
+    if transposed:
+        out = out.transpose(0, 2, 1)
+    out = np.ascontiguousarray(out)
+    return out[0] if flat else out
