@@ -8,6 +8,7 @@ here: the light callers (the engine table, the test suite's CPU kind) stay light
 from __future__ import annotations
 
 import functools
+import os
 from pathlib import Path
 
 #: Where Linux describes the CPU; absent on macOS and Windows.
@@ -49,4 +50,12 @@ def cpu_name() -> str | None:
     return " ".join(parts)
 
 
-__all__ = ["PROC_CPUINFO", "cpu_fields", "cpu_flags", "cpu_name"]
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the system says, else the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+__all__ = ["PROC_CPUINFO", "cpu_fields", "cpu_flags", "cpu_name", "usable_cpus"]

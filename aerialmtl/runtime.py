@@ -43,7 +43,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from aerialmtl.cpuinfo import cpu_fields, cpu_flags
+from aerialmtl.cpuinfo import cpu_fields, cpu_flags, usable_cpus
 from aerialmtl.errors import AerialMTLError, InputError, PeerFailure, cause
 from aerialmtl.stores import warn_once
 
@@ -278,14 +278,6 @@ def _threads_value(value: int | str, param: str) -> int | None:
         raise InputError(f"{where} must be a positive number of threads or 'auto', got {value!r}; "
                          "pass e.g. 2, or auto", param=None if param == THREADS_ENV else param)
     return number
-
-
-def usable_cpus() -> int:
-    """The CPUs this process may run on (its affinity where the system says, else the machine's count)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def resolve_threads(threads: int | str | None = "auto") -> CpuThreads:

@@ -55,6 +55,30 @@ def test_fit_accepts_several_patches() -> None:
     assert angle_diff(fit.sun.azimuth_deg, 100.0) <= 3.0 and abs(fit.sun.elevation_deg - 45.0) <= 3.0
 
 
+def test_the_fit_is_the_same_on_one_thread_and_on_several(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The suns of each grid are scored on threads: the fitted sun, its score, sharpness and reason, and every
+    sun's score, are those of one thread scoring them in turn (two patch shapes: two stacks per sun)."""
+    from aerialmtl.sun import fit as sun_fit
+
+    patches = [city(s, 210.0, 35.0, size=size) for s, size in ((5, 128), (6, 96), (7, 128))]
+    seen = {}
+    for threads in (1, 4):
+        monkeypatch.setattr(sun_fit, "GRID_THREADS", threads)
+        monkeypatch.setattr(sun_fit, "usable_cpus", lambda: 4)
+        scores: dict = {}
+        real = sun_fit._Objective.score
+
+        def keep(self, suns, real=real, scores=scores):  # the objective's cache: every sun scored
+            real(self, suns)
+            scores.update(self.cache)
+
+        monkeypatch.setattr(sun_fit._Objective, "score", keep)
+        seen[threads] = (fit_sun([p.image for p in patches], [p.height for p in patches], 0.5), scores)
+    assert seen[4][0] == seen[1][0] and seen[4][0].clear, seen[4][0].reason
+    assert len(seen[4][1]) > 600 and list(seen[4][1]) == list(seen[1][1])
+    np.testing.assert_array_equal(list(seen[4][1].values()), list(seen[1][1].values()))  # NaN where no shadow
+
+
 def test_no_shadows_no_sun() -> None:
     p = city(1, 130.0, 40.0, size=128)
     flat = fit_sun(p.image, np.zeros_like(p.height), p.gsd)  # heights that cast nothing

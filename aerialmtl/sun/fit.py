@@ -4,7 +4,9 @@ Objective: Pearson correlation, over ground pixels (reference height < ``ground_
 :func:`~aerialmtl.sun.colour.shadow_score` and the cast-shadow mask of the heights at a candidate sun
 (a point-biserial correlation). Rank (AUC) and best-threshold-overlap objectives were dropped: they prefer
 very small or very large masks (design note ``heights-from-shadows``). Search: a coarse grid (10° azimuth ×
-5° elevation), then 2° × 1° and 0.5° × 0.25° grids around the best point.
+5° elevation), then 2° × 1° and 0.5° × 0.25° grids around the best point; the suns of a grid are scored on up to
+:data:`GRID_THREADS` threads (the shadow sweep releases the GIL; each sun's score is computed as alone, so the
+fit is the same on any number of threads).
 
 **Sharpness** = ``(r* − r30) / r*``, where ``r*`` is the correlation at the optimum and ``r30`` the best
 correlation of the coarse grid at azimuths 30° or more from the optimum (any elevation): 0 = another
@@ -22,16 +24,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
+from aerialmtl.cpuinfo import usable_cpus
 from aerialmtl.errors import InputError
 from aerialmtl.sun._patches import ArrayOrList, as_patches
 from aerialmtl.sun.cast import cast_shadow_mask
 from aerialmtl.sun.colour import shadow_score
 from aerialmtl.sun.position import Sun, as_float
 
+#: Most threads scoring the suns of a grid (each holds a few float32 copies of the training area; on 2 cores of an
+#: AMD EPYC, 1024² area: 4.6 ms per sun on one thread, 2.7 on two).
+GRID_THREADS = 4
 #: Reference heights below this (metres) are ground where the correlation is taken.
 GROUND_M = 0.5
 #: Defaults of a clear fit: the least correlation and the least sharpness.
@@ -120,6 +127,18 @@ class _Objective:
             self.cache[key] = self._corr(Sun(*key))
         return self.cache[key]
 
+    def score(self, suns: Sequence[tuple[float, float]]) -> None:
+        """Score the ``(azimuth, elevation)`` pairs not scored yet, on up to :data:`GRID_THREADS` threads."""
+        keys = list(dict.fromkeys((round(az % 360.0, 4), round(el, 4)) for az, el in suns))
+        todo = [k for k in keys if k not in self.cache]
+        threads = min(GRID_THREADS, usable_cpus(), len(todo))
+        if threads <= 1:
+            scores = [self._corr(Sun(*k)) for k in todo]
+        else:
+            with ThreadPoolExecutor(threads, thread_name_prefix="sun-grid") as pool:
+                scores = list(pool.map(lambda k: self._corr(Sun(*k)), todo))
+        self.cache.update(zip(todo, scores))
+
     def _corr(self, sun: Sun) -> float:
         m1 = sm = 0.0
         for h, s, ground in self.stacks:
@@ -133,6 +152,7 @@ class _Objective:
 
 
 def _grid(f: _Objective, azs: Sequence[float], els: Sequence[float]) -> tuple[float, float, float]:
+    f.score([(az, el) for el in els for az in azs])
     best = (-math.inf, 0.0, 0.0)
     for el in els:
         for az in azs:
