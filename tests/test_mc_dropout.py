@@ -136,6 +136,21 @@ def test_single_task_and_bf16_autocast() -> None:
     assert torch.isfinite(r["classes"]["entropy"]).all()
 
 
+@pytest.mark.parametrize("head", [{}, {"aleatoric": True}, {"aleatoric": True, "height_bins": 8}])
+def test_decoding_the_height_task_alone_gives_its_statistics_to_the_bit(head: dict) -> None:
+    """What calibration asks for (only the heights): the classes' blocks are not run, and the height mean, spread
+    (and aleatoric spread) are those of the full decode with the same masks, to the bit (the dropout layers are
+    all in the shared blocks)."""
+    model = _model(**head).eval()
+    x = torch.randn(2, 3, 64, 64)
+    full = mc_predict(model, x, samples=4, seed=3)
+    alone = mc_predict(model, x, samples=4, seed=3, tasks=("height",))
+    assert set(full) == {"height", "classes"} and set(alone) == {"height"}
+    assert set(alone["height"]) == set(full["height"]) and len(full["height"]) == (3 if head else 2)
+    for name, value in full["height"].items():
+        torch.testing.assert_close(alone["height"][name], value, rtol=0, atol=0)
+
+
 def test_samples_must_be_positive() -> None:
     with pytest.raises(ValueError, match="samples"):
         mc_predict(_model(), torch.randn(1, 3, 32, 32), samples=0)

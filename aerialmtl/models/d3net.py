@@ -24,7 +24,7 @@ owns the last ``cfg.task_blocks`` blocks plus a 3×3 output convolution (with bi
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import TypeVar, cast
 
 import torch
@@ -215,10 +215,12 @@ class D3Net(nn.Module):
         result: list[torch.Tensor] = self.encoder(x)
         return result
 
-    def decode(self, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+    def decode(self, feats: list[torch.Tensor], tasks: Collection[str] | None = None) -> dict[str, torch.Tensor]:
         """Stochastic part (every dropout layer): encoder features → ``{output: B×C×H×W}`` (:attr:`outputs`).
 
-        The feature batch may be larger than the image batch (MC samples stacked along B).
+        The feature batch may be larger than the image batch (MC samples stacked along B). ``tasks``: decode only
+        these tasks' blocks (default all); the dropout layers are all in the shared blocks, so a task's outputs
+        do not depend on which others are decoded.
         """
         n = self._n_up
         out = feats[-1]
@@ -229,6 +231,8 @@ class D3Net(nn.Module):
         skips = [feats[n - 1 - j] for j in range(len(self.shared), n)]  # the task blocks' skips, deepest first
         results: dict[str, torch.Tensor] = {}
         for task, dec in self.heads.items():
+            if tasks is not None and task not in tasks:
+                continue
             y = dec(out, skips)
             if task == "height" and self.cfg.height_bins:
                 h = TASK_CHANNELS_HEIGHT
@@ -273,9 +277,14 @@ def encode_features(model: nn.Module, x: torch.Tensor) -> list[torch.Tensor]:
     return cast(Callable[[torch.Tensor], list[torch.Tensor]], model.encode)(x)
 
 
-def decode_features(model: nn.Module, feats: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-    """``model.decode(feats)`` (:meth:`D3Net.decode`) of a D3-Net or a wrapper that forwards it (typed once)."""
-    return cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)(feats)
+def decode_features(model: nn.Module, feats: list[torch.Tensor],
+                    tasks: Collection[str] | None = None) -> dict[str, torch.Tensor]:
+    """``model.decode(feats)`` (:meth:`D3Net.decode`) of a D3-Net or a wrapper that forwards it (typed once);
+    ``tasks`` (a D3-Net's own decode only): only these tasks' outputs.
+    """
+    if tasks is None:
+        return cast(Callable[[list[torch.Tensor]], dict[str, torch.Tensor]], model.decode)(feats)
+    return cast(Callable[..., dict[str, torch.Tensor]], model.decode)(feats, tasks=tasks)
 
 
 def fold_batchnorm(model: nn.Module) -> nn.Module:

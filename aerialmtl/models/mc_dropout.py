@@ -39,7 +39,7 @@ longer depend on the batch, the sample chunks or which process computes the wind
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -302,6 +302,7 @@ def mc_statistics(
     seed: int | None = None,
     keys: Sequence[int] | None = None,
     density: FeatureDensity | None = None,
+    tasks: Collection[str] | None = None,
 ) -> McStatistics:
     """MC-dropout statistics of a D3-Net-like model (with ``encode``/``decode``); encoder run once.
 
@@ -316,6 +317,8 @@ def mc_statistics(
         keys: one integer per image; image ``b``'s masks in sample ``t`` come from a generator seeded by
             ``(seed, keys[b], t)`` (see the module docstring).
         density: the checkpoint's feature density: ``unfamiliarity`` from the encoder's features too.
+        tasks: decode only these tasks (a D3-Net's; default all): the same statistics of them, the others'
+            decoder blocks not run.
 
     Returns:
         :class:`McStatistics` for the tasks the model returns.
@@ -344,7 +347,7 @@ def mc_statistics(
                 assert keys is not None
                 masks.generators = [sample_generator(seed or 0, key, t, x.device)
                                     for t in range(done, done + s) for key in keys]
-            return decode_features(model, [f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats])
+            return decode_features(model, [f.repeat(s, 1, 1, 1) if s > 1 else f for f in feats], tasks)
 
         stats = accumulate_samples(decode_chunk, samples, chunk, b)
     if density is not None:
@@ -528,6 +531,7 @@ def mc_predict(
     sample_batch: int | None = None,
     seed: int | None = None,
     keys: Sequence[int] | None = None,
+    tasks: Collection[str] | None = None,
 ) -> dict[str, dict[str, torch.Tensor]]:
     """MC-dropout prediction of a D3-Net-like model (with ``encode``/``decode``).
 
@@ -540,12 +544,13 @@ def mc_predict(
         seed: seed the dropout masks (the global RNG state is restored afterwards); default: the
             current global RNG. With ``keys``, the base seed of the per-image masks.
         keys: per-image mask seeds (see :func:`mc_statistics`).
+        tasks: only these tasks (see :func:`mc_statistics`).
 
     Returns:
         ``{"height": {"mean", "std"}, "classes": {"probs", "entropy", "mutual_info"}}`` for the tasks the
         model returns, float32 (shapes in the module docstring).
     """
-    stats = mc_statistics(model, x, samples, sample_batch, seed, keys)
+    stats = mc_statistics(model, x, samples, sample_batch, seed, keys, tasks=tasks)
     result: dict[str, dict[str, torch.Tensor]] = {}
     if stats.height_mean is not None and stats.height_std is not None:
         result["height"] = {"mean": stats.height_mean.unsqueeze(1), "std": stats.height_std.unsqueeze(1)}

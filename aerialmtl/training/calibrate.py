@@ -87,7 +87,7 @@ def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | P
     for k, spec in enumerate(eval_batches(index.count, batch_size)):
         batch = prepare_batch(data[spec], transform, mean, std, dev)
         with torch.no_grad():
-            out = mc_predict(model, batch["image"], mc, seed=k)["height"]
+            out = mc_predict(model, batch["image"], mc, seed=k, tasks=("height",))["height"]
         pending.append((out["mean"], out["std"], batch["height"], batch["height_valid"]))
         if len(pending) * batch_size >= READ_BACK_PATCHES:
             read_back()
