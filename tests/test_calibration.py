@@ -313,3 +313,44 @@ def test_validation_pixels_read_back_in_groups_are_the_pixels_of_each_batch(tmp_
     assert np.array_equal(np.unique(patch), np.arange(10)) and np.all(np.diff(patch) >= 0)
     np.testing.assert_array_equal(np.bincount(patch), [32 * 32 - i * i for i in range(10)])
     assert pred.size == ref.size == std.size and np.all(np.isfinite(ref)) and ref.min() > -1
+
+
+def test_a_run_whose_last_validation_was_its_best_calibrates_its_network_once(tiles: Path, tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """best.pt and last.pt of a 2-step run hold the same network: its validation pixels are predicted once and
+    both checkpoints carry the same calibration (the one fitted on it)."""
+    from aerialmtl.training import calibrate
+
+    calls = []
+    real = calibrate.validation_pixels
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(args[2])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(calibrate, "validation_pixels", counted)
+    res = train(_cfg("densenet121"), tiles, tmp_path / "run", max_steps=2, progress=False)
+    best, last = load_checkpoint(res.best_checkpoint)[1], load_checkpoint(res.last_checkpoint)[1]
+    assert len(calls) == 1 and best.calibration is not None and best.calibration.n_pixels > 0
+    assert last.calibration == best.calibration
+
+
+def test_checkpoints_hold_the_same_weights_only_when_every_weight_is_equal(tmp_path: Path) -> None:
+    from helpers.models import tiny_d3net
+
+    from aerialmtl.formats.checkpoint import same_weights
+
+    model, meta = tiny_d3net()
+    save_checkpoint(tmp_path / "a.pt", model, meta)
+    save_checkpoint(tmp_path / "b.pt", model, dataclasses.replace(meta, calibration=Calibration((0.0, 1.0), (0.0, 2.0),
+                                                                                              1.0, n_pixels=1)))
+    assert same_weights(tmp_path / "a.pt", tmp_path / "b.pt")  # other records may differ
+    with torch.no_grad():
+        next(model.parameters()).view(-1)[0] += 1e-6
+    save_checkpoint(tmp_path / "c.pt", model, meta)
+    assert not same_weights(tmp_path / "a.pt", tmp_path / "c.pt")
+    other, other_meta = tiny_d3net(k=3)
+    save_checkpoint(tmp_path / "d.pt", other, other_meta)
+    assert not same_weights(tmp_path / "a.pt", tmp_path / "d.pt")
+    save_checkpoint(tmp_path / "e.pt", model, dataclasses.replace(meta, mean=(0.0, 0.0, 0.0)))
+    assert not same_weights(tmp_path / "c.pt", tmp_path / "e.pt")

@@ -320,6 +320,20 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return payload, meta
 
 
+def same_weights(a: str | Path, b: str | Path) -> bool:
+    """Whether checkpoints ``a`` and ``b`` hold the same network: the same architecture, input normalisation and
+    every weight and buffer equal (what the rest of their records say may differ).
+
+    A run's ``best.pt`` and ``last.pt`` often do (when the last validation was the best): what is fitted on the
+    network after training (the calibration) is then fitted once.
+    """
+    pa, ma = load_checkpoint(a)
+    pb, mb = load_checkpoint(b)
+    sa, sb = pa["state_dict"], pb["state_dict"]
+    return ((ma.model, ma.mean, ma.std, ma.bands) == (mb.model, mb.mean, mb.std, mb.bands) and sa.keys() == sb.keys()
+            and all(torch.equal(sa[k], sb[k]) for k in sa))
+
+
 def bytes_fingerprint(data: bytes) -> str:
     """``sha256:<hex>`` of ``data`` (the fingerprint of a checkpoint file is that of the bytes that were loaded)."""
     import hashlib

@@ -142,10 +142,17 @@ def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DE
     spread = sd if (mc > 1 or meta.model.aleatoric) else None
     cal = fit_calibration(pred, ref, spread, method, source=f"val split of {Path(data_dir).name}, T={mc}",
                           folds=patch_folds(patch))
-    new_meta = dataclasses.replace(meta, calibration=cal)
-    save_checkpoint(out or path, model, new_meta, payload.get("train_state"))
+    store_calibration(path, cal, out)
     log.info("calibration of '%s': %s", path, cal.summary())
     return cal
 
 
-__all__ = ["DEFAULT_CALIBRATION_SAMPLES", "calibrate_checkpoint", "patch_folds", "validation_pixels"]
+def store_calibration(path: str | Path, cal: Calibration, out: str | Path | None = None) -> None:
+    """Store ``cal`` in checkpoint ``path`` (or write the checkpoint with it to ``out``); weights unchanged."""
+    payload, meta = load_checkpoint(path)
+    model, _ = load_model(path)
+    save_checkpoint(out or path, model, dataclasses.replace(meta, calibration=cal), payload.get("train_state"))
+
+
+__all__ = ["DEFAULT_CALIBRATION_SAMPLES", "calibrate_checkpoint", "patch_folds", "store_calibration",
+           "validation_pixels"]

@@ -38,11 +38,19 @@ from aerialmtl import runtime
 from aerialmtl.config import to_dict
 from aerialmtl.data.batches import EpochOrder, prepare_batch
 from aerialmtl.errors import InputError, NonFiniteError
-from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M, ModelMeta, first_nonfinite, height_slack, save_checkpoint
+from aerialmtl.formats.checkpoint import (
+    SURFACE_HEIGHTS_M,
+    ModelMeta,
+    first_nonfinite,
+    height_slack,
+    same_weights,
+    save_checkpoint,
+)
 from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
+from aerialmtl.models.calibration import Calibration
 from aerialmtl.progress import tqdm_auto as tqdm
-from aerialmtl.training.calibrate import calibrate_checkpoint
+from aerialmtl.training.calibrate import calibrate_checkpoint, store_calibration
 from aerialmtl.training.familiarity import familiarize_checkpoint
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
@@ -427,12 +435,21 @@ class Trainer(StepLoop):
         cal = self.cfg.calibration
         if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
             return
+        fitted: list[tuple[Path, Calibration]] = []
         for name in ("best.pt", "last.pt"):
-            if self.paths[name].exists():
+            path = self.paths[name]
+            if not path.exists():
+                continue
+            same = next((c for p, c in fitted if same_weights(p, path)), None)
+            if same is not None:  # the same network (the last validation was the best): the same calibration
+                store_calibration(path, same)
+                c = same
+            else:
                 data = self.setup.data
-                c = calibrate_checkpoint(self.paths[name], data.info.root, mc=cal.mc_samples, method=cal.method,
+                c = calibrate_checkpoint(path, data.info.root, mc=cal.mc_samples, method=cal.method,
                                          cache_folder=data.cache_folder, device=self.device)
-                log.info("%s: %s", name, c.summary())
+            fitted.append((path, c))
+            log.info("%s: %s", name, c.summary())
 
     def familiarize(self) -> None:
         """Fit the encoder-feature density on the train split and store it in best.pt and last.pt.
