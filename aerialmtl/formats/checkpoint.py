@@ -27,6 +27,7 @@ A checkpoint is a ``torch.save``-d dict of plain types and tensors only (so it l
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 import pickle
@@ -279,8 +280,22 @@ def save_checkpoint(
         OutputError: the disk is full, or the folder is not writable (names ``path``; nothing is left
             at ``path`` or beside it).
     """
-    path = Path(path)
-    state_dict = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    _write(Path(path), {k: v.detach().cpu() for k, v in model.state_dict().items()}, meta, train_state)
+
+
+def update_meta(path: str | Path, out: str | Path | None = None, **fields: Any) -> None:
+    """Rewrite checkpoint ``path`` (or write it to ``out``) with ``fields`` of its :class:`ModelMeta` replaced (what
+    is fitted after training: ``calibration``, ``familiarity``, ``sun``); weights and training state unchanged.
+
+    One read and one atomic write, as :func:`save_checkpoint` (the same refusals and errors).
+    """
+    payload, meta = load_checkpoint(path)
+    _write(Path(out or path), payload["state_dict"], dataclasses.replace(meta, **fields), payload.get("train_state"))
+
+
+def _write(path: Path, state_dict: dict[str, torch.Tensor], meta: ModelMeta,
+           train_state: dict[str, Any] | None) -> None:
+    """:func:`save_checkpoint` of a CPU state dict."""
     bad = first_nonfinite(state_dict)
     if bad is not None:
         raise NonFiniteError(

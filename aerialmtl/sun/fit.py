@@ -121,15 +121,20 @@ class _Objective:
         self.var = s2 - s1 * s1 / n if n > 0 else 0.0
         self.cache: dict[tuple[float, float], float] = {}
 
+    @staticmethod
+    def key(az: float, el: float) -> tuple[float, float]:
+        """The cache's key of a sun: azimuth modulo 360°, both to 1e-4 degree."""
+        return round(az % 360.0, 4), round(el, 4)
+
     def __call__(self, az: float, el: float) -> float:
-        key = (round(az % 360.0, 4), round(el, 4))
+        key = self.key(az, el)
         if key not in self.cache:
             self.cache[key] = self._corr(Sun(*key))
         return self.cache[key]
 
     def score(self, suns: Sequence[tuple[float, float]]) -> None:
         """Score the ``(azimuth, elevation)`` pairs not scored yet, on up to :data:`GRID_THREADS` threads."""
-        keys = list(dict.fromkeys((round(az % 360.0, 4), round(el, 4)) for az, el in suns))
+        keys = list(dict.fromkeys(self.key(az, el) for az, el in suns))
         todo = [k for k in keys if k not in self.cache]
         threads = min(GRID_THREADS, usable_cpus(), len(todo))
         if threads <= 1:

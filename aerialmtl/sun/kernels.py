@@ -196,10 +196,6 @@ def occluder_offsets(height: Any, objects: Any, r: Any, c: Any, lab: Any, off_r:
         arg[n] = found
 
 
-__all__ = ["edge_pixels", "logistic_rows", "max_filter_reflect", "occluder_offsets", "run_lengths"]
-
-
-
 @jit
 def sweep_surface(z: Any, rows: bool, step: int, deltas: Any, drop: Any,
                   surf: Any) -> None:  # pragma: no cover - runs compiled
@@ -249,3 +245,7 @@ def sweep_surface(z: Any, rows: bool, step: int, deltas: Any, drop: Any,
                         surf[i, y, c] = zz if (zz >= v or zz != zz) else v
                     else:
                         surf[i, y, c] = zz
+
+
+__all__ = ["edge_pixels", "logistic_rows", "max_filter_reflect", "occluder_offsets", "run_lengths",
+           "sweep_surface"]

@@ -11,7 +11,6 @@ training state unchanged). ``predict`` then applies what it holds. A validation 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import warnings
 from pathlib import Path
@@ -23,7 +22,7 @@ from aerialmtl.data.batches import CachedBatches, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform
 from aerialmtl.errors import ConfigError
-from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
+from aerialmtl.formats.checkpoint import ModelMeta, load_model, update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.models.calibration import Calibration, CalibrationMethod, fit_calibration
 from aerialmtl.models.mc_dropout import mc_predict
@@ -127,8 +126,7 @@ def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DE
     Returns:
         The fitted :class:`Calibration` (also logged).
     """
-    payload, meta = load_checkpoint(path)
-    model, _ = load_model(path)
+    model, meta = load_model(path)
     pred, ref, sd, patch = validation_pixels(model, meta, data_dir, mc, cache_folder=cache_folder, device=device)
     if pred.size == 0:
         raise ConfigError(f"calibration: no valid validation pixel in '{data_dir}'", param="data_dir")
@@ -142,17 +140,9 @@ def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DE
     spread = sd if (mc > 1 or meta.model.aleatoric) else None
     cal = fit_calibration(pred, ref, spread, method, source=f"val split of {Path(data_dir).name}, T={mc}",
                           folds=patch_folds(patch))
-    store_calibration(path, cal, out)
+    update_meta(path, out, calibration=cal)
     log.info("calibration of '%s': %s", path, cal.summary())
     return cal
 
 
-def store_calibration(path: str | Path, cal: Calibration, out: str | Path | None = None) -> None:
-    """Store ``cal`` in checkpoint ``path`` (or write the checkpoint with it to ``out``); weights unchanged."""
-    payload, meta = load_checkpoint(path)
-    model, _ = load_model(path)
-    save_checkpoint(out or path, model, dataclasses.replace(meta, calibration=cal), payload.get("train_state"))
-
-
-__all__ = ["DEFAULT_CALIBRATION_SAMPLES", "calibrate_checkpoint", "patch_folds", "store_calibration",
-           "validation_pixels"]
+__all__ = ["DEFAULT_CALIBRATION_SAMPLES", "calibrate_checkpoint", "patch_folds", "validation_pixels"]

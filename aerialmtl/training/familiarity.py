@@ -12,7 +12,6 @@ trained on.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from pathlib import Path
 from typing import Literal
@@ -25,7 +24,7 @@ from aerialmtl.data.batches import CachedBatches, eval_batches, prepare_batch
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.transforms import build_eval_transform
 from aerialmtl.errors import ConfigError
-from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint, load_model, save_checkpoint
+from aerialmtl.formats.checkpoint import ModelMeta, load_model, update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.models.d3net import encode_features
 from aerialmtl.models.familiarity import FeatureDensity, fit_density
@@ -133,11 +132,10 @@ def familiarize_checkpoint(path: str | Path, data_dir: str | Path, *, levels: tu
     Returns:
         The fitted :class:`~aerialmtl.models.familiarity.FeatureDensity` (also logged).
     """
-    payload, meta = load_checkpoint(path)
-    model, _ = load_model(path)
+    model, meta = load_model(path)
     density = fit_from_patches(model, meta, data_dir, levels=levels, dims=dims, method=method,
                                components=components, cache_folder=cache_folder, device=device)
-    save_checkpoint(out or path, model, dataclasses.replace(meta, familiarity=density), payload.get("train_state"))
+    update_meta(path, out, familiarity=density)
     log.info("feature density of '%s': %s", path, density.summary())
     return density
 

@@ -23,7 +23,7 @@ import rasterio
 
 from aerialmtl.data.dataset import read_raw_patch
 from aerialmtl.errors import InputError
-from aerialmtl.formats.checkpoint import load_checkpoint, load_model, save_checkpoint
+from aerialmtl.formats.checkpoint import update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
 from aerialmtl.sun import ShadowModel, fit_sun
 from aerialmtl.sun.record import TrainingSun
@@ -161,9 +161,7 @@ def _finite(v: float) -> float:
 
 def store_sun(path: str | Path, sun: TrainingSun, out: str | Path | None = None) -> None:
     """Store ``sun`` in checkpoint ``path`` (or write the checkpoint with it to ``out``); weights unchanged."""
-    payload, meta = load_checkpoint(path)
-    model, _ = load_model(path)
-    save_checkpoint(out or path, model, dataclasses.replace(meta, sun=sun), payload.get("train_state"))
+    update_meta(path, out, sun=sun)
 
 
 def sun_checkpoint(path: str | Path, data_dir: str | Path, out: str | Path | None = None) -> TrainingSun:

@@ -45,12 +45,13 @@ from aerialmtl.formats.checkpoint import (
     height_slack,
     same_weights,
     save_checkpoint,
+    update_meta,
 )
 from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.progress import tqdm_auto as tqdm
-from aerialmtl.training.calibrate import calibrate_checkpoint, store_calibration
+from aerialmtl.training.calibrate import calibrate_checkpoint
 from aerialmtl.training.familiarity import familiarize_checkpoint
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
@@ -442,7 +443,7 @@ class Trainer(StepLoop):
                 continue
             same = next((c for p, c in fitted if same_weights(p, path)), None)
             if same is not None:  # the same network (the last validation was the best): the same calibration
-                store_calibration(path, same)
+                update_meta(path, calibration=same)
                 c = same
             else:
                 data = self.setup.data
