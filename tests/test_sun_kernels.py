@@ -129,3 +129,54 @@ def test_the_shadow_surface_equals_the_numpy_sweep_to_the_bit(azimuth: float, el
         got = shadow_surface_sweep(raster, 0.5, azimuth, elevation)
         assert got.dtype == np.float32 and got.shape == raster.shape
         np.testing.assert_array_equal(got.view(np.int32), want.view(np.int32))
+
+
+def test_shadow_sums_count_the_shaded_ground_and_add_its_scores() -> None:
+    """The fit's one-pass score of a sun: exactly the pixels of ``cast_shadow_mask & ground`` counted, and their
+    scores (arbitrary float64, not the few values of an 8-bit image) summed within 1e-12 of numpy's sum; NaN, ±∞
+    heights and a stack with no ground pixel included."""
+    from aerialmtl.sun.cast import TOL_M, cast_shadow_mask, sweep_stack
+
+    rng = np.random.default_rng(7)
+    h = rng.gamma(1.0, 0.4, (3, 41, 67)).astype(np.float32)
+    h[0, 5:15, 8:20] += 12.0
+    h[1, 20:30, 30:50] += 25.0
+    h[2, 10:12, 10:60] += 6.0
+    h[0, 3, 40], h[1, 33, 2], h[0, 20, 20], h[2, 0, 0] = np.nan, np.nan, np.inf, -np.inf
+    score = rng.random(h.shape) * 3.0 - 1.0
+    ground = (rng.random(h.shape) < 0.8) & (np.nan_to_num(h, nan=99.0) < 0.5)
+    z = np.nan_to_num(h, nan=-np.inf, posinf=np.inf, neginf=-np.inf)
+    for az, el in [(0.0, 30.0), (77.0, 20.0), (135.0, 45.0), (250.0, 12.0), (315.0, 70.0)]:
+        for g in (ground, np.zeros_like(ground)):
+            mask = cast_shadow_mask(h, 0.5, Sun(az, el)) & g
+            count, total = kernels.shadow_sums(z, sweep_stack(z, 0.5, az, el), g, score, np.float32(TOL_M))
+            assert count == int(mask.sum()) and (count > 0) == bool(g.any())
+            assert total == pytest.approx(float(score[mask].sum()), rel=1e-12, abs=1e-12)
+
+
+def test_the_fits_score_of_a_sun_is_the_correlation_with_the_cast_shadow_mask() -> None:
+    """The objective's score at any sun is the point-biserial correlation of the shadow score with
+    ``cast_shadow_mask`` over ground pixels, computed in numpy (to 1e-12), with half of a patch's buildings of
+    unknown height (NaN); NaN where no ground pixel is shaded."""
+    from aerialmtl.data.synth import CityStyle, sample_city
+    from aerialmtl.sun.cast import cast_shadow_mask
+    from aerialmtl.sun.colour import shadow_score
+    from aerialmtl.sun.fit import GROUND_M, _Objective
+
+    patches = [sample_city(s, size=size, gsd=0.5, style=CityStyle.plain()) for s, size in ((3, 96), (4, 64))]
+    tall = np.argwhere(patches[0].height > 3.0)
+    assert len(tall) > 50
+    patches[0].height[tuple(tall[: len(tall) // 2].T)] = np.nan  # no height known: casts no shadow, is not ground
+    f = _Objective([p.image for p in patches], [p.height for p in patches], 0.5, None, GROUND_M)
+    scores = np.concatenate([shadow_score(p.image).astype(np.float64)[p.height < GROUND_M].ravel() for p in patches])
+    seen_nan = False
+    for az, el in [(10.0, 30.0), (140.0, 55.0), (230.0, 15.0), (300.0, 40.0), (45.0, 89.0)]:
+        shade = np.concatenate([cast_shadow_mask(p.height, 0.5, Sun(az, el))[p.height < GROUND_M].ravel()
+                                for p in patches])
+        got = f._corr(Sun(az, el))
+        if shade.any():
+            assert got == pytest.approx(float(np.corrcoef(scores, shade)[0, 1]), rel=1e-12, abs=1e-12)
+        else:
+            seen_nan = True
+            assert np.isnan(got)
+    assert seen_nan

@@ -49,11 +49,16 @@ def shadow_surface_sweep(surface: np.ndarray, gsd: float, azimuth_deg: float, el
     Returns:
         float32 array of the input's shape: the shadow surface in metres.
     """
-    from aerialmtl.sun.kernels import sweep_surface  # numba: imported when a shadow is first cast
-
     z = np.asarray(surface, dtype=np.float32)
     flat = z.ndim == 2
-    z3 = np.ascontiguousarray(z[None] if flat else z)
+    surf = sweep_stack(np.ascontiguousarray(z[None] if flat else z), gsd, azimuth_deg, elevation_deg)
+    return surf[0] if flat else surf
+
+
+def sweep_stack(z3: np.ndarray, gsd: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """:func:`shadow_surface_sweep` of a C-contiguous float32 stack ``z3`` (N, H, W) as it is (no copy made)."""
+    from aerialmtl.sun.kernels import sweep_surface  # numba: imported when a shadow is first cast
+
     rows, step, slope = sun_steps(azimuth_deg)  # along the dominant axis: one row (else one column) per step
     length = z3.shape[1] if rows else z3.shape[2]
     drop = np.float32(gsd * math.tan(math.radians(elevation_deg)) * math.hypot(1.0, slope))
@@ -65,7 +70,7 @@ def shadow_surface_sweep(surface: np.ndarray, gsd: float, azimuth_deg: float, el
         deltas[1:] = offsets[:-1] - offsets[1:]
     surf = np.empty_like(z3)
     sweep_surface(z3, rows, step, deltas, drop, surf)
-    return surf[0] if flat else surf
+    return surf
 
 
 def _limited_occluder(z: np.ndarray, gsd: float, sun: Sun, max_length_m: float) -> np.ndarray:
@@ -87,7 +92,11 @@ def _limited_occluder(z: np.ndarray, gsd: float, sun: Sun, max_length_m: float) 
     return best
 
 
-def cast_shadow_mask(height: np.ndarray, gsd_m: float, sun: Sun, tol_m: float = 0.3,
+#: Metres by which an occluder must rise above a pixel's sun ray for the pixel to be in cast shadow (surface noise).
+TOL_M = 0.3
+
+
+def cast_shadow_mask(height: np.ndarray, gsd_m: float, sun: Sun, tol_m: float = TOL_M,
                      max_length_m: float | None = None) -> np.ndarray:
     """Pixels in the cast shadow of the heights at ``sun``.
 

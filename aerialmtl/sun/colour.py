@@ -182,13 +182,14 @@ class ShadowModel:
             f = colour_features(im, gsd_m)
             feats.append(f[:, ok])
             labels.append(mask[ok])
-        x = np.concatenate(feats, axis=1).T.astype(np.float64)
+        f32 = np.concatenate(feats, axis=1)  # (12, n) float32
         y = np.concatenate(labels).astype(np.float64)
         if len(y) == 0:
             raise InputError("'valid' leaves no pixel to fit the shadow model on")
-        if len(y) > self.MAX_PIXELS:
+        if len(y) > self.MAX_PIXELS:  # the sample's pixels picked first: float64 rows made for them only
             pick = np.random.default_rng(0).choice(len(y), self.MAX_PIXELS, replace=False)
-            x, y = x[pick], y[pick]
+            f32, y = f32[:, pick], y[pick]
+        x = f32.T.astype(np.float64)
         self.shadow_share = float(y.mean())
         if not 0.0 < self.shadow_share < 1.0:
             raise InputError(f"the heights cast {'no' if self.shadow_share == 0 else 'only'} shadow at the sun "
