@@ -50,3 +50,106 @@ def test_an_area_without_shadows_stores_no_sun_and_says_why(tmp_path: Path) -> N
     sun = fit_training_sun(tiles)
     assert not sun.clear and sun.azimuth_deg is None and sun.shadow_model is None
     assert sun.reason.startswith("no sun fitted")
+
+
+def _dated_tiles(tmp_path: Path) -> Path:
+    """The town's tile folder, its orthophoto stamped with a DateTime whose sun is far from its shadows' (so that
+    the fit logs a warning)."""
+    res = synthesize(tmp_path / "town", size=384, seed=11, gsd=0.5)
+    with rasterio.open(res.ortho, "r+") as dst:
+        dst.update_tags(TIFFTAG_DATETIME="2021:06:21 18:00:00")
+    out = tmp_path / "tiles"
+    tile_dataset(res.ortho, out, ndsm=res.ndsm, options=TileOptions(size=64, stride=64), progress=False)
+    return out
+
+
+def _train(tiles: Path, run: Path, beside: bool, monkeypatch: pytest.MonkeyPatch) -> list[object]:
+    """Two steps of a tiny D3-Net, the sun fitted beside the steps or after them; the sun of each checkpoint."""
+    from aerialmtl.formats.checkpoint import load_checkpoint
+    from aerialmtl.training import trainer
+    from aerialmtl.training.config import TrainConfig
+    from aerialmtl.training.loop import train
+
+    monkeypatch.setattr(trainer, "beside_steps", lambda device_type: beside)
+    cfg = TrainConfig.from_dict({
+        "model": {"growth_rate": 4, "block_config": [1, 1, 1, 1], "num_init_features": 8, "bn_size": 2},
+        "data": {"batch_size": 4, "num_workers": 0}, "schedule": {"epochs": 100}, "seed": 0, "device": "cpu",
+        "calibration": {"enabled": False}, "familiarity": {"enabled": False}})
+    result = train(cfg, tiles, run, max_steps=2, progress=False)
+    return [load_checkpoint(p)[1].sun for p in (result.best_checkpoint, result.last_checkpoint)]
+
+
+def test_the_sun_fitted_beside_the_steps_is_the_one_fitted_after_them(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch,
+                                                                     caplog: pytest.LogCaptureFixture) -> None:
+    """On a GPU the sun is fitted in a process of its own while the steps run: both checkpoints store exactly the
+    sun a fit after the steps stores (every field, the shadow classifier's weights included), the fit ran in that
+    process (not in the trainer's), and what it logged (here: an orthophoto DateTime that disagrees with the
+    shadows) is logged by the trainer."""
+    import logging
+
+    from aerialmtl.training import trainer
+
+    tiles = _dated_tiles(tmp_path)
+    after = _train(tiles, tmp_path / "after", False, monkeypatch)
+    assert after[0] is not None and after[0].clear and after == [after[0], after[0]]
+
+    def not_here(*_: object) -> None:
+        raise AssertionError("fitted in the trainer's process")
+
+    monkeypatch.setattr(trainer, "fit_training_sun", not_here)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="aerialmtl"):
+        beside = _train(tiles, tmp_path / "beside", True, monkeypatch)
+    assert beside == after
+    said = [r for r in caplog.records if r.name == "aerialmtl.training.sun" and r.levelno == logging.WARNING]
+    assert len(said) == 1 and "DateTime 2021-06-21T18:00:00Z" in said[0].getMessage()
+
+
+def test_a_sun_process_that_fails_is_said_once_and_the_fit_done_after_the_steps(tmp_path: Path,
+                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """A process that cannot start, or ends without a result, costs one warning naming why, never the sun."""
+    from aerialmtl.training import sun_beside
+
+    tiles, _, _ = _tiles(tmp_path)
+    want = fit_training_sun(tiles)
+    for executable, why in ((str(tmp_path / "no-python"), "could not be started"), ("/bin/false", "no result")):
+        monkeypatch.setattr(sun_beside.sys, "executable", executable)
+        with pytest.warns(RuntimeWarning, match=f"sun fit beside the training steps failed: .*{why}"):
+            assert sun_beside.SunBeside(tiles).result() == want
+
+
+def test_an_area_the_sun_cannot_be_fitted_on_raises_the_same_error_beside_the_steps(tmp_path: Path) -> None:
+    from aerialmtl.errors import InputError
+    from aerialmtl.training.sun_beside import SunBeside
+
+    with pytest.raises(InputError) as here:
+        fit_training_sun(tmp_path)
+    with pytest.raises(InputError) as beside:
+        SunBeside(tmp_path).result()
+    assert str(beside.value) == str(here.value)
+
+
+def test_a_failed_or_interrupted_run_ends_the_sun_process(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Training that stops with an error (here Ctrl-C during the steps) leaves no sun process running."""
+    from aerialmtl.training import sun_beside, trainer
+
+    started: list[sun_beside.SunBeside] = []
+
+    class Spy(sun_beside.SunBeside):
+        def __init__(self, data_dir: Path) -> None:
+            super().__init__(data_dir)
+            self.seen = self.proc
+            started.append(self)
+
+    def interrupted(*_: object) -> None:
+        assert started and started[0].seen is not None and started[0].seen.poll() is None  # running beside
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(trainer, "SunBeside", Spy)
+    monkeypatch.setattr(trainer.Trainer, "run_steps", interrupted)
+    tiles, _, _ = _tiles(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        _train(tiles, tmp_path / "run", True, monkeypatch)
+    assert len(started) == 1 and started[0].seen is not None and started[0].seen.returncode is not None
+    assert started[0].proc is None

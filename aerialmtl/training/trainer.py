@@ -59,6 +59,7 @@ from aerialmtl.training.setup import Batches, TrainSetup
 from aerialmtl.training.state import rng_state
 from aerialmtl.training.steploop import LOSS_GROWTH, LossWindow, StepLoop
 from aerialmtl.training.sun import fit_training_sun, store_sun
+from aerialmtl.training.sun_beside import SunBeside, beside_steps
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +148,8 @@ class Trainer(StepLoop):
         self.best_step: int | None = None  # the validation that wrote best.pt in this call, and its metrics
         self.best_metrics: dict[str, float] = {}
         self.validated_at = -1
+        #: the sun fit running beside the steps (on an accelerator) until :meth:`fit_sun` collects it
+        self.sun_beside: SunBeside | None = None
 
     # ---- what it trains with (read from the setup) --------------------------------------------------
     @property
@@ -391,11 +394,25 @@ class Trainer(StepLoop):
         return None
 
     def fit(self) -> TrainResult:
-        """Train until a stop condition (each process returns the same counters and metrics)."""
+        """Train until a stop condition (each process returns the same counters and metrics).
+
+        On an accelerator the training area's sun is fitted in a process of its own beside the steps
+        (:mod:`aerialmtl.training.sun_beside`), and collected after calibration.
+        """
+        stopped_by = self.done_before_start()
+        self.sun_beside = SunBeside(self.setup.data.info.root) if self.sun_wanted and beside_steps(
+            self.device.type) else None
+        try:
+            return self._fit(stopped_by)
+        finally:
+            if self.sun_beside is not None:  # failed or interrupted before the sun was collected
+                self.sun_beside.stop()
+
+    def _fit(self, stopped_by: str | None) -> TrainResult:
+        """:meth:`fit`'s steps, then the last validation, calibration, feature density and sun."""
         st, sched = self.state, self.cfg.schedule
         nb = self.order.steps_per_epoch
         total = sched.epochs * nb if self.steps_cap is None else min(self.steps_cap, sched.epochs * nb)
-        stopped_by = self.done_before_start()
         self.validated_at = -1
         self.model.train()
         bar = tqdm(total=total, initial=min(st.step, total), disable=not self.progress, desc="train", unit="step",
@@ -468,15 +485,21 @@ class Trainer(StepLoop):
                                            cache_folder=data.cache_folder, device=self.device)
                 log.info("%s: %s", name, d.summary())
 
+    @property
+    def sun_wanted(self) -> bool:
+        """Whether this process fits the training area's sun (``sun.enabled``, rank 0, a height task)."""
+        return self.cfg.sun.enabled and self.ctx.is_main and "height" in self.tasks
+
     def fit_sun(self) -> None:
         """Fit the training area's sun and shadow classifier and store them in best.pt and last.pt.
 
         Runs on rank 0 (see :mod:`aerialmtl.training.sun`); one line says the sun, or why there is none.
         """
-        if not (self.cfg.sun.enabled and self.ctx.is_main and "height" in self.tasks):
+        if not self.sun_wanted:
             return
+        beside, self.sun_beside = self.sun_beside, None
         try:
-            sun = fit_training_sun(self.setup.data.info.root)
+            sun = fit_training_sun(self.setup.data.info.root) if beside is None else beside.result()
         except InputError as exc:
             log.info("no sun fitted: %s", exc)
             return
