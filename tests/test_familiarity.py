@@ -138,3 +138,28 @@ def test_an_old_checkpoint_without_a_density_predicts_without_the_layer(trained:
     assert UNFAMILIARITY not in info["files"] and not (res.out_dir / layer_filename(UNFAMILIARITY)).exists()
     assert info["model"]["unfamiliarity"].startswith("none")
     assert (res.out_dir / "height.tif").is_file()
+
+
+def test_a_run_whose_last_validation_was_its_best_fits_its_density_once(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """best.pt and last.pt of a 2-step run hold the same network: the encoder runs over the training patches once
+    and both checkpoints carry the same density (the one fitted on it)."""
+    from aerialmtl.training import familiarity
+
+    calls = []
+    real = familiarity.feature_pixels
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(familiarity, "feature_pixels", counted)
+    tiles = write_tile_folder(tmp_path / "tiles", size=64, counts={"train": 8, "val": 2}, tasks=("height",))
+    cfg = TrainConfig.from_dict({
+        "model": {"growth_rate": 4, "block_config": [1, 1, 1, 1], "num_init_features": 8, "bn_size": 2},
+        "data": {"batch_size": 4, "num_workers": 0}, "schedule": {"epochs": 100}, "seed": 0,
+        "device": "cpu", "calibration": {"enabled": False}, "familiarity": {"levels": [2], "dims": 8}})
+    res = train(cfg, tiles, tmp_path / "run", max_steps=2, progress=False)
+    best, last = load_checkpoint(res.best_checkpoint)[1], load_checkpoint(res.last_checkpoint)[1]
+    assert len(calls) == 1 and best.familiarity is not None
+    assert last.familiarity == best.familiarity

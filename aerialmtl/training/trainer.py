@@ -50,6 +50,7 @@ from aerialmtl.formats.checkpoint import (
 from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.calibration import Calibration
+from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.training.calibrate import calibrate_checkpoint
 from aerialmtl.training.familiarity import familiarize_checkpoint
@@ -472,18 +473,28 @@ class Trainer(StepLoop):
     def familiarize(self) -> None:
         """Fit the encoder-feature density on the train split and store it in best.pt and last.pt.
 
-        Runs on rank 0 (see :mod:`aerialmtl.training.familiarity`).
+        Runs on rank 0 (see :mod:`aerialmtl.training.familiarity`); checkpoints holding the same network (the
+        run's last validation was its best) get the density fitted once (the fit is seeded).
         """
         fam = self.cfg.familiarity
         if not (fam.enabled and self.ctx.is_main):
             return
+        fitted: list[tuple[Path, FeatureDensity]] = []
         for name in ("best.pt", "last.pt"):
-            if self.paths[name].exists():
+            path = self.paths[name]
+            if not path.exists():
+                continue
+            same = next((d for p, d in fitted if same_weights(p, path)), None)
+            if same is not None:  # the same network (the last validation was the best): the same density
+                update_meta(path, familiarity=same)
+                d = same
+            else:
                 data = self.setup.data
-                d = familiarize_checkpoint(self.paths[name], data.info.root, levels=fam.levels, dims=fam.dims,
+                d = familiarize_checkpoint(path, data.info.root, levels=fam.levels, dims=fam.dims,
                                            method=fam.method, components=fam.components,
                                            cache_folder=data.cache_folder, device=self.device)
-                log.info("%s: %s", name, d.summary())
+            fitted.append((path, d))
+            log.info("%s: %s", name, d.summary())
 
     @property
     def sun_wanted(self) -> bool:
