@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -454,47 +455,43 @@ class Trainer(StepLoop):
         cal = self.cfg.calibration
         if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
             return
-        fitted: list[tuple[Path, Calibration]] = []
-        for name in ("best.pt", "last.pt"):
-            path = self.paths[name]
-            if not path.exists():
-                continue
-            same = next((c for p, c in fitted if same_weights(p, path)), None)
-            if same is not None:  # the same network (the last validation was the best): the same calibration
-                update_meta(path, calibration=same)
-                c = same
-            else:
-                data = self.setup.data
-                c = calibrate_checkpoint(path, data.info.root, mc=cal.mc_samples, method=cal.method,
-                                         cache_folder=data.cache_folder, device=self.device)
-            fitted.append((path, c))
-            log.info("%s: %s", name, c.summary())
+        data = self.setup.data
+        self.fit_per_network("calibration", lambda path: calibrate_checkpoint(
+            path, data.info.root, mc=cal.mc_samples, method=cal.method, cache_folder=data.cache_folder,
+            device=self.device))
 
     def familiarize(self) -> None:
         """Fit the encoder-feature density on the train split and store it in best.pt and last.pt.
 
-        Runs on rank 0 (see :mod:`aerialmtl.training.familiarity`); checkpoints holding the same network (the
-        run's last validation was its best) get the density fitted once (the fit is seeded).
+        Runs on rank 0 (see :mod:`aerialmtl.training.familiarity`).
         """
         fam = self.cfg.familiarity
         if not (fam.enabled and self.ctx.is_main):
             return
-        fitted: list[tuple[Path, FeatureDensity]] = []
+        data = self.setup.data
+        self.fit_per_network("familiarity", lambda path: familiarize_checkpoint(
+            path, data.info.root, levels=fam.levels, dims=fam.dims, method=fam.method, components=fam.components,
+            cache_folder=data.cache_folder, device=self.device))
+
+    def fit_per_network(self, record: str, fit: Callable[[Path], Calibration | FeatureDensity]) -> None:
+        """``fit(path)`` each of best.pt and last.pt (it stores the result as meta ``record``), once per network.
+
+        When the run's last validation was its best, both hold the same network
+        (:func:`~aerialmtl.formats.checkpoint.same_weights`): the second gets the first's result (each fit is
+        deterministic: seeded MC passes and samples), not a second fit. One log line per checkpoint.
+        """
+        fitted: list[tuple[Path, Calibration | FeatureDensity]] = []
         for name in ("best.pt", "last.pt"):
             path = self.paths[name]
             if not path.exists():
                 continue
-            same = next((d for p, d in fitted if same_weights(p, path)), None)
-            if same is not None:  # the same network (the last validation was the best): the same density
-                update_meta(path, familiarity=same)
-                d = same
+            result = next((r for p, r in fitted if same_weights(p, path)), None)
+            if result is not None:
+                update_meta(path, None, **{record: result})
             else:
-                data = self.setup.data
-                d = familiarize_checkpoint(path, data.info.root, levels=fam.levels, dims=fam.dims,
-                                           method=fam.method, components=fam.components,
-                                           cache_folder=data.cache_folder, device=self.device)
-            fitted.append((path, d))
-            log.info("%s: %s", name, d.summary())
+                result = fit(path)
+            fitted.append((path, result))
+            log.info("%s: %s", name, result.summary())
 
     @property
     def sun_wanted(self) -> bool:
