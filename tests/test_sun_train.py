@@ -153,3 +153,22 @@ def test_a_failed_or_interrupted_run_ends_the_sun_process(tmp_path: Path, monkey
         _train(tiles, tmp_path / "run", True, monkeypatch)
     assert len(started) == 1 and started[0].seen is not None and started[0].seen.returncode is not None
     assert started[0].proc is None
+
+
+def test_ctrl_c_while_waiting_for_the_sun_ends_its_process(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import subprocess
+
+    from aerialmtl.training.sun_beside import SunBeside
+
+    tiles, _, _ = _tiles(tmp_path)
+    beside = SunBeside(tiles)
+    proc = beside.proc
+    assert proc is not None
+
+    def interrupted(*_: object, **__: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(subprocess.Popen, "communicate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        beside.result()
+    assert proc.returncode is not None and beside.proc is None

@@ -96,7 +96,11 @@ class SunBeside:
         """The process's JSON answer, or ``None`` (with :attr:`failure` set) when it gave none."""
         if self.proc is None:
             return None
-        out, err = self.proc.communicate()
+        try:
+            out, err = self.proc.communicate()
+        except BaseException:  # Ctrl-C while waiting for it: the process is ended, not left running
+            self.stop()
+            raise
         self.proc = None
         lines = out.decode(errors="replace").strip().splitlines()
         try:
