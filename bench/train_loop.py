@@ -198,7 +198,12 @@ def main() -> None:
               f"{r['samples_per_s']:.1f} samples/s over the steps after the first {args.warmup} "
               f"({r['span_s']:.1f} s); whole call {r['wall_s']:.1f} s", flush=True)
         share = {k: f"{v:.1f} s ({100 * v / r['wall_s']:.0f} %)" for k, v in r["spent"].items()}
-        print(f"  of the call: {share}", flush=True)
+        from aerialmtl.runtime import resolve_device
+        from aerialmtl.training.sun_beside import beside_steps
+
+        sun = ("fitted beside the steps: fit_sun is the wait for its process"
+               if beside_steps(resolve_device(cfg.device).type) else "fitted after the steps")
+        print(f"  of the call: {share}; the sun {sun}", flush=True)
         alone = model_step(args, cfg, tiles)
         print(f"model step alone, batch {r['batch']}: {alone:.1f} samples/s; loop / step = "
               f"{r['samples_per_s'] / alone:.2f}", flush=True)
