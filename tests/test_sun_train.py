@@ -4,6 +4,7 @@ layers) where the area shows no sun."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -172,3 +173,21 @@ def test_ctrl_c_while_waiting_for_the_sun_ends_its_process(tmp_path: Path, monke
     with pytest.raises(KeyboardInterrupt):
         beside.result()
     assert proc.returncode is not None and beside.proc is None
+
+
+@pytest.mark.skipif(sys.version_info < (3, 11), reason="PYTHONSAFEPATH is Python 3.11's")
+def test_the_sun_process_ignores_python_files_in_the_working_folder(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A user's folder holding a `json.py` (or any module's name) and a relative tile folder: the process still
+    answers (no warning, the same sun)."""
+    import warnings
+
+    from aerialmtl.training.sun_beside import SunBeside
+
+    tiles, _, _ = _tiles(tmp_path)
+    want = fit_training_sun(tiles)
+    (tmp_path / "json.py").write_text("raise SystemExit('a user script, not the json module')\n")
+    monkeypatch.chdir(tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert SunBeside(Path(tiles.name)).result() == want

@@ -60,8 +60,9 @@ class SunBeside:
         try:
             threads = str(GRID_THREADS)  # its BLAS as many threads as its sun grid: the other cores stay the steps'
             env = {**os.environ, "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads,
-                   "MKL_NUM_THREADS": threads}
-            self.proc = subprocess.Popen([sys.executable, "-m", __name__, str(self.data_dir)], env=env,
+                   "MKL_NUM_THREADS": threads,
+                   "PYTHONSAFEPATH": "1"}  # `-m` would put the working folder first on the path (Python ≥ 3.11)
+            self.proc = subprocess.Popen([sys.executable, "-m", __name__, str(self.data_dir.resolve())], env=env,
                                          stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                          start_new_session=True)
         except OSError as exc:
