@@ -4,7 +4,6 @@ layers) where the area shows no sun."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -109,12 +108,17 @@ def test_the_sun_fitted_beside_the_steps_is_the_one_fitted_after_them(tmp_path: 
 
 def test_a_sun_process_that_fails_is_said_once_and_the_fit_done_after_the_steps(tmp_path: Path,
                                                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    """A process that cannot start, or ends without a result, costs one warning naming why, never the sun."""
+    """A process that cannot start, an interpreter that is not a Python (an application embedding one), or a
+    process that ends without a result costs one warning naming why, never the sun."""
     from aerialmtl.training import sun_beside
 
     tiles, _, _ = _tiles(tmp_path)
     want = fit_training_sun(tiles)
-    for executable, why in ((str(tmp_path / "no-python"), "could not be started"), ("/bin/false", "no result")):
+    fails = tmp_path / "python-that-fails"
+    fails.write_text("#!/bin/sh\necho 'it broke' >&2\nexit 1\n")
+    fails.chmod(0o755)
+    for executable, why in ((str(tmp_path / "python-missing"), "could not be started"),
+                            ("/usr/bin/qgis", "not a Python interpreter"), (str(fails), "no result .it broke")):
         monkeypatch.setattr(sun_beside.sys, "executable", executable)
         with pytest.warns(RuntimeWarning, match=f"sun fit beside the training steps failed: .*{why}"):
             assert sun_beside.SunBeside(tiles).result() == want
@@ -175,11 +179,10 @@ def test_ctrl_c_while_waiting_for_the_sun_ends_its_process(tmp_path: Path, monke
     assert proc.returncode is not None and beside.proc is None
 
 
-@pytest.mark.skipif(sys.version_info < (3, 11), reason="PYTHONSAFEPATH is Python 3.11's")
 def test_the_sun_process_ignores_python_files_in_the_working_folder(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    """A user's folder holding a `json.py` (or any module's name) and a relative tile folder: the process still
-    answers (no warning, the same sun)."""
+    """A user's folder holding a `json.py`, another `aerialmtl` package, and a relative tile folder: the process
+    runs the trainer's own package and answers (no warning, the same sun)."""
     import warnings
 
     from aerialmtl.training.sun_beside import SunBeside
@@ -187,7 +190,18 @@ def test_the_sun_process_ignores_python_files_in_the_working_folder(tmp_path: Pa
     tiles, _, _ = _tiles(tmp_path)
     want = fit_training_sun(tiles)
     (tmp_path / "json.py").write_text("raise SystemExit('a user script, not the json module')\n")
+    (tmp_path / "aerialmtl").mkdir()
+    (tmp_path / "aerialmtl" / "__init__.py").write_text("raise SystemExit('another aerialmtl')\n")
     monkeypatch.chdir(tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         assert SunBeside(Path(tiles.name)).result() == want
+
+
+def test_the_sun_process_ends_itself_once_the_trainer_is_gone() -> None:
+    """Killed outright (no Ctrl-C, no cleanup), the trainer cannot end the process: it ends itself."""
+    import subprocess
+    import sys
+
+    code = "from aerialmtl.training.sun_beside import _end_with; _end_with(-1)"  # -1: never its parent
+    assert subprocess.run([sys.executable, "-c", code], timeout=30).returncode == 3

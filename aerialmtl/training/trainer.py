@@ -399,12 +399,12 @@ class Trainer(StepLoop):
         """Train until a stop condition (each process returns the same counters and metrics).
 
         On an accelerator the training area's sun is fitted in a process of its own beside the steps
-        (:mod:`aerialmtl.training.sun_beside`), and collected after calibration.
+        (:mod:`aerialmtl.training.sun_beside`), and collected after calibration and the feature density.
         """
         stopped_by = self.done_before_start()
-        self.sun_beside = SunBeside(self.setup.data.info.root) if self.sun_wanted and beside_steps(
-            self.device.type) else None
         try:
+            if self.sun_wanted and beside_steps(self.device.type):
+                self.sun_beside = SunBeside(self.setup.data.info.root)
             return self._fit(stopped_by)
         finally:
             if self.sun_beside is not None:  # failed or interrupted before the sun was collected
