@@ -191,7 +191,7 @@ def test_non_regular_or_foreign_openvino_entries_are_rebuilt(how: str, ov_warm, 
     # the first entry read is named (with a folder there, caching then stops: later entries are not read)
     assert any(f"cached OpenVINO model '{p}' is {word}" in err for p in entries), err
     if how == "folder":  # a folder at an entry's name cannot be replaced: caching is off, the run goes on
-        assert "cannot be written" in err
+        assert "cannot be written" in err, err
     np.testing.assert_array_equal(_heights(shared / f"ov-out-{how}"), reference)
 
 
