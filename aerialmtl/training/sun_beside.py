@@ -35,8 +35,6 @@ from aerialmtl.errors import AerialMTLError, InputError
 from aerialmtl.sun.fit import GRID_THREADS
 from aerialmtl.sun.record import TrainingSun
 
-log = logging.getLogger(__name__)
-
 #: Seconds the process is given to end after it is asked to stop, before it is killed.
 STOP_WAIT_S = 5.0
 #: Seconds the trainer waits for the answer before it ends the process and fits the sun itself (the fit takes
