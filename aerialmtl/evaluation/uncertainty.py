@@ -27,12 +27,12 @@ Conventions chosen here:
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Any
 
 import numpy as np
 
 from aerialmtl.evaluation.metrics import Subsample
+from aerialmtl.quiet import ignoring_warnings
 
 #: Number of removal fractions of a sparsification curve (0, 1/S, ..., (S-1)/S).
 DEFAULT_STEPS = 50
@@ -216,8 +216,7 @@ def gaussian_nll(
     """Mean Gaussian NLL (nats per pixel) over pixels where all three arrays are finite; ``nan`` if none."""
     terms = gaussian_nll_terms(mean, std, ref, min_std)
     terms = terms[np.isfinite(terms)]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with ignoring_warnings():
         return float(terms.mean()) if terms.size else math.nan
 
 

@@ -31,7 +31,6 @@ import dataclasses
 import io
 import math
 import pickle
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +51,7 @@ from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net
 from aerialmtl.models.encoders import feature_channels
 from aerialmtl.models.familiarity import FeatureDensity
+from aerialmtl.quiet import ignoring_warnings
 from aerialmtl.signals import deferred
 from aerialmtl.stores import open_regular, special_kind
 from aerialmtl.sun.record import TrainingSun
@@ -445,8 +445,7 @@ def read_checkpoint(path: str | Path,
             "last.pt written by `aerialmtl train`"
         )
     try:
-        with warnings.catch_warnings():  # e.g. "Detected pickle protocol 4": the refusal below says it all
-            warnings.simplefilter("ignore", UserWarning)
+        with ignoring_warnings(UserWarning):  # e.g. "Detected pickle protocol 4": the refusal below says it all
             payload = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         raise CheckpointError(

@@ -56,6 +56,7 @@ from aerialmtl.io.outputs import OutputFolder, check_files_not_input, staging_pa
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import HEIGHT_SCALE
 from aerialmtl.models.mc_dropout import laplace_variance
+from aerialmtl.quiet import ignoring_warnings
 from aerialmtl.runtime import import_openvino
 
 Format = Literal["onnx", "openvino"]
@@ -139,8 +140,7 @@ def _quiet_exporter() -> Iterator[None]:
     for lg in loggers:
         lg.setLevel(logging.ERROR)
     try:
-        with warnings.catch_warnings(), open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
-            warnings.simplefilter("ignore")
+        with ignoring_warnings(), open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
             yield
     finally:
         for lg, level in zip(loggers, levels):

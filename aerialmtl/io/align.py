@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +46,7 @@ from aerialmtl.io.paths import (
     probe_url,
 )
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
+from aerialmtl.quiet import ignoring_warnings
 
 LayerKind = Literal["image", "height", "labels"]
 
@@ -133,8 +133,8 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
         configure_remote()
     opening = {k: v for k, v in REMOTE_OPEN_OPTIONS.items() if k not in os.environ} if remote else {}
     try:
-        with warnings.catch_warnings(), rasterio.Env(**opening):  # a missing CRS/geotransform: our own message
-            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        # a missing CRS/geotransform: our own message
+        with ignoring_warnings(NotGeoreferencedWarning), rasterio.Env(**opening):
             return rasterio.open(gpath)
     except RasterioIOError as exc:
         if remote:
@@ -406,8 +406,7 @@ class AlignedRaster:
                           resampling=self.resampling)
         if not has_mask:
             vrt_kwargs["add_alpha"] = True  # so that pixels outside the source read as invalid
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with ignoring_warnings():
             self.vrt = WarpedVRT(src, **vrt_kwargs)
         self.reader = self.vrt
 

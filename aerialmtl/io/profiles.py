@@ -27,6 +27,7 @@ from rasterio.crs import CRS
 from rasterio.windows import Window
 
 from aerialmtl.errors import InputError
+from aerialmtl.quiet import ignoring_warnings
 
 #: Preferred internal tile sizes, largest first (multiples of 16 as GeoTIFF requires).
 BLOCK_SIZES = (512, 256)
@@ -35,13 +36,10 @@ BLOCK_SIZES = (512, 256)
 @cache
 def zstd_available() -> bool:
     """Whether the linked GDAL can write ZSTD-compressed GeoTIFFs."""
-    import warnings
-
     from rasterio.io import MemoryFile
 
     try:
-        with warnings.catch_warnings(), MemoryFile() as mem:
-            warnings.simplefilter("ignore")
+        with ignoring_warnings(), MemoryFile() as mem:
             with mem.open(driver="GTiff", width=1, height=1, count=1, dtype="uint8", compress="zstd") as dst:
                 dst.write(np.zeros((1, 1, 1), np.uint8))
             with mem.open() as src:

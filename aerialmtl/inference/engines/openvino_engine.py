@@ -37,6 +37,7 @@ from aerialmtl.inference.model_record import CheckpointModel, resolve_model
 from aerialmtl.models.d3net import D3Net, encode_features, inference_model
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import DropoutSite, McStatistics, accumulate_samples, dropout_masks, dropout_sites
+from aerialmtl.quiet import ignoring_warnings
 from aerialmtl.runtime import CpuThreads, resolve_threads
 from aerialmtl.stores import warn_once
 
@@ -164,9 +165,8 @@ class OpenVINOEngine:
             module, example = self._module(part)
             # Traced with autograd on: D3-Net's dense blocks then concatenate (which OpenVINO fuses)
             # instead of writing into one buffer in place, and a small example input traces fast.
-            with torch.enable_grad(), warnings.catch_warnings():
-                # shape checks traced as constants
-                warnings.simplefilter("ignore", torch.jit.TracerWarning)  # type: ignore[attr-defined]
+            # shape checks traced as constants
+            with torch.enable_grad(), ignoring_warnings(torch.jit.TracerWarning):  # type: ignore[attr-defined]
                 traced = torch.jit.trace(module.eval(), example, check_trace=False, strict=False)
             model = self.ov.convert_model(traced)
             if self.cache.enabled:
