@@ -4,8 +4,8 @@
 starts and puts that list back when it ends. Two threads whose blocks overlap without nesting (A starts, B
 starts, A ends, B ends) leave A's filter in place for the rest of the process. ``predict`` met it: its reader
 threads open their rasters in a block that ignores rasterio's ``NotGeoreferencedWarning`` while the main thread
-read the checkpoint in a block that ignores ``UserWarning``; in about 1 run of 30 on 2 loaded cores the reader's
-block saved the main thread's list, put it back last, and every later warning of the run (a cache that cannot be
+read the checkpoint in a block that ignores ``UserWarning``; in 2 runs of 80 on 2 busy cores the reader's block
+saved the main thread's list, put it back last, and every later warning of the run (a cache that cannot be
 written, a fallback) was lost. Every block of the package that silences warnings goes through this module's
 lock, so no two of them overlap. The exceptions are blocks that enclose every thread they could meet: the
 command's own (:func:`aerialmtl.cli.main`, entered before its threads start and left after they end) and the sun
