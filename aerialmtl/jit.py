@@ -30,7 +30,7 @@ from typing import Any
 import numba
 from numba.core import caching
 
-from aerialmtl import stores
+from aerialmtl import filesafety, stores
 
 _OPTIONS: dict[str, Any] = {"boundscheck": False, "error_model": "numpy", "nogil": True}
 #: The entry recording the SHA-256 of every file numba wrote in the store.
@@ -111,7 +111,7 @@ class KernelStore(stores.Store):
                 if why is None:
                     want = recorded.get(path.name)
                     try:
-                        data = stores.read_file(path)
+                        data = filesafety.read_file(path)
                     except OSError as exc:
                         why = f"unreadable ({exc.strerror or exc})"
                     else:
@@ -142,7 +142,7 @@ class KernelStore(stores.Store):
         for path in self._files():
             if stores.entry_problem(path) is None and ".tmp." not in path.name:
                 try:
-                    data = stores.read_file(path)
+                    data = filesafety.read_file(path)
                 except OSError:
                     continue
                 table[path.name] = hashlib.sha256(data or b"").hexdigest()

@@ -18,7 +18,7 @@ folder at the file system's root.
 **The rule** (:class:`Store`). Reading or writing an entry never crashes or hangs a run:
 
 * an entry that is not a regular file (a FIFO, a device, a folder, a symbolic link) is never opened (a FIFO
-  would block the read forever): it is removed where possible and rebuilt;
+  would block the read forever; :mod:`aerialmtl.filesafety`): it is removed where possible and rebuilt;
 * an entry owned by another user is not loaded (a cache entry is code or data the run trusts): it is rebuilt;
 * an empty, truncated, zero-filled or edited entry fails its checksum (:func:`pack`) and is rebuilt;
 * a folder that cannot be written (read-only, full, a quota) turns the store off for the run: the run computes
@@ -43,7 +43,6 @@ empties them (:func:`list_stores`, :func:`clear_stores`), both saying how many o
 from __future__ import annotations
 
 import contextlib
-import errno
 import hashlib
 import os
 import stat
@@ -53,6 +52,8 @@ import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+
+from aerialmtl.filesafety import PARTIAL, open_regular, read_file, special_kind, write_bytes_atomic
 
 #: Environment variable that moves every store (the package's cache folder).
 ROOT_ENV = "AERIALMTL_CACHE"
@@ -72,8 +73,6 @@ MANIFEST = "manifest"
 MAGIC = b"AERIALMTL-OV-CACHE 1\n"
 _HEADER = struct.Struct("<32sI")  # SHA-256 of the payload, number of sections
 _LENGTH = struct.Struct("<Q")  # one section's length in bytes
-#: Flags of every open of an entry: never through a symbolic link, never blocking on a FIFO.
-_OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
 
 
 class CorruptEntry(ValueError):
@@ -244,68 +243,6 @@ def entry_problem(path: Path) -> str | None:
     return None
 
 
-def open_regular(path: str | Path, follow_links: bool = False) -> int:
-    """A read-only descriptor of regular file ``path``, opened without blocking and not through a link.
-
-    Without blocking: a FIFO, a device or a socket at its name would block the open or every read. Through a
-    symbolic link only with ``follow_links``. The one way aerialmtl opens a file that someone else may have put
-    in place: store entries, an input's sidecars, the layers a ``prediction.json`` lists.
-
-    Raises:
-        FileNotFoundError: it is missing.
-        OSError: it cannot be opened, or it is not a regular file (the message names it and what it is).
-    """
-    flags = _OPEN_FLAGS if not follow_links else _OPEN_FLAGS & ~getattr(os, "O_NOFOLLOW", 0)
-    try:
-        fd = os.open(path, flags)
-    except FileNotFoundError:
-        raise
-    except OSError as exc:  # a socket (ENXIO), a link under O_NOFOLLOW (ELOOP): say what is there
-        with contextlib.suppress(OSError):
-            mode = (os.stat if follow_links else os.lstat)(path).st_mode
-            if not stat.S_ISREG(mode):
-                raise OSError(errno.EINVAL, f"'{path}' is {special_kind(mode)}, not a regular file") from exc
-        raise
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise OSError(errno.EINVAL, f"'{path}' is {special_kind(st.st_mode)}, not a regular file")
-        if hasattr(os, "set_blocking"):
-            os.set_blocking(fd, True)  # a regular file: reads never block on it, and buffered reads want this
-    except BaseException:
-        os.close(fd)
-        raise
-    return fd
-
-
-def special_kind(mode: int) -> str:
-    """What a file of ``st_mode`` ``mode`` that is not a regular file is, in words (``"a FIFO"``, ...)."""
-    return "a FIFO" if stat.S_ISFIFO(mode) else "a folder" if stat.S_ISDIR(mode) else \
-        "a socket" if stat.S_ISSOCK(mode) else "a symbolic link" if stat.S_ISLNK(mode) else \
-        "a device or other special file"
-
-
-def read_file(path: Path) -> bytearray | None:
-    """The bytes of regular file ``path``, or ``None`` when it is missing.
-
-    Read through :func:`open_regular`: not through a link, not blocking on a FIFO.
-
-    Raises:
-        OSError: it cannot be read, or it is not a regular file after all (replaced between look and open).
-    """
-    try:
-        fd = open_regular(path)
-    except FileNotFoundError:
-        return None
-    with os.fdopen(fd, "rb", buffering=0) as f:
-        size = os.fstat(fd).st_size
-        data = bytearray(size)
-        got = f.readinto(data)
-    if got is not None and got != size:  # the file changed size under us: the checksum says so
-        del data[got:]
-    return data
-
-
 def remove_entry(path: Path) -> None:
     """Remove entry ``path`` (a file, link, FIFO; a folder at an entry's name is left: it is never written over)."""
     with contextlib.suppress(OSError):
@@ -402,7 +339,8 @@ class Store:
     def write(self, name: str, sections: Sequence[bytes]) -> None:
         """Store entry ``name`` whole, then evict least recently used entries beyond :func:`size_limit`.
 
-        Written as ``.NAME.partial.PID``, then renamed into place; an unwritable folder turns the store off.
+        Written as ``.NAME.partial.PID``, then renamed into place (:func:`aerialmtl.filesafety.write_bytes_atomic`);
+        an unwritable folder turns the store off.
         """
         self.write_raw(name, pack(sections))
 
@@ -411,15 +349,10 @@ class Store:
         if self.folder is None:
             return
         path = self.folder / name
-        tmp = path.with_name(f".{path.name}.partial.{os.getpid()}")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o644)
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
+            write_bytes_atomic(path, data, tag=f"{PARTIAL}.{os.getpid()}")
         except OSError as exc:
-            remove_entry(tmp)
             self.disable(exc, "written")
             return
         evict(keep=path)
@@ -647,6 +580,6 @@ def clear_stores(names: Sequence[str] = STORES) -> tuple[int, int, int]:
 
 __all__ = ["DEFAULT_LIMIT_MB", "ENTRY_DEPTH", "LIMIT_ENV", "MAGIC", "MANIFEST", "OPENVINO_ENV", "ROOT_ENV", "STORES",
            "CorruptEntry", "Entry", "NoCacheHome", "Store", "cache_home", "checked", "clear_stores", "entries",
-           "entry_problem", "evict", "is_entry", "list_stores", "open_regular", "open_store_folder", "owned_files",
-           "pack", "read_file", "recorded_names", "remove_entry", "reset_warnings", "sections_of", "size_limit",
-           "special_kind", "store_folder", "store_folders", "unpack", "warn_once"]
+           "entry_problem", "evict", "is_entry", "list_stores", "open_store_folder", "owned_files", "pack",
+           "recorded_names", "remove_entry", "reset_warnings", "sections_of", "size_limit", "store_folder",
+           "store_folders", "unpack", "warn_once"]

@@ -43,6 +43,7 @@ from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, cause
+from aerialmtl.filesafety import open_regular, special_kind
 from aerialmtl.io.fingerprint import content_sha256
 from aerialmtl.io.oserrors import output_error
 from aerialmtl.io.outputs import atomic_write
@@ -53,7 +54,6 @@ from aerialmtl.models.encoders import feature_channels
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.quiet import ignoring_warnings
 from aerialmtl.signals import deferred
-from aerialmtl.stores import open_regular, special_kind
 from aerialmtl.sun.record import TrainingSun
 
 FORMAT = "aerialmtl-checkpoint"

@@ -72,8 +72,8 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import InputError, cause
+from aerialmtl.filesafety import special_kind
 from aerialmtl.io.fingerprint import blocking_file, changed, content_sha256
-from aerialmtl.stores import special_kind
 
 #: Layer names, in the order a prediction folder lists them (file ``<name>.tif``).
 HEIGHT = "height"

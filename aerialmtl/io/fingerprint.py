@@ -32,8 +32,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from aerialmtl.filesafety import open_regular, special_kind
 from aerialmtl.io.paths import ARCHIVE_VSI, gdal_path, is_local, local_archive
-from aerialmtl.stores import open_regular, special_kind
 
 #: How deep VRTs that list VRTs are followed by :func:`vrt_sources`.
 VRT_DEPTH = 4
@@ -52,7 +52,7 @@ def content_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
 
     Raises:
         OSError: it cannot be read, or it is not a regular file (a FIFO, a device: never waited on or read
-            without end; :func:`aerialmtl.stores.open_regular`).
+            without end; :func:`aerialmtl.filesafety.open_regular`).
     """
     h = hashlib.sha256()
     buf = bytearray(chunk)

@@ -4,9 +4,10 @@ Every command writes through this module (:class:`OutputFolder`), so the rules a
 
 * **Staging.** A file is written under a hidden name beside its final path, ``.NAME.partial``
   (:func:`staging_path`; other stages of the same file use other tags, ``.NAME.staging``), and renamed
-  into place when it is whole (:func:`atomic_write`, :func:`write_text_atomic`). A rename inside one
-  folder is atomic, so a final path holds either the old file or the new one, never half of one; a
-  rename also replaces a symlink instead of writing through it.
+  into place when it is whole (:func:`atomic_write`, :func:`write_text_atomic`; both from
+  :mod:`aerialmtl.filesafety`, the one atomic write of the package). A rename inside one folder is atomic,
+  so a final path holds either the old file or the new one, never half of one; a rename also replaces a
+  symlink instead of writing through it.
 * **Ownership.** A command deletes only files it can prove it wrote. The proof is the format's own index
   file, written by the command last (``prediction.json`` lists its layers, ``dataset.yaml`` +
   ``manifest.csv`` list the patches, ``report.json`` its Markdown and plots): no extra file clutters a
@@ -39,19 +40,18 @@ import shlex
 import socket
 import stat
 import warnings
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 from aerialmtl.errors import InputError, OutputError, OutputExistsError, OutputInUseError
+from aerialmtl.filesafety import PARTIAL, atomic_write, special_file, staging_path
 from aerialmtl.io.oserrors import writing
 from aerialmtl.io.paths import is_local
 
 #: The lock file of an output folder (removed when the run ends).
 LOCK_FILE = ".aerialmtl.lock"
-#: Tag of the staging file of a final file: ``.NAME.partial``.
-PARTIAL = "partial"
 #: Tag of a raster written block by block before its final form (``.NAME.staging``, ``.NAME.staging-<row>``
 #: for one process's strip of rows).
 STAGING = "staging"
@@ -67,38 +67,9 @@ except ImportError:  # pragma: no cover - Windows
 
 
 # ---- staging and atomic writes -------------------------------------------------------------------
-def staging_path(final: str | Path, tag: str = PARTIAL, keep_suffix: bool = False) -> Path:
-    """The hidden staging file of ``final``: ``.NAME.<tag>`` in the same folder (so a rename is atomic).
-
-    ``keep_suffix`` appends the final suffix again (``.b.gpkg.partial.gpkg``) for writers that choose the
-    format, or check it, by the file name's suffix.
-    """
-    final = Path(final)
-    return final.with_name(f".{final.name}.{tag}" + (final.suffix if keep_suffix else ""))
-
-
 def is_staging_of(path: Path, name: str) -> bool:
     """Whether ``path`` is a staging file of output ``name`` (``.NAME.<tag>`` with a tag of :data:`STAGING_TAGS`)."""
     return any(path.name.startswith(f".{name}.{tag}") for tag in STAGING_TAGS)
-
-
-@contextlib.contextmanager
-def atomic_write(final: str | Path, tag: str = PARTIAL, keep_suffix: bool = False) -> Iterator[Path]:
-    """Yield the staging path of ``final``; rename it to ``final`` when the block ends without error.
-
-    On an error (or Ctrl-C, SIGTERM) the staging file is removed and ``final`` is left as it was.
-    """
-    final = Path(final)
-    tmp = staging_path(final, tag, keep_suffix)
-    with contextlib.suppress(FileNotFoundError):
-        tmp.unlink()
-    try:
-        yield tmp
-        os.replace(tmp, final)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
@@ -238,21 +209,6 @@ def _forget_locks_in_child() -> None:
 if hasattr(os, "register_at_fork"):  # POSIX
     os.register_at_fork(after_in_child=_forget_locks_in_child)
 
-def _special_kind(path: Path) -> str | None:
-    """``"a FIFO"``, ``"a folder"``, ... when ``path`` exists and is neither a regular file nor a link.
-
-    ``None`` otherwise.
-    """
-    try:
-        mode = os.lstat(path).st_mode
-    except OSError:
-        return None
-    if stat.S_ISREG(mode) or stat.S_ISLNK(mode):
-        return None
-    return "a FIFO" if stat.S_ISFIFO(mode) else "a folder" if stat.S_ISDIR(mode) else \
-        "a socket" if stat.S_ISSOCK(mode) else "a device file"
-
-
 def _owner(uid: int) -> str:
     """``user name (uid N)`` of ``uid`` (the number alone where the account is unknown)."""
     try:
@@ -324,7 +280,7 @@ class FolderLock:
             raise OutputError(f"the lock file '{self.path}' is a symbolic link, which aerialmtl never writes (taking "
                               f"the lock through it would overwrite its target); delete the link, or choose another "
                               f"‹{self.option}›")
-        kind = _special_kind(self.path)
+        kind = special_file(self.path)
         if kind is not None:  # opening a FIFO there would block forever; a folder cannot be locked
             raise OutputError(f"the lock file '{self.path}' is {kind}, not a regular file, which aerialmtl never "
                               f"makes; remove it (`rm -r {shlex.quote(str(self.path))}`) if nothing of yours needs it, "

@@ -38,7 +38,7 @@ from rasterio.enums import Resampling
 from rasterio.vrt import WarpedVRT
 
 from aerialmtl.errors import InputError, OutputError
-from aerialmtl.io.outputs import staging_path
+from aerialmtl.filesafety import atomic_write
 
 #: The smallest overview of a mosaic has at least this many pixels on its long side (as a COG's).
 MIN_OVERVIEW_SIZE = 256
@@ -197,25 +197,23 @@ def mosaic_vrt(dst: str | Path, sources: Sequence[str | Path], categorical: bool
             ET.SubElement(band, "NoDataValue").text = repr(float(nodata))
         for s in placed:
             _add_source(band, s, b, folder, resampling, (left, top, xres, yres), nodata)
-    tmp = staging_path(dst)
     try:
-        ET.ElementTree(root).write(tmp, encoding="unicode")
-        with rasterio.open(tmp, "r+") as vrt:  # metadata through GDAL, as in the sources
-            for b, desc in enumerate(descriptions, start=1):
-                if desc:
-                    vrt.set_band_description(b, desc)
-            if any(units):
-                vrt.units = units
-            if colormap is not None:
-                vrt.write_colormap(1, colormap)
-            if tags:
-                vrt.update_tags(**tags)
-            for b, bt in enumerate(band_tags, start=1):
-                if bt:
-                    vrt.update_tags(b, **bt)
-        os.replace(tmp, dst)
+        with atomic_write(dst) as tmp:
+            ET.ElementTree(root).write(tmp, encoding="unicode")
+            with rasterio.open(tmp, "r+") as vrt:  # metadata through GDAL, as in the sources
+                for b, desc in enumerate(descriptions, start=1):
+                    if desc:
+                        vrt.set_band_description(b, desc)
+                if any(units):
+                    vrt.units = units
+                if colormap is not None:
+                    vrt.write_colormap(1, colormap)
+                if tags:
+                    vrt.update_tags(**tags)
+                for b, bt in enumerate(band_tags, start=1):
+                    if bt:
+                        vrt.update_tags(b, **bt)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise OutputError(f"cannot write mosaic '{dst}' ({exc}); choose a writable output folder") from exc
     return dst
 
