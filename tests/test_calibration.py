@@ -15,7 +15,8 @@ from helpers.tilefolder import toy_patch, write_tile_folder
 
 from aerialmtl.formats.checkpoint import load_checkpoint, load_model, save_checkpoint
 from aerialmtl.inference.predict import predict_raster
-from aerialmtl.models.calibration import Calibration, fit_calibration, interval_coverage
+from aerialmtl.models.calibration import Calibration, fit_calibration
+from aerialmtl.models.spread_fit import interval_coverage
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.loop import train
 
@@ -91,7 +92,7 @@ def test_spread_of_confident_ground_gets_a_floor() -> None:
     err = np.abs(rng.normal(0.0, 1.0, n))
     std = np.where(rng.random(n) < 0.5, 1e-8, 0.02)  # half the pixels: every MC sample alike
     cal = Calibration((0.0, 1.0), (0.0, 1.0))
-    scale, floor = __import__("aerialmtl.models.calibration", fromlist=["fit_spread"]).fit_spread(err, std)
+    scale, floor = __import__("aerialmtl.models.spread_fit", fromlist=["fit_spread"]).fit_spread(err, std)
     cal = dataclasses.replace(cal, std_scale=scale, std_floor=floor)
     cov = interval_coverage(err, cal.std(std))
     assert floor > 0.1 and abs(cov["within_1sigma"] - 0.683) < 0.02 and cov["within_2sigma"] > 0.85
@@ -250,13 +251,13 @@ def test_the_spread_fit_scores_spreads_by_the_gaussian_crps_of_the_evaluation() 
     """The score the spread fit minimises is the evaluation's Gaussian CRPS (its 1 cm floor included), whatever
     the spread: tiny, zero, huge."""
     from aerialmtl.evaluation.uncertainty import crps_gaussian
-    from aerialmtl.models.calibration import _crps
+    from aerialmtl.models.spread_fit import mean_crps
 
     rng = np.random.default_rng(1)
     err = np.abs(rng.normal(0.0, 2.0, 5000))
     sigma = np.concatenate([rng.gamma(2.0, 1.0, 4990), [0.0, 1e-9, 1e-4, 0.005, 0.01, 0.02, 0.5, 3.0, 50.0, 1e4]])
     want = float(crps_gaussian(np.zeros_like(err), sigma, err, min_std=0.01).mean())
-    assert _crps(err, sigma) == pytest.approx(want, rel=1e-12)
+    assert mean_crps(err, sigma) == pytest.approx(want, rel=1e-12)
 
 
 def test_the_spread_fit_finds_the_factor_the_errors_were_drawn_with() -> None:
@@ -264,7 +265,7 @@ def test_the_spread_fit_finds_the_factor_the_errors_were_drawn_with() -> None:
     of its CRPS) and its factor is the true one within 12 %; where the spread says nothing of the errors, a
     floor carries the fit and scores as well as the best constant spread (within 0.5 %)."""
     from aerialmtl.evaluation.uncertainty import crps_gaussian
-    from aerialmtl.models.calibration import fit_spread_crps
+    from aerialmtl.models.spread_fit import fit_spread_crps
 
     def crps(err: np.ndarray, sigma: np.ndarray) -> float:
         return float(crps_gaussian(np.zeros_like(err), sigma, err, min_std=0.01).mean())

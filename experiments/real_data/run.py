@@ -470,7 +470,8 @@ CAL_METHODS = ("isotonic", "median", "quantile")
 def _val_cv(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray) -> dict[str, dict[str, float]]:
     """Two-fold check of each calibration method on validation pixels only (first/second half of the val
     patches in manifest order): fit on one half, score on the other; ``none`` = uncalibrated."""
-    from aerialmtl.models.calibration import fit_calibration, interval_coverage
+    from aerialmtl.models.calibration import fit_calibration
+    from aerialmtl.models.spread_fit import interval_coverage
 
     half = pred.size // 2
     folds = [(slice(0, half), slice(half, None)), (slice(half, None), slice(0, half))]

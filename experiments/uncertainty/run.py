@@ -48,13 +48,8 @@ from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction  
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, HEIGHT_STD, layer_filename  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
-from aerialmtl.models.calibration import (  # noqa: E402
-    Calibration,
-    fit_calibration,
-    fit_height_map,
-    fit_spread,
-    fit_spread_crps,
-)
+from aerialmtl.models.calibration import Calibration, fit_calibration, fit_height_map  # noqa: E402
+from aerialmtl.models.spread_fit import fit_spread, fit_spread_crps  # noqa: E402
 from aerialmtl.training.calibrate import patch_folds, validation_pixels  # noqa: E402
 from experiments.common.autzen import DATA, DSM, DTM, ORTHO, TALL_M, cpu_model
 from experiments.common.study import fmt_range as _fmt_range
