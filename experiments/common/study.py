@@ -25,9 +25,12 @@ Scores = dict[str, Any]
 #: arm → block → one score dict per run
 Results = dict[str, dict[str, list[Scores]]]
 BLOCKS = ("val", "test")
-#: Reference-height bins (metres) of the per-bin columns: 0–1 / 1–2 / 2–5 / 5–10 / 10–20 / ≥ 20 m.
-BINS: tuple[tuple[float, float], ...] = ((0.0, 1.0), (1.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0),
-                                         (20.0, math.inf))
+#: The studies' reference-height bins (metres) as edges, 0–1 / 1–2 / 2–5 / 5–10 / 10–20 / ≥ 20 m: the evaluation's
+#: ``height_bins`` of every study (the package's default bins today, :data:`aerialmtl.evaluation.metrics.
+#: DEFAULT_HEIGHT_BINS`, fixed here so that the studies' published tables stay comparable if that default moves).
+HEIGHT_EDGES: tuple[float, ...] = (0.0, 1.0, 2.0, 5.0, 10.0, 20.0, math.inf)
+#: The same bins as ``(low, high)`` pairs, for the per-bin columns.
+BINS: tuple[tuple[float, float], ...] = tuple(zip(HEIGHT_EDGES[:-1], HEIGHT_EDGES[1:], strict=True))
 
 
 def run_arms(arms: Mapping[str, A], runs: Iterable[str],

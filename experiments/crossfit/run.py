@@ -43,8 +43,8 @@ from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.formats.prediction import FLOAT_NODATA  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
 from experiments.common.autzen import DATA, ORTHO, cpu_model
-from experiments.spread_diagnosis.run import load, neighbourhood
-from experiments.uncertainty.run import _write_like, evaluate
+from experiments.common.maps import load, neighbourhood, write_like
+from experiments.common.reports import evaluate_spread
 
 FOLDS = ("cv3a", "cv3b", "cv3c")
 FOLD_SPLIT = {"cv3a": "cv3-a", "cv3b": "cv3-b", "cv3c": "cv3-c"}
@@ -127,7 +127,7 @@ def write_maps(folder: Path, px: Pixels, dst: Path, height: np.ndarray, std: np.
     for name, values, fallback in (("height.tif", height, px.height_map), ("height_std.tif", std, px.std_map)):
         out = np.where(np.isfinite(fallback), fallback, FLOAT_NODATA)
         out[px.valid] = values
-        _write_like(folder / name, out, dst / name)
+        write_like(folder / name, out, dst / name)
     return dst
 
 
@@ -201,7 +201,7 @@ def study_seed(out: Path, seed: int, base: str) -> dict[str, Any]:
         scored: dict[str, Any] = {}
         for key, (hv, sv) in variants(models, px.x, px.height, px.std).items():
             vdir = write_maps(pdir, px, rdir / f"cf_{block}_{key}", hv, sv)
-            scored[key] = evaluate(vdir, DATA, rdir / f"cf_report_{block}_{key}.json")
+            scored[key] = evaluate_spread(vdir, DATA, rdir / f"cf_report_{block}_{key}.json")
         res[block] = scored
     res["eval"] = {"seconds": time.perf_counter() - t0, "load": [load0, os.getloadavg()], "cpu": cpu_model()}
     (rdir / "crossfit.json").write_text(json.dumps(res, indent=1, default=float))

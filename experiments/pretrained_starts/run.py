@@ -25,9 +25,9 @@ from typing import Any
 from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from experiments.common import study
 from experiments.common.autzen import DATA, DSM, DTM, TALL_M
+from experiments.common.study import HEIGHT_EDGES
 from experiments.common.study import fmt_range as _fmt_range
 from experiments.common.study import per_bin as _study_per_bin
-from experiments.uncertainty.run import BINS
 
 #: where a run's raw predictions are (the unfamiliarity study's folder for runs trained before the layer existed)
 FOLDERS = {"test": ("study_raw_best", "unfam_pred_l2_d32_gda_auto"), "val": ("study_valblock_raw",)}
@@ -35,7 +35,7 @@ FOLDERS = {"test": ("study_raw_best", "unfam_pred_l2_d32_gda_auto"), "val": ("st
 
 def _evaluate(folder: Path) -> dict[str, Any]:
     return evaluate_prediction(folder, dsm_ref=DATA / DSM, dtm_ref=DATA / DTM, out=None,
-                               options=EvaluateOptions(height_bins=BINS, plots=False))
+                               options=EvaluateOptions(height_bins=HEIGHT_EDGES, plots=False))
 
 
 def _report(run: Path, block: str) -> dict[str, Any] | None:
@@ -72,7 +72,7 @@ def _numbers(rep: dict[str, Any]) -> dict[str, Any]:
 
 
 def _per_bin(rows: list[dict[str, Any]], key: str, sign: bool = True) -> str:
-    return _study_per_bin(rows, key, sign, bins=len(BINS) - 1)  # BINS here are the edges
+    return _study_per_bin(rows, key, sign, bins=len(HEIGHT_EDGES) - 1)
 
 
 COLUMNS = [("seeds", "---", lambda rows: str(len(rows))),

@@ -52,13 +52,10 @@ import numpy as np
 import rasterio
 import torch
 
-from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, layer_filename
 from aerialmtl.formats.tiles import ManifestWriter, read_manifest
 from aerialmtl.inference.predict import predict_raster
-from aerialmtl.io.align import HeightSource, reference_grid
 from aerialmtl.io.units import metres_per_unit
-from aerialmtl.io.vector import load_geometries
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import TrainConfig, load_train_config
@@ -75,6 +72,8 @@ from experiments.common.autzen import (
     TALL_M,
     cpu_model,
 )
+from experiments.common.maps import constant_prediction, train_mean
+from experiments.common.reports import evaluate_dir
 from experiments.real_data.recipes import (
     PretrainSettings,
     pretrain_synthetic,
@@ -82,9 +81,6 @@ from experiments.real_data.recipes import (
     stratified_weights,
     tall_shares,
 )
-
-__all__ = ["DATA", "DEFAULT_SPLIT", "DSM", "DTM", "GAP_M", "ORTHO", "SPLITS", "TALL_M", "constant_prediction",
-           "cpu_model", "evaluate_dir", "train_mean"]
 
 
 # ---- split ---------------------------------------------------------------------------------------
@@ -299,67 +295,6 @@ def pretrained_checkpoint(recipe: Recipe, args: argparse.Namespace) -> tuple[Pat
               "last_loss": res.train.loss, "load_start": load0, "load_end": os.getloadavg()}
     record_file.write_text(json.dumps(record, indent=1, default=float))
     return res.checkpoint, record
-
-
-def train_mean(pred_height: Path, data: Path, train_aoi: Path) -> float:
-    """Mean reference nDSM (DSM − DTM, negatives → 0, metres) over the train block, on the prediction grid."""
-    from rasterio.features import geometry_mask
-
-    grid = reference_grid(pred_height)
-    geoms = [g for g, _ in load_geometries(train_aoi, grid.crs, "train AOI")]
-    total, n = 0.0, 0
-    with HeightSource(grid, dsm=data / DSM, dtm=data / DTM) as hs:
-        rows = max(1, (1 << 20) // grid.width)
-        for r in range(0, grid.height, rows):
-            win = rasterio.windows.Window(0, r, grid.width, min(rows, grid.height - r))
-            h, valid = hs.read(win)
-            inside = geometry_mask(geoms, out_shape=h.shape, transform=grid.window_transform(win), invert=True)
-            sel = valid & inside
-            total += float(h[sel].sum(dtype=np.float64))
-            n += int(sel.sum())
-    return total / n
-
-
-def constant_prediction(pred_dir: Path, value: float, out_dir: Path) -> Path:
-    """A prediction folder holding only ``height.tif`` = ``value`` wherever ``pred_dir``'s height is valid."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    src_path = pred_dir / layer_filename(HEIGHT)
-    with rasterio.open(src_path) as src:
-        profile = src.profile.copy()
-        data = src.read(1)
-    profile.update(driver="GTiff", compress="deflate", predictor=3, tiled=True, blockxsize=512, blockysize=512)
-    for key in ("copy_src_overviews",):
-        profile.pop(key, None)
-    out = np.where(data == FLOAT_NODATA, FLOAT_NODATA, np.float32(value)).astype(np.float32)
-    with rasterio.open(out_dir / layer_filename(HEIGHT), "w", **profile) as dst:
-        dst.write(out, 1)
-    return out_dir
-
-
-def summarise(report: dict[str, Any]) -> dict[str, float]:
-    """MAE, RMSE, bias, MAE on pixels ≥ :data:`TALL_M`, their share, and Spearman(std, |err|)."""
-    h = report["height"]
-    tall = [b for b in h["per_bin"] if b["range_m"][0] >= TALL_M and b["n_pixels"]]
-    n_tall = sum(b["n_pixels"] for b in tall)
-    out = {
-        "mae": h["mae"], "rmse": h["rmse"], "bias": h["bias"], "n_pixels": h["n_pixels"],
-        "mae_tall": sum(b["mae"] * b["n_pixels"] for b in tall) / n_tall if n_tall else math.nan,
-        "bias_tall": sum(b["bias"] * b["n_pixels"] for b in tall) / n_tall if n_tall else math.nan,
-        "tall_share": n_tall / h["n_pixels"] if h["n_pixels"] else math.nan,
-        "gsd_m": report["grid"]["gsd_m"],
-    }
-    unc = report.get("uncertainty", {}).get("height_std")
-    out["spearman_std_abs_err"] = unc["spearman_std_vs_abs_error"] if unc else math.nan
-    return out
-
-
-def evaluate_dir(pred_dir: Path, data: Path, out_json: Path) -> dict[str, float]:
-    bins = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
-    report = evaluate_prediction(
-        pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
-        options=EvaluateOptions(height_bins=bins, plots=False),
-    )
-    return summarise(report)
 
 
 # ---- one run -------------------------------------------------------------------------------------

@@ -28,21 +28,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rasterio
 import torch
-from scipy import ndimage, optimize, stats
+from scipy import optimize, stats
 
 import aerialmtl.models.d3net as d3net  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
-from aerialmtl.io.align import HeightSource, grid_of  # noqa: E402
-from experiments.common.autzen import DATA, DSM, DTM, ORTHO
+from experiments.common.autzen import DATA, ORTHO
+from experiments.common.maps import load, neighbourhood
 from experiments.common.study import BINS, crps, nll
 
 #: the spread models: which of (a·s, c·d_r, e·μ, f) take part
 TERMS = {"s": (1, 0, 0, 1), "s+d": (1, 1, 0, 1), "s+d+h": (1, 1, 1, 1)}
 RADII = (3, 6, 10, 16)
-Arrays = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def predict_maps(out: Path, run: str, split_dir: Path) -> None:
@@ -61,33 +59,6 @@ def predict_maps(out: Path, run: str, split_dir: Path) -> None:
                            checkpoint_name=str(rdir / "best.pt"), calibration=False, seed=0)
         finally:
             d3net.laplace_scale = scale
-
-
-def reference_on(grid_file: Path) -> np.ndarray:
-    """The reference nDSM (metres) on ``grid_file``'s grid as ``aerialmtl evaluate`` reads it
-    (:class:`~aerialmtl.io.align.HeightSource`: DSM − DTM, bilinear, negatives clipped to 0); NaN where invalid."""
-    with rasterio.open(grid_file) as src:
-        grid = grid_of(src)
-    with HeightSource(grid, dsm=DATA / DSM, dtm=DATA / DTM) as ref:
-        height, _ = ref.read(grid.full_window())
-    return height.astype(np.float64)
-
-
-def load(folder: Path) -> Arrays:
-    """``(height, height_std, reference)`` of a prediction folder, float64, NaN where nodata."""
-    out = []
-    for name in ("height.tif", "height_std.tif"):
-        with rasterio.open(folder / name) as s:
-            a = s.read(1).astype(np.float64)
-            a[a == s.nodata] = np.nan
-            out.append(a)
-    return out[0], out[1], reference_on(folder / "height.tif")
-
-
-def neighbourhood(h: np.ndarray, r: int) -> np.ndarray:
-    """Highest predicted height within ``r`` pixels (a (2r+1)² square) minus the pixel's own, ≥ 0."""
-    hh = np.where(np.isfinite(h), h, -1e9)
-    return np.maximum(ndimage.maximum_filter(hh, size=2 * r + 1) - hh, 0.0)
 
 
 def sigma(p: np.ndarray, s: np.ndarray, d: np.ndarray, h: np.ndarray) -> np.ndarray:

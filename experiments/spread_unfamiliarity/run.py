@@ -30,8 +30,8 @@ from scipy import optimize, stats
 
 from aerialmtl.models.calibration import SPREAD_EDGES
 from experiments.common import study
+from experiments.common.maps import reference_on
 from experiments.common.study import BINS, crps, mean, nll
-from experiments.spread_diagnosis.run import reference_on
 
 #: (validation, test) folders of a run, first found wins (the second: runs trained before the layer existed)
 FOLDERS = {"val": ("study_valblock_raw", "valblock_unfam"), "test": ("study_raw_best", "unfam_pred_l2_d32_gda_auto")}

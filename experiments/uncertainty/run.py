@@ -44,26 +44,16 @@ import numpy as np
 import rasterio
 import torch
 
-from aerialmtl.evaluation.evaluate import EvaluateOptions, evaluate_prediction  # noqa: E402
 from aerialmtl.formats.checkpoint import load_model  # noqa: E402
 from aerialmtl.formats.prediction import FLOAT_NODATA, HEIGHT, HEIGHT_STD, layer_filename  # noqa: E402
 from aerialmtl.inference.predict import predict_raster  # noqa: E402
 from aerialmtl.models.calibration import Calibration, fit_calibration, fit_height_map  # noqa: E402
 from aerialmtl.models.spread_fit import fit_spread, fit_spread_crps  # noqa: E402
 from aerialmtl.training.calibrate import patch_folds, validation_pixels  # noqa: E402
-from experiments.common.autzen import DATA, DSM, DTM, ORTHO, TALL_M, cpu_model
+from experiments.common.autzen import DATA, ORTHO, TALL_M, cpu_model
+from experiments.common.maps import constant_prediction, train_mean, write_like
+from experiments.common.reports import evaluate_dir, evaluate_spread
 from experiments.common.study import fmt_range as _fmt_range
-from experiments.real_data.run import constant_prediction, evaluate_dir, train_mean
-
-BINS = (0.0, 1.0, TALL_M, 5.0, 10.0, 20.0, math.inf)
-
-
-def _write_like(src_path: Path, data: np.ndarray, dst_path: Path) -> None:
-    with rasterio.open(src_path) as src:
-        profile = src.profile.copy()
-    profile.update(driver="GTiff", compress="deflate", predictor=3, tiled=True, blockxsize=512, blockysize=512)
-    with rasterio.open(dst_path, "w", **profile) as dst:
-        dst.write(data.astype(np.float32), 1)
 
 
 def transformed_copy(pred_dir: Path, out_dir: Path, height_fn: Any, std_fn: Any) -> Path:
@@ -74,45 +64,10 @@ def transformed_copy(pred_dir: Path, out_dir: Path, height_fn: Any, std_fn: Any)
     with rasterio.open(pred_dir / layer_filename(HEIGHT_STD)) as src:
         s = src.read(1)
     nod = h == FLOAT_NODATA
-    _write_like(pred_dir / layer_filename(HEIGHT), np.where(nod, FLOAT_NODATA, height_fn(h)), out_dir / "height.tif")
-    _write_like(pred_dir / layer_filename(HEIGHT_STD), np.where(nod, FLOAT_NODATA, std_fn(s, h)),
-                out_dir / "height_std.tif")
+    write_like(pred_dir / layer_filename(HEIGHT), np.where(nod, FLOAT_NODATA, height_fn(h)), out_dir / "height.tif")
+    write_like(pred_dir / layer_filename(HEIGHT_STD), np.where(nod, FLOAT_NODATA, std_fn(s, h)),
+               out_dir / "height_std.tif")
     return out_dir
-
-
-def summary(report: dict[str, Any]) -> dict[str, Any]:
-    """The study's numbers from an evaluation report."""
-    h = report["height"]
-    per_bin = h["per_bin"]
-    tall = [b for b in per_bin if b["range_m"][0] >= TALL_M]
-    n_tall = sum(b["n_pixels"] for b in tall)
-    hs = report["uncertainty"]["height_std"]
-    strata = hs["strata"]
-    bins = []
-    for b, st in zip(per_bin, strata["bins"], strict=True):
-        bins.append({"range_m": b["range_m"], "share": st.get("share"), "bias": b["bias"], "mae": b["mae"],
-                     **{k: st.get(k) for k in ("coverage_1sigma", "coverage_2sigma", "median_std_m",
-                                                "median_abs_error_m", "spearman_std_vs_abs_error",
-                                                "nll_gaussian", "crps_gaussian_m", "max_std_m")}})
-    return {"mae": h["mae"], "rmse": h["rmse"],
-            "mae_tall": sum(b["mae"] * b["n_pixels"] for b in tall) / max(1, n_tall),
-            "bias_tall": sum(b["bias"] * b["n_pixels"] for b in tall) / max(1, n_tall),
-            "coverage_1sigma": hs["coverage_1sigma"], "coverage_2sigma": hs["coverage_2sigma"],
-            "nll_gaussian": strata.get("nll_gaussian"), "crps_gaussian_m": strata.get("crps_gaussian_m"),
-            "spearman": hs["spearman_std_vs_abs_error"], "max_height_m": None, "bins": bins}
-
-
-def evaluate(pred_dir: Path, data: Path, out_json: Path) -> dict[str, Any]:
-    report = evaluate_prediction(pred_dir, dsm_ref=data / DSM, dtm_ref=data / DTM, out=out_json, overwrite=True,
-                                 options=EvaluateOptions(height_bins=BINS, plots=False))
-    res = summary(report)
-    with rasterio.open(pred_dir / layer_filename(HEIGHT)) as src:
-        h = src.read(1)
-    with rasterio.open(pred_dir / layer_filename(HEIGHT_STD)) as src:
-        s = src.read(1)
-    ok = h != FLOAT_NODATA
-    res["max_height_m"], res["max_std_m"] = float(h[ok].max()), float(s[ok].max())
-    return res
 
 
 def val_scores(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray) -> dict[str, float]:
@@ -164,7 +119,7 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     if "raw" not in variants:
         predict_raster(args.data / ORTHO, (model, meta), pdir, mc=args.mc, aoi=test_aoi, overwrite=True,
                        progress=False, checkpoint_name=str(ckpt), calibration=False, seed=0)
-        variants["raw"] = evaluate(pdir, args.data, rdir / "study_report_raw.json")
+        variants["raw"] = evaluate_spread(pdir, args.data, rdir / "study_report_raw.json")
     pred, ref, sd, patch = validation_pixels(model, meta, tdir, mc=args.mc)
     folds = patch_folds(patch)
     res["val"] = val_scores(pred, ref, sd)
@@ -176,18 +131,18 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
     for key, c in cals.items():
         if key not in variants or args.force or key in args.redo:
             cdir = transformed_copy(pdir, rdir / f"study_{key}", c.height, c.std)
-            variants[key] = evaluate(cdir, args.data, rdir / f"study_report_{key}.json")
+            variants[key] = evaluate_spread(cdir, args.data, rdir / f"study_report_{key}.json")
     if "height_only" not in variants or args.force:
         a, b = height_only(pred, ref)
         res["height_only_fit"] = {"a": a, "b": b}
         cdir = transformed_copy(pdir, rdir / "study_height_only", lambda h: h,
                                 lambda s, h: np.hypot(a * np.maximum(h, 0.0), b))
-        variants["height_only"] = evaluate(cdir, args.data, rdir / "study_report_height_only.json")
+        variants["height_only"] = evaluate_spread(cdir, args.data, rdir / "study_report_height_only.json")
     if args.tta and ("tta" not in variants or args.force):
         tdir_out = rdir / "study_tta"
         predict_raster(args.data / ORTHO, (model, meta), tdir_out, mc=args.mc, aoi=test_aoi, overwrite=True,
                        progress=False, checkpoint_name=str(ckpt), calibration=False, seed=0, tta=True)
-        variants["tta"] = evaluate(tdir_out, args.data, rdir / "study_report_tta.json")
+        variants["tta"] = evaluate_spread(tdir_out, args.data, rdir / "study_report_tta.json")
     if args.val_block:  # the validation block predicted as the test block is: what may choose `--tta`
         blocks = res.setdefault("val_block", {})
         for key, views in (("raw", False), ("tta", True)):
@@ -198,7 +153,7 @@ def study_run(name: str, args: argparse.Namespace) -> dict[str, Any]:
                 predict_raster(args.data / ORTHO, (model, meta), vdir, mc=args.mc, aoi=split_dir / "val.geojson",
                                overwrite=True, progress=False, checkpoint_name=str(ckpt), calibration=False, seed=0,
                                tta=views)
-                blocks[key] = evaluate(vdir, args.data, rdir / f"study_report_valblock_{key}.json")
+                blocks[key] = evaluate_spread(vdir, args.data, rdir / f"study_report_valblock_{key}.json")
     if "baseline_train_mean" not in res:
         mean = train_mean(pdir / layer_filename(HEIGHT), args.data, split_dir / "train.geojson")
         bdir = constant_prediction(pdir, mean, rdir / "study_baseline_train_mean")
@@ -241,13 +196,13 @@ def ensemble_run(name: str, members: list[str], args: argparse.Namespace) -> dic
     out_dir = rdir / "study_ensemble"
     out_dir.mkdir(exist_ok=True)
     src_dir = first / f"study_raw_{args.checkpoint.removesuffix('.pt')}"
-    _write_like(src_dir / layer_filename(HEIGHT), np.where(nod, FLOAT_NODATA, mean), out_dir / "height.tif")
-    _write_like(src_dir / layer_filename(HEIGHT_STD), np.where(nod, FLOAT_NODATA, std), out_dir / "height_std.tif")
+    write_like(src_dir / layer_filename(HEIGHT), np.where(nod, FLOAT_NODATA, mean), out_dir / "height.tif")
+    write_like(src_dir / layer_filename(HEIGHT_STD), np.where(nod, FLOAT_NODATA, std), out_dir / "height_std.tif")
     import shutil
 
     shutil.copy(src_dir / "prediction.json", out_dir / "prediction.json")
-    res: dict[str, Any] = {"members": members, "test": {"raw": evaluate(out_dir, args.data,
-                                                                        rdir / "study_report_raw.json")}}
+    res: dict[str, Any] = {"members": members, "test": {"raw": evaluate_spread(out_dir, args.data,
+                                                                               rdir / "study_report_raw.json")}}
     preds, sds = [], []
     for m in members:
         model, meta = load_model(args.out / "runs" / m / args.checkpoint)

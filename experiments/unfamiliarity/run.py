@@ -53,9 +53,9 @@ from aerialmtl.models.d3net import pad_to_multiple  # noqa: E402
 from aerialmtl.models.familiarity import fit_density  # noqa: E402
 from aerialmtl.training.familiarity import HEIGHT_BINS_M, familiarize_checkpoint, feature_pixels  # noqa: E402
 from experiments.common.autzen import DATA, ORTHO, cpu_model
-from experiments.spread_diagnosis.run import load
+from experiments.common.maps import load
+from experiments.common.study import BINS
 
-BINS = ((0.0, 1.0), (1.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 LEVELS = (1, 2, 3, 4)
 #: Validation pixels the fold into the spread is fitted on (a seeded subsample).
 FOLD_PIXELS = 20_000
