@@ -190,9 +190,10 @@ def import_openvino() -> ModuleType:
         finally:
             if sys.modules.get(OPENVINO_TELEMETRY, 0) is None:
                 del sys.modules[OPENVINO_TELEMETRY]
-    import openvino  # noqa: F401 - loaded above, or already by the process
+    import openvino  # loaded above, or already by the process
 
-    return sys.modules["openvino"]
+    module: ModuleType = openvino
+    return module
 
 
 def cpu_has_amx() -> bool:

@@ -147,39 +147,6 @@ def test_prediction_json_records_the_choice(kind, tmp_path: Path, monkeypatch: p
     assert (info["engine"], info["precision"]) == (expect.engine, expect.precision)
 
 
-@pytest.mark.parametrize(("work_mpx", "samples", "speedup", "pays"), [
-    (4.875, 1, 1.69, False),  # 2048² at T = 1 on the Zen 3 of issue 46: its first OpenVINO run took 0.55× torch
-    (79.7, 1, 1.69, True),  # 8192² at T = 1
-    (4.875, 30, 1.69, True),  # 2048² at T = 30: 30 decoder passes per window
-    (4.875, 1, 100.0, False),  # even a free OpenVINO run does not make up for compiling before a tiny job
-    (20.0, 1, 1.0, False),  # nothing to gain: never compile for it
-])
-def test_cold_start_pays_weighs_compiling_against_the_job(work_mpx: float, samples: int, speedup: float,
-                                                         pays: bool) -> None:
-    graphs = 1 if samples == 1 else 2
-    assert engine_choice.cold_start_pays(work_mpx * samples, speedup, graphs) is pays
-
-
-def test_cold_cache_turns_auto_to_torch_for_small_jobs_only(kind) -> None:  # type: ignore[no-untyped-def]
-    kind("avx512_bf16")  # TABLE: OpenVINO bf16 measured 2.4× torch
-    choice = engine_choice.EngineChoice("openvino", "bf16", "openvino", "engine=auto, precision=auto", "avx512_bf16",
-                                        "table")
-    small, large = 1.0, 500.0  # window megapixels of the job
-    cold = engine_choice.cold_cache_choice(choice, "auto", CPU, small, 1, warm=False, table=TABLE)
-    assert (cold.engine, cold.precision, cold.layout) == ("torch", "fp32", "channels_last")  # no AMX: torch fp32
-    assert "cache cold" in cold.reason and cold.asked == choice.asked
-    assert engine_choice.cold_cache_choice(choice, "bf16", CPU, small, 1, warm=False, table=TABLE).precision == "bf16"
-    assert engine_choice.cold_cache_choice(choice, "auto", CPU, small, 1, warm=True, table=TABLE) is choice
-    assert engine_choice.cold_cache_choice(choice, "auto", CPU, large, 1, warm=False, table=TABLE) is choice
-    assert engine_choice.cold_cache_choice(choice, "auto", CPU, 0.2, 30, warm=False, table=TABLE).engine == "torch"
-    assert engine_choice.cold_cache_choice(choice, "auto", CPU, 10.0, 30, warm=False, table=TABLE) is choice
-    asked = engine_choice.EngineChoice("openvino", "bf16", "openvino", "engine=openvino, precision=auto",
-                                       "avx512_bf16", "asked for")
-    assert engine_choice.cold_cache_choice(asked, "auto", CPU, small, 1, warm=False, table=TABLE) is asked
-    unmeasured = engine_choice.EngineChoice("openvino", "bf16", "openvino", choice.asked, "amx", "no measurement")
-    assert engine_choice.cold_cache_choice(unmeasured, "auto", CPU, small, 1, warm=False, table=TABLE) is unmeasured
-
-
 def test_bench_measures_and_writes_the_table(tmp_path: Path) -> None:
     pytest.importorskip("openvino")
     from aerialmtl.inference.cpu_bench import BenchSettings, best_entry, run_bench, write_table

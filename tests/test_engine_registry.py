@@ -1,6 +1,6 @@
 """The engine registry is the one list of engines: a third engine added as docs/CONTRACTS.md says (one module, one
-entry of ``engine_names.ENGINE_MODULES``, nothing else edited) predicts from Python and from the command line, and
-``auto`` follows the registry's order (no OpenVINO needed)."""
+entry of ``engines.names.ENGINE_MODULES``, nothing else edited) predicts from Python and from the command line, and
+``auto`` chooses among the engines that can run (no OpenVINO needed)."""
 
 from __future__ import annotations
 
@@ -18,14 +18,15 @@ from helpers.models import IdentityModel, tiny_d3net
 from helpers.rasters import write_raster
 
 from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.inference.engine_names import ENGINE_MODULES
-from aerialmtl.inference.engines import FALLBACK, resolve_engine
+from aerialmtl.inference.engine_choice import choose_engine
+from aerialmtl.inference.engines import FALLBACK, usable_engines
+from aerialmtl.inference.engines.names import ENGINE_MODULES
 from aerialmtl.inference.predict import predict_raster
 
 
 @pytest.fixture
 def registered(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The fake engine's one entry, appended to the table of engines (after the fallback: ``auto`` never picks it)."""
+    """The fake engine's one entry, appended to the table of engines (it declares no speed: not chosen)."""
     monkeypatch.setitem(ENGINE_MODULES, fake_engine.NAME, fake_engine.__name__)
     fake_engine.BUILT.clear()
 
@@ -60,15 +61,10 @@ def test_a_registered_engine_predicts_from_python_and_the_command_line(registere
     assert code == 2 and "onnx" in err and fake_engine.NAME in err  # the choices are the registry's
 
 
-def test_auto_takes_the_first_registered_engine_that_can_run(registered: None,
-                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+def test_auto_chooses_among_the_registered_engines_that_can_run(registered: None) -> None:
     model, _ = tiny_d3net()
     cpu = torch.device("cpu")
-    assert resolve_engine("auto", cpu, model) != fake_engine.NAME  # appended after the fallback
-    first = {fake_engine.NAME: fake_engine.__name__,
-             **{k: v for k, v in ENGINE_MODULES.items() if k != fake_engine.NAME}}
-    monkeypatch.setattr("aerialmtl.inference.engine_names.ENGINE_MODULES", first)
-    monkeypatch.setattr("aerialmtl.inference.engines.registry.ENGINE_MODULES", first)
-    assert resolve_engine("auto", cpu, model) == fake_engine.NAME
-    assert resolve_engine("auto", torch.device("cuda"), model) == FALLBACK  # the fake one cannot run on CUDA
-    assert resolve_engine("auto", torch.device("cuda"), IdentityModel((1.0,), (1.0,))) == FALLBACK
+    assert fake_engine.NAME in [spec.name for spec in usable_engines(cpu, model)]
+    assert choose_engine("auto", "auto", cpu, model).engine != fake_engine.NAME  # declares no speed: not chosen
+    assert [spec.name for spec in usable_engines(torch.device("cuda"), model)] == [FALLBACK]  # the fake: CPU only
+    assert [spec.name for spec in usable_engines(torch.device("cuda"), IdentityModel((1.0,), (1.0,)))] == [FALLBACK]

@@ -19,7 +19,8 @@ from helpers.tilefolder import toy_patch
 from aerialmtl import runtime
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.inference.engines import OPENVINO_INSTALL, resolve_engine
+from aerialmtl.inference.engine_choice import choose_engine
+from aerialmtl.inference.engines import OPENVINO_INSTALL, resolve_engine, usable_engines
 from aerialmtl.inference.predict import Predictor, predict_raster
 
 pytest.importorskip("openvino")
@@ -122,15 +123,15 @@ def test_auto_picks_openvino_on_cpu_for_d3net_else_torch(monkeypatch: pytest.Mon
 
     model, meta = tiny_d3net()
     cpu = torch.device("cpu")
-    assert resolve_engine("auto", cpu, model) == "openvino"
-    assert resolve_engine("auto", torch.device("cuda"), model) == "torch"
-    assert resolve_engine("auto", cpu, IdentityModel((1.0,), (1.0,))) == "torch"  # not convertible
+    assert choose_engine("auto", "auto", cpu, model).engine == "openvino"
+    assert [spec.name for spec in usable_engines(torch.device("cuda"), model)] == ["torch"]
+    assert choose_engine("auto", "auto", cpu, IdentityModel((1.0,), (1.0,))).engine == "torch"  # not convertible
     pred = Predictor((model, meta), mc=1, window=64, overlap=16, precision="auto")
     assert pred.engine == "openvino"
     assert pred.precision == ("bf16" if runtime.native_bf16(cpu) else "fp32")
     assert Predictor((model, meta), mc=1, engine="torch").precision == ("bf16" if runtime.cpu_has_amx() else "fp32")
     monkeypatch.setitem(sys.modules, "openvino", None)  # import openvino now fails
-    assert resolve_engine("auto", cpu, model) == "torch"
+    assert choose_engine("auto", "auto", cpu, model).engine == "torch"
 
 
 def test_engines_are_listed_once_and_built_by_name() -> None:

@@ -371,7 +371,7 @@ def test_stitching_in_a_thread_of_its_own_writes_the_same_maps(ortho: Path, tmp_
     """The stitch stage in its own thread (a GPU, or a host of 2 cores or more) and in the model loop (one
     core) give byte-identical layers: the windows reach the stitcher in the same order.
     """
-    from aerialmtl.inference import model as model_mod
+    from aerialmtl.inference import strips as model_mod
 
     assert model_mod.stitch_in_thread(torch.device("cpu"), 1) is False
     assert model_mod.stitch_in_thread(torch.device("cpu"), 2) is True
@@ -392,7 +392,7 @@ def test_a_failure_in_the_stitch_thread_fails_the_run_and_ends_the_thread(ortho:
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     import threading
 
-    from aerialmtl.inference import model as model_mod
+    from aerialmtl.inference import strips as model_mod
     from aerialmtl.inference.stitch import Stitcher
 
     monkeypatch.setattr(model_mod, "STITCH_THREAD_CORES", 1)

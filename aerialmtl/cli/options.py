@@ -26,7 +26,7 @@ from typing import Any, ParamSpec, TypeVar
 import click
 
 from aerialmtl.errors import PARAM_MARK, AerialMTLError, ConfigError, InputError
-from aerialmtl.inference.engine_names import ENGINE_MODULES
+from aerialmtl.inference.engines.names import ENGINE_MODULES
 from aerialmtl.io.paths import gdal_path, is_local
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -158,7 +158,7 @@ def compile_option(dest: str = "compile_") -> Decorator[Any]:
 
 
 class EngineName(click.Choice):  # type: ignore[type-arg]  # generic only in click's stubs
-    """``auto`` or a name of the engine registry (:data:`aerialmtl.inference.engine_names.ENGINE_MODULES`).
+    """``auto`` or a name of the engine registry (:data:`aerialmtl.inference.engines.names.ENGINE_MODULES`).
 
     The names are read from that table (which imports no engine, so no torch) each time the choices are shown or
     checked.

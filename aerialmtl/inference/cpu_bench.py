@@ -44,7 +44,8 @@ from aerialmtl import runtime
 from aerialmtl.classes import ClassDef, ClassScheme
 from aerialmtl.cpuinfo import cpu_fields, cpu_flags
 from aerialmtl.formats.checkpoint import ModelMeta, save_checkpoint
-from aerialmtl.inference.engine_choice import CPU_KINDS, TOLERANCES, KindEntry, cpu_kind
+from aerialmtl.inference.engine_choice import CPU_KINDS, TOLERANCES, KindEntry, cpu_kind, layout_of
+from aerialmtl.inference.engines import ENGINES, FALLBACK
 from aerialmtl.inference.runner import ModelRunner
 from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 from aerialmtl.models.config import ModelConfig
@@ -56,9 +57,13 @@ MODELS: dict[str, dict[str, Any]] = {
     "full": {},
     "small": {"growth_rate": 12, "block_config": (2, 4, 6, 4), "num_init_features": 24, "bn_size": 2},
 }
-#: Engine × precision cases, in the order they run (torch fp32 first: the reference of the accuracy columns).
-CASES: tuple[tuple[str, str], ...] = (("torch", "fp32"), ("torch", "bf16"), ("openvino", "fp32"),
-                                      ("openvino", "bf16"), ("openvino", "int8"))
+#: The case every other is compared with (speed and accuracy): the torch engine at fp32.
+REFERENCE = (FALLBACK, "fp32")
+#: Engine × precision cases, in the order they run: the reference engine's first (its fp32 first), then those of
+#: every other engine of the registry, at the precisions each declares (``EngineSpec.precisions``).
+CASES: tuple[tuple[str, str], ...] = tuple(
+    (name, precision) for name in sorted(ENGINES, key=lambda name: name != FALLBACK)
+    for precision in ENGINES[name].precisions)
 NUM_CLASSES = 20
 #: Standard deviation of the drawn head weights per task (an untrained head's near-zero outputs would make every
 #: class a tie and every height 0 m, and the accuracy columns meaningless).
@@ -338,7 +343,7 @@ def run_bench(settings: BenchSettings, on_row: Callable[[BenchRow], None] | None
                 else:
                     runs = [end_to_end(ckpt, raster, work / f"out_{name}", engine, precision,
                                        threads=settings.threads, env=env)
-                            for _ in range(2 if engine == "openvino" else 1)]  # the first fills the engine cache
+                            for _ in range(2 if ENGINES[engine].compile_mpx else 1)]  # the first fills its cache
                     wall, info = min(runs, key=lambda run: run[0])
                     row.seconds = round(wall, 2)
                     row.mpx_s = round(settings.size ** 2 / 1e6 / wall, 4)
@@ -377,17 +382,17 @@ def best_entry(report: BenchReport, model: str = "full") -> KindEntry:
     if not pool:
         raise ValueError(f"no engine × precision of the {model} model was measured within the tolerances")
     (engine, precision), best = max(pool.items(), key=lambda kv: kv[1].mpx_s or 0.0)
-    match engine, precision:  # the table's choices (``bench``'s cases are these and int8, left out above)
-        case ("torch" | "openvino") as chosen_engine, ("fp32" | "bf16") as chosen_precision:
+    match precision:  # the table's choices (``bench``'s cases are these and int8, left out above)
+        case "fp32" | "bf16" as chosen_precision if engine in ENGINES:
             pass
         case _:
-            raise ValueError(f"{engine}/{precision} is no choice of the engine table; measure torch or openvino "
-                             "in fp32 or bf16")
+            raise ValueError(f"{engine}/{precision} is no choice of the engine table; measure "
+                             f"{' or '.join(ENGINES)} in fp32 or bf16")
     e2e = {(r.engine, r.precision): r for r in report.rows if r.model == model and r.stage == "end-to-end"
            and r.mpx_s is not None}
-    pair = (e2e.get((engine, precision)), e2e.get(("torch", "fp32")))
+    pair = (e2e.get((engine, precision)), e2e.get(REFERENCE))
     if pair[0] is None or pair[1] is None:
-        pair, ratio_of = (best, alone.get(("torch", "fp32"))), "model alone"
+        pair, ratio_of = (best, alone.get(REFERENCE)), "model alone"
     else:
         ratio_of = "end to end"
     speedup = round(pair[0].mpx_s / pair[1].mpx_s, 2) if pair[0] and pair[1] and pair[0].mpx_s and pair[1].mpx_s \
@@ -400,16 +405,15 @@ def best_entry(report: BenchReport, model: str = "full") -> KindEntry:
                 f"load {min(loads, default=0):.1f}-{max(loads, default=0):.1f}, chosen on the model alone, speedup "
                 f"{ratio_of}, {datetime.now(timezone.utc).date()}")
     return KindEntry(
-        engine=chosen_engine, precision=chosen_precision,
-        layout="openvino" if chosen_engine == "openvino" else "channels_last",
+        engine=engine, precision=chosen_precision, layout=layout_of(ENGINES[engine]),
         speedup=speedup, measured=measured,
         model_alone_mpx_s={f"{e}/{p}": r.mpx_s for (e, p), r in alone.items() if r.mpx_s is not None},
         accuracy={f"{e}/{p}": {"height_mae_m": float(r.height_mae_m), "height_rel_mae": float(r.height_rel_mae or 0),
                                "class_agreement": float(r.class_agreement or 0),
                                "within_tolerance": float(within_tolerance(r))}
                   for (e, p), r in alone.items() if r.height_mae_m is not None},
-        notes="int8 is measured for the model alone only; predict has no int8 path" if ("openvino", "int8") in alone
-        else "")
+        notes="int8 is measured for the model alone only; predict has no int8 path"
+        if any(p == "int8" for _, p in alone) else "")
 
 
 def write_table(path: Path, kind: str, entry: KindEntry) -> None:

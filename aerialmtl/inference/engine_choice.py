@@ -15,15 +15,16 @@ kind                meaning (``/proc/cpuinfo`` flags)
 The **table** (``aerialmtl/resources/engine_choice.yaml``) maps each kind to the engine, precision and layout
 that ran the full D3-Net fastest end to end while keeping its outputs within :data:`TOLERANCES` of torch fp32;
 ``aerialmtl bench --write-table`` writes it from a run on the CPU at hand (one kind per run; the others are kept)
-and says where, when and at what load it measured. A kind without a measurement keeps the rule that held
-before the table (OpenVINO where it is installed, bf16 where the CPU has it natively), and says so.
+and says where, when and at what load it measured.
 
-:func:`choose_engine` is what prediction calls: the registry's resolver
-(:func:`~aerialmtl.inference.engines.registry.resolve_engine`, the one owner of ``auto``: the first registered
-engine that can run the model here) says what can run, and this table, where it has the CPU's kind, picks
-among those what ran fastest. It returns the choice with its reason, which ``prediction.json`` records
-(``engine_choice``). An explicit ``--engine openvino`` on a kind where
-it was measured slower than torch runs as asked, with one warning per process.
+:func:`choose_engine` is what prediction calls, once per job (:class:`~aerialmtl.inference.model.Predictor`):
+an engine named is checked and run as asked (one warning per process where the table measured another one
+faster); ``auto`` is :func:`auto_engine`, a pure function of the job (:class:`Job`: its size, MC samples, device
+and which engine caches are warm), the CPU's kind, the engines that can run the model (each declares, in its
+:class:`~aerialmtl.inference.engines.base.EngineSpec`, its expected speed where the table has no measurement
+and what compiling costs it) and the table's entry for the kind. It weighs the compilation of a cold cache against
+the job on every kind, measured or not: a job too small to earn the compilation back runs on an engine that
+compiles nothing. The choice comes with its reason, which ``prediction.json`` records (``engine_choice``).
 
 The probe can be replaced: :data:`CPU_KIND_ENV` names a kind outright (tests: ``pytest --cpu-kind``), and the
 emulation of a smaller CPU caps it: ``ONEDNN_MAX_CPU_ISA=AVX2`` (which oneDNN, inside torch and OpenVINO,
@@ -32,9 +33,11 @@ obeys) makes the kind ``avx2``.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -43,10 +46,13 @@ import yaml
 
 from aerialmtl.cpuinfo import cpu_flags
 from aerialmtl.errors import ConfigError
+from aerialmtl.inference.engines.names import ENGINE_MODULES, FALLBACK
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
     from torch import nn
+
+    from aerialmtl.inference.engines.base import EngineSpec
 
 CpuKind = Literal["amx", "avx512_bf16", "avx512", "avx2", "none"]
 #: The kinds, fastest first.
@@ -71,7 +77,8 @@ TOLERANCES: dict[str, dict[str, float]] = {
 }
 #: The table shipped with the package.
 TABLE_RESOURCE = "engine_choice.yaml"
-Layout = Literal["channels_last", "openvino"]
+#: The torch engine's ``channels_last``, or the name of an engine that picks its own layouts.
+Layout = str
 
 
 def _flags() -> set[str]:
@@ -138,7 +145,7 @@ class KindEntry:
         notes: anything the choice depends on (e.g. why int8 was not adopted).
     """
 
-    engine: Literal["torch", "openvino"]
+    engine: str
     precision: Literal["fp32", "bf16"]
     layout: Layout
     speedup: float | None = None
@@ -156,10 +163,12 @@ def _entry(kind: str, raw: Any, source: str) -> KindEntry:
         entry = KindEntry(**raw)
     except TypeError as exc:
         raise ConfigError(f"{source}: kinds.{kind}: {exc}; rewrite it with `aerialmtl bench --write-table`") from None
-    if entry.engine not in ("torch", "openvino") or entry.precision not in ("fp32", "bf16") \
-            or entry.layout not in ("channels_last", "openvino"):
+    engines = "|".join(ENGINE_MODULES)
+    if entry.engine not in ENGINE_MODULES or entry.precision not in ("fp32", "bf16") \
+            or entry.layout not in ("channels_last", *ENGINE_MODULES):
         raise ConfigError(f"{source}: kinds.{kind} chooses {entry.engine}/{entry.precision}/{entry.layout}; "
-                          "use engine torch|openvino, precision fp32|bf16, layout channels_last|openvino")
+                          f"use engine {engines}, precision fp32|bf16, layout channels_last|{engines}, or rewrite "
+                          "it with `aerialmtl bench --write-table`")
     return entry
 
 
@@ -197,8 +206,7 @@ class EngineChoice:
     """The engine and precision a prediction runs on, and why (``prediction.json``'s ``engine_choice``).
 
     Attributes:
-        engine: a name of the engine registry (``torch``, ``openvino``); precision: ``fp32`` or ``bf16``;
-            layout: see :class:`KindEntry`.
+        engine: a name of the engine registry; precision: ``fp32`` or ``bf16``; layout: see :class:`KindEntry`.
         asked: the ``engine``/``precision`` options as given; cpu_kind: :func:`cpu_kind` (``None`` off the CPU).
         reason: one sentence: which rule or measurement decided.
     """
@@ -215,133 +223,185 @@ class EngineChoice:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class Job:
+    """What ``auto`` weighs of a job (:func:`auto_engine`).
+
+    Attributes:
+        device: the device type (``cpu``, ``cuda``, ``mps``).
+        work_mpx: the job's window megapixels (all its inputs, once); ``None`` while the job is not known (a
+            :class:`~aerialmtl.inference.model.Predictor` used without a job): then no compilation is weighed.
+        passes: model passes per window (MC samples × TTA views).
+        warm: the engines whose caches hold every graph the job runs; the others compile first.
+    """
+
+    device: str = "cpu"
+    work_mpx: float | None = None
+    passes: int = 1
+    warm: frozenset[str] = frozenset()
+
+    @property
+    def graphs(self) -> int:
+        """Graphs an engine compiles for one window shape: the forward pass at one pass, else encoder and decoder."""
+        return 1 if self.passes == 1 else 2
+
+
+def _measured(name: str, entry: KindEntry) -> bool:
+    """Whether the table's entry measured engine ``name`` (the reference engine always is: speeds are over it)."""
+    return name in (entry.engine, FALLBACK) or any(k.startswith(f"{name}/") for k in entry.model_alone_mpx_s)
+
+
+def _speedup(spec: EngineSpec, entry: KindEntry | None) -> float:
+    """Engine ``spec``'s expected end-to-end speed over the reference (the torch engine at fp32) on a CPU of
+    ``entry``'s kind: the table's where it measured the engine, else what the engine declares.
+
+    The table's winner runs at its measured speed-up; an engine it measured and did not choose at most as fast
+    (its model-alone speed at fp32 over the reference's, the reference 1.0): the bench chose the fastest.
+    """
+    if entry is None or not _measured(spec.name, entry):
+        return spec.speedup
+    best = entry.speedup or spec.speedup
+    if spec.name == entry.engine:
+        return best
+    alone = entry.model_alone_mpx_s
+    ref, own = alone.get(f"{FALLBACK}/fp32"), alone.get(f"{spec.name}/fp32")
+    ratio = own / ref if spec.name != FALLBACK and own and ref else 1.0
+    return min(ratio, best)
+
+
+def auto_engine(job: Job, kind: CpuKind | None, specs: Sequence[EngineSpec], entry: KindEntry | None
+                ) -> tuple[str, str]:
+    """The engine ``--engine auto`` runs ``job`` on, and why: the one place ``auto`` is decided.
+
+    A pure function of the job, the CPU's kind, the engines that can run the model there (``specs``, in the
+    registry's order) and the table's entry for the kind. Off the CPU (``kind`` ``None``), the first of ``specs``.
+    On a CPU, each engine is expected to take ``work / speed-up + graphs × compile_mpx`` (:func:`_speedup`; the
+    compilation only where its cache is cold and the job known) in the reference engine's window megapixels; the
+    quickest runs it, ties going to the table's winner, then to the registry's order.
+
+    Returns:
+        ``(engine name, reason)``.
+    """
+    if not specs:
+        raise ValueError("auto_engine needs at least one engine that can run the model")
+    if kind is None:
+        return specs[0].name, f"{job.device}: the torch engine, bf16 where the GPU has it"
+    speed = {s.name: _speedup(s, entry) for s in specs}
+    work = 1.0 if job.work_mpx is None else job.work_mpx * max(1, job.passes)
+    cold = {s.name: 0.0 if job.work_mpx is None or s.name in job.warm else job.graphs * s.compile_mpx for s in specs}
+    winner = entry.engine if entry is not None else None
+
+    def rank(i: int, warm: bool) -> tuple[float, bool, int]:
+        name = specs[i].name
+        return work / max(speed[name], 1e-9) + (0.0 if warm else cold[name]), name != winner, i
+
+    chosen = specs[min(range(len(specs)), key=lambda i: rank(i, False))].name
+    fastest = specs[min(range(len(specs)), key=lambda i: rank(i, True))]
+    if fastest.name != chosen:
+        return chosen, (f"auto on a CPU of kind {kind}, {fastest.label}'s cache cold for this model and window: "
+                        f"{work:.3g} window Mpx run sooner on {chosen} than after compiling ({fastest.compile_mpx:g} "
+                        f"Mpx per graph) at {speed[fastest.name]:.2f}× torch")
+    return chosen, _auto_reason(kind, entry, chosen, speed)
+
+
+def _auto_reason(kind: CpuKind, entry: KindEntry | None, chosen: str, speed: dict[str, float]) -> str:
+    """Why ``auto`` runs ``chosen`` on a CPU of ``kind`` when no compilation decided."""
+    speeds = ", ".join(f"{name} {v:.2f}×" for name, v in speed.items())
+    if entry is None:
+        return (f"no measurement for CPU kind {kind} in the table: {chosen} fastest by the engines' declared "
+                f"speeds over torch fp32 ({speeds}), bf16 where the CPU has it natively")
+    if chosen == entry.engine:
+        ratio = f", {entry.speedup:.2f}× torch fp32" if entry.speedup else ""  # `measured` says of what
+        return (f"auto on a CPU of kind {kind}: {entry.engine} {entry.precision} measured fastest within "
+                f"the tolerances{ratio} ({entry.measured})")
+    if entry.engine not in speed:
+        return f"the table's {entry.engine} cannot run this model here; {chosen} instead"
+    return (f"auto on a CPU of kind {kind}: {chosen} declares more speed than the table's {entry.engine} measured "
+            f"({speeds}; {entry.measured})")
+
+
 _warned: set[tuple[str, str]] = set()
 
 
-def _warn_slower(kind: CpuKind, entry: KindEntry, asked: str) -> None:
-    """One warning per process and kind: an explicit OpenVINO where torch was measured faster."""
+def _warn_slower(kind: CpuKind, entry: KindEntry, engine: str, asked: str) -> None:
+    """One warning per process and kind: an explicit engine where the table measured another one faster."""
     if (kind, asked) in _warned:
         return
     _warned.add((kind, asked))
     speeds = ", ".join(f"{k} {v:.3g}" for k, v in sorted(entry.model_alone_mpx_s.items()))
-    warnings.warn(f"‹engine=openvino› runs slower than the torch engine on this kind of CPU ({kind}: measured "
-                  f"{speeds} Mpx/s for the model alone; {entry.measured}); ‹engine=auto› picks "
-                  f"{entry.engine} {entry.precision} here", UserWarning, stacklevel=3)
+    warnings.warn(f"‹engine={engine}› runs slower than the {entry.engine} engine on this kind of CPU ({kind}: "
+                  f"measured {speeds} Mpx/s for the model alone; {entry.measured}); ‹engine=auto› picks "
+                  f"{entry.engine} {entry.precision} here", UserWarning, stacklevel=4)
+
+
+def _precision(spec: EngineSpec, precision: str, device: torch.device, entry: KindEntry | None,
+               auto: bool) -> Literal["fp32", "bf16"]:
+    """The precision engine ``spec`` runs at for the ``precision`` option: the table's for its winner under
+    ``auto`` (never emulated bf16), else :func:`aerialmtl.runtime.resolve_precision` with the engine's bf16 rule.
+    """
+    from aerialmtl import runtime
+
+    if device.type != "cpu":
+        return runtime.resolve_precision(precision, device)
+    if auto and entry is not None and spec.name == entry.engine and precision == "auto":
+        # the table's kind and the bf16 probe may disagree (an override): never emulated bf16
+        return entry.precision if entry.precision != "bf16" or runtime.native_bf16(device) else "fp32"
+    return runtime.resolve_precision(precision, device, cpu_bf16=not spec.bf16_needs_amx or runtime.cpu_has_amx())
 
 
 def choose_engine(engine: str, precision: str, device: torch.device, model: nn.Module | Any,
-                  table: dict[CpuKind, KindEntry] | None = None) -> EngineChoice:
+                  table: dict[CpuKind, KindEntry] | None = None, *, job: Job | None = None,
+                  cached: Callable[[str, Literal["fp32", "bf16"]], bool] | None = None) -> EngineChoice:
     """Resolve the ``engine`` and ``precision`` options of a prediction (see the module docstring).
 
     Args:
-        engine: ``auto``, ``torch`` or ``openvino`` (checked by
-            :func:`~aerialmtl.inference.engines.resolve_engine`, which also says why OpenVINO cannot run).
+        engine: ``auto`` (:func:`auto_engine`, once, with ``job``) or a name of the registry (checked by
+            :func:`~aerialmtl.inference.engines.resolve_engine`, which also says why it cannot run).
         precision: ``auto``, ``bf16`` or ``fp32``.
         device: where the model runs.
-        model: the model (or its checkpoint record): OpenVINO converts D3-Nets only.
+        model: the model (or its checkpoint record): some engines run some models only.
         table: kind → entry; default :func:`shipped_table`.
+        job: the job's size (default: not known yet; its ``warm`` is filled here by asking ``cached``).
+        cached: ``(engine, precision)`` → whether that engine's cache holds every graph of the job; only engines
+            that compile are asked, and only for a known job (default: none is).
 
     Raises:
-        InputError: an unknown engine or precision, or OpenVINO asked for where it cannot run.
+        InputError: an unknown engine or precision, or an engine asked for where it cannot run.
     """
     # torch (runtime) and the engines load when an engine is chosen: reading the table (cli bench, the tests'
     # CPU kind) stays light
     from aerialmtl import runtime
-    from aerialmtl.inference.engines import resolve_engine
+    from aerialmtl.inference.engines import ENGINES, engine_spec, resolve_engine, usable_engines
 
     asked = f"engine={engine}, precision={precision}"
     runtime.resolve_precision(precision, device)  # a bad value fails here, named
-    resolved = resolve_engine(engine, device, model)  # explicit choices checked; auto → openvino where it can run
-    if device.type != "cpu":
-        prec = runtime.resolve_precision(precision, device)
-        return EngineChoice(resolved, prec, "channels_last", asked, None,
-                            f"{device.type}: the torch engine, bf16 where the GPU has it")
-    kind = cpu_kind()
-    entry = (shipped_table() if table is None else table).get(kind)
-    layout: Layout = "openvino" if resolved == "openvino" else "channels_last"
-    if engine == "auto" and entry is not None and (resolved == "openvino" or entry.engine == "torch"):
-        prec = entry.precision if precision == "auto" else runtime.resolve_precision(precision, device)
-        if prec == "bf16" and precision == "auto" and not runtime.native_bf16(device):
-            prec = "fp32"  # the table's kind and the bf16 probe disagree (an override): never emulated bf16
-        ratio = f", {entry.speedup:.2f}× torch fp32" if entry.speedup else ""  # `measured` says of what
-        return EngineChoice(entry.engine, prec, entry.layout, asked, kind,
-                            f"auto on a CPU of kind {kind}: {entry.engine} {entry.precision} measured fastest within "
-                            f"the tolerances{ratio} ({entry.measured})")
-    prec = runtime.resolve_precision(precision, device,
-                                     cpu_bf16=resolved == "openvino" or runtime.cpu_has_amx())
-    if engine == "openvino" and entry is not None and entry.engine == "torch":
-        _warn_slower(kind, entry, asked)
-        return EngineChoice(resolved, prec, layout, asked, kind,
-                            f"asked for; measured slower than {entry.engine} {entry.precision} on kind {kind}")
+    kind = cpu_kind() if device.type == "cpu" else None
+    entry = None if kind is None else (shipped_table() if table is None else table).get(kind)
     if engine != "auto":
-        return EngineChoice(resolved, prec, layout, asked, kind, "asked for")
-    if entry is None:
-        why = (f"no measurement for CPU kind {kind} in the table: OpenVINO where it can run, bf16 where the CPU "
-               "has it natively (the rule before the table)")
-    else:
-        why = f"the table's {entry.engine} cannot run this model here; {resolved} instead"
-    return EngineChoice(resolved, prec, layout, asked, kind, why)
+        spec = engine_spec(resolve_engine(engine, device, model))
+        prec, reason = _precision(spec, precision, device, entry, False), "asked for"
+        if kind is None:
+            reason = f"{device.type}: the torch engine, bf16 where the GPU has it"
+        if entry is not None and entry.engine != engine and engine != FALLBACK and _measured(engine, entry):
+            _warn_slower(kind, entry, engine, asked)  # type: ignore[arg-type]  # kind is set with entry
+            reason = f"asked for; measured slower than {entry.engine} {entry.precision} on kind {kind}"
+        return EngineChoice(engine, prec, layout_of(spec), asked, kind, reason)
+    specs = usable_engines(device, model)
+    job = job if job is not None else Job(device.type)
+    precisions = {s.name: _precision(s, precision, device, entry, True) for s in specs}
+    if job.work_mpx is not None and cached is not None:
+        job = dataclasses.replace(job, warm=frozenset(s.name for s in specs if s.compile_mpx > 0
+                                                      and cached(s.name, precisions[s.name])))
+    name, reason = auto_engine(job, kind, specs, entry)
+    spec = ENGINES[name]
+    return EngineChoice(name, precisions[name], layout_of(spec), asked, kind, reason)
 
 
-# ---- a cold engine cache ----------------------------------------------------------------------
-#: What converting and compiling the full D3-Net for one window shape costs, in window megapixels of the torch
-#: engine (fp32) on the same CPU. Measured on an AVX2 AMD Zen 3 (issue 46): a first 2048² T = 1 predict (4.9 window
-#: megapixels) ran 0.55× the torch engine, the second 1.69×, so the compilation took (1/0.55 − 1/1.69) ≈ 1.23
-#: torch runs of that job ≈ 6 megapixels. Compilation and the torch engine both slow down with the CPU, so the
-#: cost is kept in the torch engine's work rather than in seconds.
-COMPILE_TORCH_MPX = 6.0
+def layout_of(spec: EngineSpec) -> Layout:
+    """What :attr:`EngineChoice.layout` records of an engine: its own layout, or its name where it picks its own."""
+    return spec.layout if spec.layout is not None else spec.name
 
 
-def cold_start_pays(work_mpx: float, speedup: float, graphs: int = 1,
-                    compile_mpx: float = COMPILE_TORCH_MPX) -> bool:
-    """Whether OpenVINO, converting and compiling ``graphs`` graphs first, finishes a job no later than the torch
-    engine: ``work / speedup + graphs × compile ≤ work``, all in the torch engine's window megapixels.
-
-    Args:
-        work_mpx: the job's window megapixels times its model passes (MC samples, TTA views).
-        speedup: OpenVINO's measured speed over the torch engine (the table's :attr:`KindEntry.speedup`).
-        graphs: graphs compiled (the forward pass at T = 1; the encoder and the decoder at T > 1).
-        compile_mpx: the cost of one graph's compilation (:data:`COMPILE_TORCH_MPX`).
-    """
-    return work_mpx / max(speedup, 1e-9) + graphs * compile_mpx <= work_mpx
-
-
-def cold_cache_choice(choice: EngineChoice, precision: str, device: torch.device, work_mpx: float, samples: int,
-                      warm: bool, table: dict[CpuKind, KindEntry] | None = None) -> EngineChoice:
-    """``auto``'s choice for a job once its size and the engine cache are known: the table's OpenVINO, when the
-    graphs the job runs are not compiled in the cache (``warm`` false) and :func:`cold_start_pays` says the torch
-    engine finishes first, gives way to the torch engine (``precision``: as an explicit torch engine resolves it).
-    Every other choice is returned as it is, as is a kind without a measured speedup (nothing to weigh).
-
-    A job the torch engine takes leaves the cache cold; the first job large enough for compilation to pay (or one
-    run with ``--engine openvino``) fills it, and the later jobs on this model and window shape take OpenVINO.
-
-    Args:
-        choice: :func:`choose_engine`'s choice.
-        precision: the ``precision`` option as given.
-        device: where the model runs.
-        work_mpx: the job's window megapixels (all inputs), once.
-        samples: model passes per window (MC samples × TTA views).
-        warm: whether the cache holds the compiled graphs of every window shape of the job.
-        table: kind → entry; default :func:`shipped_table`.
-    """
-    if not choice.asked.startswith("engine=auto") or choice.engine != "openvino" or warm or choice.cpu_kind is None:
-        return choice
-    entry = (shipped_table() if table is None else table).get(choice.cpu_kind)
-    if entry is None or not entry.speedup or entry.engine != "openvino":
-        return choice
-    work = work_mpx * max(1, samples)
-    if cold_start_pays(work, entry.speedup, 1 if samples == 1 else 2):
-        return choice
-    from aerialmtl import runtime  # torch: see choose_engine
-
-    prec = runtime.resolve_precision(precision, device, cpu_bf16=runtime.cpu_has_amx())
-    why = (f"auto on a CPU of kind {choice.cpu_kind}, OpenVINO's cache cold for this model and window: {work:.3g} "
-           f"window Mpx run sooner on torch than after compiling ({COMPILE_TORCH_MPX:g} Mpx per graph) at "
-           f"{entry.speedup:.2f}× torch")
-    return EngineChoice("torch", prec, "channels_last", choice.asked, choice.cpu_kind, why)
-
-
-__all__ = ["COMPILE_TORCH_MPX", "CPU_KINDS", "CPU_KIND_ENV", "TABLE_RESOURCE", "TOLERANCES", "CpuKind", "EngineChoice",
-           "KindEntry", "choose_engine", "cold_cache_choice", "cold_start_pays", "cpu_kind", "kind_of", "read_table",
+__all__ = ["CPU_KINDS", "CPU_KIND_ENV", "TABLE_RESOURCE", "TOLERANCES", "CpuKind", "EngineChoice", "Job", "KindEntry",
+           "auto_engine", "choose_engine", "cpu_kind", "kind_of", "layout_of", "read_table",
            "shipped_table"]

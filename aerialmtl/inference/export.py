@@ -34,7 +34,7 @@ import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from torch import nn
@@ -61,7 +61,7 @@ from aerialmtl.runtime import import_openvino
 
 Format = Literal["onnx", "openvino"]
 Task = Literal["all", "height", "height_std", "classes"]
-FORMATS: tuple[str, ...] = ("onnx", "openvino")
+FORMATS: tuple[str, ...] = get_args(Format)
 TASKS: tuple[str, ...] = ("all", "height", "height_std", "classes")
 class ExportHead(nn.Module):
     """The exported computation: the model's deterministic forward.

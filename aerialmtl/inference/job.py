@@ -36,9 +36,9 @@ from aerialmtl.formats.prediction import (
     PredictionRecord,
     folder_files,
 )
-from aerialmtl.inference.model import StripResult
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.stitch import Block
+from aerialmtl.inference.strips import StripResult
 from aerialmtl.inference.writer import PredictionWriter
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import OutputFolder, make_output_dir

@@ -1,7 +1,7 @@
 """A third engine for the tests, written as docs/CONTRACTS.md says an engine is added: this one module (a class with
 the :class:`~aerialmtl.inference.engines.base.Engine` members, a function building it from an ``EngineSetup``, one
 saying why it cannot run somewhere, and its :data:`SPEC`) plus one entry naming this module in
-``aerialmtl.inference.engine_names.ENGINE_MODULES``, which a test adds. It computes with the torch engine's model and
+``aerialmtl.inference.engines.names.ENGINE_MODULES``, which a test adds. It computes with the torch engine's model and
 counts the windows it was given, so a test can tell that it, and not another engine, made the maps.
 """
 

@@ -9,16 +9,15 @@
   measured there (AVX-512-BF16, no AMX), OpenVINO bf16 ran the model alone about 3.5× torch fp32 and the whole
   prediction 1.14× (T = 1).
 
-``auto`` (:func:`~aerialmtl.inference.engines.registry.resolve_engine`) is the first engine of the registry
-that can run the model on the device: ``openvino`` on a CPU when OpenVINO is installed and the model is a D3-Net
-(``encode``/``decode``), ``torch`` otherwise; on a CPU, the measured table may pick torch instead
-(:func:`~aerialmtl.inference.engine_choice.choose_engine`).
+``auto`` (:func:`~aerialmtl.inference.engine_choice.auto_engine`) weighs the engines that can run the model on the
+device by the measured table of the CPU's kind and, where it has none, by what each engine's spec declares
+(:attr:`EngineSpec.speedup`), with a cold cache's compilation (:attr:`EngineSpec.compile_mpx`) against the job.
 
 The package: :mod:`~aerialmtl.inference.engines.base` (the :class:`Engine` protocol, what an engine is built
 from), :mod:`~aerialmtl.inference.engines.registry` (the engines by name, ``auto``, the fallback), one module
 per engine (:mod:`~aerialmtl.inference.engines.torch_engine`, :mod:`~aerialmtl.inference.engines.openvino_engine`
 with its graphs and requests beside it). Adding an engine is one module (with its ``SPEC``) and one entry in
-:data:`~aerialmtl.inference.engine_names.ENGINE_MODULES`.
+:data:`~aerialmtl.inference.engines.names.ENGINE_MODULES`.
 
 Both engines give the runner (:class:`~aerialmtl.inference.runner.ModelRunner`) per-window statistics
 through the same code: T = 1 is one forward pass (height, softmax of the logits); T > 1 runs the encoder
@@ -55,20 +54,46 @@ warning naming it), never a failed one.
 
 from __future__ import annotations
 
-from aerialmtl.inference.engines.base import Done, Engine, EngineSetup, Pending
-from aerialmtl.inference.engines.openvino_engine import OPENVINO_INSTALL, OpenVINOEngine, openvino_available
-from aerialmtl.inference.engines.openvino_graphs import CONVERT_SIZE, cache_root, fingerprint
-from aerialmtl.inference.engines.registry import (
-    ENGINES,
-    FALLBACK,
-    EngineSpec,
-    build_engine,
-    engine_spec,
-    fallback_engine,
-    resolve_engine,
-)
-from aerialmtl.inference.engines.torch_engine import TorchEngine, compile_model
+import importlib
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["CONVERT_SIZE", "ENGINES", "FALLBACK", "OPENVINO_INSTALL", "Done", "Engine", "EngineSetup", "EngineSpec",
-           "OpenVINOEngine", "Pending", "TorchEngine", "build_engine", "cache_root", "compile_model", "engine_spec",
-           "fallback_engine", "fingerprint", "openvino_available", "resolve_engine"]
+if TYPE_CHECKING:  # pragma: no cover
+    from aerialmtl.inference.engines.base import Done, Engine, EngineSetup, EngineSpec, Pending
+    from aerialmtl.inference.engines.names import ENGINE_MODULES, FALLBACK
+    from aerialmtl.inference.engines.openvino_engine import OPENVINO_INSTALL, OpenVINOEngine, openvino_available
+    from aerialmtl.inference.engines.openvino_graphs import CONVERT_SIZE, cache_root, fingerprint
+    from aerialmtl.inference.engines.registry import (
+        ENGINES,
+        build_engine,
+        engine_spec,
+        fallback_engine,
+        resolve_engine,
+        usable_engines,
+    )
+    from aerialmtl.inference.engines.torch_engine import TorchEngine, compile_model
+
+#: Where each name of the package lives: imported on first use, so that :mod:`~aerialmtl.inference.engines.names`
+#: (what the command line reads for ``--engine``) loads without torch.
+_WHERE = {
+    **dict.fromkeys(("Done", "Engine", "EngineSetup", "EngineSpec", "Pending"), "base"),
+    **dict.fromkeys(("ENGINE_MODULES", "FALLBACK"), "names"),
+    **dict.fromkeys(("OPENVINO_INSTALL", "OpenVINOEngine", "openvino_available"), "openvino_engine"),
+    **dict.fromkeys(("CONVERT_SIZE", "cache_root", "fingerprint"), "openvino_graphs"),
+    **dict.fromkeys(("ENGINES", "build_engine", "engine_spec", "fallback_engine", "resolve_engine", "usable_engines"),
+                    "registry"),
+    **dict.fromkeys(("TorchEngine", "compile_model"), "torch_engine"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The package's names, each imported from its module on first use (:data:`_WHERE`)."""
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+__all__ = ["CONVERT_SIZE", "ENGINES", "ENGINE_MODULES", "FALLBACK", "OPENVINO_INSTALL", "Done", "Engine", "EngineSetup",
+           "EngineSpec", "OpenVINOEngine", "Pending", "TorchEngine", "build_engine", "cache_root", "compile_model",
+           "engine_spec", "fallback_engine", "fingerprint", "openvino_available", "resolve_engine", "usable_engines"]

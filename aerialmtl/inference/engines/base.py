@@ -6,8 +6,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import torch
@@ -110,7 +111,10 @@ class Engine(Protocol):
 
 @dataclass(frozen=True)
 class EngineSpec:
-    """One engine of the registry: its module's ``SPEC`` (:mod:`aerialmtl.inference.engine_names`).
+    """One engine of the registry: its module's ``SPEC`` (:mod:`aerialmtl.inference.engines.names`).
+
+    What the engine supports and what it is expected to cost, declared here, is all that ``auto``
+    (:func:`~aerialmtl.inference.engine_choice.auto_engine`) knows of it besides the measured table.
 
     Attributes:
         name: the ``engine`` value that selects it (recorded in ``prediction.json``).
@@ -118,7 +122,22 @@ class EngineSpec:
         build: setup → the engine.
         unusable: (device, model) → why the engine cannot run that model there (the error to raise), or ``None``.
         over: (model another engine prepared, setup) → the engine over that model, not compiled; what ``auto``'s
-            fallback builds (needed of :data:`~aerialmtl.inference.engine_names.FALLBACK` only).
+            fallback builds (needed of :data:`~aerialmtl.inference.engines.names.FALLBACK` only).
+        speedup: the expected end-to-end speed over the torch engine at fp32 on a CPU whose kind the measured
+            table (:mod:`~aerialmtl.inference.engine_choice`) has no entry for, or does not name the engine in;
+            1.0 claims nothing (the torch engine's own).
+        compile_mpx: what compiling one graph costs before the first window (0: nothing compiled), in window
+            megapixels of the torch engine at fp32 on the same CPU.
+        cached: (setup, window shapes ``(h, w)``, MC samples) → whether every graph a job of those runs is compiled
+            in the engine's cache already (``None``: the engine keeps no cache; its ``compile_mpx`` is always paid).
+        record_root: → the folder that holds checkpoint records beside the engine's cache
+            (:mod:`~aerialmtl.inference.model_record`), ``None`` where there is none; an engine that has one
+            runs from the record without loading the weights, and its cache is keyed by the checkpoint's hash.
+        bf16_needs_amx: ``precision=auto`` takes bf16 on a CPU only with AMX (the torch engine), rather than
+            wherever the CPU has native bf16.
+        takes_compile: the ``compile`` setting (torch.compile) applies to it.
+        precisions: the precisions ``aerialmtl bench`` measures it at.
+        layout: what ``prediction.json`` records as its layout (``None``: the engine picks its own; its name).
     """
 
     name: str
@@ -126,6 +145,14 @@ class EngineSpec:
     build: Callable[[EngineSetup], Engine]
     unusable: Callable[[torch.device, nn.Module | CheckpointModel], InputError | None]
     over: Callable[[nn.Module, EngineSetup], Engine] | None = None
+    speedup: float = 1.0
+    compile_mpx: float = 0.0
+    cached: Callable[[EngineSetup, Collection[tuple[int, int]], int], bool] | None = None
+    record_root: Callable[[], Path | None] | None = None
+    bf16_needs_amx: bool = False
+    takes_compile: bool = False
+    precisions: tuple[str, ...] = ("fp32", "bf16")
+    layout: str | None = None
 
 
 class Pending(Protocol):

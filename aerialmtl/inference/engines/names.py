@@ -1,7 +1,10 @@
 """The engines' names: the one list, without importing any engine (so without torch).
 
+The package imports its modules on first use (:mod:`aerialmtl.inference.engines`), so this one loads light.
+
 :data:`ENGINE_MODULES` maps each engine's name to the module that defines it (its ``SPEC``, an
-:class:`~aerialmtl.inference.engines.base.EngineSpec`), in ``auto``'s order of preference. The registry
+:class:`~aerialmtl.inference.engines.base.EngineSpec`), in the order that breaks ``auto``'s ties
+(:func:`~aerialmtl.inference.engine_choice.auto_engine`). The registry
 (:data:`aerialmtl.inference.engines.registry.ENGINES`) reads its engines from here, and the command line its
 ``--engine`` choices (``--help`` and shell completion import no torch). Adding an engine is its module and one
 entry here.
@@ -9,7 +12,7 @@ entry here.
 
 from __future__ import annotations
 
-#: Engine name → the module whose ``SPEC`` it is, in ``auto``'s order of preference.
+#: Engine name → the module whose ``SPEC`` it is; the first wins ``auto``'s ties.
 ENGINE_MODULES: dict[str, str] = {
     "openvino": "aerialmtl.inference.engines.openvino_engine",
     "torch": "aerialmtl.inference.engines.torch_engine",

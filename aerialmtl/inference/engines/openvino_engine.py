@@ -8,7 +8,7 @@ import hashlib
 import os
 import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -200,7 +200,7 @@ class OpenVINOEngine:
 
     def cached(self, h: int, w: int, samples: int) -> bool:
         """Whether every graph that ``h × w`` windows at ``samples`` MC samples run is compiled in the cache (a
-        run without them converts and compiles first: :func:`~aerialmtl.inference.engine_choice.cold_start_pays`).
+        run without them converts and compiles first: :func:`~aerialmtl.inference.engine_choice.auto_engine`).
         """
         parts = {"forward"} if samples == 1 else {"encode", "decode"}
         if self.density is not None:
@@ -409,7 +409,37 @@ def build_openvino(setup: EngineSetup) -> OpenVINOEngine:
                           density=setup.meta.familiarity)
 
 
-#: The OpenVINO engine's entry of the registry (:mod:`aerialmtl.inference.engine_names`).
-SPEC = EngineSpec("openvino", "OpenVINO", build_openvino, openvino_unusable)
+def openvino_cached(setup: EngineSetup, shapes: Collection[tuple[int, int]], samples: int) -> bool:
+    """Whether the cache of ``setup``'s engine holds every graph that windows of ``shapes`` run at ``samples`` MC
+    samples (:meth:`OpenVINOEngine.cached`; building the engine compiles nothing).
+    """
+    engine = build_openvino(setup)
+    return all(engine.cached(h, w, samples) for h, w in shapes)
 
-__all__ = ["OPENVINO_INSTALL", "SPEC", "OpenVINOEngine", "build_openvino", "openvino_available", "openvino_unusable"]
+
+def openvino_records() -> Path | None:
+    """The folder of the checkpoint records beside the engine cache (:func:`cache_root`), where OpenVINO is
+    installed.
+    """
+    return cache_root() if openvino_available() else None
+
+
+#: What converting and compiling the full D3-Net for one window shape costs, in window megapixels of the torch
+#: engine (fp32) on the same CPU. Measured on an AVX2 AMD Zen 3 (issue 46): a first 2048² T = 1 predict (4.9 window
+#: megapixels) ran 0.55× the torch engine, the second 1.69×, so the compilation took (1/0.55 − 1/1.69) ≈ 1.23
+#: torch runs of that job ≈ 6 megapixels. Compilation and the torch engine both slow down with the CPU, so the
+#: cost is kept in the torch engine's work rather than in seconds.
+COMPILE_TORCH_MPX = 6.0
+#: The speed over the torch engine (fp32) expected on a CPU kind the table has not measured: the smallest end-to-end
+#: speed-up measured on any kind (1.14× on AVX-512-BF16, aerialmtl/resources/engine_choice.yaml). It is what
+#: weighs the compilation there: on an Intel Ice Lake (AVX-512 without BF16, not in the table) a first 2048² T = 1
+#: predict took 1.13× the torch engine's time at load 2, the cold compilation paid for a job too small to earn it.
+EXPECTED_SPEEDUP = 1.14
+
+#: The OpenVINO engine's entry of the registry (:mod:`aerialmtl.inference.engines.names`).
+SPEC = EngineSpec("openvino", "OpenVINO", build_openvino, openvino_unusable, speedup=EXPECTED_SPEEDUP,
+                  compile_mpx=COMPILE_TORCH_MPX, cached=openvino_cached, record_root=openvino_records,
+                  precisions=("fp32", "bf16", "int8"))
+
+__all__ = ["COMPILE_TORCH_MPX", "EXPECTED_SPEEDUP", "OPENVINO_INSTALL", "SPEC", "OpenVINOEngine", "build_openvino",
+           "openvino_available", "openvino_cached", "openvino_records", "openvino_unusable"]

@@ -1,17 +1,14 @@
 """The engines by name: :data:`ENGINES`, one :class:`~aerialmtl.inference.engines.base.EngineSpec` each, shaped
 like the encoder registry (:mod:`aerialmtl.models.encoders`).
 
-The names and their order are :data:`~aerialmtl.inference.engine_names.ENGINE_MODULES` (a table that imports no
+The names and their order are :data:`~aerialmtl.inference.engines.names.ENGINE_MODULES` (a table that imports no
 engine, so the command line reads it without torch); each engine's entry is its module's ``SPEC``, imported when
 first asked for. Adding an engine is one module of its own (a class with the
 :class:`~aerialmtl.inference.engines.base.Engine` members, a function that builds it from an
 :class:`~aerialmtl.inference.engines.base.EngineSetup`, one that says why it cannot run somewhere, and its
 ``SPEC``) and one entry in that table, nothing else: ``predict --engine`` offers the names of the table, and
-tests/test_engine_registry.py predicts with a fake third engine added so. The order is ``auto``'s preference:
-:func:`resolve_engine` (the one resolver of ``auto`` against the registry;
-:func:`~aerialmtl.inference.engine_choice.choose_engine` adds the measured table on top of it) takes the first
-engine that can run the model on the device; an engine after :data:`FALLBACK` (which runs anything, anywhere) is
-never picked by ``auto``.
+tests/test_engine_registry.py predicts with a fake third engine added so. ``auto`` weighs the engines by what
+their specs declare (:func:`~aerialmtl.inference.engine_choice.auto_engine`); the order breaks ties.
 """
 
 from __future__ import annotations
@@ -23,13 +20,13 @@ import torch
 from torch import nn
 
 from aerialmtl.errors import InputError
-from aerialmtl.inference.engine_names import ENGINE_MODULES, FALLBACK
 from aerialmtl.inference.engines.base import Engine, EngineSetup, EngineSpec
+from aerialmtl.inference.engines.names import ENGINE_MODULES, FALLBACK
 from aerialmtl.inference.model_record import CheckpointModel
 
 
 class _Registry(Mapping[str, EngineSpec]):
-    """Name → :class:`EngineSpec`, read from :data:`~aerialmtl.inference.engine_names.ENGINE_MODULES`.
+    """Name → :class:`EngineSpec`, read from :data:`~aerialmtl.inference.engines.names.ENGINE_MODULES`.
 
     The names in its order, each the ``SPEC`` of its module.
     """
@@ -62,18 +59,20 @@ def engine_spec(name: str) -> EngineSpec:
     return ENGINES[name]
 
 
-def resolve_engine(engine: str, device: torch.device, model: nn.Module | CheckpointModel) -> str:
-    """The engine that runs ``model`` on ``device`` for the option ``engine``.
+def usable_engines(device: torch.device, model: nn.Module | CheckpointModel) -> list[EngineSpec]:
+    """The engines that can run ``model`` on ``device``, in the registry's order (what ``auto`` chooses among:
+    :func:`~aerialmtl.inference.engine_choice.auto_engine`).
+    """
+    return [spec for spec in ENGINES.values() if spec.unusable(device, model) is None]
 
-    ``auto`` → the first engine of :data:`ENGINES` that can run ``model`` on ``device`` (``openvino`` on a CPU
-    where it is installed and ``model`` is a D3-Net, else ``torch``); a named engine → itself, once it can run
-    ``model`` on ``device``.
+
+def resolve_engine(engine: str, device: torch.device, model: nn.Module | CheckpointModel) -> str:
+    """The engine named ``engine``, once it can run ``model`` on ``device`` (``auto`` is
+    :func:`~aerialmtl.inference.engine_choice.choose_engine`'s).
 
     Raises:
         InputError: an unknown engine, or one that cannot run here (its :attr:`EngineSpec.unusable` error).
     """
-    if engine == "auto":
-        return next((name for name, spec in ENGINES.items() if spec.unusable(device, model) is None), FALLBACK)
     why = engine_spec(engine).unusable(device, model)
     if why is not None:
         raise why
@@ -92,4 +91,5 @@ def fallback_engine(failed: Engine, setup: EngineSetup) -> Engine:
     return over(failed.model, setup)
 
 
-__all__ = ["ENGINES", "FALLBACK", "EngineSpec", "build_engine", "engine_spec", "fallback_engine", "resolve_engine"]
+__all__ = ["ENGINES", "FALLBACK", "EngineSpec", "build_engine", "engine_spec", "fallback_engine", "resolve_engine",
+           "usable_engines"]

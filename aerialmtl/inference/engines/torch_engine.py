@@ -122,7 +122,8 @@ def _always_usable(device: torch.device, model: nn.Module | CheckpointModel) -> 
     return None
 
 
-#: The torch engine's entry of the registry (:mod:`aerialmtl.inference.engine_names`): runs anything, anywhere.
-SPEC = EngineSpec("torch", "torch", build_torch, _always_usable, over=torch_over)
+#: The torch engine's entry of the registry (:mod:`aerialmtl.inference.engines.names`): runs anything, anywhere.
+SPEC = EngineSpec("torch", "torch", build_torch, _always_usable, over=torch_over, bf16_needs_amx=True,
+                  takes_compile=True, layout="channels_last")
 
 __all__ = ["SPEC", "TorchEngine", "build_torch", "compile_model", "torch_over"]
