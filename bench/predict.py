@@ -500,7 +500,7 @@ def bench_startup(runs: int, tmp: Path, cache: Path) -> dict:
     src = synthetic_raster(tmp / "startup.tif", 256, 256)
     args = [str(src), "--model", str(ckpt), "--out", str(tmp / "startup_out"), "--mc", "1", "--quiet", "--overwrite"]
     # fills the engine cache: named, since auto takes torch for a job this small while OpenVINO's cache is cold
-    # (engine_choice.cold_cache_choice) and would then never fill it
+    # (engine_choice.auto_engine) and would then never fill it
     _run_predict([*args, "--engine", "openvino"], env)
     load_before = load_avg()
     walls = sorted(_run_predict(args, env) for _ in range(runs))
