@@ -21,6 +21,7 @@ from aerialmtl.data.synth import synthesize
 from aerialmtl.errors import OutputExistsError
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.evaluation.maps import add_class_legend, add_colorbar, layer_cmap
+from aerialmtl.filesafety import atomic_write
 from aerialmtl.formats.prediction import (
     CLASS_ENTROPY,
     CLASS_MUTUAL_INFO,
@@ -31,7 +32,7 @@ from aerialmtl.formats.prediction import (
     PredictionFolder,
 )
 from aerialmtl.inference.predict import predict_raster
-from aerialmtl.io.outputs import OutputFolder, atomic_write, write_text_atomic
+from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import load_train_config

@@ -10,7 +10,7 @@ import zipfile
 from pathlib import Path
 
 from aerialmtl.errors import InputError, OutputExistsError
-from aerialmtl.io.outputs import atomic_write
+from aerialmtl.filesafety import atomic_write
 
 #: The plugin folder inside the zip (the name QGIS installs it under).
 PLUGIN_FOLDER = "aerialmtl_processing"

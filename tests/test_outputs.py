@@ -22,8 +22,9 @@ from helpers.tilefolder import write_tile_folder
 from test_robustness import CRS, T05, assert_error, assert_ok, rgb, tiny_train_yaml
 
 from aerialmtl.errors import OutputInUseError
+from aerialmtl.filesafety import atomic_write, staging_path
 from aerialmtl.formats.checkpoint import load_checkpoint
-from aerialmtl.io.outputs import LOCK_FILE, FolderLock, OutputFolder, atomic_write, staging_path
+from aerialmtl.io.outputs import LOCK_FILE, FolderLock, OutputFolder
 
 run = run_cli
 ROOT = Path(__file__).resolve().parents[1]

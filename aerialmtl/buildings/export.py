@@ -22,11 +22,12 @@ from typing import Any
 from aerialmtl.buildings.extract import BuildingOptions, ExtractionStats, extract_buildings
 from aerialmtl.buildings.layers import BuildingLayers
 from aerialmtl.errors import AerialMTLError, InputError, OutputError, OutputExistsError
+from aerialmtl.filesafety import staging_path
 from aerialmtl.formats.buildings import GROUND_Z_FIELD, ID_FIELD, PREDICTED_FIELDS, FootprintWriter, driver_for
 from aerialmtl.formats.cityjson import CityJSONWriter
 from aerialmtl.formats.prediction import PredictionFolder
 from aerialmtl.io.oserrors import kind_of, output_error, writing
-from aerialmtl.io.outputs import OutputFolder, check_files_not_input, make_output_dir, staging_path
+from aerialmtl.io.outputs import OutputFolder, check_files_not_input, make_output_dir
 
 #: Name endings of CityJSON outputs.
 CITYJSON_SUFFIXES = (".city.json", ".cityjson")

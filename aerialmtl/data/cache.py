@@ -30,6 +30,7 @@ import torch
 
 from aerialmtl.data.dataset import RawPatch, read_raw_patch
 from aerialmtl.errors import InputError, OutputError
+from aerialmtl.filesafety import staging_path
 from aerialmtl.formats.tiles import (
     MANIFEST_CSV,
     PatchCacheIndex,
@@ -40,7 +41,6 @@ from aerialmtl.formats.tiles import (
     read_manifest,
     split_fingerprint,
 )
-from aerialmtl.io.outputs import staging_path
 from aerialmtl.progress import tqdm_auto as tqdm
 
 log = logging.getLogger(__name__)

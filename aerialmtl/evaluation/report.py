@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 
 from aerialmtl.errors import OutputError
+from aerialmtl.filesafety import atomic_write
 from aerialmtl.formats.report import owned_plots, plot_path
-from aerialmtl.io.outputs import atomic_write, write_text_atomic
+from aerialmtl.io.outputs import write_text_atomic
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -43,10 +43,9 @@ from aerialmtl._version import __version__
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.errors import CheckpointError, ConfigError, NonFiniteError, cause
-from aerialmtl.filesafety import open_regular, special_kind
+from aerialmtl.filesafety import atomic_write, open_regular, special_kind
 from aerialmtl.io.fingerprint import content_sha256
 from aerialmtl.io.oserrors import output_error
-from aerialmtl.io.outputs import atomic_write
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net

@@ -27,8 +27,9 @@ import yaml
 
 from aerialmtl.config import read_yaml
 from aerialmtl.errors import CheckpointError
+from aerialmtl.filesafety import atomic_write
 from aerialmtl.formats.checkpoint import file_sha256, load_checkpoint
-from aerialmtl.io.outputs import atomic_write, write_text_atomic
+from aerialmtl.io.outputs import write_text_atomic
 
 #: Folder of the starts shipped inside the package.
 STARTS_DIR = Path(__file__).resolve().parents[1] / "resources" / "starts"

@@ -40,7 +40,8 @@ import yaml
 from aerialmtl.classes import ClassScheme
 from aerialmtl.config import read_yaml
 from aerialmtl.errors import ConfigError, InputError
-from aerialmtl.io.outputs import staging_path, write_text_atomic
+from aerialmtl.filesafety import staging_path
+from aerialmtl.io.outputs import write_text_atomic
 
 #: The ``format`` tag of ``dataset.yaml`` and its version.
 FORMAT = "aerialmtl-tiles"
@@ -53,7 +54,7 @@ MANIFEST_CSV = "manifest.csv"
 #: Folder (inside the tile folder) of the decoded patch cache.
 CACHE_DIR = "cache"
 #: A tile run writes its patches and manifest into the staging folder of this name before moving them into
-#: place: ``.patches.partial`` (:func:`aerialmtl.io.outputs.staging_path`, :func:`~aerialmtl.io.outputs.is_staging_of`).
+#: place: ``.patches.partial`` (:func:`aerialmtl.filesafety.staging_path`, :func:`~aerialmtl.io.outputs.is_staging_of`).
 STAGING_NAME = "patches"
 
 SPLITS = ("train", "val", "test")

@@ -41,6 +41,7 @@ from torch import nn
 
 from aerialmtl._version import __version__
 from aerialmtl.errors import InputError, OutputError, OutputExistsError
+from aerialmtl.filesafety import staging_path
 from aerialmtl.formats.checkpoint import ModelMeta, load_model
 from aerialmtl.formats.exported_model import (
     HEIGHT_STD_OUTPUT,
@@ -52,7 +53,7 @@ from aerialmtl.formats.exported_model import (
     model_tasks,
 )
 from aerialmtl.inference.sanity import check_calibration
-from aerialmtl.io.outputs import OutputFolder, check_files_not_input, staging_path
+from aerialmtl.io.outputs import OutputFolder, check_files_not_input
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.config import HEIGHT_SCALE
 from aerialmtl.models.mc_dropout import laplace_variance

@@ -35,6 +35,7 @@ from rasterio.windows import Window
 
 from aerialmtl import runtime
 from aerialmtl.errors import OutputError, cause
+from aerialmtl.filesafety import staging_path
 from aerialmtl.formats.prediction import (
     INFO_FILE,
     ITEM_FILE,
@@ -49,7 +50,7 @@ from aerialmtl.io.align import Grid
 from aerialmtl.io.cog import staging_profile, to_cog
 from aerialmtl.io.fingerprint import content_sha256
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import MERGE_VRT, STAGING, staging_path
+from aerialmtl.io.outputs import MERGE_VRT, STAGING
 from aerialmtl.io.stats import BandStats, band_stats
 from aerialmtl.io.vrt import mosaic_vrt
 

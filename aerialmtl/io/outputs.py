@@ -3,10 +3,10 @@
 Every command writes through this module (:class:`OutputFolder`), so the rules are the same everywhere:
 
 * **Staging.** A file is written under a hidden name beside its final path, ``.NAME.partial``
-  (:func:`staging_path`; other stages of the same file use other tags, ``.NAME.staging``), and renamed
-  into place when it is whole (:func:`atomic_write`, :func:`write_text_atomic`; both from
-  :mod:`aerialmtl.filesafety`, the one atomic write of the package). A rename inside one folder is atomic,
-  so a final path holds either the old file or the new one, never half of one; a rename also replaces a
+  (:func:`aerialmtl.filesafety.staging_path`; other stages of the same file use other tags,
+  ``.NAME.staging``), and renamed into place when it is whole (:func:`aerialmtl.filesafety.atomic_write`,
+  the package's one atomic write; :func:`write_text_atomic`). A rename inside one folder is atomic, so a
+  final path holds either the old file or the new one, never half of one; a rename also replaces a
   symlink instead of writing through it.
 * **Ownership.** A command deletes only files it can prove it wrote. The proof is the format's own index
   file, written by the command last (``prediction.json`` lists its layers, ``dataset.yaml`` +
@@ -46,7 +46,7 @@ from types import TracebackType
 from typing import Any
 
 from aerialmtl.errors import InputError, OutputError, OutputExistsError, OutputInUseError
-from aerialmtl.filesafety import PARTIAL, atomic_write, special_file, staging_path
+from aerialmtl.filesafety import PARTIAL, atomic_write, special_file
 from aerialmtl.io.oserrors import writing
 from aerialmtl.io.paths import is_local
 
@@ -551,7 +551,6 @@ def _remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-__all__ = ["LOCK_FILE", "MERGE_VRT", "PARTIAL", "STAGING", "STAGING_TAGS", "FolderLock", "OutputFolder",
-           "atomic_write", "check_local_output", "check_files_not_input", "check_not_input", "is_job_leader",
-           "is_local_path", "is_staging_of", "job_id", "make_output_dir", "staging_path", "write_text",
-           "write_text_atomic"]
+__all__ = ["LOCK_FILE", "MERGE_VRT", "STAGING", "STAGING_TAGS", "FolderLock", "OutputFolder", "check_local_output",
+           "check_files_not_input", "check_not_input", "is_job_leader", "is_local_path", "is_staging_of", "job_id",
+           "make_output_dir", "write_text", "write_text_atomic"]

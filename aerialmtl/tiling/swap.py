@@ -19,8 +19,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from aerialmtl.errors import OutputError, OutputExistsError
+from aerialmtl.filesafety import atomic_write, staging_path
 from aerialmtl.formats.tiles import DATASET_YAML, MANIFEST_CSV, STAGING_NAME, TileFolderInfo, owned_files
-from aerialmtl.io.outputs import OutputFolder, atomic_write, staging_path
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.tiling.splits import SPLITS
 
 

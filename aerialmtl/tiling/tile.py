@@ -46,6 +46,7 @@ from rasterio.windows import Window
 from aerialmtl._version import __version__
 from aerialmtl.classes import IGNORE_INDEX, ClassScheme
 from aerialmtl.errors import AerialMTLError, InputError
+from aerialmtl.filesafety import staging_path
 from aerialmtl.formats.checkpoint import SURFACE_HEIGHTS_M
 from aerialmtl.formats.tiles import (
     DATASET_YAML,
@@ -60,7 +61,7 @@ from aerialmtl.formats.tiles import (
 )
 from aerialmtl.io.align import Grid, NdsmOptions, reference_grid
 from aerialmtl.io.oserrors import kind_of, output_error
-from aerialmtl.io.outputs import OutputFolder, staging_path
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
 from aerialmtl.models.calibration import TALL_HEIGHT

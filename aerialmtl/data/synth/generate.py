@@ -28,9 +28,10 @@ from aerialmtl.data.synth.scene_parts import Scene
 from aerialmtl.data.synth.style import CityStyle, Imaging
 from aerialmtl.data.synth.textures import TexturePool
 from aerialmtl.errors import InputError, OutputExistsError
+from aerialmtl.filesafety import atomic_write
 from aerialmtl.formats.buildings import ID_FIELD, REFERENCE_FIELDS, REFERENCE_FILE, FootprintWriter
 from aerialmtl.formats.tiles import HEIGHT_NODATA
-from aerialmtl.io.outputs import OutputFolder, atomic_write
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.io.profiles import light_compression, raster_profile
 
 #: Version of the generator; bump it whenever the same seed would produce different rasters.
