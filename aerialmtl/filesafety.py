@@ -146,13 +146,15 @@ def atomic_write(final: str | Path, tag: str = PARTIAL, keep_suffix: bool = Fals
 def write_bytes_atomic(final: str | Path, data: bytes, tag: str = PARTIAL) -> Path:
     """Write ``data`` to ``final`` through its staging file (:func:`atomic_write`); returns ``final``.
 
-    The staging file is created ``0o644`` (less the umask) and never opened through a symbolic link.
+    The staging file is created anew, ``0o644`` (less the umask): whatever stood at its name (a killed run's half
+    file, a symbolic link, a FIFO) is removed first and never written through, and one that appears again
+    before the write is an error, not a hang.
 
     Raises:
         OSError: it cannot be written (the staging file is removed, ``final`` left as it was).
     """
     with atomic_write(final, tag) as tmp:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
                      | getattr(os, "O_CLOEXEC", 0), 0o644)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
