@@ -284,8 +284,8 @@ def auto_engine(job: Job, kind: CpuKind | None, specs: Sequence[EngineSpec], ent
     """
     if not specs:
         raise ValueError("auto_engine needs at least one engine that can run the model")
-    if kind is None:
-        return specs[0].name, f"{job.device}: the torch engine, bf16 where the GPU has it"
+    if job.device != "cpu" or kind is None:
+        return specs[0].name, f"{job.device}: the {specs[0].label} engine, bf16 where the GPU has it"
     speed = {s.name: _speedup(s, entry) for s in specs}
     work = 1.0 if job.work_mpx is None else job.work_mpx * max(1, job.passes)
     cold = {s.name: 0.0 if job.work_mpx is None or s.name in job.warm else job.graphs * s.compile_mpx for s in specs}

@@ -258,7 +258,7 @@ def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Pa
     with runtime.gdal_env("predict"):
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = predictor.open(t.ortho, warn=False)
-    if not isinstance(checkpoint, Predictor):  # auto on a cold engine cache: torch where compiling would not pay
+    if not isinstance(checkpoint, Predictor):  # the engine chosen once, for this job (a cold cache weighed)
         predictor.fit_engine([t.src for t in targets if t.src is not None])
     ranks.join(predictor.device, runtime.SHARE_TIMEOUT)
     try:

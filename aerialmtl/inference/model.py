@@ -9,7 +9,8 @@ shares (:mod:`aerialmtl.inference.jobs`). The orthophoto's header is read once i
 :class:`~aerialmtl.inference.ortho.OrthoInput` (grid, bands, window plan, value check) that travels
 through the job.
 
-A strip is read → model → stitch → write, each stage overlapping the others:
+A strip (:mod:`~aerialmtl.inference.strips`) is read → model → stitch → write, each stage overlapping the
+others:
 
 1. :class:`~aerialmtl.inference.reader.WindowReader` reads and decodes the windows of the plan
    (:func:`~aerialmtl.inference.windows.plan_windows`) on the prediction grid at the model's GSD in
@@ -26,6 +27,8 @@ A strip is read → model → stitch → write, each stage overlapping the other
 
 Device, precision, autocast, the compile fallback and the GDAL settings come from
 :mod:`aerialmtl.runtime`, as for training.
+The engine is chosen once per predictor (:meth:`Predictor.fit_engine`: for the job, once the jobs have read
+its inputs' headers; else at first use) and runs in one runner, built then.
 
 Memory holds a few windows (reader queue, accumulators, blocks in flight) plus the rows two window rows
 share (a few KiB per raster column): it does not grow with the raster height, and barely with its
