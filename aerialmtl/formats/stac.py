@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import warnings
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
@@ -39,9 +41,8 @@ from pystac.extensions.classification import Classification, ClassificationExten
 from pystac.extensions.projection import ProjectionExtension
 from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Sampling, Statistics
 from pystac.extensions.view import ViewExtension
-from rasterio.warp import transform as warp_transform
 
-from aerialmtl.errors import InputError
+from aerialmtl.errors import AlignmentError, InputError
 from aerialmtl.formats.prediction import (
     CLASS_ENTROPY,
     CLASS_MUTUAL_INFO,
@@ -57,7 +58,9 @@ from aerialmtl.formats.prediction import (
 from aerialmtl.formats.qgis_style import class_scheme_of
 from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import write_text
+from aerialmtl.io.place import EDGE_POINTS, NoPlace, wgs84_outline
 from aerialmtl.io.stats import BandStats
+from aerialmtl.stores import open_regular
 
 #: Media types of the assets.
 COG_TYPE = pystac.MediaType.COG
@@ -66,8 +69,10 @@ QML_TYPE = "text/xml"
 JSON_TYPE = pystac.MediaType.JSON
 #: Layers holding uncertainty (role ``uncertainty`` besides ``data``): MC dropout's, and the feature density's.
 UNCERTAINTY_LAYERS = (HEIGHT_STD, CLASS_ENTROPY, CLASS_MUTUAL_INFO, UNFAMILIARITY)
-#: Points per footprint edge reprojected to WGS 84 (a reprojected straight edge is curved).
-EDGE_POINTS = 21
+#: The STAC item an orthophoto ``NAME.tif`` may have beside it (``NAME.json``, a source of its acquisition time) is
+#: read only when it is a regular file of at most this many bytes, nested at most :data:`SOURCE_ITEM_DEPTH` deep.
+SOURCE_ITEM_BYTES = 10_000_000
+SOURCE_ITEM_DEPTH = 64
 #: Prefix of the plain properties describing the model and the run.
 PREFIX = "aerialmtl:"
 
@@ -104,14 +109,16 @@ def model_summary(meta: Any) -> dict[str, Any]:
 
 
 def footprint_wgs84(grid: Grid) -> dict[str, Any]:
-    """The grid's outline as a GeoJSON Polygon in WGS 84 (each edge densified to :data:`EDGE_POINTS`)."""
-    left, bottom, right, top = grid.bounds
-    t = np.linspace(0.0, 1.0, EDGE_POINTS)[:-1]
-    xs = np.concatenate([left + (right - left) * t, np.full_like(t, right), right - (right - left) * t,
-                         np.full_like(t, left)])
-    ys = np.concatenate([np.full_like(t, top), top - (top - bottom) * t, np.full_like(t, bottom),
-                         bottom + (top - bottom) * t])
-    lon, lat = warp_transform(grid.crs, "EPSG:4326", xs.tolist(), ys.tolist())
+    """The grid's outline as a GeoJSON Polygon in WGS 84 (each edge densified to :data:`EDGE_POINTS`).
+
+    Raises:
+        AlignmentError: the grid has no place on Earth (a local CRS, coordinates outside its CRS's domain); an
+            orthophoto is checked for that when it is opened (:func:`aerialmtl.io.place.check_place`).
+    """
+    try:
+        lon, lat = wgs84_outline(grid.crs, grid.bounds, EDGE_POINTS)
+    except NoPlace as exc:
+        raise AlignmentError(f"the prediction grid has no STAC footprint: {exc}") from None
     ring = [[round(x, 9), round(y, 9)] for x, y in zip(lon, lat, strict=True)]
     ring.append(ring[0])
     return {"type": "Polygon", "coordinates": [ring]}
@@ -234,6 +241,54 @@ def read_item(path: str | Path) -> pystac.Item:
         raise InputError(f"'{path}' is not a readable STAC item ({exc}); re-run predict to rewrite it") from exc
 
 
+
+def source_item_path(ortho: str | Path) -> Path:
+    """Where the STAC item of orthophoto ``ortho`` lies, if it has one: ``NAME.json`` beside ``NAME.tif``."""
+    return Path(str(ortho)).with_suffix(".json")
+
+
+def _json_depth(text: str) -> int:
+    """How deep the arrays and objects of JSON ``text`` nest (strings skipped), without recursion."""
+    bare = re.sub(r'"(?:[^"\\]|\\.)*"', '""', text).encode("utf-8", "replace")
+    raw = np.frombuffer(bare, np.uint8)
+    steps = np.isin(raw, (91, 123)).astype(np.int32) - np.isin(raw, (93, 125)).astype(np.int32)  # [{ and ]}
+    return int(np.cumsum(steps).max()) if steps.size else 0
+
+
+def read_source_properties(ortho: str | Path) -> dict[str, Any] | None:
+    """The ``properties`` of the STAC item beside orthophoto ``ortho`` (:func:`source_item_path`), or ``None``.
+
+    ``None`` without a word when there is no regular file there, or it is JSON but no STAC item (another
+    document that shares the name). ``None`` with a :class:`UserWarning` naming the file and what is wrong when it
+    cannot be read as one: larger than :data:`SOURCE_ITEM_BYTES`, nested deeper than :data:`SOURCE_ITEM_DEPTH`,
+    not UTF-8 JSON, or ``properties`` that are no object. What the properties hold is checked by their reader.
+    """
+    item = source_item_path(ortho)
+    try:
+        if not item.is_file():
+            return None
+        size = item.stat().st_size
+        if size > SOURCE_ITEM_BYTES:
+            raise ValueError(f"it holds {size:,} bytes, more than the {SOURCE_ITEM_BYTES:,} a STAC item needs")
+        with os.fdopen(open_regular(item, follow_links=True), "rb") as fh:
+            text = fh.read(SOURCE_ITEM_BYTES + 1).decode("utf-8")
+        if _json_depth(text) > SOURCE_ITEM_DEPTH:
+            raise ValueError(f"it nests arrays and objects more than {SOURCE_ITEM_DEPTH} deep")
+        data = json.loads(text)
+    except (OSError, ValueError, RecursionError) as exc:
+        warnings.warn(f"STAC item '{item}' beside the orthophoto is not read: {exc}; fix or remove it (its "
+                      "acquisition time is not used)", UserWarning, stacklevel=2)
+        return None
+    if not (isinstance(data, dict) and data.get("type") == "Feature"):
+        return None
+    props = data.get("properties")
+    if not isinstance(props, dict):
+        warnings.warn(f"STAC item '{item}' beside the orthophoto has no 'properties' object; fix or remove it (no "
+                      "acquisition time is read from it)", UserWarning, stacklevel=2)
+        return None
+    return props
+
+
 def build_collection(out: str | Path, items: Sequence[str | Path], mosaics: Mapping[str, Path],
                      mosaic_styles: Mapping[str, Path] | None = None, description: str | None = None
                      ) -> pystac.Collection:
@@ -313,5 +368,6 @@ def collection_files(out: str | Path) -> list[str]:
     return names
 
 
-__all__ = ["EDGE_POINTS", "ITEM_FILE", "UNCERTAINTY_LAYERS", "build_collection", "build_item", "collection_files",
-           "footprint_wgs84", "item_dict", "model_summary", "read_item", "write_collection", "write_json"]
+__all__ = ["EDGE_POINTS", "ITEM_FILE", "SOURCE_ITEM_BYTES", "SOURCE_ITEM_DEPTH", "UNCERTAINTY_LAYERS",
+           "build_collection", "build_item", "collection_files", "footprint_wgs84", "item_dict", "model_summary",
+           "read_item", "read_source_properties", "source_item_path", "write_collection", "write_json"]

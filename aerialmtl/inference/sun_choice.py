@@ -3,33 +3,41 @@
 ``auto`` takes, in this order:
 
 1. the acquisition time and place: ``--acquired``, else the ``datetime`` of a STAC item beside the orthophoto
-   (``NAME.json``), else its TIFF ``DateTime`` tag — through pvlib's solar position algorithm
-   (:mod:`aerialmtl.sun.solar_position`) at the raster's centre. A TIFF ``DateTime`` has no time zone (read as
-   UTC) and is often when the file was written rather than flown: where it disagrees with the training fit of
-   the same area by more than :data:`DISAGREE_DEG`, the fit is used and both are said;
+   (``NAME.json``, read with limits: :func:`aerialmtl.formats.stac.read_source_properties`), else its TIFF
+   ``DateTime`` tag — through pvlib's solar position algorithm (:mod:`aerialmtl.sun.solar_position`) at the
+   raster's centre. A time the user or a STAC item states is used as stated; where its sun is more than
+   :data:`DISAGREE_DEG` from the training fit of the same area, a warning gives both suns. A TIFF ``DateTime`` has
+   no time zone (read as UTC) and is often when the file was written rather than flown: where it disagrees with
+   the fit so, the fit is used and a warning gives both suns (``--acquired`` makes the time count). A file's
+   placeholder time (``0000:00:00 00:00:00``, blanks) or impossible one is no time, with a warning naming the file;
 2. else the sun fitted on the training area (``meta.sun``), when the orthophoto is **of the same flight**:
    its footprint lies within :data:`SAME_FLIGHT_M` of the training area's, and no acquisition time says
    otherwise. An orthophoto elsewhere (another town, another survey) gets no sun from the training area;
 3. else none: the feature is off, said once, and the maps are those of ``--sun none``.
 
 ``AZ,EL`` is the sun given in degrees (azimuth clockwise from true north, elevation above the horizon, as flight
-records and the STAC *view* extension give them); ``none`` switches the feature off. A sun lower than
-:data:`~aerialmtl.sun.solar_position.MIN_ELEVATION_DEG` switches it off too (shadows too long and dim).
+records and the STAC *view* extension give them), used whatever the time says; ``none`` switches the feature off.
+A sun lower than :data:`~aerialmtl.sun.solar_position.MIN_ELEVATION_DEG` switches it off too (shadows too long and
+dim).
 """
 
 from __future__ import annotations
 
-import json
 import math
+import warnings
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from aerialmtl.errors import InputError
+from aerialmtl.formats.stac import read_source_properties, source_item_path
 from aerialmtl.io.align import Grid
+from aerialmtl.io.place import NoPlace, wgs84_outline
 from aerialmtl.sun.record import TrainingSun
 from aerialmtl.sun.solar_position import (
     MIN_ELEVATION_DEG,
+    file_time,
     grid_convergence_deg,
     has_zone,
     lonlat,
@@ -38,8 +46,8 @@ from aerialmtl.sun.solar_position import (
     to_grid,
 )
 
-#: A time-and-place sun this far (degrees, azimuth or elevation) from the training fit of the same area is
-#: doubted: the fit is used and both are said.
+#: A time-and-place sun this far (degrees, azimuth or elevation) from the training fit of the same area is warned
+#: about, both suns given; a TIFF ``DateTime``'s is doubted (the fit is used).
 DISAGREE_DEG = 10.0
 #: An orthophoto whose footprint lies within this distance (metres) of the training area's is of the same flight.
 SAME_FLIGHT_M = 2000.0
@@ -63,8 +71,9 @@ def parse_sun(value: str) -> tuple[float, float] | str:
                          param="sun") from None
     if not (math.isfinite(az) and 0.0 <= az <= 360.0):
         raise InputError(f"--sun: azimuth {az:g}° is outside 0–360° (clockwise from true north)", param="sun")
-    if not (math.isfinite(el) and 0.0 < el <= 90.0):
-        raise InputError(f"--sun: elevation {el:g}° is outside (0, 90]° above the horizon", param="sun")
+    if not (math.isfinite(el) and 0.0 < el < 90.0):
+        raise InputError(f"--sun: elevation {el:g}° is outside (0, 90)° above the horizon (a sun at the zenith "
+                         "casts no shadow to measure); pass e.g. --sun 135,42", param="sun")
     return az % 360.0, el
 
 
@@ -107,30 +116,54 @@ def _off(note: str, source: str = "none") -> SunChoice:
     return SunChoice(None, None, None, source, note)
 
 
-def acquisition_time(path: str | Path, tags: dict[str, str]) -> tuple[str, str, bool] | None:
-    """``(time text, source, has zone)`` of the orthophoto ``path``: a STAC item ``NAME.json`` beside it (its
-    ``datetime``, or the middle of ``start_datetime``/``end_datetime``), else its TIFF ``DateTime`` tag
-    (``tags``); ``None`` when neither is there. Only regular files are read (a FIFO is never opened).
+#: What happens when a file's time is no time (said in its warning).
+_NO_TIME = "pass --acquired (or --sun AZ,EL) if you know when it was flown"
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """An acquisition time and where it was read: ``source`` (``--acquired``, ``STAC datetime (NAME.json)``,
+    ``TIFF DateTime``); ``zoned``: whether the text named its time zone (a TIFF ``DateTime`` never does).
     """
-    p = Path(str(path))
-    item = p.with_suffix(".json")
-    if item.is_file() and item.stat().st_size < 10_000_000:
-        try:
-            data = json.loads(item.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            data = None
-        props = data.get("properties") if isinstance(data, dict) and data.get("type") == "Feature" else None
-        if isinstance(props, dict):
-            when = props.get("datetime")
-            if not when and props.get("start_datetime") and props.get("end_datetime"):
-                a, b = parse_time(props["start_datetime"], item.name), parse_time(props["end_datetime"], item.name)
-                when = (a + (b - a) / 2).isoformat()
-            if isinstance(when, str) and when:
-                return when, f"STAC datetime ({item.name})", has_zone(when)
-    tiff = tags.get("TIFFTAG_DATETIME") or _mosaic_time(path)
-    if tiff:
-        return tiff, "TIFF DateTime", has_zone(tiff)
-    return None
+
+    when: datetime
+    source: str
+    zoned: bool
+
+    @property
+    def stamp(self) -> str:
+        """The time as ISO 8601 UTC (``2019-06-21T16:45:00Z``)."""
+        return self.when.isoformat().replace("+00:00", "Z")
+
+
+def acquisition_time(path: str | Path, tags: dict[str, str]) -> Acquisition | None:
+    """The acquisition time of the orthophoto ``path``: a STAC item ``NAME.json`` beside it (its ``datetime``, or
+    the middle of ``start_datetime``/``end_datetime``), else its TIFF ``DateTime`` tag (``tags``), else the common
+    one of a VRT mosaic's sources; ``None`` when none states a usable one (a placeholder or impossible time is
+    warned about, naming the file, and read as none). Only regular files are read (a FIFO is never opened).
+
+    Raises:
+        InputError: a mosaic's sources were flown at different times (see :func:`_mosaic_time`).
+    """
+    props = read_source_properties(path)
+    if props is not None:
+        item = source_item_path(path)
+        source = f"STAC datetime ({item.name})"
+        stated = props.get("datetime")
+        if stated is not None:
+            when = file_time(stated, f"STAC item '{item}': its datetime", _NO_TIME)
+            if when is not None:
+                return Acquisition(when, source, has_zone(str(stated)))
+        elif props.get("start_datetime") is not None or props.get("end_datetime") is not None:
+            a = file_time(props.get("start_datetime"), f"STAC item '{item}': its start_datetime", _NO_TIME)
+            b = file_time(props.get("end_datetime"), f"STAC item '{item}': its end_datetime", _NO_TIME)
+            if a is not None and b is not None:
+                return Acquisition(a + (b - a) / 2, source, has_zone(str(props["start_datetime"])))
+    stamp = tags.get("TIFFTAG_DATETIME")
+    if stamp is not None:
+        when = file_time(stamp, f"orthophoto '{path}': its TIFF DateTime", _NO_TIME)
+        return Acquisition(when, "TIFF DateTime", has_zone(stamp)) if when is not None else None
+    return _mosaic_time(path)
 
 
 #: Source orthophotos of one mosaic whose acquisition times differ by more than this (seconds) are different
@@ -138,8 +171,11 @@ def acquisition_time(path: str | Path, tags: dict[str, str]) -> tuple[str, str, 
 SAME_FLIGHT_S = 3 * 3600
 
 
-def _mosaic_time(path: str | Path) -> str | None:
+def _mosaic_time(path: str | Path) -> Acquisition | None:
     """The common TIFF ``DateTime`` of the sources of a VRT mosaic ``path``, or ``None`` (not a VRT, no times).
+
+    A mosaic some of whose sources state no usable time has none: their time is not taken to be the others'
+    (a warning names them).
 
     Raises:
         InputError: the sources were flown at different times (names them; the fix: predict them one by one, or
@@ -152,24 +188,30 @@ def _mosaic_time(path: str | Path) -> str | None:
     try:
         with rasterio.open(str(path)) as src:
             files = [f for f in src.files if not f.lower().endswith(".vrt")]
-        times: dict[str, str] = {}
+        stamps: dict[str, str | None] = {}
         for f in files:
             with rasterio.open(f) as part:
-                stamp = part.tags().get("TIFFTAG_DATETIME")
-            if stamp:
-                times[f] = stamp
+                stamps[f] = part.tags().get("TIFFTAG_DATETIME")
     except rasterio.errors.RasterioError:
         return None
-    if not times:
+    if not any(stamps.values()):
         return None
-    parsed = {f: parse_time(t, f) for f, t in times.items()}
-    first, last = min(parsed.values()), max(parsed.values())
+    parsed = {f: file_time(t, f"mosaic source '{f}': its TIFF DateTime", _NO_TIME) if t else None
+              for f, t in stamps.items()}
+    times = {f: t for f, t in parsed.items() if t is not None}
+    undated = sorted(Path(f).name for f, t in parsed.items() if t is None)
+    if undated:
+        warnings.warn(f"mosaic '{path}': {len(undated)} of its {len(parsed)} sources state no acquisition time "
+                      f"({', '.join(undated[:5])}{', ...' if len(undated) > 5 else ''}); the others' is not taken "
+                      f"for theirs, so the mosaic has none; {_NO_TIME}", UserWarning, stacklevel=3)
+        return None
+    first, last = min(times.values()), max(times.values())
     if (last - first).total_seconds() > SAME_FLIGHT_S:
-        named = ", ".join(f"{Path(f).name} {t}" for f, t in sorted(times.items()))
+        named = ", ".join(f"{Path(f).name} {stamps[f]}" for f in sorted(times))
         raise InputError(f"--sun auto: the mosaic '{path}' joins orthophotos flown at different times ({named}): "
                          "their suns differ; predict them one by one (aerialmtl predict a.tif b.tif ...), each with "
                          "its own sun, or pass --sun none", param="sun")
-    return str(next(iter(times.values())))
+    return Acquisition(first + (last - first) / 2, "TIFF DateTime", False)
 
 
 def _centre(grid: Grid) -> tuple[float, float]:
@@ -178,30 +220,56 @@ def _centre(grid: Grid) -> tuple[float, float]:
 
 
 def same_flight(grid: Grid, training: TrainingSun) -> bool:
-    """Whether ``grid``'s footprint lies within :data:`SAME_FLIGHT_M` of the training area's."""
+    """Whether ``grid``'s footprint lies within :data:`SAME_FLIGHT_M` of the training area's.
+
+    Measured on ``grid``'s CRS; a training area that cannot be brought there (no transformation between the two
+    CRSs, bounds outside the training CRS's domain) is not of the same flight.
+    """
     if training.crs is None or training.bounds is None:
         return False
     from rasterio.warp import transform_bounds
 
-    t = grid.transform
-    left, top = t.c, t.f
-    right, bottom = left + t.a * grid.width, top + t.e * grid.height
     try:
-        b = transform_bounds(grid.crs, training.crs, min(left, right), min(top, bottom), max(left, right),
-                             max(top, bottom))
-    except Exception:  # noqa: BLE001 - a CRS pair without a transformation: not the same flight
+        b = transform_bounds(training.crs, grid.crs, *training.bounds)
+        unit = grid.unit_m
+    except Exception:  # noqa: BLE001 - PROJ's and the CRS checks' own errors: no common ground, not one flight
         return False
-    from rasterio.crs import CRS
-
-    unit = CRS.from_user_input(training.crs).linear_units_factor[1]
-    t0, t1, t2, t3 = training.bounds
-    gap = max(t0 - b[2], b[0] - t2, t1 - b[3], b[1] - t3, 0.0) * unit
+    if not all(math.isfinite(v) for v in b):
+        return False
+    left, bottom, right, top = grid.bounds
+    gap = max(b[0] - right, left - b[2], b[1] - top, bottom - b[3], 0.0) * unit
     return bool(gap <= SAME_FLIGHT_M)
+
+
+def _place(grid: Grid) -> tuple[float, float, float] | str:
+    """``(lon, lat, grid convergence)`` at ``grid``'s centre, or why it has none (a local CRS, outside its domain;
+    an orthophoto is refused for that when it is opened, :meth:`~aerialmtl.inference.ortho.OrthoInput.open`).
+    """
+    x, y = _centre(grid)
+    try:
+        wgs84_outline(grid.crs, grid.bounds, 2)
+        lon, lat = lonlat(grid.crs, x, y)
+        convergence = grid_convergence_deg(grid.crs, x, y)
+    except NoPlace as exc:
+        return str(exc)
+    except Exception:  # noqa: BLE001 - PROJ's own errors (CPLE_*)
+        return "its centre lies outside the domain of its CRS"
+    if not (math.isfinite(lon) and math.isfinite(lat) and math.isfinite(convergence)):
+        return "its centre lies outside the domain of its CRS"
+    return lon, lat, convergence
+
+
+def _apart(az: float, el: float, fit: TrainingSun) -> float:
+    assert fit.azimuth_deg is not None and fit.elevation_deg is not None
+    return max(abs((az - fit.azimuth_deg + 180.0) % 360.0 - 180.0), abs(el - fit.elevation_deg))
 
 
 def choose_sun(value: str, acquired: str | None, path: str | Path, grid: Grid, tags: dict[str, str],
                training: TrainingSun | None) -> SunChoice:
     """The sun for the orthophoto ``path`` on prediction grid ``grid`` (see the module docstring).
+
+    A disagreement between a stated time's sun and the training fit is warned about (:class:`UserWarning`, both
+    suns); the choice's :attr:`~SunChoice.note` says it too.
 
     Args:
         value: ``--sun`` (``auto``, ``none`` or ``AZ,EL``).
@@ -211,40 +279,51 @@ def choose_sun(value: str, acquired: str | None, path: str | Path, grid: Grid, t
         training: the checkpoint's :class:`~aerialmtl.sun.record.TrainingSun`, or ``None``.
 
     Raises:
-        InputError: a bad ``--sun`` or ``--acquired``.
+        InputError: a bad ``--sun`` or ``--acquired``; a mosaic of flights at different times.
     """
     parsed = parse_sun(value)
-    x, y = _centre(grid)
-    convergence = grid_convergence_deg(grid.crs, x, y)
     if parsed == "none":
         return _off("off (--sun none)")
+    name = Path(str(path)).name
+    place = _place(grid)
     if isinstance(parsed, tuple):
         az, el = parsed
-        return _checked(az, el, convergence, "--sun", f"sun given: azimuth {az:.1f}°, elevation {el:.1f}°")
+        if isinstance(place, str):  # a grid with no place: its north is the only north there is
+            return _checked(az, el, 0.0, "--sun", f"sun given: azimuth {az:.1f}°, elevation {el:.1f}° (on the "
+                            f"grid's north: {place})")
+        return _checked(az, el, place[2], "--sun", f"sun given: azimuth {az:.1f}°, elevation {el:.1f}°")
+    if isinstance(place, str):
+        return _off(f"off: the orthophoto has no place on Earth ({place}), so no sun of a time or a training "
+                    "area; pass --sun AZ,EL")
+    lon, lat, convergence = place
     fit = training if training is not None and training.clear else None
     fit_here = fit is not None and same_flight(grid, fit)
-    found = (acquired, "--acquired", True) if acquired else acquisition_time(path, tags)
+    found = Acquisition(parse_time(acquired), "--acquired", True) if acquired else acquisition_time(path, tags)
     if found is not None:
-        text, source, zoned = found
-        when = parse_time(text, source)
-        lon, lat = lonlat(grid.crs, x, y)
-        az, el = sun_position(when, lon, lat)
-        stamp = when.isoformat().replace("+00:00", "Z")
-        if fit_here and fit is not None and fit.azimuth_deg is not None and fit.elevation_deg is not None:
-            d_az = abs((az - fit.azimuth_deg + 180.0) % 360.0 - 180.0)
-            d_el = abs(el - fit.elevation_deg)
-            if max(d_az, d_el) > DISAGREE_DEG:
-                zone = "" if zoned else ", a time without a zone read as UTC"
-                return _checked(
-                    fit.azimuth_deg, fit.elevation_deg, convergence, "training fit",
-                    f"the sun of the {source} {stamp}{zone} (azimuth {az:.1f}°, elevation {el:.1f}°) is "
-                    f"{max(d_az, d_el):.0f}° from the training fit of this area (azimuth {fit.azimuth_deg:.1f}°, "
-                    f"elevation {fit.elevation_deg:.1f}°): using the fit; pass --acquired or --sun AZ,EL if the "
-                    "time is right", acquired=stamp)
-        zone = "" if zoned else " (no time zone: read as UTC)"
-        return _checked(az, el, convergence, source.split(" (")[0] if source.startswith("STAC") else source,
-                        f"sun of the {source} {stamp}{zone} at {lat:.4f}°N {lon:.4f}°E: azimuth {az:.1f}°, "
-                        f"elevation {el:.1f}°", acquired=stamp)
+        az, el = sun_position(found.when, lon, lat)
+        stamp = found.stamp
+        zone = "" if found.zoned else " (no time zone: read as UTC)"
+        label = found.source.split(" (")[0] if found.source.startswith("STAC") else found.source
+        note = (f"sun of the {found.source} {stamp}{zone} at {lat:.4f}°N {lon:.4f}°E: azimuth {az:.1f}°, "
+                f"elevation {el:.1f}°")
+        if fit_here and fit is not None and (d := _apart(az, el, fit)) > DISAGREE_DEG:
+            both = (f"the sun of the {found.source} {stamp}{zone} (azimuth {az:.1f}°, elevation {el:.1f}°) is "
+                    f"{d:.0f}° from the training fit of this area (azimuth {fit.azimuth_deg:.1f}°, elevation "
+                    f"{fit.elevation_deg:.1f}°)")
+            assert fit.azimuth_deg is not None and fit.elevation_deg is not None
+            if label == "TIFF DateTime":  # no zone, often the file's write time: doubted, and said
+                choice = _checked(fit.azimuth_deg, fit.elevation_deg, convergence, "training fit",
+                                  f"{both}: using the fit (a TIFF DateTime is often when the file was written); "
+                                  "pass --acquired with the time if it is right, or --sun AZ,EL", acquired=stamp)
+            else:  # the user's or the STAC item's word: used as stated
+                choice = _checked(az, el, convergence, label,
+                                  f"{both}: using the sun of the {found.source} as "
+                                  f"{'given' if label == '--acquired' else 'stated'}; if the time is wrong, pass "
+                                  "--acquired with the right one, or --sun AZ,EL", acquired=stamp)
+            if choice.on:  # an off choice is said by its caller, with this note
+                warnings.warn(f"{name}: {choice.note}", UserWarning, stacklevel=2)
+            return choice
+        return _checked(az, el, convergence, label, note, acquired=stamp)
     if fit_here and fit is not None and fit.azimuth_deg is not None and fit.elevation_deg is not None:
         return _checked(fit.azimuth_deg, fit.elevation_deg, convergence, "training fit",
                         f"sun of the training fit (same flight: within {SAME_FLIGHT_M / 1000:g} km of the training "
@@ -264,5 +343,5 @@ def _checked(az: float, el: float, convergence: float, source: str, note: str,
     return SunChoice(az, el, to_grid(az, convergence), source, note, acquired)
 
 
-__all__ = ["DISAGREE_DEG", "SAME_FLIGHT_M", "SunChoice", "acquisition_time", "choose_sun", "parse_sun",
-           "same_flight"]
+__all__ = ["DISAGREE_DEG", "SAME_FLIGHT_M", "Acquisition", "SunChoice", "acquisition_time", "choose_sun",
+           "parse_sun", "same_flight"]

@@ -7,11 +7,12 @@ fingerprint that left them out would call a folder complete after its input move
 gained a nodata value (a new ``.aux.xml``). :func:`input_fingerprint` covers:
 
 * the file itself: resolved path, size and modification time (ns);
-* its **sidecars** (:func:`sidecars`): world files (``.tfw``, ``.tifw``, ``.tiffw``, ``.wld`` and the JPEG/PNG/
-  JPEG 2000 ones, lower or upper case), ``.prj``, the PAM ``.aux.xml`` and ``.aux``, external overviews ``.ovr``
-  and masks ``.msk``: each present one by size and SHA-256 of its content (``.ovr``/``.msk``, which can be
-  large, by size and modification time), so that a sidecar that appears, changes or goes away changes the
-  fingerprint;
+* its **sidecars** (:func:`sidecars`): the STAC item ``NAME.json`` (:data:`SOURCE_SIDECARS`: aerialmtl reads its
+  acquisition time, which decides the sun of the shadow layers), world files (``.tfw``, ``.tifw``, ``.tiffw``,
+  ``.wld`` and the JPEG/PNG/JPEG 2000 ones, lower or upper case), ``.prj``, the PAM ``.aux.xml`` and ``.aux``,
+  external overviews ``.ovr`` and masks ``.msk``: each present one by size and SHA-256 of its content
+  (``.ovr``/``.msk``, which can be large, by size and modification time), so that a sidecar that appears, changes
+  or goes away changes the fingerprint;
 * for a VRT, every source it lists, followed :data:`VRT_DEPTH` levels (:func:`vrt_sources`);
 * once the raster is open, what GDAL makes of all that (:func:`raster_identity`): size, geotransform, CRS and
   nodata per band; the completeness check (``--skip-existing``) compares it with the one recorded, so a change
@@ -45,6 +46,9 @@ STEM_SIDECARS = (".tfw", ".tifw", ".tiffw", ".wld", ".jgw", ".jpgw", ".pgw", ".p
 NAME_SIDECARS = (".aux.xml", ".ovr", ".msk")
 #: Sidecars fingerprinted by size and modification time rather than content (they can be as large as the file).
 LARGE_SIDECARS = (".ovr", ".msk")
+#: Files beside the raster that aerialmtl itself reads, not GDAL (``o.tif`` → ``o.json``, a STAC item whose time
+#: decides the sun of the shadow layers): fingerprinted like the sidecars, but no reason to refuse the raster.
+SOURCE_SIDECARS = (".json",)
 
 
 def content_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
@@ -91,7 +95,8 @@ def sidecars(path: str | Path) -> dict[str, dict[str, Any]]:
     A sidecar that is not a regular file (a folder, a FIFO) is recorded as such and never opened.
     """
     out: dict[str, dict[str, Any]] = {}
-    for side in sidecar_paths(path):
+    p = Path(path)
+    for side in [*sidecar_paths(path), *(p.with_suffix(s) for s in SOURCE_SIDECARS if p.suffix.lower() != s)]:
         try:
             st = os.stat(side)
         except OSError:
@@ -267,6 +272,6 @@ def changed(before: Mapping[str, Any], after: Mapping[str, Any]) -> str | None:
     return ", ".join(parts)
 
 
-__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH", "blocking_file", "changed",
-           "content_sha256", "file_fingerprint", "http_validators", "input_fingerprint", "raster_identity",
-           "sidecar_paths", "sidecars", "vrt_sources"]
+__all__ = ["HEAD_TIMEOUT", "LARGE_SIDECARS", "NAME_SIDECARS", "SOURCE_SIDECARS", "STEM_SIDECARS", "VRT_DEPTH",
+           "blocking_file", "changed", "content_sha256", "file_fingerprint", "http_validators", "input_fingerprint",
+           "raster_identity", "sidecar_paths", "sidecars", "vrt_sources"]

@@ -11,6 +11,7 @@ turns one into the other.
 from __future__ import annotations
 
 import math
+import warnings
 from datetime import datetime, timezone
 
 from aerialmtl.errors import InputError
@@ -19,18 +20,34 @@ from aerialmtl.errors import InputError
 MIN_ELEVATION_DEG = 5.0
 
 
-def parse_time(text: str, what: str = "--acquired") -> datetime:
-    """An ISO 8601 time or a TIFF ``DateTime`` read as an aware UTC datetime.
+#: The years an acquisition time may lie in: the first aerial photographs, to well past any flight to come. The
+#: solar position algorithm covers far more; the limit keeps every later date computation inside the calendar.
+FIRST_YEAR, LAST_YEAR = 1850, 2199
 
-    ISO 8601: ``2019-06-21T16:45:00Z``, ``2019-06-21 09:45-07:00``; a date alone is not enough. TIFF
-    ``DateTime``: ``2019:06:21 16:45:00``, which has no time zone.
 
-    A time without a zone is read as UTC; the caller says so where it matters (:func:`has_zone`).
+class NoTime(ValueError):
+    """A time text that names no usable time: why, in words (``str(exc)``), and whether it is a placeholder."""
+
+    def __init__(self, why: str, placeholder: bool = False) -> None:
+        super().__init__(why)
+        self.placeholder = placeholder
+
+
+def read_time(text: object) -> datetime:
+    """An ISO 8601 time or a TIFF ``DateTime`` read as an aware UTC datetime (see :func:`parse_time`).
 
     Raises:
-        InputError: not a time of day (names ``what``, the value and the expected form).
+        NoTime: not a string, a placeholder for an unknown time (blank, or all zeros as TIFF and EXIF write
+            it: ``0000:00:00 00:00:00``), not a time of day, or outside :data:`FIRST_YEAR`–:data:`LAST_YEAR`.
     """
+    if not isinstance(text, str):
+        kind = ("a boolean" if isinstance(text, bool) else "a number" if isinstance(text, (int, float)) else
+                "a list" if isinstance(text, list) else "an object" if isinstance(text, dict) else
+                f"a {type(text).__name__}")
+        raise NoTime(f"{text!r} is {kind}, not a time")
     raw = text.strip()
+    if not raw.strip("0:-T ").strip():  # "", blanks, "0000:00:00 00:00:00", "    :  :     :  :  "
+        raise NoTime(f"{text!r} is the placeholder for an unknown time", placeholder=True)
     candidate = raw
     if len(raw) >= 19 and raw[4] == ":" and raw[7] == ":":  # TIFF DateTime "YYYY:MM:DD HH:MM:SS"
         candidate = raw[:4] + "-" + raw[5:7] + "-" + raw[8:]
@@ -40,11 +57,46 @@ def parse_time(text: str, what: str = "--acquired") -> datetime:
     except ValueError:
         when = None
     if when is None or len(candidate) <= 10:
-        raise InputError(f"{what}: {text!r} is not a time of day; give the acquisition time as ISO 8601, e.g. "
-                         "2019-06-21T16:45:00Z (UTC) or 2019-06-21T09:45:00-07:00", param="acquired")
+        raise NoTime(f"{text!r} is not a time of day")
+    if not FIRST_YEAR <= when.year <= LAST_YEAR:
+        raise NoTime(f"{text!r} lies outside the years {FIRST_YEAR}–{LAST_YEAR} an aerial photograph can be of")
     if when.tzinfo is None:
         when = when.replace(tzinfo=timezone.utc)
     return when.astimezone(timezone.utc)
+
+
+def parse_time(text: str, what: str = "--acquired") -> datetime:
+    """An ISO 8601 time or a TIFF ``DateTime`` read as an aware UTC datetime.
+
+    ISO 8601: ``2019-06-21T16:45:00Z``, ``2019-06-21 09:45-07:00``; a date alone is not enough. TIFF
+    ``DateTime``: ``2019:06:21 16:45:00``, which has no time zone. Years :data:`FIRST_YEAR`–:data:`LAST_YEAR`.
+
+    A time without a zone is read as UTC; the caller says so where it matters (:func:`has_zone`). This is the
+    reader of a time the user gives (``--acquired``); a file's time goes through :func:`file_time`.
+
+    Raises:
+        InputError: not a time of day, or outside those years (names ``what``, the value and the expected form).
+    """
+    try:
+        return read_time(text)
+    except NoTime as exc:
+        raise InputError(f"{what}: {exc}; give the acquisition time as ISO 8601, e.g. 2019-06-21T16:45:00Z (UTC) "
+                         "or 2019-06-21T09:45:00-07:00", param="acquired") from None
+
+
+def file_time(text: object, what: str, fallback: str) -> datetime | None:
+    """The time a file states (a TIFF ``DateTime``, a STAC ``datetime``), or ``None`` with a warning.
+
+    A placeholder (``0000:00:00 00:00:00``, blanks), a text that is no time of day and a year outside
+    :data:`FIRST_YEAR`–:data:`LAST_YEAR` are no time: a :class:`UserWarning` says which file holds it (``what``,
+    e.g. ``"orthophoto 'o.tif': its TIFF DateTime"``) and what happens instead (``fallback``). Train and predict
+    read the tag through this one function.
+    """
+    try:
+        return read_time(text)
+    except NoTime as exc:
+        warnings.warn(f"{what} {exc}: read as no acquisition time; {fallback}", UserWarning, stacklevel=2)
+        return None
 
 
 def has_zone(text: str) -> bool:
@@ -99,5 +151,5 @@ def lonlat(crs: object, x: float, y: float) -> tuple[float, float]:
     return float(lon), float(lat)
 
 
-__all__ = ["MIN_ELEVATION_DEG", "grid_convergence_deg", "has_zone", "lonlat", "parse_time", "sun_position",
-           "to_grid"]
+__all__ = ["FIRST_YEAR", "LAST_YEAR", "MIN_ELEVATION_DEG", "NoTime", "file_time", "grid_convergence_deg", "has_zone",
+           "lonlat", "parse_time", "read_time", "sun_position", "to_grid"]

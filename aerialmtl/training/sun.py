@@ -27,7 +27,7 @@ from aerialmtl.formats.checkpoint import update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
 from aerialmtl.sun import ShadowModel, fit_sun
 from aerialmtl.sun.record import TrainingSun
-from aerialmtl.sun.solar_position import grid_convergence_deg, lonlat, parse_time, sun_position
+from aerialmtl.sun.solar_position import file_time, grid_convergence_deg, lonlat, sun_position
 
 log = logging.getLogger(__name__)
 
@@ -102,13 +102,15 @@ def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
 
 
 def _acquired(path: str | None) -> str | None:
-    """The training orthophoto's TIFF ``DateTime`` (as written), where the file is still there and has one."""
+    """The training orthophoto's TIFF ``DateTime`` (as written, read by
+    :func:`~aerialmtl.sun.solar_position.file_time` as predict reads it), where the file is still there and has one.
+    """
     if not path or not Path(str(path)).is_file():
         return None
     try:
         with rasterio.open(str(path)) as src:
             stamp = src.tags().get("TIFFTAG_DATETIME")
-        return str(stamp) if stamp else None
+        return str(stamp) if stamp is not None else None
     except rasterio.errors.RasterioError:
         return None
 
@@ -135,20 +137,18 @@ def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
               f"{fit.sharpness:.2f})")
     acquired, time_sun = None, None
     stamp = _acquired(area.ortho)
-    if stamp:
-        try:
-            when = parse_time(stamp, "the training orthophoto's DateTime")
-            lon, lat = lonlat(area.crs, x, y)
-            time_sun = sun_position(when, lon, lat)
-            acquired = when.isoformat().replace("+00:00", "Z")
-            d = max(abs((time_sun[0] - true_az + 180.0) % 360.0 - 180.0), abs(time_sun[1] - fit.sun.elevation_deg))
-            if d > 10.0:
-                log.warning("the training orthophoto's DateTime %s gives a sun (azimuth %.1f°, elevation %.1f°) %.0f° "
-                            "from the one its shadows show (azimuth %.1f°, elevation %.1f°): the fit is kept (a "
-                            "DateTime is often when the file was written)", acquired, *time_sun, d, true_az,
-                            fit.sun.elevation_deg)
-        except InputError:
-            pass
+    when = file_time(stamp, f"training orthophoto '{area.ortho}': its TIFF DateTime",
+                     "the sun fitted on its shadows is used") if stamp is not None else None
+    if when is not None:
+        lon, lat = lonlat(area.crs, x, y)
+        time_sun = sun_position(when, lon, lat)
+        acquired = when.isoformat().replace("+00:00", "Z")
+        d = max(abs((time_sun[0] - true_az + 180.0) % 360.0 - 180.0), abs(time_sun[1] - fit.sun.elevation_deg))
+        if d > 10.0:
+            log.warning("the training orthophoto's DateTime %s gives a sun (azimuth %.1f°, elevation %.1f°) %.0f° "
+                        "from the one its shadows show (azimuth %.1f°, elevation %.1f°): the fit is kept (a "
+                        "DateTime is often when the file was written)", acquired, *time_sun, d, true_az,
+                        fit.sun.elevation_deg)
     return TrainingSun(clear=True, reason=reason, azimuth_deg=round(true_az, 4), elevation_deg=fit.sun.elevation_deg,
                        grid_azimuth_deg=fit.sun.azimuth_deg, score=fit.score, sharpness=fit.sharpness,
                        acquired=acquired, time_sun=time_sun, shadow_model=model, crs=area.crs,
