@@ -316,10 +316,12 @@ def choose_sun(value: str, acquired: str | None, path: str | Path, grid: Grid, t
                                   f"{both}: using the fit (a TIFF DateTime is often when the file was written); "
                                   "pass --acquired with the time if it is right, or --sun AZ,EL", acquired=stamp)
             else:  # the user's or the STAC item's word: used as stated
+                fix = ("if it is not when the orthophoto was flown, correct --acquired (its time zone too)"
+                       if label == "--acquired" else "if the time is wrong, pass --acquired with the right one")
                 choice = _checked(az, el, convergence, label,
                                   f"{both}: using the sun of the {found.source} as "
-                                  f"{'given' if label == '--acquired' else 'stated'}; if the time is wrong, pass "
-                                  "--acquired with the right one, or --sun AZ,EL", acquired=stamp)
+                                  f"{'given' if label == '--acquired' else 'stated'}; {fix}, or pass --sun AZ,EL",
+                                  acquired=stamp)
             if choice.on:  # an off choice is said by its caller, with this note
                 warnings.warn(f"{name}: {choice.note}", UserWarning, stacklevel=2)
             return choice
