@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
-from datetime import datetime, timezone
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -118,7 +118,7 @@ def test_a_stated_time_gives_its_own_sun_not_the_training_fit_and_says_both(how:
     # the warning: both suns, and which is used
     assert "warning: b.tif:" in err and f"azimuth {az_b:.1f}°, elevation {el_b:.1f}°" in err, err
     assert f"training fit of this area (azimuth {fit.azimuth_deg:.1f}°" in err and "14°" in err, err
-    assert "as given" in err if how == "--acquired" else "as stated" in err
+    assert ("as given" if how == "--acquired" else "as stated") in err
     if how == "--acquired":  # without the time: the same flight's fit
         code, err = _predict(capsys, towns, towns["b"], tmp_path / "q")
         assert code == 0 and _sun(tmp_path / "q")["source"] == "training fit", err
@@ -264,10 +264,10 @@ def test_an_orthophoto_with_no_place_on_earth_is_refused_when_opened(crs: str, x
     data = np.random.default_rng(0).integers(1, 256, size=(3, 40, 56)).astype(np.uint8)
     ortho = write_raster(tmp_path / "o.tif", data, crs=crs, transform=Affine(0.5, 0, x0, 0, -0.5, 5000000.0))
     code, err = _predict(capsys, towns, ortho, tmp_path / "p", "--sun", sun)
-    lines = [line for line in err.split("Error: ")[1:]]
+    lines = err.split("Error: ")[1:]
     assert code == 1 and len(lines) == 1, err
     assert f"orthophoto '{ortho}'" in lines[0] and words in lines[0] and "gdal_edit.py -a_srs" in lines[0], err
-    assert not list((tmp_path / "p").glob("*.tif")) if (tmp_path / "p").exists() else True
+    assert not (tmp_path / "p").exists() or not list((tmp_path / "p").glob("*.tif"))
 
 
 def test_a_training_area_in_a_geographic_crs_is_measured_not_a_crash(towns) -> None:

@@ -43,6 +43,7 @@ from pystac.extensions.raster import DataType, RasterBand, RasterExtension, Samp
 from pystac.extensions.view import ViewExtension
 
 from aerialmtl.errors import AlignmentError, InputError
+from aerialmtl.filesafety import open_regular
 from aerialmtl.formats.prediction import (
     CLASS_ENTROPY,
     CLASS_MUTUAL_INFO,
@@ -60,7 +61,6 @@ from aerialmtl.io.align import Grid
 from aerialmtl.io.outputs import write_text
 from aerialmtl.io.place import EDGE_POINTS, NoPlace, wgs84_outline
 from aerialmtl.io.stats import BandStats
-from aerialmtl.stores import open_regular
 
 #: Media types of the assets.
 COG_TYPE = pystac.MediaType.COG
