@@ -18,6 +18,7 @@ start with ``{``. ``--quiet`` silences both kinds.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import sys
@@ -110,6 +111,20 @@ class JsonBar(_std_tqdm):
         if not self.disable and self._emitted is not None and self._emitted != int(self.n):
             self._emit()
         super().close()
+
+
+@contextlib.contextmanager
+def above_bars() -> Iterator[None]:
+    """Write to stderr inside this block without landing on a progress bar's line: in bar mode the bars on screen
+    are cleared first and drawn again after (``tqdm.external_write_mode``), in JSON mode the block holds the lock
+    the JSON lines are written under (never inside one). For whole lines only.
+    """
+    if _mode == "json":
+        with _write_lock:
+            yield
+        return
+    with _std_tqdm.external_write_mode(file=sys.stderr):
+        yield
 
 
 def tqdm(iterable: Iterable[Any] | None = None, *args: Any, **kwargs: Any) -> Any:

@@ -349,6 +349,8 @@ class PredictionRecord(BaseModel):
         sun_setting, shadow_fusion: ``--sun`` and ``--shadow-fusion`` as given; ``sun``: the sun the shadow
             layers used and its source (:meth:`aerialmtl.inference.sun_choice.SunChoice.record`), ``None`` when
             the run had no shadow features.
+        fusion: whether ``--shadow-fusion`` moved this input's heights, and why (or why not): ``{"applied",
+            "reason"}`` (:func:`aerialmtl.inference.settings.fusion_record`); ``shadow_fusion`` is what was asked.
         created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes;
         file_sha256: layer file → SHA-256 (hex) of its bytes.
     """
@@ -386,6 +388,7 @@ class PredictionRecord(BaseModel):
     sun_setting: str = "auto"
     shadow_fusion: bool = False
     sun: dict[str, Any] | None = None
+    fusion: dict[str, Any] | None = None
     provenance: dict[str, Any]
     created: str | None = None
     files: dict[str, str] = {}

@@ -62,7 +62,7 @@ from aerialmtl.inference.model_record import CheckpointModel, make_record, read_
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration
-from aerialmtl.inference.settings import PredictSettings, ResolvedSettings, settings_of
+from aerialmtl.inference.settings import PredictSettings, ResolvedSettings, fusion_record, settings_of
 from aerialmtl.inference.stitch import Block
 from aerialmtl.inference.strips import StripResult, compute_strip
 from aerialmtl.inference.sun_choice import SunChoice, choose_sun
@@ -195,6 +195,7 @@ class Predictor:
         (``meta.sun``; fitted by ``train`` since this version).
         """
         s, sun = self.settings, self.meta.sun
+        s.check_fusion(self.mc, tuple(self.meta.model.tasks), self.meta.model.aleatoric, self.checkpoint_name)
         if s.sun == "none" or "height" not in self.meta.model.tasks:
             return None
         if sun is None or sun.shadow_model is None:
@@ -384,6 +385,7 @@ class Predictor:
             "engine_choice": self.choice.as_dict(),
             "calibration": self.calibration_info(),
             **({"sun": choice.record()} if (choice := self.sun_for(src)) is not None else {}),
+            "fusion": fusion_record(self.settings.shadow_fusion, self.shadows is not None, self.sun_for(src)),
             PROVENANCE_KEY: self.provenance(src),
         }
 

@@ -30,7 +30,7 @@ import torch
 
 from aerialmtl import runtime
 from aerialmtl.errors import InputError
-from aerialmtl.inference.sun_choice import parse_sun
+from aerialmtl.inference.sun_choice import SunChoice, parse_sun
 from aerialmtl.inference.windows import check_tiling
 from aerialmtl.sun.solar_position import parse_time
 
@@ -87,7 +87,9 @@ class PredictSettings:
         acquired: the orthophoto's acquisition time (ISO 8601; without a zone read as UTC) for ``sun="auto"``.
         shadow_fusion: fuse the heights measured from shadows into the height map and its spread, inside the
             network's objects (:mod:`aerialmtl.inference.shadows`); the ``shadow`` and ``shadow_height`` layers
-            are written whenever the sun is known, fused or not.
+            are written whenever the sun is known, fused or not. Refused with ``sun="none"`` (no shadows to
+            measure) and for heights without a spread to weigh (:meth:`check_fusion`): an explicit request that
+            cannot act is an error, not a run that says it fused.
     """
 
     mc: int | None = None
@@ -124,9 +126,36 @@ class PredictSettings:
         if self.reader_threads < 1:
             raise InputError(f"reader_threads must be ≥ 1 background thread, got {self.reader_threads!r}; pass e.g. 2")
         runtime.resolve_threads(self.threads)  # a bad value fails here, naming ‹threads›
-        parse_sun(self.sun)  # a bad --sun or --acquired fails here, naming it
+        sun = parse_sun(self.sun)  # a bad --sun or --acquired fails here, naming it
         if self.acquired is not None:
             parse_time(self.acquired)
+        if self.shadow_fusion and sun == "none":
+            raise InputError("‹shadow_fusion› moves heights towards those their shadows measure, and ‹sun=none› turns "
+                             "the shadows off: drop ‹shadow_fusion›, or pass ‹sun› auto or AZ,EL")
+
+    def check_fusion(self, mc: int, tasks: tuple[str, ...], aleatoric: bool, checkpoint: str) -> None:
+        """Refuse ``shadow_fusion`` for a model whose heights it cannot move.
+
+        Fusion weighs each height by its spread: a model of ``tasks`` without ``height`` has none to move, and at
+        ``mc`` = 1 MC sample (the resolved T) without ``tta`` the heights of a model without an ``aleatoric``
+        head have no spread (a run would change nothing and say it fused). ``checkpoint`` names the model.
+
+        Raises:
+            InputError: naming ‹shadow_fusion›, why, and the fix.
+        """
+        if not self.shadow_fusion:
+            return
+        if "height" not in tasks:
+            raise InputError(f"‹shadow_fusion› fuses heights, and {checkpoint} predicts none (tasks: "
+                             f"{', '.join(tasks)}): drop ‹shadow_fusion›")
+        if mc > 1 or self.tta or aleatoric:
+            return
+        if self.mc is not None:
+            raise InputError(f"‹shadow_fusion› weighs each height by its spread, and with ‹mc=1› the heights of "
+                             f"{checkpoint} (no aleatoric head) have none: pass ‹mc› 30 (or ‹tta›), or drop "
+                             "‹shadow_fusion›")
+        raise InputError(f"‹shadow_fusion› weighs each height by its spread, and {checkpoint} has neither dropout nor "
+                         "an aleatoric head: its heights have none (T = 1); pass ‹tta›, or drop ‹shadow_fusion›")
 
     def with_options(self, **options: Any) -> PredictSettings:
         """These settings with ``options`` (keywords named like the fields) replaced, validated again.
@@ -192,6 +221,24 @@ def _json(value: Any, resolved: ResolvedSettings) -> Any:
     return value
 
 
+def fusion_record(asked: bool, shadows: bool, choice: SunChoice | None) -> dict[str, Any]:
+    """``prediction.json``'s ``fusion`` of one input: ``{"applied": bool, "reason": str}``.
+
+    ``asked``: ``shadow_fusion``; ``shadows``: the run had the shadow step; ``choice``: the input's sun (``None``
+    when the step was off). Applied means every object of the input whose shadow was measured (its
+    ``shadow_height``) had its height moved.
+    """
+    if not asked:
+        return {"applied": False, "reason": "not asked (shadow_fusion off)"}
+    if not shadows:
+        return {"applied": False, "reason": "no shadow layers in this run (the checkpoint holds no shadow classifier)"}
+    if choice is None or not choice.on:
+        note = choice.note if choice is not None else "no sun"
+        return {"applied": False, "reason": f"no sun for this orthophoto: {note}"}
+    return {"applied": True, "reason": "the heights of the objects whose shadows were measured (shadow_height) "
+                                       "moved towards them, weighted by both spreads"}
+
+
 def settings_of(settings: PredictSettings | None, options: dict[str, Any]) -> PredictSettings:
     """``settings`` (default :class:`PredictSettings`) with the keywords ``options`` of a one-call form."""
     return (settings if settings is not None else PredictSettings()).with_options(**options)
@@ -218,4 +265,5 @@ class ResolvedSettings:
     mc: int
 
 
-__all__ = ["BatchSize", "PredictSettings", "ResolvedSettings", "settings_of", "shadow_setting", "speed_only"]
+__all__ = ["BatchSize", "PredictSettings", "ResolvedSettings", "fusion_record", "settings_of", "shadow_setting",
+           "speed_only"]

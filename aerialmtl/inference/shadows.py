@@ -18,10 +18,18 @@ For each window the model has computed (its statistics still per window, before 
 
 The statistics leave here as they came where the sun is off (``--sun none`` or no sun for the input): the
 maps are then those of a run without the feature, to the bit.
+
+Pixels that are not data (nodata, NaN, outside the AOI) are nodata in both layers, and take no part in any other
+pixel's probability (the classifier's neighbourhoods leave them out, :meth:`aerialmtl.sun.ShadowModel.predict_proba`).
+Where a window's probability cannot be made (a window of one colour: all black, a constant fill; colours the
+classifier cannot read), its layers are nodata, never 0 ("no shadow") nor 1, and the input gets one warning. The
+layers are made from a probability and the mask of the pixels where it is one (:func:`window_layers`), whatever
+gives the probability.
 """
 
 from __future__ import annotations
 
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -35,6 +43,9 @@ from aerialmtl.sun.colour import unit_rgb
 
 #: Pixels the network predicts at least this high (metres) form its objects.
 OBJECT_MIN_M = 2.0
+#: A window whose valid pixels' colours all lie within this span (unit RGB, every band: one 8-bit level) has no
+#: contrast to find a shadow in (all black, a constant fill): its shadow layers are nodata.
+MIN_CONTRAST = 1.0 / 255.0
 
 
 def unit_colours(data: np.ndarray, rescale: tuple[float, float] | None, train_dtype: str | None) -> np.ndarray:
@@ -50,15 +61,75 @@ def unit_colours(data: np.ndarray, rescale: tuple[float, float] | None, train_dt
     return unit_rgb(x, train_dtype or "uint8")
 
 
+class Probability(NamedTuple):
+    """A window's shadow probability, whatever computes it.
+
+    Attributes:
+        prob: float32 (h, w), 0–1 where :attr:`made`, NaN elsewhere.
+        made: bool (h, w): the pixels whose probability is data (valid input the source could read).
+        why: why valid pixels have none (one phrase for the warning), ``None`` when every valid pixel has one.
+    """
+
+    prob: np.ndarray
+    made: np.ndarray
+    why: str | None = None
+
+
 class _Window(NamedTuple):
-    """One window's layers, (h, w) each: shadow probability (0 where invalid), measured shadow height in metres
-    (0 where none), where one was measured, and the fused (height, spread) or ``None``.
+    """One window's layers, (h, w) each: shadow probability (0 where not made), where it is data, measured shadow
+    height in metres (0 where none), where one was measured, the fused (height, spread) or ``None``, and why valid
+    pixels have no probability (``None``: none lack one).
     """
 
     shadow: np.ndarray
+    made: np.ndarray
     height: np.ndarray
     measured: np.ndarray
     fused: tuple[np.ndarray, np.ndarray] | None
+    why: str | None = None
+
+
+def colour_probability(model: ShadowModel, rgb: np.ndarray, ok: np.ndarray, gsd_m: float,
+                       workers: int = 1) -> Probability:
+    """The colour classifier's :class:`Probability` of a window: ``rgb`` (3, h, w) colours (:func:`unit_colours`),
+    ``ok`` bool (h, w) the valid input pixels, ``gsd_m`` metres; ``workers`` threads.
+
+    None where ``ok`` is False or the colour is unreadable (NaN, negative); none at all in a window without
+    contrast (every valid colour within :data:`MIN_CONTRAST`: a black or constant fill casts no shadow to see).
+    """
+    made = ok & np.isfinite(rgb).all(0)
+    nothing = np.full(ok.shape, np.nan, np.float32)
+    if not made.any():
+        return Probability(nothing, made, "colours that are not finite numbers" if ok.any() else None)
+    seen = rgb.reshape(3, -1) if made.all() else rgb[:, made]
+    if float((seen.max(1) - seen.min(1)).max()) < MIN_CONTRAST:
+        return Probability(nothing, np.zeros_like(ok), "no contrast (one colour: all black or a constant fill)")
+    prob = model.predict_proba(rgb, gsd_m, workers, valid=ok)
+    made = ok & np.isfinite(prob)
+    why = "colours the shadow classifier cannot read (negative or not finite)" if (ok & ~made).any() else None
+    return Probability(np.where(made, prob, np.float32(np.nan)).astype(np.float32), made, why)
+
+
+def window_layers(p: Probability, height: np.ndarray, spread: np.ndarray | None, sun: Sun, gsd_m: float,
+                  threshold: float, fuse: bool) -> _Window:
+    """The layers of one window from its shadow probability ``p`` (any source): ``height``/``spread`` float32
+    (h, w) metres (the network's), ``sun`` on the window's grid, ``gsd_m`` metres, the probability ``threshold``
+    from which a pixel is shadow; the fused height and spread only with ``fuse``, a spread and a measure.
+
+    Objects and shadow runs are found where the probability is data only: a pixel without one is nodata in both
+    layers, never "no shadow".
+    """
+    if not p.made.any():
+        return _Window(np.zeros(height.shape, np.float32), p.made, np.zeros(height.shape, np.float32),
+                       np.zeros(height.shape, bool), None, p.why)
+    objects, _ = ndimage.label((height >= OBJECT_MIN_M) & p.made)
+    measured = shadow_heights(p.prob, gsd_m, sun, objects, height=height, threshold=threshold)
+    has = np.isfinite(measured.height) & p.made
+    fused = None
+    if fuse and spread is not None and has.any():
+        fused = fuse_heights(height, spread, measured, objects)
+    return _Window(np.where(p.made, p.prob, np.float32(0.0)).astype(np.float32), p.made,
+                   np.where(has, measured.height, 0.0).astype(np.float32), has, fused, p.why)
 
 
 class ShadowStep:
@@ -76,6 +147,7 @@ class ShadowStep:
     def __init__(self, model: ShadowModel, gsd_m: float, fuse: bool, workers: int = 1) -> None:
         self.model, self.gsd_m, self.fuse = model, float(gsd_m), bool(fuse)
         self.workers = max(1, int(workers))
+        self._warned: set[tuple[str, str]] = set()
 
     def _window(self, rgb: np.ndarray, ok: np.ndarray, height: np.ndarray, spread: np.ndarray | None,
                 sun: Sun, workers: int = 1) -> _Window:
@@ -83,22 +155,23 @@ class ShadowStep:
         ``height``/``spread`` float32 (h, w) metres (the network's); fused height and spread only with :attr:`fuse`
         and a measure; ``workers`` threads for the shadow classifier (:meth:`~aerialmtl.sun.ShadowModel.predict_proba`).
         """
-        prob = self.model.predict_proba(rgb, self.gsd_m, workers)
-        prob = np.where(ok, prob, np.nan).astype(np.float32)
-        objects, _ = ndimage.label((height >= OBJECT_MIN_M) & ok)
-        measured = shadow_heights(prob, self.gsd_m, sun, objects, height=height, threshold=self.model.threshold)
-        has = np.isfinite(measured.height) & ok
-        fused = None
-        if self.fuse and spread is not None and has.any():
-            fused = fuse_heights(height, spread, measured, objects)
-        return _Window(np.nan_to_num(prob, nan=0.0), np.where(has, measured.height, 0.0).astype(np.float32), has,
-                       fused)
+        p = colour_probability(self.model, rgb, ok, self.gsd_m, workers)
+        return window_layers(p, height, spread, sun, self.gsd_m, self.model.threshold, self.fuse)
 
-    def apply(self, stats: McStatistics, rgb: list[np.ndarray], valid: torch.Tensor, sun: Sun | None) -> None:
+    def _say(self, source: str, why: str) -> None:
+        """Warn once per input and cause that some of its valid pixels got no shadow layers."""
+        if (source, why) not in self._warned:
+            self._warned.add((source, why))
+            warnings.warn(f"{source}: no shadow layers where the orthophoto has {why}: shadow.tif and "
+                          "shadow_height.tif are nodata there", UserWarning, stacklevel=3)
+
+    def apply(self, stats: McStatistics, rgb: list[np.ndarray], valid: torch.Tensor, sun: Sun | None,
+              source: str = "the orthophoto") -> None:
         """Set ``stats.shadow``, ``shadow_on``, ``shadow_height`` and ``shadow_weight`` (B, h, w) for the windows
         ``rgb`` (colours (3, h, w) each, :func:`unit_colours`, in batch order) under ``sun``; with :attr:`fuse`,
         replace ``height_mean`` and ``height_std`` inside measured objects. ``sun`` None: the layers' weights are 0 (the
-        stitcher writes nodata) and nothing else changes.
+        stitcher writes nodata) and nothing else changes. ``shadow_on`` is 0 wherever a window's probability is not
+        data (:class:`Probability`); ``source`` names the input in the one warning per cause.
         """
         b, h, w = valid.shape
         dev = valid.device
@@ -125,8 +198,10 @@ class ShadowStep:
             else:
                 done = [one(n) for n in range(b)]
             for n, win in enumerate(done):
+                if win.why is not None:
+                    self._say(source, win.why)
                 shadow[n] = torch.from_numpy(win.shadow)
-                s_on[n] = torch.from_numpy(ok_all[n].astype(np.float32))
+                s_on[n] = torch.from_numpy(win.made.astype(np.float32))
                 s_height[n] = torch.from_numpy(win.height)
                 s_weight[n] = torch.from_numpy(win.measured.astype(np.float32))
                 if win.fused is not None and spreads is not None:
@@ -141,4 +216,5 @@ class ShadowStep:
         stats.shadow_weight = s_weight.to(dev)
 
 
-__all__ = ["OBJECT_MIN_M", "ShadowStep", "unit_colours"]
+__all__ = ["MIN_CONTRAST", "OBJECT_MIN_M", "Probability", "ShadowStep", "colour_probability", "unit_colours",
+           "window_layers"]

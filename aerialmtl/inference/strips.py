@@ -220,7 +220,7 @@ class _StripLoop:
                 data = w.data.numpy() if isinstance(w.data, torch.Tensor) else w.data
                 rgb.append(unit_colours(data[:3], self.src.rescale, self.p.meta.input_dtype))
         assert self.p.shadows is not None
-        self.p.shadows.apply(stats, rgb, valid, sun)
+        self.p.shadows.apply(stats, rgb, valid, sun, self.src.name)
         self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0
 
     def flush(self, windows: list[ReadWindow], stats: McStatistics | None, valid: torch.Tensor | None) -> None:

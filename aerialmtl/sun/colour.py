@@ -21,6 +21,7 @@ from aerialmtl.sun._patches import ArrayOrList, Patch, as_patches
 from aerialmtl.sun.cast import cast_shadow_mask
 from aerialmtl.sun.heights import shadow_heights
 from aerialmtl.sun.position import Sun, as_float, as_floats
+from aerialmtl.sun.record import SHADOW_FEATURES, SHADOW_WEIGHTS, shadow_model_problem
 
 #: Added to the channel sum before chromaticities (0–1 scale per channel), so black pixels get no colour.
 _EPS = 0.05
@@ -66,8 +67,10 @@ def shadow_score(rgb: np.ndarray) -> np.ndarray:
 MEAN_CONTEXTS_M = (2.0, 6.0, 12.0, 40.0)
 PEAK_CONTEXTS_M = (2.0, 6.0)
 #: Name of the feature set below, stored with a model so that a model of another set is refused.
-FEATURES = "colour-v1"
+FEATURES = SHADOW_FEATURES
 N_FEATURES = 6 + len(MEAN_CONTEXTS_M) + len(PEAK_CONTEXTS_M)
+if N_FEATURES + 1 != SHADOW_WEIGHTS:  # the record's check (aerialmtl.sun.record) counts the same weights
+    raise ImportError(f"aerialmtl.sun.record.SHADOW_WEIGHTS is {SHADOW_WEIGHTS}, the features need {N_FEATURES + 1}")
 #: Measured objects needed to choose the threshold from heights.
 MIN_CALIBRATION_OBJECTS = 10
 
@@ -76,16 +79,47 @@ def _window(metres: float, gsd_m: float) -> int:
     return max(3, int(round(metres / gsd_m)) | 1)
 
 
-def colour_features(rgb: np.ndarray, gsd_m: float) -> np.ndarray:
+def colour_features(rgb: np.ndarray, gsd_m: float, valid: np.ndarray | None = None) -> np.ndarray:
     """float32 (12, H, W) features of :class:`ShadowModel`.
 
     Log-brightness L, blue and red chromaticity, saturation, L², L × blue chromaticity, L minus its mean over
     each of :data:`MEAN_CONTEXTS_M` and L minus its maximum over each of :data:`PEAK_CONTEXTS_M` (windows in
     metres, so ``gsd_m`` matters). :meth:`ShadowModel.predict_proba` computes the same planes by bands of rows.
+
+    Pixels that are not data (``valid`` False where given, a colour that is NaN or ±inf, or a brightness that is
+    none) take no part in any neighbourhood (:func:`usable_pixels`): their features are NaN, and the others' are
+    those of their valid neighbours only.
     """
     x = unit_rgb(rgb)
     lum = _brightness(x)
-    return np.stack(_planes(x, lum, [_local(lum, job, gsd_m) for job in _CONTEXTS]))
+    ok = usable_pixels(x, lum, valid)
+    if ok is not None:
+        x, lum = _filled(x, lum, ok)
+    planes = np.stack(_planes(x, lum, [_local(lum, job, gsd_m, ok) for job in _CONTEXTS]))
+    if ok is not None:
+        planes[:, ~ok] = np.nan
+    return planes
+
+
+def usable_pixels(x: np.ndarray, lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray | None:
+    """bool (h, w): the pixels of unit RGB ``x`` (3, h, w) with brightness ``lum`` (h, w) whose colour the
+    classifier can use: ``valid`` (where given), every band finite and the brightness finite (a negative float
+    value has none); ``None`` when that is every pixel (the filters then run as they always did, to the bit).
+    """
+    ok = np.isfinite(lum)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    if ok.all():
+        return None
+    ok &= np.isfinite(x).all(0)
+    return ok
+
+
+def _filled(x: np.ndarray, lum: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x`` and ``lum`` with every pixel outside ``ok`` set to 0 (finite: nothing NaN enters a filter or a kernel;
+    the neighbourhood filters leave them out, :func:`_local`)."""
+    return (np.ascontiguousarray(np.where(ok, x, np.float32(0.0)), dtype=np.float32),
+            np.where(ok, lum, np.float32(0.0)).astype(np.float32))
 
 
 #: The neighbourhood filters of the context features, in feature order: (kind, window in metres).
@@ -98,16 +132,27 @@ def _brightness(x: np.ndarray) -> np.ndarray:
     return lum
 
 
-def _local(lum: np.ndarray, job: tuple[str, float], gsd_m: float) -> np.ndarray:
-    """The mean (``"mean"``) or maximum (``"peak"``) of ``lum`` over a window of ``job[1]`` metres."""
+def _local(lum: np.ndarray, job: tuple[str, float], gsd_m: float, ok: np.ndarray | None = None) -> np.ndarray:
+    """The mean (``"mean"``) or maximum (``"peak"``) of ``lum`` over a window of ``job[1]`` metres.
+
+    ``ok`` (h, w) bool: over those pixels only (a normalised convolution for the mean: the filtered ``lum · ok``
+    over the filtered ``ok``); at a pixel of ``ok`` the window holds at least the pixel itself, so the result is
+    finite there whatever the others hold. ``None``: every pixel (scipy's filters as they are).
+    """
     kind, metres = job
     size = _window(metres, gsd_m)
     if kind == "mean":
-        result: np.ndarray = ndimage.uniform_filter(lum, size=size, mode="reflect")
-        return result
+        if ok is None:
+            result: np.ndarray = ndimage.uniform_filter(lum, size=size, mode="reflect")
+            return result
+        share = ndimage.uniform_filter(ok.astype(np.float32), size=size, mode="reflect")
+        total = ndimage.uniform_filter(np.where(ok, lum, np.float32(0.0)), size=size, mode="reflect")
+        mean: np.ndarray = (total / np.maximum(share, np.float32(1e-12))).astype(np.float32)
+        return mean
     # scipy's maximum_filter(mode="reflect") to the bit, in one compiled pass per axis (2.5× faster)
-    peak = np.empty_like(lum)
-    kernels.max_filter_reflect(np.ascontiguousarray(lum), size, np.empty_like(lum), peak)
+    src = np.ascontiguousarray(lum) if ok is None else np.where(ok, lum, np.float32(-np.inf)).astype(np.float32)
+    peak = np.empty_like(src)
+    kernels.max_filter_reflect(src, size, np.empty_like(src), peak)
     return peak
 
 
@@ -242,8 +287,13 @@ class ShadowModel:
         mask: np.ndarray = self.predict_proba(rgb, gsd_m) >= np.float32(self.threshold)
         return mask
 
-    def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None, workers: int = 1) -> np.ndarray:
+    def predict_proba(self, rgb: np.ndarray, gsd_m: float | None = None, workers: int = 1,
+                      valid: np.ndarray | None = None) -> np.ndarray:
         """float32 (H, W) probability of shadow, 0–1, of a (3, H, W) image at ``gsd_m`` (default: the fit's).
+
+        NaN at the pixels that are not data (``valid`` (H, W) bool False, where given; a colour or brightness that
+        is not finite: :func:`usable_pixels`); they take no part in any other pixel's neighbourhood, so one such
+        pixel changes no other's probability beyond leaving its neighbourhoods.
 
         The features of :func:`colour_features`, never held as a (12, H, W) stack: the brightness and its
         neighbourhood filters (the same functions) over the whole image, then every per-pixel feature and the
@@ -256,6 +306,9 @@ class ShadowModel:
             raise InputError("this ShadowModel is not fitted: call fit() first")
         gsd = gsd_m or self.gsd_m
         x = np.ascontiguousarray(unit_rgb(rgb))
+        ok = usable_pixels(x, _brightness(x), valid)
+        if ok is not None:
+            x = np.ascontiguousarray(np.where(ok, x, np.float32(0.0)), dtype=np.float32)
         n_rows = x.shape[1]
         k = max(1, min(int(workers), n_rows))
         bands = [slice(i * n_rows // k, (i + 1) * n_rows // k) for i in range(k)]
@@ -268,6 +321,8 @@ class ShadowModel:
 
         def brightness(rows: slice) -> None:
             lum[rows] = _brightness(x[:, rows])
+            if ok is not None:
+                lum[rows] = np.where(ok[rows], lum[rows], np.float32(0.0))
 
         def logistic(rows: slice) -> None:
             kernels.logistic_rows(x, lum, *locals_, a32, bias, np.float32(_EPS), rows.start, rows.stop, out)
@@ -275,12 +330,14 @@ class ShadowModel:
         if k > 1:
             with ThreadPoolExecutor(k, thread_name_prefix="aerialmtl-colour") as pool:
                 list(pool.map(brightness, bands))
-                locals_ = list(pool.map(lambda job: _local(lum, job, gsd), _CONTEXTS))
+                locals_ = list(pool.map(lambda job: _local(lum, job, gsd, ok), _CONTEXTS))
                 list(pool.map(logistic, bands))
         else:
             brightness(bands[0])
-            locals_ = [_local(lum, job, gsd) for job in _CONTEXTS]
+            locals_ = [_local(lum, job, gsd, ok) for job in _CONTEXTS]
             logistic(bands[0])
+        if ok is not None:
+            out[~ok] = np.nan
         return out
 
     def to_dict(self) -> dict[str, object]:
@@ -299,10 +356,9 @@ class ShadowModel:
                     threshold_by=str(d.get("threshold_by", "default")))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"not a shadow model record ({exc!r}); keys {sorted(d)}") from exc
-        if m.features != FEATURES:
-            raise InputError(f"shadow model record of feature set {m.features!r}; this version computes {FEATURES!r}")
-        if m.weights and not (len(m.weights) == N_FEATURES + 1 == len(m.mean) + 1 == len(m.scale) + 1):
-            raise InputError(f"shadow model record: {len(m.weights)} weights for {len(m.mean)} features")
+        problem = shadow_model_problem(m.to_dict())
+        if problem is not None:
+            raise InputError(f"not a usable shadow model record: {problem}; refit it (ShadowModel().fit)")
         return m
 
 
