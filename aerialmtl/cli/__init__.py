@@ -137,7 +137,8 @@ def _one_line(exc: BaseException, flags: dict[str, str] | None = None) -> str:
 def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
                   file: object = None, line: str | None = None) -> None:
     """Print a warning as one ``warning: ...`` line on stderr (no source location, no code line), on a line of its
-    own while a progress bar is on screen (:func:`aerialmtl.progress.above_bars`)."""
+    own while a progress bar is on screen (:func:`aerialmtl.progress.above_bars`).
+    """
     with progress.above_bars():
         click.echo(f"warning: {' '.join(str(message).split())}", err=True)
 

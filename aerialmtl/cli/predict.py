@@ -139,7 +139,9 @@ def _say_if_start(model: Path) -> None:
              "--sun auto.")
 @option("--shadow-fusion/--no-shadow-fusion", "shadow_fusion", default=False, show_default=True,
         help="Move the heights of objects the network finds towards the heights their shadows measure, weighted "
-             "by both spreads (never outside an object); the disagreement widens height_std.")
+             "by both spreads (never outside an object); the disagreement widens height_std. Needs the sun (not "
+             "--sun none) and heights with a spread (--mc > 1, --tta, or a model with an aleatoric head); "
+             "prediction.json's fusion says whether it was applied to each input.")
 @overwrite_option()
 @option("--skip-existing", is_flag=True,
         help="Skip inputs whose prediction folder is complete for this run (same model, settings and input, "

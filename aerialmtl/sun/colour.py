@@ -102,11 +102,11 @@ def colour_features(rgb: np.ndarray, gsd_m: float, valid: np.ndarray | None = No
 
 
 def usable_pixels(x: np.ndarray, lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray | None:
-    """bool (h, w): the pixels of unit RGB ``x`` (3, h, w) with brightness ``lum`` (h, w) whose colour the
-    classifier can use: ``valid`` (where given), every band finite and the brightness finite (a negative float
+    """The pixels of unit RGB ``x`` (3, h, w) with brightness ``lum`` (h, w) whose colour the classifier can use,
+    bool (h, w): ``valid`` (where given), every band finite and the brightness finite (a negative float
     value has none); ``None`` when that is every pixel (the filters then run as they always did, to the bit).
     """
-    ok = np.isfinite(lum)
+    ok: np.ndarray = np.isfinite(lum)
     if valid is not None:
         ok &= np.asarray(valid, dtype=bool)
     if ok.all():
@@ -117,7 +117,8 @@ def usable_pixels(x: np.ndarray, lum: np.ndarray, valid: np.ndarray | None = Non
 
 def _filled(x: np.ndarray, lum: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``x`` and ``lum`` with every pixel outside ``ok`` set to 0 (finite: nothing NaN enters a filter or a kernel;
-    the neighbourhood filters leave them out, :func:`_local`)."""
+    the neighbourhood filters leave them out, :func:`_local`).
+    """
     return (np.ascontiguousarray(np.where(ok, x, np.float32(0.0)), dtype=np.float32),
             np.where(ok, lum, np.float32(0.0)).astype(np.float32))
 
@@ -215,7 +216,8 @@ class ShadowModel:
             self.
 
         Raises:
-            InputError: no valid pixels, or the heights cast no shadow (or nothing but shadow) at ``sun``.
+            InputError: no valid pixels, the heights cast no shadow (or nothing but shadow) at ``sun``, or the fit
+                gave no usable model (:func:`aerialmtl.sun.record.shadow_model_problem`).
         """
         if threshold_by not in ("heights", "f1"):
             raise InputError(f"'threshold_by' must be 'heights' or 'f1', got {threshold_by!r}", param="threshold_by")
@@ -249,6 +251,9 @@ class ShadowModel:
             t = self._heights_threshold(patches, sun)
             if t is not None:
                 self.threshold, self.threshold_by = t, "heights"
+        problem = shadow_model_problem(self.to_dict())
+        if problem is not None:  # what a checkpoint would refuse to hold (aerialmtl.sun.record)
+            raise InputError(f"the shadow model's fit failed: {problem}")
         return self
 
     def _heights_threshold(self, patches: list[Patch], sun: Sun) -> float | None:
