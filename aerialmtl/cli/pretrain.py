@@ -79,12 +79,11 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
     # the library when the command runs, not for --help (CLI start time: tests/test_cli_imports.py)
     from aerialmtl.data.synthetic_batches import SyntheticStream
     from aerialmtl.training.config import load_train_config
-    from aerialmtl.training.pretrain import CONFIG_YAML, PretrainSettings
+    from aerialmtl.training.pretrain import CONFIG_YAML, PretrainSettings, folder_policy
     from aerialmtl.training.pretrain import pretrain as run_pretrain
 
-    if resume and overwrite:
-        raise click.BadParameter("--resume continues a run and --overwrite starts it again; pass only one",
-                                 param_hint="--resume/--overwrite")
+    # the run-folder policy (the library's, as train's) before the config is read: says what is wrong first
+    folder_policy(name).check(out_dir, resume=resume, overwrite=overwrite)
     for share, folder, names in ((texture_share, textures, ("--texture-share", "--textures")),
                                  (real_share, real, ("--real-share", "--real"))):
         if share is not None and folder is None:

@@ -1,7 +1,7 @@
 """`aerialmtl train`: train a D3-Net on a tile folder (thin wrapper over :func:`aerialmtl.training.loop.train`).
 
 Under ``torchrun`` every process runs this command; the run-folder policy (``--resume``, ``--overwrite``,
-who prepares the folder) is the library's (:func:`aerialmtl.training.loop.check_run_folder`).
+who prepares the folder) is the library's (:func:`aerialmtl.training.run_folder.check_run_folder`).
 """
 
 from __future__ import annotations
@@ -60,8 +60,9 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     from aerialmtl.runtime import Torchrun
     from aerialmtl.training.config import load_train_config
     from aerialmtl.training.distributed import install_stop_handler
-    from aerialmtl.training.loop import check_budget, check_run_folder
+    from aerialmtl.training.loop import check_budget
     from aerialmtl.training.loop import train as train_loop
+    from aerialmtl.training.run_folder import check_run_folder
 
     check_budget(max_steps, max_time)  # before the run folder is touched
     # the option pairs (--resume with --overwrite or --init) first: the library's refusal names both options

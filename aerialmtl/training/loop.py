@@ -31,11 +31,12 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
-from aerialmtl.errors import ConfigError, InputError, OutputExistsError
-from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, RunFolder
-from aerialmtl.io.outputs import FolderLock, OutputFolder, is_job_leader
+from aerialmtl.errors import ConfigError, InputError
+from aerialmtl.formats.run import LOG_COLUMNS
+from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.runtime import COLLECTIVE_TIMEOUT, Torchrun
 from aerialmtl.training.config import TrainConfig
+from aerialmtl.training.run_folder import TRAIN_FOLDER
 from aerialmtl.training.setup import prepare_training
 from aerialmtl.training.state import seed_everything
 from aerialmtl.training.trainer import Trainer, TrainResult
@@ -51,55 +52,6 @@ def check_budget(max_steps: int | None, max_time_s: float | None) -> None:
         raise InputError(f"‹max_steps› must be ≥ 1, got {max_steps}", param="max_steps")
     if max_time_s is not None and not max_time_s > 0:
         raise InputError(f"‹max_time_s› must be > 0 seconds, got {max_time_s}", param="max_time_s")
-
-
-def check_run_folder(out_dir: str | Path, resume: bool = False, overwrite: bool = False,
-                     init: str | Path | None = None) -> None:
-    """The run-folder policy of :func:`train`, checked on every process before anything is written.
-
-    A new run refuses a folder that holds a run's files (:data:`~aerialmtl.formats.run.RUN_FILES`) unless
-    ``overwrite``; ``resume`` needs the folder's ``last.pt``; another run writing there is named first.
-
-    Raises:
-        InputError: ``out_dir`` is a file; ``resume`` without ``last.pt``; ``resume`` with ``overwrite``
-            or ``init`` (``param`` names the option, or both options of a pair: ``"resume/init"``). The
-            one check of these pairs: :func:`train`, the CLI and
-            :func:`~aerialmtl.training.setup.prepare_training` rely on it.
-        OutputExistsError: a run's files exist and neither ``resume`` nor ``overwrite`` is given.
-        OutputInUseError: another process holds the folder's lock.
-    """
-    out_dir = Path(out_dir)
-    if resume and overwrite:
-        raise InputError("‹resume› continues a run and ‹overwrite› deletes it; pass only one",
-                         param="resume/overwrite")
-    if resume and init is not None:
-        raise InputError("‹resume› continues the run's own weights; ‹init› starts a new run from a checkpoint; "
-                         "pass only one", param="resume/init")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"‹out_dir› '{out_dir}' is a file; pass a folder", param="out_dir")
-    if out_dir.is_dir() and is_job_leader():  # another run writing there: say so before judging its files
-        FolderLock(out_dir, "train").check_free()
-    run = RunFolder(out_dir)
-    if resume:
-        if not run.can_resume():
-            raise InputError(f"‹resume› '{run.last}' does not exist; there is no run to resume there",
-                             param="resume")
-        return
-    existing = [n for n in RUN_FILES if (out_dir / n).exists()]
-    if existing and not overwrite:
-        raise OutputExistsError(
-            f"run folder '{out_dir}' already holds {', '.join(existing)}; pass ‹resume=True› to continue it, "
-            "‹overwrite=True› to replace the run, or another ‹out_dir›")
-
-
-def _take_run_folder(folder: OutputFolder, stack: contextlib.ExitStack, clear: bool) -> None:
-    """Take the run folder (its lock, held until the run ends) and, for a new run, remove the previous
-    run's own files (:data:`~aerialmtl.formats.run.RUN_FILES`, never others) and a killed run's staging files.
-    """
-    stack.enter_context(folder)
-    folder.remove_leftovers(RUN_FILES)
-    if clear:
-        folder.remove_owned(RUN_FILES)
 
 
 def train(
@@ -120,7 +72,7 @@ def train(
         cfg: the training configuration.
         data_dir: tile folder (overrides ``cfg.data.dir``).
         out_dir: run folder (created). A folder holding a run's files is refused unless ``resume`` or
-            ``overwrite`` (:func:`check_run_folder`). The run holds its lock
+            ``overwrite`` (:data:`~aerialmtl.training.run_folder.TRAIN_FOLDER`). The run holds its lock
             (:class:`~aerialmtl.io.outputs.OutputFolder`) until it ends.
         max_steps: total optimisation steps (overrides ``cfg.schedule.max_steps``).
         max_time_s: wall-clock budget of this call in seconds (overrides ``cfg.schedule.max_time_s``).
@@ -138,7 +90,7 @@ def train(
     Raises:
         ConfigError: no data folder, cuda unavailable, config/data mismatch.
         InputError: the data folder is not a tile folder or the train split is empty; a run-folder
-            option conflict (:func:`check_run_folder`).
+            option conflict (:meth:`~aerialmtl.training.run_folder.RunFolderPolicy.check`).
         OutputExistsError: ``out_dir`` holds a run and neither ``resume`` nor ``overwrite`` is given.
         CheckpointError: ``resume`` without a usable ``last.pt`` or with a different model config; ``init``
             with other bands or another architecture.
@@ -146,7 +98,7 @@ def train(
         OutputInUseError: another process is writing ``out_dir``.
     """
     check_budget(max_steps, max_time_s)
-    check_run_folder(out_dir, resume, overwrite, init)
+    TRAIN_FOLDER.check(out_dir, resume=resume, overwrite=overwrite, init=init)
     data = data_dir if data_dir is not None else cfg.data.dir
     folder = OutputFolder(out_dir, "train", inputs={"data_dir": data, "init": init}, what="run folder")
     own_ctx = ctx is None
@@ -155,7 +107,7 @@ def train(
     try:
         with contextlib.ExitStack() as stack:
             ctx.barrier()  # every process has checked the folder before rank 0 changes it
-            ctx.main_first(lambda: _take_run_folder(folder, stack, overwrite and not resume))
+            ctx.main_first(lambda: TRAIN_FOLDER.take(folder, stack, resume=resume, overwrite=overwrite))
             setup = prepare_training(cfg, data_dir, out_dir, resume=resume, init=init, progress=progress, ctx=ctx)
             trainer = Trainer(setup, max_steps=max_steps, max_time_s=max_time_s, progress=progress)
             try:
@@ -167,4 +119,4 @@ def train(
             ctx.leave()
 
 
-__all__ = ["LOG_COLUMNS", "TrainResult", "check_budget", "check_run_folder", "seed_everything", "train"]
+__all__ = ["LOG_COLUMNS", "TrainResult", "check_budget", "seed_everything", "train"]

@@ -28,6 +28,7 @@ only on the step, and the dropout masks' RNG state is saved.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import logging
@@ -49,18 +50,20 @@ from aerialmtl.classes import ClassScheme
 from aerialmtl.config import from_dict, to_dict
 from aerialmtl.cpuinfo import cpu_name
 from aerialmtl.data.synthetic_batches import GENERATOR, SCHEME_NAME, SyntheticBatches, SyntheticStream
-from aerialmtl.errors import CheckpointError, ConfigError, InputError, NonFiniteError, OutputExistsError
-from aerialmtl.formats.checkpoint import ModelMeta, first_nonfinite, load_checkpoint, save_checkpoint
-from aerialmtl.formats.run import BEST_PT, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog
+from aerialmtl.errors import CheckpointError, ConfigError, InputError, OutputExistsError
+from aerialmtl.formats.checkpoint import ModelMeta, load_checkpoint
+from aerialmtl.formats.run import BEST_PT, RUN_FILES, CsvLog
 from aerialmtl.formats.starts import check_exportable, export_start, foreign_files
 from aerialmtl.formats.tiles import read_manifest, read_tile_info, split_fingerprint
-from aerialmtl.io.outputs import FolderLock, OutputFolder, write_text_atomic
+from aerialmtl.io.outputs import OutputFolder, write_text_atomic
 from aerialmtl.models.encoders import encoder_spec
 from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.objective import Objective
+from aerialmtl.training.resume import checked_rng, load_parts
+from aerialmtl.training.run_folder import RunFolderPolicy
 from aerialmtl.training.setup import CPU_BF16_TRAINING, ModelParts, StepModule, build_model
-from aerialmtl.training.state import TrainState, rng_state, set_rng_state
+from aerialmtl.training.state import TrainState, set_rng_state
 from aerialmtl.training.steploop import StepLoop
 
 log = logging.getLogger(__name__)
@@ -182,35 +185,26 @@ def check_config(cfg: TrainConfig) -> None:
                           param=key)
 
 
-def _check_folder(run: Path, resume: bool, overwrite: bool, name: str) -> None:
-    """The run-folder policy: ``train``'s, and never a file pretraining did not write.
+def folder_policy(name: str) -> RunFolderPolicy:
+    """The run-folder policy of pretraining: ``train``'s (:class:`~aerialmtl.training.run_folder.RunFolderPolicy`)
+    over its own files, and never a file pretraining did not write.
 
-    As ``train``'s: a running job named first, a run refused unless resume/overwrite. Never replaced: a training
-    run's checkpoints, a file at the start's paths.
+    Never replaced: a training run's checkpoints, a file at the start's paths (``NAME.pt``, ``NAME.yaml``).
     """
-    if resume and overwrite:
-        raise InputError("‹resume› continues a run and ‹overwrite› starts it again; pass only one",
-                         param="resume/overwrite")
-    if run.exists() and not run.is_dir():
-        raise InputError(f"‹out_dir› '{run}' is a file; pass a folder", param="out_dir")
-    if run.is_dir():
-        FolderLock(run, "pretrain").check_free()  # another run writing there: say so before judging its files
-    if resume and not (run / LAST_PT).is_file():
-        raise InputError(f"‹resume› '{run / LAST_PT}' does not exist; there is no pretraining run to resume there",
-                         param="resume")
-    trained = [n for n in (BEST_PT,) if os.path.lexists(run / n)]
-    if (run / LAST_PT).is_file() and not trained and not _is_pretraining(run / LAST_PT):
-        trained = [LAST_PT]
-    if trained:
-        raise OutputExistsError(f"‹out_dir› '{run}' holds a training run's {trained[0]} (written by `aerialmtl "
-                                "train`), which pretraining never replaces; choose another ‹out_dir›")
-    if not resume and not overwrite and (run / LAST_PT).exists():
-        raise OutputExistsError(f"run folder '{run}' already holds a pretraining run ({LAST_PT}); pass ‹resume=True› "
-                                "to continue it, ‹overwrite=True› to start it again, or another ‹out_dir›")
-    foreign = foreign_files(run, name)
-    if foreign:
-        raise OutputExistsError(f"'{foreign[0]}' exists and is not a start (or its card) that pretraining wrote; the "
-                                "export would replace it: pass another ‹name›, or move that file away")
+    def guard(run: Path) -> None:
+        trained = [n for n in (BEST_PT,) if os.path.lexists(run / n)]
+        if (run / LAST_PT).is_file() and not trained and not _is_pretraining(run / LAST_PT):
+            trained = [LAST_PT]
+        if trained:
+            raise OutputExistsError(f"‹out_dir› '{run}' holds a training run's {trained[0]} (written by `aerialmtl "
+                                    "train`), which pretraining never replaces; choose another ‹out_dir›")
+        foreign = foreign_files(run, name)
+        if foreign:
+            raise OutputExistsError(f"'{foreign[0]}' exists and is not a start (or its card) that pretraining wrote; "
+                                    "the export would replace it: pass another ‹name›, or move that file away")
+
+    return RunFolderPolicy("pretrain", (LAST_PT, LOG_CSV, CONFIG_YAML), staged=(f"{name}.pt", f"{name}.yaml"),
+                           guard=guard)
 
 
 def _is_pretraining(path: Path) -> bool:
@@ -232,8 +226,8 @@ class _Pretrainer(StepLoop):
     def __init__(self, cfg: TrainConfig, ctx: runtime.Torchrun, parts: ModelParts, step_module: nn.Module,
                  tasks: tuple[str, ...], state: TrainState, settings: PretrainSettings, csv_log: CsvLog,
                  averaged: dict[str, torch.Tensor] | None, run: Path, meta: ModelMeta, wall: float) -> None:
-        super().__init__(cfg, ctx, parts.model, parts.optimizer, step_module, tasks, state, settings.steps, csv_log,
-                         averaged)
+        super().__init__(cfg, ctx, parts.model, parts.optimizer, parts.weighting, step_module, tasks, state,
+                         settings.steps, csv_log, averaged)
         self.parts, self.settings, self.run_dir, self.meta, self.wall = parts, settings, run, meta, wall
         self.saved_step = state.step
 
@@ -249,27 +243,21 @@ class _Pretrainer(StepLoop):
         if step == s.steps and step % self.cfg.schedule.log_every:
             self.log_train_row()
         if step % s.checkpoint_every == 0 or step == s.steps:
-            self.save()
+            self.save_last()
         return "steps" if step >= s.steps else None
 
-    def save(self) -> None:
-        """Write ``last.pt``: weights, optimiser, weighting, RNG state and counters.
+    def counters(self, rngs: list[dict[str, Any]]) -> dict[str, Any]:
+        """The step, the wall time so far, the RNG state and the run's settings."""
+        return {"step": self.state.step, "wall_time_s": self.elapsed(), "rng": rngs[0],
+                "settings": to_dict(self.settings)}
 
-        With ``optim.ema`` the weights are their average, the trained ones stored beside it. Refused while a
-        pending loss or a weight is not finite.
+    def save_last(self) -> None:
+        """Write ``last.pt`` (:meth:`StepLoop.save`); with ``optim.ema`` its weights are their average, the
+        trained ones stored beside it. Refused while a pending loss or a weight is not finite.
         """
         self.losses.flush()
-        bad = first_nonfinite(self.model.state_dict())
-        if bad is not None:
-            raise NonFiniteError(f"training diverged at step {self.state.step}: weight '{bad}' holds NaN or inf; "
-                                 f"{self.recovery_hint()}")
         with self.averaged() as raw:
-            state = {"optimizer": self.optimizer.state_dict(), "weighting": self.parts.weighting.state_dict(),
-                     "step": self.state.step, "wall_time_s": self.elapsed(), "rng": rng_state(),
-                     "config": self.cfg.to_dict(), "settings": to_dict(self.settings)}
-            if raw is not None:
-                state[RAW_WEIGHTS_KEY] = raw
-            save_checkpoint(self.run_dir / LAST_PT, self.model, self.meta, state)
+            self.save(self.run_dir / LAST_PT, self.meta, raw)
         self.saved_step = self.state.step
 
 
@@ -306,12 +294,12 @@ def pretrain(cfg: TrainConfig, out_dir: str | Path, settings: PretrainSettings, 
     t0 = time.perf_counter()
     run = Path(out_dir)
     check_config(cfg)
-    _check_folder(run, resume, overwrite, settings.name)
+    policy = folder_policy(settings.name)
+    policy.check(run, resume=resume, overwrite=overwrite)
     s = settings.stream
     folder = OutputFolder(run, "pretrain", inputs={"textures": s.textures, "real": s.real}, what="run folder")
-    with folder:
-        folder.remove_leftovers((LAST_PT, LOG_CSV, CONFIG_YAML, f"{settings.name}.pt", f"{settings.name}.yaml"))
-        _check_folder(run, resume, overwrite, settings.name)  # under the lock: what is there now is final
+    with contextlib.ExitStack() as stack:
+        policy.take(folder, stack, resume=resume, overwrite=overwrite)
         return _pretrain(cfg, run, settings, resume, progress, command, t0)
 
 
@@ -354,7 +342,7 @@ def _pretrain(cfg: TrainConfig, run: Path, settings: PretrainSettings, resume: b
     finally:
         bar.close()
     if first == state.step and not (run / LAST_PT).is_file():
-        loop.save()
+        loop.save_last()
     wall = loop.elapsed()
     start = _export(run, settings, cfg, state.step, wall, command)
     logged = _last_loss(run / LOG_CSV)
@@ -406,8 +394,9 @@ def _restore(path: Path, parts: ModelParts, cfg: TrainConfig,
              settings: PretrainSettings) -> tuple[int, float, PretrainSettings, dict[str, torch.Tensor] | None]:
     """Load checkpoint ``path`` into ``parts``: ``(step, wall time in seconds, settings, weight average)``.
 
-    Loads weights, optimiser, weighting, RNG and counters; returns the run's settings with the new ``steps`` and
-    the weight average it holds (``optim.ema``: the checkpoint's weights, the trained ones beside them), or None.
+    Loads weights, optimiser, weighting and RNG as ``train`` does (:func:`~aerialmtl.training.resume.load_parts`,
+    :func:`~aerialmtl.training.resume.checked_rng`), then the counters; returns the run's settings with the new
+    ``steps`` and the weight average it holds (``optim.ema``), or None.
     """
     payload, _ = load_checkpoint(path)
     ts = payload.get("train_state") or {}
@@ -415,19 +404,17 @@ def _restore(path: Path, parts: ModelParts, cfg: TrainConfig,
         saved = from_dict(PretrainSettings, {**ts["settings"], "steps": settings.steps})
         # Read through today's schema: a key added since takes its default, a retired one is dropped (with its
         # warning), so a run started by an earlier version resumes; a changed value still refuses.
-        if from_dict(TrainConfig, ts["config"]).to_dict() != cfg.to_dict():
-            raise CheckpointError(f"checkpoint '{path}' was pretrained with another config; resume with the run's "
-                                  f"{CONFIG_YAML} (the default with resume)")
-        raw = ts.get(RAW_WEIGHTS_KEY)
-        parts.model.load_state_dict(payload["state_dict"] if raw is None else raw)
-        parts.optimizer.load_state_dict(ts["optimizer"])
-        parts.weighting.load_state_dict(ts["weighting"])
-        set_rng_state(ts["rng"])
-        averaged = payload["state_dict"] if raw is not None else None
-        return int(ts["step"]), float(ts["wall_time_s"]), saved, averaged
+        same = from_dict(TrainConfig, ts["config"]).to_dict() == cfg.to_dict()
+        step, wall = int(ts["step"]), float(ts["wall_time_s"])
     except (KeyError, TypeError, ValueError, RuntimeError, ConfigError) as exc:
         raise CheckpointError(f"checkpoint '{path}' cannot be resumed as a pretraining run ({exc}); start again "
                               "with ‹overwrite=True›") from exc
+    if not same:
+        raise CheckpointError(f"checkpoint '{path}' was pretrained with another config; resume with the run's "
+                              f"{CONFIG_YAML} (the default with resume)")
+    averaged = load_parts(path, payload, parts, cfg.optim, "pretrain")
+    set_rng_state(checked_rng(path, ts.get("rng"), "pretrain"))
+    return step, wall, saved, averaged
 
 
 def _real_data(stream: SyntheticStream) -> str | dict[str, Any]:

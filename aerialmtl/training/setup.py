@@ -10,8 +10,9 @@ needs and returns a value (nothing is half-built and filled in later):
 3. the objective (:class:`~aerialmtl.training.objective.Objective`);
 4. :func:`build_model` → :class:`ModelParts`: the seeded D3-Net, the task weighting and the optimiser
    (:func:`build_optimizer`);
-5. the starting point: :func:`restore` (``resume``: weights, optimiser, weighting, counters and the RNG
-   state of ``last.pt``), or the ``init`` weights, then this process's RNG stream (:func:`seed_rank_stream`);
+5. the starting point: :func:`~aerialmtl.training.resume.restore` (``resume``: weights, optimiser, weighting,
+   counters and the RNG state of ``last.pt``), or the ``init`` weights, then this process's RNG stream
+   (:func:`~aerialmtl.training.resume.seed_rank_stream`);
 6. the step module (:class:`StepModule`, compiled through the runtime's
    fallback) and its ``DistributedDataParallel`` wrapper;
 7. :func:`build_loaders` → :class:`Loaders`: the epoch order from the starting position and the train and
@@ -38,21 +39,16 @@ import torch
 from torch import nn
 
 from aerialmtl import runtime
-from aerialmtl.config import to_dict
 from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, eval_batches
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.copy_paste import CopyPaster, build_object_bank
 from aerialmtl.data.prefetch import AssembledBatches
 from aerialmtl.data.transforms import Compose, build_eval_transform, build_train_transform
-from aerialmtl.errors import CheckpointError, ConfigError, OutputError, cause
+from aerialmtl.errors import ConfigError, OutputError
 from aerialmtl.formats.checkpoint import (
     ModelMeta,
-    check_same_data,
-    first_nonfinite,
-    load_checkpoint,
     value_envelope,
 )
-from aerialmtl.formats.run import RAW_WEIGHTS_KEY
 from aerialmtl.formats.tiles import (
     HEIGHT_NODATA,
     MANIFEST_CSV,
@@ -69,14 +65,8 @@ from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.finetune import load_init_weights
 from aerialmtl.training.objective import Objective, class_weights
-from aerialmtl.training.state import (
-    TrainState,
-    rank_seed,
-    read_train_state,
-    rng_state,
-    seed_everything,
-    set_rng_state,
-)
+from aerialmtl.training.resume import restore, seed_rank_stream
+from aerialmtl.training.state import TrainState, seed_everything
 from aerialmtl.training.weighting import build_weighting
 
 #: The trainer's logger (the messages of training, whichever module writes them).
@@ -254,132 +244,6 @@ def build_model(cfg: TrainConfig, model_cfg: ModelConfig, device: torch.device, 
         model = distributed.convert_sync_batchnorm(model, device)
     weighting = build_weighting(cfg.weighting.method, list(model_cfg.tasks)).to(device)
     return ModelParts(model, weighting, build_optimizer(cfg.optim, model, weighting))
-
-
-# ---- the starting point -------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Resumed:
-    """Where a resumed run continues: its counters, RNG state and weight average.
-
-    The RNG state is this process's saved one (``{}``: none). The weight average is, for a run with
-    ``optim.ema``, the one the checkpoint holds (``None``: none; the model then holds the raw weights saved
-    beside it).
-    """
-
-    state: TrainState
-    rng: dict[str, Any]
-    averaged: dict[str, torch.Tensor] | None = None
-
-
-def _bad_state(path: Path, what: str, exc: BaseException | None) -> CheckpointError:
-    why = f" ({cause(exc)})" if exc is not None else ""
-    return CheckpointError(
-        f"checkpoint '{path}' cannot be resumed: {what}{why}; it was not written by `aerialmtl train` as it is "
-        "(edited or from another version): resume from an unedited last.pt, or start a new run (another "
-        "--out, or --overwrite) with ‹init› to reuse its weights"
-    )
-
-
-def _checked_rng(path: Path, rng: Any) -> dict[str, Any]:
-    """``rng`` if it restores (tried on a copy of the current states), else a CheckpointError."""
-    if not rng:
-        raise _bad_state(path, "its RNG state is missing", None)
-    current = rng_state()
-    try:
-        set_rng_state(rng)
-    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as exc:
-        raise _bad_state(path, "its RNG state is invalid", exc) from exc
-    finally:
-        set_rng_state(current)
-    return dict(rng)
-
-
-def _load_optimizer(path: Path, optimizer: torch.optim.Optimizer, ts: dict[str, Any], optim: OptimSection) -> None:
-    """The optimiser state of ``ts``, with the config's ``lr`` and ``betas`` (its moments are kept)."""
-    bad = first_nonfinite(ts.get("optimizer"))
-    if bad is not None:
-        raise CheckpointError(
-            f"checkpoint '{path}': its optimizer state holds NaN or inf ('{bad}'); it cannot be resumed: start a "
-            "new run (another --out, or --overwrite), with a lower optim.lr"
-        )
-    try:
-        optimizer.load_state_dict(ts["optimizer"])
-    except ValueError as exc:
-        raise CheckpointError(
-            f"checkpoint '{path}': its optimizer state does not fit this optimizer ({exc}); resume with the "
-            "run's config.yaml (same optim section) or start a new run"
-        ) from exc
-    except (KeyError, TypeError, RuntimeError, IndexError) as exc:
-        raise _bad_state(path, "its optimizer state is incomplete", exc) from exc
-    for group in optimizer.param_groups:  # weight decay: the group structure already follows the config
-        group.update(lr=optim.lr, betas=optim.betas)
-
-
-def restore(path: Path, parts: ModelParts, data: TrainData, cfg: TrainConfig, ctx: runtime.Torchrun,
-            device: torch.device) -> Resumed:
-    """Load weights, optimiser, weighting and counters from ``path`` into ``parts``.
-
-    The config's ``optim.lr`` and ``optim.betas`` replace those stored with the optimizer
-    state (its moments are kept), so a run that diverged can continue from its last good ``last.pt``
-    with a lower ``optim.lr`` written into the run's ``config.yaml``.
-
-    Raises:
-        CheckpointError: no training state, other data, another model config, or a training state that
-            does not have the form ``aerialmtl train`` writes (e.g. edited by hand); names the file.
-    """
-    payload, old_meta = load_checkpoint(path, map_location=device)
-    ts = payload.get("train_state")
-    if not ts:
-        raise CheckpointError(f"checkpoint '{path}' has no training state; cannot ‹resume› from it")
-    check_same_data(path, old_meta, data.meta)
-    if to_dict(old_meta.model) != to_dict(data.model_cfg):
-        raise CheckpointError(
-            f"checkpoint '{path}' was trained with another model config; "
-            "resume with the run's config.yaml or start a new run (--overwrite)"
-        )
-    if not isinstance(ts, dict):
-        raise _bad_state(path, "its training state is not a mapping", None)
-    try:
-        counters = read_train_state(ts)
-    except ValueError as exc:
-        raise _bad_state(path, "its counters are not of the form aerialmtl writes", exc) from exc
-    raw = ts.get(RAW_WEIGHTS_KEY)  # optim.ema: the checkpoint's weights are the average, these the trained ones
-    try:
-        parts.model.load_state_dict(payload["state_dict"])
-        if raw is not None:
-            parts.model.load_state_dict(raw)
-    except (RuntimeError, KeyError, TypeError, AttributeError) as exc:
-        raise _bad_state(path, "its weights do not fit the model", exc) from exc
-    averaged = payload["state_dict"] if raw is not None else None
-    _load_optimizer(path, parts.optimizer, ts, cfg.optim)
-    try:
-        parts.weighting.load_state_dict(ts["weighting"])
-        old_global = counters.global_batch or 0
-        # a checkpoint written before the global batch was recorded: one process, this batch size
-        state = TrainState.from_dict(ts, old_global or min(cfg.data.batch_size,
-                                                            len(read_manifest(data.info.root, "train"))))
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise _bad_state(path, "its counters or task weighting are incomplete", exc) from exc
-    ranks = ts.get("rng_ranks")
-    if ranks and counters.world_size == ctx.world:
-        rng = ranks[ctx.rank]
-    elif ctx.rank == 0:
-        rng = ts.get("rng")
-    else:
-        return Resumed(state, {}, averaged)
-    return Resumed(state, _checked_rng(path, rng), averaged)
-
-
-def seed_rank_stream(cfg: TrainConfig, ctx: runtime.Torchrun, step: int, saved: dict[str, Any] | None) -> None:
-    """Give this process its RNG stream.
-
-    The saved one when resuming; else rank 0 keeps the seeded stream (a single process is unchanged) and rank
-    r > 0 gets its own (other dropout masks).
-    """
-    if saved:
-        set_rng_state(saved)
-    elif ctx.rank > 0:
-        seed_everything(rank_seed(cfg.seed + step, ctx.rank))
 
 
 # ---- the data loaders ---------------------------------------------------------------------------------
@@ -561,7 +425,7 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
         out_dir: run folder (created on rank 0).
         resume: continue from ``out_dir/last.pt``.
         init: start from the weights of this checkpoint (fine-tuning); a new run only:
-            :func:`~aerialmtl.training.loop.check_run_folder` refuses it with ``resume`` before the run
+            :func:`~aerialmtl.training.run_folder.check_run_folder` refuses it with ``resume`` before the run
             folder is touched (:func:`~aerialmtl.training.loop.train` calls it first).
         progress: progress bars of the cache builds (rank 0 only).
         ctx: the process context (default: from torchrun's environment, one process without it).
@@ -599,8 +463,6 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
                       loaders, state, saved_step, resume, averaged)
 
 
-__all__ = ["CPU_BF16_TRAINING", "Loaders", "ModelParts", "Resumed", "TrainData", "TrainSetup", "build_loaders",
+__all__ = ["CPU_BF16_TRAINING", "Loaders", "ModelParts", "TrainData", "TrainSetup", "build_loaders",
            "build_model", "build_optimizer", "copy_paster", "input_normalization", "model_meta", "open_data",
-           "prepare_caches",
-           "prepare_training", "read_data_folder", "restore", "seed_rank_stream", "train_height_range",
-           "user_cache_dir"]
+           "prepare_caches", "prepare_training", "read_data_folder", "train_height_range", "user_cache_dir"]

@@ -13,7 +13,11 @@ training on another stream of batches).
   and checked there for a non-finite loss or one grown by :data:`LOSS_GROWTH` (divergence);
 * the ``train`` rows of ``log.csv`` every ``schedule.log_every`` steps, with the learning rate the step used;
 * the loop (:meth:`StepLoop.run_steps`): batches → step → window → row, and the command's own ``after_step``
-  (the trainer's epochs and validations, pretraining's checkpoints) until it says why to stop.
+  (the trainer's epochs and validations, pretraining's checkpoints) until it says why to stop;
+* the checkpoint (:meth:`StepLoop.save`): refused while a weight is not finite, the optimiser, the task
+  weighting, the config and the command's own counters and RNG states (:meth:`StepLoop.counters`), the trained
+  weights beside their average (``optim.ema``), written by rank 0. Resuming it is
+  :mod:`aerialmtl.training.resume`'s, the run folder's policy :mod:`aerialmtl.training.run_folder`'s.
 
 So every ``optim``/``schedule`` key that concerns steps means the same in both commands, and a diverging run
 stops in both.
@@ -25,6 +29,7 @@ import contextlib
 import math
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,11 +38,12 @@ from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.errors import NonFiniteError
-from aerialmtl.formats.run import CsvLog
+from aerialmtl.formats.checkpoint import ModelMeta, first_nonfinite, save_checkpoint
+from aerialmtl.formats.run import RAW_WEIGHTS_KEY, CsvLog
 from aerialmtl.training.averaging import WeightAverage
 from aerialmtl.training.config import TrainConfig
 from aerialmtl.training.lr_schedule import lr_factor
-from aerialmtl.training.state import TrainState
+from aerialmtl.training.state import TrainState, rng_state
 
 #: A task loss this many times its first logged value means the run diverged (finite or not).
 LOSS_GROWTH = 1e4
@@ -116,7 +122,7 @@ class StepLoop:
         cfg: the training configuration (``optim.lr``, ``optim.ema``, ``schedule.lr_schedule``,
             ``schedule.warmup_steps``, ``schedule.log_every``).
         ctx: the process context.
-        model: the model trained; ``optimizer`` steps it (and the task weighting).
+        model: the model trained; ``optimizer`` steps it (and the task weighting ``weighting``).
         step_module: one step's forward, losses and task weighting ``batch → (total, {task: loss})``
             (DDP-wrapped with several processes).
         tasks: the tasks trained, in the log's order.
@@ -127,9 +133,9 @@ class StepLoop:
     """
 
     def __init__(self, cfg: TrainConfig, ctx: runtime.Torchrun, model: nn.Module, optimizer: torch.optim.Optimizer,
-                 step_module: nn.Module, tasks: tuple[str, ...], state: TrainState, planned_steps: int,
-                 csv_log: CsvLog | None, averaged: dict[str, torch.Tensor] | None = None) -> None:
-        self.cfg, self.ctx, self.model, self.optimizer = cfg, ctx, model, optimizer
+                 weighting: nn.Module, step_module: nn.Module, tasks: tuple[str, ...], state: TrainState,
+                 planned_steps: int, csv_log: CsvLog | None, averaged: dict[str, torch.Tensor] | None = None) -> None:
+        self.cfg, self.ctx, self.model, self.optimizer, self.weighting = cfg, ctx, model, optimizer, weighting
         self.step_module, self.tasks, self.state = step_module, tasks, state
         self.planned_steps, self.csv_log = planned_steps, csv_log
         self.t0 = time.perf_counter()
@@ -184,6 +190,36 @@ class StepLoop:
             self.csv_log.write(kind="train", step=self.state.step, epoch=self.state.epoch, time_s=self.elapsed(),
                                lr=self.lr, loss=means["loss"], **{f"loss_{t}": means.get(t) for t in self.tasks})
         return means
+
+    # ---- the checkpoint -----------------------------------------------------------------------------
+    def counters(self, rngs: list[dict[str, Any]]) -> dict[str, Any]:
+        """The command's own part of a checkpoint's ``train_state``: its counters and the RNG states ``rngs``
+        (one per process, rank 0's first) it resumes with.
+        """
+        raise NotImplementedError
+
+    def save(self, target: Path, meta: ModelMeta, raw: dict[str, torch.Tensor] | None = None) -> None:
+        """Write checkpoint ``target`` with the model as it is and the whole training state.
+
+        Every process must call it (the RNG states are gathered); rank 0 writes. ``raw``: the trained weights
+        while the model holds their average (``optim.ema``), stored beside it for training to continue from.
+
+        Raises:
+            NonFiniteError: a weight is NaN or inf (checked on every process, so all stop together); the file
+                stays as it was.
+        """
+        bad = first_nonfinite(self.model.state_dict())
+        if bad is not None:
+            raise NonFiniteError(f"training diverged at step {self.state.step}: weight '{bad}' holds NaN or inf; "
+                                 f"{self.recovery_hint()}")
+        rngs = self.ctx.gather(rng_state())
+        if not self.ctx.is_main:
+            return
+        state = {"optimizer": self.optimizer.state_dict(), "weighting": self.weighting.state_dict(),
+                 **self.counters(rngs), "config": self.cfg.to_dict()}
+        if raw is not None:
+            state[RAW_WEIGHTS_KEY] = raw
+        save_checkpoint(target, self.model, meta, state)
 
     # ---- the loop -----------------------------------------------------------------------------------
     def advance(self) -> None:

@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -42,13 +43,11 @@ from aerialmtl.errors import InputError, NonFiniteError
 from aerialmtl.formats.checkpoint import (
     SURFACE_HEIGHTS_M,
     ModelMeta,
-    first_nonfinite,
     height_slack,
     same_weights,
-    save_checkpoint,
     update_meta,
 )
-from aerialmtl.formats.run import LOG_COLUMNS, RAW_WEIGHTS_KEY, RUN_FILES, CsvLog, RunFolder
+from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.familiarity import FeatureDensity
@@ -58,7 +57,6 @@ from aerialmtl.training.familiarity import familiarize_checkpoint
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
 from aerialmtl.training.objective import validation_score
 from aerialmtl.training.setup import Batches, TrainSetup
-from aerialmtl.training.state import rng_state
 from aerialmtl.training.steploop import LOSS_GROWTH, LossWindow, StepLoop
 from aerialmtl.training.sun import fit_training_sun, store_sun
 from aerialmtl.training.sun_beside import SunBeside, beside_steps
@@ -134,7 +132,8 @@ class Trainer(StepLoop):
         if setup.ctx.is_main:
             self.write_config(setup.data_dir if setup.data_dir is not None else cfg.data.dir)
         csv_log = CsvLog(self.paths["log.csv"], append=setup.resume) if setup.ctx.is_main else None
-        super().__init__(cfg, setup.ctx, setup.parts.model, setup.parts.optimizer, setup.ddp, setup.data.tasks,
+        parts = setup.parts
+        super().__init__(cfg, setup.ctx, parts.model, parts.optimizer, parts.weighting, setup.ddp, setup.data.tasks,
                          setup.state, planned, csv_log, setup.averaged)
         self.t0 = t0
         self.steps_cap = max_steps if max_steps is not None else cfg.schedule.max_steps
@@ -334,30 +333,20 @@ class Trainer(StepLoop):
         return (f"no checkpoint was written; {lower}, use precision fp32, or check the tile folder's images and "
                 "references, then start again")
 
-    def checkpoint(self, target: Path) -> None:
-        """Write a checkpoint with the full training state (rank 0 writes; every process must call it).
+    def counters(self, rngs: list[dict[str, Any]]) -> dict[str, Any]:
+        """The counters, early stopping and every process's RNG state (see :mod:`aerialmtl.training.state`)."""
+        gb = self.order.global_batch
+        return {**self.state.to_dict(gb), "rng": rngs[0], "rng_ranks": rngs, "world_size": self.ctx.world,
+                "global_batch": gb}
 
-        Raises:
-            NonFiniteError: a weight is NaN or inf (checked on every process, so all stop together); the
-                checkpoint files stay as they were.
+    def checkpoint(self, target: Path) -> None:
+        """Write ``target`` (``best.pt`` or ``last.pt``) with the full training state (:meth:`StepLoop.save`).
+
+        Every process must call it; with ``optim.ema`` ``last.pt`` keeps the trained weights beside the average.
         """
-        bad = first_nonfinite(self.model.state_dict())
-        if bad is not None:
-            raise NonFiniteError(f"training diverged at step {self.state.step}: weight '{bad}' holds NaN or inf; "
-                                 f"{self.recovery_hint()}")
-        rngs = self.ctx.gather(rng_state())
-        if not self.ctx.is_main:
-            if target == self.paths["last.pt"]:
-                self.saved_step = self.state.step
-            return
-        state = {"optimizer": self.optimizer.state_dict(), "weighting": self.setup.parts.weighting.state_dict(),
-                 **self.state.to_dict(self.order.global_batch), "rng": rngs[0], "rng_ranks": rngs,
-                 "world_size": self.ctx.world, "global_batch": self.order.global_batch,
-                 "config": self.cfg.to_dict()}
-        if self.raw_weights is not None and target == self.paths["last.pt"]:
-            state[RAW_WEIGHTS_KEY] = self.raw_weights  # the model holds the average: keep what training continues from
-        save_checkpoint(target, self.model, self.meta, state)
-        if target == self.paths["last.pt"]:
+        last = target == self.paths["last.pt"]
+        self.save(target, self.meta, self.raw_weights if last else None)
+        if last:
             self.saved_step = self.state.step
 
     def write_config(self, data: str | Path | None) -> None:
