@@ -14,6 +14,10 @@ of steps of that stage (``null`` when it is not known in advance). A stage start
 ``done`` 0 and its last line has ``done`` equal to ``total`` when it ran to its end. A command may run
 several stages one after the other; lines of other kinds (results, ``warning: ...``, ``Error: ...``) never
 start with ``{``. ``--quiet`` silences both kinds.
+
+A stage that needs saying what it does before its bar starts (e.g. ``train``'s calibration, feature density
+and sun fit after the steps) writes one line with :func:`announce`, through tqdm in bar mode (so it does not
+break a bar that is drawn) and as plain text in JSON mode; nothing when progress is off.
 """
 
 from __future__ import annotations
@@ -125,6 +129,21 @@ def above_bars() -> Iterator[None]:
         return
     with _std_tqdm.external_write_mode(file=sys.stderr):
         yield
+
+
+def announce(message: str, enabled: bool = True) -> None:
+    """Write ``message`` as one line on stderr (the line that starts a stage; see the module docstring), above
+    any bar on screen (:func:`above_bars`).
+
+    Nothing when ``enabled`` is false (``--quiet``, or a process other than rank 0). A message that starts with
+    ``{`` gets a space before it, so it can never be read as a JSON progress line.
+    """
+    if not enabled:
+        return
+    line = " " + message if message.startswith("{") else message
+    with above_bars():
+        sys.stderr.write(line + "\n")
+        sys.stderr.flush()
 
 
 def tqdm(iterable: Iterable[Any] | None = None, *args: Any, **kwargs: Any) -> Any:

@@ -82,24 +82,12 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
     from aerialmtl.training.pretrain import CONFIG_YAML, PretrainSettings, folder_policy
     from aerialmtl.training.pretrain import pretrain as run_pretrain
 
-    # the run-folder policy (the library's, as train's) before the config is read: says what is wrong first
-    folder_policy(name).check(out_dir, resume=resume, overwrite=overwrite)
     for share, folder, names in ((texture_share, textures, ("--texture-share", "--textures")),
                                  (real_share, real, ("--real-share", "--real"))):
         if share is not None and folder is None:
             raise click.BadParameter(f"{names[0]} applies to the tile folder of {names[1]}; pass {names[1]} TILES "
                                      f"too, or leave {names[0]} out", param_hint=names[0])
     stock = SyntheticStream()
-    if config_path is None:
-        config_path = out_dir / CONFIG_YAML if resume else DEFAULT_CONFIG
-    cfg = load_train_config(config_path)
-    data = {k: v for k, v in (("batch_size", batch_size), ("num_workers", workers)) if v is not None}
-    over: dict[str, object] = {k: v for k, v in (("device", device), ("precision", precision), ("seed", seed))
-                               if v is not None}
-    if data:
-        over["data"] = data
-    if over:
-        cfg = cfg.with_overrides(**over)
     settings = PretrainSettings(steps=steps, checkpoint_every=checkpoint_every, name=name, export_dtype=export_dtype,
                                 stream=SyntheticStream(patch_size=patch_size, scene_size=scene_size,
                                                        gsd_range=gsd_range, scenes_per_step=scenes_per_step,
@@ -110,6 +98,18 @@ def pretrain(out_dir: Path, steps: int, config_path: Path | None, checkpoint_eve
                                                        real=None if real is None else str(real.resolve()),
                                                        real_share=stock.real_share if real_share is None
                                                        else real_share))
+    # the run-folder policy (the library's, as train's) before the config is read: says what is wrong first
+    folder_policy(name).check(out_dir, resume=resume, overwrite=overwrite)
+    if config_path is None:
+        config_path = out_dir / CONFIG_YAML if resume else DEFAULT_CONFIG
+    cfg = load_train_config(config_path)
+    data = {k: v for k, v in (("batch_size", batch_size), ("num_workers", workers)) if v is not None}
+    over: dict[str, object] = {k: v for k, v in (("device", device), ("precision", precision), ("seed", seed))
+                               if v is not None}
+    if data:
+        over["data"] = data
+    if over:
+        cfg = cfg.with_overrides(**over)
     res = run_pretrain(cfg, out_dir, settings, resume=resume, overwrite=overwrite, progress=not quiet,
                        command=shlex.join(["aerialmtl", *sys.argv[1:]]))
     per_step = res.elapsed_s / res.steps_this_call if res.steps_this_call else float("nan")

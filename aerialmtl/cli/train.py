@@ -7,6 +7,7 @@ who prepares the folder) is the library's (:func:`aerialmtl.training.run_folder.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
@@ -20,6 +21,9 @@ from aerialmtl.cli.options import (
     quiet_option,
 )
 from aerialmtl.errors import CheckpointError
+
+if TYPE_CHECKING:
+    from aerialmtl.training.trainer import TrainResult
 
 
 @click.command(name="train")
@@ -97,12 +101,7 @@ def train(config_path: Path | None, data_dir: Path | None, out_dir: Path, max_st
     click.echo(f"stopped by {result.stopped_by} after {result.step} steps ({result.epoch} epochs, "
                f"{result.elapsed_s:.0f} s)" + (f"; last validation (step {result.step}, last.pt): {last}"
                                                 if last else ""))
-    best = _scores(result.best_metrics)
-    if best and result.best_step is not None:  # the scores that belong to best.pt, not the last validation's
-        click.echo(f"best checkpoint: {result.best_checkpoint} (the lowest validation score of the run: "
-                   f"step {result.best_step}, {best})")
-    else:
-        click.echo(f"best checkpoint: {result.best_checkpoint}")
+    click.echo(f"best checkpoint: {result.best_checkpoint} ({_chosen_on(result)})")
     if Path(result.best_checkpoint).is_file():
         # when the command runs (CLI start time)
         from aerialmtl.formats.checkpoint import load_checkpoint
@@ -128,3 +127,23 @@ def _scores(metrics: dict[str, float]) -> str:
     names = (("height_mae", "height MAE", " m"), ("height_rmse", "RMSE", " m"), ("oa", "OA", ""),
              ("miou", "mIoU", ""))
     return ", ".join(f"{label} {metrics[k]:.4g}{unit}" for k, label, unit in names if k in metrics)
+
+
+def _chosen_on(result: TrainResult) -> str:
+    """What ``best.pt`` was chosen on: the metric, its value and step, and what validation's heights rest on."""
+    score = result.best_metrics.get("score", result.best_score)
+    if result.best_step is None:  # best.pt is from before a resume and stayed the best
+        return f"kept from before this call: the run's lowest score, {score:.4g}"
+    if not any(k.startswith("val_loss_") for k in result.best_metrics):  # no val split
+        return f"the lowest training loss between checks: step {result.best_step}, loss {score:.4g}; no val split"
+    text = (f"the lowest validation score of the run: step {result.best_step}, score {score:.4g} (the task losses "
+            "relative to the first validation's)")
+    scores = _scores(result.best_metrics)
+    if scores:
+        text += f", {scores}"
+    v = result.val_heights
+    if v is not None:
+        text += f"; validation holds {v.tall} px ≥ 2 m of {v.pixels}"
+        if result.val_cannot_judge is not None:
+            text += ", too few to judge heights (see the warning)"
+    return text

@@ -64,10 +64,10 @@ from aerialmtl.io.oserrors import kind_of, output_error
 from aerialmtl.io.outputs import OutputFolder
 from aerialmtl.io.paths import recorded_path
 from aerialmtl.io.profiles import patch_profile
-from aerialmtl.models.calibration import TALL_HEIGHT
 from aerialmtl.progress import tqdm
 from aerialmtl.runtime import gdal_env
 from aerialmtl.tiling.grid import count_windows, tile_windows
+from aerialmtl.tiling.height_support import SPLIT_FIX, TALL_M, TallCount, validation_heights_warning
 from aerialmtl.tiling.sources import TileSources
 from aerialmtl.tiling.splits import SPLITS, SplitAssigner, SplitSpec
 from aerialmtl.tiling.swap import SWAP_FILE, claim, commit, finish_interrupted_swap, finish_swap
@@ -141,10 +141,6 @@ class TileResult:
     #: ``tall_pixels`` (counts of them)
     height_summary: dict[str, dict[str, float]] = field(default_factory=dict)
 
-
-#: Height (metres) above which a pixel counts as "tall" in the tile summary (the calibration's, which needs
-#: validation pixels this tall: :data:`aerialmtl.models.calibration.TALL_HEIGHT`).
-TALL_M = TALL_HEIGHT
 
 
 class _HeightSummary:
@@ -287,26 +283,30 @@ def tile_dataset(
 
 
 def warn_no_tall_pixels(result: TileResult) -> None:
-    """Warn when the val or test split holds no reference height ≥ :data:`TALL_M` while train does: the
-    calibration fitted on validation could then correct no building or tree (it corrects only heights validation
-    holds), and validation and test scores would say nothing about them.
+    """Warn when validation cannot judge heights (:mod:`aerialmtl.tiling.height_support`: too few pixels ≥
+    :data:`TALL_M`, in count or against train's share) or the test split holds none while train does: best.pt
+    would be chosen on the ground, the calibration fitted on validation could correct no building or tree (it
+    corrects only heights validation holds), and test scores would say nothing about them.
     """
     summary = result.height_summary
-    train_tall = int(summary.get("train", {}).get("tall_pixels", 0))
-    if not train_tall:
+    train = summary.get("train")
+    if train is None or not int(train["tall_pixels"]):
         return
-    for split in ("val", "test"):
-        part = summary.get(split)
-        if part is None or part["tall_pixels"] > 0:
-            continue
+    train_count = TallCount(int(train["pixels"]), int(train["tall_pixels"]))
+    val = summary.get("val")
+    if val is not None:
+        message = validation_heights_warning(str(result.out_dir), train_count,
+                                             TallCount(int(val["pixels"]), int(val["tall_pixels"])),
+                                             result.counts.get("val", 0), val["mean_m"])
+        if message is not None:
+            warnings.warn(message, UserWarning, stacklevel=2)
+    test = summary.get("test")
+    if test is not None and not int(test["tall_pixels"]):
         warnings.warn(
-            f"tile folder '{result.out_dir}': the {split} split holds no pixel ≥ {TALL_M:g} m (its "
-            f"{result.counts.get(split, 0)} patches: {int(part['pixels'])} px, mean {part['mean_m']:.2f} m) while "
-            f"train holds {train_tall} ({100 * summary['train']['tall_share']:.0f} %): "
-            + ("the calibration fitted on it would correct no building or tree, and its scores would say nothing "
-               "of them" if split == "val" else "its scores would say nothing of buildings or trees")
-            + "; draw other splits: a smaller --split-block, a larger share in --split-ratios, another --split-seed, "
-            "or --split-aoi around an area with buildings or trees", UserWarning, stacklevel=2)
+            f"tile folder '{result.out_dir}': the test split holds no pixel ≥ {TALL_M:g} m (its "
+            f"{result.counts.get('test', 0)} patches: {int(test['pixels'])} px, mean {test['mean_m']:.2f} m) while "
+            f"train holds {train_count.tall} ({100 * train_count.share:.0f} %): its scores would say nothing of "
+            f"buildings or trees; {SPLIT_FIX}", UserWarning, stacklevel=2)
 
 
 def _write_staged(

@@ -26,6 +26,7 @@ from aerialmtl.formats.checkpoint import ModelMeta, load_model, update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.models.calibration import Calibration, CalibrationMethod, fit_calibration
 from aerialmtl.models.mc_dropout import mc_predict
+from aerialmtl.progress import tqdm_auto as tqdm
 
 log = logging.getLogger(__name__)
 
@@ -43,10 +44,11 @@ MIN_VAL_PATCHES = 20
 
 def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path,
                       mc: int = DEFAULT_CALIBRATION_SAMPLES, batch_size: int = 4,
-                      cache_folder: str | Path | None = None,
-                      device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                      cache_folder: str | Path | None = None, device: str | torch.device = "cpu",
+                      progress: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """MC-dropout predictions of the validation patches: ``(pred, ref, std, patch)`` over valid pixels
-    (metres, 1-D; ``patch``: the index of each pixel's validation patch).
+    (metres, 1-D; ``patch``: the index of each pixel's validation patch). ``progress``: a ``calibration`` bar
+    over the patches.
 
     Raises:
         ConfigError: the tile folder has no validation patches or no heights.
@@ -83,15 +85,17 @@ def validation_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | P
         patches.append(ids.expand_as(valid)[valid].cpu().numpy())
 
     model = model.to(dev).eval()
-    for k, spec in enumerate(eval_batches(index.count, batch_size)):
-        batch = prepare_batch(data[spec], transform, mean, std, dev)
-        with torch.no_grad():
-            out = mc_predict(model, batch["image"], mc, seed=k, tasks=("height",))["height"]
-        pending.append((out["mean"], out["std"], batch["height"], batch["height_valid"]))
-        if len(pending) * batch_size >= READ_BACK_PATCHES:
+    with tqdm(total=index.count, desc="calibration", unit="patch", disable=not progress, dynamic_ncols=True) as bar:
+        for k, spec in enumerate(eval_batches(index.count, batch_size)):
+            batch = prepare_batch(data[spec], transform, mean, std, dev)
+            with torch.no_grad():
+                out = mc_predict(model, batch["image"], mc, seed=k, tasks=("height",))["height"]
+            pending.append((out["mean"], out["std"], batch["height"], batch["height_valid"]))
+            if len(pending) * batch_size >= READ_BACK_PATCHES:
+                read_back()
+            bar.update(len(spec))
+        if pending:
             read_back()
-    if pending:
-        read_back()
     pred, ref, sd = (np.concatenate(a) if a else np.zeros(0, np.float32) for a in (preds, refs, stds))
     patch = np.concatenate(patches) if patches else np.zeros(0, np.int64)
     if pred.size > MAX_PIXELS:
@@ -113,7 +117,8 @@ def patch_folds(patch: np.ndarray, seed: int = 0) -> np.ndarray:
 
 def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DEFAULT_CALIBRATION_SAMPLES,
                          method: CalibrationMethod = "isotonic", cache_folder: str | Path | None = None,
-                         out: str | Path | None = None, device: str | torch.device = "cpu") -> Calibration:
+                         out: str | Path | None = None, device: str | torch.device = "cpu",
+                         progress: bool = False) -> Calibration:
     """Fit the calibration of checkpoint ``path`` on ``data_dir``'s validation split and store it.
 
     Args:
@@ -122,12 +127,14 @@ def calibrate_checkpoint(path: str | Path, data_dir: str | Path, *, mc: int = DE
         mc: MC-dropout samples (the spread factor is fitted for this T; predict with a similar T).
         method: ``isotonic`` or ``quantile`` (:mod:`aerialmtl.models.calibration`).
         out: write the calibrated checkpoint here instead.
+        progress: a ``calibration`` bar over the validation patches.
 
     Returns:
         The fitted :class:`Calibration` (also logged).
     """
     model, meta = load_model(path)
-    pred, ref, sd, patch = validation_pixels(model, meta, data_dir, mc, cache_folder=cache_folder, device=device)
+    pred, ref, sd, patch = validation_pixels(model, meta, data_dir, mc, cache_folder=cache_folder, device=device,
+                                             progress=progress)
     if pred.size == 0:
         raise ConfigError(f"calibration: no valid validation pixel in '{data_dir}'", param="data_dir")
     n_patches = int(np.unique(patch).size)

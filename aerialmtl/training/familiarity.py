@@ -28,6 +28,7 @@ from aerialmtl.formats.checkpoint import ModelMeta, load_model, update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, cache_dir, read_manifest
 from aerialmtl.models.d3net import encode_features
 from aerialmtl.models.familiarity import FeatureDensity, fit_density
+from aerialmtl.progress import tqdm_auto as tqdm
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +42,10 @@ MIN_VALID_SHARE = 0.5
 
 def feature_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path, levels: tuple[int, ...],
                    split: str = "train", batch_size: int = 8, cache_folder: str | Path | None = None,
-                   device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """The encoder features of ``split``'s patches, one row per valid feature pixel.
+                   device: str | torch.device = "cpu",
+                   progress: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The encoder features of ``split``'s patches, one row per valid feature pixel (``progress``: a
+    ``feature density`` bar over the patches).
 
     Returns:
         ``(features N×C float32, mean reference height N (metres; NaN without heights), patch index N, stride)``
@@ -66,44 +69,48 @@ def feature_pixels(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path
     feats, heights, patches = [], [], []
     stride = 1
     first = 0
-    for spec in eval_batches(index.count, batch_size):
-        batch = prepare_batch(data[spec], transform, mean, std, dev)
-        x = batch["image"]
-        with torch.no_grad():
-            enc = encode_features(model, x)
-        picked = [enc[i].float() for i in levels]
-        size = picked[0].shape[-2:]
-        stride = x.shape[-1] // size[-1]
-        f = torch.cat([p if p.shape[-2:] == size else F.interpolate(p, size=size, mode="bilinear",
-                                                                    align_corners=False) for p in picked], 1)
-        valid = (x != 0).any(1, keepdim=True).float()
-        if "height_valid" in batch:
-            valid = valid * batch["height_valid"].float()
-        share = F.avg_pool2d(valid, stride)[:, 0]
-        ok = share >= MIN_VALID_SHARE
-        if "height" in batch:
-            hsum = F.avg_pool2d(batch["height"] * valid, stride)[:, 0]
-            h = hsum / share.clamp_min(1e-6)
-        else:
-            h = torch.full_like(share, float("nan"))
-        ids = torch.arange(first, first + x.shape[0], device=dev).reshape(-1, 1, 1).expand_as(ok)
-        first += x.shape[0]
-        feats.append(f.permute(0, 2, 3, 1)[ok].cpu().numpy())
-        heights.append(h[ok].cpu().numpy())
-        patches.append(ids[ok].cpu().numpy())
+    bar = tqdm(total=index.count, desc="feature density", unit="patch", disable=not progress, dynamic_ncols=True)
+    with bar:
+        for spec in eval_batches(index.count, batch_size):
+            batch = prepare_batch(data[spec], transform, mean, std, dev)
+            x = batch["image"]
+            with torch.no_grad():
+                enc = encode_features(model, x)
+            picked = [enc[i].float() for i in levels]
+            size = picked[0].shape[-2:]
+            stride = x.shape[-1] // size[-1]
+            f = torch.cat([p if p.shape[-2:] == size else F.interpolate(p, size=size, mode="bilinear",
+                                                                        align_corners=False) for p in picked], 1)
+            valid = (x != 0).any(1, keepdim=True).float()
+            if "height_valid" in batch:
+                valid = valid * batch["height_valid"].float()
+            share = F.avg_pool2d(valid, stride)[:, 0]
+            ok = share >= MIN_VALID_SHARE
+            if "height" in batch:
+                hsum = F.avg_pool2d(batch["height"] * valid, stride)[:, 0]
+                h = hsum / share.clamp_min(1e-6)
+            else:
+                h = torch.full_like(share, float("nan"))
+            ids = torch.arange(first, first + x.shape[0], device=dev).reshape(-1, 1, 1).expand_as(ok)
+            first += x.shape[0]
+            feats.append(f.permute(0, 2, 3, 1)[ok].cpu().numpy())
+            heights.append(h[ok].cpu().numpy())
+            patches.append(ids[ok].cpu().numpy())
+            bar.update(len(spec))
     return (np.concatenate(feats), np.concatenate(heights).astype(np.float32), np.concatenate(patches), int(stride))
 
 
 def fit_from_patches(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Path, *,
                      levels: tuple[int, ...] = (2,), dims: int = 32, method: Literal["gda", "em"] = "gda",
                      components: int = 8, cache_folder: str | Path | None = None,
-                     device: str | torch.device = "cpu", seed: int = 0) -> FeatureDensity:
+                     device: str | torch.device = "cpu", seed: int = 0, progress: bool = False) -> FeatureDensity:
     """:func:`feature_pixels` of the train split → :func:`~aerialmtl.models.familiarity.fit_density`.
 
     ``gda`` labels each feature pixel by the bin (:data:`HEIGHT_BINS_M`) of its mean reference height; without
     heights in the tile folder it falls back to ``em``.
     """
-    x, h, _, stride = feature_pixels(model, meta, data_dir, levels, cache_folder=cache_folder, device=device)
+    x, h, _, stride = feature_pixels(model, meta, data_dir, levels, cache_folder=cache_folder, device=device,
+                                     progress=progress)
     if x.shape[0] < 2:
         raise ConfigError(f"familiarity: fewer than 2 valid feature pixels in the train split of '{data_dir}'",
                           param="data_dir")
@@ -120,7 +127,7 @@ def fit_from_patches(model: torch.nn.Module, meta: ModelMeta, data_dir: str | Pa
 def familiarize_checkpoint(path: str | Path, data_dir: str | Path, *, levels: tuple[int, ...] = (2,),
                            dims: int = 32, method: Literal["gda", "em"] = "gda", components: int = 8,
                            cache_folder: str | Path | None = None, out: str | Path | None = None,
-                           device: str | torch.device = "cpu") -> FeatureDensity:
+                           device: str | torch.device = "cpu", progress: bool = False) -> FeatureDensity:
     """Fit the feature density of checkpoint ``path`` on ``data_dir``'s train split and store it.
 
     Args:
@@ -128,13 +135,14 @@ def familiarize_checkpoint(path: str | Path, data_dir: str | Path, *, levels: tu
         data_dir: the tile folder the model was trained on.
         levels, dims, method, components: see :func:`fit_from_patches`.
         out: write the checkpoint with its density here instead.
+        progress: a ``feature density`` bar over the train patches.
 
     Returns:
         The fitted :class:`~aerialmtl.models.familiarity.FeatureDensity` (also logged).
     """
     model, meta = load_model(path)
     density = fit_from_patches(model, meta, data_dir, levels=levels, dims=dims, method=method,
-                               components=components, cache_folder=cache_folder, device=device)
+                               components=components, cache_folder=cache_folder, device=device, progress=progress)
     update_meta(path, out, familiarity=density)
     log.info("feature density of '%s': %s", path, density.summary())
     return density

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -25,6 +26,7 @@ from aerialmtl.data.dataset import read_raw_patch
 from aerialmtl.errors import InputError
 from aerialmtl.formats.checkpoint import update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
+from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.sun import ShadowModel, fit_sun
 from aerialmtl.sun.record import TrainingSun
 from aerialmtl.sun.solar_position import file_time, grid_convergence_deg, lonlat, sun_position
@@ -53,8 +55,10 @@ class AreaImage:
     ortho: str | None = None  # the orthophoto the tile folder was cut from (its provenance), where recorded
 
 
-def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
+def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -> AreaImage:
     """The ``split`` patches of tile folder ``data_dir`` pieced together on the tile grid (see :class:`AreaImage`).
+
+    ``bar``: a progress bar counted one step per patch read (none by default).
 
     Raises:
         InputError: not 8-bit RGB patches with heights, or no patch in ``split``.
@@ -89,6 +93,8 @@ def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
             if p.height is not None:
                 height[s] = p.height
             valid[s] |= p.image_valid
+            if bar is not None:
+                bar.update(1)
         area.rgb, area.height, area.valid = [rgb], [height], [valid]
     else:
         per_patch = max(1, int(rows[0]["width"]) * int(rows[0]["height"]))
@@ -98,6 +104,8 @@ def training_area(data_dir: str | Path, split: str = "train") -> AreaImage:
             area.rgb.append(np.ascontiguousarray(p.image[:3]))  # its own type: unit_rgb scales by its largest value
             area.height.append(p.height if p.height is not None else np.full(p.image_valid.shape, np.nan, np.float32))
             area.valid.append(p.image_valid)
+            if bar is not None:
+                bar.update(1)
     return area
 
 
@@ -115,10 +123,27 @@ def _acquired(path: str | None) -> str | None:
         return None
 
 
-def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
-    """Fit the sun and the shadow classifier on ``data_dir``'s ``split`` (see the module docstring)."""
-    area = training_area(data_dir, split)
+def fit_training_sun(data_dir: str | Path, split: str = "train", progress: bool = False) -> TrainingSun:
+    """Fit the sun and the shadow classifier on ``data_dir``'s ``split`` (see the module docstring).
+
+    ``progress``: a ``sun fit`` bar: one step per patch read, one for the sun, one for the shadow classifier.
+    """
+    try:
+        steps: int | None = len(read_manifest(Path(data_dir), split)) + 2 if progress else None
+    except (OSError, InputError):  # not a tile folder: training_area says so
+        steps = None
+    with tqdm(total=steps, desc="sun fit", unit="step", disable=not progress, dynamic_ncols=True) as bar:
+        sun = _fit_training_sun(data_dir, split, bar)
+        if steps is not None and bar.n < steps:  # no shadow classifier to fit (no clear sun): the stage is done
+            bar.update(steps - bar.n)
+        return sun
+
+
+def _fit_training_sun(data_dir: str | Path, split: str, bar: Any) -> TrainingSun:
+    """:func:`fit_training_sun` counting its steps on ``bar``."""
+    area = training_area(data_dir, split, bar)
     fit = fit_sun(area.rgb, area.height, area.gsd, area.valid)
+    bar.update(1)
     if not fit.clear or fit.sun is None or area.crs is None or area.bounds is None:
         return TrainingSun(clear=False, reason=fit.reason, score=_finite(fit.score), sharpness=_finite(fit.sharpness),
                            crs=area.crs, bounds=area.bounds)
@@ -129,6 +154,7 @@ def fit_training_sun(data_dir: str | Path, split: str = "train") -> TrainingSun:
     try:
         shadows = ShadowModel().fit(area.rgb, area.height, area.gsd, fit.sun, area.valid)
         model = shadows.to_dict()
+        bar.update(1)
     except InputError as exc:
         return TrainingSun(clear=False, reason=f"no shadow model: {exc}", score=fit.score, sharpness=fit.sharpness,
                            crs=area.crs, bounds=area.bounds)

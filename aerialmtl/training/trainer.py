@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,7 +52,14 @@ from aerialmtl.formats.run import LOG_COLUMNS, RUN_FILES, CsvLog, RunFolder
 from aerialmtl.io.oserrors import writing
 from aerialmtl.models.calibration import Calibration
 from aerialmtl.models.familiarity import FeatureDensity
+from aerialmtl.progress import announce
 from aerialmtl.progress import tqdm_auto as tqdm
+from aerialmtl.tiling.height_support import (
+    TallCount,
+    cache_tall_count,
+    cannot_judge,
+    validation_heights_warning,
+)
 from aerialmtl.training.calibrate import calibrate_checkpoint
 from aerialmtl.training.familiarity import familiarize_checkpoint
 from aerialmtl.training.metrics import ConfusionMeter, HeightMeter
@@ -85,6 +93,9 @@ class TrainResult:
         best_step: the step whose validation wrote ``best.pt`` in this call (``None``: ``best.pt`` is from
             before a resume).
         best_metrics: that validation's metrics (as ``metrics``): the scores that belong to ``best.pt``.
+        val_heights: the val split's valid reference pixels and those ≥ 2 m (what its height scores rest on;
+            :mod:`aerialmtl.tiling.height_support`), ``None`` without a val split or heights (or off rank 0).
+        val_cannot_judge: why that validation cannot judge heights (a phrase, also warned about), or ``None``.
     """
 
     run_dir: Path
@@ -101,6 +112,8 @@ class TrainResult:
     model: torch.nn.Module | None = None
     best_step: int | None = None
     best_metrics: dict[str, float] = field(default_factory=dict)
+    val_heights: TallCount | None = None
+    val_cannot_judge: str | None = None
 
 
 class Trainer(StepLoop):
@@ -151,6 +164,8 @@ class Trainer(StepLoop):
         self.validated_at = -1
         #: the sun fit running beside the steps (on an accelerator) until :meth:`fit_sun` collects it
         self.sun_beside: SunBeside | None = None
+        #: the val split's reference pixels ≥ 2 m and why they cannot judge heights (rank 0; also warned about)
+        self.val_heights, self.val_cannot_judge = self.check_validation_heights() if self.ctx.is_main else (None, None)
 
     # ---- what it trains with (read from the setup) --------------------------------------------------
     @property
@@ -230,6 +245,22 @@ class Trainer(StepLoop):
             cm.sync(self.ctx.all_reduce_sum)
             metrics.update(cm.compute())
         return metrics
+
+    def check_validation_heights(self) -> tuple[TallCount | None, str | None]:
+        """The val split's valid reference pixels and those ≥ 2 m (read from its patch cache), and why validation
+        cannot judge heights (:func:`~aerialmtl.tiling.height_support.cannot_judge`: too few, or a far smaller
+        share than train's), warned about with the fix. ``(None, None)`` without a val split or a height task.
+        """
+        data = self.setup.data
+        if data.val_index is None or "height" not in self.tasks:
+            return None, None
+        train, val = cache_tall_count(data.cache_folder, "train"), cache_tall_count(data.cache_folder, "val")
+        if train is None or val is None:
+            return val, None
+        message = validation_heights_warning(str(data.info.root), train, val, data.val_index.count)
+        if message is not None:
+            warnings.warn(message, UserWarning, stacklevel=2)
+        return val, cannot_judge(train, val)
 
     def after_epoch_validation(self) -> bool:
         """Validate, log, and write best.pt/last.pt after an epoch.
@@ -434,7 +465,8 @@ class Trainer(StepLoop):
                            best_checkpoint=self.paths["best.pt"], log_path=self.paths["log.csv"],
                            config_path=self.paths["config.yaml"], step=st.step, epoch=st.epoch, stopped_by=stopped_by,
                            elapsed_s=time.perf_counter() - self.t0, metrics=self.metrics, best_score=st.best_score,
-                           model=self.model, best_step=self.best_step, best_metrics=self.best_metrics)
+                           model=self.model, best_step=self.best_step, best_metrics=self.best_metrics,
+                           val_heights=self.val_heights, val_cannot_judge=self.val_cannot_judge)
 
     def calibrate(self) -> None:
         """Fit the calibration on the val split and store it in best.pt and last.pt.
@@ -445,9 +477,12 @@ class Trainer(StepLoop):
         if not (cal.enabled and self.ctx.is_main and self.val_loader is not None and "height" in self.tasks):
             return
         data = self.setup.data
-        self.fit_per_network("calibration", lambda path: calibrate_checkpoint(
-            path, data.info.root, mc=cal.mc_samples, method=cal.method, cache_folder=data.cache_folder,
-            device=self.device))
+        n = data.val_index.count if data.val_index is not None else 0
+        what = f"calibration on the {n} validation patches ({cal.mc_samples} MC-dropout samples each)"
+        self.fit_per_network("calibration", what,
+                             lambda path: calibrate_checkpoint(
+                                 path, data.info.root, mc=cal.mc_samples, method=cal.method,
+                                 cache_folder=data.cache_folder, device=self.device, progress=self.progress))
 
     def familiarize(self) -> None:
         """Fit the encoder-feature density on the train split and store it in best.pt and last.pt.
@@ -458,16 +493,20 @@ class Trainer(StepLoop):
         if not (fam.enabled and self.ctx.is_main):
             return
         data = self.setup.data
-        self.fit_per_network("familiarity", lambda path: familiarize_checkpoint(
-            path, data.info.root, levels=fam.levels, dims=fam.dims, method=fam.method, components=fam.components,
-            cache_folder=data.cache_folder, device=self.device))
+        self.fit_per_network("familiarity", f"feature density on the {data.train_index.count} training patches",
+                             lambda path: familiarize_checkpoint(
+                                 path, data.info.root, levels=fam.levels, dims=fam.dims, method=fam.method,
+                                 components=fam.components, cache_folder=data.cache_folder, device=self.device,
+                                 progress=self.progress))
 
-    def fit_per_network(self, record: str, fit: Callable[[Path], Calibration | FeatureDensity]) -> None:
+    def fit_per_network(self, record: str, what: str, fit: Callable[[Path], Calibration | FeatureDensity]) -> None:
         """``fit(path)`` each of best.pt and last.pt (it stores the result as meta ``record``), once per network.
 
         When the run's last validation was its best, both hold the same network
         (:func:`~aerialmtl.formats.checkpoint.same_weights`): the second gets the first's result (each fit is
-        deterministic: seeded MC passes and samples), not a second fit. One log line per checkpoint.
+        deterministic: seeded MC passes and samples), not a second fit. Each fit starts with a line saying
+        ``what`` it fits (:func:`~aerialmtl.progress.announce`, with the progress bar) and ends with one log line
+        per checkpoint.
         """
         fitted: list[tuple[Path, Calibration | FeatureDensity]] = []
         for name in ("best.pt", "last.pt"):
@@ -478,6 +517,7 @@ class Trainer(StepLoop):
             if result is not None:
                 update_meta(path, None, **{record: result})
             else:
+                announce(f"{name}: {what}", self.progress)
                 result = fit(path)
             fitted.append((path, result))
             log.info("%s: %s", name, result.summary())
@@ -495,8 +535,11 @@ class Trainer(StepLoop):
         if not self.sun_wanted:
             return
         beside, self.sun_beside = self.sun_beside, None
+        announce(f"sun fit on the {self.setup.data.train_index.count} training patches (best.pt, last.pt)"
+                 + ("" if beside is None else ": collecting the fit that ran beside the steps"), self.progress)
         try:
-            sun = fit_training_sun(self.setup.data.info.root) if beside is None else beside.result()
+            sun = (fit_training_sun(self.setup.data.info.root, progress=self.progress) if beside is None
+                   else beside.result())
         except InputError as exc:
             log.info("no sun fitted: %s", exc)
             return
