@@ -13,16 +13,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import torch
+from torch import nn
 
 from aerialmtl import runtime
 from aerialmtl.config import to_dict
 from aerialmtl.errors import CheckpointError, cause
-from aerialmtl.formats.checkpoint import check_same_data, first_nonfinite, load_checkpoint
+from aerialmtl.formats.checkpoint import ModelMeta, check_same_data, first_nonfinite, load_checkpoint
 from aerialmtl.formats.run import RAW_WEIGHTS_KEY
-from aerialmtl.formats.tiles import read_manifest
+from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
+from aerialmtl.models.config import ModelConfig
 from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.state import (
     TrainState,
@@ -33,8 +35,27 @@ from aerialmtl.training.state import (
     set_rng_state,
 )
 
-if TYPE_CHECKING:
-    from aerialmtl.training.setup import ModelParts, TrainData
+
+class ModelParts(Protocol):
+    """What a checkpoint is loaded into (:class:`aerialmtl.training.setup.ModelParts`)."""
+
+    @property
+    def model(self) -> nn.Module: ...  # noqa: D102
+    @property
+    def weighting(self) -> nn.Module: ...  # noqa: D102
+    @property
+    def optimizer(self) -> torch.optim.Optimizer: ...  # noqa: D102
+
+
+class TrainData(Protocol):
+    """What ``train``'s resume checks a checkpoint against (:class:`aerialmtl.training.setup.TrainData`)."""
+
+    @property
+    def info(self) -> TileFolderInfo: ...  # noqa: D102
+    @property
+    def model_cfg(self) -> ModelConfig: ...  # noqa: D102
+    @property
+    def meta(self) -> ModelMeta: ...  # noqa: D102
 
 
 @dataclass(frozen=True)

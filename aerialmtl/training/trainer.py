@@ -10,7 +10,8 @@
 * the step — :class:`StepModule` (forward, losses, weighting; what DistributedDataParallel wraps) and the
   shared loop's :meth:`~aerialmtl.training.steploop.StepLoop.train_step` (the same step ``pretrain`` runs);
 * validation — :meth:`Trainer.validate` (all processes, sums reduced);
-* checkpoints and resume — :meth:`Trainer.checkpoint`, :meth:`Trainer.restore`, :mod:`aerialmtl.training.state`;
+* checkpoints and resume — :meth:`Trainer.checkpoint` (the shared :meth:`~aerialmtl.training.steploop.StepLoop.save`),
+  :mod:`aerialmtl.training.resume`, :mod:`aerialmtl.training.state`;
   fine-tuning from a checkpoint — :mod:`aerialmtl.training.finetune`;
 * logging — :class:`~aerialmtl.training.runlog.CsvLog` and :class:`~aerialmtl.training.steploop.LossWindow`.
 
