@@ -25,7 +25,6 @@ from aerialmtl.inference.windows import Plan, plan_windows
 from aerialmtl.io.align import Grid, check_bands, open_raster, ortho_grid, resampled_grid
 from aerialmtl.io.fingerprint import changed, input_fingerprint, raster_identity
 from aerialmtl.io.paths import is_local
-from aerialmtl.io.place import check_place
 
 #: Relative GSD difference above which the orthophoto is resampled to the model's GSD.
 GSD_TOLERANCE = 0.01
@@ -82,13 +81,12 @@ class OrthoInput:
 
         Raises:
             AlignmentError: not georeferenced, geographic CRS, no place on Earth (a local CRS, coordinates outside
-                its CRS's domain: :func:`~aerialmtl.io.place.check_place`).
+                its CRS's domain: :func:`~aerialmtl.io.place.check_place`, before any work).
             InputError: the file lacks a band the checkpoint reads, or its values are unlike the training
                 data's (the messages name the fix).
         """
         local = input_fingerprint(path) if is_local(path) else None  # stat before the first read
         with open_raster(path, "orthophoto") as src:
-            check_place(src.crs, tuple(src.bounds), "orthophoto", path)  # before any work: the sun, the STAC footprint
             native = ortho_grid(src)
             check_bands(src, meta.bands, "orthophoto", bands_from=f"the checkpoint (trained on {trained_bands(meta)})",
                         fix="predict on an orthophoto with those bands, or train a model on this one's bands "

@@ -45,6 +45,7 @@ from aerialmtl.io.paths import (
     is_remote,
     probe_url,
 )
+from aerialmtl.io.place import check_place
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 from aerialmtl.quiet import ignoring_warnings
 
@@ -276,7 +277,9 @@ def reference_grid(ortho: str | Path, gsd: float | None = None) -> Grid:
 
 
 def ortho_grid(src: rasterio.io.DatasetReader) -> Grid:
-    """The grid of an open orthophoto, checked as :func:`reference_grid` checks it (projected, north-up)."""
+    """The grid of an open orthophoto, checked as :func:`reference_grid` checks it (projected, north-up, with a
+    place on Earth: :func:`~aerialmtl.io.place.check_place`).
+    """
     _check_georeferenced(src, "orthophoto")
     t = src.transform
     if t.e > 0 or t.a < 0:  # south-up or east-to-west rows: every window, stitch and output assumes north-up
@@ -284,6 +287,7 @@ def ortho_grid(src: rasterio.io.DatasetReader) -> Grid:
         raise AlignmentError(
             f"orthophoto '{src.name}' is {which}, not north-up; warp it north-up first "
             f"(`gdalwarp {src.name} north_up.tif`)")
+    check_place(src.crs, tuple(src.bounds), "orthophoto", src.name)  # a local CRS, outside its domain: refused here
     if not src.crs.is_projected:
         lon, lat = transform_bounds(src.crs, "EPSG:4326", *src.bounds)[:2]
         require_projected(src.crs, "orthophoto", src.name, (lon, lat))
