@@ -101,8 +101,9 @@ def colour_probability(model: ShadowModel, rgb: np.ndarray, ok: np.ndarray, gsd_
     nothing = np.full(ok.shape, np.nan, np.float32)
     if not made.any():
         return Probability(nothing, made, "colours that are not finite numbers" if ok.any() else None)
-    seen = rgb.reshape(3, -1) if made.all() else rgb[:, made]
-    if float((seen.max(1) - seen.min(1)).max()) < MIN_CONTRAST:
+    hi = np.where(made, rgb, np.float32(-np.inf)).max(axis=(1, 2))
+    lo = np.where(made, rgb, np.float32(np.inf)).min(axis=(1, 2))
+    if float((hi - lo).max()) < MIN_CONTRAST:
         return Probability(nothing, np.zeros_like(ok), "no contrast (one colour: all black or a constant fill)")
     prob = model.predict_proba(rgb, gsd_m, workers, valid=ok)
     made = ok & np.isfinite(prob)

@@ -136,9 +136,10 @@ def _brightness(x: np.ndarray) -> np.ndarray:
 def _local(lum: np.ndarray, job: tuple[str, float], gsd_m: float, ok: np.ndarray | None = None) -> np.ndarray:
     """The mean (``"mean"``) or maximum (``"peak"``) of ``lum`` over a window of ``job[1]`` metres.
 
-    ``ok`` (h, w) bool: over those pixels only (a normalised convolution for the mean: the filtered ``lum · ok``
-    over the filtered ``ok``); at a pixel of ``ok`` the window holds at least the pixel itself, so the result is
-    finite there whatever the others hold. ``None``: every pixel (scipy's filters as they are).
+    ``ok`` (h, w) bool: over those pixels only, ``lum`` being 0 outside them (a normalised convolution for the
+    mean: the filtered ``lum`` over the filtered ``ok``, twice the filtering); at a pixel of ``ok`` the window
+    holds at least the pixel itself, so the result is finite there whatever the others hold. ``None``: every
+    pixel (scipy's filters as they are).
     """
     kind, metres = job
     size = _window(metres, gsd_m)
@@ -147,9 +148,9 @@ def _local(lum: np.ndarray, job: tuple[str, float], gsd_m: float, ok: np.ndarray
             result: np.ndarray = ndimage.uniform_filter(lum, size=size, mode="reflect")
             return result
         share = ndimage.uniform_filter(ok.astype(np.float32), size=size, mode="reflect")
-        total = ndimage.uniform_filter(np.where(ok, lum, np.float32(0.0)), size=size, mode="reflect")
-        mean: np.ndarray = (total / np.maximum(share, np.float32(1e-12))).astype(np.float32)
-        return mean
+        total: np.ndarray = ndimage.uniform_filter(lum, size=size, mode="reflect")  # lum is 0 outside ok (_filled)
+        total /= np.maximum(share, np.float32(1e-12))
+        return total
     # scipy's maximum_filter(mode="reflect") to the bit, in one compiled pass per axis (2.5× faster)
     src = np.ascontiguousarray(lum) if ok is None else np.where(ok, lum, np.float32(-np.inf)).astype(np.float32)
     peak = np.empty_like(src)
