@@ -275,3 +275,43 @@ def shadow_sums(z: Any, surf: Any, ground: Any, score: Any, tol: Any) -> Any:  #
 
 __all__ = ["edge_pixels", "logistic_rows", "max_filter_reflect", "occluder_offsets", "run_lengths",
            "shadow_sums", "sweep_surface"]
+
+
+@jit
+def shade_thresholds(shape: Any, footprint: Any, receive: Any, start: Any, off_r: Any, off_c: Any, drop: float,
+                     tol: float, top: float, out: Any) -> None:  # pragma: no cover - runs compiled
+    """``out[p]`` = the least height ``H`` at which an object of shape ``H · shape`` over ``footprint`` casts
+    its shadow on ``p``: ``min_k (receive[p] + tol + k·drop) / shape[p + step_k]`` over the footprint pixels met
+    walking towards the sun at offsets ``(off_r[k], off_c[k])``, ``k ≥ 1`` (:mod:`aerialmtl.sun.render`); +inf
+    on the footprint itself, where no footprint pixel lies up-sun, and where ``H`` would exceed ``top``.
+    ``shape`` float32 (H, W) in (0, 1] on the footprint, ``footprint`` bool (H, W), ``receive`` float32 (H, W)
+    metres (−inf: unknown: out is +inf), ``drop`` metres of sun ray per step (float64 arithmetic). ``start``
+    int32 (H, W): the first step worth walking (no footprint pixel lies nearer up-sun), −1 where none lies
+    up-sun at all (out is +inf).
+    """
+    h, w = footprint.shape
+    n_steps = off_r.shape[0]
+    for y in range(h):
+        for x in range(w):
+            best = np.inf
+            base = np.float64(receive[y, x])
+            k0 = start[y, x]
+            if footprint[y, x] or k0 < 0 or not np.isfinite(base):
+                out[y, x] = best
+                continue
+            base += tol
+            for k in range(max(k0, 1), n_steps):
+                need = base + k * drop
+                if need > top or need >= best:
+                    break
+                rr = y + off_r[k]
+                cc = x + off_c[k]
+                if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                    break
+                if footprint[rr, cc]:
+                    g = np.float64(shape[rr, cc])
+                    if g > 0.0:
+                        t = need / g
+                        if t < best:
+                            best = t
+            out[y, x] = best

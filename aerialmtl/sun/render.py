@@ -1,0 +1,403 @@
+"""Heights chosen by rendering shadows: each object's height is the one whose cast shadow matches the image's.
+
+For every object of a height map (e.g. the network's pixels ≥ 2 m), try a range of heights for it — its own
+shape scaled (``scaled``) and a flat top over its footprint (``flat``), each at multipliers ``s`` of the
+object's median height — render the cast shadows of the **whole** map with the object at that height
+(:func:`aerialmtl.sun.cast.sweep_stack`: other objects cast and receive shadows too, so a shadow falling on a
+street, a lower roof or behind a taller neighbour is rendered as the sun would cast it), and compare the
+rendering with the observed shadow probability ``P`` on the pixels whose rendered state depends on ``s``:
+
+    LL(s) = Σ_zone  r_s · log P + (1 − r_s) · log(1 − P)        (P clipped to [ε, 1 − ε])
+
+The match curve ``LL(s)`` gives the object's height (its maximum) **and** its spread: the curve, tempered by the
+pixels' correlation (:data:`CORRELATED_PX` pixels per independent observation), is a likelihood over heights
+whose standard deviation is the measurement's, widened by the grid step and the sun elevation's uncertainty. A
+flat curve (the object's shadow is hidden, clipped or falls outside the map) measures nothing: no vote.
+
+The network's objects spill into their own shadows (a blurred edge reads as object). Pixels of an object that
+``P`` calls shadow are tried both ways — as part of the object and as ground — and the comparison keeps the
+better: where it keeps them as ground, they are the object's *spill* (:attr:`RenderedHeights.spill`).
+
+Objects are measured one after another with the others at their current heights; ``passes`` > 1 measures
+them again with every measured object at its new height (rows of buildings shade each other).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+from scipy import ndimage
+
+from aerialmtl.errors import InputError
+from aerialmtl.sun.cast import TOL_M, line_offsets, sun_steps, sweep_stack
+from aerialmtl.sun.heights import ShadowHeights, ShadowObject
+from aerialmtl.sun.position import Sun
+
+#: Probabilities are clipped to [EPS, 1 − EPS] in the match (one wrong pixel costs at most log(1/EPS)).
+EPS = 0.03
+#: Pixels per independent observation of the shadow probability (its spatial correlation): the match curve's
+#: log-likelihood is divided by it before it is read as a likelihood over heights.
+CORRELATED_PX = 12.0
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How :func:`rendered_heights` searches.
+
+    Attributes:
+        threshold: probability from which an object's pixel is a spill candidate (tried as ground).
+        min_zone_px: an object whose height changes fewer pixels' rendered state is not measured.
+        max_rel_std: an object whose spread exceeds this share of its height is not measured (flat curve).
+        range_scale: the heights tried, as multiples of the object's median height (lowest, highest).
+        n_heights: heights tried (geometric steps over the range).
+        max_height_m: no object is rendered higher, metres.
+        elevation_sd_deg: uncertainty of the sun's elevation, degrees (it scales every height of the area).
+        correlated_px: pixels per independent observation (the match curve's temperature).
+        passes: measure every object again with the others at their measured heights, this many passes in all.
+        tol_m: metres an occluder must rise above a pixel's sun ray (as :func:`~aerialmtl.sun.cast_shadow_mask`).
+        families: the object shapes tried: ``"flat"`` (a flat top over the footprint) and ``"shape"`` (the
+            network's own shape, capped at its 90th percentile: ``min(1, h / h90)``), each scaled to ``H``.
+        spill_m: object pixels called shadow within this distance of the object's down-sun edge, metres, are
+            tried as ground (a blurred object's spill into its own shadow).
+        global_range, global_steps: the common multiplier of every object's heights searched first (geometric
+            steps); ``(1, 1)``: none.
+    """
+
+    threshold: float = 0.5
+    min_zone_px: int = 12
+    max_rel_std: float = 0.35
+    range_scale: tuple[float, float] = (0.3, 5.0)
+    n_heights: int = 160
+    max_height_m: float = 150.0
+    elevation_sd_deg: float = 3.0
+    correlated_px: float = CORRELATED_PX
+    passes: int = 2
+    tol_m: float = TOL_M
+    families: tuple[str, ...] = ("flat", "shape")
+    spill_m: float = 3.0
+    global_range: tuple[float, float] = (0.5, 4.0)
+    global_steps: int = 25
+
+
+@dataclass(frozen=True)
+class RenderedObject(ShadowObject):
+    """One object's rendered-shadow measurement (a :class:`~aerialmtl.sun.ShadowObject`).
+
+    Attributes:
+        family: the shape family that matched best (``"scaled"`` or ``"flat"``), ``""`` when not measured.
+        scale: the best multiplier of the object's median height (NaN when not measured).
+        zone_px: pixels whose rendered state depends on the object's height (what the match sees).
+        trimmed_px: the object's pixels the match took as ground (its spill into its own shadow).
+    """
+
+    family: str = ""
+    scale: float = math.nan
+    zone_px: int = 0
+    trimmed_px: int = 0
+
+
+@dataclass
+class RenderedHeights(ShadowHeights):
+    """Heights chosen by rendering (a :class:`~aerialmtl.sun.ShadowHeights`).
+
+    Attributes:
+        height: float32 (H, W) metres: each measured object's rendered height per pixel (its shape scaled, or its
+            flat top), NaN elsewhere, on unmeasured objects and on spill.
+        std: float32 (H, W) metres, the spread of ``height`` (NaN where it is).
+        spill: bool (H, W): pixels of measured objects that the match took as ground in the object's shadow.
+        global_scale: the multiplier of every object's heights chosen first (:attr:`RenderSettings.global_range`).
+        objects: one :class:`RenderedObject` per object label (ascending).
+    """
+
+    spill: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), bool))
+    global_scale: float = 1.0
+
+
+def _crop(bbox: tuple[slice, slice], shape: tuple[int, int], sun: Sun, down_px: int, up_px: int,
+          side_px: int) -> tuple[slice, slice]:
+    """The box around an object's bounding box that holds its longest shadow (``down_px`` pixels away from the
+    sun) and the occluders that can shade that shadow (``up_px`` pixels towards the sun), ``side_px`` across."""
+    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
+    d_row, d_col = -math.cos(math.radians(sun.azimuth_deg)), math.sin(math.radians(sun.azimuth_deg))
+    (r0, r1), (c0, c1) = (bbox[0].start, bbox[0].stop), (bbox[1].start, bbox[1].stop)
+
+    def extend(lo: int, hi: int, toward_sun: float, n: int) -> tuple[int, int]:
+        # a component of the direction towards the sun: + means the sun lies towards larger indices
+        up = int(math.ceil(abs(toward_sun) * up_px)) + side_px
+        down = int(math.ceil(abs(toward_sun) * down_px)) + side_px
+        if toward_sun >= 0:
+            return max(0, lo - down), min(n, hi + up)
+        return max(0, lo - up), min(n, hi + down)
+
+    _ = (rows_dom, step, slope)
+    rr = extend(r0, r1, d_row, shape[0])
+    cc = extend(c0, c1, d_col, shape[1])
+    return slice(*rr), slice(*cc)
+
+
+def _loglik(prob: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(log P, log(1 − P)) float32 of probabilities clipped to [EPS, 1 − EPS]."""
+    p = np.clip(prob, EPS, 1.0 - EPS)
+    return np.log(p).astype(np.float32), np.log1p(-p).astype(np.float32)
+
+
+def _sweep(z: np.ndarray, gsd_m: float, sun: Sun) -> np.ndarray:
+    """float32 (h, w): the shadow surface of ``z`` (−inf: no occluder), :func:`aerialmtl.sun.cast.sweep_stack`."""
+    surface: np.ndarray = sweep_stack(np.ascontiguousarray(z[None], dtype=np.float32), gsd_m, sun.azimuth_deg,
+                                      sun.elevation_deg)[0]
+    return surface
+
+
+class _Curve(NamedTuple):
+    """One variant's match curve: log-likelihood (G,) over the heights tried, and its zone's pixel count."""
+
+    ll: np.ndarray
+    zone_px: int
+
+
+def _walk_up(sun: Sun, n: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(row, column) offsets int64 (n + 1,) of the digital line towards the sun, and the metres of ray per step
+    divided by tan(elevation)'s inverse: the drop of the sun ray per step, as :func:`~aerialmtl.sun.cast.sweep_stack`."""
+    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
+    along = step * np.arange(n + 1, dtype=np.int64)
+    cross = line_offsets(n + 1, slope)
+    return (along, cross, 0.0) if rows_dom else (cross, along, 0.0)
+
+
+def _curve(shape: np.ndarray, footprint: np.ndarray, receive: np.ndarray, others_surface: np.ndarray,
+           use: np.ndarray, lp: np.ndarray, lq: np.ndarray, heights: np.ndarray, gsd_m: float, sun: Sun,
+           tol_m: float) -> _Curve:
+    """The log-likelihood of the shadow probability over ``use`` for the object ``H · shape`` over ``footprint``,
+    at each height ``H`` of ``heights``.
+
+    A pixel ``p`` off the footprint is in the object's shadow at ``H`` when ``H`` exceeds its threshold ``H*(p)``
+    (:func:`aerialmtl.sun.kernels.shade_thresholds`), and whatever ``H`` when the rest of the map shades it (its
+    shadow surface ``others_surface`` rises ``tol_m`` above ``receive``). A footprint pixel is the object's top at
+    ``H · shape``: in the others' shadow while ``H`` stays below ``(others_surface − tol_m) / shape``.
+    """
+    from aerialmtl.sun.kernels import shade_thresholds
+
+    rows_dom, _, slope = sun_steps(sun.azimuth_deg)
+    drop = gsd_m * math.hypot(1.0, slope) * sun.tan_elevation
+    top = float(heights[-1])
+    n = int(math.ceil(top / drop)) + 1
+    off_r, off_c, _ = _walk_up(sun, n)
+    # −(steps to the footprint up-sun) × drop for every pixel in one sweep: where each walk may start
+    reach = _sweep(np.where(footprint, np.float32(0.0), np.float32(-np.inf)), gsd_m, sun)
+    with np.errstate(invalid="ignore"):
+        start = np.where(np.isfinite(reach) & (receive - reach <= top), np.floor(-reach / drop) - 2, -1)
+    thresh = np.empty(footprint.shape, np.float32)
+    shade_thresholds(np.ascontiguousarray(shape, dtype=np.float32), np.ascontiguousarray(footprint),
+                     np.ascontiguousarray(receive, dtype=np.float32), start.astype(np.int32), off_r, off_c, drop,
+                     float(tol_m), top, thresh)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        others = (others_surface - receive) > np.float32(tol_m)
+        # a top pixel stays in the others' shadow below this height of the object
+        under = np.where(footprint & (shape > 0), (others_surface - np.float32(tol_m)) / shape, -np.inf)
+    tops = footprint & use
+    fixed = use & ~footprint
+    shaded = fixed & others
+    free = fixed & ~others
+    reachable = free & (thresh <= top)  # the rest of ``free`` stays lit at every height tried
+    base = float(lq[tops].sum() + lp[shaded].sum() + lq[free].sum())
+    t = thresh[reachable]
+    gain = (lp[reachable] - lq[reachable]).astype(np.float64)
+    order = np.argsort(t, kind="stable")
+    t, cum = t[order], np.concatenate([[0.0], np.cumsum(gain[order])])
+    idx = np.searchsorted(t, heights, side="left")  # thresholds strictly below H: shaded at H
+    ll = base + cum[idx]
+    hidden = tops & (under > heights[0])  # tops shaded by the others at the lowest heights tried
+    if hidden.any():
+        u = under[hidden]
+        g2 = (lp[hidden] - lq[hidden]).astype(np.float64)
+        o2 = np.argsort(u, kind="stable")
+        u, cum2 = u[o2], np.concatenate([[0.0], np.cumsum(g2[o2])])
+        ll = ll + (cum2[-1] - cum2[np.searchsorted(u, heights, side="right")])  # shaded while H < under
+    zone = int(((t > heights[0]) & (t <= heights[-1])).sum()) + int(hidden.sum())
+    return _Curve(ll, zone)
+
+
+def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.ndarray, height: np.ndarray,
+                     settings: RenderSettings | None = None) -> RenderedHeights:
+    """Per-object heights whose rendered cast shadows best match the shadow probability; see the module docstring.
+
+    Args:
+        shadow_prob: float (H, W) probability of cast shadow 0–1 (NaN = unknown, e.g. nodata).
+        gsd_m: pixel size in metres.
+        sun: the sun the image was taken under.
+        objects: int (H, W) object labels, 0 = none (e.g. connected components of the network's heights ≥ 2 m).
+        height: float (H, W) heights in metres (the network's; NaN = unknown): the objects' footprints and
+            shapes, and the occluders and receiving surfaces around them.
+        settings: the search (:class:`RenderSettings`; its defaults when None).
+
+    Returns:
+        :class:`RenderedHeights`: per-pixel heights (the object's flat top ``H``, tapered where the network's own
+        heights fall below its 90th percentile: ``H · min(1, h(p) / h90)``) and spreads over measured objects, the
+        spill, and one :class:`RenderedObject` per object (``n_edges`` holds its pixel count, ``n_runs`` its zone).
+    """
+    prob = np.asarray(shadow_prob, dtype=np.float32)
+    labels = np.asarray(objects)
+    hmap = np.asarray(height, dtype=np.float32)
+    if not prob.shape == labels.shape == hmap.shape or prob.ndim != 2:
+        raise InputError(f"'shadow_prob', 'objects' and 'height' must be (H, W) rasters of one shape, got "
+                         f"{prob.shape}, {labels.shape} and {hmap.shape}")
+    if not np.issubdtype(labels.dtype, np.integer):
+        raise InputError(f"'objects' must hold integer labels (0 = no object), got dtype {labels.dtype}")
+    settings = settings or RenderSettings()
+    known = np.isfinite(prob)
+    lp, lq = _loglik(np.where(known, prob, 0.5))
+    z = np.where(np.isfinite(hmap), hmap, np.float32(-np.inf)).astype(np.float32)
+    # spill candidates: object pixels called shadow at the object's down-sun edge (where a blurred object runs
+    # into its own shadow), not those deeper in (a lower roof shaded by a taller neighbour up-sun)
+    called = known & (prob >= settings.threshold) & (labels > 0)
+    called &= _down_sun_edge(labels > 0, gsd_m, sun, settings.spill_m)
+    global_scale = _global_scale(z, labels > 0, known, lp, lq, gsd_m, sun, settings)
+    z = np.where(labels > 0, z * np.float32(global_scale), z)
+    finite_max = float(np.max(hmap[np.isfinite(hmap)], initial=0.0))
+    tan_e = sun.tan_elevation
+    e = math.tan(math.radians(min(sun.elevation_deg + settings.elevation_sd_deg, 89.9))) / tan_e - 1.0
+    boxes = ndimage.find_objects(labels)
+    results: dict[int, _Result] = {}
+    for _ in range(max(1, int(settings.passes))):
+        changed = False
+        for i, box in enumerate(boxes):
+            if box is None:
+                continue
+            res = _measure(i + 1, box, labels, hmap, z, known, called, lp, lq, finite_max, gsd_m, sun, e, settings)
+            results[i + 1] = res
+            if res.record.measured:  # the next objects see this one at its measured height, its spill as ground
+                new = z[res.crop].copy()
+                new[res.top] = res.per_px[res.top]
+                new[res.spill] = np.minimum(new[res.spill], np.float32(0.0))
+                changed |= not np.array_equal(new, z[res.crop])
+                z[res.crop] = new
+        if not changed:
+            break
+    out_h = np.full(labels.shape, np.nan, np.float32)
+    out_s = np.full(labels.shape, np.nan, np.float32)
+    spill_all = np.zeros(labels.shape, bool)
+    records = []
+    for label in sorted(results):
+        res = results[label]
+        records.append(res.record)
+        if res.record.measured:
+            dst_h, dst_s = out_h[res.crop], out_s[res.crop]
+            dst_h[res.top] = res.per_px[res.top]
+            dst_s[res.top] = np.float32(res.record.std_m) * res.per_px[res.top] / np.float32(res.record.height_m)
+            spill_all[res.crop] |= res.spill
+    return RenderedHeights(out_h, out_s, records, spill_all, global_scale)
+
+
+def _down_sun_edge(inside: np.ndarray, gsd_m: float, sun: Sun, width_m: float) -> np.ndarray:
+    """bool (H, W): pixels of ``inside`` from which walking away from the sun leaves it within ``width_m``."""
+    away = Sun((sun.azimuth_deg + 180.0) % 360.0, sun.elevation_deg)
+    # one sweep with the sun reversed: −(steps down-sun to the nearest outside pixel) × drop
+    reach = _sweep(np.where(inside, np.float32(-np.inf), np.float32(0.0)), gsd_m, away)
+    _, _, slope = sun_steps(away.azimuth_deg)
+    drop = gsd_m * math.hypot(1.0, slope) * away.tan_elevation
+    with np.errstate(invalid="ignore"):
+        steps = -reach / np.float32(drop)
+    edge: np.ndarray = inside & np.isfinite(steps) & (steps * gsd_m * math.hypot(1.0, slope) <= width_m)
+    return edge
+
+
+def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.ndarray, lq: np.ndarray,
+                  gsd_m: float, sun: Sun, settings: RenderSettings) -> float:
+    """The one multiplier of every object's heights whose rendered shadows match best (1.0 when the match curve
+    peaks at an end of :attr:`RenderSettings.global_range` or there are no objects): a network that reads every
+    object low is corrected as a whole before each object is measured with its neighbours near their heights.
+    """
+    lo, hi = settings.global_range
+    if not inside.any() or hi <= lo:
+        return 1.0
+    scales = np.geomspace(lo, hi, settings.global_steps)
+    ll = np.empty(len(scales))
+    for i, s in enumerate(scales):
+        zs = np.where(inside, z * np.float32(s), z)
+        with np.errstate(invalid="ignore"):
+            shadow = (_sweep(zs, gsd_m, sun) - zs) > np.float32(settings.tol_m)
+        ll[i] = float(np.where(shadow, lp, lq)[known].sum())
+    k = int(np.argmax(ll))
+    return float(scales[k]) if 0 < k < len(scales) - 1 else 1.0
+
+
+class _Result(NamedTuple):
+    """One object's measurement: its record, crop, painted pixels, spill and per-pixel heights in the crop."""
+
+    record: RenderedObject
+    crop: tuple[slice, slice]
+    top: np.ndarray
+    spill: np.ndarray
+    per_px: np.ndarray
+
+
+def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.ndarray, z: np.ndarray,
+             known: np.ndarray, called: np.ndarray, lp: np.ndarray, lq: np.ndarray, finite_max: float,
+             gsd_m: float, sun: Sun, e: float, settings: RenderSettings) -> _Result:
+    """:func:`rendered_heights` for one object, the map ``z`` (−inf: unknown) holding the others' heights."""
+    min_zone_px, max_rel_std, range_scale = settings.min_zone_px, settings.max_rel_std, settings.range_scale
+    n_heights, max_height_m, correlated_px = settings.n_heights, settings.max_height_m, settings.correlated_px
+    tol_m, families = settings.tol_m, settings.families
+    own_box = labels[box] == label
+    vals = hmap[box][own_box]
+    vals = vals[np.isfinite(vals)]
+    h_obj = float(np.median(vals)) if vals.size else math.nan
+    n_px = int(own_box.sum())
+    lo = max(0.5, range_scale[0] * h_obj) if math.isfinite(h_obj) else math.nan
+    hi = min(max_height_m, range_scale[1] * h_obj) if math.isfinite(h_obj) else math.nan
+    if not (math.isfinite(h_obj) and h_obj > 0 and hi > lo * 1.5):
+        empty = np.zeros(own_box.shape, bool)
+        return _Result(RenderedObject(label, n_px, 0, math.nan, math.nan), box, empty, empty,
+                       np.zeros(own_box.shape, np.float32))
+    heights = np.geomspace(lo, hi, int(n_heights))
+    tan_e = sun.tan_elevation
+    down = int(math.ceil(hi / tan_e / gsd_m)) + 2
+    up = int(math.ceil(max(finite_max, hi) / tan_e / gsd_m)) + 2
+    crop = _crop(box, labels.shape, sun, down, up, 2)
+    own = labels[crop] == label
+    spill = own & called[crop]
+    core = own & ~spill
+    zc = z[crop]
+    others_z = np.where(own, np.float32(-np.inf), zc)
+    others_surface = _sweep(others_z, gsd_m, sun)
+    kc, lpc, lqc = known[crop], lp[crop], lq[crop]
+    # the variants: a flat top or the network's shape (capped at its 90th percentile), each with the whole
+    # object as top or with its pixels called shadow as ground (the spill trimmed)
+    base = np.where(np.isfinite(hmap[crop]), hmap[crop], 0.0).astype(np.float32)
+    variants = [(own, zc, False)]
+    if spill.any() and core.any():
+        variants.append((core, np.where(spill, np.minimum(zc, np.float32(0.0)), zc), True))
+    curves = []
+    for fp, recv, trim in variants:
+        h90 = max(float(np.percentile(base[fp], 90)), 1e-3)
+        shapes = {"flat": fp.astype(np.float32),
+                  "shape": np.where(fp, np.clip(base / np.float32(h90), 0.0, 1.0), 0.0).astype(np.float32)}
+        for family in families:
+            curves.append((_curve(shapes[family], fp, recv, others_surface, kc, lpc, lqc, heights, gsd_m, sun, tol_m), fp,
+                           trim, family, shapes[family]))
+    best, footprint, trim, family, shape = max(curves, key=lambda c: float(c[0].ll.max()))
+    ll = best.ll
+    w = np.exp((ll - ll.max()) / max(correlated_px, 1e-6))
+    w /= w.sum()
+    k = int(np.argmax(ll))
+    mean = float((w * heights).sum())
+    sd_curve = math.sqrt(max(float((w * (heights - mean) ** 2).sum()), 0.0))
+    step = float(heights[min(k + 1, len(heights) - 1)] - heights[max(k - 1, 0)]) / 2.0
+    h_best = float(heights[k])
+    sd = math.sqrt(sd_curve ** 2 + (step / 2.0) ** 2 + (h_best * e) ** 2)
+    ok = (best.zone_px >= min_zone_px and 0 < k < len(heights) - 1 and sd <= max_rel_std * h_best)
+    per_px = (h_best * shape).astype(np.float32)
+    # the object's height as its painted median (a flat top: H; the network's shape: H times its median share)
+    h_med = float(np.median(per_px[footprint])) if footprint.any() else h_best
+    sd_med = sd * h_med / h_best
+    record = RenderedObject(label, n_px, best.zone_px, h_med if ok else math.nan, sd_med if ok else math.nan,
+                            family if ok else "", h_best / h_obj if ok else math.nan, best.zone_px,
+                            int(spill.sum()) if (ok and trim) else 0)
+    none = np.zeros(own.shape, bool)
+    return _Result(record, crop, footprint if ok else none, spill if (ok and trim) else none, per_px)
+
+
+__all__ = ["RenderSettings", "RenderedHeights", "RenderedObject", "rendered_heights"]
