@@ -1,4 +1,4 @@
-"""Heights from the sun inside predict: per window, the shadow layer, heights measured from shadow runs, and
+"""Heights from the sun inside predict: per window, the shadow layer, heights chosen by rendering shadows, and
 (with ``shadow_fusion``) those heights fused into the network's own objects.
 
 For each window the model has computed (its statistics still per window, before blending,
@@ -9,12 +9,14 @@ For each window the model has computed (its statistics still per window, before 
    checkpoint's ``meta.sun``): learnt there from the training heights' cast shadows, so the area's water and
    dark roofs are not shadows;
 2. ``shadow_height`` — per object the network finds (connected pixels predicted ≥ :data:`OBJECT_MIN_M`), the
-   median height of the shadow runs beside it (:func:`aerialmtl.sun.shadow_heights`), painted over the object;
-   nodata where nothing is measurable (a third of tall objects: shadows on other objects, runs clipped at the
-   window's edge — the neighbouring window, which overlaps, may measure them);
-3. with ``shadow_fusion``, the height and its spread of each measured object move towards the shadow height by
-   inverse-variance weighting (:func:`aerialmtl.sun.fuse_heights`): never outside an object (flat ground is
-   never raised), and the disagreement of the two widens the spread.
+   height whose rendered cast shadow — the whole window's, so occluders and shadows falling on other objects
+   count — best matches the shadow probability (:func:`aerialmtl.sun.rendered_heights`), painted over the
+   object; nodata where the match curve is flat (the shadow hidden, or cut by the window's edge — the
+   neighbouring window, which overlaps, may measure it);
+3. with ``shadow_fusion``, the height and its spread of each measured object move towards the rendered height by
+   inverse-variance weighting (:func:`aerialmtl.sun.fuse_rendered`): never outside an object (flat ground is
+   never raised; pixels the rendering took as the object's spill into its own shadow can only be lowered), and
+   the disagreement of the two widens the spread.
 
 The statistics leave here as they came where the sun is off (``--sun none`` or no sun for the input): the
 maps are then those of a run without the feature, to the bit.
@@ -38,7 +40,7 @@ import torch
 from scipy import ndimage
 
 from aerialmtl.models.mc_dropout import McStatistics
-from aerialmtl.sun import ShadowModel, Sun, fuse_heights, shadow_heights
+from aerialmtl.sun import RenderSettings, ShadowModel, Sun, fuse_rendered, rendered_heights
 from aerialmtl.sun.colour import unit_rgb
 
 #: Pixels the network predicts at least this high (metres) form its objects.
@@ -115,20 +117,23 @@ def window_layers(p: Probability, height: np.ndarray, spread: np.ndarray | None,
                   threshold: float, fuse: bool) -> _Window:
     """The layers of one window from its shadow probability ``p`` (any source): ``height``/``spread`` float32
     (h, w) metres (the network's), ``sun`` on the window's grid, ``gsd_m`` metres, the probability ``threshold``
-    from which a pixel is shadow; the fused height and spread only with ``fuse``, a spread and a measure.
+    from which an object's pixel is a candidate for its spill; the fused height and spread only with ``fuse``, a
+    spread and a measure.
 
-    Objects and shadow runs are found where the probability is data only: a pixel without one is nodata in both
-    layers, never "no shadow".
+    Objects are found, and their rendered shadows compared, where the probability is data only: a pixel without
+    one is nodata in both layers, never "no shadow", and no evidence either way.
     """
     if not p.made.any():
         return _Window(np.zeros(height.shape, np.float32), p.made, np.zeros(height.shape, np.float32),
                        np.zeros(height.shape, bool), None, p.why)
     objects, _ = ndimage.label((height >= OBJECT_MIN_M) & p.made)
-    measured = shadow_heights(p.prob, gsd_m, sun, objects, height=height, threshold=threshold)
+    # the probability as it is; the decision threshold (chosen on the training area) marks spill candidates
+    measured = rendered_heights(p.prob, gsd_m, sun, objects, np.where(p.made, height, np.float32(np.nan)),
+                                RenderSettings(threshold=threshold))
     has = np.isfinite(measured.height) & p.made
     fused = None
-    if fuse and spread is not None and has.any():
-        fused = fuse_heights(height, spread, measured, objects)
+    if fuse and spread is not None and (has.any() or measured.spill.any()):
+        fused = fuse_rendered(height, spread, measured)
     return _Window(np.where(p.made, p.prob, np.float32(0.0)).astype(np.float32), p.made,
                    np.where(has, measured.height, 0.0).astype(np.float32), has, fused, p.why)
 

@@ -1,4 +1,4 @@
-"""Fuse shadow heights into a height map, inside objects only, weighted by both spreads."""
+"""Fuse shadow heights into a height map, inside objects only, weighted by both spreads (never raising flat ground)."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import numpy as np
 
 from aerialmtl.errors import InputError
 from aerialmtl.sun.heights import ShadowHeights
+from aerialmtl.sun.render import RenderedHeights
 
 #: Least shadow spread used as a weight, metres (a zero spread would override the network entirely).
 MIN_SHADOW_STD_M = 0.1
@@ -60,4 +61,53 @@ def fuse_heights(height: np.ndarray, std: np.ndarray, shadow: ShadowHeights,
     var = 1.0 / (w1 + w2) + w1 * w2 * (hp - hs_p) ** 2 / (w1 + w2) ** 2
     out_h[use] = np.where(ok, fused, hp).astype(np.float32)
     out_s[use] = np.where(ok, np.sqrt(var), sp).astype(np.float32)
+    return out_h, out_s
+
+
+#: The spread given to "ground" where rendering took an object's pixels as its spill into its own shadow, metres.
+SPILL_STD_M = 1.0
+
+
+def fuse_rendered(height: np.ndarray, std: np.ndarray, rendered: RenderedHeights,
+                  spill_std_m: float = SPILL_STD_M) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse heights chosen by rendering (:func:`aerialmtl.sun.render.rendered_heights`) into a height map.
+
+    On each measured object's pixels the rendered height ``hs ± ss`` (per pixel) and the network's ``h ± s`` are
+    combined by inverse variance, as :func:`fuse_heights` does: ``h_f = (h/s² + hs/ss²) / (1/s² + 1/ss²)``, with
+    the spread of the two-part mixture, which grows with their disagreement. On the object's spill (its pixels
+    the rendering took as ground in its own shadow) the second estimate is the ground, ``0 ± spill_std_m``, and it
+    can only lower the pixel. Flat ground is never raised: every other pixel keeps the network's values exactly.
+
+    Args:
+        height: float (H, W) network heights, metres (NaN = nodata). std: float (H, W) their spread, metres.
+        rendered: the rendered heights of the same map. spill_std_m: the ground's spread on spill pixels.
+
+    Returns:
+        ``(height, std)`` float32 (H, W).
+    """
+    h = np.asarray(height, dtype=np.float32)
+    s = np.asarray(std, dtype=np.float32)
+    if not h.shape == s.shape == rendered.height.shape:
+        raise InputError(f"'height', 'std' and the rendered heights must share one (H, W) shape, got {h.shape}, "
+                         f"{s.shape} and {rendered.height.shape}")
+    out_h, out_s = h.copy(), s.copy()
+    ok = np.isfinite(h) & np.isfinite(s) & (s > 0)
+    top = ok & np.isfinite(rendered.height) & np.isfinite(rendered.std)
+    spill = ok & rendered.spill & ~top
+    for where, est, est_sd in ((top, rendered.height, rendered.std), (spill, None, None)):
+        if not where.any():
+            continue
+        hp, sp = h[where].astype(np.float64), s[where].astype(np.float64)
+        if est is None or est_sd is None:
+            hs, ss = np.zeros_like(hp), np.full_like(hp, float(spill_std_m))
+        else:
+            hs = est[where].astype(np.float64)
+            ss = np.maximum(est_sd[where].astype(np.float64), MIN_SHADOW_STD_M)
+        w1, w2 = 1.0 / sp ** 2, 1.0 / ss ** 2
+        fused = (w1 * hp + w2 * hs) / (w1 + w2)
+        var = 1.0 / (w1 + w2) + w1 * w2 * (hp - hs) ** 2 / (w1 + w2) ** 2
+        if est is None:
+            fused = np.minimum(fused, hp)
+        out_h[where] = fused.astype(np.float32)
+        out_s[where] = np.sqrt(var).astype(np.float32)
     return out_h, out_s

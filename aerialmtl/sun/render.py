@@ -119,8 +119,8 @@ class RenderedHeights(ShadowHeights):
 def _crop(bbox: tuple[slice, slice], shape: tuple[int, int], sun: Sun, down_px: int, up_px: int,
           side_px: int) -> tuple[slice, slice]:
     """The box around an object's bounding box that holds its longest shadow (``down_px`` pixels away from the
-    sun) and the occluders that can shade that shadow (``up_px`` pixels towards the sun), ``side_px`` across."""
-    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
+    sun) and the occluders that can shade that shadow (``up_px`` pixels towards the sun), ``side_px`` across.
+    """
     d_row, d_col = -math.cos(math.radians(sun.azimuth_deg)), math.sin(math.radians(sun.azimuth_deg))
     (r0, r1), (c0, c1) = (bbox[0].start, bbox[0].stop), (bbox[1].start, bbox[1].stop)
 
@@ -132,7 +132,6 @@ def _crop(bbox: tuple[slice, slice], shape: tuple[int, int], sun: Sun, down_px: 
             return max(0, lo - down), min(n, hi + up)
         return max(0, lo - up), min(n, hi + down)
 
-    _ = (rows_dom, step, slope)
     rr = extend(r0, r1, d_row, shape[0])
     cc = extend(c0, c1, d_col, shape[1])
     return slice(*rr), slice(*cc)
@@ -158,13 +157,12 @@ class _Curve(NamedTuple):
     zone_px: int
 
 
-def _walk_up(sun: Sun, n: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """(row, column) offsets int64 (n + 1,) of the digital line towards the sun, and the metres of ray per step
-    divided by tan(elevation)'s inverse: the drop of the sun ray per step, as :func:`~aerialmtl.sun.cast.sweep_stack`."""
+def _walk_up(sun: Sun, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) offsets int64 (n + 1,) of the digital line from a pixel towards the sun, step 0 … n."""
     rows_dom, step, slope = sun_steps(sun.azimuth_deg)
     along = step * np.arange(n + 1, dtype=np.int64)
     cross = line_offsets(n + 1, slope)
-    return (along, cross, 0.0) if rows_dom else (cross, along, 0.0)
+    return (along, cross) if rows_dom else (cross, along)
 
 
 def _curve(shape: np.ndarray, footprint: np.ndarray, receive: np.ndarray, others_surface: np.ndarray,
@@ -180,11 +178,11 @@ def _curve(shape: np.ndarray, footprint: np.ndarray, receive: np.ndarray, others
     """
     from aerialmtl.sun.kernels import shade_thresholds
 
-    rows_dom, _, slope = sun_steps(sun.azimuth_deg)
+    _, _, slope = sun_steps(sun.azimuth_deg)
     drop = gsd_m * math.hypot(1.0, slope) * sun.tan_elevation
     top = float(heights[-1])
     n = int(math.ceil(top / drop)) + 1
-    off_r, off_c, _ = _walk_up(sun, n)
+    off_r, off_c = _walk_up(sun, n)
     # −(steps to the footprint up-sun) × drop for every pixel in one sweep: where each walk may start
     reach = _sweep(np.where(footprint, np.float32(0.0), np.float32(-np.inf)), gsd_m, sun)
     with np.errstate(invalid="ignore"):
@@ -279,7 +277,7 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
     out_h = np.full(labels.shape, np.nan, np.float32)
     out_s = np.full(labels.shape, np.nan, np.float32)
     spill_all = np.zeros(labels.shape, bool)
-    records = []
+    records: list[ShadowObject] = []
     for label in sorted(results):
         res = results[label]
         records.append(res.record)
@@ -292,7 +290,7 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
 
 
 def _down_sun_edge(inside: np.ndarray, gsd_m: float, sun: Sun, width_m: float) -> np.ndarray:
-    """bool (H, W): pixels of ``inside`` from which walking away from the sun leaves it within ``width_m``."""
+    """Bool (H, W): pixels of ``inside`` from which walking away from the sun leaves it within ``width_m``."""
     away = Sun((sun.azimuth_deg + 180.0) % 360.0, sun.elevation_deg)
     # one sweep with the sun reversed: −(steps down-sun to the nearest outside pixel) × drop
     reach = _sweep(np.where(inside, np.float32(-np.inf), np.float32(0.0)), gsd_m, away)
@@ -376,8 +374,8 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
         shapes = {"flat": fp.astype(np.float32),
                   "shape": np.where(fp, np.clip(base / np.float32(h90), 0.0, 1.0), 0.0).astype(np.float32)}
         for family in families:
-            curves.append((_curve(shapes[family], fp, recv, others_surface, kc, lpc, lqc, heights, gsd_m, sun, tol_m), fp,
-                           trim, family, shapes[family]))
+            curve = _curve(shapes[family], fp, recv, others_surface, kc, lpc, lqc, heights, gsd_m, sun, tol_m)
+            curves.append((curve, fp, trim, family, shapes[family]))
     best, footprint, trim, family, shape = max(curves, key=lambda c: float(c[0].ll.max()))
     ll = best.ll
     w = np.exp((ll - ll.max()) / max(correlated_px, 1e-6))

@@ -16,7 +16,7 @@ the truth. Per bin of reference height: objects, share measured, median relative
 
 Usage::
 
-    OMP_NUM_THREADS=1 python -m experiments.heights_from_the_sun.annecy [--data ../shared/data/flair_annecy] [--json out.json]
+    OMP_NUM_THREADS=1 python -m experiments.heights_from_the_sun.annecy [--data DIR] [--json out.json]
 """
 
 from __future__ import annotations
@@ -83,7 +83,8 @@ def summarise(rows: list[dict[str, float]]) -> list[dict[str, Any]]:
         sel = [r for r in rows if lo <= r["ref"] < hi]
         got = [r for r in sel if math.isfinite(r["est"])]
         rel = [r["est"] / r["ref"] - 1.0 for r in got]
-        out.append({"bin": f"{lo:g}-{hi:g} m", "objects": len(sel), "measured": len(got) / len(sel) if sel else math.nan,
+        share = len(got) / len(sel) if sel else math.nan
+        out.append({"bin": f"{lo:g}-{hi:g} m", "objects": len(sel), "measured": share,
                     "median_rel": float(np.median(rel)) if rel else math.nan,
                     "mae": float(np.mean([abs(r["est"] - r["ref"]) for r in got])) if got else math.nan})
     return out
