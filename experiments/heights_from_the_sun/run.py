@@ -1,12 +1,12 @@
-"""Heights from the sun on ``autzen_west`` (issue 45): the recipe against the recipe with the shadow heights fused
-into its objects, 3 seeds, the sample area's fixed split; the validation block chooses, the held-out block reports.
+"""Heights from the sun on ``autzen_west``: the recipe against the recipe with the shadow heights fused into its
+objects, 3 seeds, the sample area's fixed split; the validation block chooses, the held-out block reports.
 
 Every step is the user's command (``aerialmtl tile``, ``train``, ``predict``), so the study measures the product
 path; it resumes where it stopped (a finished step's output is kept). Arms:
 
 - ``recipe``: ``predict --sun none`` — the maps of today's recipe, to the bit;
 - ``shadows``: ``predict`` with the default ``--sun auto`` (the training fit: the same flight) and
-  ``--shadow-fusion``.
+  ``--shadow-fusion``: each object's height chosen by rendering its cast shadow (:mod:`aerialmtl.sun.render`).
 
 Usage::
 
@@ -142,7 +142,8 @@ def _reference_on(grid_file: Path) -> np.ndarray:
 
 def shadow_objects(pred: Path) -> dict[str, Any]:
     """Per object of the reference nDSM (≥ 2 m, ≥ 20 m²) on the prediction grid: its median shadow height
-    against its median reference height, per height bin, and the share of objects measured.
+    against its median reference height, per height bin, and the share of objects measured; ``open_ground``: the
+    share of open ground (reference < 1 m and ≥ 2 m from any pixel ≥ 2 m) where ``shadow_height.tif`` has a value.
     """
     from scipy import ndimage
 
@@ -153,6 +154,9 @@ def shadow_objects(pred: Path) -> dict[str, Any]:
     with rasterio.open(pred / "height.tif") as src:
         ref = np.where(src.read(1) == src.nodata, np.nan, ref)  # the block's pixels only (--aoi: nodata elsewhere)
     labels, n = ndimage.label(np.nan_to_num(ref) >= 2.0)
+    gsd = abs(rasterio.open(pred / "height.tif").res[0])
+    far = ndimage.distance_transform_edt(labels == 0) * gsd >= 2.0
+    open_ground = np.isfinite(ref) & (ref < 1.0) & far
     rows = []
     for k in range(1, n + 1):
         m = labels == k
@@ -162,7 +166,9 @@ def shadow_objects(pred: Path) -> dict[str, Any]:
         s = sh[m]
         s = s[np.isfinite(s)]
         rows.append((r, float(np.median(s)) if s.size >= 0.5 * m.sum() else math.nan))
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {"open_ground": float(np.isfinite(sh[open_ground]).mean()) if open_ground.any() else None}
+    tall = [(r, s) for r, s in rows if r >= 10.0 and math.isfinite(s)]
+    out["median_rel_error_10m"] = float(np.median([s / r - 1.0 for r, s in tall])) if tall else None
     for lo, hi in zip(BINS[2:-1], BINS[3:]):
         sel = [(r, s) for r, s in rows if lo <= r < hi]
         got = [(r, s) for r, s in sel if math.isfinite(s)]
@@ -218,11 +224,15 @@ def table(out: Path, seeds: list[int]) -> str:
                       "| bin | objects | measured | median error | MAE | median relative error |",
                       "|---|---|---|---|---|---|"]
             for key in objs[0]:
+                if not isinstance(objs[0][key], dict):
+                    continue
                 o = [x[key] for x in objs]
                 lines.append(f"| {key} m | {o[0]['objects']} | {_fmt([x['measured'] for x in o])} | "
                              f"{_fmt([x['median_error_m'] for x in o], True)} | {_fmt([x['mae_m'] for x in o])} | "
                              f"{_fmt([x['median_rel_error'] for x in o])} |")
-            lines.append("")
+            lines += ["", f"objects ≥ 10 m, median relative error of the shadow height: "
+                      f"{_fmt([x['median_rel_error_10m'] for x in objs], True)}; open ground with a shadow height: "
+                      f"{_fmt([x['open_ground'] for x in objs])}", ""]
     return "\n".join(lines)
 
 
