@@ -229,6 +229,17 @@ class Predictor:
                 warnings.warn(f"{src.name}: no shadow features: {choice.note}", UserWarning, stacklevel=2)
         return self._suns[key]
 
+    def sun_off(self, src: OrthoInput, note: str) -> None:
+        """Switch the shadow layers off for ``src`` after :meth:`sun_for` chose its sun: its own shadows disagree
+        (:meth:`aerialmtl.inference.shadows.ShadowStep.check_sun`). Said once; ``prediction.json`` records it.
+        """
+        key = str(src.path)
+        before = self._suns.get(key)
+        if before is not None and not before.on:
+            return
+        self._suns[key] = SunChoice(None, None, None, "checked on the orthophoto", note)
+        warnings.warn(f"{src.name}: no shadow features: {note}", UserWarning, stacklevel=2)
+
     @property
     def model(self) -> torch.nn.Module:
         """The prepared model the runner predicts with."""

@@ -48,6 +48,16 @@ OBJECT_MIN_M = 2.0
 #: A window whose valid pixels' colours all lie within this span (unit RGB, every band: one 8-bit level) has no
 #: contrast to find a shadow in (all black, a constant fill): its shadow layers are nodata.
 MIN_CONTRAST = 1.0 / 255.0
+#: Suns taken on trust, checked on the orthophoto itself: the training fit (same flight by place alone) and a
+#: TIFF ``DateTime`` (often when the file was written). ``--sun``, ``--acquired`` and a STAC time always win.
+CHECKED_SOURCES = ("training fit", "TIFF DateTime")
+#: A sun whose azimuth lies further than this (degrees) from the one the orthophoto's own shadows give is wrong
+#: for it: the shadow layers are switched off for that orthophoto, with a warning giving both.
+CHECK_AZIMUTH_DEG = 10.0
+#: Pixels predicted ≥ :data:`OBJECT_MIN_M` (and as many on the ground) a window needs to check the sun.
+CHECK_MIN_PX = 1500
+#: Least correlation of the target's best sun (:func:`aerialmtl.sun.fit_sun`) for its azimuth to be trusted.
+CHECK_MIN_SCORE = 0.15
 
 
 def unit_colours(data: np.ndarray, rescale: tuple[float, float] | None, train_dtype: str | None) -> np.ndarray:
@@ -154,6 +164,50 @@ class ShadowStep:
         self.model, self.gsd_m, self.fuse = model, float(gsd_m), bool(fuse)
         self.workers = max(1, int(workers))
         self._warned: set[tuple[str, str]] = set()
+        #: per input checked on its own shadows: ``None`` (the sun holds) or why the layers are off for it
+        self.checked: dict[str, str | None] = {}
+
+    def check_sun(self, key: str, sun: Sun, source: str, stats: McStatistics, rgb: list[np.ndarray],
+                  valid: torch.Tensor) -> str | None:
+        """Check a sun taken on trust (:data:`CHECKED_SOURCES`) on the orthophoto ``key``'s own shadows, once.
+
+        On the first window with enough objects and ground (:data:`CHECK_MIN_PX` each), the sun whose cast shadows
+        of the predicted heights best match the image's shadow score (:func:`aerialmtl.sun.fit_sun`) gives the
+        azimuth the shadows fall at; its elevation is not used (the network's heights scale it). Windows too
+        empty to tell leave the check for the next batch.
+
+        Returns:
+            ``None`` while the sun holds (or cannot be checked yet), else one line saying why it is off for this
+            orthophoto (the caller switches the layers off and records it).
+        """
+        if key in self.checked:
+            return self.checked[key]
+        if source not in CHECKED_SOURCES or stats.height_mean is None:
+            self.checked[key] = None
+            return None
+        from aerialmtl.sun import fit_sun
+
+        heights = stats.height_mean.detach().float().cpu().numpy()
+        ok_all = valid.cpu().numpy()
+        for n in range(min(len(rgb), heights.shape[0])):
+            ok = ok_all[n] & np.isfinite(heights[n])
+            tall = int((ok & (heights[n] >= OBJECT_MIN_M)).sum())
+            if tall < CHECK_MIN_PX or int(ok.sum()) - tall < CHECK_MIN_PX:
+                continue
+            fit = fit_sun(rgb[n][:3], np.where(ok, heights[n], np.nan), self.gsd_m, ok)
+            found = fit.sun or fit.best
+            if found is None or not (fit.score >= CHECK_MIN_SCORE):
+                continue
+            diff = abs((found.azimuth_deg - sun.azimuth_deg + 180.0) % 360.0 - 180.0)
+            note = None
+            if diff > CHECK_AZIMUTH_DEG:
+                note = (f"its own shadows fall towards azimuth {found.azimuth_deg:.0f}° on the grid, {diff:.0f}° "
+                        f"from the sun the {source} gives ({sun.azimuth_deg:.0f}°): another flight or time; the "
+                        "shadow layers are off for it. Pass --acquired TIME (the flight's date and time) or --sun "
+                        "AZIMUTH,ELEVATION to map them")
+            self.checked[key] = note
+            return note
+        return None
 
     def _window(self, rgb: np.ndarray, ok: np.ndarray, height: np.ndarray, spread: np.ndarray | None,
                 sun: Sun, workers: int = 1) -> _Window:

@@ -90,6 +90,10 @@ class StripModel(Protocol):
         """The sun of ``src``, or ``None`` when the shadow features are off."""
         ...
 
+    def sun_off(self, src: OrthoInput, note: str) -> None:
+        """Switch the shadow layers off for ``src`` (its own shadows disagree with its sun), said once."""
+        ...
+
 
 def compute_strip(p: StripModel, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None],
                   progress: bool = True) -> StripResult:
@@ -220,6 +224,11 @@ class _StripLoop:
                 data = w.data.numpy() if isinstance(w.data, torch.Tensor) else w.data
                 rgb.append(unit_colours(data[:3], self.src.rescale, self.p.meta.input_dtype))
         assert self.p.shadows is not None
+        if sun is not None and choice is not None:  # a sun taken on trust: checked on the orthophoto's shadows
+            off = self.p.shadows.check_sun(str(self.src.path), sun, choice.source, stats, rgb, valid)
+            if off is not None:
+                self.p.sun_off(self.src, off)
+                sun = None
         self.p.shadows.apply(stats, rgb, valid, sun, self.src.name)
         self.timings["shadows"] = self.timings.get("shadows", 0.0) + time.perf_counter() - t0
 

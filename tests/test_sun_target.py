@@ -1,0 +1,97 @@
+"""The sun checked on the orthophoto being mapped: a later flight of the same town, with no time tag, must not get
+the training flight's sun silently (issue 58, item 5). Two synthetic towns at the same place, each under its own
+known sun; the model reads the true heights from a fourth band (tests/test_sun_predict.py's HeightBandModel)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from aerialmtl.data.synth import CityStyle, synthesize_city
+from aerialmtl.inference.jobs import predict_raster
+from aerialmtl.sun import ShadowModel, Sun
+from aerialmtl.sun.record import TrainingSun
+from tests.test_sun_predict import HEIGHT_SCALE, HeightBandModel, _meta
+
+AZIMUTH = 150.0
+
+
+def _town(out: Path, azimuth: float, seed: int) -> tuple[Path, np.ndarray, np.ndarray]:
+    """A 384 px city at 0.5 m under the sun (azimuth, 45°), at one place, as RGB + nDSM band; (ortho, rgb, nDSM)."""
+    style = replace(CityStyle.plain(), sun_azimuth=(azimuth, azimuth), sun_elevation=(45.0, 45.0))
+    res = synthesize_city(out / f"town{seed}", size=384, seed=seed, gsd=0.5, style=style)
+    with rasterio.open(res.ortho) as src:
+        rgb, profile = src.read(), src.profile
+    with rasterio.open(res.ndsm) as src:
+        ndsm = src.read(1)
+    band4 = np.clip(np.round(ndsm * HEIGHT_SCALE) + 1, 1, 255).astype(np.uint8)
+    profile.pop("photometric", None)
+    profile.update(count=4)
+    ortho = out / f"ortho4_{seed}.tif"
+    with rasterio.open(ortho, "w", **profile) as dst:
+        dst.write(np.concatenate([rgb, band4[None]]))
+    return ortho, rgb, ndsm
+
+
+@pytest.fixture(scope="module")
+def towns(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    """The training town under (150°, 45°), a second town at the same place under (164°, 45°), and the training
+    sun record of the first (its true sun and its shadow classifier)."""
+    out = tmp_path_factory.mktemp("towns")
+    first, rgb, ndsm = _town(out, AZIMUTH, 3)
+    second, _, _ = _town(out, AZIMUTH + 14.0, 5)
+    sun = Sun(AZIMUTH, 45.0)
+    model = ShadowModel().fit(rgb, ndsm, 0.5, sun)
+    with rasterio.open(first) as src:
+        bounds, crs = tuple(src.bounds), src.crs.to_string()
+    training = TrainingSun(clear=True, reason="sun fitted (test)", azimuth_deg=AZIMUTH, elevation_deg=45.0,
+                           grid_azimuth_deg=AZIMUTH, score=0.5, sharpness=0.5, crs=crs,
+                           bounds=bounds,  # type: ignore[arg-type]
+                           shadow_model=model.to_dict())
+    return {"first": first, "second": second, "training": training}
+
+
+def _predict(ortho: Path, training: TrainingSun, out: Path, **settings: object) -> dict[str, object]:
+    meta = _meta(training)
+    predict_raster(ortho, (HeightBandModel(meta), meta), out, mc=1, window=384, overlap=32,  # type: ignore[arg-type]
+                   precision="fp32", engine="torch", progress=False, **settings)  # type: ignore[arg-type]
+    return dict(json.loads((out / "prediction.json").read_text()))
+
+
+def _has_values(folder: Path, name: str) -> bool:
+    with rasterio.open(folder / f"{name}.tif") as src:
+        data = src.read(1, masked=True)
+    return bool((~np.ma.getmaskarray(data)).any())
+
+
+def test_a_later_flight_of_the_same_place_does_not_get_the_training_sun(towns: dict[str, object],
+                                                                        tmp_path: Path) -> None:
+    """No time on the second town: by place it is "the same flight", but its own shadows fall 14° away: the layers
+    are off for it, a warning gives both azimuths and the fix, and prediction.json says why."""
+    with pytest.warns(UserWarning, match=r"own shadows fall towards azimuth 1[56]\d°.*--acquired"):
+        rec = _predict(towns["second"], towns["training"], tmp_path / "second")  # type: ignore[arg-type]
+    sun = rec["sun"]
+    assert isinstance(sun, dict)
+    assert sun["azimuth_deg"] is None and sun["source"] == "checked on the orthophoto"
+    assert not _has_values(tmp_path / "second", "shadow_height")
+
+
+def test_the_same_flight_keeps_its_sun(towns: dict[str, object], tmp_path: Path) -> None:
+    """The training town itself: its own shadows agree with the fit, the layers are made."""
+    rec = _predict(towns["first"], towns["training"], tmp_path / "first")  # type: ignore[arg-type]
+    sun = rec["sun"]
+    assert isinstance(sun, dict) and sun["source"] == "training fit" and sun["azimuth_deg"] == pytest.approx(AZIMUTH)
+    assert _has_values(tmp_path / "first", "shadow")
+
+
+def test_a_sun_given_by_the_user_is_not_overruled(towns: dict[str, object], tmp_path: Path) -> None:
+    """`--sun AZ,EL` wins: no check, the layers are made with it."""
+    rec = _predict(towns["second"], towns["training"], tmp_path / "given", sun="164,45")  # type: ignore[arg-type]
+    sun = rec["sun"]
+    assert isinstance(sun, dict) and sun["source"] == "--sun" and sun["azimuth_deg"] == pytest.approx(164.0)
+    assert _has_values(tmp_path / "given", "shadow")
