@@ -166,6 +166,20 @@ class _Objective:
         return (sm - self.s1 * m1 / self.n) / math.sqrt(self.var * var_m)
 
 
+def azimuth_score(rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, azimuth_deg: float,
+                  valid: ArrayOrList | None = None, elevations: Sequence[float] = tuple(range(10, 81, 5)),
+                  ground_m: float = GROUND_M) -> float:
+    """The objective's best correlation at one azimuth over ``elevations`` (degrees): how well a sun from
+    ``azimuth_deg`` explains the image's shadows with these heights, whatever its elevation (NaN when no sun
+    there casts a shadow on ground). Arguments as :func:`fit_sun`.
+    """
+    f = _Objective(rgb, height, gsd_m, valid, ground_m)
+    f.score([(azimuth_deg, el) for el in elevations])
+    scores = [f(azimuth_deg, el) for el in elevations]
+    finite = [r for r in scores if math.isfinite(r)]
+    return max(finite) if finite else math.nan
+
+
 def _grid(f: _Objective, azs: Sequence[float], els: Sequence[float]) -> tuple[float, float, float]:
     f.score([(az, el) for el in els for az in azs])
     best = (-math.inf, 0.0, 0.0)
