@@ -195,12 +195,13 @@ def test_acquired_at_the_ends_of_the_calendar_is_refused_naming_the_option(when:
 # ---- the STAC item beside the orthophoto --------------------------------------------------------------------------
 @pytest.mark.parametrize("content", [
     "[" * 100_000 + "]" * 100_000,
+    '{"type": "Feature", "properties": {"datetime": "2021-06-01T09:00:00Z", "x": ' + "[" * 200 + "]" * 200 + "}}",
     json.dumps({"type": "Feature", "properties": {"datetime": None, "start_datetime": 5, "end_datetime": 7}}),
     json.dumps({"type": "Feature", "properties": {"datetime": ["2021-06-01T09:00:00Z"]}}),
     json.dumps({"type": "Feature", "properties": {"datetime": "9999-12-31T23:59:59-01:00"}}),
     json.dumps({"type": "Feature", "properties": "2021-06-01"}),
     b"\xff\xfe not text",
-], ids=["nested-100000", "numbers", "a-list", "end-of-calendar", "no-properties-object", "not-utf8"])
+], ids=["nested-100000", "nested-200", "numbers", "a-list", "end-of-calendar", "no-properties-object", "not-utf8"])
 def test_a_hostile_stac_item_beside_is_not_read_and_named(content: str | bytes, towns, tmp_path: Path,
                                                           capsys: pytest.CaptureFixture) -> None:
     """The STAC item is read with limits (size, depth, types): a hostile one is named in a warning and gives no

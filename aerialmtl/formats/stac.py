@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import warnings
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
@@ -247,12 +246,16 @@ def source_item_path(ortho: str | Path) -> Path:
     return Path(str(ortho)).with_suffix(".json")
 
 
-def _json_depth(text: str) -> int:
-    """How deep the arrays and objects of JSON ``text`` nest (strings skipped), without recursion."""
-    bare = re.sub(r'"(?:[^"\\]|\\.)*"', '""', text).encode("utf-8", "replace")
-    raw = np.frombuffer(bare, np.uint8)
-    steps = np.isin(raw, (91, 123)).astype(np.int32) - np.isin(raw, (93, 125)).astype(np.int32)  # [{ and ]}
-    return int(np.cumsum(steps).max()) if steps.size else 0
+def _json_depth(data: Any) -> int:
+    """How deep the arrays and objects of parsed JSON ``data`` nest (a scalar: 0), walked without recursion."""
+    best, todo = 0, [(data, 1)]
+    while todo:
+        node, depth = todo.pop()
+        children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else None
+        if children is not None:
+            best = max(best, depth)
+            todo.extend((child, depth + 1) for child in children)
+    return best
 
 
 def read_source_properties(ortho: str | Path) -> dict[str, Any] | None:
@@ -272,10 +275,14 @@ def read_source_properties(ortho: str | Path) -> dict[str, Any] | None:
             raise ValueError(f"it holds {size:,} bytes, more than the {SOURCE_ITEM_BYTES:,} a STAC item needs")
         with os.fdopen(open_regular(item, follow_links=True), "rb") as fh:
             text = fh.read(SOURCE_ITEM_BYTES + 1).decode("utf-8")
-        if _json_depth(text) > SOURCE_ITEM_DEPTH:
-            raise ValueError(f"it nests arrays and objects more than {SOURCE_ITEM_DEPTH} deep")
-        data = json.loads(text)
-    except (OSError, ValueError, RecursionError) as exc:
+        deep = ValueError(f"it nests arrays and objects more than {SOURCE_ITEM_DEPTH} deep")
+        try:
+            data = json.loads(text)
+        except RecursionError:  # deeper than Python's recursion limit: the decoder stopped before building it
+            raise deep from None
+        if _json_depth(data) > SOURCE_ITEM_DEPTH:
+            raise deep
+    except (OSError, ValueError) as exc:
         warnings.warn(f"STAC item '{item}' beside the orthophoto is not read: {exc}; fix or remove it (its "
                       "acquisition time is not used)", UserWarning, stacklevel=2)
         return None
