@@ -120,7 +120,7 @@ def run_demo(
 
     Layout: ``data/train_town``, ``data/test_town`` (synthetic inputs), ``tiles/`` (training patches),
     ``run/`` (checkpoints, log), ``prediction/`` (COG maps), ``report.json``/``report.md`` (+ plots),
-    ``previews/`` (PNGs).
+    ``previews/`` (PNGs), ``demo.json`` (the settings, each stage's seconds and these paths).
 
     Raises:
         OutputExistsError: ``out_dir`` is not empty and ``overwrite`` is False.
@@ -194,6 +194,7 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     }
     if previews is not None:
         res.paths["previews"] = previews
+    res.paths["record"] = out / "demo.json"
     write_text_atomic(out / "demo.json", json.dumps(
         {"settings": s.__dict__, "timings": res.timings, "paths": {k: str(v) for k, v in res.paths.items()}},
         indent=2))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import click
@@ -54,4 +55,15 @@ def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: i
     click.echo("Outputs:")
     for name, path in res.paths.items():
         click.echo(f"  {name:<11} {path}")
+        if name == "prediction":  # every file it holds, the shadow layers included where the sun was known
+            files = sorted(p.name for p in path.iterdir() if p.is_file())
+            maps = [f for f in files if f.endswith(".tif")]
+            others = [f for f in files if not f.endswith((".tif", ".qml"))]
+            indent = " " * 14
+            click.echo(textwrap.fill(", ".join(maps) + " (each with its QGIS style, .qml)", width=100,
+                                     initial_indent=indent, subsequent_indent=indent))
+            if others:
+                click.echo(indent + ", ".join(others))
+        if name == "summary" and rep.get("plots"):  # evaluate's plots, beside its report
+            click.echo(f"  {'plots':<11} {', '.join(Path(p).name for p in rep['plots'])}")
     click.echo("Open prediction/*.tif in QGIS next to data/test_town/ortho.tif.")
