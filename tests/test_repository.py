@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: What the repository means to hold at its top level (files and folders tracked by git).
 TOP_LEVEL = frozenset({
-    ".ci", ".gitignore", "README.md", "pyproject.toml", "mkdocs.yml", "docs_hooks.py",
+    ".ci", ".gitignore", "LICENSE", "README.md", "pyproject.toml", "mkdocs.yml", "docs_hooks.py",
     "aerialmtl", "bench", "configs", "docs", "experiments", "notebooks", "samples", "tests",
 })
 
