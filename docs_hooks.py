@@ -7,10 +7,10 @@
 * A page that shows a warning, a traceback, ``Sentinel`` or a path of the machine that built the site fails
   the build (:func:`problems`): the notebook pages are run at build time, and a cell that prints a warning
   (a stderr output block) or the build's temporary folder would otherwise be published as it is.
-* The pictures of what the package makes (:func:`site_figures`) are made by the build, not pasted: a reduced
-  demo (a synthetic town, the demo's pipeline with a smaller town and fewer steps) and the small-area recipe
-  on the sample area ``samples/autzen_west`` with a short training; the pages show them from
-  :data:`FIGURES_DIR`. They cost about a minute or two on 2 CPU cores (the build prints each stage's time).
+* The pictures of what the package makes (:func:`site_figures`) are made by the build, not pasted: the
+  small-area recipe on the sample area ``samples/autzen_west`` with a short training of the demo's small
+  network; the pages show them from :data:`FIGURES_DIR`. About a minute on 2 CPU cores (the build logs it);
+  :data:`FIGURES_CACHE_ENV` keeps them between builds.
 * The notebook's kernel inherits :data:`NOTEBOOK_WARNINGS` (``PYTHONWARNINGS``, set by :func:`on_config`):
   the one warning a barely trained model may give on the page ("no building pixel", when it found no
   building) is left out there, so that the notebook's cells need no warning-capture code; any other
@@ -106,20 +106,23 @@ def problems(html: str) -> list[str]:
 # ---- the pictures of what the package makes ----------------------------------------------------------
 #: Site folder of the figures the build makes (pages link ``images/built/NAME.png``).
 FIGURES_DIR = "images/built"
-#: The synthetic towns of the site's pictures: the demo's pipeline and network (``aerialmtl demo``), smaller
-#: towns (pixels of 0.25 m) and a short training, validated once at its end.
-DOCS_TOWN = {"train_size": 384, "test_size": 256, "patch": 64, "stride": 32, "steps": 200, "mc": 8}
 #: The small-area recipe on samples/autzen_west, shortened for the site: patches, stride, steps, MC samples.
+#: One short training (about half a minute of CPU) makes every figure of the site.
 DOCS_AREA = {"size": 64, "stride": 32, "steps": 200, "mc": 8}
 #: The figures :func:`site_figures` makes.
-FIGURE_NAMES = ("demo_maps.png", "demo_overview.png", "qgis_layers.png", "area_maps.png",
-                "area_height_reliability.png", "area_sparsification.png")
+FIGURE_NAMES = ("area_maps.png", "qgis_layers.png", "area_height_reliability.png", "area_sparsification.png")
 #: A folder to keep the figures in between builds (``mkdocs serve`` while writing, a second build): when it
 #: holds all of :data:`FIGURE_NAMES` they are read from it instead of made again. Unset: made every build.
 FIGURES_CACHE_ENV = "AERIALMTL_DOCS_FIGURES"
 #: ``PYTHONWARNINGS`` of the notebook's kernel (see the module docstring).
 NOTEBOOK_WARNINGS = "ignore:no building pixel in:UserWarning"
 SAMPLE = REPO / "samples" / "autzen_west"
+#: Width of the figures in inches at :data:`DPI`: about the text column's width at a 1280-px window, so that a
+#: font of N points shows N pixels high (11 px at least, tests/test_docs.py).
+WIDTH_IN = 10.0
+DPI = 72
+#: Font sizes (points) of the figures: titles, labels and ticks, all readable at :data:`WIDTH_IN`.
+TITLE_PT, LABEL_PT, TICK_PT = 14, 13, 12
 _FIGURES: dict[str, bytes] = {}
 #: What the build's runs measured, for the figures' titles and the build's log.
 RUN_NOTES: dict[str, str] = {}
@@ -137,70 +140,74 @@ def _png(fig: Any, dpi: float) -> bytes:
     return buf.getvalue()
 
 
-def products_figure(pred_dir: Path, ortho: Path, title: str, crop_to_valid: bool = False) -> Any:
-    """One row: the orthophoto, predicted height, its spread, the classes (if predicted) and the unfamiliarity,
-    each in the colours of the QGIS style ``predict`` writes beside it, with its unit.
+def reference_height(grid: Any, dsm: Path, dtm: Path) -> Any:
+    """The lidar's height above ground (DSM − DTM, metres, NaN where either is nodata) on ``grid`` (a
+    :class:`aerialmtl.io.align.Grid`: the display grid of a prediction), averaged from the lidar's cells.
+    """
+    import numpy as np
+    import rasterio
+    from rasterio.warp import Resampling, reproject
+
+    out = []
+    for path in (dsm, dtm):
+        with rasterio.open(path) as src:
+            data = np.full((grid.height, grid.width), np.nan, np.float32)
+            reproject(src.read(1, masked=True).filled(np.nan).astype(np.float32), data, src_transform=src.transform,
+                      src_crs=src.crs, src_nodata=np.nan, dst_transform=grid.transform, dst_crs=grid.crs,
+                      dst_nodata=np.nan, resampling=Resampling.average)
+            out.append(data)
+    return np.clip(out[0] - out[1], 0, None)
+
+
+def products_figure(pred_dir: Path, ortho: Path, title: str, reference: tuple[Path, Path] | None = None) -> Any:
+    """Two rows of two: the orthophoto, the lidar's height (``reference``: DSM and DTM, if given), the predicted
+    height on the same colour scale, and its spread, cropped to the predicted pixels, each with its unit;
+    the height colours are those of the QGIS style ``predict`` writes beside ``height.tif``.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
-    import rasterio
-    from rasterio.enums import Resampling
 
     from aerialmtl.evaluation.maps import layer_cmap, load_prediction_maps
-    from aerialmtl.formats.prediction import UNFAMILIARITY, PredictionFolder
 
     maps = load_prediction_maps(pred_dir, ortho=ortho, max_side=900)
-    panels: list[tuple[str, Any, str]] = [("orthophoto", np.nan_to_num(maps.rgb, nan=1.0), "")]
-    panels += [(t, maps.layers[k], k) for k, t in (("height", "height (m above ground)"),
-                                                    ("height_std", "height spread (m)")) if k in maps.layers]
-    if maps.classes is not None:
-        panels.append(("classes", maps.classes, "classes"))
-    path = PredictionFolder(pred_dir).layer_path(UNFAMILIARITY)
-    if path.exists():
-        with rasterio.open(path) as src:
-            u = src.read(1, masked=True, out_shape=(maps.grid.height, maps.grid.width), resampling=Resampling.average)
-        panels.append(("unfamiliarity", np.ma.filled(u.astype(np.float32), np.nan), UNFAMILIARITY))
-    rows, cols = np.nonzero(np.isfinite(maps.layers["height"]))
-    crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1)) if crop_to_valid else \
-        (slice(None), slice(None))
-    h, w = maps.layers["height"][crop].shape
-    cols = 3 if len(panels) > 4 else 2  # two rows: panels wide enough to read in the text column
-    rows = -(-len(panels) // cols)
-    side = 3.6
-    fig, grid = plt.subplots(rows, cols, figsize=(side * cols, rows * (side * h / w + 0.9) + 0.4),
+    height = maps.layers["height"]
+    panels: list[tuple[str, Any, str]] = [("the orthophoto", np.nan_to_num(maps.rgb, nan=1.0), "")]
+    if reference is not None:
+        panels.append(("the lidar's height (reference)", reference_height(maps.grid, *reference), "height"))
+    panels.append(("predicted height", height, "height"))
+    if "height_std" in maps.layers:
+        panels.append(("its spread (MC dropout)", maps.layers["height_std"], "height_std"))
+    rows, cols = np.nonzero(np.isfinite(height))
+    crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    h, w = height[crop].shape
+    ncols = 2
+    nrows = -(-len(panels) // ncols)
+    side = WIDTH_IN / ncols
+    fig, grid = plt.subplots(nrows, ncols, figsize=(WIDTH_IN, nrows * (side * h / w + 1.3) + 0.6),
                              layout="constrained", squeeze=False)
     axes = grid.ravel()
     for ax in axes[len(panels):]:
         ax.set_axis_off()
+    top = float(np.nanpercentile(height, 99.5))
+    if reference is not None:
+        top = max(top, float(np.nanpercentile(panels[1][1][crop], 99.5)))
     for ax, (name, data, key) in zip(axes, panels, strict=False):
         ax.set_axis_off()
-        ax.set_title(name, fontsize=10)
+        ax.set_title(name, fontsize=TITLE_PT)
         if key == "":
-            ax.imshow(data[crop], interpolation="nearest")
-        elif key == "classes":
-            from matplotlib.colors import ListedColormap
-
-            assert maps.scheme is not None
-            k = maps.scheme.num_classes
-            ax.imshow(np.ma.masked_greater_equal(data[crop], k), interpolation="nearest", vmin=-0.5, vmax=k - 0.5,
-                      cmap=ListedColormap(np.array(maps.scheme.colors, float) / 255))
-            from matplotlib.patches import Patch
-
-            ax.legend(handles=[Patch(facecolor=np.array(c) / 255, edgecolor="k", label=n)
-                               for c, n in zip(maps.scheme.colors, maps.scheme.names, strict=True)],
-                      loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
-        else:
-            vals = data[np.isfinite(data)]
-            vmax = float(np.percentile(vals, 99)) if vals.size else 1.0
-            im = ax.imshow(np.ma.masked_invalid(data[crop]), cmap=layer_cmap(key), vmin=0, vmax=vmax or 1.0,
-                           interpolation="nearest")
-            bar = fig.colorbar(im, ax=ax, orientation="horizontal", fraction=0.05, pad=0.03)
-            bar.set_label("higher = less like training" if key == UNFAMILIARITY else name, fontsize=8)
-            bar.ax.tick_params(labelsize=7)
-    fig.suptitle(title, fontsize=10)
+            im = ax.imshow(data[crop], interpolation="nearest")
+            fig.colorbar(im, ax=ax, orientation="horizontal", fraction=0.05, pad=0.02).ax.set_visible(False)  # same size
+            continue
+        vmax = top if key == "height" else float(np.nanpercentile(data[crop], 99))
+        im = ax.imshow(np.ma.masked_invalid(data[crop]), cmap=layer_cmap(key), vmin=0, vmax=vmax or 1.0,
+                       interpolation="nearest")
+        bar = fig.colorbar(im, ax=ax, orientation="horizontal", fraction=0.05, pad=0.02)
+        bar.set_label("metres above ground" if key == "height" else "metres", fontsize=LABEL_PT)
+        bar.ax.tick_params(labelsize=TICK_PT)
+    fig.suptitle(title, fontsize=TITLE_PT)
     return fig
 
 
@@ -230,10 +237,14 @@ def _qml_colors(qml: Path) -> tuple[list[float], list[str], list[str]]:
             [i.get("label", "") for i in items])
 
 
+#: The layers :func:`styled_figure` draws, in this order, where the prediction holds them with their style.
+STYLED_LAYERS = ("height", "height_std", "classes", "class_entropy", "unfamiliarity", "shadow", "shadow_height")
+
+
 def styled_figure(pred_dir: Path, title: str) -> Any:
     """The layers of ``pred_dir`` drawn with the colours and legends of the ``.qml`` styles ``predict`` wrote
     beside them, as QGIS shows them when the GeoTIFFs are dragged in (a ramp interpolated between the style's
-    stops; a palette for the classes).
+    stops; a palette for the classes), three to a row.
     """
     import matplotlib
 
@@ -244,13 +255,22 @@ def styled_figure(pred_dir: Path, title: str) -> Any:
     from matplotlib.colors import BoundaryNorm, LinearSegmentedColormap, ListedColormap
     from matplotlib.patches import Patch
 
-    names = [n for n in ("height", "height_std", "classes", "class_entropy", "unfamiliarity")
-             if (pred_dir / f"{n}.tif").exists() and (pred_dir / f"{n}.qml").exists()]
-    fig, axes = plt.subplots(1, len(names), figsize=(3.0 * len(names), 4.0), layout="constrained")
-    for ax, name in zip(np.atleast_1d(axes), names, strict=True):
+    names = [n for n in STYLED_LAYERS if (pred_dir / f"{n}.tif").exists() and (pred_dir / f"{n}.qml").exists()]
+    with rasterio.open(pred_dir / f"{names[0]}.tif") as src:  # the predicted pixels' box (an --aoi run)
+        rows, cols = np.nonzero(~np.ma.getmaskarray(src.read(1, masked=True)))
+    crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    h, w = rows.max() + 1 - rows.min(), cols.max() + 1 - cols.min()
+    ncols = min(3, len(names))
+    nrows = -(-len(names) // ncols)
+    side = WIDTH_IN / ncols
+    fig, axes = plt.subplots(nrows, ncols, figsize=(WIDTH_IN, nrows * (side * h / w + 1.2) + 0.6),
+                             layout="constrained", squeeze=False)
+    for ax in axes.ravel()[len(names):]:
+        ax.set_axis_off()
+    for ax, name in zip(axes.ravel(), names, strict=False):
         values, colors, labels = _qml_colors(pred_dir / f"{name}.qml")
         with rasterio.open(pred_dir / f"{name}.tif") as src:
-            data = src.read(1, masked=True)
+            data = src.read(1, masked=True)[crop]
         if name == "classes":
             cmap = ListedColormap(colors)
             ax.imshow(data, cmap=cmap, norm=BoundaryNorm([v - 0.5 for v in values] + [values[-1] + 0.5], len(colors)),
@@ -261,56 +281,40 @@ def styled_figure(pred_dir: Path, title: str) -> Any:
             cmap = LinearSegmentedColormap.from_list(name, list(zip(stops, colors, strict=True)))
             ax.imshow(data, cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest")
         shown = [(c, t) for c, t in zip(colors, labels, strict=True)]
-        if len(shown) > 6:  # a ramp: its first, middle and last stops, as QGIS's legend shows them
+        if len(shown) > 3:  # a ramp: its first, middle and last stops, as QGIS's legend shows them
             shown = [shown[0], shown[len(shown) // 2], shown[-1]]
         ax.legend(handles=[Patch(facecolor=c, edgecolor="k", label=t) for c, t in shown], loc="upper center",
-                  bbox_to_anchor=(0.5, -0.02), fontsize=7, frameon=False, ncol=1 if name == "classes" else 3)
-        ax.set_title(f"{name}.tif", fontsize=9)
+                  bbox_to_anchor=(0.5, -0.02), fontsize=TICK_PT, frameon=False, ncol=1)
+        ax.set_title(f"{name}.tif", fontsize=TITLE_PT)
         ax.set_axis_off()
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title, fontsize=TITLE_PT)
     return fig
 
 
-def town_figures(out: Path) -> dict[str, bytes]:
-    """A synthetic training town and test town (:data:`DOCS_TOWN`): tile, train briefly, predict the test town
-    with MC dropout, evaluate; the maps in a row, the demo's overview figure and the layers as QGIS styles them.
+def report_figures(report: dict[str, Any]) -> dict[str, Any]:
+    """``evaluate``'s two plots of the height spread (how its intervals cover the errors per height range, and
+    the sparsification curve), drawn by ``evaluate``'s own code from ``report``, to be saved at a resolution
+    whose smallest text (7 pt) shows at least 11 px high in the text column.
     """
-    from aerialmtl.data.synth import synthesize
-    from aerialmtl.demo import preview_figure
-    from aerialmtl.evaluation.evaluate import evaluate_prediction
-    from aerialmtl.inference.predict import predict_raster
-    from aerialmtl.tiling.splits import SplitSpec
-    from aerialmtl.tiling.tile import TileOptions, tile_dataset
+    from aerialmtl.evaluation import report as evaluation_report
 
-    t = DOCS_TOWN
-    train_town = synthesize(out / "train_town", size=t["train_size"], seed=1)
-    test = synthesize(out / "test_town", size=t["test_size"], seed=1001)
-    tile_dataset(train_town.ortho, out / "tiles", dsm=train_town.dsm, dtm=train_town.dtm, labels=train_town.labels,
-                 classes=train_town.classes, progress=False,
-                 options=TileOptions(size=t["patch"], stride=t["stride"],
-                                     splits=SplitSpec(block_size=t["patch"] * 0.25 * 2, ratios=(0.85, 0.15, 0.0))))
-    run = _short_training(out / "tiles", out / "run", t["steps"])
-    pred = out / "prediction"
-    predict_raster(test.ortho, run.best_checkpoint, pred, mc=t["mc"], precision="fp32", progress=False)
-    report = evaluate_prediction(pred, height_ref=test.ndsm, labels_ref=test.labels, classes=test.classes, out=None)
-    scores = (f"height MAE {report['height']['mae']:.2f} m, classes OA "
-              f"{report['classes']['overall_accuracy']:.2f}")
-    RUN_NOTES["town"] = f"synthetic town, {t['steps']} steps: {scores}"
-    title = (f"a synthetic test town, {t['test_size']} × {t['test_size']} px of 0.25 m: {scores}\n"
-             f"the demo's network after {t['steps']} training steps, T = {t['mc']} MC-dropout samples")
-    overview = preview_figure(test.ortho, pred, test.ndsm, test.labels)
-    return {"demo_maps.png": _png(products_figure(pred, test.ortho, title), 72),
-            "demo_overview.png": _png(overview, 48),
-            "qgis_layers.png": _png(styled_figure(pred, "the same layers with the QGIS styles predict wrote "
-                                                        "beside them (.qml): colours and legends"), 72)}
+    u = report.get("uncertainty") or {}
+    made = {"area_height_reliability.png": evaluation_report._height_reliability_figure(u),
+            "area_sparsification.png": evaluation_report._sparsification_figure(
+                {k: v for k, v in u.items() if k == "height_std"})}
+    return {name: fig for name, fig in made.items() if fig is not None}
 
 
 def area_figures(work: Path) -> dict[str, bytes]:
     """The small-area recipe on ``samples/autzen_west``, shortened (:data:`DOCS_AREA`): tile at 1 m with the
     sample's split, train the demo's small network (height only, with the recipe's aleatoric head), predict the
-    held-out block, evaluate it; the
-    maps of the block and the evaluation's two plots.
+    held-out block, evaluate it; the maps of the block beside the lidar, the layers as QGIS styles them, and
+    the evaluation's two plots of the spread.
     """
+    import io
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     from aerialmtl.evaluation.evaluate import evaluate_prediction
     from aerialmtl.inference.predict import predict_raster
     from aerialmtl.tiling.splits import SplitSpec
@@ -325,16 +329,18 @@ def area_figures(work: Path) -> dict[str, bytes]:
     pred = work / "pred"
     predict_raster(ortho, run.best_checkpoint, pred, mc=a["mc"], aoi=SAMPLE / "test_block.geojson",
                    precision="fp32", progress=False)
-    report = evaluate_prediction(pred, dsm_ref=dsm, dtm_ref=dtm, out=work / "eval" / "report.json")
+    report = evaluate_prediction(pred, dsm_ref=dsm, dtm_ref=dtm, out=None)
     h = report["height"]
     RUN_NOTES["area"] = (f"autzen_west, {a['steps']} steps: held-out block height MAE {h['mae']:.2f} m, "
                          f"RMSE {h['rmse']:.2f} m ({h['n_pixels']} px)")
-    title = (f"samples/autzen_west, the held-out block at 1 m: height MAE {h['mae']:.2f} m against the lidar\n"
-             f"the demo's small network with the recipe's aleatoric head, {a['steps']} training steps")
-    figures = {"area_maps.png": _png(products_figure(pred, ortho, title, crop_to_valid=True), 72)}
-    for name in ("report_height_reliability.png", "report_sparsification.png"):
-        if (work / "eval" / name).exists():
-            figures[f"area_{name.removeprefix('report_')}"] = (work / "eval" / name).read_bytes()
+    title = f"samples/autzen_west, the held-out block (1 m pixels): height MAE {h['mae']:.2f} m against the lidar"
+    figures = {"area_maps.png": _png(products_figure(pred, ortho, title, reference=(dsm, dtm)), DPI),
+               "qgis_layers.png": _png(styled_figure(pred, "the layers in the colours of their QGIS styles"), DPI)}
+    for name, fig in report_figures(report).items():
+        FigureCanvasAgg(fig)
+        buf = io.BytesIO()
+        fig.savefig(buf, dpi=DPI * 11 / 7, bbox_inches="tight", format="png")  # 7-pt legends at 11 px
+        figures[name] = buf.getvalue()
     return figures
 
 
@@ -351,10 +357,9 @@ def site_figures() -> dict[str, bytes]:
         log = logging.getLogger("mkdocs.plugins.docs_hooks")
         with tempfile.TemporaryDirectory(prefix="aerialmtl_docs_") as tmp, warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the reduced runs' own advice (small validation split) is not news here
-            for name, make in (("town", town_figures), ("area", area_figures)):
-                t = time.perf_counter()
-                _FIGURES.update(make(Path(tmp) / name))
-                log.info("docs figures: %s in %.0f s", RUN_NOTES.get(name, name), time.perf_counter() - t)
+            t = time.perf_counter()
+            _FIGURES.update(area_figures(Path(tmp) / "area"))
+            log.info("docs figures: %s in %.0f s", RUN_NOTES.get("area", "area"), time.perf_counter() - t)
         if cache is not None:
             cache.mkdir(parents=True, exist_ok=True)
             for n, data in _FIGURES.items():
@@ -374,22 +379,24 @@ def on_config(config: Any, **kwargs: Any) -> Any:
     return config
 
 
-#: A page's link to a benchmarks file itself (``../../bench/RESULTS.md``, ``../../bench/results/TOPIC.md#section``),
-#: which works on GitHub and in a clone; the site has those files on its Benchmarks page (``benchmarks.md``
-#: includes every topic).
+#: A page's link to a file of the lab notebook (``../../bench/RESULTS.md``, ``../../bench/results/TOPIC.md#section``),
+#: which works on GitHub and in a clone. The site does not render those files; its Benchmarks page
+#: (``benchmarks.md``) has what a user needs and, under "The lab notebook", says where they are.
 RESULTS_LINK = re.compile(r"\]\((?:\.\./)+bench/(?:RESULTS|results/\w+)\.md(#[^)\s]*)?\)")
+#: Where :func:`site_links` points them.
+LAB_NOTEBOOK = "benchmarks.md#the-lab-notebook"
 
 
 def site_links(markdown: str, src_uri: str) -> str:
-    """``markdown`` with its links to ``bench/RESULTS.md`` pointed at the site's Benchmarks page (anchors kept)."""
+    """``markdown`` with its links to the lab notebook's files pointed at the Benchmarks page's section on it."""
     import posixpath
 
-    target = posixpath.relpath("benchmarks.md", posixpath.dirname(src_uri) or ".")
-    return RESULTS_LINK.sub(lambda m: f"]({target}{m.group(1) or ''})", markdown)
+    target = posixpath.relpath(LAB_NOTEBOOK.split("#")[0], posixpath.dirname(src_uri) or ".")
+    return RESULTS_LINK.sub(f"]({target}#{LAB_NOTEBOOK.split('#')[1]})", markdown)
 
 
 def on_page_markdown(markdown: str, page: Any, **kwargs: Any) -> str:
-    """Links to ``bench/RESULTS.md`` lead to the Benchmarks page (:func:`site_links`)."""
+    """Links to the lab notebook's files lead to the Benchmarks page (:func:`site_links`)."""
     return site_links(markdown, page.file.src_uri)
 
 

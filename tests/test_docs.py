@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import html
 import importlib.util
+import json
 import os
 import re
 import subprocess
@@ -14,6 +15,7 @@ import tempfile
 from pathlib import Path
 
 import click
+import numpy as np
 import pytest
 import yaml
 
@@ -109,15 +111,19 @@ def test_getting_started_states_the_time_its_sample_output_shows() -> None:
     assert f"{seconds} s" in prose and f"about {round(seconds / 60)} min" in prose, "state the sample's time"
 
 
-def test_links_to_the_benchmarks_file_lead_to_the_benchmarks_page_on_the_site() -> None:
-    """Pages link ``bench/RESULTS.md`` itself (it works on GitHub and in a clone; ``docs/benchmarks.md`` is an
-    include line there); the site's build points those links at its Benchmarks page, anchors kept."""
+def test_links_to_the_lab_notebook_lead_to_the_benchmarks_page_on_the_site() -> None:
+    """Pages may link the lab notebook's files (``bench/RESULTS.md``, ``bench/results/*.md``: they work on GitHub
+    and in a clone); the site does not render them, so its build points those links at the Benchmarks page's
+    section that says where they are."""
     hooks = _docs_hooks()
     links = hooks.site_links  # type: ignore[attr-defined]
     md = "[b](../../bench/RESULTS.md#real-data) and [c](../bench/RESULTS.md)"
-    assert links(md, "tutorials/small-area.md") == "[b](../benchmarks.md#real-data) and [c](../benchmarks.md)"
-    assert links("[c](../bench/RESULTS.md)", "index.md") == "[c](benchmarks.md)"
-    assert links("[u](../../bench/results/uncertainty.md#x)", "tutorials/a.md") == "[u](../benchmarks.md#x)"
+    assert links(md, "tutorials/small-area.md") == ("[b](../benchmarks.md#the-lab-notebook) and "
+                                                     "[c](../benchmarks.md#the-lab-notebook)")
+    assert links("[c](../bench/RESULTS.md)", "index.md") == "[c](benchmarks.md#the-lab-notebook)"
+    assert links("[u](../../bench/results/uncertainty.md#x)", "tutorials/a.md") == \
+        "[u](../benchmarks.md#the-lab-notebook)"
+    assert "## The lab notebook" in (DOCS / "benchmarks.md").read_text()
     for page in ("tutorials/small-area.md", "getting-started.md", "index.md"):
         text = (DOCS / page).read_text()
         for link, anchor in re.findall(r"\]\(((?:\.\./)+bench/(?:RESULTS|results/\w+)\.md)(#[^)]*)?\)", text):
@@ -127,6 +133,84 @@ def test_links_to_the_benchmarks_file_lead_to_the_benchmarks_page_on_the_site() 
                 slugs = {re.sub(r"[-\s]+", "-", re.sub(r"[^\w\s-]", "", h.replace("`", "")).strip().lower())
                          for h in re.findall(r"^#+ (.+)$", target.read_text(), flags=re.M)}
                 assert anchor[1:] in slugs, (page, link, anchor)
+
+
+# ---- what the pages say ----------------------------------------------------------------------------
+#: A mention of the project's issue tracker ("issue 48", "issues 46, 47", "Issue #12"): the history of how a
+#: result was found, which belongs in the lab notebook (bench/results, experiments/), not on a user's page.
+ISSUE_MENTION = re.compile(r"\bissues?\s*#?\d+", flags=re.I)
+#: A line that includes another file into a page (pymdownx.snippets): the page shows that file's words.
+SNIPPET = re.compile(r'^--8<--\s+"([^"]+)"\s*$', flags=re.M)
+
+
+def _page_source(path: Path) -> str:
+    """What a page of the site shows, as text: a Markdown page with its included files (snippets) expanded,
+    a notebook's Markdown and code cells."""
+    if path.suffix == ".ipynb":
+        cells = json.loads(path.read_text(encoding="utf-8"))["cells"]
+        return "\n".join("".join(c["source"]) for c in cells)
+    text = path.read_text(encoding="utf-8")
+    return SNIPPET.sub(lambda m: (REPO / m.group(1)).read_text(encoding="utf-8"), text)
+
+
+def _site_pages() -> list[Path]:
+    """Every page of the site's navigation (the notebook through its link in docs/)."""
+    config = yaml.safe_load((REPO / "mkdocs.yml").read_text())
+    return [(DOCS / page).resolve() for page in _nav_pages(config["nav"])]
+
+
+def test_the_pages_tell_results_not_the_history_of_how_they_were_found() -> None:
+    """No page mentions an issue of the project's tracker, and none shows a path of a machine that built or
+    measured something (the checkout, Python's prefix, the home folder, a folder the build made in /tmp)."""
+    hooks = _docs_hooks()
+    paths = hooks.machine_paths()  # type: ignore[attr-defined]
+    temporary = re.compile(re.escape(tempfile.gettempdir().rstrip(os.sep) + os.sep) + hooks.TEMP_NAMES)  # type: ignore[attr-defined]
+    found = []
+    for page in [*_site_pages(), REPO / "README.md"]:
+        text = _page_source(page)
+        found += [(page.name, m.group(0)) for m in ISSUE_MENTION.finditer(text)]
+        found += [(page.name, p) for p in paths if p in text]
+        found += [(page.name, m.group(0)) for m in temporary.finditer(text)]
+    assert not found, found
+
+
+def test_the_benchmarks_page_is_what_a_user_needs_not_the_lab_notebook() -> None:
+    """The Benchmarks page (with whatever it includes) stays under 5,000 words; the lab notebook it once
+    rendered (over 50,000) stays in the repository."""
+    words = len(_page_source(DOCS / "benchmarks.md").split())
+    assert words <= 5000, f"docs/benchmarks.md shows {words} words"
+
+
+#: Width in CSS pixels of the site's text column in a 1280-px-wide browser window (the Material theme with both
+#: sidebars); a figure wider than it is scaled down to fit.
+COLUMN_PX = 690
+
+
+@pytest.mark.parametrize("figure", ["products_figure", "styled_figure"])
+def test_the_site_figures_text_reads_at_least_11_px_in_the_text_column(figure: str, tmp_path: Path) -> None:
+    """The maps the build draws (docs_hooks.py) show no text under 11 px once fitted to the text column at 1280 px
+    (their titles, colour-bar labels, ticks and legends)."""
+    pytest.importorskip("matplotlib")
+    from helpers.rasters import write_prediction_folder
+    from matplotlib.text import Text
+
+    hooks = _docs_hooks()
+    from aerialmtl.formats.qgis_style import VIRIDIS, pseudocolor_style, write_style
+
+    pred = write_prediction_folder(tmp_path / "pred", np.random.default_rng(0))
+    for name in ("height", "height_std"):  # the styles predict writes beside its layers
+        write_style(pred / f"{name}.qml", pseudocolor_style(0.0, 20.0, VIRIDIS, -9999.0, "m"))
+    draw = getattr(hooks, figure)
+    fig = draw(pred, tmp_path / "ortho.tif", "a title") if figure == "products_figure" else draw(pred, "a title")
+    sizes = [t.get_fontsize() for t in fig.findobj(Text) if t.get_text().strip() and t.get_visible()]
+    png = tmp_path / "figure.png"
+    png.write_bytes(hooks._png(fig, hooks.DPI))  # type: ignore[attr-defined]
+    from PIL import Image
+
+    with Image.open(png) as im:
+        width = im.width
+    scale = min(1.0, COLUMN_PX / width)
+    assert sizes and min(sizes) * hooks.DPI / 72 * scale >= 11, (min(sizes), width)  # type: ignore[attr-defined]
 
 
 # ---- the built site ----------------------------------------------------------------------------------
