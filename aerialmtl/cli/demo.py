@@ -58,12 +58,16 @@ def demo(out: Path, train_steps: int, train_seconds: float | None, train_size: i
         if name == "prediction":  # every file it holds, the shadow layers included where the sun was known
             files = sorted(p.name for p in path.iterdir() if p.is_file())
             maps = [f for f in files if f.endswith(".tif")]
-            others = [f for f in files if not f.endswith((".tif", ".qml"))]
-            indent = " " * 14
-            click.echo(textwrap.fill(", ".join(maps) + " (each with its QGIS style, .qml)", width=100,
-                                     initial_indent=indent, subsequent_indent=indent))
-            if others:
-                click.echo(indent + ", ".join(others))
+            click.echo(_listing("", ", ".join(maps) + " (each with its QGIS style, .qml)"))
+            records = [f for f in files if not f.endswith((".tif", ".qml"))]
+            if records:
+                click.echo(_listing("", ", ".join(records)))
         if name == "summary" and rep.get("plots"):  # evaluate's plots, beside its report
-            click.echo(f"  {'plots':<11} {', '.join(Path(p).name for p in rep['plots'])}")
+            click.echo(_listing("plots", ", ".join(Path(p).name for p in rep["plots"])))
     click.echo("Open prediction/*.tif in QGIS next to data/test_town/ortho.tif.")
+
+
+def _listing(label: str, text: str) -> str:
+    """``text`` under the Outputs list's ``label``, wrapped at 80 columns in the list's second column."""
+    return textwrap.fill(text, width=80, initial_indent=f"  {label:<11} ", subsequent_indent=" " * 14,
+                         break_on_hyphens=False, break_long_words=False)

@@ -1,0 +1,27 @@
+"""``aerialmtl demo`` names every file it writes in its "Outputs" list: the maps of the prediction folder (the
+shadow layers included), its records, evaluate's plots and the demo's own record, ``demo.json``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from helpers.cli import run_cli
+
+
+@pytest.mark.slow
+def test_the_demo_names_every_file_it_writes(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A tiny demo (small towns, 5 steps; ~20 s on 2 cores): every file at the top of its folder, in its
+    prediction folder (a ``.qml`` style stands beside its ``.tif``) and in ``previews/`` is in the list."""
+    out_dir = tmp_path / "demo_out"
+    code, out, err = run_cli(capsys, "demo", out_dir, "--train-size", 256, "--test-size", 256, "--train-steps", 5,
+                             "--mc", 2)
+    assert code == 0, err
+    listing = out.split("Outputs:", 1)[1]
+    written = [p for p in out_dir.iterdir() if p.is_file()]
+    written += [p for p in (out_dir / "prediction").iterdir() if p.suffix != ".qml"]
+    written += list((out_dir / "previews").iterdir())
+    assert {p.name for p in written} >= {"demo.json", "report.json", "report.md", "height.tif", "item.json"}
+    missing = sorted(p.name for p in written if p.name not in listing)
+    assert not missing, f"written but not named in the Outputs list: {missing}\n{listing}"
+    assert "each with its QGIS style, .qml" in listing
