@@ -9,7 +9,7 @@
   (a stderr output block) or the build's temporary folder would otherwise be published as it is.
 * The pictures of what the package makes (:func:`site_figures`) are made by the build, not pasted: the
   small-area recipe on the sample area ``samples/autzen_west`` with a short training of the demo's small
-  network; the pages show them from :data:`FIGURES_DIR`. About a minute on 2 CPU cores (the build logs it);
+  network; the pages show them from :data:`FIGURES_DIR`. About 70 s of one CPU core (the build logs it);
   :data:`FIGURES_CACHE_ENV` keeps them between builds.
 * The notebook's kernel inherits :data:`NOTEBOOK_WARNINGS` (``PYTHONWARNINGS``, set by :func:`on_config`):
   the one warning a barely trained model may give on the page ("no building pixel", when it found no
@@ -107,8 +107,8 @@ def problems(html: str) -> list[str]:
 #: Site folder of the figures the build makes (pages link ``images/built/NAME.png``).
 FIGURES_DIR = "images/built"
 #: The small-area recipe on samples/autzen_west, shortened for the site: patches, stride, steps, MC samples.
-#: One short training (about half a minute of CPU) makes every figure of the site.
-DOCS_AREA = {"size": 64, "stride": 32, "steps": 200, "mc": 8}
+#: One short training (about a minute of one CPU core) makes every figure of the site.
+DOCS_AREA = {"size": 64, "stride": 32, "steps": 600, "mc": 8}
 #: The figures :func:`site_figures` makes.
 FIGURE_NAMES = ("area_maps.png", "qgis_layers.png", "area_height_reliability.png", "area_sparsification.png")
 #: A folder to keep the figures in between builds (``mkdocs serve`` while writing, a second build): when it
@@ -199,7 +199,8 @@ def products_figure(pred_dir: Path, ortho: Path, title: str, reference: tuple[Pa
         ax.set_title(name, fontsize=TITLE_PT)
         if key == "":
             im = ax.imshow(data[crop], interpolation="nearest")
-            fig.colorbar(im, ax=ax, orientation="horizontal", fraction=0.05, pad=0.02).ax.set_visible(False)  # same size
+            spacer = fig.colorbar(im, ax=ax, orientation="horizontal", fraction=0.05, pad=0.02)
+            spacer.ax.set_visible(False)  # the orthophoto's panel keeps the size of the others
             continue
         vmax = top if key == "height" else float(np.nanpercentile(data[crop], 99))
         im = ax.imshow(np.ma.masked_invalid(data[crop]), cmap=layer_cmap(key), vmin=0, vmax=vmax or 1.0,
