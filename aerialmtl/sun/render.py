@@ -7,7 +7,7 @@ object's median height — render the cast shadows of the **whole** map with the
 street, a lower roof or behind a taller neighbour is rendered as the sun would cast it), and compare the
 rendering with the observed shadow probability ``P`` on the pixels whose rendered state depends on ``s``:
 
-    LL(s) = Σ_zone  r_s · log P + (1 − r_s) · log(1 − P)        (P clipped to [ε, 1 − ε])
+    LL(H) = Σ_zone  r_H · (logit P − logit π)        (within ±MAX_LLR; π the map's mean probability)
 
 The match curve ``LL(s)`` gives the object's height (its maximum) **and** its spread: the curve, tempered by the
 pixels' correlation (:data:`CORRELATED_PX` pixels per independent observation), is a likelihood over heights
@@ -38,6 +38,9 @@ from aerialmtl.sun.position import Sun
 
 #: Probabilities are clipped to [EPS, 1 − EPS] in the match (one wrong pixel costs at most log(1/EPS)).
 EPS = 0.03
+#: The most one pixel's evidence can weigh either way (a likelihood ratio of e² ≈ 7.4): a mask of 0s and 1s, or a
+#: confident classifier's few wrong pixels, then weigh a shadow and a lit pixel alike.
+MAX_LLR = 2.0
 #: Pixels per independent observation of the shadow probability (its spatial correlation): the match curve's
 #: log-likelihood is divided by it before it is read as a likelihood over heights.
 CORRELATED_PX = 12.0
@@ -62,6 +65,10 @@ class RenderSettings:
             network's own shape, capped at its 90th percentile: ``min(1, h / h90)``), each scaled to ``H``.
         spill_m: object pixels called shadow within this distance of the object's down-sun edge, metres, are
             tried as ground (a blurred object's spill into its own shadow).
+        prior: the share of shadow the probability was calibrated to (a classifier's base rate), against which a
+            pixel's probability is evidence for or against a rendered shadow; None: the map's mean probability.
+        top_share: the measured height is painted where the network's heights reach this share of the object's
+            90th percentile (its top, not the blurred rim around it).
         global_range, global_steps: the common multiplier of every object's heights searched first (geometric
             steps); ``(1, 1)``: none.
     """
@@ -78,6 +85,8 @@ class RenderSettings:
     tol_m: float = TOL_M
     families: tuple[str, ...] = ("flat", "shape")
     spill_m: float = 3.0
+    prior: float | None = None
+    top_share: float = 0.5
     global_range: tuple[float, float] = (0.5, 4.0)
     global_steps: int = 25
 
@@ -137,10 +146,18 @@ def _crop(bbox: tuple[slice, slice], shape: tuple[int, int], sun: Sun, down_px: 
     return slice(*rr), slice(*cc)
 
 
-def _loglik(prob: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(log P, log(1 − P)) float32 of probabilities clipped to [EPS, 1 − EPS]."""
-    p = np.clip(prob, EPS, 1.0 - EPS)
-    return np.log(p).astype(np.float32), np.log1p(-p).astype(np.float32)
+def _loglik(prob: np.ndarray, known: np.ndarray, prior: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """The evidence of each pixel, float32 (H, W) each: what a rendered shadow there adds to the match (the
+    log-likelihood ratio of shadow to lit, ``logit P − logit prior``: the classifier's posterior odds over its
+    prior odds, within ±:data:`MAX_LLR`) and what a lit pixel adds (0). ``prior`` None: the mean
+    probability over the ``known`` pixels (a calibrated classifier's base rate of shadow there).
+    """
+    p = np.clip(np.where(known, prob, 0.5), EPS, 1.0 - EPS)
+    if prior is None:
+        prior = float(p[known].mean()) if known.any() else 0.5
+    pi = min(max(float(prior), EPS), 1.0 - EPS)
+    ratio = np.clip(np.log(p) - np.log1p(-p) - (math.log(pi) - math.log1p(-pi)), -MAX_LLR, MAX_LLR)
+    return np.where(known, ratio, 0.0).astype(np.float32), np.zeros(prob.shape, np.float32)
 
 
 def _sweep(z: np.ndarray, gsd_m: float, sun: Sun) -> np.ndarray:
@@ -246,7 +263,7 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
         raise InputError(f"'objects' must hold integer labels (0 = no object), got dtype {labels.dtype}")
     settings = settings or RenderSettings()
     known = np.isfinite(prob)
-    lp, lq = _loglik(np.where(known, prob, 0.5))
+    lp, lq = _loglik(prob, known, settings.prior)
     z = np.where(np.isfinite(hmap), hmap, np.float32(-np.inf)).astype(np.float32)
     # spill candidates: object pixels called shadow at the object's down-sun edge (where a blurred object runs
     # into its own shadow), not those deeper in (a lower roof shaded by a taller neighbour up-sun)
@@ -395,7 +412,10 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
                             family if ok else "", h_best / h_obj if ok else math.nan, best.zone_px,
                             int(spill.sum()) if (ok and trim) else 0)
     none = np.zeros(own.shape, bool)
-    return _Result(record, crop, footprint if ok else none, spill if (ok and trim) else none, per_px)
+    # painted: the object's top, where the network's own shape reaches half its height (not its blurred rim)
+    top = footprint & (np.where(footprint, base, 0.0) >= np.float32(settings.top_share) * np.float32(
+        np.percentile(base[footprint], 90) if footprint.any() else 0.0))
+    return _Result(record, crop, top if ok else none, spill if (ok and trim) else none, per_px)
 
 
 __all__ = ["RenderSettings", "RenderedHeights", "RenderedObject", "rendered_heights"]
