@@ -246,7 +246,7 @@ class ShadowModel:
         self.mean, self.scale = mean.tolist(), scale.tolist()
         w = _logistic((x - mean) / scale, y, l2)
         self.weights = w.tolist()
-        p = 1.0 / (1.0 + np.exp(-np.clip(w[0] + ((x - mean) / scale) @ w[1:], -40, 40)))
+        p = 1.0 / (1.0 + np.exp(-np.clip(w[0] + _rows_dot((x - mean) / scale, w[1:]), -40, 40)))
         self.threshold, self.threshold_by = _best_f1_threshold(p, y > 0.5), "f1"
         if threshold_by == "heights":
             t = self._heights_threshold(patches, sun)
@@ -380,9 +380,23 @@ def _best_f1_threshold(p: np.ndarray, y: np.ndarray) -> float:
     return best_t
 
 
+def _rows_dot(a: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``a @ w`` for float64 ``a`` (n, k) and ``w`` (k,), (n,), in numpy's own loop rather than BLAS (see
+    :func:`_logistic`).
+    """
+    out: np.ndarray = np.einsum("ij,j->i", a, w)
+    return out
+
+
 def _logistic(x: np.ndarray, y: np.ndarray, l2: float) -> np.ndarray:
     """Weights (intercept first) of an L2-penalised logistic regression (L-BFGS on the mean log-loss);
     x (n, k) standardised features, y (n,) 0/1.
+
+    The products over the n pixels are numpy's einsum loops, not BLAS (``@``): a threaded BLAS splits the sum over
+    n by its thread count (``OPENBLAS_NUM_THREADS``/``OMP_NUM_THREADS``, the cores), so the weights would change in
+    the last bits with the machine and the environment (1e-13 between 1 and 2 threads), and the training sun fitted
+    beside the steps (:mod:`aerialmtl.training.sun_beside`, its own thread limits) would differ from the one fitted
+    in the trainer. einsum sums in one fixed order on one thread: the same weights wherever the fit runs.
     """
     n, k = x.shape
     a = np.hstack([np.ones((n, 1)), x])
@@ -390,11 +404,11 @@ def _logistic(x: np.ndarray, y: np.ndarray, l2: float) -> np.ndarray:
     pen[0] = 0.0
 
     def loss(w: np.ndarray) -> tuple[float, np.ndarray]:
-        z = a @ w
+        z = _rows_dot(a, w)
         # log(1 + e^z) − y·z, computed stably
         value = float(np.mean(np.logaddexp(0.0, z) - y * z) + 0.5 * np.sum(pen * w * w))
         p = 0.5 * (1.0 + np.tanh(0.5 * z))
-        grad = a.T @ (p - y) / n + pen * w
+        grad = np.einsum("ij,i->j", a, p - y) / n + pen * w
         return value, grad
 
     w0 = np.zeros(k + 1)
