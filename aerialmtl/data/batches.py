@@ -29,13 +29,14 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 from aerialmtl.data.assemble import assemble_batch, empty_batch
 from aerialmtl.data.cache import PatchCache
 from aerialmtl.data.copy_paste import CopyPaster
 from aerialmtl.data.dataset import normalise_batch
-from aerialmtl.data.transforms import Compose, Move, Params, stack_params
+from aerialmtl.data.transforms import Compose, Move, Params, move_op, stack_params
 from aerialmtl.errors import InputError
 
 #: One batch as the sampler describes it: ``(patch index, augmentation seed)`` per sample.
@@ -145,11 +146,14 @@ class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
         tasks: reference layers to load (``height`` and/or ``classes``; absent ones are skipped).
         paster: pastes banked objects into the gathered (cropped) patches before the other augmentations
             (:mod:`aerialmtl.data.copy_paste`); ``None``: no copy-paste.
+        shadow: the shadow head's labels of the cache's patches, uint8 (N, H, W)
+            (:func:`~aerialmtl.data.shadow_labels.patch_labels`): cut and moved with the patches (``shadow``);
+            ``None``: none.
     """
 
     def __init__(self, cache: PatchCache, transform: Compose, tasks: Sequence[str],
-                 paster: CopyPaster | None = None) -> None:
-        self.cache, self.transform, self.paster = cache, transform, paster
+                 paster: CopyPaster | None = None, shadow: np.ndarray | None = None) -> None:
+        self.cache, self.transform, self.paster, self.shadow = cache, transform, paster, shadow
         self.layers = ("image", "image_valid") + tuple(t for t in tasks if t in cache.layers)
 
     def __len__(self) -> int:
@@ -168,7 +172,21 @@ class CachedBatches(torch.utils.data.Dataset[dict[str, Any]]):
             data = self.cache.gather(indices, list(zip(rows.tolist(), cols.tolist())), size)
         if self.paster is not None:
             data = self.paster.paste(data, spec)
-        return {"data": {k: v for k, v in data.items() if k in self.layers}, "params": params}
+        data = {k: v for k, v in data.items() if k in self.layers}
+        if self.shadow is not None:
+            data["shadow"] = torch.from_numpy(cut_windows(self.shadow, indices, window))
+        return {"data": data, "params": params}
+
+
+def cut_windows(labels: np.ndarray, indices: Sequence[int],
+                window: tuple[int, torch.Tensor, torch.Tensor] | None) -> np.ndarray:
+    """The (B, h, w) windows of ``labels`` (N, H, W) for samples ``indices``: whole patches without ``window``, else
+    its ``(size, rows, cols)`` crops.
+    """
+    if window is None:
+        return np.ascontiguousarray(labels[np.asarray(indices, np.int64)])
+    size, rows, cols = window
+    return np.stack([labels[i, r:r + size, c:c + size] for i, r, c in zip(indices, rows.tolist(), cols.tolist())])
 
 
 def prepare_batch(raw: dict[str, Any], transform: Compose, mean: torch.Tensor, std: torch.Tensor,
@@ -211,6 +229,8 @@ def finish_on_device(data: dict[str, torch.Tensor], params: Params, transform: C
     """
     data = transform.apply(data, params, stages=("permute",))  # on the compact arrays
     batch = normalise_batch(data["image"], data["image_valid"], mean, std, data.get("height"), data.get("classes"))
+    if "shadow" in data:  # the shadow head's labels, moved with the image
+        batch["shadow"] = data["shadow"]
     batch = transform.apply(batch, params, stages=("value",))
     batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
     return batch
@@ -257,11 +277,30 @@ def finish_on_cpu(source: Mapping[str, Any], index: Sequence[int], corners: tupl
                           [k for k in ("height", "classes") if k in source], channels_last=channels_last)
     arrays = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in source.items()}
     batch = assemble_batch(arrays, index, corners[0], corners[1], moves, mean.cpu().numpy(), std.cpu().numpy(), out)
+    if "shadow" in arrays:  # the shadow head's labels: each window cut and moved as its image
+        batch = dict(batch)
+        batch["shadow"] = moved_windows(arrays["shadow"], index, corners, tuple(batch["image"].shape[-2:]), moves)
     if transform.has_stage("value"):  # the jitter, on the contiguous image, as on a device
         batch = transform.apply(dict(batch), params, stages=("value",))
         batch["image"] = batch["image"].contiguous(memory_format=torch.channels_last)
     return batch
 
 
-__all__ = ["item_seed", "EpochOrder", "RankBatchSampler", "eval_batches", "CachedBatches", "prepare_batch",
-           "finish_on_device", "finish_on_cpu", "cpu_batch_shape", "BatchSpec"]
+def moved_windows(labels: np.ndarray, index: Sequence[int], corners: tuple[Any, Any], side: Any,
+                  moves: Sequence[Move]) -> torch.Tensor:
+    """(B, h, w) windows of ``labels`` (N, H, W) at ``corners``, each moved by its sample's :data:`Move` (the same
+    flips and quarter turns as the image); ``side`` is (h, w) after the moves.
+    """
+    h, w = int(side[0]), int(side[1])
+    out = []
+    for b, (i, move) in enumerate(zip(index, moves)):
+        r, c = int(corners[0][b]), int(corners[1][b])
+        hh, ww = (w, h) if move[0] else (h, w)  # the window before a transposing move
+        t = torch.from_numpy(np.ascontiguousarray(labels[int(i), r:r + hh, c:c + ww]))
+        op = move_op(move)
+        out.append(t if op is None else op(t))
+    return torch.stack(out).contiguous() if out else torch.zeros((0, h, w), dtype=torch.uint8)
+
+
+__all__ = ["item_seed", "cut_windows", "moved_windows", "EpochOrder", "RankBatchSampler", "eval_batches",
+           "CachedBatches", "prepare_batch", "finish_on_device", "finish_on_cpu", "cpu_batch_shape", "BatchSpec"]

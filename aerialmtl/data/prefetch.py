@@ -51,11 +51,18 @@ class AssembledBatches:
         paster: copy-paste of banked objects (:mod:`aerialmtl.data.copy_paste`): the patches are then gathered,
             pasted into, and finished from the gathered batch.
         ahead: batches assembled ahead of the step.
+        shadow: the shadow head's labels of the cache's patches, uint8 (N, H, W)
+            (:func:`~aerialmtl.data.shadow_labels.patch_labels`), cut and moved with the patches (``shadow``);
+            ``None``: none. Not with ``paster`` (the labels are those of the stored heights).
     """
 
     def __init__(self, cache: PatchCache, transform: Compose, tasks: Sequence[str], specs: Iterable[BatchSpec],
-                 mean: torch.Tensor, std: torch.Tensor, paster: CopyPaster | None = None, ahead: int = AHEAD) -> None:
+                 mean: torch.Tensor, std: torch.Tensor, paster: CopyPaster | None = None, ahead: int = AHEAD,
+                 shadow: np.ndarray | None = None) -> None:
+        if shadow is not None and paster is not None:
+            raise ValueError("AssembledBatches: shadow labels are those of the stored heights; not with copy-paste")
         self.cache, self.transform, self.specs, self.paster = cache, transform, specs, paster
+        self.shadow = shadow
         self.mean, self.std = mean.cpu(), std.cpu()
         self.layers = ("image", "image_valid") + tuple(t for t in tasks if t in cache.layers)
         self.ahead = max(1, ahead)
@@ -124,6 +131,8 @@ class AssembledBatches:
         corners = ((np.zeros(b, np.int64), np.zeros(b, np.int64)) if window is None
                    else (window[1].numpy(), window[2].numpy()))
         arrays = {k: v for k, v in self.cache.arrays().items() if k in self.layers}
+        if self.shadow is not None:
+            arrays["shadow"] = self.shadow
         source: dict[str, Any] = arrays
         if self.paster is not None:
             pairs = None if window is None else list(zip(corners[0].tolist(), corners[1].tolist()))

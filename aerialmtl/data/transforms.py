@@ -45,7 +45,8 @@ import torch
 from aerialmtl.data.types import Sample, as_sample
 from aerialmtl.errors import ConfigError
 
-SPATIAL_KEYS = ("image", "height", "height_valid", "classes", "image_valid")
+#: The layers a geometric transform moves (``shadow``: the shadow head's labels, :mod:`aerialmtl.data.shadow_labels`).
+SPATIAL_KEYS = ("image", "height", "height_valid", "classes", "image_valid", "shadow")
 
 #: The stages of a pipeline, in the order transforms must come (see the module docstring).
 STAGES = ("load", "permute", "value")
@@ -123,7 +124,7 @@ def _then(first: Move, second: Move) -> Move:
     return first[0] != second[0], flips ^ second[1]
 
 
-def _move_op(move: Move) -> Callable[[torch.Tensor], torch.Tensor] | None:
+def move_op(move: Move) -> Callable[[torch.Tensor], torch.Tensor] | None:
     """The function of ``move`` on one sample's (…, H, W) tensor; ``None`` for the identity."""
     transpose, flips = move
     if not transpose and not flips:
@@ -357,7 +358,7 @@ class Compose(BatchTransform):
         """Apply the flips/rotations at ``indices`` (consecutive in the pipeline) as one move per sample."""
         if len(indices) < 2:
             return self.transforms[indices[0]].apply(batch, self._params(params, indices[0])) if indices else batch
-        return _per_sample(batch, [_move_op(m) for m in self._moves(params, indices)])
+        return _per_sample(batch, [move_op(m) for m in self._moves(params, indices)])
 
     def _moves(self, params: Params, indices: list[int]) -> list[Move]:
         moves: list[Move] | None = None
@@ -418,4 +419,4 @@ def build_eval_transform(crop_size: int | None = None) -> Compose:
 
 __all__ = ["BatchTransform", "RandomFlip", "RandomRot90", "RandomCrop", "CenterCrop", "PhotometricJitter",
            "Compose", "stack_params", "build_train_transform", "build_eval_transform", "SPATIAL_KEYS", "STAGES",
-           "Params", "Move"]
+           "Params", "Move", "move_op"]

@@ -29,6 +29,9 @@ HEIGHT_BINS = "height_bins"
 #: height is trained by the Laplace NLL as in the aleatoric head, while the spread comes from the bins.
 HEIGHT_LAPLACE = "height_laplace"
 
+#: The output of the shadow head (``Architecture.shadow_head``): B×1×H×W logits of P(cast shadow at the training sun).
+SHADOW = "shadow"
+
 #: The tasks a D3-Net can have, in output order.
 TASKS: tuple[Task, ...] = ("height", "classes")
 
@@ -81,6 +84,12 @@ class Architecture:
             ``leaky_relu`` (slope 0.01), an option: with ReLU, on many pixels every feature entering the
             height head is 0 and the head outputs its bias alone (the same height, and the same spread, for
             all of them).
+        shadow_head: ``false`` (default: the paper's network, the same weights and names) or ``true``: a third
+            task branch beside height and classes (as many task blocks as ``task_blocks`` and a 3×3 convolution to
+            one logit) that predicts P(cast shadow) at the training area's sun. It is trained with a binary
+            cross-entropy against the cast shadows of the training heights (:mod:`aerialmtl.data.shadow_labels`,
+            ``loss.shadow_weight``), so a roof's own shaded slope, water and dark roofs are not shadow; predict
+            writes ``shadow.tif`` from it instead of the colour classifier. Needs the height task.
     """
 
     growth_rate: int = 32
@@ -98,8 +107,11 @@ class Architecture:
     height_bin_max: float = 40.0
     task_activation: Activation = "relu"
     scale_decoder: bool = False
+    shadow_head: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.shadow_head, bool):
+            raise ConfigError(f"model.shadow_head: must be true or false, got {self.shadow_head!r}")
         if self.task_activation not in ("relu", "leaky_relu"):
             raise ConfigError(f"model.task_activation: must be relu (the paper's) or leaky_relu, "
                               f"got {self.task_activation!r}")
@@ -179,15 +191,21 @@ class ModelConfig(Architecture):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_data_fields(self.in_channels, tuple(self.tasks), self.num_classes)
+        if self.shadow_head and "height" not in self.tasks:
+            raise ConfigError("model.shadow_head: the shadow head learns the cast shadows of the reference heights; "
+                              "tile with heights (--dsm/--dtm or --ndsm) or set model.shadow_head: false")
 
     @property
     def outputs(self) -> tuple[str, ...]:
         """The keys of the model's output dict, in order: the tasks, with ``height_scale`` after ``height``
-        when :attr:`aleatoric` (B×1×H×W Laplace scale b, metres, > 0).
+        when :attr:`aleatoric` (B×1×H×W Laplace scale b, metres, > 0), and ``shadow`` last with
+        :attr:`shadow_head` (B×1×H×W logits of P(cast shadow)).
         """
         out: list[str] = []
         for t in self.tasks:
             out.append(t)
             if t == "height" and self.aleatoric:
                 out.append(HEIGHT_SCALE)
+        if self.shadow_head:
+            out.append(SHADOW)
         return tuple(out)

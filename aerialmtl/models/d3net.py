@@ -16,7 +16,8 @@ transition1 (4) and the stem's first activation (2). Each block outputs as many 
 it is concatenated with next (the last one as many as the stem), which for DenseNet-121 gives the
 authors' widths 512, 256, 128, 64, 64. The first ``5 - cfg.task_blocks`` blocks are shared; each task
 owns the last ``cfg.task_blocks`` blocks plus a 3×3 output convolution (with bias): ``height`` gives
-1 channel in metres (linear), ``classes`` gives K logits.
+1 channel in metres (linear), ``classes`` gives K logits. With ``cfg.shadow_head`` a third branch of the same form,
+``shadow``, gives one logit of P(cast shadow) (absent otherwise: the paper's network keeps its parameter names).
 
 ``encode`` holds the deterministic part (encoder), ``decode`` every dropout layer, so MC dropout
 (:mod:`aerialmtl.models.mc_dropout`) runs the encoder once and samples only the decoder.
@@ -32,7 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aerialmtl.errors import InputError
-from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE, ModelConfig
+from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE, SHADOW, ModelConfig
 from aerialmtl.models.encoders import encoder_spec, feature_channels
 from aerialmtl.models.height_bins import bin_edges, bins_scale
 
@@ -128,7 +129,7 @@ class D3Net(nn.Module):
     ``"height_scale"`` (B×1×H×W Laplace scale b in metres, > 0) with ``cfg.aleatoric`` (with
     ``cfg.height_bins``: the bins' spread as b = std/√2, and in training mode also ``"height_bins"``, the
     B×K×H×W bin logits, and ``"height_laplace"``, the Laplace scale that trains the height); :attr:`outputs`
-    lists the keys of inference in order.
+    lists the keys of inference in order. With ``cfg.shadow_head`` also ``"shadow"``: B×1×H×W logits of P(cast shadow).
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -149,13 +150,15 @@ class D3Net(nn.Module):
         )
         # the height, [a Laplace scale channel unless the scale has its own decoder], [K bin logits]
         scale_channel = int(cfg.aleatoric and not cfg.scale_decoder)
-        out_ch = {"height": TASK_CHANNELS_HEIGHT + scale_channel + cfg.height_bins, "classes": cfg.num_classes}
+        out_ch = {"height": TASK_CHANNELS_HEIGHT + scale_channel + cfg.height_bins, "classes": cfg.num_classes,
+                  SHADOW: 1}
 
         def task_decoder(channels: int) -> TaskDecoder:
             return TaskDecoder([UpBlock(ins[j], outs[j], activation=cfg.task_activation)
                                 for j in range(n_shared, n_up)], outs[-1], channels)
 
-        self.heads = nn.ModuleDict({t: task_decoder(out_ch[t]) for t in self.tasks})
+        branches = self.tasks + ((SHADOW,) if cfg.shadow_head else ())
+        self.heads = nn.ModuleDict({t: task_decoder(out_ch[t]) for t in branches})
         #: the Laplace scale's own task blocks (``cfg.scale_decoder``); absent otherwise, so the paper's and the
         #: shared-head models keep their parameter names
         self.scale_decoder: TaskDecoder | None = (task_decoder(1) if cfg.scale_decoder and "height" in self.tasks

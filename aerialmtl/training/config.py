@@ -157,6 +157,9 @@ class LossSection:
 
     ``class_weights``: ``none``, ``balanced`` (``N / (K · n_k)`` from the train split's pixel counts,
     normalised to mean 1 over present classes) or an explicit list of K floats.
+
+    ``shadow_weight`` (with ``model.shadow_head``): the weight of the shadow head's binary cross-entropy (nats) in
+    the training loss, beside the task weighting (:mod:`aerialmtl.training.objective`).
     """
 
     height: HeightLoss = "l1"
@@ -165,8 +168,12 @@ class LossSection:
     nll_beta: float = 0.0
     bins_weight: float = 1.0
     height_balance: float = 0.0
+    shadow_weight: float = 1.0
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.shadow_weight, (int, float)) and 0.0 <= float(self.shadow_weight) <= 100.0):
+            raise ConfigError(f"loss.shadow_weight: must be a number in [0, 100], got {self.shadow_weight!r}; 1 "
+                              "weighs the shadow head's cross-entropy (nats) like the L1 height loss (metres)")
         if not (isinstance(self.height_balance, (int, float)) and 0.0 <= float(self.height_balance) <= 1.0):
             raise ConfigError(f"loss.height_balance: must be a number in [0, 1], got {self.height_balance!r}; 0 "
                               "weighs every pixel alike (the paper), 0.5 by the inverse square root of its height "

@@ -257,6 +257,23 @@ def cross_entropy(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tens
     return total / torch.where(denom > 0, denom, torch.ones_like(denom))
 
 
+def shadow_bce(logits: torch.Tensor, target: torch.Tensor, ignore: int = IGNORE_INDEX) -> torch.Tensor:
+    """Binary cross-entropy (nats, mean over labelled pixels) of the shadow head's B×1×H×W logits against
+    B×H×W uint8 labels (1 cast shadow, 0 lit, ``ignore`` unknown: :mod:`aerialmtl.data.shadow_labels`).
+
+    Returns:
+        Scalar float32; 0 (with a gradient) when no pixel is labelled.
+    """
+    if logits.dim() != 4 or logits.shape[1] != 1 or target.shape != (logits.shape[0], *logits.shape[2:]):
+        raise ValueError(f"shadow_bce: expected logits B×1×H×W and labels B×H×W, got {tuple(logits.shape)} and "
+                         f"{tuple(target.shape)}")
+    z = logits[:, 0].float()
+    valid = target != ignore
+    y = torch.where(valid, target, torch.zeros((), dtype=target.dtype, device=target.device)).float()
+    per = F.binary_cross_entropy_with_logits(z, y, reduction="none")
+    return _masked_mean(torch.where(valid, per, torch.zeros((), device=per.device)), valid)
+
+
 #: Height losses by ``loss.height`` name: ``fn(pred, target, mask) -> scalar``. To add one, add it here and
 #: to ``HeightLoss`` in :mod:`aerialmtl.training.config` (a test keeps the two in step).
 HEIGHT_LOSSES: dict[str, Callable[..., torch.Tensor]] = {
@@ -306,7 +323,7 @@ class CrossEntropyLoss(nn.Module):
         return cross_entropy(logits, target, self.weight, self.ignore_index, mask)
 
 
-__all__ = ["laplace_nll", "height_bins_ce",
+__all__ = ["laplace_nll", "height_bins_ce", "shadow_bce",
            "l1", "l2", "huber", "berhu", "scale_invariant", "scale_invariant_gradient", "cross_entropy",
            "HEIGHT_LOSSES", "CLASS_LOSSES", "BALANCE_EDGES", "height_balance_weights",
            "HeightLoss", "CrossEntropyLoss", "IGNORE_INDEX"]

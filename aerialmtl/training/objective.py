@@ -6,6 +6,11 @@
 * :func:`class_weights` — ``loss.class_weights`` resolved against the tile folder;
 * :func:`validation_score` — the number ``best.pt`` and early stopping are chosen by.
 
+With ``model.shadow_head`` the batch also holds the shadow labels (:mod:`aerialmtl.data.shadow_labels`) and the
+objective adds ``shadow``, the head's binary cross-entropy, to the losses of a training batch; it enters the total
+as ``loss.shadow_weight`` × that loss beside the task weighting (:meth:`Objective.total`), and validation scores
+the tasks alone (so ``best.pt`` is chosen by the same measure with and without the head).
+
 Validation score (lower is better): ``Σ_t w_t · L_t / L_t⁰`` over the model's tasks, where ``L_t`` is the
 validation loss of task t, ``L_t⁰`` its value at the first validation of the run and ``w_t`` the task
 weight (``weighting.task_weights``, default 1). Normalising by the first value puts height (metres) and
@@ -21,9 +26,10 @@ import torch
 
 from aerialmtl.classes import IGNORE_INDEX
 from aerialmtl.data.dataset import class_pixel_counts
+from aerialmtl.data.shadow_labels import SHADOW_IGNORE
 from aerialmtl.errors import ConfigError, InputError
 from aerialmtl.formats.tiles import MANIFEST_CSV, TileFolderInfo
-from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE
+from aerialmtl.models.config import HEIGHT_BINS, HEIGHT_LAPLACE, HEIGHT_SCALE, SHADOW
 from aerialmtl.models.height_bins import bin_edges
 from aerialmtl.training import losses
 from aerialmtl.training.config import TrainConfig
@@ -71,6 +77,8 @@ class Objective:
         self.nll_beta = float(cfg.loss.nll_beta)
         self.bins_weight = float(cfg.loss.bins_weight)
         self.height_balance = float(cfg.loss.height_balance)
+        #: the shadow head's loss weight (``loss.shadow_weight``)
+        self.shadow_weight = float(cfg.loss.shadow_weight)
         bins = cfg.model.height_bins
         self.bin_edges = bin_edges(bins, float(cfg.model.height_bin_max)) if bins else None
 
@@ -107,11 +115,21 @@ class Objective:
             w = None if self.class_weights is None else self.class_weights.to(out["classes"].device)
             result["classes"] = self.classes_fn(out["classes"].float(), batch["classes"], weight=w,
                                                 ignore_index=IGNORE_INDEX)
+        if SHADOW in out and SHADOW in batch and not scoring:
+            result[SHADOW] = losses.shadow_bce(out[SHADOW], batch[SHADOW], SHADOW_IGNORE)
         return result
 
     def weighted(self, task_losses: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Each task loss times its fixed task weight (the input of the weighting module)."""
-        return {t: self.task_weights[t] * v for t, v in task_losses.items()}
+        """Each task loss times its fixed task weight (the input of the weighting module); the tasks only."""
+        return {t: self.task_weights[t] * v for t, v in task_losses.items() if t in self.task_weights}
+
+    def total(self, weighted_sum: torch.Tensor, task_losses: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The training objective: the weighting module's sum of the tasks plus ``loss.shadow_weight`` × the
+        shadow head's loss, where the batch has one.
+        """
+        if SHADOW in task_losses:
+            return weighted_sum + self.shadow_weight * task_losses[SHADOW]
+        return weighted_sum
 
 
 def validation_score(task_losses: dict[str, float], reference: dict[str, float], weights: dict[str, float]) -> float:

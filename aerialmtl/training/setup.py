@@ -43,6 +43,7 @@ from aerialmtl.data.batches import CachedBatches, EpochOrder, RankBatchSampler, 
 from aerialmtl.data.cache import PatchCache, ensure_patch_cache
 from aerialmtl.data.copy_paste import CopyPaster, build_object_bank
 from aerialmtl.data.prefetch import AssembledBatches
+from aerialmtl.data.shadow_labels import SHADOW_IGNORE, split_labels
 from aerialmtl.data.transforms import Compose, build_eval_transform, build_train_transform
 from aerialmtl.errors import ConfigError, OutputError
 from aerialmtl.formats.checkpoint import (
@@ -61,12 +62,15 @@ from aerialmtl.formats.tiles import (
 from aerialmtl.models.config import ModelConfig
 from aerialmtl.models.d3net import D3Net, to_channels_last
 from aerialmtl.models.encoders import encoder_spec
+from aerialmtl.sun.position import Sun
+from aerialmtl.sun.record import TrainingSun
 from aerialmtl.training import distributed
 from aerialmtl.training.config import OptimSection, TrainConfig
 from aerialmtl.training.finetune import load_init_weights
 from aerialmtl.training.objective import Objective, class_weights
 from aerialmtl.training.resume import restore, seed_rank_stream
 from aerialmtl.training.state import TrainState, seed_everything
+from aerialmtl.training.sun import fit_training_sun
 from aerialmtl.training.weighting import build_weighting
 
 #: The trainer's logger (the messages of training, whichever module writes them).
@@ -273,9 +277,39 @@ class Loaders:
     val_loader: Batches | None
 
 
+def shadow_head_labels(cfg: TrainConfig, data: TrainData) -> tuple[TrainingSun | None, np.ndarray | None]:
+    """The training sun and the shadow head's labels of the train split (``model.shadow_head``), else ``(None, None)``.
+
+    The sun is fitted here, before the steps (:func:`~aerialmtl.training.sun.fit_training_sun`), and the trainer
+    stores this same record after them; the labels are the cast shadows of the cached train heights at it
+    (:func:`~aerialmtl.data.shadow_labels.split_labels`).
+
+    Raises:
+        ConfigError: copy-paste is on (pasted objects would cast no labelled shadow), or the fit found no sun.
+    """
+    if not data.model_cfg.shadow_head:
+        return None, None
+    if cfg.data.copy_paste.enabled:
+        raise ConfigError("model.shadow_head: its labels are the cast shadows of the stored heights, and pasted "
+                          "objects would cast none; set data.copy_paste.prob: 0 or model.shadow_head: false")
+    sun = fit_training_sun(data.info.root)
+    if not sun.clear or sun.grid_azimuth_deg is None or sun.elevation_deg is None:
+        raise ConfigError(f"model.shadow_head: learns the cast shadows at the training area's sun, and none was "
+                          f"found ({sun.reason}); set model.shadow_head: false")
+    heights = PatchCache(data.cache_folder, data.train_index).arrays()["height"]
+    labels = split_labels(heights, read_manifest(data.info.root, "train"), float(data.info.gsd),
+                          Sun(sun.grid_azimuth_deg, sun.elevation_deg))
+    known = labels != SHADOW_IGNORE
+    log.info("shadow head: %s; labels: %.1f %% cast shadow, %.1f %% unknown", sun.reason,
+             100.0 * float((labels == 1).sum()) / max(1, int(known.sum())), 100.0 * float((~known).mean()))
+    return sun, labels
+
+
 def build_loaders(cfg: TrainConfig, data: TrainData, device: torch.device, ctx: runtime.Torchrun,
-                  state: TrainState) -> Loaders:
-    """The batch plan from ``state``'s position, and the train and val loaders over the caches."""
+                  state: TrainState, shadow: np.ndarray | None = None) -> Loaders:
+    """The batch plan from ``state``'s position, and the train and val loaders over the caches (the train batches
+    with the shadow head's labels ``shadow``, :func:`shadow_head_labels`, where given).
+    """
     dcfg, nw = cfg.data, cfg.data.num_workers
     pin = device.type == "cuda"
     order = EpochOrder(data.train_index.count, dcfg.batch_size, cfg.seed, ctx.world)
@@ -289,14 +323,15 @@ def build_loaders(cfg: TrainConfig, data: TrainData, device: torch.device, ctx: 
     val_loader: Batches | None = None
     train_loader: Batches
     if device.type == "cpu":  # one thread of this process assembles them (no worker processes: see the module)
-        train_loader = AssembledBatches(train_cache, train_transform, data.tasks, sampler, mean, std, paster)
+        train_loader = AssembledBatches(train_cache, train_transform, data.tasks, sampler, mean, std, paster,
+                                        shadow=shadow)
         if data.val_index is not None:
             val_loader = AssembledBatches(PatchCache(data.cache_folder, data.val_index), eval_transform, data.tasks,
                                           eval_batches(data.val_index.count, dcfg.batch_size, ctx.rank, ctx.world),
                                           mean, std)
     else:
         train_loader = torch.utils.data.DataLoader(
-            CachedBatches(train_cache, train_transform, data.tasks, paster), sampler=sampler,
+            CachedBatches(train_cache, train_transform, data.tasks, paster, shadow), sampler=sampler,
             batch_size=None, num_workers=nw, pin_memory=pin, generator=torch.Generator().manual_seed(cfg.seed),
         )
         if data.val_index is not None:
@@ -359,7 +394,7 @@ class StepModule(nn.Module):
         with runtime.autocast(self.device, self.precision):
             out = self.model(batch["image"]) if self.compiled is None else self.compiled("forward", batch["image"])
         losses = self.objective(out, batch)
-        return self.weighting(self.objective.weighted(losses)), losses
+        return self.objective.total(self.weighting(self.objective.weighted(losses)), losses), losses
 
 
 
@@ -384,6 +419,8 @@ class TrainSetup:
         saved_step: the step of ``last.pt`` when resumed from it, else ``None``.
         resume: the run continues ``last.pt`` (the log is appended to).
         averaged: the weight average ``last.pt`` holds (``optim.ema``), ``None`` for a new run or without it.
+        sun: the training sun fitted before the steps for the shadow head (``model.shadow_head``), which the
+            trainer stores after them; ``None``: fitted after the steps, if at all.
     """
 
     cfg: TrainConfig
@@ -403,6 +440,7 @@ class TrainSetup:
     saved_step: int | None
     resume: bool
     averaged: dict[str, torch.Tensor] | None = None
+    sun: TrainingSun | None = None
 
 
 def open_data(cfg: TrainConfig, info: TileFolderInfo, model_cfg: ModelConfig, progress: bool) -> TrainData:
@@ -448,6 +486,7 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
     k = info.classes.num_classes if info.classes is not None else None
     objective = Objective(cfg, tasks, class_weights(cfg, info, k or 2) if "classes" in tasks else None)
     data = open_data(cfg, info, model_cfg, progress)
+    sun, shadow = shadow_head_labels(cfg, data)
     parts = build_model(cfg, data.model_cfg, device, ctx)
     state, saved_step, rng, averaged = TrainState(), None, None, None
     if resume:
@@ -458,11 +497,12 @@ def prepare_training(cfg: TrainConfig, data_dir: str | Path | None = None, out_d
     seed_rank_stream(cfg, ctx, state.step, rng)
     step_module = StepModule(parts.model, parts.weighting, objective, device, precision, compile=cfg.compile)
     ddp = distributed.wrap(step_module, ctx)
-    loaders = build_loaders(cfg, data, device, ctx, state)
+    loaders = build_loaders(cfg, data, device, ctx, state, shadow)
     return TrainSetup(cfg, ctx, owns_ctx, device, precision, run, data_dir, data, parts, objective, step_module, ddp,
-                      loaders, state, saved_step, resume, averaged)
+                      loaders, state, saved_step, resume, averaged, sun)
 
 
 __all__ = ["CPU_BF16_TRAINING", "Loaders", "ModelParts", "TrainData", "TrainSetup", "build_loaders",
            "build_model", "build_optimizer", "copy_paster", "input_normalization", "model_meta", "open_data",
-           "prepare_caches", "prepare_training", "read_data_folder", "train_height_range", "user_cache_dir"]
+           "prepare_caches", "prepare_training", "read_data_folder", "shadow_head_labels", "train_height_range",
+           "user_cache_dir"]

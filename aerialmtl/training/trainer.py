@@ -424,7 +424,7 @@ class Trainer(StepLoop):
         """
         stopped_by = self.done_before_start()
         try:
-            if self.sun_wanted and beside_steps(self.device.type):
+            if self.sun_wanted and self.setup.sun is None and beside_steps(self.device.type):
                 self.sun_beside = SunBeside(self.setup.data.info.root)
             return self._fit(stopped_by)
         finally:
@@ -539,7 +539,8 @@ class Trainer(StepLoop):
         announce(f"sun fit on the {self.setup.data.train_index.count} training patches (best.pt, last.pt)"
                  + ("" if beside is None else ": collecting the fit that ran beside the steps"), self.progress)
         try:
-            sun = (fit_training_sun(self.setup.data.info.root, progress=self.progress) if beside is None
+            sun = (self.setup.sun if self.setup.sun is not None  # fitted before the steps (the shadow head)
+                   else fit_training_sun(self.setup.data.info.root, progress=self.progress) if beside is None
                    else beside.result())
         except InputError as exc:
             log.info("no sun fitted: %s", exc)
