@@ -7,7 +7,8 @@ For each window the model has computed (its statistics still per window, before 
 1. ``shadow`` — the probability that each pixel is a cast shadow, from its colour and its neighbourhood, by the
    shadow classifier fitted on the training area at its sun (:class:`aerialmtl.sun.ShadowModel`, stored in the
    checkpoint's ``meta.sun``): learnt there from the training heights' cast shadows, so the area's water and
-   dark roofs are not shadows;
+   dark roofs are not shadows; where the network has a shadow head (``model.shadow_head``), its P(cast shadow)
+   instead (``McStatistics.shadow_head``, the mean over the MC samples; threshold :data:`HEAD_THRESHOLD`);
 2. ``shadow_height`` — per object the network finds (connected pixels predicted ≥ :data:`OBJECT_MIN_M`), the
    height whose rendered cast shadow — the whole window's, so occluders and shadows falling on other objects
    count — best matches the shadow probability (:func:`aerialmtl.sun.rendered_heights`), painted over the
@@ -65,6 +66,9 @@ CHECK_RATIO = 0.7
 CHECK_MIN_PX = 1500
 #: Least correlation of the target's best sun (:func:`aerialmtl.sun.fit_sun`) for its azimuth to be trusted.
 CHECK_MIN_SCORE = 0.15
+
+#: The shadow head's P(cast shadow) above which a pixel is shadow for the runs (a calibrated probability's half).
+HEAD_THRESHOLD = 0.5
 
 
 def unit_colours(data: np.ndarray, rescale: tuple[float, float] | None, train_dtype: str | None) -> np.ndarray:
@@ -128,6 +132,14 @@ def colour_probability(model: ShadowModel, rgb: np.ndarray, ok: np.ndarray, gsd_
     made = ok & np.isfinite(prob)
     why = "colours the shadow classifier cannot read (negative or not finite)" if (ok & ~made).any() else None
     return Probability(np.where(made, prob, np.float32(np.nan)).astype(np.float32), made, why)
+
+
+def head_probability(head: np.ndarray, ok: np.ndarray) -> Probability:
+    """The shadow head's :class:`Probability` of a window: its P(cast shadow) ``head`` float32 (h, w) (the mean over
+    the MC samples, ``McStatistics.shadow_head``) where ``ok`` (bool (h, w), the valid input) and it is finite.
+    """
+    made = ok & np.isfinite(head)
+    return Probability(np.where(made, head, np.float32(np.nan)).astype(np.float32), made, None)
 
 
 def window_layers(p: Probability, height: np.ndarray, spread: np.ndarray | None, sun: Sun, gsd_m: float,
@@ -222,13 +234,16 @@ class ShadowStep:
         return None
 
     def _window(self, rgb: np.ndarray, ok: np.ndarray, height: np.ndarray, spread: np.ndarray | None,
-                sun: Sun, workers: int = 1) -> _Window:
+                sun: Sun, workers: int = 1, head: np.ndarray | None = None) -> _Window:
         """The layers of one window: ``rgb`` (3, h, w) colours (:func:`unit_colours`), ``ok`` bool (h, w),
         ``height``/``spread`` float32 (h, w) metres (the network's); fused height and spread only with :attr:`fuse`
-        and a measure; ``workers`` threads for the shadow classifier (:meth:`~aerialmtl.sun.ShadowModel.predict_proba`).
+        and a measure; ``workers`` threads for the shadow classifier (:meth:`~aerialmtl.sun.ShadowModel.predict_proba`);
+        ``head``: the network's P(cast shadow) (h, w), used instead of the classifier where given.
         """
-        p = colour_probability(self.model, rgb, ok, self.gsd_m, workers)
-        return window_layers(p, height, spread, sun, self.gsd_m, self.model.threshold, self.fuse)
+        if head is None:
+            p = colour_probability(self.model, rgb, ok, self.gsd_m, workers)
+            return window_layers(p, height, spread, sun, self.gsd_m, self.model.threshold, self.fuse)
+        return window_layers(head_probability(head, ok), height, spread, sun, self.gsd_m, HEAD_THRESHOLD, self.fuse)
 
     def _say(self, source: str, why: str) -> None:
         """Warn once per input and cause that some of its valid pixels got no shadow layers."""
@@ -255,6 +270,7 @@ class ShadowStep:
             heights = stats.height_mean.detach().float().cpu().numpy().copy()
             spreads = None if stats.height_std is None else stats.height_std.detach().float().cpu().numpy().copy()
             ok_all = valid.cpu().numpy()
+            head = None if stats.shadow_head is None else stats.shadow_head.detach().float().cpu().numpy()
             fused = False
 
             # windows on threads of their own; a lone window (a CPU's batch) spreads its filters over them
@@ -262,7 +278,7 @@ class ShadowStep:
 
             def one(n: int) -> _Window:
                 return self._window(rgb[n][:3], ok_all[n], heights[n], None if spreads is None else spreads[n], sun,
-                                    inner)
+                                    inner, None if head is None else head[n])
 
             if self.workers > 1 and b > 1:
                 with ThreadPoolExecutor(min(self.workers, b), thread_name_prefix="aerialmtl-shadows") as pool:
@@ -288,5 +304,5 @@ class ShadowStep:
         stats.shadow_weight = s_weight.to(dev)
 
 
-__all__ = ["MIN_CONTRAST", "OBJECT_MIN_M", "Probability", "ShadowStep", "colour_probability", "unit_colours",
-           "window_layers"]
+__all__ = ["HEAD_THRESHOLD", "MIN_CONTRAST", "OBJECT_MIN_M", "Probability", "ShadowStep", "colour_probability",
+           "head_probability", "unit_colours", "window_layers"]

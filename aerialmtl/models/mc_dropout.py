@@ -9,6 +9,8 @@ Outputs per enabled task:
 
 * ``height``: ``mean`` and ``std`` (B×1×H×W, metres; std is the population std over the T samples,
   the epistemic spread).
+* ``shadow`` (a model with the shadow head, ``cfg.shadow_head``): ``shadow_head`` (B×H×W), the mean over the
+  samples of the sigmoid of its logit, P(cast shadow) in [0, 1].
 * ``classes``: ``probs`` (B×K×H×W, mean softmax), ``entropy`` (B×H×W, nats, predictive entropy
   H[mean p] ∈ [0, log K]) and ``mutual_info`` (B×H×W, nats, H[mean p] − mean_t H[p_t], clamped ≥ 0;
   the BALD epistemic part).
@@ -47,7 +49,7 @@ import torch
 from torch import nn
 
 from aerialmtl.models import class_kernel
-from aerialmtl.models.config import HEIGHT_SCALE
+from aerialmtl.models.config import HEIGHT_SCALE, SHADOW
 from aerialmtl.models.d3net import decode_features, encode_features
 from aerialmtl.models.familiarity import FeatureDensity
 
@@ -185,6 +187,7 @@ class McStatistics:
     shadow_on: torch.Tensor | None = None
     shadow_height: torch.Tensor | None = None
     shadow_weight: torch.Tensor | None = None
+    shadow_head: torch.Tensor | None = None
 
     def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> McStatistics:
         """A copy with ``fn`` applied to every statistic present (e.g. one window of a batch, a view undone)."""
@@ -381,6 +384,7 @@ def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor
     p_sum: torch.Tensor | None = None
     ent_sum: torch.Tensor | None = None
     a_sum: torch.Tensor | None = None
+    s_sum: torch.Tensor | None = None
     done = 0
     while done < samples:
         s = min(chunk, samples - done)
@@ -400,6 +404,9 @@ def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor
         if HEIGHT_SCALE in out:
             c_a = laplace_variance(out[HEIGHT_SCALE]).unflatten(0, (s, b))[:, :, 0].sum(0)
             a_sum = c_a if a_sum is None else a_sum.add_(c_a)
+        if SHADOW in out:
+            c_s = torch.sigmoid(out[SHADOW].float()).unflatten(0, (s, b))[:, :, 0].sum(0)
+            s_sum = c_s if s_sum is None else s_sum.add_(c_s)
         if "classes" in out:  # added into the running sums (no chunk-sized array per call)
             p_sum, ent_sum = _class_sums(out["classes"], s, b, p_sum, ent_sum)
         done += s
@@ -412,6 +419,8 @@ def accumulate_samples(decode_chunk: Callable[[int, int], dict[str, torch.Tensor
             stats.height_std = predictive_std(epistemic_var, aleatoric_var)
         else:
             stats.height_std = epistemic_var.sqrt()
+    if s_sum is not None:
+        stats.shadow_head = s_sum.div_(samples)
     if p_sum is not None and ent_sum is not None:
         stats.probs = p_sum.div_(samples).permute(1, 2, 3, 0).contiguous()  # planes → channels last, once
         stats.mean_entropy = ent_sum.div_(samples)
@@ -445,6 +454,8 @@ def single_pass_statistics(raw: dict[str, torch.Tensor]) -> McStatistics:
         stats.height_std = stats.height_aleatoric
     if "classes" in raw:
         stats.probs = class_probabilities(raw["classes"])
+    if SHADOW in raw:
+        stats.shadow_head = torch.sigmoid(raw[SHADOW][:, 0].float())
     return stats
 
 
