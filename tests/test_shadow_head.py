@@ -168,7 +168,7 @@ def test_the_loss_skips_unknown_pixels() -> None:
     loss.backward()
     assert float(loss.detach()) == pytest.approx(np.log(2.0))
     assert logits.grad is not None and (logits.grad[0, 0, :, 1] == 0).all()
-    assert float(shadow_bce(logits, torch.full_like(lab, SHADOW_IGNORE), SHADOW_IGNORE)) == 0.0
+    assert float(shadow_bce(logits, torch.full_like(lab, SHADOW_IGNORE), SHADOW_IGNORE).detach()) == 0.0
 
 
 # ---- predict ----------------------------------------------------------------------------------------------------
