@@ -59,7 +59,8 @@ class RenderSettings:
         max_height_m: no object is rendered higher, metres.
         elevation_sd_deg: uncertainty of the sun's elevation, degrees (it scales every height of the area).
         correlated_px: pixels per independent observation (the match curve's temperature).
-        passes: measure every object again with the others at their measured heights, this many passes in all.
+        passes: passes over the objects in all: after the first, an object is measured again where another
+            object's new height changed its surroundings (rows of buildings shade each other).
         tol_m: metres an occluder must rise above a pixel's sun ray (as :func:`~aerialmtl.sun.cast_shadow_mask`).
         families: the object shapes tried: ``"flat"`` (a flat top over the footprint) and ``"shape"`` (the
             network's own shape, capped at its 90th percentile: ``min(1, h / h90)``), each scaled to ``H``.
@@ -67,6 +68,8 @@ class RenderSettings:
             tried as ground (a blurred object's spill into its own shadow).
         prior: the share of shadow the probability was calibrated to (a classifier's base rate), against which a
             pixel's probability is evidence for or against a rendered shadow; None: the map's mean probability.
+        min_object_m2: objects smaller than this (square metres) are not measured: too small for their shadow to
+            tell their height.
         top_share: the measured height is painted where the network's heights reach this share of the object's
             90th percentile (its top, not the blurred rim around it).
         global_range, global_steps: the common multiplier of every object's heights searched first (geometric
@@ -81,12 +84,13 @@ class RenderSettings:
     max_height_m: float = 150.0
     elevation_sd_deg: float = 3.0
     correlated_px: float = CORRELATED_PX
-    passes: int = 2
+    passes: int = 1
     tol_m: float = TOL_M
     families: tuple[str, ...] = ("flat", "shape")
     spill_m: float = 3.0
     prior: float | None = None
     top_share: float = 0.5
+    min_object_m2: float = 20.0
     global_range: tuple[float, float] = (0.5, 4.0)
     global_steps: int = 25
 
@@ -275,21 +279,33 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
     tan_e = sun.tan_elevation
     e = math.tan(math.radians(min(sun.elevation_deg + settings.elevation_sd_deg, 89.9))) / tan_e - 1.0
     boxes = ndimage.find_objects(labels)
+    sizes = np.bincount(labels.ravel(), minlength=len(boxes) + 1)
+    min_px = settings.min_object_m2 / (gsd_m * gsd_m)
     results: dict[int, _Result] = {}
+    todo = [i + 1 for i, box in enumerate(boxes) if box is not None]
     for _ in range(max(1, int(settings.passes))):
-        changed = False
-        for i, box in enumerate(boxes):
-            if box is None:
+        moved = np.zeros(labels.shape, bool)  # pixels whose height a measured object changed in this pass
+        for label in todo:
+            box = boxes[label - 1]
+            assert box is not None
+            if sizes[label] < min_px:  # too small for its shadow to tell its height
+                empty = np.zeros((box[0].stop - box[0].start, box[1].stop - box[1].start), bool)
+                results[label] = _Result(RenderedObject(label, int(sizes[label]), 0, math.nan, math.nan), box,
+                                         empty, empty, empty, np.zeros(empty.shape, np.float32))
                 continue
-            res = _measure(i + 1, box, labels, hmap, z, known, called, lp, lq, finite_max, gsd_m, sun, e, settings)
-            results[i + 1] = res
+            res = _measure(label, box, labels, hmap, z, known, called, lp, lq, finite_max, gsd_m, sun, e, settings)
+            results[label] = res
             if res.record.measured:  # the next objects see this one at its measured height, its spill as ground
                 new = z[res.crop].copy()
                 new[res.top] = res.per_px[res.top]
                 new[res.spill] = np.minimum(new[res.spill], np.float32(0.0))
-                changed |= not np.array_equal(new, z[res.crop])
+                moved[res.crop] |= new != z[res.crop]
                 z[res.crop] = new
-        if not changed:
+        # measured again: the objects whose surroundings another object's new height changed
+        todo = [label for label in todo if results[label].record.measured or results[label].record.n_runs > 0]
+        todo = [label for label in todo
+                if (moved[results[label].crop] & (labels[results[label].crop] != label)).any()]
+        if not todo:
             break
     out_h = np.full(labels.shape, np.nan, np.float32)
     out_s = np.full(labels.shape, np.nan, np.float32)
@@ -340,11 +356,14 @@ def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.n
 
 
 class _Result(NamedTuple):
-    """One object's measurement: its record, crop, painted pixels, spill and per-pixel heights in the crop."""
+    """One object's measurement: its record, crop, painted pixels, the footprint it was rendered over, its spill
+    and per-pixel heights in the crop.
+    """
 
     record: RenderedObject
     crop: tuple[slice, slice]
     top: np.ndarray
+    footprint: np.ndarray
     spill: np.ndarray
     per_px: np.ndarray
 
@@ -365,7 +384,7 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
     hi = min(max_height_m, range_scale[1] * h_obj) if math.isfinite(h_obj) else math.nan
     if not (math.isfinite(h_obj) and h_obj > 0 and hi > lo * 1.5):
         empty = np.zeros(own_box.shape, bool)
-        return _Result(RenderedObject(label, n_px, 0, math.nan, math.nan), box, empty, empty,
+        return _Result(RenderedObject(label, n_px, 0, math.nan, math.nan), box, empty, empty, empty,
                        np.zeros(own_box.shape, np.float32))
     heights = np.geomspace(lo, hi, int(n_heights))
     tan_e = sun.tan_elevation
@@ -415,7 +434,8 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
     # painted: the object's top, where the network's own shape reaches half its height (not its blurred rim)
     top = footprint & (np.where(footprint, base, 0.0) >= np.float32(settings.top_share) * np.float32(
         np.percentile(base[footprint], 90) if footprint.any() else 0.0))
-    return _Result(record, crop, top if ok else none, spill if (ok and trim) else none, per_px)
+    return _Result(record, crop, top if ok else none, footprint if ok else none, spill if (ok and trim) else none,
+                   per_px)
 
 
 __all__ = ["RenderSettings", "RenderedHeights", "RenderedObject", "rendered_heights"]
