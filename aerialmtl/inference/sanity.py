@@ -38,7 +38,8 @@ from rasterio.windows import Window
 
 from aerialmtl.errors import CheckpointError, InputError, NonFiniteError
 from aerialmtl.formats.checkpoint import ModelMeta, plausible_heights, value_envelope
-from aerialmtl.io.align import open_raster, read_error
+from aerialmtl.io.align import open_raster
+from aerialmtl.io.raster_errors import read_error
 from aerialmtl.models.mc_dropout import McStatistics
 
 #: windows per side and their side (pixels) of the orthophoto sample.

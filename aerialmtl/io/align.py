@@ -33,8 +33,7 @@ from rasterio.warp import transform_bounds
 from rasterio.windows import Window, from_bounds
 from rasterio.windows import transform as window_transform
 
-from aerialmtl.errors import AlignmentError, InputError, cause
-from aerialmtl.io.fingerprint import blocking_file
+from aerialmtl.errors import AlignmentError, InputError
 from aerialmtl.io.paths import (
     ARCHIVE_VSI,
     REMOTE_OPEN_OPTIONS,
@@ -46,6 +45,7 @@ from aerialmtl.io.paths import (
     probe_url,
 )
 from aerialmtl.io.place import check_place
+from aerialmtl.io.raster_errors import gdal_message, raise_if_blocking, read_error
 from aerialmtl.io.units import VerticalUnit, metres_per_unit, require_projected, vertical_unit
 from aerialmtl.quiet import ignoring_warnings
 
@@ -143,7 +143,7 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
                    "AWS_NO_SIGN_REQUEST=YES "
                    "for a public bucket" if "/vsis3/" in gpath else
                    "a server that needs a login takes GDAL_HTTP_AUTH/GDAL_HTTP_USERPWD or GDAL_HTTP_HEADERS")
-            why = _gdal_message(exc)
+            why = gdal_message(exc)
             if "not recognized" in why:  # what GDAL says after its retries, whatever the server did: ask it
                 why = probe_url(gpath) or why
             raise InputError(
@@ -155,67 +155,12 @@ def open_raster(path: str | Path, role: str = "raster") -> rasterio.io.DatasetRe
                 raise InputError(f"{role} '{gpath}': no archive file was found along this path; check the archive's "
                                  "path (e.g. /vsizip//data/area.zip/ortho.tif)") from exc
             raise InputError(f"{role} '{gpath}': the archive '{parts[0]}' holds no raster '{parts[1]}' (GDAL: "
-                             f"{_gdal_message(exc)}); list its files (`unzip -l {parts[0]}`) and give one of them"
+                             f"{gdal_message(exc)}); list its files (`unzip -l {parts[0]}`) and give one of them"
                              ) from exc
         raise InputError(
             f"{role} '{gpath}' cannot be read as a raster ({' '.join(str(exc).split())}); "
             "is it a complete GeoTIFF? re-download or re-export it"
         ) from exc
-
-
-def raise_if_blocking(path: str | Path, role: str = "raster") -> None:
-    """Refuse local raster ``path`` when it or a sidecar GDAL reads with it is a FIFO, a socket or a device
-    (:func:`~aerialmtl.io.fingerprint.blocking_file`): GDAL would wait on it forever.
-
-    Raises:
-        InputError: naming the file, what it is, and the fix.
-    """
-    found = blocking_file(path)
-    if found is None:
-        return
-    bad, kind = found
-    what = "it" if bad == Path(path) else f"'{bad}', which GDAL reads with it,"
-    raise InputError(f"{role} '{path}' cannot be opened: {what} is {kind}, not a regular file (GDAL would wait on it "
-                     f"forever); remove '{bad}' or replace it with the file it should be")
-
-
-def _gdal_message(exc: BaseException) -> str:
-    """GDAL's own words for a failed read, in whole sentences.
-
-    rasterio chains the CPLE error as the cause, and says only "Read failed. See previous exception for details."
-    itself.
-    """
-    seen: BaseException | None = exc
-    while seen is not None:
-        text = " ".join(str(seen).split())
-        if text and "See previous exception" not in text:
-            return cause(text)
-        seen = seen.__cause__ or seen.__context__
-    return "read failed"
-
-
-def read_error(role: str, path: str | Path, exc: BaseException) -> InputError:
-    """The error to raise when reading pixels of an opened raster failed (``exc``).
-
-    It names the path or URL, what failed
-    (GDAL's words and, for a URL, what the server answers when asked again: an HTTP status, a refused or closed
-    connection, a timeout) and the fix.
-    """
-    gpath = gdal_path(path)
-    why = _gdal_message(exc)
-    if is_remote(gpath):
-        server = probe_url(gpath)
-        now = (f"asked again, the server answers: {server}" if server else
-               "asked again, the server answers normally: the connection was dropped or timed out in between")
-        url = gpath[len("/vsicurl/"):] if gpath.startswith("/vsicurl/") else gpath
-        return InputError(
-            f"{role} '{url}' could not be read after it was opened (GDAL: {why}; {now}); check the network and the "
-            "server, then re-run (GDAL_HTTP_TIMEOUT and GDAL_HTTP_MAX_RETRY set how long and how often it retries)")
-    if str(path).lower().endswith(".vrt") and "No such file" in why:
-        return InputError(f"{role} '{path}' could not be read: a source file it lists is missing ({why}); restore "
-                          "it, or rebuild the VRT over the files you have (`gdalbuildvrt`)")
-    return InputError(f"{role} '{path}' could not be read ({why}); the file is probably truncated or corrupt: check "
-                      f"it with `gdalinfo -checksum {path}`, then re-download or re-export it")
 
 
 def check_bands(

@@ -209,9 +209,23 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
     n_edges = np.zeros(len(all_labels), np.int64)
     found, counts = np.unique(lab, return_counts=True)
     n_edges[np.searchsorted(all_labels, found)] = counts
+    n_runs, hm, sd = _run_statistics(length[ok] * q, lab[ok], all_labels, q, e)
+    measured = n_runs >= min_runs
+    hm[~measured] = np.nan
+    sd[~measured] = np.nan
+    records = [ShadowObject(label, edges, n, h, s) for label, edges, n, h, s in
+               zip(all_labels.tolist(), n_edges.tolist(), n_runs.tolist(), hm.tolist(), sd.tolist())]
+    height, std = paint_objects(labels, all_labels[measured], hm[measured], sd[measured])
+    return ShadowHeights(height, std, records)
+
+
+def _run_statistics(heights: np.ndarray, lab_ok: np.ndarray, all_labels: np.ndarray, q: float,
+                    e: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per object of ``all_labels`` (ascending): its measured runs' count, their median height and its spread
+    (:func:`shadow_heights`), from every run's height ``heights`` (metres) and object ``lab_ok``; ``q`` metres per
+    step, ``e`` the relative effect of the elevation's uncertainty.
+    """
     # every object's runs together, ascending: medians by position, no loop over the objects
-    heights = length[ok] * q
-    lab_ok = lab[ok]
     order = np.lexsort((heights, lab_ok))
     lab_ok, heights = lab_ok[order], heights[order]
     starts = np.searchsorted(lab_ok, all_labels, side="left")
@@ -223,19 +237,22 @@ def shadow_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: np.
     mad = MAD_TO_SD * _sorted_medians(dev, starts, n_runs)
     with np.errstate(divide="ignore", invalid="ignore"):
         sd = np.sqrt(np.maximum(mad, q / 2) ** 2 * (1.0 + 10.0 / n_runs) + (hm * e) ** 2)
-    measured = n_runs >= min_runs
-    hm[~measured] = np.nan
-    sd[~measured] = np.nan
-    records = [ShadowObject(label, edges, n, h, s) for label, edges, n, h, s in
-               zip(all_labels.tolist(), n_edges.tolist(), n_runs.tolist(), hm.tolist(), sd.tolist())]
-    height = np.full(labels.shape, np.nan, np.float32)
-    std = np.full(labels.shape, np.nan, np.float32)
-    if measured.any():
+    return n_runs, hm, sd
+
+
+def paint_objects(labels: np.ndarray, which: np.ndarray, height: np.ndarray,
+                  std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 (H, W) each: the objects ``which`` of ``labels`` painted with their ``height`` and ``std`` (metres,
+    one per object), NaN elsewhere.
+    """
+    out_h = np.full(labels.shape, np.nan, np.float32)
+    out_s = np.full(labels.shape, np.nan, np.float32)
+    if len(which):
         lut_h = np.full(int(labels.max()) + 1, np.nan, np.float32)
         lut_s = np.full(int(labels.max()) + 1, np.nan, np.float32)
-        lut_h[all_labels[measured]] = hm[measured]
-        lut_s[all_labels[measured]] = sd[measured]
+        lut_h[which] = height
+        lut_s[which] = std
         inside = labels > 0
-        height[inside] = lut_h[labels[inside]]
-        std[inside] = lut_s[labels[inside]]
-    return ShadowHeights(height, std, records)
+        out_h[inside] = lut_h[labels[inside]]
+        out_s[inside] = lut_s[labels[inside]]
+    return out_h, out_s

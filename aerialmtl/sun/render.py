@@ -307,9 +307,14 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
                 if (moved[results[label].crop] & (labels[results[label].crop] != label)).any()]
         if not todo:
             break
-    out_h = np.full(labels.shape, np.nan, np.float32)
-    out_s = np.full(labels.shape, np.nan, np.float32)
-    spill_all = np.zeros(labels.shape, bool)
+    return _painted(labels.shape, results, global_scale)
+
+
+def _painted(shape: tuple[int, ...], results: dict[int, _Result], global_scale: float) -> RenderedHeights:
+    """The per-object results as :class:`RenderedHeights` on a raster of ``shape``."""
+    out_h = np.full(shape, np.nan, np.float32)
+    out_s = np.full(shape, np.nan, np.float32)
+    spill_all = np.zeros(shape, bool)
     records: list[ShadowObject] = []
     for label in sorted(results):
         res = results[label]
