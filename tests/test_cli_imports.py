@@ -91,8 +91,9 @@ def test_the_predict_modules_load_the_shadow_machinery_only_when_a_run_casts_sha
     assert proc.returncode == 0, proc.stderr[-2000:]
     before, names, colour_after = json.loads(proc.stdout.strip().splitlines()[-1])
     assert before == [], f"reading a checkpoint / the predict job imported {before}"
-    assert set(names) == {"ShadowHeights", "ShadowModel", "ShadowObject", "Sun", "SunFit", "cast_shadow_mask",
-                          "fit_sun", "fit_sun_patches", "fuse_heights", "shadow_heights", "shadow_score"}
+    assert set(names) == {"RenderSettings", "RenderedHeights", "ShadowHeights", "ShadowModel", "ShadowObject", "Sun",
+                          "SunFit", "cast_shadow_mask", "fit_sun", "fit_sun_patches", "fuse_heights", "fuse_rendered",
+                          "rendered_heights", "shadow_heights", "shadow_score"}
     assert colour_after and names["ShadowModel"] == "type" and names["fit_sun"] == "function"
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         import aerialmtl.sun
