@@ -150,10 +150,10 @@ def _crop(bbox: tuple[slice, slice], shape: tuple[int, int], sun: Sun, down_px: 
     return slice(*rr), slice(*cc)
 
 
-def _loglik(prob: np.ndarray, known: np.ndarray, prior: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """The evidence of each pixel, float32 (H, W) each: what a rendered shadow there adds to the match (the
+def _loglik(prob: np.ndarray, known: np.ndarray, prior: float | None) -> np.ndarray:
+    """The evidence of each pixel, float32 (H, W): what a rendered shadow there adds to the match (the
     log-likelihood ratio of shadow to lit, ``logit P − logit prior``: the classifier's posterior odds over its
-    prior odds, within ±:data:`MAX_LLR`) and what a lit pixel adds (0). ``prior`` None: the mean
+    prior odds, within ±:data:`MAX_LLR`; 0 where unknown); a lit pixel adds 0. ``prior`` None: the mean
     probability over the ``known`` pixels (a calibrated classifier's base rate of shadow there).
     """
     p = np.clip(np.where(known, prob, 0.5), EPS, 1.0 - EPS)
@@ -161,7 +161,8 @@ def _loglik(prob: np.ndarray, known: np.ndarray, prior: float | None) -> tuple[n
         prior = float(p[known].mean()) if known.any() else 0.5
     pi = min(max(float(prior), EPS), 1.0 - EPS)
     ratio = np.clip(np.log(p) - np.log1p(-p) - (math.log(pi) - math.log1p(-pi)), -MAX_LLR, MAX_LLR)
-    return np.where(known, ratio, 0.0).astype(np.float32), np.zeros(prob.shape, np.float32)
+    evidence: np.ndarray = np.where(known, ratio, 0.0).astype(np.float32)
+    return evidence
 
 
 def _sweep(z: np.ndarray, gsd_m: float, sun: Sun) -> np.ndarray:
@@ -186,54 +187,66 @@ def _walk_up(sun: Sun, n: int) -> tuple[np.ndarray, np.ndarray]:
     return (along, cross) if rows_dom else (cross, along)
 
 
-def _curve(shape: np.ndarray, footprint: np.ndarray, receive: np.ndarray, others_surface: np.ndarray,
-           use: np.ndarray, lp: np.ndarray, lq: np.ndarray, heights: np.ndarray, gsd_m: float, sun: Sun,
-           tol_m: float) -> _Curve:
-    """The log-likelihood of the shadow probability over ``use`` for the object ``H · shape`` over ``footprint``,
-    at each height ``H`` of ``heights``.
+class _Variant(NamedTuple):
+    """What one variant (a footprint and the receiving heights around it) shares between its shape families."""
+
+    footprint: np.ndarray
+    receive: np.ndarray
+    reach: np.ndarray
+    free: np.ndarray
+    tops: np.ndarray
+    base: float
+
+
+def _variant(footprint: np.ndarray, receive: np.ndarray, others_surface: np.ndarray, use: np.ndarray,
+             lp: np.ndarray, gsd_m: float, sun: Sun, tol_m: float) -> _Variant:
+    """The parts of the match that do not depend on the object's shape: ``reach`` (−(steps to the footprint
+    up-sun) × drop, one sweep), the pixels the rest of the map shades whatever the height (their evidence summed in
+    ``base``), the ``free`` pixels the object alone may shade, and its ``tops``.
+    """
+    reach = _sweep(np.where(footprint, np.float32(0.0), np.float32(-np.inf)), gsd_m, sun)
+    with np.errstate(invalid="ignore"):
+        others = (others_surface - receive) > np.float32(tol_m)
+    fixed = use & ~footprint
+    return _Variant(footprint, receive, reach, fixed & ~others, footprint & use, float(lp[fixed & others].sum()))
+
+
+def _curve(shape: np.ndarray, v: _Variant, others_surface: np.ndarray, lp: np.ndarray, heights: np.ndarray,
+           gsd_m: float, sun: Sun, tol_m: float) -> _Curve:
+    """The log-likelihood of the shadow probability for the object ``H · shape`` over ``v.footprint``, at each
+    height ``H`` of ``heights`` (a lit pixel adds 0, a shaded one its evidence ``lp``).
 
     A pixel ``p`` off the footprint is in the object's shadow at ``H`` when ``H`` exceeds its threshold ``H*(p)``
     (:func:`aerialmtl.sun.kernels.shade_thresholds`), and whatever ``H`` when the rest of the map shades it (its
-    shadow surface ``others_surface`` rises ``tol_m`` above ``receive``). A footprint pixel is the object's top at
-    ``H · shape``: in the others' shadow while ``H`` stays below ``(others_surface − tol_m) / shape``.
+    shadow surface ``others_surface`` rises ``tol_m`` above the receiving height). A footprint pixel is the
+    object's top at ``H · shape``: in the others' shadow while ``H`` stays below ``(others_surface − tol_m) / shape``.
     """
     from aerialmtl.sun.kernels import shade_thresholds
 
     _, _, slope = sun_steps(sun.azimuth_deg)
     drop = gsd_m * math.hypot(1.0, slope) * sun.tan_elevation
     top = float(heights[-1])
-    n = int(math.ceil(top / drop)) + 1
-    off_r, off_c = _walk_up(sun, n)
-    # −(steps to the footprint up-sun) × drop for every pixel in one sweep: where each walk may start
-    reach = _sweep(np.where(footprint, np.float32(0.0), np.float32(-np.inf)), gsd_m, sun)
+    off_r, off_c = _walk_up(sun, int(math.ceil(top / drop)) + 1)
     with np.errstate(invalid="ignore"):
-        start = np.where(np.isfinite(reach) & (receive - reach <= top), np.floor(-reach / drop) - 2, -1)
-    thresh = np.empty(footprint.shape, np.float32)
-    shade_thresholds(np.ascontiguousarray(shape, dtype=np.float32), np.ascontiguousarray(footprint),
-                     np.ascontiguousarray(receive, dtype=np.float32), start.astype(np.int32), off_r, off_c, drop,
+        start = np.where(np.isfinite(v.reach) & (v.receive - v.reach <= top), np.floor(-v.reach / drop) - 2, -1)
+    thresh = np.empty(v.footprint.shape, np.float32)
+    shade_thresholds(np.ascontiguousarray(shape, dtype=np.float32), np.ascontiguousarray(v.footprint),
+                     np.ascontiguousarray(v.receive, dtype=np.float32), start.astype(np.int32), off_r, off_c, drop,
                      float(tol_m), top, thresh)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        others = (others_surface - receive) > np.float32(tol_m)
-        # a top pixel stays in the others' shadow below this height of the object
-        under = np.where(footprint & (shape > 0), (others_surface - np.float32(tol_m)) / shape, -np.inf)
-    tops = footprint & use
-    fixed = use & ~footprint
-    shaded = fixed & others
-    free = fixed & ~others
-    reachable = free & (thresh <= top)  # the rest of ``free`` stays lit at every height tried
-    base = float(lq[tops].sum() + lp[shaded].sum() + lq[free].sum())
+    reachable = v.free & (thresh <= top)  # the rest of ``free`` stays lit at every height tried
     t = thresh[reachable]
-    gain = (lp[reachable] - lq[reachable]).astype(np.float64)
     order = np.argsort(t, kind="stable")
-    t, cum = t[order], np.concatenate([[0.0], np.cumsum(gain[order])])
-    idx = np.searchsorted(t, heights, side="left")  # thresholds strictly below H: shaded at H
-    ll = base + cum[idx]
-    hidden = tops & (under > heights[0])  # tops shaded by the others at the lowest heights tried
+    t, cum = t[order], np.concatenate([[0.0], np.cumsum(lp[reachable][order].astype(np.float64))])
+    ll = v.base + cum[np.searchsorted(t, heights, side="left")]  # thresholds strictly below H: shaded at H
+    g = shape[v.tops]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # a top pixel stays in the others' shadow below this height of the object
+        under = np.where(g > 0, (others_surface[v.tops] - np.float32(tol_m)) / g, -np.inf)
+    hidden = under > heights[0]  # tops shaded by the others at the lowest heights tried
     if hidden.any():
         u = under[hidden]
-        g2 = (lp[hidden] - lq[hidden]).astype(np.float64)
         o2 = np.argsort(u, kind="stable")
-        u, cum2 = u[o2], np.concatenate([[0.0], np.cumsum(g2[o2])])
+        u, cum2 = u[o2], np.concatenate([[0.0], np.cumsum(lp[v.tops][hidden][o2].astype(np.float64))])
         ll = ll + (cum2[-1] - cum2[np.searchsorted(u, heights, side="right")])  # shaded while H < under
     zone = int(((t > heights[0]) & (t <= heights[-1])).sum()) + int(hidden.sum())
     return _Curve(ll, zone)
@@ -267,13 +280,13 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
         raise InputError(f"'objects' must hold integer labels (0 = no object), got dtype {labels.dtype}")
     settings = settings or RenderSettings()
     known = np.isfinite(prob)
-    lp, lq = _loglik(prob, known, settings.prior)
+    lp = _loglik(prob, known, settings.prior)
     z = np.where(np.isfinite(hmap), hmap, np.float32(-np.inf)).astype(np.float32)
     # spill candidates: object pixels called shadow at the object's down-sun edge (where a blurred object runs
     # into its own shadow), not those deeper in (a lower roof shaded by a taller neighbour up-sun)
     called = known & (prob >= settings.threshold) & (labels > 0)
     called &= _down_sun_edge(labels > 0, gsd_m, sun, settings.spill_m)
-    global_scale = _global_scale(z, labels > 0, known, lp, lq, gsd_m, sun, settings)
+    global_scale = _global_scale(z, labels > 0, known, lp, gsd_m, sun, settings)
     z = np.where(labels > 0, z * np.float32(global_scale), z)
     finite_max = float(np.max(hmap[np.isfinite(hmap)], initial=0.0))
     tan_e = sun.tan_elevation
@@ -293,7 +306,7 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
                 results[label] = _Result(RenderedObject(label, int(sizes[label]), 0, math.nan, math.nan), box,
                                          empty, empty, empty, np.zeros(empty.shape, np.float32))
                 continue
-            res = _measure(label, box, labels, hmap, z, known, called, lp, lq, finite_max, gsd_m, sun, e, settings)
+            res = _measure(label, box, labels, hmap, z, known, called, lp, finite_max, gsd_m, sun, e, settings)
             results[label] = res
             if res.record.measured:  # the next objects see this one at its measured height, its spill as ground
                 new = z[res.crop].copy()
@@ -340,7 +353,7 @@ def _down_sun_edge(inside: np.ndarray, gsd_m: float, sun: Sun, width_m: float) -
     return edge
 
 
-def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.ndarray, lq: np.ndarray,
+def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.ndarray,
                   gsd_m: float, sun: Sun, settings: RenderSettings) -> float:
     """The one multiplier of every object's heights whose rendered shadows match best (1.0 when the match curve
     peaks at an end of :attr:`RenderSettings.global_range` or there are no objects): a network that reads every
@@ -355,7 +368,7 @@ def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.n
         zs = np.where(inside, z * np.float32(s), z)
         with np.errstate(invalid="ignore"):
             shadow = (_sweep(zs, gsd_m, sun) - zs) > np.float32(settings.tol_m)
-        ll[i] = float(np.where(shadow, lp, lq)[known].sum())
+        ll[i] = float(lp[shadow & known].sum())
     k = int(np.argmax(ll))
     return float(scales[k]) if 0 < k < len(scales) - 1 else 1.0
 
@@ -374,7 +387,7 @@ class _Result(NamedTuple):
 
 
 def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.ndarray, z: np.ndarray,
-             known: np.ndarray, called: np.ndarray, lp: np.ndarray, lq: np.ndarray, finite_max: float,
+             known: np.ndarray, called: np.ndarray, lp: np.ndarray, finite_max: float,
              gsd_m: float, sun: Sun, e: float, settings: RenderSettings) -> _Result:
     """:func:`rendered_heights` for one object, the map ``z`` (−inf: unknown) holding the others' heights."""
     min_zone_px, max_rel_std, range_scale = settings.min_zone_px, settings.max_rel_std, settings.range_scale
@@ -402,7 +415,7 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
     zc = z[crop]
     others_z = np.where(own, np.float32(-np.inf), zc)
     others_surface = _sweep(others_z, gsd_m, sun)
-    kc, lpc, lqc = known[crop], lp[crop], lq[crop]
+    kc, lpc = known[crop], lp[crop]
     # the variants: a flat top or the network's shape (capped at its 90th percentile), each with the whole
     # object as top or with its pixels called shadow as ground (the spill trimmed)
     base = np.where(np.isfinite(hmap[crop]), hmap[crop], 0.0).astype(np.float32)
@@ -411,11 +424,13 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
         variants.append((core, np.where(spill, np.minimum(zc, np.float32(0.0)), zc), True))
     curves = []
     for fp, recv, trim in variants:
-        h90 = max(float(np.percentile(base[fp], 90)), 1e-3)
+        v = _variant(fp, recv, others_surface, kc, lpc, gsd_m, sun, tol_m)
+        vals = base[fp]
+        h90 = max(float(np.partition(vals, int(0.9 * (len(vals) - 1)))[int(0.9 * (len(vals) - 1))]), 1e-3)
         shapes = {"flat": fp.astype(np.float32),
                   "shape": np.where(fp, np.clip(base / np.float32(h90), 0.0, 1.0), 0.0).astype(np.float32)}
         for family in families:
-            curve = _curve(shapes[family], fp, recv, others_surface, kc, lpc, lqc, heights, gsd_m, sun, tol_m)
+            curve = _curve(shapes[family], v, others_surface, lpc, heights, gsd_m, sun, tol_m)
             curves.append((curve, fp, trim, family, shapes[family]))
     best, footprint, trim, family, shape = max(curves, key=lambda c: float(c[0].ll.max()))
     ll = best.ll
