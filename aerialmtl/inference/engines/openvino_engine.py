@@ -5,7 +5,9 @@ compiled for the CPU, once per window shape (:mod:`aerialmtl.inference.engines`,
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
+import sys
 import threading
 import warnings
 from collections.abc import Collection, Sequence
@@ -33,7 +35,7 @@ from aerialmtl.inference.engines.openvino_graphs import (
     model_outputs,
 )
 from aerialmtl.inference.engines.openvino_requests import _DONE, _BufferPool, _Forward1, _Job, _Requests
-from aerialmtl.inference.model_record import CheckpointModel, resolve_model
+from aerialmtl.inference.model_record import RECORDS, CheckpointModel, resolve_model
 from aerialmtl.models.d3net import D3Net, encode_features, inference_model
 from aerialmtl.models.familiarity import FeatureDensity
 from aerialmtl.models.mc_dropout import DropoutSite, McStatistics, accumulate_samples, dropout_masks, dropout_sites
@@ -49,12 +51,16 @@ OPENVINO_INSTALL = "pip install openvino"
 
 
 def openvino_available() -> bool:
-    """Whether ``import openvino`` works (:func:`aerialmtl.runtime.import_openvino`)."""
+    """Whether OpenVINO is installed, without importing it (~0.5 s and its threads, which a run that ``auto``
+    gives to torch does not need): its import is :func:`aerialmtl.runtime.import_openvino`, when the engine is
+    built. A broken install fails there, and ``auto`` falls back to torch.
+    """
+    if "openvino" in sys.modules:  # imported already (None: an import that failed, or was blocked)
+        return sys.modules["openvino"] is not None
     try:
-        runtime.import_openvino()
-    except ImportError:
+        return importlib.util.find_spec("openvino") is not None
+    except (ImportError, ValueError):
         return False
-    return True
 
 
 class OpenVINOEngine:
@@ -413,6 +419,11 @@ def openvino_cached(setup: EngineSetup, shapes: Collection[tuple[int, int]], sam
     """Whether the cache of ``setup``'s engine holds every graph that windows of ``shapes`` run at ``samples`` MC
     samples (:meth:`OpenVINOEngine.cached`; building the engine compiles nothing).
     """
+    root = cache_root()
+    if root is None or not root.is_dir() or not any(p.is_dir() and p.name != RECORDS for p in root.iterdir()):
+        # nothing compiled here yet: cold, told without importing OpenVINO and making its Core (a second of a run
+        # that auto then gives to torch)
+        return False
     engine = build_openvino(setup)
     return all(engine.cached(h, w, samples) for h, w in shapes)
 
