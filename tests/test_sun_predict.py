@@ -54,22 +54,28 @@ class HeightBandModel(nn.Module):
         return self.decode(self.encode(x))
 
 
+def with_height_band(ortho: Path, ndsm_path: Path, out: Path) -> tuple[Path, np.ndarray, np.ndarray]:
+    """``ortho``'s RGB with the nDSM of ``ndsm_path`` as a fourth band (:data:`HEIGHT_SCALE`) written to ``out``;
+    ``(out, rgb (3, H, W), nDSM (H, W) metres)``."""
+    with rasterio.open(ortho) as src:
+        rgb, profile = src.read(), src.profile
+    with rasterio.open(ndsm_path) as src:
+        ndsm = src.read(1)
+    band4 = np.clip(np.round(ndsm * HEIGHT_SCALE) + 1, 1, 255).astype(np.uint8)
+    profile.pop("photometric", None)
+    profile.update(count=4)
+    with rasterio.open(out, "w", **profile) as dst:
+        dst.write(np.concatenate([rgb, band4[None]]))
+    return out, rgb, ndsm
+
+
 @pytest.fixture(scope="module")
 def town(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     """A 256 px town at 0.5 m as a 4-band orthophoto (RGB + the nDSM), its true heights and sun, and a
     :class:`TrainingSun` fitted there (true sun, shadow classifier)."""
     out = tmp_path_factory.mktemp("town")
     res = synthesize(out / "town", size=256, seed=7, gsd=0.5)
-    with rasterio.open(res.ortho) as src:
-        rgb, profile = src.read(), src.profile
-    with rasterio.open(res.ndsm) as src:
-        ndsm = src.read(1)
-    band4 = np.clip(np.round(ndsm * HEIGHT_SCALE) + 1, 1, 255).astype(np.uint8)
-    profile.pop("photometric", None)
-    profile.update(count=4)
-    ortho = out / "ortho4.tif"
-    with rasterio.open(ortho, "w", **profile) as dst:
-        dst.write(np.concatenate([rgb, band4[None]]))
+    ortho, rgb, ndsm = with_height_band(res.ortho, res.ndsm, out / "ortho4.tif")
     sun = Sun(res.sun_azimuth % 360.0, res.sun_elevation)
     model = ShadowModel().fit(rgb, ndsm, 0.5, sun)
     with rasterio.open(ortho) as src:

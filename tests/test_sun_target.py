@@ -16,7 +16,7 @@ from aerialmtl.data.synth import CityStyle, synthesize_city
 from aerialmtl.inference.jobs import predict_raster
 from aerialmtl.sun import ShadowModel, Sun
 from aerialmtl.sun.record import TrainingSun
-from tests.test_sun_predict import HEIGHT_SCALE, HeightBandModel, _meta
+from tests.test_sun_predict import HeightBandModel, _meta, with_height_band
 
 AZIMUTH = 150.0
 
@@ -25,17 +25,7 @@ def _town(out: Path, azimuth: float, seed: int) -> tuple[Path, np.ndarray, np.nd
     """A 384 px city at 0.5 m under the sun (azimuth, 45°), at one place, as RGB + nDSM band; (ortho, rgb, nDSM)."""
     style = replace(CityStyle.plain(), sun_azimuth=(azimuth, azimuth), sun_elevation=(45.0, 45.0))
     res = synthesize_city(out / f"town{seed}", size=384, seed=seed, gsd=0.5, style=style)
-    with rasterio.open(res.ortho) as src:
-        rgb, profile = src.read(), src.profile
-    with rasterio.open(res.ndsm) as src:
-        ndsm = src.read(1)
-    band4 = np.clip(np.round(ndsm * HEIGHT_SCALE) + 1, 1, 255).astype(np.uint8)
-    profile.pop("photometric", None)
-    profile.update(count=4)
-    ortho = out / f"ortho4_{seed}.tif"
-    with rasterio.open(ortho, "w", **profile) as dst:
-        dst.write(np.concatenate([rgb, band4[None]]))
-    return ortho, rgb, ndsm
+    return with_height_band(res.ortho, res.ndsm, out / f"ortho4_{seed}.tif")
 
 
 @pytest.fixture(scope="module")
