@@ -122,3 +122,22 @@ def _private_stores(config: pytest.Config) -> None:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+@pytest.fixture
+def kind(monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
+    """Set the CPU kind `--engine auto` sees (and the bf16 probe to match) for one test: ``kind("avx2")``."""
+    from aerialmtl import runtime
+    from aerialmtl.inference import engine_choice
+
+    def set_kind(name: str) -> None:
+        monkeypatch.setenv(engine_choice.CPU_KIND_ENV, name)
+        monkeypatch.setenv(runtime.CPU_FLAGS_ENV, {"amx": "amx_bf16,avx512_bf16",
+                                                   "avx512_bf16": "avx512_bf16"}.get(name, ""))
+        engine_choice.cpu_kind.cache_clear()
+        runtime.cpu_bf16_flags.cache_clear()
+
+    yield set_kind
+    monkeypatch.undo()
+    engine_choice.cpu_kind.cache_clear()
+    runtime.cpu_bf16_flags.cache_clear()

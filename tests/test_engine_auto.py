@@ -16,8 +16,6 @@ from helpers import fake_engine
 from helpers.models import tiny_d3net
 from helpers.rasters import write_raster
 
-from aerialmtl import runtime
-from aerialmtl.inference import engine_choice
 from aerialmtl.inference.engine_choice import CPU_KINDS, Job, KindEntry, auto_engine, shipped_table
 from aerialmtl.inference.engines import ENGINES, EngineSpec
 from aerialmtl.inference.engines.names import ENGINE_MODULES, FALLBACK
@@ -25,23 +23,6 @@ from aerialmtl.inference.engines.names import ENGINE_MODULES, FALLBACK
 CPU = torch.device("cpu")
 #: window megapixels of a job: a tiny one, a 2048² orthophoto, an 8192² one
 TINY, MPX_2048, MPX_8192 = 0.1, 4.875, 79.7
-
-
-@pytest.fixture
-def kind(monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
-    """Set the CPU kind (and the bf16 probe to match) for one test."""
-
-    def set_kind(name: str) -> None:
-        monkeypatch.setenv(engine_choice.CPU_KIND_ENV, name)
-        monkeypatch.setenv(runtime.CPU_FLAGS_ENV, {"amx": "amx_bf16,avx512_bf16",
-                                                   "avx512_bf16": "avx512_bf16"}.get(name, ""))
-        engine_choice.cpu_kind.cache_clear()
-        runtime.cpu_bf16_flags.cache_clear()
-
-    yield set_kind
-    monkeypatch.undo()
-    engine_choice.cpu_kind.cache_clear()
-    runtime.cpu_bf16_flags.cache_clear()
 
 
 def _specs() -> list[EngineSpec]:

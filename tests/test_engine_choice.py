@@ -20,23 +20,6 @@ from aerialmtl.inference.engine_choice import KindEntry, choose_engine, cpu_kind
 CPU = torch.device("cpu")
 
 
-@pytest.fixture
-def kind(monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
-    """Set the CPU kind (and the bf16 probe to match) for one test."""
-
-    def set_kind(name: str) -> None:
-        monkeypatch.setenv(engine_choice.CPU_KIND_ENV, name)
-        monkeypatch.setenv(runtime.CPU_FLAGS_ENV, {"amx": "amx_bf16,avx512_bf16",
-                                                   "avx512_bf16": "avx512_bf16"}.get(name, ""))
-        engine_choice.cpu_kind.cache_clear()
-        runtime.cpu_bf16_flags.cache_clear()
-
-    yield set_kind
-    monkeypatch.undo()
-    engine_choice.cpu_kind.cache_clear()
-    runtime.cpu_bf16_flags.cache_clear()
-
-
 @pytest.mark.parametrize(("flags", "expect"), [
     ({"avx2", "avx512f", "avx512_bf16", "amx_bf16"}, "amx"),
     ({"avx2", "avx512f", "avx512_bf16"}, "avx512_bf16"),
