@@ -85,7 +85,7 @@ def shadow_runs(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun:
         ``(label, length, ok, rc)``: per edge pixel its object label, the run length in steps (int), whether
         the run is a measurement, and its (row, col) as an int (n, 2) array.
     """
-    off_r, off_c = _walk(sun, max_steps, away=True)
+    off_r, off_c = walk_offsets(sun, max_steps, away=True)
     objects = np.ascontiguousarray(objects)
     r, c = kernels.edge_pixels(objects, int(off_r[1]), int(off_c[1]))
     lab = objects[r, c]
@@ -96,7 +96,7 @@ def shadow_runs(shadow: np.ndarray, known: np.ndarray, objects: np.ndarray, sun:
     return lab, length, ok, np.stack([r, c], axis=1)
 
 
-def _walk(sun: Sun, max_steps: int, away: bool) -> tuple[np.ndarray, np.ndarray]:
+def walk_offsets(sun: Sun, max_steps: int, away: bool) -> tuple[np.ndarray, np.ndarray]:
     """(row, column) offsets, int64 (max_steps + 2,) each, of the digital line from a pixel towards the sun (or,
     ``away``, away from it): step ``k`` at ``(off_r[k], off_c[k])``.
     """
@@ -114,7 +114,7 @@ def occluder_steps(height: np.ndarray, objects: np.ndarray, rc: np.ndarray, lab:
     furthest: ``argmax_j h(p + j·u) − j·q`` (``q`` = height per step of shadow). 0 on a flat roof (the edge casts
     the shadow's end), near the top of a crown. int (n,).
     """
-    off_r, off_c = _walk(sun, max_steps, away=False)
+    off_r, off_c = walk_offsets(sun, max_steps, away=False)
     arg = np.zeros(len(rc), np.int64)
     kernels.occluder_offsets(np.ascontiguousarray(height, dtype=np.float32), np.ascontiguousarray(objects),
                              np.ascontiguousarray(rc[:, 0]), np.ascontiguousarray(rc[:, 1]),

@@ -1,25 +1,30 @@
 """Heights chosen by rendering shadows: each object's height is the one whose cast shadow matches the image's.
 
-For every object of a height map (e.g. the network's pixels ≥ 2 m), try a range of heights for it — its own
-shape scaled (``scaled``) and a flat top over its footprint (``flat``), each at multipliers ``s`` of the
-object's median height — render the cast shadows of the **whole** map with the object at that height
-(:func:`aerialmtl.sun.cast.sweep_stack`: other objects cast and receive shadows too, so a shadow falling on a
-street, a lower roof or behind a taller neighbour is rendered as the sun would cast it), and compare the
-rendering with the observed shadow probability ``P`` on the pixels whose rendered state depends on ``s``:
+For every object of a height map (e.g. the network's pixels ≥ 2 m), try a range of heights ``H`` for it (0.3–5 ×
+the object's median, :class:`RenderSettings`), shaped as a flat top over its footprint (``"flat"``) or as its own
+shape capped at its 90th percentile (``"shape"``); render the cast shadows of the **whole** map with the object
+at that height (other objects cast and receive shadows too, so a shadow falling on a street, a lower roof or
+behind a taller neighbour is rendered as the sun would cast it: one sweep of the others' shadow surface,
+:func:`aerialmtl.sun.cast.shadow_surface_sweep`, and one compiled walk that gives each pixel the least ``H`` that
+shades it, :func:`aerialmtl.sun.kernels.shade_thresholds`); and compare the rendering with the observed shadow
+probability ``P`` on the pixels whose rendered state depends on ``H``:
 
     LL(H) = Σ_zone  r_H · (logit P − logit π)        (within ±MAX_LLR; π the map's mean probability)
 
-The match curve ``LL(s)`` gives the object's height (its maximum) **and** its spread: the curve, tempered by the
+The match curve ``LL(H)`` gives the object's height (its maximum) **and** its spread: the curve, tempered by the
 pixels' correlation (:data:`CORRELATED_PX` pixels per independent observation), is a likelihood over heights
 whose standard deviation is the measurement's, widened by the grid step and the sun elevation's uncertainty. A
-flat curve (the object's shadow is hidden, clipped or falls outside the map) measures nothing: no vote.
+flat curve, or one that peaks at an end of the range (the object's shadow is hidden, clipped or falls outside the
+map), measures nothing: no vote.
 
-The network's objects spill into their own shadows (a blurred edge reads as object). Pixels of an object that
-``P`` calls shadow are tried both ways — as part of the object and as ground — and the comparison keeps the
-better: where it keeps them as ground, they are the object's *spill* (:attr:`RenderedHeights.spill`).
+The network's objects spill into their own shadows (a blurred edge reads as object). Pixels at an object's
+down-sun edge that ``P`` calls shadow are tried both ways — as part of the object and as ground — and the
+comparison keeps the better: where it keeps them as ground, they are the object's *spill*
+(:attr:`RenderedHeights.spill`).
 
-Objects are measured one after another with the others at their current heights; ``passes`` > 1 measures
-them again with every measured object at its new height (rows of buildings shade each other).
+Before the objects, one multiplier of all of them is chosen the same way (a network that reads every object low is
+corrected as a whole). Objects are then measured one after another with the others at their current heights;
+with ``passes`` > 1, those whose surroundings another object's new height changed are measured again.
 """
 
 from __future__ import annotations
@@ -32,11 +37,11 @@ import numpy as np
 from scipy import ndimage
 
 from aerialmtl.errors import InputError
-from aerialmtl.sun.cast import TOL_M, line_offsets, sun_steps, sweep_stack
-from aerialmtl.sun.heights import ShadowHeights, ShadowObject
+from aerialmtl.sun.cast import TOL_M, shadow_surface_sweep, sun_steps
+from aerialmtl.sun.heights import ShadowHeights, ShadowObject, walk_offsets
 from aerialmtl.sun.position import Sun
 
-#: Probabilities are clipped to [EPS, 1 − EPS] in the match (one wrong pixel costs at most log(1/EPS)).
+#: Probabilities are clipped to [EPS, 1 − EPS] before their logit is taken.
 EPS = 0.03
 #: The most one pixel's evidence can weigh either way (a likelihood ratio of e² ≈ 7.4): a mask of 0s and 1s, or a
 #: confident classifier's few wrong pixels, then weigh a shadow and a lit pixel alike.
@@ -102,14 +107,17 @@ class RenderedObject(ShadowObject):
     Attributes:
         family: the shape family that matched best (``"scaled"`` or ``"flat"``), ``""`` when not measured.
         scale: the best multiplier of the object's median height (NaN when not measured).
-        zone_px: pixels whose rendered state depends on the object's height (what the match sees).
         trimmed_px: the object's pixels the match took as ground (its spill into its own shadow).
     """
 
     family: str = ""
     scale: float = math.nan
-    zone_px: int = 0
     trimmed_px: int = 0
+
+    @property
+    def zone_px(self) -> int:
+        """Pixels whose rendered state depends on the object's height (what the match sees): ``n_runs``."""
+        return self.n_runs
 
 
 @dataclass
@@ -165,26 +173,11 @@ def _loglik(prob: np.ndarray, known: np.ndarray, prior: float | None) -> np.ndar
     return evidence
 
 
-def _sweep(z: np.ndarray, gsd_m: float, sun: Sun) -> np.ndarray:
-    """float32 (h, w): the shadow surface of ``z`` (−inf: no occluder), :func:`aerialmtl.sun.cast.sweep_stack`."""
-    surface: np.ndarray = sweep_stack(np.ascontiguousarray(z[None], dtype=np.float32), gsd_m, sun.azimuth_deg,
-                                      sun.elevation_deg)[0]
-    return surface
-
-
 class _Curve(NamedTuple):
     """One variant's match curve: log-likelihood (G,) over the heights tried, and its zone's pixel count."""
 
     ll: np.ndarray
     zone_px: int
-
-
-def _walk_up(sun: Sun, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(row, column) offsets int64 (n + 1,) of the digital line from a pixel towards the sun, step 0 … n."""
-    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
-    along = step * np.arange(n + 1, dtype=np.int64)
-    cross = line_offsets(n + 1, slope)
-    return (along, cross) if rows_dom else (cross, along)
 
 
 class _Variant(NamedTuple):
@@ -204,7 +197,8 @@ def _variant(footprint: np.ndarray, receive: np.ndarray, others_surface: np.ndar
     up-sun) × drop, one sweep), the pixels the rest of the map shades whatever the height (their evidence summed in
     ``base``), the ``free`` pixels the object alone may shade, and its ``tops``.
     """
-    reach = _sweep(np.where(footprint, np.float32(0.0), np.float32(-np.inf)), gsd_m, sun)
+    reach = shadow_surface_sweep(np.where(footprint, np.float32(0.0), np.float32(-np.inf)), gsd_m, sun.azimuth_deg,
+                                 sun.elevation_deg)
     with np.errstate(invalid="ignore"):
         others = (others_surface - receive) > np.float32(tol_m)
     fixed = use & ~footprint
@@ -226,7 +220,7 @@ def _curve(shape: np.ndarray, v: _Variant, others_surface: np.ndarray, lp: np.nd
     _, _, slope = sun_steps(sun.azimuth_deg)
     drop = gsd_m * math.hypot(1.0, slope) * sun.tan_elevation
     top = float(heights[-1])
-    off_r, off_c = _walk_up(sun, int(math.ceil(top / drop)) + 1)
+    off_r, off_c = walk_offsets(sun, int(math.ceil(top / drop)), away=False)  # steps 0 … n + 1 towards the sun
     with np.errstate(invalid="ignore"):
         start = np.where(np.isfinite(v.reach) & (v.receive - v.reach <= top), np.floor(-v.reach / drop) - 2, -1)
     thresh = np.empty(v.footprint.shape, np.float32)
@@ -344,7 +338,8 @@ def _down_sun_edge(inside: np.ndarray, gsd_m: float, sun: Sun, width_m: float) -
     """Bool (H, W): pixels of ``inside`` from which walking away from the sun leaves it within ``width_m``."""
     away = Sun((sun.azimuth_deg + 180.0) % 360.0, sun.elevation_deg)
     # one sweep with the sun reversed: −(steps down-sun to the nearest outside pixel) × drop
-    reach = _sweep(np.where(inside, np.float32(-np.inf), np.float32(0.0)), gsd_m, away)
+    reach = shadow_surface_sweep(np.where(inside, np.float32(-np.inf), np.float32(0.0)), gsd_m, away.azimuth_deg,
+                                 away.elevation_deg)
     _, _, slope = sun_steps(away.azimuth_deg)
     drop = gsd_m * math.hypot(1.0, slope) * away.tan_elevation
     with np.errstate(invalid="ignore"):
@@ -367,7 +362,8 @@ def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.n
     for i, s in enumerate(scales):
         zs = np.where(inside, z * np.float32(s), z)
         with np.errstate(invalid="ignore"):
-            shadow = (_sweep(zs, gsd_m, sun) - zs) > np.float32(settings.tol_m)
+            surface = shadow_surface_sweep(zs, gsd_m, sun.azimuth_deg, sun.elevation_deg)
+            shadow = (surface - zs) > np.float32(settings.tol_m)
         ll[i] = float(lp[shadow & known].sum())
     k = int(np.argmax(ll))
     return float(scales[k]) if 0 < k < len(scales) - 1 else 1.0
@@ -414,7 +410,7 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
     core = own & ~spill
     zc = z[crop]
     others_z = np.where(own, np.float32(-np.inf), zc)
-    others_surface = _sweep(others_z, gsd_m, sun)
+    others_surface = shadow_surface_sweep(others_z, gsd_m, sun.azimuth_deg, sun.elevation_deg)
     kc, lpc = known[crop], lp[crop]
     # the variants: a flat top or the network's shape (capped at its 90th percentile), each with the whole
     # object as top or with its pixels called shadow as ground (the spill trimmed)
@@ -448,7 +444,7 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
     h_med = float(np.median(per_px[footprint])) if footprint.any() else h_best
     sd_med = sd * h_med / h_best
     record = RenderedObject(label, n_px, best.zone_px, h_med if ok else math.nan, sd_med if ok else math.nan,
-                            family if ok else "", h_best / h_obj if ok else math.nan, best.zone_px,
+                            family if ok else "", h_best / h_obj if ok else math.nan,
                             int(spill.sum()) if (ok and trim) else 0)
     none = np.zeros(own.shape, bool)
     # painted: the object's top, where the network's own shape reaches half its height (not its blurred rim)
