@@ -12,6 +12,18 @@ from aerialmtl.sun.render import RenderedHeights
 MIN_SHADOW_STD_M = 0.1
 
 
+def inverse_variance(h1: np.ndarray, s1: np.ndarray, h2: np.ndarray,
+                     s2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float64 ``(height, spread)`` of two estimates ``h1 ± s1`` and ``h2 ± s2`` (metres, any one shape) combined
+    with weights ``w = 1 / s²``: ``(w1·h1 + w2·h2) / (w1 + w2)``, and the spread of the two-part mixture,
+    ``sqrt(1 / (w1 + w2) + w1·w2·(h1 − h2)² / (w1 + w2)²)``, which grows with their disagreement.
+    """
+    w1, w2 = 1.0 / s1 ** 2, 1.0 / s2 ** 2
+    fused = (w1 * h1 + w2 * h2) / (w1 + w2)
+    var = 1.0 / (w1 + w2) + w1 * w2 * (h1 - h2) ** 2 / (w1 + w2) ** 2
+    return fused, np.sqrt(var)
+
+
 def fuse_heights(height: np.ndarray, std: np.ndarray, shadow: ShadowHeights,
                  objects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Move each measured object's heights towards its shadow height, in proportion to the two spreads.
@@ -56,11 +68,9 @@ def fuse_heights(height: np.ndarray, std: np.ndarray, shadow: ShadowHeights,
     ok = h_obj > 0
     ratio = np.where(ok, hp / np.where(ok, h_obj, 1.0), 1.0)
     hs_p, ss_p = hs * ratio, np.maximum(ss * ratio, MIN_SHADOW_STD_M)
-    w1, w2 = 1.0 / sp ** 2, 1.0 / ss_p ** 2
-    fused = (w1 * hp + w2 * hs_p) / (w1 + w2)
-    var = 1.0 / (w1 + w2) + w1 * w2 * (hp - hs_p) ** 2 / (w1 + w2) ** 2
+    fused, sd = inverse_variance(hp, sp, hs_p, ss_p)
     out_h[use] = np.where(ok, fused, hp).astype(np.float32)
-    out_s[use] = np.where(ok, np.sqrt(var), sp).astype(np.float32)
+    out_s[use] = np.where(ok, sd, sp).astype(np.float32)
     return out_h, out_s
 
 
@@ -103,11 +113,9 @@ def fuse_rendered(height: np.ndarray, std: np.ndarray, rendered: RenderedHeights
         else:
             hs = est[where].astype(np.float64)
             ss = np.maximum(est_sd[where].astype(np.float64), MIN_SHADOW_STD_M)
-        w1, w2 = 1.0 / sp ** 2, 1.0 / ss ** 2
-        fused = (w1 * hp + w2 * hs) / (w1 + w2)
-        var = 1.0 / (w1 + w2) + w1 * w2 * (hp - hs) ** 2 / (w1 + w2) ** 2
+        fused, sd = inverse_variance(hp, sp, hs, ss)
         if est is None:
             fused = np.minimum(fused, hp)
         out_h[where] = fused.astype(np.float32)
-        out_s[where] = np.sqrt(var).astype(np.float32)
+        out_s[where] = sd.astype(np.float32)
     return out_h, out_s
