@@ -86,3 +86,32 @@ def test_a_sun_given_by_the_user_is_not_overruled(towns: dict[str, object], tmp_
     sun = rec["sun"]
     assert isinstance(sun, dict) and sun["source"] == "--sun" and sun["azimuth_deg"] == pytest.approx(230.0)
     assert _has_values(tmp_path / "given", "shadow")
+
+
+def test_an_image_that_cannot_tell_its_sun_is_fitted_on_a_few_windows_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each fit on the orthophoto costs seconds: where it stays unclear, the sun holds after CHECK_TRIES windows
+    instead of a fit per window of the whole run."""
+    import torch
+
+    import aerialmtl.sun
+    from aerialmtl.inference import shadows
+    from aerialmtl.models.mc_dropout import McStatistics
+    from aerialmtl.sun.fit import SunFit
+
+    calls = []
+
+    def unclear(*args: object, **kwargs: object) -> SunFit:
+        calls.append(1)
+        return SunFit(None, 0.05, 0.0, False, "no clear optimum (test)")
+
+    monkeypatch.setattr(aerialmtl.sun, "fit_sun", unclear, raising=False)
+    step = shadows.ShadowStep(ShadowModel(), 0.5, fuse=False)
+    heights = torch.zeros((1, 96, 96))
+    heights[:, :48] = 10.0  # half objects, half ground: enough of each to try
+    stats = McStatistics(height_mean=heights)
+    rgb = [np.full((3, 96, 96), 0.5, np.float32)]
+    valid = torch.ones((1, 96, 96), dtype=torch.bool)
+    monkeypatch.setattr(shadows, "CHECK_MIN_PX", 100)
+    for _ in range(10):
+        assert step.check_sun("o.tif", Sun(AZIMUTH, 45.0), "training fit", stats, rgb, valid) is None
+    assert len(calls) == shadows.CHECK_TRIES

@@ -64,6 +64,8 @@ CHECK_AZIMUTH_DEG = 10.0
 CHECK_RATIO = 0.7
 #: Pixels predicted ≥ :data:`OBJECT_MIN_M` (and as many on the ground) a window needs to check the sun.
 CHECK_MIN_PX = 1500
+#: Windows with enough objects whose fit is unclear before the sun is taken as it is (each fit costs ~2 s).
+CHECK_TRIES = 3
 #: Least correlation of the target's best sun (:func:`aerialmtl.sun.fit_sun`) for its azimuth to be trusted.
 CHECK_MIN_SCORE = 0.15
 
@@ -185,6 +187,7 @@ class ShadowStep:
         self._warned: set[tuple[str, str]] = set()
         #: per input checked on its own shadows: ``None`` (the sun holds) or why the layers are off for it
         self.checked: dict[str, str | None] = {}
+        self._tries: dict[str, int] = {}
 
     def check_sun(self, key: str, sun: Sun, source: str, stats: McStatistics, rgb: list[np.ndarray],
                   valid: torch.Tensor) -> str | None:
@@ -195,7 +198,7 @@ class ShadowStep:
         gives the azimuth the shadows fall at; its elevation is not used (the network's heights scale it). The sun
         is refuted when it lies more than :data:`CHECK_AZIMUTH_DEG` away and explains the shadows less than
         :data:`CHECK_RATIO` as well at any elevation (:func:`aerialmtl.sun.fit.azimuth_score`). Windows too empty
-        or unclear to tell leave the check for the next batch.
+        to tell leave the check for the next batch; after :data:`CHECK_TRIES` unclear ones the sun holds.
 
         Returns:
             ``None`` while the sun holds (or cannot be checked yet), else one line saying why it is off for this
@@ -220,6 +223,10 @@ class ShadowStep:
             fit = fit_sun(rgb[n][:3], h_n, self.gsd_m, ok)
             found = fit.sun
             if found is None or not (fit.score >= CHECK_MIN_SCORE):
+                self._tries[key] = self._tries.get(key, 0) + 1
+                if self._tries[key] >= CHECK_TRIES:  # the image cannot tell: the sun holds, no fit per window
+                    self.checked[key] = None
+                    return None
                 continue
             diff = abs((found.azimuth_deg - sun.azimuth_deg + 180.0) % 360.0 - 180.0)
             note = None
