@@ -126,18 +126,9 @@ def _numbers(rep: dict[str, Any]) -> dict[str, Any]:
 
 def _reference_on(grid_file: Path) -> np.ndarray:
     """DSM − DTM of the sample area, bilinear on the grid of ``grid_file`` (NaN where either has no value)."""
-    from rasterio.enums import Resampling
-    from rasterio.vrt import WarpedVRT
+    from experiments.heights_from_the_sun.shadow_head import reference
 
-    with rasterio.open(grid_file) as g:
-        opts = {"crs": g.crs, "transform": g.transform, "width": g.width, "height": g.height,
-                "resampling": Resampling.bilinear}
-        arrays = []
-        for name in ("dsm_1m_utm.tif", "dtm_1m_utm.tif"):
-            with rasterio.open(DATA / name) as src, WarpedVRT(src, src_nodata=src.nodata, nodata=np.nan,
-                                                                dtype="float32", **opts) as vrt:
-                arrays.append(vrt.read(1))
-    return arrays[0] - arrays[1]
+    return reference(grid_file, margin=0)[0]
 
 
 def shadow_objects(pred: Path) -> dict[str, Any]:
