@@ -20,6 +20,7 @@
 from __future__ import annotations
 
 import copy
+import html as html_text
 import os
 import re
 import sys
@@ -92,8 +93,10 @@ def temporary_paths(html: str) -> list[str]:
 def problems(html: str) -> list[str]:
     """What is wrong with a built page's HTML: warning blocks, tracebacks, ``Sentinel``, this machine's paths."""
     found = []
-    if STDERR_BLOCK.search(html):
-        found.append("a cell's stderr output (a warning or a progress bar)")
+    stderr = STDERR_BLOCK.search(html)
+    if stderr:  # quoted, so that a build on another machine (CI) says which warning it was
+        text = html_text.unescape(re.sub(r"<[^>]*>", " ", html[stderr.start():stderr.start() + 4000]))
+        found.append(f"a cell's stderr output (a warning or a progress bar): '{' '.join(text.split())[:600]}'")
     for word in ("Traceback", "Sentinel"):
         if word in html:
             found.append(f"'{word}'")
