@@ -37,7 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from aerialmtl.errors import InputError
-from aerialmtl.sun.cast import TOL_M, shadow_surface_sweep, sun_steps
+from aerialmtl.sun.cast import TOL_M, shadow_surface_sweep, sun_steps, sweep_stack
 from aerialmtl.sun.heights import ShadowHeights, ShadowObject, walk_offsets
 from aerialmtl.sun.position import Sun
 
@@ -357,14 +357,15 @@ def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.n
     lo, hi = settings.global_range
     if not inside.any() or hi <= lo:
         return 1.0
+    from aerialmtl.sun.kernels import shadow_sums  # numba: the shaded known pixels' evidence in one pass
+
     scales = np.geomspace(lo, hi, settings.global_steps)
     ll = np.empty(len(scales))
+    evidence = lp.astype(np.float64)[None]
     for i, s in enumerate(scales):
-        zs = np.where(inside, z * np.float32(s), z)
-        with np.errstate(invalid="ignore"):
-            surface = shadow_surface_sweep(zs, gsd_m, sun.azimuth_deg, sun.elevation_deg)
-            shadow = (surface - zs) > np.float32(settings.tol_m)
-        ll[i] = float(lp[shadow & known].sum())
+        zs = np.ascontiguousarray(np.where(inside, z * np.float32(s), z)[None])
+        _, ll[i] = shadow_sums(zs, sweep_stack(zs, gsd_m, sun.azimuth_deg, sun.elevation_deg), known[None], evidence,
+                               np.float32(settings.tol_m))
     k = int(np.argmax(ll))
     return float(scales[k]) if 0 < k < len(scales) - 1 else 1.0
 
