@@ -93,21 +93,23 @@ def test_an_image_that_cannot_tell_its_sun_is_fitted_on_a_few_windows_only(monke
     instead of a fit per window of the whole run."""
     import torch
 
-    import aerialmtl.sun
+    import aerialmtl.sun.fit
     from aerialmtl.inference import shadows
     from aerialmtl.models.mc_dropout import McStatistics
-    from aerialmtl.sun.fit import SunFit
+    from aerialmtl.sun.fit import AzimuthCheck
 
     calls = []
 
-    def unclear(*args: object, **kwargs: object) -> SunFit:
+    def unclear(*args: object, **kwargs: object) -> AzimuthCheck:
         calls.append(1)
-        return SunFit(None, 0.05, 0.0, False, "no clear optimum (test)")
+        return AzimuthCheck(None, 0.05, 0.05)
 
-    monkeypatch.setattr(aerialmtl.sun, "fit_sun", unclear, raising=False)
+    monkeypatch.setattr(aerialmtl.sun.fit, "check_azimuth", unclear)
     step = shadows.ShadowStep(ShadowModel(), 0.5, fuse=False)
     heights = torch.zeros((1, 96, 96))
-    heights[:, :48] = 10.0  # half objects, half ground: enough of each to try
+    for r in range(4):
+        for c in range(4):  # 16 houses of 10 × 10 px (25 m²), 1600 px of objects and the rest ground: enough to try
+            heights[:, 4 + 24 * r: 14 + 24 * r, 4 + 24 * c: 14 + 24 * c] = 10.0
     stats = McStatistics(height_mean=heights)
     rgb = [np.full((3, 96, 96), 0.5, np.float32)]
     valid = torch.ones((1, 96, 96), dtype=torch.bool)
@@ -115,3 +117,54 @@ def test_an_image_that_cannot_tell_its_sun_is_fitted_on_a_few_windows_only(monke
     for _ in range(10):
         assert step.check_sun("o.tif", Sun(AZIMUTH, 45.0), "training fit", stats, rgb, valid) is None
     assert len(calls) == shadows.CHECK_TRIES
+
+
+def test_check_azimuth_finds_where_the_shadows_fall(tmp_path: Path) -> None:
+    """The cheap fit of the check (~370 suns): on a town with its exact heights it finds the sun's azimuth closer
+    than the check's limit (the right sun is never refuted), and scores the right azimuth near its best and one 80°
+    away far below it."""
+    from aerialmtl.inference.shadows import CHECK_AZIMUTH_DEG, CHECK_RATIO
+    from aerialmtl.sun.fit import check_azimuth
+
+    _, rgb, ndsm = _town(tmp_path, AZIMUTH, 3)
+    right = check_azimuth(rgb, ndsm, 0.5, AZIMUTH)
+    assert right.found is not None and abs(right.found - AZIMUTH) < CHECK_AZIMUTH_DEG
+    assert right.given_score >= 0.95 * right.score
+    wrong = check_azimuth(rgb, ndsm, 0.5, AZIMUTH + 80.0)
+    assert wrong.found == right.found and wrong.given_score < CHECK_RATIO * wrong.score
+
+
+def test_a_window_of_few_objects_does_not_refute_the_sun(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A few large blobs (a small area, a network that merged its houses) cannot tell where shadows fall: a window
+    with fewer than CHECK_MIN_OBJECTS objects is not used to check the sun, however its fit comes out."""
+    import torch
+
+    import aerialmtl.sun.fit
+    from aerialmtl.inference import shadows
+    from aerialmtl.models.mc_dropout import McStatistics
+    from aerialmtl.sun.fit import AzimuthCheck
+
+    calls = []
+
+    def opposite(*args: object, **kwargs: object) -> AzimuthCheck:
+        calls.append(1)
+        return AzimuthCheck(AZIMUTH + 180.0, 0.2, 0.05)  # a clear fit the other way
+
+    monkeypatch.setattr(aerialmtl.sun.fit, "check_azimuth", opposite)
+    monkeypatch.setattr(shadows, "CHECK_MIN_PX", 100)
+    heights = torch.zeros((1, 96, 96))
+    heights[:, 8:40, 8:40] = 10.0  # two blobs of 256 m²
+    heights[:, 56:88, 56:88] = 10.0
+    stats = McStatistics(height_mean=heights)
+    rgb = [np.full((3, 96, 96), 0.5, np.float32)]
+    valid = torch.ones((1, 96, 96), dtype=torch.bool)
+    step = shadows.ShadowStep(ShadowModel(), 0.5, fuse=False)
+    assert step.check_sun("o.tif", Sun(AZIMUTH, 45.0), "training fit", stats, rgb, valid) is None
+    assert not calls
+    heights.zero_()
+    for r in range(4):
+        for c in range(4):  # 16 houses of 36 m² instead: the window is used, and the sun refuted
+            heights[:, 2 + 24 * r: 14 + 24 * r, 2 + 24 * c: 14 + 24 * c] = 10.0
+    step = shadows.ShadowStep(ShadowModel(), 0.5, fuse=False)
+    assert step.check_sun("o.tif", Sun(AZIMUTH, 45.0), "training fit", stats, rgb, valid) is not None
+    assert calls == [1]
