@@ -58,7 +58,7 @@ from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference import stitch_kernel
 from aerialmtl.inference.engine_choice import EngineChoice, Job, choose_engine
 from aerialmtl.inference.engines import ENGINES, EngineSetup, engine_spec
-from aerialmtl.inference.model_record import CheckpointModel, make_record, read_record, write_record
+from aerialmtl.inference.model_record import RECORDS, CheckpointModel, make_record, read_record, write_record
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration
@@ -102,12 +102,14 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], root: Path
     With ``root`` (the checkpoint records of an engine the run may use: :func:`_record_root`), a checkpoint file
     whose record is there (:mod:`aerialmtl.inference.model_record`) is not loaded: its bytes are hashed, and the
     model is a :class:`~aerialmtl.inference.model_record.CheckpointModel` that loads them only if something needs
-    the weights; a checkpoint loaded here gets its record for the next run.
+    the weights. Where ``root`` holds no record at all (a cold cache), the bytes are not hashed twice. A checkpoint
+    loaded here gets its record when that engine is built (:meth:`Predictor.runner`), not before: a run that the
+    choice gives to another engine does not pay for it.
     """
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
-    if root is not None:
+    if root is not None and any((root / RECORDS).glob("*.record")):
         try:
             digest: str | None = checkpoint_format.file_sha256(checkpoint)
         except OSError:  # read_model says what is wrong with the file
@@ -116,10 +118,6 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], root: Path
         if digest is not None and record is not None:
             return CheckpointModel(checkpoint, digest, record), record.meta, str(checkpoint), digest
     model, meta, loaded = checkpoint_format.read_model(checkpoint)
-    if root is not None:
-        made = make_record(model, meta)
-        if made is not None:
-            write_record(loaded, made, root)
     return model, meta, str(checkpoint), loaded
 
 
@@ -342,8 +340,22 @@ class Predictor:
         """The model runner on the chosen engine, built once (:class:`~aerialmtl.inference.runner.ModelRunner`)."""
         if self._runner is None:
             setup = self._setup(self.engine, self.precision)
+            self._keep_record(self.engine)
             self._runner = ModelRunner(setup.model, self.meta, self.settings, setup.resolved, setup.weights_key)
         return self._runner
+
+    def _keep_record(self, engine: str) -> None:
+        """Write the record of a checkpoint file this run loaded, for the next run, where ``engine`` keeps records
+        (:mod:`aerialmtl.inference.model_record`: its warm path then never builds the torch model).
+        """
+        spec = engine_spec(engine)
+        if (spec.record_root is None or self.device.type != "cpu" or isinstance(self._checkpoint, tuple)
+                or not isinstance(self._model, torch.nn.Module) or self._fingerprint is None):
+            return
+        root = spec.record_root()
+        made = make_record(self._model, self.meta) if root is not None else None
+        if root is not None and made is not None:
+            write_record(self._fingerprint, made, root)
 
     # ---- computing --------------------------------------------------------------------------------
     def compute(self, src: OrthoInput, rows: tuple[int, int], write: Callable[[Block], None], *,
