@@ -154,6 +154,33 @@ def test_shadow_sums_count_the_shaded_ground_and_add_its_scores() -> None:
             assert total == pytest.approx(float(score[mask].sum()), rel=1e-12, abs=1e-12)
 
 
+@pytest.mark.parametrize("azimuth", [20.0, 101.3, 200.0, 290.0])
+def test_scaled_shadow_sums_equal_the_rendering_of_each_multiplier(azimuth: float) -> None:
+    """The common multiplier's search (render._global_scale) in one call: for each multiplier, the evidence summed
+    over the known pixels that ``where(inside, z · s, z)`` shades is the sum the separate sweep and count give, to
+    the bit (the same float32 products, the same sums), on both sweep axes; unknown heights (−∞) included."""
+    from aerialmtl.sun.cast import TOL_M, sweep_plan, sweep_stack
+
+    rng = np.random.default_rng(int(azimuth))
+    z = rng.gamma(1.0, 0.3, (1, 45, 61)).astype(np.float32)
+    z[0, 5:15, 8:20] += 9.0
+    z[0, 25:33, 30:52] += 17.0
+    z[0, 3, 40] = -np.inf
+    inside = z > 2.0
+    known = rng.random(z.shape) < 0.9
+    score = (rng.random(z.shape) * 4.0 - 2.0).astype(np.float32).astype(np.float64)
+    scales = np.geomspace(0.5, 4.0, 9).astype(np.float32)
+    rows, step, deltas, drop = sweep_plan(z.shape, 0.5, azimuth, 35.0)
+    got = np.empty(len(scales))
+    kernels.scaled_shadow_sums(z, inside, scales, rows, step, deltas, drop, known, score, np.float32(TOL_M),
+                               np.empty_like(z), np.empty_like(z), got)
+    for k, s in enumerate(scales):
+        zs = np.ascontiguousarray(np.where(inside, z * s, z))
+        _, want = kernels.shadow_sums(zs, sweep_stack(zs, 0.5, azimuth, 35.0), known, score, np.float32(TOL_M))
+        assert got[k] == want
+    assert len(set(got)) > 1
+
+
 def test_the_fits_score_of_a_sun_is_the_correlation_with_the_cast_shadow_mask() -> None:
     """The objective's score at any sun is the point-biserial correlation of the shadow score with
     ``cast_shadow_mask`` over ground pixels, computed in numpy (to 1e-12), with half of a patch's buildings of

@@ -55,12 +55,14 @@ def shadow_surface_sweep(surface: np.ndarray, gsd: float, azimuth_deg: float, el
     return surf[0] if flat else surf
 
 
-def sweep_stack(z3: np.ndarray, gsd: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
-    """:func:`shadow_surface_sweep` of a C-contiguous float32 stack ``z3`` (N, H, W) as it is (no copy made)."""
-    from aerialmtl.sun.kernels import sweep_surface  # numba: imported when a shadow is first cast
-
+def sweep_plan(shape: tuple[int, ...], gsd: float, azimuth_deg: float, elevation_deg: float
+               ) -> tuple[bool, int, np.ndarray, np.float32]:
+    """The arguments of :func:`aerialmtl.sun.kernels.sweep_surface` for rasters of ``shape`` (..., H, W):
+    ``(rows, step, deltas, drop)`` — whether the sweep moves one row per step, the way towards the sun (±1), the
+    across-axis shift (int64) from each position to its upstream neighbour, and the drop per step (float32 metres).
+    """
     rows, step, slope = sun_steps(azimuth_deg)  # along the dominant axis: one row (else one column) per step
-    length = z3.shape[1] if rows else z3.shape[2]
+    length = shape[-2] if rows else shape[-1]
     drop = np.float32(gsd * math.tan(math.radians(elevation_deg)) * math.hypot(1.0, slope))
     offsets = line_offsets(length, slope * step)  # across-axis offset of the line through 0 at each position
     deltas = np.zeros(length, np.int64)  # the shift from each position to its upstream neighbour p + step
@@ -68,6 +70,14 @@ def sweep_stack(z3: np.ndarray, gsd: float, azimuth_deg: float, elevation_deg: f
         deltas[:-1] = offsets[1:] - offsets[:-1]
     else:
         deltas[1:] = offsets[:-1] - offsets[1:]
+    return rows, step, deltas, drop
+
+
+def sweep_stack(z3: np.ndarray, gsd: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """:func:`shadow_surface_sweep` of a C-contiguous float32 stack ``z3`` (N, H, W) as it is (no copy made)."""
+    from aerialmtl.sun.kernels import sweep_surface  # numba: imported when a shadow is first cast
+
+    rows, step, deltas, drop = sweep_plan(z3.shape, gsd, azimuth_deg, elevation_deg)
     surf = np.empty_like(z3)
     sweep_surface(z3, rows, step, deltas, drop, surf)
     return surf

@@ -273,8 +273,29 @@ def shadow_sums(z: Any, surf: Any, ground: Any, score: Any, tol: Any) -> Any:  #
     return count, total
 
 
+@jit
+def scaled_shadow_sums(z: Any, inside: Any, scales: Any, rows: bool, step: int, deltas: Any, drop: Any, known: Any,
+                       score: Any, tol: Any, zs: Any, surf: Any, out: Any) -> None:  # pragma: no cover - compiled
+    """For each multiplier ``scales[k]`` (float32) of the heights inside the objects: the sum of ``score`` over the
+    ``known`` pixels that the heights so scaled shade, into ``out[k]`` (float64) — :func:`sweep_surface` then
+    :func:`shadow_sums` of ``where(inside, z · scale, z)``, the same float32 products and the same sums, with no
+    array made per multiplier (:func:`aerialmtl.sun.render.rendered_heights`' common multiplier).
+
+    ``z`` float32 (1, H, W) metres (−inf unknown); ``inside`` and ``known`` bool (1, H, W); ``score`` float64
+    (1, H, W); ``zs`` and ``surf`` float32 (1, H, W) work arrays; the sweep's arguments as :func:`sweep_surface`.
+    """
+    _, h, w = z.shape
+    for k in range(scales.shape[0]):
+        s = scales[k]
+        for y in range(h):
+            for x in range(w):
+                zs[0, y, x] = z[0, y, x] * s if inside[0, y, x] else z[0, y, x]
+        sweep_surface(zs, rows, step, deltas, drop, surf)
+        _, out[k] = shadow_sums(zs, surf, known, score, tol)
+
+
 __all__ = ["edge_pixels", "logistic_rows", "max_filter_reflect", "occluder_offsets", "run_lengths",
-           "shadow_sums", "sweep_surface"]
+           "scaled_shadow_sums", "shadow_sums", "sweep_surface"]
 
 
 @jit

@@ -37,7 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from aerialmtl.errors import InputError
-from aerialmtl.sun.cast import TOL_M, shadow_surface_sweep, sun_steps, sweep_stack
+from aerialmtl.sun.cast import TOL_M, shadow_surface_sweep, sun_steps, sweep_plan
 from aerialmtl.sun.heights import ShadowHeights, ShadowObject, walk_offsets
 from aerialmtl.sun.position import Sun
 
@@ -357,15 +357,15 @@ def _global_scale(z: np.ndarray, inside: np.ndarray, known: np.ndarray, lp: np.n
     lo, hi = settings.global_range
     if not inside.any() or hi <= lo:
         return 1.0
-    from aerialmtl.sun.kernels import shadow_sums  # numba: the shaded known pixels' evidence in one pass
+    from aerialmtl.sun.kernels import scaled_shadow_sums  # numba: every multiplier rendered and counted in one call
 
     scales = np.geomspace(lo, hi, settings.global_steps)
     ll = np.empty(len(scales))
-    evidence = lp.astype(np.float64)[None]
-    for i, s in enumerate(scales):
-        zs = np.ascontiguousarray(np.where(inside, z * np.float32(s), z)[None])
-        _, ll[i] = shadow_sums(zs, sweep_stack(zs, gsd_m, sun.azimuth_deg, sun.elevation_deg), known[None], evidence,
-                               np.float32(settings.tol_m))
+    z3 = np.ascontiguousarray(z[None])
+    rows, step, deltas, drop = sweep_plan(z3.shape, gsd_m, sun.azimuth_deg, sun.elevation_deg)
+    scaled_shadow_sums(z3, np.ascontiguousarray(inside[None]), scales.astype(np.float32), rows, step, deltas, drop,
+                       np.ascontiguousarray(known[None]), lp.astype(np.float64)[None], np.float32(settings.tol_m),
+                       np.empty_like(z3), np.empty_like(z3), ll)
     k = int(np.argmax(ll))
     return float(scales[k]) if 0 < k < len(scales) - 1 else 1.0
 
@@ -441,18 +441,18 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
     sd = math.sqrt(sd_curve ** 2 + (step / 2.0) ** 2 + (h_best * e) ** 2)
     ok = (best.zone_px >= min_zone_px and 0 < k < len(heights) - 1 and sd <= max_rel_std * h_best)
     per_px = (h_best * shape).astype(np.float32)
+    none = np.zeros(own.shape, bool)
+    if not ok:  # no vote: neither its painted height nor its top is made
+        return _Result(RenderedObject(label, n_px, best.zone_px, math.nan, math.nan, "", math.nan, 0), crop, none,
+                       none, none, per_px)
     # the object's height as its painted median (a flat top: H; the network's shape: H times its median share)
     h_med = float(np.median(per_px[footprint])) if footprint.any() else h_best
-    sd_med = sd * h_med / h_best
-    record = RenderedObject(label, n_px, best.zone_px, h_med if ok else math.nan, sd_med if ok else math.nan,
-                            family if ok else "", h_best / h_obj if ok else math.nan,
-                            int(spill.sum()) if (ok and trim) else 0)
-    none = np.zeros(own.shape, bool)
+    record = RenderedObject(label, n_px, best.zone_px, h_med, sd * h_med / h_best, family, h_best / h_obj,
+                            int(spill.sum()) if trim else 0)
     # painted: the object's top, where the network's own shape reaches half its height (not its blurred rim)
     top = footprint & (np.where(footprint, base, 0.0) >= np.float32(settings.top_share) * np.float32(
         np.percentile(base[footprint], 90) if footprint.any() else 0.0))
-    return _Result(record, crop, top if ok else none, footprint if ok else none, spill if (ok and trim) else none,
-                   per_px)
+    return _Result(record, crop, top, footprint, spill if trim else none, per_px)
 
 
 __all__ = ["RenderSettings", "RenderedHeights", "RenderedObject", "rendered_heights"]
