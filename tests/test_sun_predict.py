@@ -15,6 +15,7 @@ import pytest
 import rasterio
 import torch
 from click.testing import CliRunner
+from helpers.rasters import dated_mosaic
 from torch import nn
 
 from aerialmtl.classes import ClassDef, ClassScheme
@@ -238,20 +239,9 @@ def test_a_mosaic_of_flights_with_different_suns_is_refused_naming_them(tmp_path
     files and their times, and says how to predict them (one by one, each with its own sun)."""
     from rasterio.transform import from_origin
 
-    parts = []
-    for name, stamp, x0 in (("a.tif", "2019:06:21 16:45:00", 492000.0), ("b.tif", "2019:07:02 10:00:00", 492100.0)):
-        path = tmp_path / name
-        with rasterio.open(path, "w", driver="GTiff", width=100, height=100, count=3, dtype="uint8",
-                           crs="EPSG:32610", transform=from_origin(x0, 4878000.0, 1.0, 1.0)) as dst:
-            dst.write(np.full((3, 100, 100), 90, np.uint8))
-            dst.update_tags(TIFFTAG_DATETIME=stamp)
-        parts.append(str(path))
-    from aerialmtl.io.vrt import mosaic_vrt
-
-    vrt = tmp_path / "mosaic.vrt"
-    mosaic_vrt(vrt, parts)
-    with rasterio.open(vrt) as src:
-        grid = Grid(src.crs, src.transform, src.width, src.height)
+    vrt, grid = dated_mosaic(tmp_path, [("a.tif", "2019:06:21 16:45:00", from_origin(492000.0, 4878000.0, 1.0, 1.0)),
+                                        ("b.tif", "2019:07:02 10:00:00", from_origin(492100.0, 4878000.0, 1.0, 1.0))],
+                             crs="EPSG:32610")
     with pytest.raises(InputError, match=r"joins orthophotos flown at different times \(a.tif 2019:06:21 16:45:00, "
                        r"b.tif 2019:07:02 10:00:00\).*one by one"):
         choose_sun("auto", None, vrt, grid, {}, None)

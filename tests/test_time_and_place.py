@@ -24,7 +24,7 @@ import rasterio
 from affine import Affine
 from helpers.cli import run_cli
 from helpers.models import tiny_d3net
-from helpers.rasters import write_raster
+from helpers.rasters import dated_mosaic, write_raster
 
 from aerialmtl.data.synth import CityStyle, sample_city
 from aerialmtl.formats.checkpoint import save_checkpoint
@@ -300,20 +300,8 @@ def test_sun_90_90_is_refused_at_parse_with_the_real_reason(tmp_path: Path, caps
 def test_a_mosaic_source_without_a_time_does_not_take_the_others(towns, tmp_path: Path) -> None:
     """A VRT of a dated and an undated orthophoto: the mosaic has no time (a warning names the undated source), so
     the sun is not the dated one's; here the same flight's fit."""
-    from aerialmtl.io.vrt import mosaic_vrt
-
-    parts = []
-    for name, x0, stamp in (("dated.tif", ORIGIN[0], "2021:06:01 09:00:00"), ("undated.tif", ORIGIN[0] + 32, None)):
-        path = write_raster(tmp_path / name, np.full((3, 64, 64), 90, np.uint8),
-                            transform=Affine(0.5, 0, x0, 0, -0.5, ORIGIN[1]))
-        if stamp:
-            with rasterio.open(path, "r+") as dst:
-                dst.update_tags(TIFFTAG_DATETIME=stamp)
-        parts.append(str(path))
-    vrt = tmp_path / "mosaic.vrt"
-    mosaic_vrt(vrt, parts)
-    with rasterio.open(vrt) as src:
-        grid = Grid(src.crs, src.transform, src.width, src.height)
+    west, east = Affine(0.5, 0, ORIGIN[0], 0, -0.5, ORIGIN[1]), Affine(0.5, 0, ORIGIN[0] + 32, 0, -0.5, ORIGIN[1])
+    vrt, grid = dated_mosaic(tmp_path, [("dated.tif", "2021:06:01 09:00:00", west), ("undated.tif", None, east)])
     with pytest.warns(UserWarning, match=r"mosaic '.*mosaic.vrt': 1 of its 2 sources state no acquisition time "
                                          r"\(undated.tif\)"):
         choice = choose_sun("auto", None, vrt, grid, {}, towns["fit"])

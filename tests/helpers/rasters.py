@@ -9,6 +9,7 @@ import rasterio
 from affine import Affine
 
 from aerialmtl.classes import ClassScheme
+from aerialmtl.io.align import Grid
 
 
 def write_raster(
@@ -85,3 +86,22 @@ def write_prediction_folder(folder: Path, rng: np.random.Generator, size: int = 
     write_raster(folder.parent / "ortho.tif", rng.integers(0, 255, (3, 2 * size, 2 * size)).astype(np.uint8),
                  transform=Affine(0.25, 0, 500000.0, 0, -0.25, 5000000.0))
     return folder
+
+
+def dated_mosaic(folder: Path, parts: list[tuple[str, str | None, Affine]], crs: str = "EPSG:32631"
+                 ) -> tuple[Path, Grid]:
+    """A VRT mosaic ``folder/mosaic.vrt`` of uniform 64 × 64 RGB orthophotos, one per ``(name, TIFF DateTime or
+    None, transform)``; returns ``(vrt path, its Grid)``."""
+    from aerialmtl.io.vrt import mosaic_vrt
+
+    paths = []
+    for name, stamp, transform in parts:
+        path = write_raster(folder / name, np.full((3, 64, 64), 90, np.uint8), crs=crs, transform=transform)
+        if stamp:
+            with rasterio.open(path, "r+") as dst:
+                dst.update_tags(TIFFTAG_DATETIME=stamp)
+        paths.append(str(path))
+    vrt = folder / "mosaic.vrt"
+    mosaic_vrt(vrt, paths)
+    with rasterio.open(vrt) as src:
+        return vrt, Grid(src.crs, src.transform, src.width, src.height)
