@@ -119,10 +119,12 @@ def test_a_stated_time_gives_its_own_sun_not_the_training_fit_and_says_both(how:
     assert "warning: b.tif:" in err and f"azimuth {az_b:.1f}°, elevation {el_b:.1f}°" in err, err
     assert f"training fit of this area (azimuth {fit.azimuth_deg:.1f}°" in err and "14°" in err, err
     assert ("as given" if how == "--acquired" else "as stated") in err
-    if how == "--acquired":  # without the time: the same flight's fit
-        code, err = _predict(capsys, towns, towns["b"], tmp_path / "q")
+    if how == "--acquired":  # without the time: the same flight's fit, and the summary line says so
+        code, out, err = run_cli(capsys, "predict", towns["b"], "--model", towns["ckpt"], "--out", tmp_path / "q",
+                                 *PREDICT)
         assert code == 0 and _sun(tmp_path / "q")["source"] == "training fit", err
         assert _sun(tmp_path / "q")["azimuth_deg"] == pytest.approx(fit.azimuth_deg, abs=0.01)
+        assert f"sun {fit.azimuth_deg:.0f}° / {fit.elevation_deg:.0f}° (training fit); files:" in out, out
 
 
 def test_a_disagreeing_tiff_datetime_is_doubted_with_a_warning_giving_both_suns(towns, tmp_path: Path,

@@ -181,7 +181,7 @@ def predict(orthos: tuple[str, ...], model: Path | None, out: Path | None, overw
             f"{raster_name(str(res.ortho))} → {res.out_dir}: "
             f"{res.grid.width}×{res.grid.height} px at {res.grid.gsd:.3g} m, T={res.mc}, "
             f"{res.windows_computed}/{res.windows_total} windows, overlap factor {res.overlap_factor:.2f}, "
-            f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); "
+            f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); {_sun(res.sun)}"
             f"files: {', '.join(_written(res))}"
         )
 
@@ -205,6 +205,15 @@ def predict(orthos: tuple[str, ...], model: Path | None, out: Path | None, overw
         click.echo(f"mosaics: {', '.join(str(p) for p in job.mosaics.values())}")
     if default and job.ranks.rank == 0:
         click.echo(f"outputs in {out} (the default without --out)")
+
+
+def _sun(record: dict[str, Any] | None) -> str:
+    """The sun of an input's shadow layers and where it came from, for its summary line ('' when the features are
+    off for the whole run, or off for this input: its warning said why).
+    """
+    if not record or record.get("azimuth_deg") is None:
+        return ""
+    return f"sun {record['azimuth_deg']:.0f}° / {record['elevation_deg']:.0f}° ({record['source']}); "
 
 
 def _written(res: PredictResult) -> list[str]:

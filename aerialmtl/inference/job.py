@@ -71,6 +71,8 @@ class PredictResult:
             (the slowest strip, or the whole raster), ``cog`` (the conversion to COGs), ``total`` (up to the
             end of the conversion; ``prediction.json`` records these same numbers).
         ortho: the orthophoto.
+        sun: ``prediction.json``'s ``sun`` (the sun of the shadow layers, where it came from, or why they are
+            off); ``None`` when the shadow features are off for the whole run.
     """
 
     out_dir: Path
@@ -84,6 +86,7 @@ class PredictResult:
     megapixels_per_s: float
     timings: dict[str, float] = field(default_factory=dict)
     ortho: str | Path | None = None
+    sun: dict[str, Any] | None = None
 
 
 class JobModel(Protocol):
@@ -314,7 +317,8 @@ class InputJob:
         out_px = grid.width * grid.height
         return PredictResult(self.out, files, grid, self.model.mc, plan.num_windows, computed,
                              plan.computed_overlap(computed), plan.overlap_factor,
-                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path)
+                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path,
+                             self.model.record_settings(src).get("sun"))
 
 
 __all__ = ["InputJob", "JobModel", "PredictResult", "StripResult", "prediction_folder"]
