@@ -167,20 +167,6 @@ class _Objective:
         return (sm - self.s1 * m1 / self.n) / math.sqrt(self.var * var_m)
 
 
-def azimuth_score(rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, azimuth_deg: float,
-                  valid: ArrayOrList | None = None, elevations: Sequence[float] = tuple(range(10, 81, 5)),
-                  ground_m: float = GROUND_M) -> float:
-    """The objective's best correlation at one azimuth over ``elevations`` (degrees): how well a sun from
-    ``azimuth_deg`` explains the image's shadows with these heights, whatever its elevation (NaN when no sun
-    there casts a shadow on ground). Arguments as :func:`fit_sun`.
-    """
-    f = _Objective(rgb, height, gsd_m, valid, ground_m)
-    f.score([(azimuth_deg, el) for el in elevations])
-    scores = [f(azimuth_deg, el) for el in elevations]
-    finite = [r for r in scores if math.isfinite(r)]
-    return max(finite) if finite else math.nan
-
-
 def _grid(f: _Objective, azs: Sequence[float], els: Sequence[float]) -> tuple[float, float, float]:
     f.score([(az, el) for el in els for az in azs])
     best = (-math.inf, 0.0, 0.0)
@@ -279,9 +265,10 @@ def check_azimuth(rgb: np.ndarray, height: np.ndarray, gsd_m: float, azimuth_deg
                   min_sharpness: float = MIN_SHARPNESS, ground_m: float = GROUND_M) -> AzimuthCheck:
     """Where an image's shadows fall, to check a sun taken on trust: :func:`fit_sun`'s objective searched coarsely
     (every 10° of azimuth at :data:`CHECK_ELEVATIONS`, then 2° × 5° within 10° of the best, then 1° × 2.5°: about
-    370 suns, where :func:`fit_sun` and :func:`azimuth_score` score 760 on two objectives), and the given azimuth
-    scored at the same elevations. Good to the few degrees a check needs: on a weak-contrast synthetic town whose
-    objective is flat within 1 % over 149–156°, it finds 156° where :func:`fit_sun` finds 149° (true 150°).
+    370 suns, where the full :func:`fit_sun` and a second score of the given azimuth took 760 on two objectives),
+    and the given azimuth scored at the same elevations. Good to the few degrees a check needs: on a weak-contrast
+    synthetic town whose objective is flat within 1 % over 149–156°, it finds 156° where :func:`fit_sun` finds 149°
+    (true 150°).
 
     The fit is clear as in :func:`fit_sun`: correlation ≥ ``min_score``, sharpness ≥ ``min_sharpness`` against the
     best sun 30° or more of azimuth away, the elevation not at an end of the search. Arguments as :func:`fit_sun`
