@@ -58,7 +58,7 @@ from aerialmtl.formats.stac import model_summary
 from aerialmtl.inference import stitch_kernel
 from aerialmtl.inference.engine_choice import EngineChoice, Job, choose_engine
 from aerialmtl.inference.engines import ENGINES, EngineSetup, engine_spec
-from aerialmtl.inference.model_record import RECORDS, CheckpointModel, make_record, read_record, write_record
+from aerialmtl.inference.model_record import CheckpointModel, any_record, make_record, read_record, write_record
 from aerialmtl.inference.ortho import OrthoInput
 from aerialmtl.inference.runner import ModelRunner, auto_batch_size
 from aerialmtl.inference.sanity import check_calibration
@@ -109,7 +109,7 @@ def _load(checkpoint: str | Path | tuple[torch.nn.Module, ModelMeta], root: Path
     if isinstance(checkpoint, tuple):
         model, meta = checkpoint
         return model, meta, "<in-memory model>", None
-    if root is not None and any((root / RECORDS).glob("*.record")):
+    if root is not None and any_record(root):
         try:
             digest: str | None = checkpoint_format.file_sha256(checkpoint)
         except OSError:  # read_model says what is wrong with the file

@@ -87,6 +87,13 @@ def record_path(digest: str, root: Path) -> Path:
     return root / RECORDS / f"{key}.record"
 
 
+def any_record(root: Path) -> bool:
+    """Whether cache root ``root`` holds any checkpoint record (a cold cache holds none: no checkpoint needs
+    hashing to look one up).
+    """
+    return any((root / RECORDS).glob("*.record"))
+
+
 def read_record(digest: str, root: Path) -> ModelRecord | None:
     """The record of fingerprint ``digest``, or ``None`` (missing, unreadable or damaged).
 
@@ -188,5 +195,5 @@ def resolve_model(model: nn.Module | CheckpointModel) -> nn.Module:
     return model.get() if isinstance(model, CheckpointModel) else model
 
 
-__all__ = ["RECORD_VERSION", "CheckpointModel", "ModelRecord", "make_record", "read_record",
+__all__ = ["RECORD_VERSION", "CheckpointModel", "ModelRecord", "any_record", "make_record", "read_record",
            "record_path", "resolve_model", "write_record"]
