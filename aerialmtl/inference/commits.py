@@ -10,6 +10,7 @@ import warnings
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -49,12 +50,14 @@ class Commits:
     def __init__(self, committed: Callable[[PredictResult], None], raise_failures: bool, in_thread: bool) -> None:
         self.committed, self.raise_failures, self.in_thread = committed, raise_failures, in_thread
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="aerialmtl-commit") if in_thread else None
-        self._pending: tuple[Future[tuple[dict[str, Path], int, dict[str, float]]], InputJob, str] | None = None
+        self._pending: tuple[Future[tuple[dict[str, Path], int, dict[str, float]]], InputJob, str,
+                             dict[str, Any]] | None = None
 
     def start(self, job: InputJob, strip: StripResult, started: float, ortho: str) -> None:
         """Commit ``job``'s one strip: in the thread, or here (:meth:`settle` the one before first)."""
         assert self._pending is None, "settle the previous commit first"
         future: Future[tuple[dict[str, Path], int, dict[str, float]]]
+        fields: dict[str, Any] = {}
         try:
             fields = job.model.record_settings(job.src)  # the model's state is read here, in the main thread
             if self._pool is not None:
@@ -69,7 +72,7 @@ class Commits:
         except BaseException:
             job.abort()
             raise
-        self._pending = (future, job, ortho)
+        self._pending = (future, job, ortho, fields)
 
     def settle(self) -> tuple[str, str] | None:
         """Wait for the commit in flight, if any, and report its result.
@@ -79,7 +82,7 @@ class Commits:
         """
         if self._pending is None:
             return None
-        future, job, ortho = self._pending
+        future, job, ortho, fields = self._pending
         try:
             files, computed, timings = future.result()
         except Exception as exc:
@@ -88,7 +91,7 @@ class Commits:
                 raise
             return ortho, one_line(exc)
         self._pending = None
-        self.committed(job.result(files, computed, timings))
+        self.committed(job.result(files, computed, timings, fields))
         return None
 
     def close(self) -> None:

@@ -243,7 +243,8 @@ class InputJob:
         Raises:
             InputError: the input changed while it was read.
         """
-        return self.result(*self.commit_files(strips, processes=processes, started=started))
+        fields = self.model.record_settings(self.src)
+        return self.result(*self.commit_files(strips, processes=processes, started=started, fields=fields), fields)
 
     def commit_files(self, strips: Sequence[StripResult], *, processes: int = 1, started: float | None = None,
                      fields: dict[str, Any] | None = None) -> tuple[dict[str, Path], int, dict[str, float]]:
@@ -307,8 +308,11 @@ class InputJob:
             **(self.model.record_settings(src) if fields is None else fields),
         )
 
-    def result(self, files: dict[str, Path], computed: int, timings: dict[str, float]) -> PredictResult:
-        """The :class:`PredictResult` of the committed input (warns when every layer is nodata)."""
+    def result(self, files: dict[str, Path], computed: int, timings: dict[str, float],
+               fields: dict[str, Any]) -> PredictResult:
+        """The :class:`PredictResult` of the committed input (warns when every layer is nodata); ``fields``: the
+        model's fields of its ``prediction.json`` (:meth:`JobModel.record_settings`, as :meth:`commit_files` got them).
+        """
         src, plan, grid = self.src, self.src.plan, self.src.grid
         if computed == 0 and plan.num_windows > 0:  # complete, but a map of nodata only: say so
             where = f" inside the AOI '{self.aoi}'" if self.aoi is not None else ""
@@ -317,8 +321,7 @@ class InputJob:
         out_px = grid.width * grid.height
         return PredictResult(self.out, files, grid, self.model.mc, plan.num_windows, computed,
                              plan.computed_overlap(computed), plan.overlap_factor,
-                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path,
-                             self.model.record_settings(src).get("sun"))
+                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path, fields.get("sun"))
 
 
 __all__ = ["InputJob", "JobModel", "PredictResult", "StripResult", "prediction_folder"]
