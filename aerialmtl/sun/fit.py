@@ -178,6 +178,16 @@ def _grid(f: _Objective, azs: Sequence[float], els: Sequence[float]) -> tuple[fl
     return best
 
 
+def _sharpness(f: _Objective, r: float, azimuth_deg: float) -> tuple[float, float]:
+    """``(sharpness, r_far)`` of an optimum ``r`` at ``azimuth_deg`` (module docstring): ``r_far`` the best score
+    ``f`` has computed :data:`SHARPNESS_AWAY_DEG` or more of azimuth away (−inf when none).
+    """
+    far = [v for (a, _), v in f.cache.items()
+           if math.isfinite(v) and abs((a - azimuth_deg + 180.0) % 360.0 - 180.0) >= SHARPNESS_AWAY_DEG]
+    r_far = max(far) if far else -math.inf
+    return ((r - r_far) / r if r > 0 and math.isfinite(r_far) else (1.0 if r > 0 else 0.0)), r_far
+
+
 def _span(centre: float, half: float, step: float, lo: float = -math.inf, hi: float = math.inf) -> list[float]:
     k = int(round(half / step))
     return [v for v in (centre + i * step for i in range(-k, k + 1)) if lo <= v <= hi]
@@ -218,10 +228,7 @@ def fit_sun(rgb: ArrayOrList, height: ArrayOrList, gsd_m: float, valid: ArrayOrL
     r1, az1, el1 = _grid(f, _span(az0, 10.0, 2.0), _span(el0, 5.0, 1.0, lo, hi))
     r, az, el = _grid(f, _span(az1, 2.0, 0.5), _span(el1, 1.0, 0.25, lo, hi))
     best = Sun(round(az % 360.0, 4), el)
-    far = [v for (a, _), v in f.cache.items()
-           if math.isfinite(v) and abs((a - best.azimuth_deg + 180.0) % 360.0 - 180.0) >= SHARPNESS_AWAY_DEG]
-    r_far = max(far) if far else -math.inf
-    sharp = (r - r_far) / r if r > 0 and math.isfinite(r_far) else (1.0 if r > 0 else 0.0)
+    sharp, r_far = _sharpness(f, r, best.azimuth_deg)
     at_edge = el <= lo + 0.5 or el >= hi - 0.5
     desc = (f"best azimuth {best.azimuth_deg:.0f}°, elevation {best.elevation_deg:.0f}° scores r = {r:.2f}, "
             f"the best sun {SHARPNESS_AWAY_DEG:.0f}° or more of azimuth away {r_far:.2f} (sharpness {sharp:.2f})")
@@ -286,10 +293,7 @@ def check_azimuth(rgb: np.ndarray, height: np.ndarray, gsd_m: float, azimuth_deg
         return AzimuthCheck(None, math.nan, given_score)
     _, az1, el1 = _grid(f, _span(az0, 10.0, 2.0), _span(el0, 10.0, 5.0, els[0], els[-1]))
     r, az, el = _grid(f, _span(az1, 2.0, 1.0), _span(el1, 2.5, 2.5, els[0], els[-1]))
-    far = [v for (a, _), v in f.cache.items()
-           if math.isfinite(v) and abs((a - az + 180.0) % 360.0 - 180.0) >= SHARPNESS_AWAY_DEG]
-    r_far = max(far) if far else -math.inf
-    sharp = (r - r_far) / r if r > 0 and math.isfinite(r_far) else (1.0 if r > 0 else 0.0)
+    sharp, _ = _sharpness(f, r, az)
     clear = r >= min_score and sharp >= min_sharpness and els[0] < el < els[-1]
     return AzimuthCheck(round(az % 360.0, 4) if clear else None, r, given_score)
 
