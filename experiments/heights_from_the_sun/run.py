@@ -22,6 +22,7 @@ import math
 import os
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -190,15 +191,17 @@ def _per_bin(rows: list[dict[str, Any]], key: str, sign: bool = True) -> str:
     return " / ".join(cols)
 
 
-def table(out: Path, seeds: list[int]) -> str:
-    """The study's Markdown tables: per block and arm, mean (range) over the seeds; the shadow heights per object."""
+def table(out: Path, seeds: list[int], arms: Sequence[str] = tuple(ARMS), shadow_arms: Sequence[str] = ("shadows",)
+          ) -> str:
+    """The study's Markdown tables: per block and arm (``arms``: their predictions' folder prefixes), mean (range)
+    over the seeds; the shadow heights per object of each of ``shadow_arms``."""
     lines = []
     for block, title in (("val", "validation block (chooses)"), ("test", "held-out test block (reports)")):
         lines += [f"**{title}** — per bin: 0–1 / 1–2 / 2–5 / 5–10 / 10–20 / ≥ 20 m", "",
                   "| arm | seeds | MAE | MAE ≥ 2 m | bias ≥ 2 m | CRPS | bias per bin | ±1σ per bin | "
                   "Spearman(std, \\|err\\|) per bin | Spearman(std, predicted h) per bin |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
-        for arm in ARMS:
+        for arm in arms:
             rows = [_numbers(_report(p)) for s in seeds
                     if (p := out / "pred" / f"{arm}_{block}_s{s}").joinpath("prediction.json").is_file()]
             if rows:
@@ -208,23 +211,31 @@ def table(out: Path, seeds: list[int]) -> str:
                              f"{_per_bin(rows, 'cov_bin', False)} | {_per_bin(rows, 'rho_bin')} | "
                              f"{_per_bin(rows, 'rho_h_bin')} |")
         lines.append("")
-        objs = [shadow_objects(p) for s in seeds
-                if (p := out / "pred" / f"shadows_{block}_s{s}").joinpath("shadow_height.tif").is_file()]
-        if objs:
-            lines += [f"shadow heights per reference object ({title.split(' (')[0]}, {len(objs)} seeds):", "",
-                      "| bin | objects | measured | median error | MAE | median relative error |",
-                      "|---|---|---|---|---|---|"]
-            for key in objs[0]:
-                if not isinstance(objs[0][key], dict):
-                    continue
-                o = [x[key] for x in objs]
-                lines.append(f"| {key} m | {o[0]['objects']} | {_fmt([x['measured'] for x in o])} | "
-                             f"{_fmt([x['median_error_m'] for x in o], True)} | {_fmt([x['mae_m'] for x in o])} | "
-                             f"{_fmt([x['median_rel_error'] for x in o])} |")
-            lines += ["", f"objects ≥ 10 m, median relative error of the shadow height: "
-                      f"{_fmt([x['median_rel_error_10m'] for x in objs], True)}; open ground with a shadow height: "
-                      f"{_fmt([x['open_ground'] for x in objs])}", ""]
+        for sarm in shadow_arms:
+            lines += _objects_table(out, seeds, block, title, sarm)
     return "\n".join(lines)
+
+
+def _objects_table(out: Path, seeds: list[int], block: str, title: str, arm: str) -> list[str]:
+    """The shadow heights per reference object of ``arm``'s predictions of ``block`` (no lines where none)."""
+    lines: list[str] = []
+    objs = [shadow_objects(p) for s in seeds
+            if (p := out / "pred" / f"{arm}_{block}_s{s}").joinpath("shadow_height.tif").is_file()]
+    if objs:
+        lines += [f"shadow heights per reference object ({title.split(' (')[0]}, `{arm}`, {len(objs)} seeds):", "",
+                  "| bin | objects | measured | median error | MAE | median relative error |",
+                  "|---|---|---|---|---|---|"]
+        for key in objs[0]:
+            if not isinstance(objs[0][key], dict):
+                continue
+            o = [x[key] for x in objs]
+            lines.append(f"| {key} m | {o[0]['objects']} | {_fmt([x['measured'] for x in o])} | "
+                         f"{_fmt([x['median_error_m'] for x in o], True)} | {_fmt([x['mae_m'] for x in o])} | "
+                         f"{_fmt([x['median_rel_error'] for x in o])} |")
+        lines += ["", f"objects ≥ 10 m, median relative error of the shadow height: "
+                  f"{_fmt([x['median_rel_error_10m'] for x in objs], True)}; open ground with a shadow height: "
+                  f"{_fmt([x['open_ground'] for x in objs])}", ""]
+    return lines
 
 
 def main() -> None:
