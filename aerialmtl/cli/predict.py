@@ -142,6 +142,13 @@ def _say_if_start(model: Path) -> None:
              "by both spreads (never outside an object); the disagreement widens height_std. Needs the sun (not "
              "--sun none) and heights with a spread (--mc > 1, --tta, or a model with an aleatoric head); "
              "prediction.json's fusion says whether it was applied to each input.")
+@option("--sun-tune", "sun_tune", type=click.IntRange(min=0), default=0, show_default=True, metavar="STEPS",
+        help="Before predicting, tune the height decoder for STEPS steps on the orthophotos' own cast shadows: the "
+             "shadows of its heights at each input's sun are made to match the shadow layer's (self-supervised, "
+             "no reference heights; up to 8 crops of 512 px; 30 steps on one crop take 10-14 s on 2 CPU cores). "
+             "30 lowered the validation MAE of pixels >= 2 m on the sample area from 6.94 to 6.69 m; 0 = off "
+             "(an option: measured on one area). Needs the sun (not --sun none); prediction.json's sun_tune says "
+             "what it did.")
 @overwrite_option()
 @option("--skip-existing", is_flag=True,
         help="Skip inputs whose prediction folder is complete for this run (same model, settings and input, "
@@ -181,7 +188,7 @@ def predict(orthos: tuple[str, ...], model: Path | None, out: Path | None, overw
             f"{raster_name(str(res.ortho))} → {res.out_dir}: "
             f"{res.grid.width}×{res.grid.height} px at {res.grid.gsd:.3g} m, T={res.mc}, "
             f"{res.windows_computed}/{res.windows_total} windows, overlap factor {res.overlap_factor:.2f}, "
-            f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); {_sun(res.sun)}"
+            f"{t['total']:.1f} s ({res.megapixels_per_s:.2f} Mpx/s); {_sun(res.sun)}{_tuned(res.sun_tune)}"
             f"files: {', '.join(_written(res))}"
         )
 
@@ -214,6 +221,15 @@ def _sun(record: dict[str, Any] | None) -> str:
     if not record or record.get("azimuth_deg") is None:
         return ""
     return f"sun {record['azimuth_deg']:.0f}° / {record['elevation_deg']:.0f}° ({record['source']}); "
+
+
+def _tuned(record: dict[str, Any] | None) -> str:
+    """What ``--sun-tune`` did, for the summary line ('' when the run did not tune)."""
+    if not record:
+        return ""
+    crops = f"{record['crops']} crop" + ("s" if record["crops"] != 1 else "")
+    return (f"heights tuned on the shadows ({record['steps']} steps, {crops}, shadow match "
+            f"{record['shadow_match_before']:.3f} → {record['shadow_match_after']:.3f}); ")
 
 
 def _written(res: PredictResult) -> list[str]:

@@ -351,6 +351,8 @@ class PredictionRecord(BaseModel):
             the run had no shadow features.
         fusion: whether ``--shadow-fusion`` moved this input's heights, and why (or why not): ``{"applied",
             "reason"}`` (:func:`aerialmtl.inference.settings.fusion_record`); ``shadow_fusion`` is what was asked.
+        sun_tune: what ``--sun-tune`` did before predicting (:meth:`aerialmtl.inference.self_tune.TuneReport.record`:
+            steps, crops, the shadow match before and after), ``None`` when the run did not tune.
         created: UTC time of the commit (ISO 8601); files: key → file name; file_sizes: layer file → bytes;
         file_sha256: layer file → SHA-256 (hex) of its bytes.
     """
@@ -389,6 +391,7 @@ class PredictionRecord(BaseModel):
     shadow_fusion: bool = False
     sun: dict[str, Any] | None = None
     fusion: dict[str, Any] | None = None
+    sun_tune: dict[str, Any] | None = None
     provenance: dict[str, Any]
     created: str | None = None
     files: dict[str, str] = {}

@@ -73,6 +73,7 @@ class PredictResult:
         ortho: the orthophoto.
         sun: ``prediction.json``'s ``sun`` (the sun of the shadow layers, where it came from, or why they are
             off); ``None`` when the shadow features are off for the whole run.
+        sun_tune: ``prediction.json``'s ``sun_tune`` (what ``--sun-tune`` did), ``None`` when the run did not tune.
     """
 
     out_dir: Path
@@ -87,6 +88,7 @@ class PredictResult:
     timings: dict[str, float] = field(default_factory=dict)
     ortho: str | Path | None = None
     sun: dict[str, Any] | None = None
+    sun_tune: dict[str, Any] | None = None
 
 
 class JobModel(Protocol):
@@ -321,7 +323,8 @@ class InputJob:
         out_px = grid.width * grid.height
         return PredictResult(self.out, files, grid, self.model.mc, plan.num_windows, computed,
                              plan.computed_overlap(computed), plan.overlap_factor,
-                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path, fields.get("sun"))
+                             out_px / 1e6 / max(timings["total"], 1e-9), timings, src.path, fields.get("sun"),
+                             fields.get("sun_tune"))
 
 
 __all__ = ["InputJob", "JobModel", "PredictResult", "StripResult", "prediction_folder"]

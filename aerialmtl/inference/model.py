@@ -71,6 +71,7 @@ from aerialmtl.io.fingerprint import file_fingerprint, input_fingerprint
 from aerialmtl.models import class_kernel
 
 if TYPE_CHECKING:
+    from aerialmtl.inference.self_tune import TuneReport
     from aerialmtl.inference.shadows import ShadowStep
 
 log = logging.getLogger(__name__)
@@ -166,6 +167,8 @@ class Predictor:
         #: The shadow features (:mod:`aerialmtl.inference.shadows`), ``None`` when off for the whole run.
         self.shadows = self._shadow_step()
         self._suns: dict[str, SunChoice] = {}
+        #: What :meth:`tune` did (``--sun-tune``), ``None`` before it or where it tuned nothing.
+        self.tuned: TuneReport | None = None
         #: The output schema: one :class:`LayerSpec` per layer, in file order.
         self.layers: tuple[LayerSpec, ...] = prediction_layers(tasks, self.meta.classes, self.mc, s.probabilities,
                                                                  aleatoric=self.meta.model.aleatoric, tta=s.tta,
@@ -237,6 +240,44 @@ class Predictor:
             return
         self._suns[key] = SunChoice(None, None, None, "checked on the orthophoto", note)
         warnings.warn(f"{src.name}: no shadow features: {note}", UserWarning, stacklevel=2)
+
+    def tune(self, srcs: Sequence[OrthoInput]) -> TuneReport | None:
+        """With ``sun_tune`` steps, tune the height decoder on ``srcs``' own cast shadows before anything is
+        predicted (:mod:`aerialmtl.inference.self_tune`); the run then predicts with the tuned weights, whose
+        fingerprint is the checkpoint's in ``prediction.json`` (no engine record or cache of the file is used).
+
+        Returns the report (also :attr:`tuned`), or ``None`` where nothing was tuned: the setting is 0, no input
+        has a sun (said once), or none has a crop with enough pixels to compare (said once).
+        """
+        steps = self.settings.sun_tune
+        if not steps or self.tuned is not None:
+            return self.tuned
+        if self._runner is not None:
+            raise RuntimeError("Predictor.tune: the engine is built already; tune before predicting")
+        from aerialmtl.sun.position import Sun
+
+        inputs = [(src, Sun(choice.grid_azimuth_deg % 360.0, choice.elevation_deg)) for src in srcs
+                  if (choice := self.sun_for(src)) is not None and choice.on
+                  and choice.grid_azimuth_deg is not None and choice.elevation_deg is not None]
+        if self.shadows is None or not inputs:
+            warnings.warn(f"--sun-tune {steps}: no input has a sun for its shadows, so the heights are not tuned "
+                          "(see the shadow features' message above)", UserWarning, stacklevel=2)
+            return None
+        from aerialmtl.inference.self_tune import read_crops, tune_height_branch
+
+        assert self.shadows is not None
+        crops = read_crops(inputs, self.meta, self.shadows.model, self.settings.aoi, self.threads.threads)
+        if not crops:
+            warnings.warn(f"--sun-tune {steps}: no part of the inputs has enough pixels whose shadows can be "
+                          "compared (each crop needs a quarter of its pixels valid, in the AOI, with the sun's ray "
+                          "inside it); the heights are not tuned", UserWarning, stacklevel=2)
+            return None
+        model = self._model.get() if isinstance(self._model, CheckpointModel) else self._model
+        self.tuned = tune_height_branch(model, self.meta, crops, steps)
+        self._model, self._checkpoint, self._fingerprint = model, (model, self.meta), None
+        log.info("tuned the heights on the orthophotos' shadows: %d steps on %d crops, shadow match %.4f → %.4f "
+                 "(%.1f s)", steps, len(crops), self.tuned.ll_before, self.tuned.ll_after, self.tuned.seconds)
+        return self.tuned
 
     @property
     def model(self) -> torch.nn.Module:
@@ -409,6 +450,7 @@ class Predictor:
             "calibration": self.calibration_info(),
             **({"sun": choice.record()} if (choice := self.sun_for(src)) is not None else {}),
             "fusion": fusion_record(self.settings.shadow_fusion, self.shadows is not None, self.sun_for(src)),
+            **({"sun_tune": self.tuned.record()} if self.tuned is not None else {}),
             PROVENANCE_KEY: self.provenance(src),
         }
 

@@ -90,6 +90,8 @@ class PredictSettings:
             are written whenever the sun is known, fused or not. Refused with ``sun="none"`` (no shadows to
             measure) and for heights without a spread to weigh (:meth:`check_fusion`): an explicit request that
             cannot act is an error, not a run that says it fused.
+        sun_tune: Adam steps of the height decoder on the inputs' own cast shadows before predicting
+            (:mod:`aerialmtl.inference.self_tune`); 0: off. Refused with ``sun="none"``.
     """
 
     mc: int | None = None
@@ -112,6 +114,7 @@ class PredictSettings:
     sun: str = shadow_setting("auto")
     acquired: str | None = shadow_setting(None)
     shadow_fusion: bool = shadow_setting(False)
+    sun_tune: int = shadow_setting(0)
 
     def __post_init__(self) -> None:
         check_tiling(self.window, self.overlap)
@@ -129,6 +132,12 @@ class PredictSettings:
         sun = parse_sun(self.sun)  # a bad --sun or --acquired fails here, naming it
         if self.acquired is not None:
             parse_time(self.acquired)
+        if not isinstance(self.sun_tune, int) or isinstance(self.sun_tune, bool) or self.sun_tune < 0:
+            raise InputError(f"‹sun_tune› is a number of steps ≥ 0, got {self.sun_tune!r}; pass e.g. ‹sun_tune=30› "
+                             "(0: off)", param="sun_tune")
+        if self.sun_tune and sun == "none":
+            raise InputError("‹sun_tune› tunes the heights on the orthophotos' cast shadows, and ‹sun=none› turns the "
+                             "shadows off: drop ‹sun_tune›, or pass ‹sun› auto or AZ,EL")
         if self.shadow_fusion and sun == "none":
             raise InputError("‹shadow_fusion› moves heights towards those their shadows measure, and ‹sun=none› turns "
                              "the shadows off: drop ‹shadow_fusion›, or pass ‹sun› auto or AZ,EL")
@@ -209,6 +218,8 @@ class PredictSettings:
         maps = {True, "shadows"} if shadows else {True}
         kept = {f.name: values[f.name] for f in dataclasses.fields(self) if f.metadata.get("maps", True) in maps}
         kept["mc_samples"] = kept.pop("mc")
+        if not kept.get("sun_tune"):  # off: the provenance of the runs before the setting existed, unchanged
+            kept.pop("sun_tune", None)
         return {**kept, **recorded}
 
 

@@ -132,6 +132,8 @@ PREDICT = Algorithm(
               "[empty: from a STAC item or the TIFF DateTime]", optional=True, advanced=True),
         Param("SHADOW_FUSION", "--shadow-fusion", "bool",
               "Fuse the heights measured from shadows into the objects' heights", default=False, advanced=True),
+        Param("SUN_TUNE", "--sun-tune", "int", "Steps tuning the heights on the orthophoto's own shadows before "
+              "predicting (0: off; 30 measured better on the sample area)", default=0, advanced=True, minimum=0),
         _OVERWRITE,
         Param("OUTPUT", "--out", "folder_out", "Prediction folder"),
     ),
