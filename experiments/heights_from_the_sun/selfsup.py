@@ -1,0 +1,54 @@
+"""Issue 58, item 3: the height decoder tuned on the area being mapped, self-supervised by its cast shadows.
+
+Arms on the study's checkpoints (``runs/s*/best.pt``, 3 seeds) and blocks, each the user's command
+``aerialmtl predict --mc 16 --sun-tune STEPS`` (:mod:`aerialmtl.inference.self_tune`): ``tuneN`` (the tuned
+network's maps, shadow layers beside them) and ``tuneN_shadows`` (with ``--shadow-fusion`` as well). The
+validation block chooses the steps; the held-out block reports.
+
+Usage::
+
+    python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 20 30 40
+    python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 20 30 40 --table
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from experiments.heights_from_the_sun.run import DATA, MC, _run, _val_block, table
+
+#: The arms' predict flags by suffix of the arm's name.
+ARMS = {"": [], "_shadows": ["--shadow-fusion"]}
+
+
+def main() -> None:
+    """Run the missing arms, then print the tables (or only the tables)."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--steps", type=int, nargs="+", default=[30])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--table", action="store_true", help="print the tables of what is there; run nothing")
+    a = ap.parse_args()
+    blocks = {"val": _val_block(a.out), "test": DATA / "test_block.geojson"}
+    if not a.table:
+        exe = [sys.executable, "-m", "aerialmtl"]
+        for steps in a.steps:
+            for seed in a.seeds:
+                for block, aoi in blocks.items():
+                    for suffix, flags in ARMS.items():
+                        pred = a.out / "pred" / f"tune{steps}{suffix}_{block}_s{seed}"
+                        if not (pred / "prediction.json").is_file():
+                            _run([*exe, "predict", str(DATA / "ortho_1ft.tif"), "--model",
+                                  str(a.out / "runs" / f"s{seed}" / "best.pt"), "--aoi", str(aoi), "--mc", str(MC),
+                                  "--sun-tune", str(steps), "--out", str(pred), "--overwrite", "--quiet", *flags],
+                                 a.threads)
+    tags = [f"tune{s}" for s in a.steps]
+    print(table(a.out, a.seeds, arms=["recipe", "shadows", *[t + s for t in tags for s in ARMS]],
+                shadow_arms=["shadows", *[t + "_shadows" for t in tags]]))
+
+
+if __name__ == "__main__":
+    main()
