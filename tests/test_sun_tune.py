@@ -129,6 +129,26 @@ def test_sun_tune_with_sun_none_is_refused_naming_both(town, tmp_path: Path, cap
     assert not (tmp_path / "out" / "prediction.json").exists()
 
 
+def test_a_checkpoint_without_a_sun_fit_says_why_the_heights_are_not_tuned(town, tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture) -> None:
+    model, meta = load_model(town["ckpt"])
+    save_checkpoint(tmp_path / "old.pt", model, dataclasses.replace(meta, sun=None))
+    code, _, err = run_cli(capsys, "predict", town["ortho"], "--model", tmp_path / "old.pt", "--out", tmp_path / "o",
+                           *PREDICT, "--sun-tune", "3")
+    assert code == 0 and not any(b in err for b in BAD), err
+    assert "holds no sun fit" in " ".join(err.split()) and "not tuned" in err
+    assert json.loads((tmp_path / "o" / "prediction.json").read_text())["sun_tune"] is None
+
+
+def test_a_model_without_heights_refuses_sun_tune(tmp_path: Path, town, capsys: pytest.CaptureFixture) -> None:
+    model, meta = tiny_d3net(tasks=("classes",))
+    save_checkpoint(tmp_path / "classes.pt", model, meta)
+    code, _, err = run_cli(capsys, "predict", town["ortho"], "--model", tmp_path / "classes.pt", "--out",
+                           tmp_path / "o", *PREDICT, "--sun-tune", "3")
+    assert code != 0 and not any(b in err for b in BAD), err
+    assert "predicts none" in " ".join(err.split()) and "sun" in err
+
+
 def test_no_sun_for_the_input_says_the_heights_are_not_tuned(town, tmp_path: Path,
                                                               capsys: pytest.CaptureFixture) -> None:
     # a time at night at the town's place: the sun is below the horizon, so there are no shadows to tune on

@@ -197,6 +197,7 @@ class Predictor:
         """
         s, sun = self.settings, self.meta.sun
         s.check_fusion(self.mc, tuple(self.meta.model.tasks), self.meta.model.aleatoric, self.checkpoint_name)
+        s.check_tune(tuple(self.meta.model.tasks), self.checkpoint_name)
         if s.sun == "none" or "height" not in self.meta.model.tasks:
             return None
         if sun is None or sun.shadow_model is None:
@@ -260,8 +261,11 @@ class Predictor:
                   if (choice := self.sun_for(src)) is not None and choice.on
                   and choice.grid_azimuth_deg is not None and choice.elevation_deg is not None]
         if self.shadows is None or not inputs:
-            warnings.warn(f"--sun-tune {steps}: no input has a sun for its shadows, so the heights are not tuned "
-                          "(see the shadow features' message above)", UserWarning, stacklevel=2)
+            sun = self.meta.sun
+            why = ("no input has a sun (each input's warning says why)" if self.shadows is not None else
+                   f"{self.checkpoint_name} holds no sun fit (trained before this version: `aerialmtl train` fits one)"
+                   if sun is None else f"{self.checkpoint_name} has no shadow classifier: {sun.reason}")
+            warnings.warn(f"--sun-tune {steps}: {why}; the heights are not tuned", UserWarning, stacklevel=2)
             return None
         from aerialmtl.inference.self_tune import read_crops, tune_height_branch
 

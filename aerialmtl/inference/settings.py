@@ -142,6 +142,16 @@ class PredictSettings:
             raise InputError("‹shadow_fusion› moves heights towards those their shadows measure, and ‹sun=none› turns "
                              "the shadows off: drop ‹shadow_fusion›, or pass ‹sun› auto or AZ,EL")
 
+    def check_tune(self, tasks: tuple[str, ...], checkpoint: str) -> None:
+        """Refuse ``sun_tune`` for a model of ``tasks`` without ``height`` (nothing to tune); ``checkpoint`` names it.
+
+        Raises:
+            InputError: naming ‹sun_tune›, why, and the fix.
+        """
+        if self.sun_tune and "height" not in tasks:
+            raise InputError(f"‹sun_tune› tunes the heights, and {checkpoint} predicts none (tasks: "
+                             f"{', '.join(tasks)}): drop ‹sun_tune›")
+
     def check_fusion(self, mc: int, tasks: tuple[str, ...], aleatoric: bool, checkpoint: str) -> None:
         """Refuse ``shadow_fusion`` for a model whose heights it cannot move.
 
