@@ -9,6 +9,7 @@ Usage::
 
     python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 20 30 40
     python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 20 30 40 --table
+    python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 30 --spread
 """
 
 from __future__ import annotations
@@ -23,6 +24,39 @@ from experiments.heights_from_the_sun.run import DATA, MC, _run, _val_block, tab
 ARMS = {"": [], "_shadows": ["--shadow-fusion"]}
 
 
+def spread_arm(out: Path, seeds: list[int], steps: int) -> None:
+    """Print, per block and seed, what widening ``tune{steps}``'s spread by the move tuning made
+    (``hypot(std, |h_tuned − h_recipe|)``) does to Spearman(std, |error|) and Spearman(std, h) at 5–10 and 10–20 m,
+    and Spearman(move, |error|): estimated from the predictions, no predict."""
+    import numpy as np
+    import rasterio
+    from scipy.stats import spearmanr
+
+    from experiments.heights_from_the_sun.run import _reference_on
+
+    def read(path: Path) -> np.ndarray:
+        with rasterio.open(path) as src:
+            a = src.read(1).astype(np.float64)
+            return np.where(a == src.nodata, np.nan, a)
+
+    for block in ("val", "test"):
+        for seed in seeds:
+            tuned = out / "pred" / f"tune{steps}_{block}_s{seed}"
+            h0, ht = read(out / "pred" / f"recipe_{block}_s{seed}" / "height.tif"), read(tuned / "height.tif")
+            sd, ref = read(tuned / "height_std.tif"), _reference_on(tuned / "height.tif")
+            ok = np.isfinite(h0) & np.isfinite(ht) & np.isfinite(sd) & np.isfinite(ref)
+            err, move = np.abs(ht - ref), np.abs(ht - h0)
+            wide = np.hypot(sd, move)
+            cols = []
+            for lo, hi in ((5.0, 10.0), (10.0, 20.0)):
+                k = ok & (ref >= lo) & (ref < hi)
+                cols.append(f"{lo:g}–{hi:g} m: Spearman(std, |err|) {spearmanr(sd[k], err[k])[0]:+.2f} → "
+                            f"{spearmanr(wide[k], err[k])[0]:+.2f}, Spearman(std, h) {spearmanr(sd[k], ht[k])[0]:+.2f}"
+                            f" → {spearmanr(wide[k], ht[k])[0]:+.2f}, Spearman(move, |err|) "
+                            f"{spearmanr(move[k], err[k])[0]:+.2f}")
+            print(block, seed, " | ".join(cols))
+
+
 def main() -> None:
     """Run the missing arms, then print the tables (or only the tables)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -31,7 +65,12 @@ def main() -> None:
     ap.add_argument("--steps", type=int, nargs="+", default=[30])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--table", action="store_true", help="print the tables of what is there; run nothing")
+    ap.add_argument("--spread", action="store_true",
+                    help="the spread widened by the move tuning made, estimated from the first --steps' arm")
     a = ap.parse_args()
+    if a.spread:
+        spread_arm(a.out, a.seeds, a.steps[0])
+        return
     blocks = {"val": _val_block(a.out), "test": DATA / "test_block.geojson"}
     if not a.table:
         exe = [sys.executable, "-m", "aerialmtl"]
