@@ -10,6 +10,7 @@ Usage::
     python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 20 30 40
     python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 20 30 40 --table
     python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 30 --spread
+    python -m experiments.heights_from_the_sun.selfsup --out /work/study58 --steps 30 --annecy
 """
 
 from __future__ import annotations
@@ -57,6 +58,36 @@ def spread_arm(out: Path, seeds: list[int], steps: int) -> None:
             print(block, seed, " | ".join(cols))
 
 
+def annecy(out: Path, seed: int, steps: int, threads: int) -> None:
+    """Predict ``flair_annecy`` (15–33 m buildings; its sun fitted from its nDSM, ``annecy.py``) with seed ``seed``'s
+    autzen_west checkpoint, without and with ``--sun-tune steps``, and print the bias per bin of nDSM height: a
+    network trained on another area, on tall buildings (not a score: one 100 m patch)."""
+    import numpy as np
+    import rasterio
+    from rasterio.warp import Resampling, reproject
+
+    from experiments.heights_from_the_sun.annecy import DATA as ANNECY
+
+    exe = [sys.executable, "-m", "aerialmtl"]
+    for arm, flags in (("plain", []), (f"tune{steps}", ["--sun-tune", str(steps)])):
+        pred = out / "pred" / f"annecy_{arm}_s{seed}"
+        if not (pred / "prediction.json").is_file():
+            _run([*exe, "predict", str(ANNECY / "ortho_0p2m_l93.tif"), "--model",
+                  str(out / "runs" / f"s{seed}" / "best.pt"), "--mc", str(MC), "--sun", "137.5,57.2", "--out",
+                  str(pred), "--overwrite", "--quiet", *flags], threads)
+        with rasterio.open(pred / "height.tif") as grid, rasterio.open(ANNECY / "ndsm_0p2m_l93.tif") as src:
+            h = grid.read(1)
+            ref = np.full(h.shape, np.nan, np.float32)
+            reproject(rasterio.band(src, 1), ref, dst_transform=grid.transform, dst_crs=grid.crs,
+                      resampling=Resampling.average, dst_nodata=np.nan)
+        ok = np.isfinite(ref)
+        cols = [f"MAE {np.abs(h - ref)[ok].mean():.2f}"]
+        for lo, hi in ((2.0, 10.0), (10.0, 15.0), (15.0, 20.0), (20.0, np.inf)):
+            k = ok & (ref >= lo) & (ref < hi)
+            cols.append(f"{lo:g}–{hi:g} m: {int(k.sum())} px, bias {(h - ref)[k].mean():+.2f}")
+        print(arm, " | ".join(cols))
+
+
 def main() -> None:
     """Run the missing arms, then print the tables (or only the tables)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -67,7 +98,12 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the tables of what is there; run nothing")
     ap.add_argument("--spread", action="store_true",
                     help="the spread widened by the move tuning made, estimated from the first --steps' arm")
+    ap.add_argument("--annecy", action="store_true",
+                    help="flair_annecy predicted with the first seed's checkpoint, without and with the first --steps")
     a = ap.parse_args()
+    if a.annecy:
+        annecy(a.out, a.seeds[0], a.steps[0], a.threads)
+        return
     if a.spread:
         spread_arm(a.out, a.seeds, a.steps[0])
         return
