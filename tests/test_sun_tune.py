@@ -122,6 +122,12 @@ def test_sun_tune_0_is_the_default_to_the_bit(town, tmp_path: Path, capsys: pyte
         assert np.array_equal(_layer(tmp_path / "zero", name), _layer(tmp_path / "default", name)), name
 
 
+def test_more_steps_than_the_bound_are_refused_naming_it(town, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    code, err = _predict(capsys, town, tmp_path / "out", "--sun-tune", "201")
+    assert code != 0 and "--sun-tune" in err and "200" in err
+    assert not (tmp_path / "out" / "prediction.json").exists()
+
+
 def test_sun_tune_with_sun_none_is_refused_naming_both(town, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     code, err = _predict(capsys, town, tmp_path / "out", "--sun-tune", "5", "--sun", "none")
     assert code != 0

@@ -147,8 +147,8 @@ def _say_if_start(model: Path) -> None:
              "shadows of its heights at each input's sun are made to match the shadow layer's (self-supervised, "
              "no reference heights; up to 8 crops of 512 px; 30 steps on one crop take 10-14 s on 2 CPU cores). "
              "30 lowered the validation MAE of pixels >= 2 m on the sample area from 6.94 to 6.69 m; 0 = off "
-             "(an option: measured on one area). Needs the sun (not --sun none); prediction.json's sun_tune says "
-             "what it did.")
+             "(an option: measured on one area); at most 200. Needs the sun (not --sun none); prediction.json's "
+             "sun_tune says what it did.")
 @overwrite_option()
 @option("--skip-existing", is_flag=True,
         help="Skip inputs whose prediction folder is complete for this run (same model, settings and input, "
