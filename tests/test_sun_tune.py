@@ -183,6 +183,14 @@ def test_the_steps_raise_the_match_with_exact_shadows_and_keep_flat_ground_low(t
     assert all(p.requires_grad for p in model.parameters()) and not model.training
 
 
+def test_crops_cover_the_raster_ends_included_and_one_crop_takes_the_middle() -> None:
+    from aerialmtl.inference.self_tune import crop_starts
+
+    assert crop_starts(2048, 512, 3) == [0, 768, 1536]
+    assert crop_starts(2048, 512, 1) == [768]
+    assert crop_starts(300, 512, 3) == [0]
+
+
 def test_rays_that_leave_the_crop_are_not_compared() -> None:
     """A pixel whose ray towards the sun leaves the crop within the shadow length may be shaded by an occluder
     the crop does not hold: it is not scored. Sun in the south-east (135°): the bottom and right edges go."""

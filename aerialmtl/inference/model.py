@@ -277,7 +277,7 @@ class Predictor:
                           "inside it); the heights are not tuned", UserWarning, stacklevel=2)
             return None
         model = self._model.get() if isinstance(self._model, CheckpointModel) else self._model
-        self.tuned = tune_height_branch(model, self.meta, crops, steps)
+        self.tuned = tune_height_branch(model, self.meta, crops, steps, self.calibration)
         self._model, self._checkpoint, self._fingerprint = model, (model, self.meta), None
         log.info("tuned the heights on the orthophotos' shadows: %d steps on %d crops, shadow match %.4f → %.4f "
                  "(%.1f s)", steps, len(crops), self.tuned.ll_before, self.tuned.ll_after, self.tuned.seconds)

@@ -5,10 +5,11 @@ A network trained on one area reads the tall objects of another low, and its blu
 shadow: on autzen_west's validation block the cast shadows of its heights cover 3.5 % of the pixels where the
 lidar heights cast 21 %. The orthophoto itself shows where the shadows are. Before predicting, the height
 branch (the ``height`` task blocks and output convolution; encoder and shared blocks frozen, BatchNorm in eval,
-dropout off) takes ``steps`` Adam steps on windows of the inputs, with no reference heights: the cast shadows of
-its calibrated heights at each input's sun, rendered differentiably (:func:`aerialmtl.sun.soft.soft_cast_shadow`),
-are compared with the shadow probability ``P`` of the checkpoint's colour shadow classifier (the shadow layer's,
-for a checkpoint without a shadow head), with the evidence the rendered heights weigh (:mod:`aerialmtl.sun.render`)::
+dropout off) takes ``steps`` Adam steps on crops of the inputs, with no reference heights. The cast shadows of its
+heights as the run writes them (calibrated unless ``--no-calibration``) at each input's sun, rendered
+differentiably (:func:`aerialmtl.sun.soft.soft_cast_shadow`), are compared with the shadow probability ``P`` of
+the checkpoint's colour shadow classifier (the shadow layer's, for a checkpoint without a shadow head), with the
+evidence the rendered heights weigh (:mod:`aerialmtl.sun.render`)::
 
     LL = Σ_scored s(h) · clip(logit P − logit π, ±MAX_LLR) / n        (π: the mean P of the scored pixels)
     loss = −LL + RAISE_WEIGHT · mean(relu(h − h₀) where h₀ < 2 m)      (flat ground is not raised)
@@ -45,6 +46,7 @@ from aerialmtl.sun.render import EPS, MAX_LLR
 
 if TYPE_CHECKING:
     from aerialmtl.inference.ortho import OrthoInput
+    from aerialmtl.models.calibration import Calibration
     from aerialmtl.sun.colour import ShadowModel
 
 #: Softness of the rendered shadows, metres (τ of :func:`~aerialmtl.sun.soft.soft_cast_shadow`): at 0.5 the
@@ -139,8 +141,10 @@ def _evidence(crops: list[TuneCrop]) -> list[torch.Tensor]:
     return out
 
 
-def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[TuneCrop], steps: int) -> TuneReport:
-    """Tune ``model``'s height branch in place on ``crops`` for ``steps`` Adam steps (module docstring).
+def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[TuneCrop], steps: int,
+                       calibration: Calibration | None = None) -> TuneReport:
+    """Tune ``model``'s height branch in place on ``crops`` for ``steps`` Adam steps (module docstring); the heights
+    are the network's through ``calibration`` (the run's: ``None`` for raw heights), as the maps will be.
 
     Each step takes one crop, in turn (so a step costs one crop's decoding whatever the job's size). The model is
     left in eval mode with its parameters' ``requires_grad`` as they were.
@@ -149,7 +153,7 @@ def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[Tune
 
     t0 = time.perf_counter()
     model.eval()
-    cal = meta.calibration
+    cal = calibration
     flags = [p.requires_grad for p in model.parameters()]
     for prm in model.parameters():
         prm.requires_grad_(False)
@@ -195,10 +199,14 @@ def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[Tune
 
 
 def crop_starts(size: int, crop: int, count: int) -> list[int]:
-    """``count`` crop offsets spread evenly over ``size`` pixels (one at 0 when the crop covers it)."""
+    """``count`` crop offsets spread evenly over ``size`` pixels, the ends included (one: the middle; one at 0
+    when the crop covers it).
+    """
     if size <= crop:
         return [0]
-    return sorted({round(i * (size - crop) / max(count - 1, 1)) for i in range(count)})
+    if count <= 1:
+        return [(size - crop) // 2]
+    return sorted({round(i * (size - crop) / (count - 1)) for i in range(count)})
 
 
 def read_crops(inputs: Sequence[tuple[OrthoInput, Sun]], meta: ModelMeta, shadow_model: ShadowModel,
