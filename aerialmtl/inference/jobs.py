@@ -258,8 +258,7 @@ def _predict(orthos: Sequence[str | Path], checkpoint: Checkpoint, out: str | Pa
     with runtime.gdal_env("predict"):
         for t in targets:  # every input usable before the first one takes time; each header read once
             t.src = predictor.open(t.ortho, warn=False)
-    if predictor.settings.sun_tune:  # the tuned weights, before the engine is built from them
-        with runtime.gdal_env("predict"):
+        if predictor.settings.sun_tune:  # the tuned weights, before the engine is built from them
             predictor.tune([t.src for t in targets if t.src is not None])
     if not isinstance(checkpoint, Predictor):  # the engine chosen once, for this job (a cold cache weighed)
         predictor.fit_engine([t.src for t in targets if t.src is not None])

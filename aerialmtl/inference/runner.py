@@ -42,6 +42,7 @@ from aerialmtl.inference.engines import (
     fallback_engine,
 )
 from aerialmtl.inference.model_record import CheckpointModel
+from aerialmtl.inference.sanity import normalised
 from aerialmtl.inference.settings import PredictSettings, ResolvedSettings
 from aerialmtl.models.mc_dropout import McStatistics
 
@@ -215,10 +216,8 @@ class ModelRunner:
         return raw, ok
 
     def normalise(self, raw: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-        """(B, C, h, w) raw → normalised float32 channels-last, 0 where invalid (as ``(x − mean) / std``)."""
-        x = (raw.float() - self.mean) / self.std
-        x = torch.where(valid.unsqueeze(1), x, torch.zeros((), device=x.device))
-        return x.contiguous(memory_format=torch.channels_last)
+        """(B, C, h, w) raw → normalised float32 channels-last, 0 where invalid (:func:`normalised`)."""
+        return normalised(raw, valid, self.mean, self.std)
 
     def __call__(self, x: torch.Tensor, keys: Sequence[int]) -> McStatistics:
         """Normalised (B, C, h, w) batch → statistics of each window (see :class:`McStatistics`).

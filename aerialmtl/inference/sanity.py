@@ -297,6 +297,15 @@ def check_calibration(meta: ModelMeta, checkpoint: str) -> None:
             "last.pt as `aerialmtl train` wrote it")
 
 
+def normalised(raw: torch.Tensor, valid: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """(B, C, h, w) raw → the model's input: float32 ``(x − mean) / std`` (``mean``, ``std``: (C, 1, 1), the
+    checkpoint's), 0 where ``valid`` (B, h, w) is False, channels-last.
+    """
+    x = (raw.float() - mean) / std
+    x = torch.where(valid.unsqueeze(1), x, torch.zeros((), device=x.device))
+    return x.contiguous(memory_format=torch.channels_last)
+
+
 def rescaled(raw: torch.Tensor, rescale: tuple[float, float] | None) -> torch.Tensor:
     """``raw`` (B, C, h, w) as ``a·raw + b`` in float32 when ``rescale`` is ``(a, b)``, else unchanged."""
     if rescale is None:
@@ -306,4 +315,5 @@ def rescaled(raw: torch.Tensor, rescale: tuple[float, float] | None) -> torch.Te
 
 
 __all__ = ["InputSample", "SAMPLE_GRID", "SAMPLE_SIDE", "SPREAD_LIMIT", "check_calibration", "check_finite_outputs",
-           "check_height_range", "check_input_values", "input_mismatch", "rescaled", "sample_input", "value_envelope"]
+           "check_height_range", "check_input_values", "input_mismatch", "normalised", "rescaled", "sample_input",
+           "value_envelope"]

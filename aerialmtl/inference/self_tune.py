@@ -40,9 +40,10 @@ from rasterio.windows import Window
 
 from aerialmtl.formats.checkpoint import ModelMeta
 from aerialmtl.models.d3net import decode_features, encode_features
-from aerialmtl.sun.cast import line_offsets, sun_steps
+from aerialmtl.sun.cast import sun_steps
+from aerialmtl.sun.heights import walk_offsets
 from aerialmtl.sun.position import Sun
-from aerialmtl.sun.render import EPS, MAX_LLR
+from aerialmtl.sun.render import EPS, pixel_evidence
 
 if TYPE_CHECKING:
     from aerialmtl.inference.ortho import OrthoInput
@@ -78,10 +79,10 @@ def inside_rays(shape: tuple[int, int], sun: Sun, gsd_m: float, length_m: float)
     """The pixels (bool (h, w)) whose ray towards ``sun`` stays inside the ``shape`` raster for ``length_m``
     metres: their rendered shadow sees every occluder that can shade them.
     """
-    rows_dom, step, slope = sun_steps(sun.azimuth_deg)
-    n = max(1, int(length_m // (gsd_m * math.hypot(1.0, slope))))
-    cross = int(line_offsets(n + 1, slope)[n])
-    dr, dc = (step * n, cross) if rows_dom else (cross, step * n)
+    _, _, slope = sun_steps(sun.azimuth_deg)
+    n = max(1, int(length_m // (gsd_m * math.hypot(1.0, slope))))  # the steps soft_cast_shadow renders
+    off_r, off_c = walk_offsets(sun, n, away=False)
+    dr, dc = int(off_r[n]), int(off_c[n])
     h, w = shape
     r = np.arange(h)[:, None] + dr
     c = np.arange(w)[None, :] + dc
@@ -131,14 +132,11 @@ class TuneReport:
 
 
 def _evidence(crops: list[TuneCrop]) -> list[torch.Tensor]:
-    """Per crop, float32 (H, W): ``clip(logit P − logit π, ±MAX_LLR)`` on its scored pixels, 0 elsewhere."""
-    probs = [np.clip(c.prob, EPS, 1 - EPS) for c in crops]
-    pi = float(np.concatenate([p[c.scored] for p, c in zip(probs, crops, strict=True)]).mean())
-    out = []
-    for p, c in zip(probs, crops, strict=True):
-        w = np.clip(np.log(p / (1 - p)) - math.log(pi / (1 - pi)), -MAX_LLR, MAX_LLR)
-        out.append(torch.from_numpy(np.where(c.scored, w, 0.0).astype(np.float32)))
-    return out
+    """Per crop, float32 (H, W): :func:`aerialmtl.sun.render.pixel_evidence` of its probability on its scored
+    pixels (0 elsewhere), against the mean probability of every crop's scored pixels (one area, one base rate).
+    """
+    pi = float(np.concatenate([np.clip(c.prob[c.scored], EPS, 1 - EPS) for c in crops]).mean())
+    return [torch.from_numpy(pixel_evidence(c.prob, c.scored, pi)) for c in crops]
 
 
 def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[TuneCrop], steps: int,
@@ -161,7 +159,8 @@ def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[Tune
     for prm in branch:
         prm.requires_grad_(True)
     evidence = _evidence(crops)
-    n = max(sum(int(c.scored.sum()) for c in crops), 1)
+    counts = [int(c.scored.sum()) for c in crops]
+    n = max(sum(counts), 1)
     with torch.no_grad():
         feats = [[f.detach() for f in encode_features(model, c.x)] for c in crops]
 
@@ -179,7 +178,6 @@ def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[Tune
         first = [heights(k) for k in range(len(crops))]
         before = sum(float(match(k, h)) for k, h in enumerate(first)) / n
     flat = [h < FLAT_M for h in first]
-    counts = [max(int(c.scored.sum()), 1) for c in crops]
     opt = torch.optim.Adam(branch, lr=LEARNING_RATE, betas=(0.5, 0.999))
     try:
         for step in range(steps):
@@ -187,7 +185,7 @@ def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[Tune
             opt.zero_grad()
             h = heights(k)
             raised = torch.relu(h - first[k])[flat[k]].sum() / max(int(flat[k].sum()), 1)
-            (-match(k, h) / counts[k] + RAISE_WEIGHT * raised).backward()
+            (-match(k, h) / max(counts[k], 1) + RAISE_WEIGHT * raised).backward()
             opt.step()
         with torch.no_grad():
             after = sum(float(match(k, heights(k))) for k in range(len(crops))) / n
@@ -216,7 +214,7 @@ def read_crops(inputs: Sequence[tuple[OrthoInput, Sun]], meta: ModelMeta, shadow
     at least :data:`MIN_SCORED_SHARE` scored pixels; ``[]`` where none has enough.
     """
     from aerialmtl.inference.reader import Aoi
-    from aerialmtl.inference.sanity import rescaled
+    from aerialmtl.inference.sanity import normalised, rescaled
     from aerialmtl.inference.shadows import colour_probability, unit_colours
     from aerialmtl.io.align import AlignedRaster
 
@@ -244,9 +242,9 @@ def read_crops(inputs: Sequence[tuple[OrthoInput, Sun]], meta: ModelMeta, shadow
                     prob = colour_probability(shadow_model, unit_colours(data[:3], src.rescale, meta.input_dtype),
                                               valid, meta.gsd, workers)
                     scored &= prob.made
-                    raw = rescaled(torch.from_numpy(data.astype(np.float32))[None], src.rescale)[0]
-                    x = torch.where(torch.from_numpy(valid), (raw - mean) / std, torch.zeros(()))
-                    x = torch.nn.functional.pad(x[None], (0, (-w) % 32, 0, (-h) % 32))
+                    x = normalised(rescaled(torch.from_numpy(data.astype(np.float32))[None], src.rescale),
+                                   torch.from_numpy(valid)[None], mean, std)
+                    x = torch.nn.functional.pad(x, (0, (-w) % 32, 0, (-h) % 32))
                     found.append(TuneCrop(x, np.nan_to_num(prob.prob, nan=0.5), scored, sun))
     if len(found) > MAX_CROPS:
         found = [found[round(i * (len(found) - 1) / (MAX_CROPS - 1))] for i in range(MAX_CROPS)]

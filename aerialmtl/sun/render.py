@@ -158,7 +158,7 @@ def _crop(bbox: tuple[slice, slice], shape: tuple[int, int], sun: Sun, down_px: 
     return slice(*rr), slice(*cc)
 
 
-def _loglik(prob: np.ndarray, known: np.ndarray, prior: float | None) -> np.ndarray:
+def pixel_evidence(prob: np.ndarray, known: np.ndarray, prior: float | None) -> np.ndarray:
     """The evidence of each pixel, float32 (H, W): what a rendered shadow there adds to the match (the
     log-likelihood ratio of shadow to lit, ``logit P − logit prior``: the classifier's posterior odds over its
     prior odds, within ±:data:`MAX_LLR`; 0 where unknown); a lit pixel adds 0. ``prior`` None: the mean
@@ -274,7 +274,7 @@ def rendered_heights(shadow_prob: np.ndarray, gsd_m: float, sun: Sun, objects: n
         raise InputError(f"'objects' must hold integer labels (0 = no object), got dtype {labels.dtype}")
     settings = settings or RenderSettings()
     known = np.isfinite(prob)
-    lp = _loglik(prob, known, settings.prior)
+    lp = pixel_evidence(prob, known, settings.prior)
     z = np.where(np.isfinite(hmap), hmap, np.float32(-np.inf)).astype(np.float32)
     # spill candidates: object pixels called shadow at the object's down-sun edge (where a blurred object runs
     # into its own shadow), not those deeper in (a lower roof shaded by a taller neighbour up-sun)
@@ -455,4 +455,4 @@ def _measure(label: int, box: tuple[slice, slice], labels: np.ndarray, hmap: np.
     return _Result(record, crop, top, footprint, spill if trim else none, per_px)
 
 
-__all__ = ["RenderSettings", "RenderedHeights", "RenderedObject", "rendered_heights"]
+__all__ = ["RenderSettings", "RenderedHeights", "RenderedObject", "pixel_evidence", "rendered_heights"]
