@@ -20,6 +20,7 @@ import rasterio
 from affine import Affine
 from helpers.models import tiny_d3net
 from helpers.rasters import write_raster
+from helpers.sun_town import sun_town
 
 from aerialmtl.formats.checkpoint import save_checkpoint
 from aerialmtl.formats.prediction import ALL_FILES, mosaic_filename
@@ -125,3 +126,21 @@ def test_aleatoric_head_with_tta_split_across_two_ranks_equals_one_process(input
         np.testing.assert_array_equal(b[name], a[name], err_msg=name)
     info = json.loads((tmp_path / "two" / "prediction.json").read_text())
     assert info["processes"] == 2 and info["tta"]
+
+
+def test_sun_tune_split_across_two_ranks_equals_one_process(tmp_path: Path) -> None:
+    """`--sun-tune` under torchrun: every rank tunes the same weights (the same crops, one thread), so the raster
+    split across two ranks has one process's maps, and its record names the same tuned weights."""
+    town = sun_town(tmp_path)
+    one = _predict([town["ortho"]], town["ckpt"], tmp_path / "one", 1, "--sun-tune", "3")
+    assert one.returncode == 0, one.stderr
+    two = _predict([town["ortho"]], town["ckpt"], tmp_path / "two", 2, "--sun-tune", "3")
+    assert two.returncode == 0, two.stderr
+    a, b = _layers(tmp_path / "one"), _layers(tmp_path / "two")
+    assert a.keys() == b.keys() and "shadow_height.tif" in a
+    for name in a:
+        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    info_one = json.loads((tmp_path / "one" / "prediction.json").read_text())
+    info_two = json.loads((tmp_path / "two" / "prediction.json").read_text())
+    assert info_two["processes"] == 2 and info_two["sun_tune"]["steps"] == 3
+    assert info_two["provenance"]["checkpoint"] == info_one["provenance"]["checkpoint"]

@@ -17,61 +17,20 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from affine import Affine
 from helpers.cli import run_cli
 from helpers.models import tiny_d3net
-from helpers.rasters import write_raster
+from helpers.sun_town import SUN, fit_heights, normalised_image, sun_town
 
-from aerialmtl.data.synth import CityStyle, sample_city
-from aerialmtl.formats.checkpoint import ModelMeta, load_model, save_checkpoint
+from aerialmtl.formats.checkpoint import load_model, save_checkpoint
 from aerialmtl.inference.self_tune import TuneCrop, inside_rays, tune_height_branch
 from aerialmtl.sun import ShadowModel, Sun, cast_shadow_mask
-from aerialmtl.sun.record import TrainingSun
 
 BAD = ("Error: unexpected", "Traceback", "Aborted")
 PREDICT = ("--mc", "1", "--window", "64", "--overlap", "16", "--engine", "torch", "--quiet")
-SUN = Sun(135.0, 45.0)
-ORIGIN = (500000.0, 5000064.0)  # EPSG:32631 on the central meridian: grid north = true north
-SIZE = 128
-
-
 @pytest.fixture(scope="module")
 def town(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
-    """A 128 px town at 0.5 m under :data:`SUN` and a tiny untrained D3-Net whose training fit is that sun."""
-    root = tmp_path_factory.mktemp("sun_tune")
-    style = dataclasses.replace(CityStyle.plain().with_lean(0.0), sun_azimuth=(SUN.azimuth_deg,) * 2,
-                                sun_elevation=(SUN.elevation_deg,) * 2)
-    patch = sample_city(3, size=SIZE, gsd=0.5, style=style)
-    write_raster(root / "town.tif", patch.image, transform=Affine(0.5, 0, ORIGIN[0], 0, -0.5, ORIGIN[1]))
-    shadows = ShadowModel().fit(patch.image, patch.height, 0.5, SUN)
-    fit = TrainingSun(clear=True, reason="sun fitted (the town)", azimuth_deg=SUN.azimuth_deg,
-                      elevation_deg=SUN.elevation_deg, grid_azimuth_deg=SUN.azimuth_deg, score=0.5, sharpness=0.5,
-                      crs="EPSG:32631", bounds=(ORIGIN[0], ORIGIN[1] - SIZE * 0.5, ORIGIN[0] + SIZE * 0.5, ORIGIN[1]),
-                      shadow_model=shadows.to_dict())
-    model, meta = tiny_d3net()
-    _fit(model, meta, patch.image, patch.height)
-    save_checkpoint(root / "m.pt", model, dataclasses.replace(meta, sun=fit))
-    return {"root": root, "ckpt": root / "m.pt", "ortho": root / "town.tif", "image": patch.image,
-            "height": patch.height}
-
-
-def _normalised(image: np.ndarray, meta: ModelMeta) -> torch.Tensor:
-    img = torch.from_numpy(np.asarray(image, np.float32))
-    return ((img - torch.tensor(meta.mean)[:, None, None]) / torch.tensor(meta.std)[:, None, None])[None]
-
-
-def _fit(model: torch.nn.Module, meta: ModelMeta, image: np.ndarray, height: np.ndarray, steps: int = 40) -> None:
-    """A few L1 steps on the town itself (seed 0): a network whose heights have objects, read low (its tallest
-    ~9 m where the town's is 14 m), as a network trained elsewhere reads a new area."""
-    torch.manual_seed(0)
-    x, y = _normalised(image, meta), torch.from_numpy(np.asarray(height, np.float32))
-    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    model.train()
-    for _ in range(steps):
-        opt.zero_grad()
-        (model(x)["height"][0, 0] - y).abs().mean().backward()
-        opt.step()
-    model.eval()
+    """The synthetic town under :data:`SUN` and its tiny D3-Net (:func:`helpers.sun_town.sun_town`)."""
+    return sun_town(tmp_path_factory.mktemp("sun_tune"))
 
 
 def _predict(capsys: pytest.CaptureFixture, town: dict[str, object], out: Path, *options: str) -> tuple[int, str]:
@@ -169,7 +128,7 @@ def test_the_steps_raise_the_match_with_exact_shadows_and_keep_flat_ground_low(t
     put below 2 m are not raised by more than a few centimetres (the penalty on raising flat ground)."""
     model, meta = load_model(town["ckpt"])
     exact = cast_shadow_mask(np.asarray(town["height"]), 0.5, SUN).astype(np.float32)
-    x = _normalised(np.asarray(town["image"]), meta)
+    x = normalised_image(np.asarray(town["image"]), meta)
     scored = inside_rays(exact.shape, SUN, 0.5, 20.0)
     crop = TuneCrop(x, np.clip(exact, 0.03, 0.97), scored, SUN)
     with torch.no_grad():
@@ -209,12 +168,12 @@ def test_a_network_that_reads_a_town_low_is_raised_by_its_shadows(town) -> None:
 
     image, height = np.asarray(town["image"]), np.asarray(town["height"])
     model, meta = tiny_d3net()
-    _fit(model, meta, image, height, steps=120)
+    fit_heights(model, meta, image, height, steps=120)
     head = model.heads["height"].head
     with torch.no_grad():
         head.weight.mul_(0.7)
         head.bias.mul_(0.7)
-    x = _normalised(image, meta)
+    x = normalised_image(image, meta)
     shadows = ShadowModel().fit(image, height, 0.5, SUN)
     prob = colour_probability(shadows, unit_colours(image.astype(np.float32), None, "uint8"),
                               np.ones(height.shape, bool), 0.5).prob
