@@ -47,6 +47,20 @@ def _layers(folder: Path) -> dict[str, np.ndarray]:
     return out
 
 
+def _two_ranks_equal_one(ortho: Path, ckpt: Path, tmp_path: Path, *extra: str) -> dict[str, np.ndarray]:
+    """Predict ``ortho`` in one process and over two ranks with ``extra`` options; every layer equal to the bit.
+    Returns the layers."""
+    one = _predict([ortho], ckpt, tmp_path / "one", 1, *extra)
+    assert one.returncode == 0, one.stderr
+    two = _predict([ortho], ckpt, tmp_path / "two", 2, *extra)
+    assert two.returncode == 0, two.stderr
+    a, b = _layers(tmp_path / "one"), _layers(tmp_path / "two")
+    assert a.keys() == b.keys()
+    for name in a:
+        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    return a
+
+
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("dist")
@@ -91,14 +105,7 @@ def test_three_inputs_over_two_ranks_equal_one_process(inputs: dict[str, Path], 
 
 
 def test_one_raster_split_across_two_ranks_equals_one_process(inputs: dict[str, Path], tmp_path: Path) -> None:
-    one = _predict([inputs["big"]], inputs["ckpt"], tmp_path / "one", 1)
-    assert one.returncode == 0, one.stderr
-    two = _predict([inputs["big"]], inputs["ckpt"], tmp_path / "two", 2)
-    assert two.returncode == 0, two.stderr
-    a, b = _layers(tmp_path / "one"), _layers(tmp_path / "two")
-    assert a.keys() == b.keys() and len(a) == 5
-    for name in a:
-        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    assert len(_two_ranks_equal_one(inputs["big"], inputs["ckpt"], tmp_path)) == 5
     assert json.loads((tmp_path / "two" / "prediction.json").read_text())["processes"] == 2
 
 
@@ -116,14 +123,7 @@ def test_a_failing_rank_fails_the_run_naming_the_input(inputs: dict[str, Path], 
 def test_aleatoric_head_with_tta_split_across_two_ranks_equals_one_process(inputs: dict[str, Path],
                                                                           tmp_path: Path) -> None:
     """The recipe's options under torchrun: the aleatoric spread and ``--tta`` give one process's maps."""
-    one = _predict([inputs["big"]], inputs["aleatoric"], tmp_path / "one", 1, "--tta")
-    assert one.returncode == 0, one.stderr
-    two = _predict([inputs["big"]], inputs["aleatoric"], tmp_path / "two", 2, "--tta")
-    assert two.returncode == 0, two.stderr
-    a, b = _layers(tmp_path / "one"), _layers(tmp_path / "two")
-    assert a.keys() == b.keys() and "height_std.tif" in a
-    for name in a:
-        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    assert "height_std.tif" in _two_ranks_equal_one(inputs["big"], inputs["aleatoric"], tmp_path, "--tta")
     info = json.loads((tmp_path / "two" / "prediction.json").read_text())
     assert info["processes"] == 2 and info["tta"]
 
@@ -132,14 +132,7 @@ def test_sun_tune_split_across_two_ranks_equals_one_process(tmp_path: Path) -> N
     """`--sun-tune` under torchrun: every rank tunes the same weights (the same crops, one thread), so the raster
     split across two ranks has one process's maps, and its record names the same tuned weights."""
     town = sun_town(tmp_path)
-    one = _predict([town["ortho"]], town["ckpt"], tmp_path / "one", 1, "--sun-tune", "3")
-    assert one.returncode == 0, one.stderr
-    two = _predict([town["ortho"]], town["ckpt"], tmp_path / "two", 2, "--sun-tune", "3")
-    assert two.returncode == 0, two.stderr
-    a, b = _layers(tmp_path / "one"), _layers(tmp_path / "two")
-    assert a.keys() == b.keys() and "shadow_height.tif" in a
-    for name in a:
-        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    assert "shadow_height.tif" in _two_ranks_equal_one(town["ortho"], town["ckpt"], tmp_path, "--sun-tune", "3")
     info_one = json.loads((tmp_path / "one" / "prediction.json").read_text())
     info_two = json.loads((tmp_path / "two" / "prediction.json").read_text())
     assert info_two["processes"] == 2 and info_two["sun_tune"]["steps"] == 3
