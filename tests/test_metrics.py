@@ -72,6 +72,24 @@ def test_height_errors_per_bin() -> None:
     assert m["n_pixels"] == 6  # the global metrics still count every valid pixel
 
 
+def test_a_reading_of_the_map_has_its_own_bias_per_predicted_height() -> None:
+    """A network that finds every 15 m tree right and misses a fifth of them (0 m): per bin of the reference the
+    10–20 m bias is −3 m (a fifth of the trees read 15 m low); per bin of the prediction, a 15 m reading is right on
+    average (bias 0) and the misses sit in the 0–1 m bin as readings 3.75 m low on average there (with the ground).
+    The Markdown summary shows both tables."""
+    from aerialmtl.evaluation.report import markdown_summary
+
+    ref = np.array([15.0] * 5 + [0.0] * 3)
+    pred = np.array([15.0] * 4 + [0.0] + [0.0] * 3)
+    m = height_metrics(pred, ref, bins=(0.0, 1.0, 10.0, 20.0))
+    by_ref, by_pred = m["per_bin"], m["per_predicted_bin"]
+    assert [b["n_pixels"] for b in by_ref] == [3, 0, 5] and by_ref[2]["bias"] == pytest.approx(-3.0)
+    assert [b["n_pixels"] for b in by_pred] == [4, 0, 4] and by_pred[2]["bias"] == pytest.approx(0.0)
+    assert by_pred[0]["bias"] == pytest.approx(-15.0 / 4)
+    text = markdown_summary({"prediction": "p", "height": m})
+    assert "per reference-height bin" in text and "per predicted-height bin" in text
+
+
 def test_empty_bin_is_nan_not_zero() -> None:
     m = height_metrics(np.array([0.5]), np.array([0.5]), bins=(0.0, 1.0, 2.0))
     assert m["per_bin"][1]["n_pixels"] == 0 and math.isnan(m["per_bin"][1]["mae"])

@@ -13,7 +13,10 @@ Height conventions (all in metres, error = predicted − reference):
   ratio is meaningless on the ground). A predicted height ``p ≤ 0`` there has no finite ratio and
   counts as a failure at every threshold;
 * errors per reference-height bin (``[lo, hi)`` in metres, default ``0, 1, 2, 5, 10, 20, inf``;
-  reference heights below the first edge go to no bin) and per true class.
+  reference heights below the first edge go to no bin) and per true class;
+* errors per *predicted*-height bin (the same edges): where the map reads a height, how far off it is on average.
+  The two differ: a reference bin selects pixels by their truth, so the objects the network missed (predicted
+  low) drag its bias down, while the predicted bin holds what a user can select on the map.
 
 Class conventions: confusion matrices have the **reference** class on rows and the **predicted** class
 on columns; pixels whose reference or prediction is :data:`~aerialmtl.classes.IGNORE_INDEX` (or
@@ -188,10 +191,9 @@ class HeightStats:
         self.sum_sq = 0.0
         self.n_above = 0
         self.n_delta = np.zeros(len(DELTA_THRESHOLDS), np.int64)
-        self.bin_n = np.zeros(nb, np.int64)
-        self.bin_abs = np.zeros(nb)
-        self.bin_sq = np.zeros(nb)
-        self.bin_err = np.zeros(nb)
+        #: per bin of the reference ("reference") and of the predicted height ("predicted"): n, Σ|e|, Σe², Σe
+        self.bins = {by: (np.zeros(nb, np.int64), np.zeros(nb), np.zeros(nb), np.zeros(nb))
+                     for by in ("reference", "predicted")}
         self.num_classes = num_classes
         if num_classes is not None:
             self.class_names = (list(class_names) if class_names is not None
@@ -235,13 +237,15 @@ class HeightStats:
         ratio = delta_ratio(p[above], t[above])
         for i, d in enumerate(DELTA_THRESHOLDS):
             self.n_delta[i] += int((ratio < d).sum())
-        b = np.searchsorted(self.edges, t, side="right") - 1
-        inb = (b >= 0) & (b < len(self.bin_n))
-        nb = len(self.bin_n)
-        self.bin_n += np.bincount(b[inb], minlength=nb)
-        self.bin_abs += np.bincount(b[inb], weights=ab[inb], minlength=nb)
-        self.bin_sq += np.bincount(b[inb], weights=sq[inb], minlength=nb)
-        self.bin_err += np.bincount(b[inb], weights=err[inb], minlength=nb)
+        nb = len(self.edges) - 1
+        for by, key in (("reference", t), ("predicted", p)):
+            b = np.searchsorted(self.edges, key, side="right") - 1
+            inb = (b >= 0) & (b < nb)
+            n, s_abs, s_sq, s_err = self.bins[by]
+            n += np.bincount(b[inb], minlength=nb)
+            s_abs += np.bincount(b[inb], weights=ab[inb], minlength=nb)
+            s_sq += np.bincount(b[inb], weights=sq[inb], minlength=nb)
+            s_err += np.bincount(b[inb], weights=err[inb], minlength=nb)
         if self.num_classes is not None and labels is not None:
             lab = np.asarray(labels)[mask].astype(np.int64)
             ok = (lab >= 0) & (lab < self.num_classes)
@@ -254,10 +258,17 @@ class HeightStats:
         return mask
 
     def result(self) -> dict[str, Any]:
-        """The metrics: ``n_pixels, mae, rmse, bias, median_abs_error`` (m), ``delta`` and ``per_bin``
-        (and ``per_class`` when labels were given); ``median_exact`` says whether the median used every
-        pixel or the seeded subsample.
+        """The metrics: ``n_pixels, mae, rmse, bias, median_abs_error`` (m), ``delta``, ``per_bin`` (bins of the
+        reference height) and ``per_predicted_bin`` (bins of the predicted height), and ``per_class`` when labels
+        were given; ``median_exact`` says whether the median used every pixel or the seeded subsample.
         """
+
+        def per_bin(by: str) -> list[dict[str, Any]]:
+            n, s_abs, s_sq, s_err = self.bins[by]
+            return [{"range_m": [float(self.edges[i]), float(self.edges[i + 1])], "n_pixels": int(n[i]),
+                     "mae": _div(s_abs[i], n[i]), "rmse": math.sqrt(s_sq[i] / n[i]) if n[i] else math.nan,
+                     "bias": _div(s_err[i], n[i])} for i in range(len(n))]
+
         out: dict[str, Any] = {
             "n_pixels": self.n,
             "mae": _div(self.sum_abs, self.n),
@@ -270,16 +281,8 @@ class HeightStats:
                 "n_pixels": self.n_above,
                 **{f"delta_{k + 1}": _div(self.n_delta[k], self.n_above) for k in range(len(DELTA_THRESHOLDS))},
             },
-            "per_bin": [
-                {
-                    "range_m": [float(self.edges[i]), float(self.edges[i + 1])],
-                    "n_pixels": int(self.bin_n[i]),
-                    "mae": _div(self.bin_abs[i], self.bin_n[i]),
-                    "rmse": math.sqrt(self.bin_sq[i] / self.bin_n[i]) if self.bin_n[i] else math.nan,
-                    "bias": _div(self.bin_err[i], self.bin_n[i]),
-                }
-                for i in range(len(self.bin_n))
-            ],
+            "per_bin": per_bin("reference"),
+            "per_predicted_bin": per_bin("predicted"),
         }
         if self.num_classes is not None:
             out["per_class"] = {

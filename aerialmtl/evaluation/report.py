@@ -94,13 +94,22 @@ def markdown_summary(report: dict[str, Any]) -> str:
     lines += [f"| {k} | {v} |" for k, v in headline(report)]
     h = report.get("height")
     if h:
-        lines += ["", "## Height error per reference-height bin", "",
-                  "| bin (m) | pixels | MAE (m) | RMSE (m) | bias (m) |", "|---|---|---|---|---|"]
-        for b in h["per_bin"]:
-            lo, hi = b["range_m"]
-            hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
-            lines.append(f"| [{lo:g}, {hi_s}) | {b['n_pixels']} | {_fmt(b['mae'])} | {_fmt(b['rmse'])} | "
-                         f"{_fmt(b['bias'])} |")
+        for key, title, intro in (
+                ("per_bin", "reference-height bin", "Pixels grouped by their true height: how well each height is "
+                 "found. The pixels of an object the network missed are predicted low, so they pull a tall bin's "
+                 "bias down."),
+                ("per_predicted_bin", "predicted-height bin", "Pixels grouped by the height the map reads: how far "
+                 "a reading of that height is off on average (bias = predicted − reference: a bias of −2 m means "
+                 "the truth is on average 2 m higher).")):
+            if key not in h:  # reports written before the predicted-height bins
+                continue
+            lines += ["", f"## Height error per {title}", "", intro, "",
+                      "| bin (m) | pixels | MAE (m) | RMSE (m) | bias (m) |", "|---|---|---|---|---|"]
+            for b in h[key]:
+                lo, hi = b["range_m"]
+                hi_s = "∞" if hi is None or (isinstance(hi, float) and math.isinf(hi)) else f"{hi:g}"
+                lines.append(f"| [{lo:g}, {hi_s}) | {b['n_pixels']} | {_fmt(b['mae'])} | {_fmt(b['rmse'])} | "
+                             f"{_fmt(b['bias'])} |")
     strata = ((report.get("uncertainty") or {}).get("height_std") or {}).get("strata")
     if strata:
         lines += ["", "## Height spread per reference-height bin", "",
