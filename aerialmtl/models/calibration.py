@@ -367,6 +367,24 @@ def _fit_parts(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None, method
     return dataclasses.replace(cal, std_edges=edges, std_scales=scales, std_floors=floors)
 
 
+def _cross_fitted_spread_scores(pred: np.ndarray, ref: np.ndarray, sd: np.ndarray,
+                                fitted: list[tuple[np.ndarray, Calibration]]) -> tuple[float, float, float, float]:
+    """``(CRPS raw, CRPS calibrated, NLL raw, NLL calibrated)`` over all pixels, each fold's calibration scored on
+    the pixels it was not fitted on (``fitted``: ``(scored pixels mask, calibration)`` per fold), around the heights
+    that calibration gives.
+    """
+    crps_raw = crps_cal = nll_raw = nll_cal = 0.0
+    for score, c in fitted:
+        err = np.abs(c.height(pred[score]) - ref[score])
+        w = float(score.sum()) / pred.size
+        sigma = c.std(sd[score], pred[score])
+        crps_raw += w * mean_crps(err, sd[score])
+        crps_cal += w * mean_crps(err, sigma)
+        nll_raw += w * mean_nll(err, sd[score])
+        nll_cal += w * mean_nll(err, sigma)
+    return crps_raw, crps_cal, nll_raw, nll_cal
+
+
 def fit_calibration(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None = None,
                     method: CalibrationMethod = "isotonic", knots: int = DEFAULT_KNOTS,
                     source: str = "", folds: np.ndarray | None = None,
@@ -435,14 +453,7 @@ def fit_calibration(pred: np.ndarray, ref: np.ndarray, std: np.ndarray | None = 
                 fitted = [(score, _fit_parts(pred[fit], ref[fit], sd[fit], method, knots, edges, height=height_ok,
                                              limit=limit, nll_bound=bound))
                           for fit, score in (parts, parts[::-1])]
-            crps_raw = crps_cal = nll_raw = nll_cal = 0.0
-            for score, c in fitted:
-                err = np.abs(c.height(pred[score]) - ref[score])
-                w = float(score.sum()) / n
-                crps_raw += w * mean_crps(err, sd[score])
-                crps_cal += w * mean_crps(err, c.std(sd[score], pred[score]))
-                nll_raw += w * mean_nll(err, sd[score])
-                nll_cal += w * mean_nll(err, c.std(sd[score], pred[score]))
+            crps_raw, crps_cal, nll_raw, nll_cal = _cross_fitted_spread_scores(pred, ref, sd, fitted)
             spread_ok = crps_cal < crps_raw and nll_cal < nll_raw
             which = "the spread map fitted within the raw spread's NLL per height range" if bound else "the spread map"
             verdict = "" if spread_ok else (": spread map off" if bound else ": fitted again within the raw spread's "
