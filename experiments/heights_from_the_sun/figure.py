@@ -16,40 +16,12 @@ import io
 from pathlib import Path
 
 import numpy as np
-import rasterio
-from rasterio.enums import Resampling
-from rasterio.windows import from_bounds
 
 from experiments.heights_from_the_sun.run import DATA, ROOT, _reference_on
 
 FIGURE = ROOT / "docs" / "images" / "heights_from_the_sun.png"
 #: Colour range of the height panels (metres).
 HEIGHT_MAX_M = 30.0
-
-
-def _height(path: Path) -> tuple[np.ndarray, tuple[slice, slice]]:
-    """The height of a prediction cropped to its valid pixels (NaN elsewhere), and that crop."""
-    with rasterio.open(path) as src:
-        a = src.read(1).astype(np.float64)
-        a[a == src.nodata] = np.nan
-    ok = np.isfinite(a)
-    rows, cols = np.flatnonzero(ok.any(1)), np.flatnonzero(ok.any(0))
-    crop = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-    return a[crop], crop
-
-
-def _ortho(grid_file: Path, crop: tuple[slice, slice]) -> np.ndarray:
-    """The orthophoto averaged onto the crop of the prediction grid, (h, w, 3) uint8."""
-    with rasterio.open(grid_file) as grid:
-        t = grid.window_transform(rasterio.windows.Window.from_slices(*crop))
-        h, w = crop[0].stop - crop[0].start, crop[1].stop - crop[1].start
-        left, top = t * (0, 0)
-        right, bottom = t * (w, h)
-    with rasterio.open(DATA / "ortho_1ft.tif") as src:
-        rgb = src.read((1, 2, 3), window=from_bounds(left, bottom, right, top, src.transform), out_shape=(3, h, w),
-                       resampling=Resampling.average)
-    result: np.ndarray = np.moveaxis(rgb, 0, -1)
-    return result
 
 
 def figure(out: Path, seed: int) -> Path:
@@ -59,29 +31,34 @@ def figure(out: Path, seed: int) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from aerialmtl.evaluation.maps import layer_cmap, load_prediction_maps
+
     pred = out / "pred"
-    recipe, crop = _height(pred / f"recipe_test_s{seed}" / "height.tif")
-    tuned, _ = _height(pred / f"tune30_test_s{seed}" / "height.tif")
-    fused, _ = _height(pred / f"shadows_test_s{seed}" / "height.tif")
-    ref = _reference_on(pred / f"recipe_test_s{seed}" / "height.tif")[crop]
-    ref = np.where(np.isfinite(recipe), ref, np.nan)
-    panels = [("orthophoto", _ortho(pred / f"recipe_test_s{seed}" / "height.tif", crop), None),
+    recipe = load_prediction_maps(pred / f"recipe_test_s{seed}", ortho=DATA / "ortho_1ft.tif", max_side=None)
+    tuned, fused = (load_prediction_maps(pred / f"{arm}_test_s{seed}", max_side=None).layers["height"]
+                    for arm in ("tune30", "shadows"))
+    height = recipe.layers["height"]
+    rows, cols = np.nonzero(np.isfinite(height))
+    crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    ref = np.where(np.isfinite(height), _reference_on(pred / f"recipe_test_s{seed}" / "height.tif"), np.nan)
+    panels = [("orthophoto", np.nan_to_num(recipe.rgb, nan=1.0), None),
               ("lidar: DSM − DTM", ref, "height"),
-              ("recipe (--sun none)", recipe, "height"),
+              ("recipe (--sun none)", height, "height"),
               ("--sun-tune 30", tuned, "height"),
               ("--shadow-fusion", fused, "height"),
-              ("--sun-tune 30 − recipe", tuned - recipe, "change")]
+              ("--sun-tune 30 − recipe", tuned - height, "change")]
     fig, axes = plt.subplots(2, 3, figsize=(11.0, 6.6), layout="constrained")
     for ax, (title, data, kind) in zip(axes.ravel(), panels, strict=True):
         ax.set_title(title, fontsize=10)
         ax.set_axis_off()
         if kind is None:
-            ax.imshow(data)
+            ax.imshow(data[crop])
             continue
         if kind == "height":
-            im = ax.imshow(data, cmap="viridis", vmin=0.0, vmax=HEIGHT_MAX_M, interpolation="nearest")
+            im = ax.imshow(data[crop], cmap=layer_cmap("height"), vmin=0.0, vmax=HEIGHT_MAX_M,
+                           interpolation="nearest")
         else:
-            im = ax.imshow(data, cmap="RdBu_r", vmin=-4.0, vmax=4.0, interpolation="nearest")
+            im = ax.imshow(data[crop], cmap="RdBu_r", vmin=-4.0, vmax=4.0, interpolation="nearest")
         fig.colorbar(im, ax=ax, shrink=0.8, label="m")
     fig.suptitle(f"autzen_west, held-out block (1 m), the study's seed {seed}", fontsize=11)
     FIGURE.parent.mkdir(parents=True, exist_ok=True)
