@@ -165,13 +165,18 @@ class _CrpsGrid:
         """``(mean CRPS in metres, mean Gaussian NLL in nats)`` under ``σ = hypot(scale·std, floor)``, both with
         σ floored at 1 cm (as :func:`mean_crps` and :func:`mean_nll`).
         """
-        sig = self._sigma(scale, floor).clamp_min_(0.01)
-        z, t = self.z, self.term
+        sig = self._sigma(scale, floor)
+        return self.mean_under(sig), self.nll_under(sig)
+
+    def nll_under(self, sigma: torch.Tensor) -> float:
+        """Mean Gaussian NLL (nats) under the spreads ``sigma`` (1-D float64, floored at 1 cm here, in place):
+        ``log σ + ½·log 2π + ½·(error/σ)²``.
+        """
+        sig, z, t = sigma.clamp_min_(0.01), self.z, self.term
         torch.div(self.err, sig, out=z)
         torch.mul(z, z, out=z)
         torch.log(sig, out=t)
-        nll = float(t.add_(z, alpha=0.5).mean()) + 0.5 * math.log(2.0 * math.pi)
-        return self.mean_under(sig), nll
+        return float(t.add_(z, alpha=0.5).mean()) + 0.5 * math.log(2.0 * math.pi)
 
     def mean_under(self, sigma: torch.Tensor) -> float:
         """Mean CRPS (metres) under the spreads ``sigma`` (1-D float64, floored at 1 cm here, in place).
@@ -196,8 +201,8 @@ def mean_crps(err: np.ndarray, sigma: np.ndarray) -> float:
 
 def mean_nll(err: np.ndarray, sigma: np.ndarray) -> float:
     """Mean Gaussian negative log-likelihood (nats) of errors ``err`` under spreads ``sigma`` (floored at 1 cm)."""
-    sig = np.maximum(sigma, 0.01)
-    return float(np.mean(0.5 * np.log(2 * np.pi * sig * sig) + 0.5 * (err / sig) ** 2))
+    sig = torch.tensor(np.asarray(sigma, np.float64).ravel())
+    return _CrpsGrid(np.asarray(err, np.float64).ravel()).nll_under(sig)
 
 
 def interval_coverage(abs_error: np.ndarray, std: np.ndarray) -> dict[str, float]:
