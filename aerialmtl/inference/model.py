@@ -269,7 +269,6 @@ class Predictor:
             return None
         from aerialmtl.inference.self_tune import read_crops, tune_height_branch
 
-        assert self.shadows is not None
         crops = read_crops(inputs, self.meta, self.shadows.model, self.settings.aoi, self.threads.threads)
         if not crops:
             warnings.warn(f"--sun-tune {steps}: no part of the inputs has enough pixels whose shadows can be "

@@ -151,7 +151,6 @@ def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[Tune
 
     t0 = time.perf_counter()
     model.eval()
-    cal = calibration
     flags = [p.requires_grad for p in model.parameters()]
     for prm in model.parameters():
         prm.requires_grad_(False)
@@ -167,7 +166,7 @@ def tune_height_branch(model: torch.nn.Module, meta: ModelMeta, crops: list[Tune
     def heights(k: int) -> torch.Tensor:
         rows, cols = crops[k].scored.shape
         h = decode_features(model, feats[k], tasks=("height",))["height"][0, 0, :rows, :cols]
-        return cal.height_torch(h) if cal is not None else h.clamp_min(0.0)
+        return calibration.height_torch(h) if calibration is not None else h.clamp_min(0.0)
 
     def match(k: int, h: torch.Tensor) -> torch.Tensor:  # Σ s · evidence over crop k's scored pixels
         c = crops[k]
