@@ -45,6 +45,25 @@ def test_the_training_sun_is_the_scene_s_within_3_degrees_and_is_stored_true_nor
     assert sun.azimuth_deg == pytest.approx((sun.grid_azimuth_deg - convergence) % 360.0, abs=1e-3)
 
 
+def test_the_training_fit_keeps_squares_of_its_orthophoto_that_the_orthophoto_matches(tmp_path: Path) -> None:
+    """The fit keeps chips of the training orthophoto where they lie (so predict can tell a later flight over the
+    training area from this one): textured, on the tile grid, read back from the orthophoto itself at r = 1."""
+    from aerialmtl.inference.sun_choice import flight_match
+    from aerialmtl.sun.flight import N_CHIPS
+
+    tiles, _, _ = _tiles(tmp_path)
+    sun = fit_training_sun(tiles)
+    assert sun.clear and 3 <= len(sun.chips) <= N_CHIPS
+    ortho = next((tmp_path / "town").glob("*ortho*.tif"))
+    with rasterio.open(ortho) as src:
+        for chip in sun.chips:
+            window = src.window(*chip.bounds).round_offsets().round_lengths()
+            grey = src.read([1, 2, 3], window=window).astype(np.float32).mean(axis=0)
+            assert np.abs(grey - chip.pixels()).max() <= 0.5  # the chip is where it says, in grey levels
+    match = flight_match(ortho, sun)
+    assert match.chips == len(sun.chips) and match.r == pytest.approx(1.0, abs=1e-3) and not match.other_flight
+
+
 def test_an_area_without_shadows_stores_no_sun_and_says_why(tmp_path: Path) -> None:
     tiles, _, _ = _tiles(tmp_path, flat=True)
     sun = fit_training_sun(tiles)

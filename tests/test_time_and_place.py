@@ -27,11 +27,12 @@ from helpers.models import tiny_d3net
 from helpers.rasters import dated_mosaic, write_raster
 
 from aerialmtl.data.synth import CityStyle, sample_city
-from aerialmtl.formats.checkpoint import save_checkpoint
-from aerialmtl.inference.sun_choice import choose_sun, same_flight
+from aerialmtl.formats.checkpoint import load_checkpoint, save_checkpoint
+from aerialmtl.inference.sun_choice import choose_sun, flight_match, same_flight
 from aerialmtl.io.align import Grid
 from aerialmtl.io.fingerprint import input_fingerprint
 from aerialmtl.sun import ShadowModel, Sun
+from aerialmtl.sun.flight import SAME_FLIGHT_R, cut_chip
 from aerialmtl.sun.record import TrainingSun
 from aerialmtl.sun.solar_position import grid_convergence_deg, lonlat, sun_position, to_grid
 
@@ -71,13 +72,22 @@ def towns(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
                       shadow_model=shadows.to_dict())
     model, meta = tiny_d3net()
     save_checkpoint(root / "m.pt", model, dataclasses.replace(meta, sun=fit))
+    # the same checkpoint as `train` fits it now: with squares of town A's orthophoto (one per 32 m patch)
+    chips = tuple(c for r in (0, 64) for q in (0, 64) if (c := cut_chip(image_a[:, r:r + 64, q:q + 64],
+                  np.ones((64, 64), bool), ORIGIN[0] + q * 0.5, ORIGIN[1] - r * 0.5, 0.5)) is not None)
+    save_checkpoint(root / "chips.pt", model, dataclasses.replace(meta, sun=dataclasses.replace(fit, chips=chips)))
+    # town A flown again at WHEN: every house where it was, its sun 14° away, its orthophoto registered 1 m off
+    # (another flight's orthorectification)
+    later, _ = _town(root / "a_later.tif", 1, to_grid(az_b, convergence), el_b)
+    write_raster(root / "a_later.tif", later, transform=Affine(0.5, 0, ORIGIN[0] + 0.7, 0, -0.5, ORIGIN[1] - 0.7))
     return {"root": root, "ckpt": root / "m.pt", "a": root / "a.tif", "b": root / "b.tif", "fit": fit,
-            "sun_b": (az_b, el_b)}
+            "sun_b": (az_b, el_b), "chips": root / "chips.pt", "n_chips": len(chips),
+            "a_later": root / "a_later.tif"}
 
 
 def _predict(capsys: pytest.CaptureFixture, towns: dict[str, object], ortho: Path, out: Path,
-             *options: str) -> tuple[int, str]:
-    code, _, err = run_cli(capsys, "predict", ortho, "--model", towns["ckpt"], "--out", out, *PREDICT, *options)
+             *options: str, model: str = "ckpt") -> tuple[int, str]:
+    code, _, err = run_cli(capsys, "predict", ortho, "--model", towns[model], "--out", out, *PREDICT, *options)
     assert not any(b in err for b in BAD), err
     return code, " ".join(err.split())
 
@@ -308,3 +318,82 @@ def test_a_mosaic_source_without_a_time_does_not_take_the_others(towns, tmp_path
                                          r"\(undated.tif\)"):
         choice = choose_sun("auto", None, vrt, grid, {}, towns["fit"])
     assert choice.source == "training fit" and choice.acquired is None
+
+
+# ---- a later flight of the training town (issue 58, item 5) --------------------------------------------------------
+@pytest.mark.parametrize("town", ["a_later", "b"])
+def test_a_later_flight_of_the_training_place_without_a_time_gets_no_training_sun(town: str, towns, tmp_path: Path,
+                                                                                 capsys: pytest.CaptureFixture) -> None:
+    """Town A flown again at WHEN (every house in place, its sun 14° away; or town B, rebuilt): no time, and by place
+    it is "the same flight". Its pixels over the training area are not the training orthophoto's, so the training
+    fit is not its sun: the shadow layers are off, the warning says why and how to give its time, prediction.json
+    records it. A checkpoint fitted before chips were kept decides by place alone, as before."""
+    code, err = _predict(capsys, towns, towns[town], tmp_path / "p", model="chips")
+    assert code == 0, err
+    sun = _sun(tmp_path / "p")
+    assert sun["source"] == "none" and sun["azimuth_deg"] is None, sun
+    note = str(sun["note"])
+    assert "covers the training area but is another flight" in note and "--acquired" in note, note
+    assert "no shadow features: off: no acquisition time, and the orthophoto covers the training area" in err, err
+    assert flight_match(towns[town], towns["fit"]).r is None  # a fit without chips: place alone decides
+    code, err = _predict(capsys, towns, towns[town], tmp_path / "old")
+    assert code == 0 and _sun(tmp_path / "old")["source"] == "training fit", err
+
+
+def test_the_training_orthophoto_reprojected_and_recompressed_is_still_the_training_flight(
+        towns, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Town A's own orthophoto, warped onto a grid a third of a pixel off and saved as JPEG: the same flight, so
+    the training fit's sun, and the note says its pixels matched."""
+    from rasterio.warp import Resampling, reproject
+
+    with rasterio.open(towns["a"]) as src:
+        shifted = Affine(0.5, 0, ORIGIN[0] + 0.17, 0, -0.5, ORIGIN[1] - 0.17)
+        data = np.zeros((3, SIZE - 1, SIZE - 1), np.uint8)
+        for b in range(3):
+            reproject(rasterio.band(src, b + 1), data[b], dst_transform=shifted, dst_crs=src.crs,
+                      resampling=Resampling.bilinear)
+    ortho = write_raster(tmp_path / "a_again.tif", data, transform=shifted, compress="JPEG", jpeg_quality=60,
+                         tiled=True, blockxsize=64, blockysize=64)
+    code, err = _predict(capsys, towns, ortho, tmp_path / "p", model="chips")
+    assert code == 0, err
+    sun = _sun(tmp_path / "p")
+    assert sun["source"] == "training fit" and sun["azimuth_deg"] == pytest.approx(towns["fit"].azimuth_deg, abs=0.01)
+    assert "same flight: its pixels match the training orthophoto's at r = " in str(sun["note"]), sun
+    assert "no shadow features" not in err, err
+
+
+def test_the_chips_tell_the_same_flight_from_a_later_one_with_a_margin(towns) -> None:
+    """The measure behind the two tests above: town A's orthophoto matches its chips at r = 1; the same town under
+    a sun 14° away, and another town, stay below SAME_FLIGHT_R."""
+    fit = dataclasses.replace(towns["fit"], chips=_chips(towns))
+    same = flight_match(towns["a"], fit)
+    assert same.chips == towns["n_chips"] >= 3 and same.r == pytest.approx(1.0, abs=1e-3)
+    later = flight_match(towns["a_later"], fit)
+    assert later.chips == towns["n_chips"] and later.r is not None and later.r < SAME_FLIGHT_R - 0.01, later
+    other = flight_match(towns["b"], fit)
+    assert other.r is not None and other.r < 0.5, other
+
+
+@pytest.mark.parametrize("how", ["--acquired", "TIFF DateTime"])
+def test_a_later_flight_with_its_time_gets_its_own_sun(how: str, towns, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    """The later flight of town A with its time (given, or in its TIFF DateTime): its own sun, 14° from the fit,
+    used as stated. The TIFF DateTime is not doubted in favour of the fit: the fit is another flight's."""
+    az_b, el_b = towns["sun_b"]
+    ortho = _copy(towns["a_later"], tmp_path / "later.tif")
+    options: tuple[str, ...] = ("--acquired", WHEN) if how == "--acquired" else ()
+    if how == "TIFF DateTime":
+        with rasterio.open(ortho, "r+") as dst:
+            dst.update_tags(TIFFTAG_DATETIME=WHEN.replace("-", ":").replace("T", " ").rstrip("Z"))
+    code, err = _predict(capsys, towns, ortho, tmp_path / "p", *options, model="chips")
+    assert code == 0, err
+    sun = _sun(tmp_path / "p")
+    assert sun["source"] == how and sun["acquired"] == WHEN, sun
+    assert sun["azimuth_deg"] == pytest.approx(az_b, abs=0.01) and sun["elevation_deg"] == pytest.approx(el_b, abs=0.01)
+    assert "training fit" not in err, err
+
+
+def _chips(towns: dict[str, object]) -> tuple[object, ...]:
+    sun = load_checkpoint(towns["chips"])[1].sun  # as predict reads them back
+    assert sun is not None
+    return sun.chips

@@ -11,8 +11,10 @@
    the fit so, the fit is used and a warning gives both suns (``--acquired`` makes the time count). A file's
    placeholder time (``0000:00:00 00:00:00``, blanks) or impossible one is no time, with a warning naming the file;
 2. else the sun fitted on the training area (``meta.sun``), when the orthophoto is **of the same flight**:
-   its footprint lies within :data:`SAME_FLIGHT_M` of the training area's, and no acquisition time says
-   otherwise. An orthophoto elsewhere (another town, another survey) gets no sun from the training area;
+   its footprint lies within :data:`SAME_FLIGHT_M` of the training area's, and where it covers part of the
+   training area its pixels there are the training orthophoto's (:mod:`aerialmtl.sun.flight`: a later flight of
+   the same town is not, and gets no sun from the training fit). An orthophoto elsewhere (another town, another
+   survey) gets no sun from the training area; a time of its own (step 1) is used as stated;
 3. else none: the feature is off, said once, and the maps are those of ``--sun none``.
 
 ``AZ,EL`` is the sun given in degrees (azimuth clockwise from true north, elevation above the horizon, as flight
@@ -30,10 +32,14 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import rasterio
+
 from aerialmtl.errors import InputError
 from aerialmtl.formats.stac import read_source_properties, source_item_path
-from aerialmtl.io.align import Grid
+from aerialmtl.io.align import Grid, open_raster
 from aerialmtl.io.place import NoPlace, wgs84_outline
+from aerialmtl.sun.flight import SAME_FLIGHT_R, FlightChip, FlightMatch, grey_levels, match_chips
 from aerialmtl.sun.record import TrainingSun
 from aerialmtl.sun.solar_position import (
     MIN_ELEVATION_DEG,
@@ -241,6 +247,40 @@ def same_flight(grid: Grid, training: TrainingSun) -> bool:
     return bool(gap <= SAME_FLIGHT_M)
 
 
+def flight_match(path: str | Path, training: TrainingSun) -> FlightMatch:
+    """How the orthophoto ``path`` matches the training orthophoto's chips (``training.chips``) it covers.
+
+    Each chip is read from ``path`` onto its own grid in the training CRS (bilinear; the mean of the first three
+    bands; NaN where the orthophoto has no data by its nodata value, mask or alpha band). An orthophoto that cannot
+    be read so (no transformation between the CRSs) compares no chip.
+    """
+    if not training.chips or training.crs is None:
+        return FlightMatch(None, 0)
+    from affine import Affine
+    from rasterio.warp import Resampling, reproject, transform_bounds
+
+    try:
+        with open_raster(path, "orthophoto") as src:
+            left, bottom, right, top = transform_bounds(src.crs, training.crs, *src.bounds)
+            alpha = next((i + 1 for i, c in enumerate(src.colorinterp) if c.name == "alpha"), 0)
+            bands = [i for i in range(1, src.count + 1) if i != alpha][:3]
+
+            def read(chip: FlightChip) -> np.ndarray | None:
+                west, south, east, north = chip.bounds
+                if west >= right or east <= left or south >= top or north <= bottom:
+                    return None
+                out = np.full((len(bands), chip.size, chip.size), np.nan, np.float32)
+                for k, band in enumerate(bands):
+                    reproject(rasterio.band(src, band), out[k], src_alpha=alpha, dst_nodata=np.nan,
+                              dst_transform=Affine(chip.pixel, 0.0, chip.left, 0.0, -chip.pixel, chip.top),
+                              dst_crs=training.crs, resampling=Resampling.bilinear)
+                return grey_levels(out)
+
+            return match_chips(training.chips, read, (right - left) / src.width / training.chips[0].pixel)
+    except Exception:  # noqa: BLE001 - unreadable here, or PROJ's own errors (CPLE_*): no chip compared
+        return FlightMatch(None, 0)
+
+
 def _place(grid: Grid) -> tuple[float, float, float] | str:
     """``(lon, lat, grid convergence)`` at ``grid``'s centre, or why it has none (a local CRS, outside its domain;
     an orthophoto is refused for that when it is opened, :meth:`~aerialmtl.inference.ortho.OrthoInput.open`).
@@ -298,6 +338,8 @@ def choose_sun(value: str, acquired: str | None, path: str | Path, grid: Grid, t
     lon, lat, convergence = place
     fit = training if training is not None and training.clear else None
     fit_here = fit is not None and same_flight(grid, fit)
+    flight = flight_match(path, fit) if fit_here and fit is not None else FlightMatch(None, 0)
+    fit_here = fit_here and not flight.other_flight
     found = Acquisition(parse_time(acquired), "--acquired", True) if acquired else acquisition_time(path, tags)
     if found is not None:
         az, el = sun_position(found.when, lon, lat)
@@ -326,13 +368,28 @@ def choose_sun(value: str, acquired: str | None, path: str | Path, grid: Grid, t
                 warnings.warn(f"{name}: {choice.note}", UserWarning, stacklevel=2)
             return choice
         return _checked(az, el, convergence, label, note, acquired=stamp)
-    if fit_here and fit is not None and fit.azimuth_deg is not None and fit.elevation_deg is not None:
+    return _without_time(fit if fit_here else None, flight, training, convergence)
+
+
+def _without_time(fit: TrainingSun | None, flight: FlightMatch, training: TrainingSun | None,
+                  convergence: float) -> SunChoice:
+    """The sun of an orthophoto without an acquisition time: the training fit ``fit`` where it is of the training
+    flight (``None`` where not), else off, saying why (``flight``: how its pixels matched the training chips).
+    """
+    if fit is not None and fit.azimuth_deg is not None and fit.elevation_deg is not None:
+        why = (f"its pixels match the training orthophoto's at r = {flight.r:.2f} over {flight.chips} places"
+               if flight.r is not None else f"within {SAME_FLIGHT_M / 1000:g} km of the training area")
         return _checked(fit.azimuth_deg, fit.elevation_deg, convergence, "training fit",
-                        f"sun of the training fit (same flight: within {SAME_FLIGHT_M / 1000:g} km of the training "
-                        f"area): azimuth {fit.azimuth_deg:.1f}°, elevation {fit.elevation_deg:.1f}°")
+                        f"sun of the training fit (same flight: {why}): azimuth {fit.azimuth_deg:.1f}°, elevation "
+                        f"{fit.elevation_deg:.1f}°")
+    if flight.other_flight:
+        return _off(f"off: no acquisition time, and the orthophoto covers the training area but is another flight "
+                    f"(its pixels there match the training orthophoto's at r = {flight.r:.2f} over {flight.chips} "
+                    f"places; the same flight gives {SAME_FLIGHT_R:g} or more), so the training fit's sun is not its "
+                    "sun: pass --acquired with when it was flown, or --sun AZ,EL")
     if training is not None and not training.clear:
         return _off(f"off: the training area's sun fit found no clear sun ({training.reason})")
-    if fit is not None:
+    if training is not None:
         return _off("off: no acquisition time (pass --acquired or --sun AZ,EL) and the orthophoto is not of the "
                     f"training flight (more than {SAME_FLIGHT_M / 1000:g} km from the training area)")
     return _off("off: no acquisition time (pass --acquired or --sun AZ,EL) and the model holds no sun fit")
@@ -346,4 +403,4 @@ def _checked(az: float, el: float, convergence: float, source: str, note: str,
 
 
 __all__ = ["DISAGREE_DEG", "SAME_FLIGHT_M", "Acquisition", "SunChoice", "acquisition_time", "choose_sun",
-           "parse_sun", "same_flight"]
+           "flight_match", "parse_sun", "same_flight"]

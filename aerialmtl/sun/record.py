@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from aerialmtl.errors import CheckpointError
+from aerialmtl.sun.flight import FlightChip
 
 #: The feature set of the shadow classifier this version computes (:data:`aerialmtl.sun.colour.FEATURES`) and its
 #: logistic weights, intercept first (:data:`aerialmtl.sun.colour.N_FEATURES` + 1): what a stored classifier must
@@ -80,6 +81,9 @@ class TrainingSun:
         acquired: the training orthophoto's acquisition time (ISO 8601 UTC) where it records one, else ``None``.
         time_sun: the sun of that time and place ``[azimuth, elevation]`` (true north), where known.
         shadow_model: the area's shadow classifier (:meth:`aerialmtl.sun.ShadowModel.to_dict`), or ``None``.
+        chips: squares of the training orthophoto (:mod:`aerialmtl.sun.flight`): an orthophoto that covers the
+            training area is of the training flight, and so has its sun, only where its pixels match them. Empty in
+            checkpoints fitted before they were kept (place alone decides there).
     """
 
     clear: bool
@@ -94,6 +98,7 @@ class TrainingSun:
     acquired: str | None = None
     time_sun: tuple[float, float] | None = None
     shadow_model: dict[str, Any] | None = None
+    chips: tuple[FlightChip, ...] = ()
 
     def __post_init__(self) -> None:
         if self.clear and (self.azimuth_deg is None or self.elevation_deg is None or self.grid_azimuth_deg is None):

@@ -6,9 +6,11 @@ training patches back into one mosaic (orthophoto and reference heights on the t
 (:func:`aerialmtl.sun.fit_sun`: the sun whose cast shadows best follow how shadow-like the ground looks), fits
 the area's shadow classifier at that sun (:class:`aerialmtl.sun.ShadowModel`: the cast shadows of the reference
 heights are its labels, so water and dark roofs are learnt not to be shadows) and stores both with the
-training area's footprint (:class:`~aerialmtl.sun.record.TrainingSun`). ``predict --sun auto`` uses them for an
-orthophoto of the same flight (:mod:`aerialmtl.inference.sun_choice`). A fit without a clear optimum
-(overcast, a sun near the zenith, no tall structures) is stored as such and switches the feature off.
+training area's footprint and a few squares of its orthophoto (:class:`~aerialmtl.sun.record.TrainingSun`; the
+squares tell the training flight from a later one where an orthophoto covers the training area:
+:mod:`aerialmtl.sun.flight`). ``predict --sun auto`` uses them for an orthophoto of the same flight
+(:mod:`aerialmtl.inference.sun_choice`). A fit without a clear optimum (overcast, a sun near the zenith, no tall
+structures) is stored as such and switches the feature off.
 Training patches only: no validation or test pixel takes part.
 """
 
@@ -28,6 +30,7 @@ from aerialmtl.formats.checkpoint import update_meta
 from aerialmtl.formats.tiles import TileFolderInfo, read_manifest
 from aerialmtl.progress import tqdm_auto as tqdm
 from aerialmtl.sun import ShadowModel, fit_sun
+from aerialmtl.sun.flight import FlightChip, cut_chip, pick_chips
 from aerialmtl.sun.record import TrainingSun
 from aerialmtl.sun.solar_position import file_time, grid_convergence_deg, lonlat, sun_position
 
@@ -53,6 +56,13 @@ class AreaImage:
     crs: str | None
     bounds: tuple[float, float, float, float] | None
     ortho: str | None = None  # the orthophoto the tile folder was cut from (its provenance), where recorded
+    chips: list[FlightChip] = dataclasses.field(default_factory=list)  # one per textured patch (aerialmtl.sun.flight)
+
+
+def _chip(patch: Any, row: dict[str, Any]) -> FlightChip | None:
+    """The centre chip of a training patch read with :func:`read_raw_patch`, on the grid its manifest row gives."""
+    pixel = (float(row["right"]) - float(row["left"])) / float(row["width"])
+    return cut_chip(patch.image, patch.image_valid, float(row["left"]), float(row["top"]), pixel)
 
 
 def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -> AreaImage:
@@ -93,6 +103,7 @@ def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -
             if p.height is not None:
                 height[s] = p.height
             valid[s] |= p.image_valid
+            area.chips.extend(c for c in (_chip(p, row),) if c is not None)
             if bar is not None:
                 bar.update(1)
         area.rgb, area.height, area.valid = [rgb], [height], [valid]
@@ -104,6 +115,7 @@ def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -
             area.rgb.append(np.ascontiguousarray(p.image[:3]))  # its own type: unit_rgb scales by its largest value
             area.height.append(p.height if p.height is not None else np.full(p.image_valid.shape, np.nan, np.float32))
             area.valid.append(p.image_valid)
+            area.chips.extend(c for c in (_chip(p, rows[i]),) if c is not None)
             if bar is not None:
                 bar.update(1)
     return area
@@ -178,7 +190,7 @@ def _fit_training_sun(data_dir: str | Path, split: str, bar: Any) -> TrainingSun
     return TrainingSun(clear=True, reason=reason, azimuth_deg=round(true_az, 4), elevation_deg=fit.sun.elevation_deg,
                        grid_azimuth_deg=fit.sun.azimuth_deg, score=fit.score, sharpness=fit.sharpness,
                        acquired=acquired, time_sun=time_sun, shadow_model=model, crs=area.crs,
-                       bounds=area.bounds)
+                       bounds=area.bounds, chips=pick_chips(area.chips))
 
 
 def _finite(v: float) -> float:
