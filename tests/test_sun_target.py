@@ -63,7 +63,8 @@ def test_a_later_flight_of_the_same_place_does_not_get_the_training_sun(towns: d
                                                                         tmp_path: Path) -> None:
     """No time on the second town: by place it is "the same flight", but its own shadows fall 80° away: the layers
     are off for it, a warning gives both azimuths and the fix, and prediction.json says why. (A sun 14° wrong is
-    not refuted: with a network's heights the image cannot tell it from the right one; see CHECK_RATIO.)"""
+    not refuted by the shadows: with a network's heights the image cannot tell it from the right one, see
+    CHECK_RATIO; over the training area the pixels tell another flight, tests/test_time_and_place.py.)"""
     with pytest.warns(UserWarning, match=r"own shadows fall towards azimuth 2[23]\d°.*--acquired"):
         rec = _predict(towns["second"], towns["training"], tmp_path / "second")  # type: ignore[arg-type]
     sun = rec["sun"]

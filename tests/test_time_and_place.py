@@ -397,3 +397,16 @@ def _chips(towns: dict[str, object]) -> tuple[object, ...]:
     sun = load_checkpoint(towns["chips"])[1].sun  # as predict reads them back
     assert sun is not None
     return sun.chips
+
+
+@pytest.mark.parametrize("grey", ["not base64!", "AAAA"])
+def test_a_damaged_flight_chip_in_a_checkpoint_is_refused_naming_the_fix(grey: str, towns) -> None:
+    """A checkpoint whose training squares were cut short or garbled is refused when read, saying to refit the sun,
+    rather than comparing an orthophoto with garbage."""
+    from aerialmtl.config import from_dict, to_dict
+    from aerialmtl.errors import CheckpointError
+
+    record = to_dict(dataclasses.replace(towns["fit"], chips=_chips(towns)))
+    record["chips"][0]["grey"] = grey
+    with pytest.raises(CheckpointError, match=r"flight chip.*refit the sun"):
+        from_dict(TrainingSun, record)
