@@ -250,9 +250,10 @@ def same_flight(grid: Grid, training: TrainingSun) -> bool:
 def flight_match(path: str | Path, training: TrainingSun) -> FlightMatch:
     """How the orthophoto ``path`` matches the training orthophoto's chips (``training.chips``) it covers.
 
-    Each chip is read from ``path`` onto its own grid in the training CRS (bilinear; the mean of the first three
-    bands; NaN where the orthophoto has no data by its nodata value, mask or alpha band). An orthophoto that cannot
-    be read so (no transformation between the CRSs) compares no chip.
+    Each chip is read from ``path`` onto its own grid in the training CRS (bilinear, or averaged where the
+    orthophoto is finer, as tiling does; the mean of the first three bands; NaN where the orthophoto has no data by
+    its nodata value, mask or alpha band). An orthophoto that cannot be read so (no transformation between the
+    CRSs) compares no chip.
     """
     if not training.chips or training.crs is None:
         return FlightMatch(None, 0)
@@ -264,6 +265,8 @@ def flight_match(path: str | Path, training: TrainingSun) -> FlightMatch:
             left, bottom, right, top = transform_bounds(src.crs, training.crs, *src.bounds)
             alpha = next((i + 1 for i, c in enumerate(src.colorinterp) if c.name == "alpha"), 0)
             bands = [i for i in range(1, src.count + 1) if i != alpha][:3]
+            coarser = (right - left) / src.width / training.chips[0].pixel  # its pixel over the chips'
+            how = Resampling.average if coarser < 1.0 else Resampling.bilinear  # as the tiles were made
 
             def read(chip: FlightChip) -> np.ndarray | None:
                 west, south, east, north = chip.bounds
@@ -273,10 +276,10 @@ def flight_match(path: str | Path, training: TrainingSun) -> FlightMatch:
                 for k, band in enumerate(bands):
                     reproject(rasterio.band(src, band), out[k], src_alpha=alpha, dst_nodata=np.nan,
                               dst_transform=Affine(chip.pixel, 0.0, chip.left, 0.0, -chip.pixel, chip.top),
-                              dst_crs=training.crs, resampling=Resampling.bilinear)
+                              dst_crs=training.crs, resampling=how)
                 return grey_levels(out)
 
-            return match_chips(training.chips, read, (right - left) / src.width / training.chips[0].pixel)
+            return match_chips(training.chips, read, coarser)
     except Exception:  # noqa: BLE001 - unreadable here, or PROJ's own errors (CPLE_*): no chip compared
         return FlightMatch(None, 0)
 
@@ -377,14 +380,14 @@ def _without_time(fit: TrainingSun | None, flight: FlightMatch, training: Traini
     flight (``None`` where not), else off, saying why (``flight``: how its pixels matched the training chips).
     """
     if fit is not None and fit.azimuth_deg is not None and fit.elevation_deg is not None:
-        why = (f"its pixels match the training orthophoto's at r = {flight.r:.2f} over {flight.chips} places"
+        why = (f"its pixels match the training orthophoto's at r = {flight.r:.3f} over {flight.chips} places"
                if flight.r is not None else f"within {SAME_FLIGHT_M / 1000:g} km of the training area")
         return _checked(fit.azimuth_deg, fit.elevation_deg, convergence, "training fit",
                         f"sun of the training fit (same flight: {why}): azimuth {fit.azimuth_deg:.1f}°, elevation "
                         f"{fit.elevation_deg:.1f}°")
     if flight.other_flight:
         return _off(f"off: no acquisition time, and the orthophoto covers the training area but is another flight "
-                    f"(its pixels there match the training orthophoto's at r = {flight.r:.2f} over {flight.chips} "
+                    f"(its pixels there match the training orthophoto's at r = {flight.r:.3f} over {flight.chips} "
                     f"places; the same flight gives {SAME_FLIGHT_R:g} or more), so the training fit's sun is not its "
                     "sun: pass --acquired with when it was flown, or --sun AZ,EL")
     if training is not None and not training.clear:
