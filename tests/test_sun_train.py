@@ -64,6 +64,27 @@ def test_the_training_fit_keeps_squares_of_its_orthophoto_that_the_orthophoto_ma
     assert match.chips == len(sun.chips) and match.r == pytest.approx(1.0, abs=1e-3) and not match.other_flight
 
 
+def test_the_squares_of_a_model_trained_on_chosen_bands_are_read_from_those_bands(tmp_path: Path) -> None:
+    """A 4-band orthophoto with its near-infrared first (a CIR product), tiled with `--bands 2,3,4`: the squares
+    are of those bands, and the orthophoto itself matches them (read from bands 1-3 it would not)."""
+    from aerialmtl.inference.sun_choice import flight_match
+
+    res = synthesize(tmp_path / "town", size=384, seed=11, gsd=0.5)
+    with rasterio.open(res.ortho) as src:
+        profile, rgb = src.profile, src.read()
+    nir = np.random.default_rng(1).integers(0, 255, size=rgb.shape[1:], dtype=np.uint8)[None]
+    profile.update(count=4, photometric="MINISBLACK")  # four data bands, none of them alpha
+    cir = tmp_path / "cir.tif"
+    with rasterio.open(cir, "w", **profile) as dst:
+        dst.write(np.concatenate([nir, rgb]))
+    tiles = tmp_path / "tiles"
+    tile_dataset(cir, tiles, ndsm=res.ndsm, options=TileOptions(size=64, stride=64, bands=(2, 3, 4)), progress=False)
+    sun = fit_training_sun(tiles)
+    assert sun.chips and all(chip.bands == (2, 3, 4) for chip in sun.chips)
+    match = flight_match(cir, sun)
+    assert match.r == pytest.approx(1.0, abs=1e-3) and not match.other_flight
+
+
 def test_an_area_without_shadows_stores_no_sun_and_says_why(tmp_path: Path) -> None:
     tiles, _, _ = _tiles(tmp_path, flat=True)
     sun = fit_training_sun(tiles)

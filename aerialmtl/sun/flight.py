@@ -64,7 +64,9 @@ class FlightChip:
         left, top: the chip's upper-left corner in the training area's CRS (its units).
         pixel: the chip's pixel size in those units (north-up, square pixels).
         size: its side in pixels.
-        grey: base64 of its ``size × size`` uint8 grey levels (the mean of the first three bands), row-major.
+        grey: base64 of its ``size × size`` uint8 grey levels (the mean of its first three bands), row-major.
+        bands: the 1-based orthophoto bands those were (``tile --bands``); empty: the orthophoto's first three
+            (its alpha band left out).
     """
 
     left: float
@@ -72,12 +74,16 @@ class FlightChip:
     pixel: float
     size: int
     grey: str
+    bands: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.left) and math.isfinite(self.top) and math.isfinite(self.pixel)
                 and self.pixel > 0):
             raise CheckpointError("checkpoint meta is invalid: a flight chip (sun.chips) needs a finite corner and a "
                                   f"pixel size > 0, got ({self.left}, {self.top}) and {self.pixel}")
+        if not all(isinstance(b, int) and b >= 1 for b in self.bands):
+            raise CheckpointError(f"checkpoint meta is invalid: a flight chip's bands must be 1-based band numbers, "
+                                  f"got {self.bands}")
         if not 8 <= self.size <= 512:
             raise CheckpointError(f"checkpoint meta is invalid: a flight chip's size must be 8–512 px, got {self.size}")
         try:
@@ -107,10 +113,11 @@ def grey_levels(rgb: np.ndarray) -> np.ndarray:
 
 
 def cut_chip(rgb: np.ndarray, valid: np.ndarray, left: float, top: float, pixel: float,
-             size: int = CHIP_PX) -> FlightChip | None:
+             size: int = CHIP_PX, bands: tuple[int, ...] = ()) -> FlightChip | None:
     """The centre chip of a patch ``rgb`` uint8 ``(bands, h, w)`` whose upper-left corner is ``(left, top)`` with
     pixels of ``pixel`` CRS units, or ``None`` where the patch is smaller than ``size``, the chip has an invalid
-    pixel (``valid`` bool ``(h, w)``) or too little texture (:data:`MIN_STD`).
+    pixel (``valid`` bool ``(h, w)``) or too little texture (:data:`MIN_STD`). ``bands``: the orthophoto bands
+    of ``rgb``'s first three (see :class:`FlightChip`).
     """
     h, w = rgb.shape[1:]
     if h < size or w < size:
@@ -123,7 +130,7 @@ def cut_chip(rgb: np.ndarray, valid: np.ndarray, left: float, top: float, pixel:
         return None
     data = np.clip(np.rint(grey), 0, 255).astype(np.uint8).tobytes()
     return FlightChip(left=float(left + c * pixel), top=float(top - r * pixel), pixel=float(pixel), size=size,
-                      grey=base64.b64encode(data).decode("ascii"))
+                      grey=base64.b64encode(data).decode("ascii"), bands=tuple(int(b) for b in bands[:3]))
 
 
 def pick_chips(candidates: Sequence[FlightChip], n: int = N_CHIPS, seed: int = 0) -> tuple[FlightChip, ...]:

@@ -59,10 +59,12 @@ class AreaImage:
     chips: list[FlightChip] = dataclasses.field(default_factory=list)  # one per textured patch (aerialmtl.sun.flight)
 
 
-def _chip(patch: Any, row: dict[str, Any]) -> FlightChip | None:
-    """The centre chip of a training patch read with :func:`read_raw_patch`, on the grid its manifest row gives."""
+def _chip(patch: Any, row: dict[str, Any], bands: tuple[int, ...]) -> FlightChip | None:
+    """The centre chip of a training patch read with :func:`read_raw_patch`, on the grid its manifest row gives;
+    ``bands``: the orthophoto bands the patch holds.
+    """
     pixel = (float(row["right"]) - float(row["left"])) / float(row["width"])
-    return cut_chip(patch.image, patch.image_valid, float(row["left"]), float(row["top"]), pixel)
+    return cut_chip(patch.image, patch.image_valid, float(row["left"]), float(row["top"]), pixel, bands=bands)
 
 
 def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -> AreaImage:
@@ -103,7 +105,7 @@ def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -
             if p.height is not None:
                 height[s] = p.height
             valid[s] |= p.image_valid
-            area.chips.extend(c for c in (_chip(p, row),) if c is not None)
+            area.chips.extend(c for c in (_chip(p, row, info.bands),) if c is not None)
             if bar is not None:
                 bar.update(1)
         area.rgb, area.height, area.valid = [rgb], [height], [valid]
@@ -115,7 +117,7 @@ def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -
             area.rgb.append(np.ascontiguousarray(p.image[:3]))  # its own type: unit_rgb scales by its largest value
             area.height.append(p.height if p.height is not None else np.full(p.image_valid.shape, np.nan, np.float32))
             area.valid.append(p.image_valid)
-            area.chips.extend(c for c in (_chip(p, rows[i]),) if c is not None)
+            area.chips.extend(c for c in (_chip(p, rows[i], info.bands),) if c is not None)
             if bar is not None:
                 bar.update(1)
     return area
