@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from aerialmtl.classes import IGNORE_INDEX
-from aerialmtl.data.synth import SynthResult, synthesize
+from aerialmtl.data.synth import synthesize
 from aerialmtl.errors import OutputExistsError
 from aerialmtl.evaluation.evaluate import evaluate_prediction
 from aerialmtl.evaluation.maps import add_class_legend, add_colorbar, layer_cmap
@@ -35,7 +35,6 @@ from aerialmtl.formats.prediction import (
 )
 from aerialmtl.inference.predict import predict_raster
 from aerialmtl.io.outputs import OutputFolder, write_text_atomic
-from aerialmtl.sun.solar_position import grid_convergence_deg
 from aerialmtl.tiling.splits import SplitSpec
 from aerialmtl.tiling.tile import TileOptions, tile_dataset
 from aerialmtl.training.config import load_train_config
@@ -101,18 +100,6 @@ class DemoResult:
     paths: dict[str, Path] = field(default_factory=dict)
     report: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
-
-
-def _own_sun(town: SynthResult) -> str:
-    """``--sun`` for a synthetic town: its own sun, ``AZ,EL`` in degrees from true north (the town keeps it from
-    its grid's north).
-    """
-    import rasterio
-
-    with rasterio.open(town.ortho) as src:
-        crs, b = src.crs.to_string(), src.bounds
-    convergence = grid_convergence_deg(crs, (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0)
-    return f"{(town.sun_azimuth - convergence) % 360.0:.4f},{town.sun_elevation:.4f}"
 
 
 def builtin_config(name: str) -> Path:
@@ -190,7 +177,7 @@ def _run_demo(out: Path, settings: DemoSettings, overwrite: bool, log: Callable[
     log(f"[4/5] predicting the test town with {s.mc} MC-dropout samples ...")
     t = time.perf_counter()
     pred = predict_raster(test_town.ortho, result.best_checkpoint, out / "prediction", mc=s.mc,
-                          precision="fp32", overwrite=overwrite, progress=progress, sun=_own_sun(test_town))
+                          precision="fp32", overwrite=overwrite, progress=progress, sun=test_town.sun_option())
     stage("predict", t)
 
     log("[5/5] evaluating against the test town's references ...")

@@ -58,12 +58,27 @@ class Written:
 
 @dataclass(frozen=True)
 class SynthResult(Written):
-    """Paths written by :func:`synthesize` and the scene's sun angles (degrees)."""
+    """Paths written by :func:`synthesize` and the scene's sun angles (degrees; the azimuth from the grid's
+    north).
+    """
 
     sun_azimuth: float
     sun_elevation: float
     seconds: float
     buildings: Path
+
+    def sun_option(self) -> str:
+        """The town's own sun as ``predict --sun`` takes it, ``"AZ,EL"`` in degrees from true north: what a flight
+        record gives a user. Towns made at one place under different suns are two flights of one town, and
+        ``--sun auto`` rightly gives the second no sun of a model trained on the first
+        (:mod:`aerialmtl.sun.flight`); the demo and the uncertainty notebook pass this instead.
+        """
+        from aerialmtl.sun.solar_position import grid_convergence_deg
+
+        with rasterio.open(self.ortho) as src:
+            crs, b = src.crs.to_string(), src.bounds
+        convergence = grid_convergence_deg(crs, (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0)
+        return f"{(self.sun_azimuth - convergence) % 360.0:.4f},{self.sun_elevation:.4f}"
 
 
 def _profile(size: int, count: int, dtype: str, crs: CRS, transform: Affine, nodata: float | None) -> dict[str, Any]:
