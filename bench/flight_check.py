@@ -26,7 +26,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     args = ap.parse_args()
     area = training_area(args.tiles)
-    fit = TrainingSun(clear=False, reason="squares only", crs=area.crs, chips=pick_chips(area.chips))
+    fit = TrainingSun(clear=False, reason="squares only", crs=area.crs, chips=pick_chips(area.chips),
+                      chip_bands=area.bands)
     t = time.perf_counter()
     match = flight_match(args.ortho, fit)
     first = time.perf_counter() - t

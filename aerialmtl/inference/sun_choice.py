@@ -251,7 +251,7 @@ def flight_match(path: str | Path, training: TrainingSun) -> FlightMatch:
     """How the orthophoto ``path`` matches the training orthophoto's chips (``training.chips``) it covers.
 
     Each chip is read from ``path`` onto its own grid in the training CRS (bilinear, or averaged where the
-    orthophoto is finer, as tiling does; the mean of the chips' bands; NaN where the orthophoto has no data by
+    orthophoto is finer, as tiling does; the mean of ``training.chip_bands``; NaN where the orthophoto has no data by
     its nodata value, mask or alpha band). An orthophoto that cannot be read so (no transformation between the
     CRSs) compares no chip.
     """
@@ -264,7 +264,7 @@ def flight_match(path: str | Path, training: TrainingSun) -> FlightMatch:
         with open_raster(path, "orthophoto") as src:
             left, bottom, right, top = transform_bounds(src.crs, training.crs, *src.bounds)
             alpha = next((i + 1 for i, c in enumerate(src.colorinterp) if c.name == "alpha"), 0)
-            bands = list(training.chips[0].bands) or [i for i in range(1, src.count + 1) if i != alpha][:3]
+            bands = list(training.chip_bands) or [i for i in range(1, src.count + 1) if i != alpha][:3]
             if not bands or max(bands) > src.count:  # not the bands the model reads: predict says so itself
                 return FlightMatch(None, 0)
             alpha = 0 if alpha in bands else alpha  # a band the model was trained on is data, whatever its tag

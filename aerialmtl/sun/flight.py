@@ -64,9 +64,8 @@ class FlightChip:
         left, top: the chip's upper-left corner in the training area's CRS (its units).
         pixel: the chip's pixel size in those units (north-up, square pixels).
         size: its side in pixels.
-        grey: base64 of its ``size × size`` uint8 grey levels (the mean of its first three bands), row-major.
-        bands: the 1-based orthophoto bands those were (``tile --bands``); empty: the orthophoto's first three
-            (its alpha band left out).
+        grey: base64 of its ``size × size`` uint8 grey levels (the mean of the patch's first three bands: the
+            orthophoto bands :attr:`aerialmtl.sun.record.TrainingSun.chip_bands`), row-major.
     """
 
     left: float
@@ -74,16 +73,12 @@ class FlightChip:
     pixel: float
     size: int
     grey: str
-    bands: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.left) and math.isfinite(self.top) and math.isfinite(self.pixel)
                 and self.pixel > 0):
             raise CheckpointError("checkpoint meta is invalid: a flight chip (sun.chips) needs a finite corner and a "
                                   f"pixel size > 0, got ({self.left}, {self.top}) and {self.pixel}")
-        if not all(isinstance(b, int) and b >= 1 for b in self.bands):
-            raise CheckpointError(f"checkpoint meta is invalid: a flight chip's bands must be 1-based band numbers, "
-                                  f"got {self.bands}")
         if not 8 <= self.size <= 512:
             raise CheckpointError(f"checkpoint meta is invalid: a flight chip's size must be 8–512 px, got {self.size}")
         try:
@@ -113,11 +108,10 @@ def grey_levels(rgb: np.ndarray) -> np.ndarray:
 
 
 def cut_chip(rgb: np.ndarray, valid: np.ndarray, left: float, top: float, pixel: float,
-             size: int = CHIP_PX, bands: tuple[int, ...] = ()) -> FlightChip | None:
+             size: int = CHIP_PX) -> FlightChip | None:
     """The centre chip of a patch ``rgb`` uint8 ``(bands, h, w)`` whose upper-left corner is ``(left, top)`` with
     pixels of ``pixel`` CRS units, or ``None`` where the patch is smaller than ``size``, the chip has an invalid
-    pixel (``valid`` bool ``(h, w)``) or too little texture (:data:`MIN_STD`). ``bands``: the orthophoto bands
-    of ``rgb``'s first three (see :class:`FlightChip`).
+    pixel (``valid`` bool ``(h, w)``) or too little texture (:data:`MIN_STD`).
     """
     h, w = rgb.shape[1:]
     if h < size or w < size:
@@ -130,7 +124,7 @@ def cut_chip(rgb: np.ndarray, valid: np.ndarray, left: float, top: float, pixel:
         return None
     data = np.clip(np.rint(grey), 0, 255).astype(np.uint8).tobytes()
     return FlightChip(left=float(left + c * pixel), top=float(top - r * pixel), pixel=float(pixel), size=size,
-                      grey=base64.b64encode(data).decode("ascii"), bands=tuple(int(b) for b in bands[:3]))
+                      grey=base64.b64encode(data).decode("ascii"))
 
 
 def pick_chips(candidates: Sequence[FlightChip], n: int = N_CHIPS, seed: int = 0) -> tuple[FlightChip, ...]:

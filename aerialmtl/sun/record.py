@@ -84,6 +84,8 @@ class TrainingSun:
         chips: squares of the training orthophoto (:mod:`aerialmtl.sun.flight`): an orthophoto that covers the
             training area is of the training flight, and so has its sun, only where its pixels match them. Empty in
             checkpoints fitted before they were kept (place alone decides there).
+        chip_bands: the 1-based orthophoto bands the chips' grey levels average (``tile --bands``'s first three);
+            empty: the orthophoto's first three (its alpha band left out).
     """
 
     clear: bool
@@ -99,6 +101,7 @@ class TrainingSun:
     time_sun: tuple[float, float] | None = None
     shadow_model: dict[str, Any] | None = None
     chips: tuple[FlightChip, ...] = ()
+    chip_bands: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.clear and (self.azimuth_deg is None or self.elevation_deg is None or self.grid_azimuth_deg is None):
@@ -111,6 +114,9 @@ class TrainingSun:
         if self.elevation_deg is not None and not (math.isfinite(self.elevation_deg) and 0 < self.elevation_deg < 90):
             raise CheckpointError("checkpoint meta is invalid: sun.elevation_deg must be in (0, 90) degrees, got "
                                   f"{self.elevation_deg}")
+        if not all(isinstance(b, int) and b >= 1 for b in self.chip_bands):
+            raise CheckpointError(f"checkpoint meta is invalid: sun.chip_bands must be 1-based band numbers, got "
+                                  f"{self.chip_bands}")
         if self.shadow_model is not None:
             problem = shadow_model_problem(self.shadow_model)
             if problem is not None:

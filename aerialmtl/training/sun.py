@@ -57,14 +57,16 @@ class AreaImage:
     bounds: tuple[float, float, float, float] | None
     ortho: str | None = None  # the orthophoto the tile folder was cut from (its provenance), where recorded
     chips: list[FlightChip] = dataclasses.field(default_factory=list)  # one per textured patch (aerialmtl.sun.flight)
+    bands: tuple[int, ...] = ()  # the orthophoto bands the patches hold (tile --bands)
 
-
-def _chip(patch: Any, row: dict[str, Any], bands: tuple[int, ...]) -> FlightChip | None:
-    """The centre chip of a training patch read with :func:`read_raw_patch`, on the grid its manifest row gives;
-    ``bands``: the orthophoto bands the patch holds.
-    """
-    pixel = (float(row["right"]) - float(row["left"])) / float(row["width"])
-    return cut_chip(patch.image, patch.image_valid, float(row["left"]), float(row["top"]), pixel, bands=bands)
+    def add_chip(self, patch: Any, row: dict[str, Any]) -> None:
+        """Keep the centre chip of a training patch read with :func:`read_raw_patch` (on the grid its manifest row
+        gives), where it is textured enough (:func:`aerialmtl.sun.flight.cut_chip`).
+        """
+        pixel = (float(row["right"]) - float(row["left"])) / float(row["width"])
+        chip = cut_chip(patch.image, patch.image_valid, float(row["left"]), float(row["top"]), pixel)
+        if chip is not None:
+            self.chips.append(chip)
 
 
 def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -> AreaImage:
@@ -93,7 +95,8 @@ def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -
     right = max(float(r["right"]) for r in rows)
     top = max(float(r["top"]) for r in rows)
     ortho = info.provenance.get("ortho")
-    area = AreaImage([], [], [], float(info.gsd), info.crs, (left, bottom, right, top), str(ortho) if ortho else None)
+    area = AreaImage([], [], [], float(info.gsd), info.crs, (left, bottom, right, top), str(ortho) if ortho else None,
+                     bands=tuple(int(b) for b in info.bands[:3]))
     if w * h <= MAX_MOSAIC_PIXELS:
         rgb = np.zeros((3, h, w), np.uint8)
         height = np.full((h, w), np.nan, np.float32)
@@ -105,7 +108,7 @@ def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -
             if p.height is not None:
                 height[s] = p.height
             valid[s] |= p.image_valid
-            area.chips.extend(c for c in (_chip(p, row, info.bands),) if c is not None)
+            area.add_chip(p, row)
             if bar is not None:
                 bar.update(1)
         area.rgb, area.height, area.valid = [rgb], [height], [valid]
@@ -117,7 +120,7 @@ def training_area(data_dir: str | Path, split: str = "train", bar: Any = None) -
             area.rgb.append(np.ascontiguousarray(p.image[:3]))  # its own type: unit_rgb scales by its largest value
             area.height.append(p.height if p.height is not None else np.full(p.image_valid.shape, np.nan, np.float32))
             area.valid.append(p.image_valid)
-            area.chips.extend(c for c in (_chip(p, rows[i], info.bands),) if c is not None)
+            area.add_chip(p, rows[i])
             if bar is not None:
                 bar.update(1)
     return area
@@ -192,7 +195,7 @@ def _fit_training_sun(data_dir: str | Path, split: str, bar: Any) -> TrainingSun
     return TrainingSun(clear=True, reason=reason, azimuth_deg=round(true_az, 4), elevation_deg=fit.sun.elevation_deg,
                        grid_azimuth_deg=fit.sun.azimuth_deg, score=fit.score, sharpness=fit.sharpness,
                        acquired=acquired, time_sun=time_sun, shadow_model=model, crs=area.crs,
-                       bounds=area.bounds, chips=pick_chips(area.chips))
+                       bounds=area.bounds, chips=pick_chips(area.chips), chip_bands=area.bands)
 
 
 def _finite(v: float) -> float:
